@@ -1,0 +1,165 @@
+"""Geometry kernel of multi-mirror imaging (Hesch et al., ECCV 2010, eqs. 3-9). numpy only.
+
+Frames: {B} base, {C} camera (OpenCV: x right, y down, z forward). ``T_cam_base = (R, t)`` maps base
+points into the camera, ``Cp = R @ Bp + t`` (eq. 2). A mirror vector ``v`` (metres, camera frame) is the
+shortest vector from the camera centre to the mirror plane; mirror 1 is the first the light meets,
+mirror Nv the one the camera looks into.
+
+Pose perturbations follow GTSAM's ``Pose3`` retraction, ``R <- R Exp(w)``, ``t <- t + R nu``, tangent
+``[w, nu]``, so the Jacobians below plug straight into custom factors.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+__all__ = [
+    "skew",
+    "householder",
+    "reflect",
+    "nested_transform",
+    "apply_transform",
+    "project",
+    "project_jacobian",
+    "so3_exp",
+    "project_to_orthogonal",
+    "measurement",
+    "measurement_jacobians",
+    "FLIP_Y",
+]
+
+#: Reflection across the camera's xz-plane, ``I - 2 e2 e2^T`` (eq. 11).
+FLIP_Y = np.diag([1.0, -1.0, 1.0])
+
+
+def skew(w: np.ndarray) -> np.ndarray:
+    """Cross-product matrix ``[w]x`` with ``[w]x @ u == np.cross(w, u)``."""
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix ``Exp(w)`` of an axis-angle vector ``w`` (radians), Rodrigues' formula."""
+    w = np.asarray(w, dtype=float)
+    angle = float(np.linalg.norm(w))
+    K = skew(w)
+    if angle < 1e-12:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(angle) / angle * K + (1.0 - np.cos(angle)) / angle**2 * (K @ K)
+
+
+def householder(mirror_vector: np.ndarray) -> np.ndarray:
+    """Householder matrix ``M = I - 2 v v^T / (v^T v)`` of a mirror vector (eq. 3)."""
+    v = np.asarray(mirror_vector, dtype=float)
+    return np.eye(3) - 2.0 * np.outer(v, v) / float(v @ v)
+
+
+def reflect(points: np.ndarray, mirror_vector: np.ndarray) -> np.ndarray:
+    """Reflect camera-frame points (..., 3) in the mirror plane of ``mirror_vector``: ``M x + 2 v`` (eq. 3)."""
+    v = np.asarray(mirror_vector, dtype=float)
+    return points @ householder(v).T + 2.0 * v
+
+
+def nested_transform(
+    R_cam_base: np.ndarray, t_cam_base: np.ndarray, mirror_vectors: Sequence[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Composite ``(A_Nv, b_Nv)`` of the camera-to-base transform and Nv reflections (eqs. 5-8).
+
+    ``A_0 = R, b_0 = t``; ``A_k = M_k A_{k-1}``, ``b_k = M_k b_{k-1} + 2 v_k``. ``mirror_vectors[0]``
+    is mirror 1. The camera sees base point ``Bp`` at ``A_Nv @ Bp + b_Nv``; ``det A_Nv = (-1)^Nv``.
+    """
+    A = np.array(R_cam_base, dtype=float)  # eq. (8)
+    b = np.array(t_cam_base, dtype=float)
+    for v in mirror_vectors:
+        M = householder(v)
+        A = M @ A  # eq. (6)
+        b = M @ b + 2.0 * np.asarray(v, dtype=float)  # eq. (7)
+    return A, b
+
+
+def apply_transform(A: np.ndarray, b: np.ndarray, base_points: np.ndarray) -> np.ndarray:
+    """Camera-frame positions ``A @ Bp + b`` of base points (N, 3) (eq. 5)."""
+    return np.asarray(base_points, dtype=float) @ np.asarray(A).T + np.asarray(b)
+
+
+def project(camera_points: np.ndarray) -> np.ndarray:
+    """Normalized image coordinates ``(p1/p3, p2/p3)`` of camera-frame points (..., 3) (eq. 9)."""
+    p = np.asarray(camera_points, dtype=float)
+    return p[..., :2] / p[..., 2:3]
+
+
+def project_jacobian(camera_point: np.ndarray) -> np.ndarray:
+    """2x3 Jacobian of eq. (9) at one camera-frame point."""
+    p1, p2, p3 = camera_point
+    inv = 1.0 / p3
+    return np.array([[inv, 0.0, -p1 * inv * inv], [0.0, inv, -p2 * inv * inv]])
+
+
+def project_to_orthogonal(matrix: np.ndarray, determinant: float | None = None) -> np.ndarray:
+    """Nearest orthogonal matrix (Frobenius norm) to ``matrix``, optionally with a fixed determinant sign."""
+    U, _, Vt = np.linalg.svd(matrix)
+    Q = U @ Vt
+    if determinant is not None and np.sign(np.linalg.det(Q)) != np.sign(determinant):
+        U = U.copy()
+        U[:, -1] *= -1.0
+        Q = U @ Vt
+    return Q
+
+
+def measurement(
+    R_cam_base: np.ndarray,
+    t_cam_base: np.ndarray,
+    mirror_vectors: Sequence[np.ndarray],
+    base_point: np.ndarray,
+) -> np.ndarray:
+    """Predicted normalized measurement ``h`` of one base point through the mirrors (eqs. 5, 9)."""
+    A, b = nested_transform(R_cam_base, t_cam_base, mirror_vectors)
+    return project(A @ np.asarray(base_point, dtype=float) + b)
+
+
+def _reflection_jacobian_wrt_mirror(point: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """3x3 Jacobian of ``x - 2 v (v.x)/(v.v) + 2 v`` with respect to ``v`` (derivative of eq. 3)."""
+    vv = float(v @ v)
+    vx = float(v @ point)
+    return 2.0 * np.eye(3) - 2.0 * (
+        (vx / vv) * np.eye(3) + np.outer(v, point) / vv - 2.0 * vx * np.outer(v, v) / vv**2
+    )
+
+
+def measurement_jacobians(
+    R_cam_base: np.ndarray,
+    t_cam_base: np.ndarray,
+    mirror_vectors: Sequence[np.ndarray],
+    base_point: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], np.ndarray]:
+    """Predicted measurement and its Jacobians (eqs. 3-9).
+
+    Returns ``(z, H_pose, H_mirrors, H_point)``: ``z`` (2,), ``H_pose`` (2, 6) in GTSAM's Pose3 tangent
+    ``[w, nu]`` of ``T_cam_base`` (``R Exp(w)``, ``t + R nu``), one (2, 3) block per mirror vector, and
+    ``H_point`` (2, 3) with respect to the base-frame point.
+    """
+    R = np.asarray(R_cam_base, dtype=float)
+    Bp = np.asarray(base_point, dtype=float)
+    Cp = R @ Bp + np.asarray(t_cam_base, dtype=float)  # eq. (2)
+    # Forward pass: the point before each mirror, and each Householder matrix.
+    points_before = []
+    householders = []
+    x = Cp
+    for v in mirror_vectors:
+        v = np.asarray(v, dtype=float)
+        M = householder(v)
+        points_before.append(x)
+        householders.append(M)
+        x = M @ x + 2.0 * v  # eq. (3)
+    J_proj = project_jacobian(x)  # eq. (9)
+    # Backward pass: d(final point)/d(point after mirror k) = M_Nv ... M_{k+1}.
+    downstream = np.eye(3)
+    H_mirrors: list[np.ndarray] = [np.empty((2, 3))] * len(householders)
+    for k in range(len(householders) - 1, -1, -1):
+        v = np.asarray(mirror_vectors[k], dtype=float)
+        H_mirrors[k] = J_proj @ downstream @ _reflection_jacobian_wrt_mirror(points_before[k], v)
+        downstream = downstream @ householders[k]
+    J_cam = J_proj @ downstream  # d z / d Cp; downstream = M_Nv ... M_1
+    H_pose = np.hstack([J_cam @ (-R @ skew(Bp)), J_cam @ R])
+    H_point = J_cam @ R
+    return project(x), H_pose, H_mirrors, H_point
