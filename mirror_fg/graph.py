@@ -1,0 +1,363 @@
+"""Factor graph from a dataset, Levenberg-Marquardt MLE (eq. 23) and Marginals -> ``Calibration``.
+
+Unknowns (eq. 21): one ``Pose3`` node ``X(0)`` for ``T_cam_base`` (camera <- base), one ``Point3`` node
+``V(i)`` per mirror configuration (mirror vector, camera frame, metres) and one ``Point3`` node ``L(j)``
+per reconstruction point (base frame, metres).
+"""
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, V, X
+
+from mirror_fg.analytic import AnalyticSolution, SolveError, solve_analytic
+from mirror_fg.dataset import RESULT_FORMAT, Dataset
+from mirror_fg.factors.reflection import ReflectionFactor, noise_model
+from mirror_fg.geometry import nested_transform, project
+from mirror_fg.transforms import rotation_to_quaternion_xyzw, spec_covariance_from_pose3
+
+__all__ = ["Calibration", "InitialEstimate", "GraphLayout", "build_graph", "calibrate", "OUTLIER_SIGMAS"]
+
+#: Measurements whose whitened residual exceeds this many sigmas after the solve are reported.
+OUTLIER_SIGMAS = 5.0
+
+
+class InitialEstimate(Protocol):
+    """Anything with the unknowns' values: an ``AnalyticSolution`` or a ground truth."""
+
+    R_cam_base: np.ndarray
+    t_cam_base: np.ndarray
+    mirror_vectors: dict[tuple[int, int], np.ndarray]
+    points: dict[str, np.ndarray]
+
+
+@dataclass
+class GraphLayout:
+    """Which key holds which unknown."""
+
+    pose_key: int
+    mirror_keys: dict[tuple[int, int], int]
+    point_keys: dict[str, int]
+
+    @classmethod
+    def for_dataset(cls, dataset: Dataset) -> "GraphLayout":
+        return cls(
+            pose_key=X(0),
+            mirror_keys={config: V(i) for i, config in enumerate(dataset.configurations)},
+            point_keys={name: L(j) for j, name in enumerate(dataset.reconstruction_point_names)},
+        )
+
+    def name_of(self, key: int) -> str:
+        """Human name of the unknown behind a key."""
+        if key == self.pose_key:
+            return "T_cam_base"
+        for (l, m), k in self.mirror_keys.items():
+            if k == key:
+                return f"mirror {l} placement {m}"
+        for name, k in self.point_keys.items():
+            if k == key:
+                return f"point '{name}'"
+        return gtsam.DefaultKeyFormatter(key)
+
+
+@dataclass
+class Measurement:
+    """One observation: image, point name, normalized coordinates (2,), the image's mirror configs."""
+
+    image_id: str
+    point: str
+    normalized: np.ndarray
+    mirror_configs: tuple[int, ...]
+
+
+def measurements_of(dataset: Dataset) -> list[Measurement]:
+    """Every observation of the dataset in normalized coordinates, in file order."""
+    result = []
+    for image in dataset.images:
+        normalized = dataset.normalized(image)
+        for name in image.observations:
+            result.append(Measurement(image.id, name, normalized[name], image.mirror_configs))
+    return result
+
+
+def measurement_factor(
+    dataset: Dataset, layout: GraphLayout, meas: Measurement, noise: gtsam.noiseModel.Base
+) -> gtsam.CustomFactor:
+    """The reflection factor of one measurement (fiducial constant, or landmark node)."""
+    mirror_keys = [layout.mirror_keys[(l + 1, m)] for l, m in enumerate(meas.mirror_configs)]
+    if meas.point in dataset.fiducials:
+        return ReflectionFactor(noise, layout.pose_key, mirror_keys, meas.normalized, fiducial=dataset.fiducials[meas.point])
+    return ReflectionFactor(noise, layout.pose_key, mirror_keys, meas.normalized, landmark_key=layout.point_keys[meas.point])
+
+
+def build_graph(
+    dataset: Dataset, initial: InitialEstimate, robust: str | None = None
+) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, GraphLayout, list[Measurement]]:
+    """Factor graph of every measurement and the initial values of every unknown."""
+    layout = GraphLayout.for_dataset(dataset)
+    noise = noise_model(dataset.normalized_sigma, robust)
+    graph = gtsam.NonlinearFactorGraph()
+    measurements = measurements_of(dataset)
+    for meas in measurements:
+        graph.add(measurement_factor(dataset, layout, meas, noise))
+    values = gtsam.Values()
+    values.insert(layout.pose_key, gtsam.Pose3(gtsam.Rot3(initial.R_cam_base), np.asarray(initial.t_cam_base, dtype=float)))
+    for config, key in layout.mirror_keys.items():
+        values.insert(key, np.asarray(initial.mirror_vectors[config], dtype=float))
+    for name, key in layout.point_keys.items():
+        values.insert(key, np.asarray(initial.points[name], dtype=float))
+    return graph, values, layout, measurements
+
+
+@dataclass
+class Calibration:
+    """Result of a calibration: MLE, its covariance, the analytical solution it started from.
+
+    ``R_cam_base``, ``t_cam_base``: camera <- base (``Cp = R Bp + t``; metres). ``covariance``: 6x6 in
+    SPEC's convention ``[dtheta (rad), dt (m)]``, ``R_true = Exp(dtheta) R_est``, ``t_true = t_est + dt``.
+    ``mirror_vectors``/``mirror_covariances``: per configuration ``(l, m)``, camera frame, metres / m^2.
+    ``points``/``point_covariances``: reconstruction points, base frame, metres / m^2. ``residuals``:
+    per measurement (N, 2), pixels when the dataset has a camera, else normalized units.
+    """
+
+    R_cam_base: np.ndarray
+    t_cam_base: np.ndarray
+    covariance: np.ndarray | None
+    mirror_vectors: dict[tuple[int, int], np.ndarray]
+    mirror_covariances: dict[tuple[int, int], np.ndarray]
+    points: dict[str, np.ndarray]
+    point_covariances: dict[str, np.ndarray]
+    analytic: AnalyticSolution | None
+    iterations: int
+    initial_error: float
+    final_error: float
+    converged: bool
+    residuals: np.ndarray
+    residual_labels: list[tuple[str, str]]
+    residual_units: str
+    outliers: list[tuple[str, str, float]] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def R_base_cam(self) -> np.ndarray:
+        """Rotation of the camera frame in the base frame (``T_base_cam``)."""
+        return self.R_cam_base.T
+
+    @property
+    def t_base_cam(self) -> np.ndarray:
+        """Camera centre in the base frame, metres."""
+        return -self.R_cam_base.T @ self.t_cam_base
+
+    @property
+    def sigma3_rotation_deg(self) -> np.ndarray:
+        """3-sigma bounds of the rotation about the camera axes, degrees."""
+        return np.degrees(3.0 * np.sqrt(np.diag(self.covariance)[:3]))
+
+    @property
+    def sigma3_position_mm(self) -> np.ndarray:
+        """3-sigma bounds of ``t_cam_base`` (camera axes), millimetres."""
+        return 1000.0 * 3.0 * np.sqrt(np.diag(self.covariance)[3:])
+
+    @property
+    def residual_norms(self) -> np.ndarray:
+        """Euclidean reprojection error of each measurement (pixels or normalized units)."""
+        return np.linalg.norm(self.residuals, axis=1)
+
+    def to_dict(self) -> dict:
+        """The ``mirror-fg/result@1`` dictionary (SPEC.md)."""
+
+        def transform(R: np.ndarray, t: np.ndarray) -> dict:
+            return {"R": R.tolist(), "t": np.asarray(t).tolist(), "q_xyzw": rotation_to_quaternion_xyzw(R).tolist()}
+
+        norms = self.residual_norms
+        result = {
+            "format": RESULT_FORMAT,
+            "T_cam_base": transform(self.R_cam_base, self.t_cam_base),
+            "T_base_cam": transform(self.R_base_cam, self.t_base_cam),
+            "covariance_cam_base": None if self.covariance is None else self.covariance.tolist(),
+            "sigma3_cam_base": None
+            if self.covariance is None
+            else {"rotation_deg": self.sigma3_rotation_deg.tolist(), "position_mm": self.sigma3_position_mm.tolist()},
+            "analytic": None
+            if self.analytic is None
+            else {"T_cam_base": transform(self.analytic.R_cam_base, self.analytic.t_cam_base)},
+            "mirrors": [
+                {
+                    "mirror": l,
+                    "config": m,
+                    "v": self.mirror_vectors[(l, m)].tolist(),
+                    "sigma3_mm": _sigma3_mm(self.mirror_covariances.get((l, m))),
+                }
+                for l, m in sorted(self.mirror_vectors)
+            ],
+            "points": {
+                name: {"xyz": self.points[name].tolist(), "sigma3_mm": _sigma3_mm(self.point_covariances.get(name))}
+                for name in sorted(self.points)
+            },
+            "optimizer": {
+                "iterations": self.iterations,
+                "initial_error": self.initial_error,
+                "final_error": self.final_error,
+                "converged": self.converged,
+            },
+            "residuals": {
+                "rms_px": float(np.sqrt(np.mean(norms**2))) if len(norms) else 0.0,
+                "max_px": float(np.max(norms)) if len(norms) else 0.0,
+                "mean_px": float(np.mean(norms)) if len(norms) else 0.0,
+                "units": self.residual_units,
+                "outliers": [
+                    {"image": image, "point": point, "sigmas": sigmas} for image, point, sigmas in self.outliers
+                ],
+            },
+        }
+        return result
+
+
+def _sigma3_mm(covariance: np.ndarray | None) -> list[float] | None:
+    if covariance is None:
+        return None
+    return (1000.0 * 3.0 * np.sqrt(np.diag(covariance))).tolist()
+
+
+def predicted_normalized(
+    dataset: Dataset, measurements: list[Measurement], R: np.ndarray, t: np.ndarray,
+    mirror_vectors: dict[tuple[int, int], np.ndarray], points: dict[str, np.ndarray],
+) -> np.ndarray:
+    """Predicted normalized coordinates (N, 2) of every measurement (eqs. 5, 9)."""
+    predicted = np.empty((len(measurements), 2))
+    for i, meas in enumerate(measurements):
+        A, b = nested_transform(R, t, [mirror_vectors[(l + 1, m)] for l, m in enumerate(meas.mirror_configs)])
+        base_point = dataset.fiducials.get(meas.point)
+        if base_point is None:
+            base_point = points[meas.point]
+        predicted[i] = project(A @ base_point + b)
+    return predicted
+
+
+def residual_statistics(
+    dataset: Dataset, measurements: list[Measurement], predicted: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (N, 2) predicted minus observed, in pixels (through the distortion) where the dataset
+    has a camera, else normalized; and each measurement's whitened residual norm in sigmas."""
+    observed_normalized = np.array([m.normalized for m in measurements]).reshape(-1, 2)
+    whitened = np.linalg.norm((predicted - observed_normalized) / dataset.normalized_sigma, axis=1)
+    if dataset.camera is None:
+        return predicted - observed_normalized, whitened
+    by_id = {image.id: image for image in dataset.images}
+    observed_pixels = np.array([by_id[m.image_id].observations[m.point] for m in measurements]).reshape(-1, 2)
+    return dataset.camera.distort(predicted) - observed_pixels, whitened
+
+
+def extract_values(values: gtsam.Values, layout: GraphLayout) -> tuple[np.ndarray, np.ndarray, dict, dict]:
+    """``(R_cam_base, t_cam_base, mirror_vectors, points)`` read from GTSAM values."""
+    pose = values.atPose3(layout.pose_key)
+    mirror_vectors = {config: np.array(values.atPoint3(key)) for config, key in layout.mirror_keys.items()}
+    points = {name: np.array(values.atPoint3(key)) for name, key in layout.point_keys.items()}
+    return pose.rotation().matrix(), np.array(pose.translation()), mirror_vectors, points
+
+
+def marginal_covariances(
+    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, layout: GraphLayout, source: str
+) -> tuple[np.ndarray, dict, dict]:
+    """Pose covariance (SPEC convention), mirror and point covariances from ``gtsam.Marginals``."""
+    try:
+        marginals = gtsam.Marginals(graph, values)
+    except RuntimeError as error:  # IndeterminantLinearSystemException surfaces as RuntimeError
+        raise SolveError(f"{source}: {unconstrained_message(error, layout)}") from None
+    pose = values.atPose3(layout.pose_key)
+    covariance = spec_covariance_from_pose3(pose.rotation().matrix(), marginals.marginalCovariance(layout.pose_key))
+    mirrors = {config: marginals.marginalCovariance(key) for config, key in layout.mirror_keys.items()}
+    points = {name: marginals.marginalCovariance(key) for name, key in layout.point_keys.items()}
+    return covariance, mirrors, points
+
+
+def unconstrained_message(error: Exception, layout: GraphLayout) -> str:
+    """Name the unknown GTSAM found unconstrained in an indeterminant linear system."""
+    text = str(error)
+    for key in [layout.pose_key, *layout.mirror_keys.values(), *layout.point_keys.values()]:
+        if gtsam.DefaultKeyFormatter(key) in text:
+            return f"the data do not constrain {layout.name_of(key)} (indeterminant system near it)"
+    return "the data leave some unknowns unconstrained (indeterminant linear system)"
+
+
+def calibrate(
+    dataset: Dataset,
+    *,
+    initial: InitialEstimate | None = None,
+    robust: str | None = None,
+    compute_covariance: bool = True,
+    max_iterations: int = 100,
+    on_iteration: Callable[[int, float, float], None] | None = None,
+) -> Calibration:
+    """Analytical solution (Sects. 4-5), then the MLE by Levenberg-Marquardt (eq. 23) and Marginals.
+
+    initial: start the MLE from these values instead of the analytical solution (e.g. the ground truth).
+    robust: ``None``, ``"huber"`` or ``"cauchy"`` kernel on every measurement. on_iteration: called with
+    ``(iteration, error_before, error_after)`` after each LM iteration.
+    """
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    analytic = None
+    if initial is None:
+        analytic = solve_analytic(dataset)
+        initial = analytic
+    timings["analytic"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    graph, values, layout, measurements = build_graph(dataset, initial, robust)
+    timings["build"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(1e-10)
+    params.setAbsoluteErrorTol(1e-12)
+    if on_iteration is not None:
+        params.iterationHook = on_iteration
+    initial_error = graph.error(values)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    try:
+        result = optimizer.optimize()
+    except RuntimeError as error:
+        raise SolveError(f"{dataset.source}: {unconstrained_message(error, layout)}") from None
+    final_error = graph.error(result)
+    iterations = optimizer.iterations()
+    converged = bool(np.isfinite(final_error)) and iterations < max_iterations
+    timings["optimize"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    covariance, mirror_covs, point_covs = (None, {}, {})
+    if compute_covariance:
+        covariance, mirror_covs, point_covs = marginal_covariances(graph, result, layout, dataset.source)
+    timings["marginals"] = time.perf_counter() - start
+
+    R, t, mirror_vectors, points = extract_values(result, layout)
+    predicted = predicted_normalized(dataset, measurements, R, t, mirror_vectors, points)
+    residuals, whitened = residual_statistics(dataset, measurements, predicted)
+    outliers = [
+        (meas.image_id, meas.point, float(w)) for meas, w in zip(measurements, whitened) if w > OUTLIER_SIGMAS
+    ]
+    return Calibration(
+        R_cam_base=R,
+        t_cam_base=t,
+        covariance=covariance,
+        mirror_vectors=mirror_vectors,
+        mirror_covariances=mirror_covs,
+        points=points,
+        point_covariances=point_covs,
+        analytic=analytic,
+        iterations=iterations,
+        initial_error=float(initial_error),
+        final_error=float(final_error),
+        converged=converged,
+        residuals=residuals,
+        residual_labels=[(m.image_id, m.point) for m in measurements],
+        residual_units="px" if dataset.camera is not None else "normalized",
+        outliers=outliers,
+        timings=timings,
+    )
