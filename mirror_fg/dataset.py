@@ -5,12 +5,44 @@ camera (undistorted and normalized here with OpenCV), else normalized image coor
 """
 from __future__ import annotations
 
+import json
+import math
+import numbers
+import os
+import re
+import tempfile
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 DATASET_FORMAT = "mirror-fg/dataset@1"
 RESULT_FORMAT = "mirror-fg/result@1"
+
+__all__ = [
+    "DATASET_FORMAT",
+    "RESULT_FORMAT",
+    "DatasetError",
+    "Camera",
+    "Image",
+    "Dataset",
+    "load_dataset",
+    "dataset_from_dict",
+    "dataset_to_dict",
+    "save_dataset",
+    "validate_image",
+    "write_result",
+    "load_result",
+]
+
+#: Lengths of OpenCV distortion vectors ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, tx, ty]]]])``.
+DIST_LENGTHS = (4, 5, 8, 12, 14)
+#: Fiducials all within this fraction of their extent from one line are collinear.
+COLLINEAR_TOL = 1e-6
+# cv2.undistortPoints stops after 5 fixed-point iterations by default (errors ~1e-5 on a wide-angle
+# lens); iterate until the reprojection error is below 1e-12 px (at most 100 times) instead.
+_UNDISTORT_CRITERIA = (100, 1e-12)  # (max iterations, epsilon in pixels)
 
 
 class DatasetError(ValueError):
@@ -41,7 +73,13 @@ class Camera:
         pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
         if pixels.shape[0] == 0:
             return np.zeros((0, 2))
-        return cv2.undistortPoints(pixels, self.K, np.asarray(self.dist, dtype=np.float64)).reshape(-1, 2)
+        dist = np.asarray(self.dist, dtype=np.float64)
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, *_UNDISTORT_CRITERIA)
+        if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x spelling; 5.x takes criteria directly
+            out = cv2.undistortPointsIter(pixels, self.K, dist, None, None, criteria)
+        else:
+            out = cv2.undistortPoints(pixels, self.K, dist, criteria=criteria)
+        return out.reshape(-1, 2)
 
     def distort(self, normalized: np.ndarray) -> np.ndarray:
         """Pixel coordinates (N, 2) of normalized coordinates (N, 2) through the distortion (cv2.projectPoints)."""
@@ -85,6 +123,11 @@ class Dataset:
     images: list[Image]
     source: str = "<dataset>"
     _normalized_cache: dict[str, dict[str, np.ndarray]] = field(default_factory=dict, repr=False)
+    # The pixel observations each cache entry was computed from: an image id alone does not identify
+    # the data (another image with the same id, or an edited one, must not get stale coordinates).
+    _normalized_inputs: dict[str, tuple[list[str], np.ndarray]] = field(
+        default_factory=dict, repr=False, compare=False
+    )
 
     @property
     def normalized_sigma(self) -> np.ndarray:
@@ -95,15 +138,16 @@ class Dataset:
 
     def normalized(self, image: Image) -> dict[str, np.ndarray]:
         """Observations of ``image`` in normalized image coordinates (undistorted when there is a camera)."""
-        cached = self._normalized_cache.get(image.id)
-        if cached is not None and cached.keys() == image.observations.keys():
-            return cached
         names = list(image.observations)
-        coords = np.array([image.observations[n] for n in names], dtype=float).reshape(-1, 2)
-        if self.camera is not None:
-            coords = self.camera.normalize(coords)
+        raw = np.array([image.observations[n] for n in names], dtype=float).reshape(-1, 2)
+        cached = self._normalized_cache.get(image.id)
+        seen = self._normalized_inputs.get(image.id)
+        if cached is not None and seen is not None and seen[0] == names and np.array_equal(seen[1], raw):
+            return cached
+        coords = self.camera.normalize(raw) if self.camera is not None else raw.copy()
         result = {name: coords[i] for i, name in enumerate(names)}
         self._normalized_cache[image.id] = result
+        self._normalized_inputs[image.id] = (names, raw)
         return result
 
     @property
@@ -116,3 +160,484 @@ class Dataset:
     def configurations(self) -> list[tuple[int, int]]:
         """Sorted mirror configurations ``(l, m)`` (mirror l is 1-based) seen in the images."""
         return sorted({(l + 1, m) for image in self.images for l, m in enumerate(image.mirror_configs)})
+
+
+# --------------------------------------------------------------------------------------------------
+# Reading and validating dataset@1
+# --------------------------------------------------------------------------------------------------
+
+PathLike = str | os.PathLike[str]
+
+
+def load_dataset(path: PathLike) -> Dataset:
+    """Read and validate a ``mirror-fg/dataset@1`` JSON file.
+
+    Raises DatasetError (one line naming the file, the image or point and the problem) on an unreadable
+    file, invalid JSON (with line and column) or any content that :func:`dataset_from_dict` rejects.
+    """
+    source = os.fspath(path)
+    return dataset_from_dict(_parse_json(_read_text(source), source), source=source)
+
+
+def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Dataset:
+    """Validate a dataset@1 dictionary (the JSON shape) and build a :class:`Dataset`.
+
+    Fiducials become float arrays (3,) in metres in {B}; observations float arrays (2,), pixels with a
+    camera or normalized image coordinates without one; ``mirror_configs`` tuples of ints.
+    ``source`` names the data in every error message (a file name for :func:`load_dataset`).
+    """
+    if not isinstance(d, Mapping):
+        raise DatasetError(f"{source}: expected a JSON object at the top level, got {_kind(d)}")
+    fmt = d.get("format")
+    if fmt is None:
+        raise DatasetError(f"{source}: missing 'format' (expected {DATASET_FORMAT!r})")
+    if fmt != DATASET_FORMAT:
+        raise DatasetError(f"{source}: unknown format {_short(fmt)} (expected {DATASET_FORMAT!r})")
+
+    num_mirrors = d.get("num_mirrors")
+    if not _is_int(num_mirrors) or num_mirrors < 1:
+        raise DatasetError(f"{source}: num_mirrors must be an integer >= 1, got {_short(num_mirrors)}")
+
+    camera = _camera_from_dict(d.get("camera"), source)
+
+    if "pixel_sigma" not in d:
+        raise DatasetError(f"{source}: missing 'pixel_sigma' (measurement noise, pixels)")
+    pixel_sigma = d["pixel_sigma"]
+    if not _is_number(pixel_sigma) or not math.isfinite(pixel_sigma) or pixel_sigma <= 0:
+        raise DatasetError(f"{source}: pixel_sigma must be a finite number > 0, got {_short(pixel_sigma)}")
+
+    ds = Dataset(
+        num_mirrors=int(num_mirrors),
+        camera=camera,
+        pixel_sigma=float(pixel_sigma),
+        fiducials=_fiducials_from_dict(d.get("fiducials"), source),
+        images=[],
+        source=source,
+    )
+
+    images = d.get("images")
+    if images is None or (isinstance(images, list) and not images):
+        raise DatasetError(f"{source}: no images ('images' is missing or empty)")
+    if not isinstance(images, list):
+        raise DatasetError(f"{source}: 'images' must be a list, got {_kind(images)}")
+    first_index: dict[str, int] = {}
+    for index, entry in enumerate(images):
+        image = validate_image(entry, ds, index)
+        if image.id in first_index:
+            raise DatasetError(
+                f"{source}: image {image.id!r}: duplicate image id (images[{first_index[image.id]}] "
+                f"and images[{index}])"
+            )
+        first_index[image.id] = index
+        ds.images.append(image)
+    return ds
+
+
+def validate_image(
+    image: Image | Mapping[str, Any],
+    ds: Dataset,
+    index: int | None = None,
+    *,
+    known_points: set[str] | None = None,
+) -> Image:
+    """Check one image against ``ds`` and return it as a new :class:`Image` of plain types.
+
+    ``image`` is an :class:`Image` or a dict in the dataset@1 shape (``id``, ``mirror_configs``,
+    ``observations``). Checks: the id is a non-empty string; ``mirror_configs`` has ``ds.num_mirrors``
+    non-negative integer entries; there is at least one observation; every observation is two finite
+    numbers (pixels with a camera, normalized coordinates without one). Names outside ``ds.fiducials``
+    are reconstruction points and allowed, unless ``known_points`` is given: then a name outside
+    ``ds.fiducials`` and ``known_points`` is an error. ``index`` (position in the file) names the image
+    in messages when its id is unusable. Raises DatasetError.
+    """
+    source = ds.source
+    where = f"images[{index}]" if index is not None else "image"
+    if isinstance(image, Image):
+        image_id: Any = image.id
+        configs: Any = image.mirror_configs
+        observations: Any = image.observations
+    elif isinstance(image, Mapping):
+        image_id = image.get("id")
+        configs = image.get("mirror_configs")
+        observations = image.get("observations")
+    else:
+        raise DatasetError(
+            f"{source}: {where}: expected an object with id, mirror_configs and observations, "
+            f"got {_kind(image)}"
+        )
+
+    if not isinstance(image_id, str) or not image_id:
+        raise DatasetError(f"{source}: {where}: image id must be a non-empty string, got {_short(image_id)}")
+    prefix = f"{source}: image {image_id!r}"
+
+    if configs is None:
+        raise DatasetError(f"{prefix}: missing 'mirror_configs'")
+    if isinstance(configs, (str, bytes, Mapping)) or not isinstance(configs, Iterable):
+        raise DatasetError(f"{prefix}: mirror_configs must be a list of integers, got {_short(configs)}")
+    configs = list(configs)
+    if len(configs) != ds.num_mirrors:
+        raise DatasetError(
+            f"{prefix}: mirror_configs has {len(configs)} entries, expected {ds.num_mirrors} (num_mirrors)"
+        )
+    for l, m in enumerate(configs):
+        if not _is_int(m) or m < 0:
+            raise DatasetError(
+                f"{prefix}: mirror_configs[{l}] (mirror {l + 1}) must be a non-negative integer, "
+                f"got {_short(m)}"
+            )
+
+    if observations is None:
+        raise DatasetError(f"{prefix}: missing 'observations'")
+    if not isinstance(observations, Mapping):
+        raise DatasetError(
+            f"{prefix}: observations must be an object {{name: [u, v]}}, got {_kind(observations)}"
+        )
+    if not observations:
+        raise DatasetError(f"{prefix}: has no observations")
+    obs: dict[str, np.ndarray] = {}
+    for name, value in observations.items():
+        if not isinstance(name, str) or not name:
+            raise DatasetError(f"{prefix}: point name must be a non-empty string, got {_short(name)}")
+        if known_points is not None and name not in ds.fiducials and name not in known_points:
+            raise DatasetError(f"{prefix}: unknown point {name!r} (neither a fiducial nor a known point)")
+        obs[name] = _coordinates(value, 2, "[u, v]", f"{prefix}: point {name!r}")
+    return Image(id=image_id, mirror_configs=tuple(int(m) for m in configs), observations=obs)
+
+
+def _camera_from_dict(camera: Any, source: str) -> Camera | None:
+    """The camera of a dataset (``None`` when absent: observations are then normalized coordinates)."""
+    if camera is None:
+        return None
+    prefix = f"{source}: camera"
+    if not isinstance(camera, Mapping):
+        raise DatasetError(f"{prefix}: expected an object or null, got {_kind(camera)}")
+    model = camera.get("model", "pinhole")
+    if model != "pinhole":
+        raise DatasetError(f"{prefix}: unsupported model {_short(model)} (only 'pinhole')")
+    missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in camera]
+    if missing:
+        raise DatasetError(f"{prefix}: missing {', '.join(repr(k) for k in missing)}")
+    for key in ("width", "height"):
+        if not _is_int(camera[key]) or camera[key] < 1:
+            raise DatasetError(
+                f"{prefix}: {key} must be a positive integer (pixels), got {_short(camera[key])}"
+            )
+    for key in ("fx", "fy", "cx", "cy"):
+        value = camera[key]
+        if not _is_number(value) or not math.isfinite(value):
+            raise DatasetError(f"{prefix}: {key} must be a finite number (pixels), got {_short(value)}")
+        if key in ("fx", "fy") and value <= 0:
+            raise DatasetError(f"{prefix}: {key} must be > 0, got {_short(value)}")
+    dist = camera.get("dist", [0.0] * 5)
+    if (
+        not isinstance(dist, (list, tuple))
+        or len(dist) not in DIST_LENGTHS
+        or not all(_is_number(x) and math.isfinite(x) for x in dist)
+    ):
+        raise DatasetError(
+            f"{prefix}: dist must be 4, 5, 8, 12 or 14 finite numbers (OpenCV k1, k2, p1, p2[, k3, ...]), "
+            f"got {_short(dist)}"
+        )
+    return Camera(
+        width=int(camera["width"]),
+        height=int(camera["height"]),
+        fx=float(camera["fx"]),
+        fy=float(camera["fy"]),
+        cx=float(camera["cx"]),
+        cy=float(camera["cy"]),
+        dist=tuple(float(x) for x in dist),
+    )
+
+
+def _fiducials_from_dict(fiducials: Any, source: str) -> dict[str, np.ndarray]:
+    """Fiducials ``{name: (3,) metres in {B}}``: at least three, not all on one line."""
+    if fiducials is None:
+        raise DatasetError(f"{source}: missing 'fiducials' (at least 3 non-collinear points)")
+    if not isinstance(fiducials, Mapping):
+        raise DatasetError(
+            f"{source}: fiducials must be an object {{name: [x, y, z]}}, got {_kind(fiducials)}"
+        )
+    result: dict[str, np.ndarray] = {}
+    for name, value in fiducials.items():
+        if not isinstance(name, str) or not name:
+            raise DatasetError(f"{source}: fiducial name must be a non-empty string, got {_short(name)}")
+        result[name] = _coordinates(value, 3, "[x, y, z]", f"{source}: fiducial {name!r}")
+    if len(result) < 3:
+        raise DatasetError(f"{source}: {len(result)} fiducials, need at least 3 (non-collinear)")
+    if _collinear(np.array(list(result.values()))):
+        raise DatasetError(
+            f"{source}: the {len(result)} fiducials are collinear (all on one line); "
+            "need at least 3 non-collinear"
+        )
+    return result
+
+
+def _collinear(points: np.ndarray, tol: float = COLLINEAR_TOL) -> bool:
+    """True when every point (N, 3) lies within ``tol`` times the points' extent of one line."""
+    centred = points - points.mean(axis=0)
+    extent = float(np.max(np.linalg.norm(centred, axis=1)))
+    if extent == 0.0:
+        return True  # all coincide
+    direction = np.linalg.svd(centred)[2][0]
+    off_line = centred - np.outer(centred @ direction, direction)
+    return float(np.max(np.linalg.norm(off_line, axis=1))) <= tol * extent
+
+
+def _coordinates(value: Any, n: int, shape: str, what: str) -> np.ndarray:
+    """``value`` as a float array (n,) of finite numbers, else DatasetError starting with ``what``."""
+    if value is None:
+        raise DatasetError(f"{what}: missing coordinates, expected {shape}")
+    if isinstance(value, np.ndarray):
+        items = list(value.ravel()) if value.ndim == 1 else None
+    elif isinstance(value, (list, tuple)):
+        items = list(value)
+    else:
+        items = None
+    if items is None or len(items) != n:
+        got = f"{len(items)} values" if items is not None else _short(value)
+        raise DatasetError(f"{what}: expected {n} coordinates {shape}, got {got}")
+    for k, x in enumerate(items):
+        if not _is_number(x):
+            raise DatasetError(f"{what}: coordinate {k} is not a number: {_short(x)}")
+    try:
+        coords = np.array([float(x) for x in items], dtype=np.float64)
+    except OverflowError:
+        coords = np.full(n, np.inf)
+    if not np.all(np.isfinite(coords)):
+        raise DatasetError(f"{what}: coordinates are not finite: {_short(items)}")
+    return coords
+
+
+def _is_int(x: Any) -> bool:
+    """An integer that is not a bool (JSON ``true`` is not a count)."""
+    return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
+
+
+def _is_number(x: Any) -> bool:
+    """A real number that is not a bool."""
+    return isinstance(x, numbers.Real) and not isinstance(x, (bool, np.bool_))
+
+
+def _kind(x: Any) -> str:
+    """JSON-ish name of a value's type, for messages."""
+    names = {dict: "an object", list: "a list", str: "a string", bool: "a boolean", type(None): "null"}
+    for t, name in names.items():
+        if isinstance(x, t):
+            return name
+    return "a number" if _is_number(x) else type(x).__name__
+
+
+def _short(x: Any, limit: int = 60) -> str:
+    """One-line, bounded repr of a value for messages."""
+    text = repr(x.tolist() if isinstance(x, np.ndarray) else x)
+    text = " ".join(text.split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+# --------------------------------------------------------------------------------------------------
+# Writing dataset@1
+# --------------------------------------------------------------------------------------------------
+
+
+def dataset_to_dict(ds: Dataset) -> dict[str, Any]:
+    """The dataset@1 dictionary of ``ds`` (plain lists and floats; ``camera`` is null without one)."""
+    camera: dict[str, Any] | None = None
+    if ds.camera is not None:
+        c = ds.camera
+        camera = {
+            "model": "pinhole",
+            "width": int(c.width),
+            "height": int(c.height),
+            "fx": float(c.fx),
+            "fy": float(c.fy),
+            "cx": float(c.cx),
+            "cy": float(c.cy),
+            "dist": [float(x) for x in c.dist],
+        }
+    return {
+        "format": DATASET_FORMAT,
+        "num_mirrors": int(ds.num_mirrors),
+        "camera": camera,
+        "pixel_sigma": float(ds.pixel_sigma),
+        "fiducials": {name: [float(x) for x in p] for name, p in ds.fiducials.items()},
+        "images": [
+            {
+                "id": image.id,
+                "mirror_configs": [int(m) for m in image.mirror_configs],
+                "observations": {name: [float(x) for x in z] for name, z in image.observations.items()},
+            }
+            for image in ds.images
+        ],
+    }
+
+
+def save_dataset(path: PathLike, ds: Dataset) -> None:
+    """Write ``ds`` as a dataset@1 JSON file, atomically (an existing file is replaced only on success)."""
+    _atomic_write_text(os.fspath(path), _json_text(dataset_to_dict(ds), allow_nan=False))
+
+
+# --------------------------------------------------------------------------------------------------
+# result@1 files
+# --------------------------------------------------------------------------------------------------
+
+
+def write_result(path: PathLike, result: Mapping[str, Any]) -> None:
+    """Write a ``mirror-fg/result@1`` dictionary: JSON (indent 2), or YAML where ``path`` ends in .yaml/.yml.
+
+    numpy arrays and scalars become lists and plain numbers first. The write is atomic: the text goes
+    to a temporary file in the same directory that replaces ``path`` only when complete, so any
+    failure (a value that cannot be serialised, a full disk) leaves an existing file as it was and no
+    temporary file behind. Raises TypeError naming the key of a value that cannot be written.
+    """
+    target = os.fspath(path)
+    plain = _plain(result, "result")
+    if _is_yaml(target):
+        import yaml
+
+        text = yaml.safe_dump(plain, default_flow_style=None, sort_keys=False, allow_unicode=True)
+    else:
+        text = _json_text(plain, allow_nan=True)
+    _atomic_write_text(target, text)
+
+
+def load_result(path: PathLike) -> dict[str, Any]:
+    """Read a result@1 file (JSON, or YAML where the name ends in .yaml/.yml). Raises DatasetError."""
+    source = os.fspath(path)
+    text = _read_text(source)
+    if _is_yaml(source):
+        import yaml
+
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+            problem = getattr(exc, "problem", None) or "syntax error"
+            raise DatasetError(f"{source}: not valid YAML: {problem}{at}") from None
+    else:
+        data = _parse_json(text, source)
+    if not isinstance(data, dict):
+        raise DatasetError(f"{source}: expected an object at the top level, got {_kind(data)}")
+    fmt = data.get("format")
+    if fmt != RESULT_FORMAT:
+        what = "missing 'format'" if fmt is None else f"unknown format {_short(fmt)}"
+        raise DatasetError(f"{source}: {what} (expected {RESULT_FORMAT!r})")
+    return data
+
+
+def _plain(value: Any, where: str) -> Any:
+    """``value`` with numpy arrays/scalars and tuples turned into lists, floats, ints, bools."""
+    if isinstance(value, np.ndarray):
+        if value.ndim == 0:
+            return _plain(value[()], where)
+        return [_plain(v, f"{where}[{i}]") for i, v in enumerate(value)]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, Mapping):
+        out: dict[Any, Any] = {}
+        for key, v in value.items():
+            k = key.item() if isinstance(key, np.generic) else key
+            if not isinstance(k, (str, int)) or isinstance(k, bool):
+                raise TypeError(f"{where}: cannot write a key of type {type(key).__name__}: {_short(key)}")
+            out[k] = _plain(v, f"{where}[{k!r}]")
+        return out
+    if isinstance(value, (list, tuple)):
+        return [_plain(v, f"{where}[{i}]") for i, v in enumerate(value)]
+    raise TypeError(f"{where}: cannot write a value of type {type(value).__name__}")
+
+
+# --------------------------------------------------------------------------------------------------
+# Files
+# --------------------------------------------------------------------------------------------------
+
+# An innermost list of numbers as json.dumps(indent=...) lays it out, one number a line. Strings
+# cannot match: JSON escapes newlines inside them.
+_NUMBER_LIST = re.compile(r"\[\n\s*(-?[0-9][-+0-9.eE]*(?:,\n\s*-?[0-9][-+0-9.eE]*)*)\n\s*\]")
+
+
+def _json_text(data: Any, allow_nan: bool) -> str:
+    """JSON with indent 2, innermost lists of numbers kept on one line (``[x, y, z]``)."""
+    text = json.dumps(data, indent=2, allow_nan=allow_nan, ensure_ascii=False)
+    return _NUMBER_LIST.sub(_one_line, text) + "\n"
+
+
+def _one_line(match: re.Match[str]) -> str:
+    return "[" + ", ".join(number.strip() for number in match.group(1).split(",")) + "]"
+
+
+def _is_yaml(path: str) -> bool:
+    return path.lower().endswith((".yaml", ".yml"))
+
+
+def _read_text(source: str) -> str:
+    """The UTF-8 text of a file; DatasetError naming the file when it cannot be read."""
+    try:
+        with open(source, "rb") as f:
+            raw = f.read()
+    except OSError as exc:
+        raise DatasetError(f"{source}: cannot read file: {exc.strerror or exc}") from None
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise DatasetError(f"{source}: not UTF-8 text (byte {exc.start})") from None
+
+
+def _parse_json(text: str, source: str) -> Any:
+    """Parse JSON; DatasetError with line and column on a syntax error or a key repeated in one object."""
+
+    def no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for key, value in pairs:
+            if key in out:
+                raise DatasetError(f"{source}: key {key!r} appears twice in one JSON object")
+            out[key] = value
+        return out
+
+    try:
+        return json.loads(text, object_pairs_hook=no_duplicates)
+    except json.JSONDecodeError as exc:
+        at = f"line {exc.lineno}, column {exc.colno}"
+        raise DatasetError(f"{source}: not valid JSON: {exc.msg} at {at}") from None
+    except RecursionError:
+        raise DatasetError(f"{source}: not valid JSON: nested too deeply") from None
+
+
+def _atomic_write_text(path: str, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file in the same directory and ``os.replace``."""
+    target = os.path.realpath(path)  # keep a symlink a symlink: replace what it points to
+    directory = os.path.dirname(target)
+    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(target)}.", suffix=".tmp", dir=directory)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        # mkstemp makes the file 0600; give it the mode an ordinary open() would have.
+        try:
+            mode = os.stat(target).st_mode & 0o7777
+        except FileNotFoundError:
+            mode = 0o666 & ~_umask()
+        os.chmod(tmp, mode)
+        os.replace(tmp, target)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def _umask() -> int:
+    """The process umask, read without changing it where /proc allows."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
