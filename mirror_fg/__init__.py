@@ -1,1 +1,15 @@
-"""mirror_fg: camera-to-base calibration through multiple planar mirrors (Hesch et al., ECCV 2010)."""
+"""mirror_fg: camera-to-base calibration through multiple planar mirrors (Hesch et al., ECCV 2010).
+
+Frames: {B} base, {C} camera (OpenCV axes). ``T_cam_base = (R, t)`` with ``Cp = R @ Bp + t`` (metres);
+covariances are ``[dtheta (rad), dt (m)]`` with ``R_true = Exp(dtheta) @ R_est`` (SPEC.md).
+"""
+from mirror_fg.analytic import AnalyticSolution, SolveError, solve_analytic
+from mirror_fg.dataset import (
+    Camera, Dataset, DatasetError, Image, dataset_from_dict, load_dataset, load_result, save_dataset, write_result,
+)
+from mirror_fg.graph import Calibration, calibrate
+
+__all__ = [
+    "AnalyticSolution", "Calibration", "Camera", "Dataset", "DatasetError", "Image", "SolveError",
+    "calibrate", "dataset_from_dict", "load_dataset", "load_result", "save_dataset", "solve_analytic", "write_result",
+]

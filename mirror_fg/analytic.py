@@ -24,6 +24,8 @@ MIN_NORMAL_SPREAD = np.sin(np.deg2rad(0.5))
 CONSISTENCY_CAP = 0.05
 #: Number of child triples tried as hypotheses when P3P leaves several candidates per image.
 NUM_TRIPLE_HYPOTHESES = 12
+#: Best distinct hypotheses re-solved over all of a node's children.
+NUM_FULL_HYPOTHESES = 4
 #: Alternations between mirror normals and the parent transform per node.
 NODE_ALTERNATIONS = 30
 
@@ -263,7 +265,7 @@ def _choose_candidates(
     if len(triples) > NUM_TRIPLE_HYPOTHESES:
         picks = rng.choice(len(triples), size=NUM_TRIPLE_HYPOTHESES, replace=False)
         triples = [triples[p] for p in sorted(picks)]
-    best_choice, best_score = None, np.inf
+    hypotheses: dict[tuple[int, ...], float] = {}
     for triple in triples:
         images = [first_image_of_child[k] for k in triple]
         best_node, best_residual = None, np.inf
@@ -272,19 +274,34 @@ def _choose_candidates(
             node = _solve_node(observations, 3, parent_det)
             if node.residual < best_residual:
                 best_node, best_residual = node, node.residual
-        if best_node is None:
-            continue
-        choice, score = [], 0.0
-        for candidates in image_candidates:
-            costs = [
-                _candidate_inconsistency(A, b, best_node.A_parent, best_node.b_parent) for A, b in candidates
-            ]
-            choice.append(int(np.argmin(costs)))
-            score += min(min(costs), CONSISTENCY_CAP)
-        if score < best_score:
-            best_choice, best_score = choice, score
+        if best_node is not None:
+            choice, score = _consistent_choice(image_candidates, best_node)
+            hypotheses[choice] = min(score, hypotheses.get(choice, np.inf))
+    # A distant target's P3P "twin" can be consistent across many images on its own, so the best
+    # few hypotheses are judged by the residual of eqs. (13) and (16) over every child, and the
+    # winner's candidates are re-picked by consistency with that full solution.
+    best_choice, best_residual = None, np.inf
+    for choice in sorted(hypotheses, key=hypotheses.get)[:NUM_FULL_HYPOTHESES]:
+        for _ in range(2):
+            observations = [(k, *candidates[c]) for k, candidates, c in zip(image_children, image_candidates, choice)]
+            node = _solve_node(observations, num_children, parent_det)
+            choice, _ = _consistent_choice(image_candidates, node)
+        if node.residual < best_residual:
+            best_choice, best_residual = list(choice), node.residual
     assert best_choice is not None
     return best_choice
+
+
+def _consistent_choice(
+    image_candidates: list[list[tuple[np.ndarray, np.ndarray]]], node: _NodeSolution
+) -> tuple[tuple[int, ...], float]:
+    """Each image's candidate most consistent with a node's parent, and the capped total inconsistency."""
+    choice, score = [], 0.0
+    for candidates in image_candidates:
+        costs = [_candidate_inconsistency(A, b, node.A_parent, node.b_parent) for A, b in candidates]
+        choice.append(int(np.argmin(costs)))
+        score += min(min(costs), CONSISTENCY_CAP)
+    return tuple(choice), score
 
 
 def _describe(prefix: tuple[int, ...]) -> str:

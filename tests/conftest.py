@@ -1,0 +1,24 @@
+"""Shared fixtures: paths to the real data shipped beside the repository."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+TAKAHASHI = REPO.parent / "shared" / "data" / "takahashi2012"
+
+
+@pytest.fixture
+def takahashi_dir() -> Path:
+    if not (TAKAHASHI / "dataset.json").exists():
+        pytest.skip(f"real data not found at {TAKAHASHI}")
+    return TAKAHASHI
+
+
+def pose_difference(R_ref, t_ref, R, t) -> np.ndarray:
+    """SPEC-convention difference ``[dtheta, dt]`` taking (R_ref, t_ref) to (R, t): R = Exp(dtheta) R_ref."""
+    D = np.asarray(R) @ np.asarray(R_ref).T
+    angle = np.arccos(np.clip((np.trace(D) - 1) / 2, -1, 1))
+    axis = np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]])
+    dtheta = axis * (0.5 if angle < 1e-8 else angle / (2 * np.sin(angle)))
+    return np.r_[dtheta, np.asarray(t) - np.asarray(t_ref)]

@@ -1,0 +1,119 @@
+"""Analytical solution (Sects. 4-5): exact on noise-free trees, refusals on degenerate schedules."""
+import numpy as np
+import pytest
+
+from mirror_fg import DatasetError, SolveError, calibrate, solve_analytic
+from mirror_fg.analytic import pnp_candidates, triangulate_point
+from mirror_fg.dataset import Dataset, Image
+from mirror_fg.geometry import apply_transform, nested_transform, project, so3_exp
+from mirror_fg.simulate import simulate_tree
+from mirror_fg.transforms import rotation_angle
+
+
+@pytest.mark.parametrize("num_mirrors", [1, 2, 3])
+@pytest.mark.parametrize("num_fiducials", [3, 4])
+def test_noise_free_minimal_tree_is_exact(num_mirrors, num_fiducials):
+    dataset, truth = simulate_tree(num_mirrors, num_fiducials=num_fiducials, num_points=2, pixel_sigma=0.0, seed=3)
+    assert len(dataset.images) == 3**num_mirrors
+    solution = solve_analytic(dataset)
+    assert rotation_angle(solution.R_cam_base, truth.R_cam_base) < 1e-6
+    assert np.linalg.norm(solution.t_cam_base - truth.t_cam_base) < 1e-6
+    for config, v in truth.mirror_vectors.items():
+        assert np.linalg.norm(solution.mirror_vectors[config] - v) < 1e-6
+    for name, p in truth.points.items():
+        assert np.linalg.norm(solution.points[name] - p) < 1e-6
+    # The MLE started there stays there.
+    calibration = calibrate(dataset)
+    assert rotation_angle(calibration.R_cam_base, truth.R_cam_base) < 1e-6
+    assert np.linalg.norm(calibration.t_cam_base - truth.t_cam_base) < 1e-6
+    assert calibration.iterations <= 2
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_pnp_candidates_contain_truth_for_odd_and_even_mirror_counts(seed):
+    rng = np.random.default_rng(seed)
+    base_points = np.array([[0, 0, 0], [0.2, 0, 0], [0, 0.2, 0.0]])
+    for num_mirrors in (1, 2):
+        R = so3_exp(rng.normal(size=3) * 0.3)
+        vectors = [np.array([0.05, 0.0, 0.5 * (-1) ** (num_mirrors - l)]) for l in range(1, num_mirrors + 1)]
+        A, b = nested_transform(R, np.array([0.0, 0.05, -0.1]), vectors)
+        z = project(apply_transform(A, b, base_points))
+        candidates = pnp_candidates(base_points, z, num_mirrors)
+        assert 1 <= len(candidates) <= 4
+        assert min(np.linalg.norm(Ac - A) + np.linalg.norm(bc - b) for Ac, bc in candidates) < 1e-8
+        assert all(np.isclose(np.linalg.det(Ac), (-1) ** num_mirrors) for Ac, _ in candidates)
+
+
+def test_triangulation_eq20_recovers_point():
+    rng = np.random.default_rng(1)
+    point = np.array([0.1, -0.05, 0.02])
+    transforms, rays = [], []
+    for _ in range(4):
+        A = so3_exp(rng.normal(size=3) * 0.2)
+        b = np.array([0.0, 0.0, 2.0]) + 0.1 * rng.normal(size=3)
+        transforms.append((A, b))
+        rays.append(project(A @ point + b))
+    np.testing.assert_allclose(triangulate_point(transforms, rays), point, atol=1e-10)
+
+
+def _drop_images(dataset, keep):
+    return Dataset(dataset.num_mirrors, dataset.camera, dataset.pixel_sigma, dataset.fiducials,
+                   [im for im in dataset.images if keep(im)], "test.json")
+
+
+def test_placement_with_two_children_is_refused_with_its_name():
+    dataset, _ = simulate_tree(2, pixel_sigma=0.0, seed=1)
+    # remove mirror 2's third placement under mirror 1 placement 1
+    victim = [im for im in dataset.images if im.mirror_configs[0] == 1][-1]
+    reduced = _drop_images(dataset, lambda im: im is not victim)
+    with pytest.raises(DatasetError, match=r"test.json: placement \(1, 1\) has 2 placement\(s\) of mirror 2"):
+        solve_analytic(reduced)
+
+
+def test_root_with_two_placements_of_mirror_one_is_refused():
+    dataset, _ = simulate_tree(1, pixel_sigma=0.0, seed=1)
+    reduced = _drop_images(dataset, lambda im: im.mirror_configs[0] != 2)
+    with pytest.raises(DatasetError, match="root.*2 placement"):
+        solve_analytic(reduced)
+
+
+def test_coplanar_mirror_normals_are_refused_naming_placements():
+    dataset, truth = simulate_tree(1, pixel_sigma=0.0, seed=2)
+    # Rebuild the three placements with normals in one plane (all rotated about the camera x axis).
+    images = []
+    for m, angle in enumerate([-0.2, 0.0, 0.25]):
+        v = so3_exp(np.array([angle, 0.0, 0.0])) @ np.array([0.0, 0.0, 0.5])
+        A, b = nested_transform(truth.R_cam_base, truth.t_cam_base, [v])
+        z = {n: project(A @ p + b) for n, p in dataset.fiducials.items()}
+        images.append(Image(f"im{m}", (m,), z))
+    coplanar = Dataset(1, None, 1e-3, dataset.fiducials, images, "flat.json")
+    with pytest.raises(SolveError, match=r"flat.json.*\(1, 0\), \(1, 1\), \(1, 2\) are nearly coplanar"):
+        solve_analytic(coplanar)
+
+
+def test_pnp_failure_names_the_image():
+    dataset, _ = simulate_tree(1, pixel_sigma=0.0, seed=1)
+    broken = dataset.images[1]
+    # every fiducial behind the camera: no admissible pose
+    normalized = {n: np.array([5.0, -7.0]) * (i + 1) * (-1) ** i for i, n in enumerate(broken.observations)}
+    images = [im if im is not broken else Image(im.id, im.mirror_configs, normalized) for im in dataset.images]
+    bad = Dataset(1, None, 1e-3, dataset.fiducials, images, "bad.json")
+    with pytest.raises(SolveError, match=f"bad.json: image '{broken.id}': PnP"):
+        solve_analytic(bad)
+
+
+def test_point_seen_once_is_refused():
+    dataset, _ = simulate_tree(1, num_points=1, pixel_sigma=0.0, seed=1)
+    for im in dataset.images[1:]:
+        im.observations.pop("P0", None)
+    dataset._normalized_cache.clear()
+    with pytest.raises(DatasetError, match="point 'P0' is seen only in image"):
+        solve_analytic(dataset)
+
+
+def test_placement_seen_only_without_three_fiducials_is_refused():
+    dataset, _ = simulate_tree(1, pixel_sigma=0.0, seed=1)
+    extra = Image("lonely", (7,), {"F0": np.array([0.01, 0.02]), "F1": np.array([0.03, 0.02])})
+    bad = Dataset(1, None, 1e-3, dataset.fiducials, dataset.images + [extra], "few.json")
+    with pytest.raises(DatasetError, match="few.json: mirror 1 placement 7 is only seen in images with fewer than 3"):
+        solve_analytic(bad)
