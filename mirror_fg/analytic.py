@@ -188,57 +188,59 @@ def _solve_node(
     from eqs. (14)-(15), then alternate with the parent's O(3) average (eq. 17); offsets and parent
     translation come from the linear system of eq. (16), which also gives the residual.
     """
-    child_obs: dict[int, list[int]] = defaultdict(list)
-    for i, (k, _, _) in enumerate(observations):
-        child_obs[k].append(i)
-    child_A = [
-        project_to_orthogonal(sum(observations[i][1] for i in child_obs[k]), -parent_det)
-        for k in range(num_children)
-    ]
+    children = np.array([k for k, _, _ in observations])
+    rotations = np.array([A for _, A, _ in observations])
+    child_sums = np.zeros((num_children, 3, 3))
+    np.add.at(child_sums, children, rotations)
+    child_A = [project_to_orthogonal(child_sums[k], -parent_det) for k in range(num_children)]
     normals = _normals_from_pairwise_axes(child_A)  # eqs. (14)-(15)
     A_parent = np.eye(3)
     for _ in range(NODE_ALTERNATIONS):
         # eq. (17): A_{l-1} = M_m^{-1} A_l(m), averaged over all children on O(3).
-        A_parent = project_to_orthogonal(
-            sum(householder(normals[k]) @ A for k, A, _ in observations), parent_det
-        )
-        new_normals = np.stack(
-            [_reflection_normal(sum(observations[i][1] for i in child_obs[k]) @ A_parent.T) for k in range(num_children)]
-        )
+        obs_normals = normals[children]
+        reflections = np.eye(3) - 2.0 * np.einsum("ia,ib->iab", obs_normals, obs_normals)
+        A_parent = project_to_orthogonal(np.einsum("iab,ibc->ac", reflections, rotations), parent_det)
+        # eq. (13): each child's M_m = A_l(m) A_{l-1}^T; its normal is the -1 eigenvector.
+        estimates = child_sums @ A_parent.T
+        new_normals = np.linalg.eigh(0.5 * (estimates + estimates.transpose(0, 2, 1)))[1][:, :, 0]
         # keep the sign of each normal stable between iterations
         new_normals *= np.where(np.sum(new_normals * normals, axis=1) < 0, -1.0, 1.0)[:, None]
-        converged = np.max(np.abs(new_normals - normals)) < 1e-15
+        converged = np.max(np.abs(new_normals - normals)) < 1e-13
         normals = new_normals
         if converged:
             break
-    # eq. (16): [M_m, 2 n_m] [b_{l-1}; d_m] = b_l(m), stacked over every observation.
-    n_obs = len(observations)
-    design = np.zeros((3 * n_obs, 3 + num_children))
-    rhs = np.zeros(3 * n_obs)
-    for i, (k, _, b) in enumerate(observations):
-        design[3 * i : 3 * i + 3, :3] = householder(normals[k])
-        design[3 * i : 3 * i + 3, 3 + k] = 2.0 * normals[k]
-        rhs[3 * i : 3 * i + 3] = b
-    solution, *_ = np.linalg.lstsq(design, rhs, rcond=None)
-    b_parent = solution[:3]
-    mirror_vectors = [solution[3 + k] * normals[k] for k in range(num_children)]
-    scale = max(float(np.mean(np.linalg.norm(rhs.reshape(-1, 3), axis=1))), 1e-9)
-    translation_residual = float(np.sum((design @ solution - rhs) ** 2)) / scale**2
-    rotation_residual = float(
-        sum(np.sum((A - householder(normals[k]) @ A_parent) ** 2) for k, A, _ in observations)
-    )  # eq. (13)
+    # eq. (16): [M_m, 2 n_m] [b_{l-1}; d_m] = b_l(m), stacked over every observation, solved with the
+    # offsets d_m eliminated (exactly): across n_m it reads P_m (b_{l-1} - b_l) = 0 with P_m = I - n n^T
+    # (P_m M_m = P_m), along n_m it gives d_m = (n_m . b_l + n_m . b_{l-1}) / 2, averaged per child.
+    offsets = np.array([b for _, _, b in observations])
+    children = np.array([k for k, _, _ in observations])
+    obs_normals = normals[children]
+    projectors = np.eye(3) - np.einsum("ia,ib->iab", obs_normals, obs_normals)
+    b_parent = np.linalg.solve(projectors.sum(axis=0), np.einsum("iab,ib->a", projectors, offsets))
+    along = np.einsum("ia,ia->i", obs_normals, offsets) + obs_normals @ b_parent
+    counts = np.bincount(children, minlength=num_children)
+    distances = np.bincount(children, weights=along, minlength=num_children) / (2.0 * np.maximum(counts, 1))
+    mirror_vectors = [distances[k] * normals[k] for k in range(num_children)]
+    across = np.einsum("iab,ib->ia", projectors, b_parent - offsets)
+    along_residual = along - 2.0 * distances[children]
+    scale = max(float(np.mean(np.linalg.norm(offsets, axis=1))), 1e-9)
+    translation_residual = float(np.sum(across**2) + np.sum(along_residual**2)) / scale**2
+    obs_normals = normals[children]
+    reflections = np.eye(3) - 2.0 * np.einsum("ia,ib->iab", obs_normals, obs_normals)
+    rotation_residual = float(np.sum((rotations - reflections @ A_parent) ** 2))  # eq. (13)
     return _NodeSolution(A_parent, b_parent, mirror_vectors, rotation_residual + translation_residual)
 
 
-def _candidate_inconsistency(A: np.ndarray, b: np.ndarray, A_parent: np.ndarray, b_parent: np.ndarray) -> float:
-    """How far a candidate ``(A_l, b_l)`` is from a reflection of the parent (eqs. 6-7), squared, unitless."""
+def _candidate_inconsistency(A: np.ndarray, b: np.ndarray, A_parent: np.ndarray, b_parent: np.ndarray) -> np.ndarray:
+    """How far candidates ``(A_l, b_l)`` (stacked (n, 3, 3), (n, 3)) are from a reflection of the parent
+    (eqs. 6-7): squared, unitless, one value per candidate."""
     M = A @ A_parent.T
-    normal = _reflection_normal(M)
-    H = householder(normal)
-    offset = b - H @ b_parent  # must be 2 v, parallel to the normal (eq. 7)
-    perpendicular = offset - normal * (normal @ offset)
-    scale = max(float(np.linalg.norm(b)), 1e-9)
-    return float(np.sum((M - H) ** 2) + (perpendicular @ perpendicular) / scale**2)
+    normals = np.linalg.eigh(0.5 * (M + M.transpose(0, 2, 1)))[1][:, :, 0]
+    H = np.eye(3) - 2.0 * np.einsum("ia,ib->iab", normals, normals)
+    offsets = b - H @ b_parent  # must be 2 v, parallel to the normal (eq. 7)
+    perpendicular = offsets - normals * np.einsum("ia,ia->i", normals, offsets)[:, None]
+    scale = np.maximum(np.linalg.norm(b, axis=1), 1e-9)
+    return np.sum((M - H) ** 2, axis=(1, 2)) + np.sum(perpendicular**2, axis=1) / scale**2
 
 
 def _choose_candidates(
@@ -296,12 +298,13 @@ def _consistent_choice(
     image_candidates: list[list[tuple[np.ndarray, np.ndarray]]], node: _NodeSolution
 ) -> tuple[tuple[int, ...], float]:
     """Each image's candidate most consistent with a node's parent, and the capped total inconsistency."""
-    choice, score = [], 0.0
-    for candidates in image_candidates:
-        costs = [_candidate_inconsistency(A, b, node.A_parent, node.b_parent) for A, b in candidates]
-        choice.append(int(np.argmin(costs)))
-        score += min(min(costs), CONSISTENCY_CAP)
-    return tuple(choice), score
+    counts = [len(candidates) for candidates in image_candidates]
+    A = np.array([A for candidates in image_candidates for A, _ in candidates])
+    b = np.array([b for candidates in image_candidates for _, b in candidates])
+    costs = np.split(_candidate_inconsistency(A, b, node.A_parent, node.b_parent), np.cumsum(counts)[:-1])
+    choice = tuple(int(np.argmin(c)) for c in costs)
+    score = float(sum(min(float(np.min(c)), CONSISTENCY_CAP) for c in costs))
+    return choice, score
 
 
 def _describe(prefix: tuple[int, ...]) -> str:
@@ -397,17 +400,20 @@ def solve_analytic(dataset: Dataset, seed: int = 0) -> AnalyticSolution:
 
 
 def triangulate_point(transforms: list[tuple[np.ndarray, np.ndarray]], normalized: list[np.ndarray]) -> np.ndarray:
-    """Base-frame point from >= 2 images: ``s_j u_j = A_j Bp + b_j`` solved in least squares (eq. 20)."""
-    n = len(transforms)
-    design = np.zeros((3 * n, 3 + n))
-    rhs = np.zeros(3 * n)
-    for j, ((A, b), z) in enumerate(zip(transforms, normalized)):
+    """Base-frame point from >= 2 images: ``s_j u_j = A_j Bp + b_j`` solved in least squares (eq. 20).
+
+    The depths ``s_j`` are eliminated exactly: for a unit ray ``u_j`` the least-squares residual of
+    image j is ``(I - u_j u_j^T)(A_j Bp + b_j)``, so eq. (20) reduces to a 3x3 normal equation.
+    """
+    normal_matrix = np.zeros((3, 3))
+    rhs = np.zeros(3)
+    for (A, b), z in zip(transforms, normalized):
         ray = np.array([z[0], z[1], 1.0])
-        design[3 * j : 3 * j + 3, :3] = A
-        design[3 * j : 3 * j + 3, 3 + j] = -ray / np.linalg.norm(ray)  # eq. (19)
-        rhs[3 * j : 3 * j + 3] = -b
-    solution, *_ = np.linalg.lstsq(design, rhs, rcond=None)
-    return solution[:3]
+        ray /= np.linalg.norm(ray)  # eq. (19)
+        projector = np.eye(3) - np.outer(ray, ray)
+        normal_matrix += A.T @ projector @ A
+        rhs -= A.T @ projector @ b
+    return np.linalg.solve(normal_matrix, rhs)
 
 
 def image_transform(solution: AnalyticSolution, image: Image) -> tuple[np.ndarray, np.ndarray]:
@@ -423,6 +429,7 @@ def reconstruct_points(dataset: Dataset, solution: AnalyticSolution) -> dict[str
         for name in image.observations:
             if name not in dataset.fiducials:
                 seen[name].append(image)
+    transforms: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     points = {}
     for name in sorted(seen):
         images = seen[name]
@@ -431,7 +438,9 @@ def reconstruct_points(dataset: Dataset, solution: AnalyticSolution) -> dict[str
                 f"{dataset.source}: point '{name}' is seen only in image '{images[0].id}'; "
                 "a reconstruction point needs >= 2 images"
             )
-        transforms = [image_transform(solution, im) for im in images]
+        for im in images:
+            if im.id not in transforms:
+                transforms[im.id] = image_transform(solution, im)
         rays = [dataset.normalized(im)[name] for im in images]
-        points[name] = triangulate_point(transforms, rays)
+        points[name] = triangulate_point([transforms[im.id] for im in images], rays)
     return points

@@ -100,6 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("result", type=Path, help="result@1 file")
     rep.add_argument("dataset", type=Path, nargs="?", help="dataset@1 the result came from (enables residual plots)")
     rep.add_argument("-o", "--output", required=True, type=Path, help="output directory")
+    rep.add_argument("--base-frame", default="base_link", help="base frame name in the ROS snippets (default base_link)")
+    rep.add_argument("--camera-frame", default="camera_optical_frame",
+                     help="camera frame name in the ROS snippets (default camera_optical_frame)")
     _add_common(rep)
     return parser
 
@@ -185,10 +188,18 @@ def cmd_simulate(args, out: _Printer) -> int:
 
 
 def cmd_calibrate(args, out: _Printer) -> int:
-    from mirror_fg.dataset import write_result
+    from mirror_fg.dataset import DatasetError, write_result
     from mirror_fg.graph import calibrate
 
     start = time.perf_counter()
+    if not args.no_ros:
+        from mirror_fg.ros import check_frame_name
+
+        try:
+            check_frame_name(args.base_frame, "--base-frame")
+            check_frame_name(args.camera_frame, "--camera-frame")
+        except ValueError as error:
+            raise DatasetError(str(error)) from None
     dataset = _load_any(args.input, out)
     if args.incremental:
         result = _run_incremental(dataset, args, out)
@@ -257,12 +268,18 @@ def cmd_detect(args, out: _Printer) -> int:
 
 
 def cmd_report(args, out: _Printer) -> int:
-    from mirror_fg.dataset import load_dataset, load_result
+    from mirror_fg.dataset import DatasetError, load_dataset, load_result
     from mirror_fg.report import write_report
 
     result = load_result(args.result)
     dataset = load_dataset(args.dataset) if args.dataset is not None else None
-    paths = write_report(result, dataset, args.output, progress=out.progress)
+    try:
+        paths = write_report(result, dataset, args.output, progress=out.progress,
+                             base_frame=args.base_frame, camera_frame=args.camera_frame)
+    except ValueError as error:  # a malformed result file
+        if isinstance(error, DatasetError):
+            raise
+        raise DatasetError(f"{args.result}: {error}") from None
     out.info("wrote " + ", ".join(str(p) for p in paths.values()))
     return EXIT_OK
 

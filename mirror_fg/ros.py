@@ -1,0 +1,436 @@
+"""ROS-facing outputs of a ``mirror-fg/result@1``: a YAML with both transforms, a URDF ``<joint>`` and
+``static_transform_publisher`` arguments.
+
+Frames (SPEC.md): ``T_cam_base = (R, t)`` maps base points into the camera, ``Cp = R @ Bp + t``; its
+inverse ``T_base_cam`` is the camera's pose in the base frame, ``Bp = R' @ Cp + t'``: the transform from
+the parent ``base_frame`` to the child ``camera_frame`` that a URDF joint or a tf2 static transform
+wants. The camera frame is OpenCV's (x right, y down, z forward), which is ROS's *optical* frame
+convention (REP 103), hence the default child name ``camera_optical_frame``. Translations in metres,
+angles in radians unless a name says ``_deg``; 3-sigma bounds in degrees and millimetres.
+
+URDF ``rpy`` is fixed-axis roll, pitch, yaw: ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``. Quaternions are
+Hamilton, scalar last (``x, y, z, w``). Numbers are printed with ``repr`` (shortest string that reads
+back to the same double) so a pasted transform is the computed one to the last bit.
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+import tempfile
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+import yaml
+
+__all__ = [
+    "ros_outputs",
+    "write_ros_outputs",
+    "rotation_to_rpy",
+    "rpy_to_rotation",
+    "rotation_to_quaternion_xyzw",
+    "quaternion_xyzw_to_rotation",
+    "urdf_joint",
+    "static_transform_publisher_args",
+    "sigma3_base_cam",
+    "ros_output_paths",
+    "DEFAULT_BASE_FRAME",
+    "DEFAULT_CAMERA_FRAME",
+]
+
+DEFAULT_BASE_FRAME = "base_link"
+DEFAULT_CAMERA_FRAME = "camera_optical_frame"
+#: A rotation in a result file may be off orthonormal by rounding; beyond this it is rejected.
+_ORTHONORMAL_TOL = 1e-6
+#: Below this |cos(pitch)| the rotation is treated as gimbal-locked: yaw is set to 0.
+_GIMBAL_LOCK_COS = 1e-12
+#: ROS / tf2 frame ids: no whitespace, quotes or XML-special characters (they are pasted into XML and shells).
+_FRAME_ID = re.compile(r"^[A-Za-z0-9_./:-]+$")
+_CAMERA_CONVENTION = "OpenCV / ROS optical (REP 103): x right, y down, z forward"
+
+
+# --------------------------------------------------------------------------------------------------
+# Rotation parameterisations
+# --------------------------------------------------------------------------------------------------
+
+
+def _rotation(matrix: Any, what: str) -> np.ndarray:
+    """``matrix`` as a proper rotation (3, 3), re-orthonormalised; ValueError if it is not one."""
+    try:
+        R = np.asarray(matrix, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what}: rotation must be a 3x3 matrix of numbers") from None
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        raise ValueError(f"{what}: rotation must be a finite 3x3 matrix, got shape {R.shape}")
+    if np.max(np.abs(R.T @ R - np.eye(3))) > _ORTHONORMAL_TOL or np.linalg.det(R) <= 0.0:
+        raise ValueError(f"{what}: not a rotation matrix (R^T R != I or det R != +1)")
+    if np.max(np.abs(R.T @ R - np.eye(3))) <= 1e-13:
+        return R  # orthonormal to rounding: keep the file's numbers bit for bit
+    U, _, Vt = np.linalg.svd(R)
+    return U @ Vt  # nearest rotation; det stays +1 for a matrix this close to SO(3)
+
+
+def rpy_to_rotation(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """URDF fixed-axis rotation ``Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (radians)."""
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    Rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
+    Ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+    Rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
+    return Rz @ Ry @ Rx
+
+
+def rotation_to_rpy(R: np.ndarray) -> tuple[float, float, float]:
+    """URDF ``(roll, pitch, yaw)`` in radians of a rotation, ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
+
+    pitch in [-pi/2, pi/2], roll and yaw in (-pi, pi]. Near gimbal lock (pitch = +/-pi/2) yaw is taken
+    from the matrix where it is still defined (0 at exact lock) and roll is solved from what remains,
+    ``Rx(roll) = Ry(pitch)^T Rz(yaw)^T R``, so that an imprecise yaw is absorbed by roll and
+    :func:`rpy_to_rotation` gives ``R`` back to rounding error at any pitch.
+    """
+    R = _rotation(R, "rotation_to_rpy")
+    cos_pitch = math.hypot(R[0, 0], R[1, 0])
+    pitch = math.atan2(-R[2, 0], cos_pitch)
+    yaw = math.atan2(R[1, 0], R[0, 0]) if cos_pitch > _GIMBAL_LOCK_COS else 0.0
+    X = rpy_to_rotation(0.0, pitch, yaw).T @ R  # = Rx(roll) up to rounding
+    roll = math.atan2(X[2, 1] - X[1, 2], X[1, 1] + X[2, 2])
+    return _clean(roll), _clean(pitch), _clean(yaw)
+
+
+def rotation_to_quaternion_xyzw(R: np.ndarray) -> np.ndarray:
+    """Hamilton unit quaternion ``(x, y, z, w)`` of a rotation matrix, ``w >= 0`` (Shepperd's method)."""
+    R = _rotation(R, "rotation_to_quaternion_xyzw")
+    trace = float(np.trace(R))
+    diag = np.diag(R)
+    k = int(np.argmax([trace, *diag]))  # largest of 4w^2-1, 4x^2-1, ... : no cancellation
+    if k == 0:
+        s = 2.0 * math.sqrt(1.0 + trace)
+        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
+    elif k == 1:
+        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = [0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
+    elif k == 2:
+        s = 2.0 * math.sqrt(1.0 - R[0, 0] + R[1, 1] - R[2, 2])
+        q = [(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
+    else:
+        s = 2.0 * math.sqrt(1.0 - R[0, 0] - R[1, 1] + R[2, 2])
+        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0.0 else q
+
+
+def quaternion_xyzw_to_rotation(q: Sequence[float]) -> np.ndarray:
+    """Rotation matrix of a Hamilton quaternion ``(x, y, z, w)`` (normalised first)."""
+    x, y, z, w = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _clean(x: float) -> float:
+    """``x`` as a plain float without a negative zero (``-0.0`` reads oddly in a URDF)."""
+    x = float(x)
+    return 0.0 if x == 0.0 else x
+
+
+def _num(x: float) -> str:
+    """Shortest decimal string that reads back to the same double (``repr``)."""
+    return repr(_clean(x))
+
+
+# --------------------------------------------------------------------------------------------------
+# Result -> transforms
+# --------------------------------------------------------------------------------------------------
+
+
+def _transform_from_result(result: Mapping[str, Any], key: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, t)`` of ``result[key]`` (``{"R": 3x3, "t": [3]}``); ValueError naming the key when malformed."""
+    entry = result.get(key) if isinstance(result, Mapping) else None
+    if not isinstance(entry, Mapping) or "R" not in entry or "t" not in entry:
+        raise ValueError(f"result: missing or malformed {key!r} (expected {{'R': 3x3, 't': [x, y, z]}})")
+    R = _rotation(entry["R"], f"result {key}.R")
+    try:
+        t = np.asarray(entry["t"], dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"result {key}.t: expected 3 numbers (metres)") from None
+    if t.shape != (3,) or not np.all(np.isfinite(t)):
+        raise ValueError(f"result {key}.t: expected 3 finite numbers (metres), got shape {t.shape}")
+    return R, t
+
+
+def _transforms(result: Mapping[str, Any]) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """``((R_cam_base, t_cam_base), (R_base_cam, t_base_cam))`` from a result.
+
+    ``T_base_cam`` is the file's own (so the numbers match result.json exactly) after checking that it
+    is the inverse of ``T_cam_base`` to 1e-6; computed as the inverse when the file lacks it.
+    """
+    R_cb, t_cb = _transform_from_result(result, "T_cam_base")
+    R_bc, t_bc = R_cb.T, -R_cb.T @ t_cb
+    if "T_base_cam" in result:
+        R_file, t_file = _transform_from_result(result, "T_base_cam")
+        if np.max(np.abs(R_file - R_bc)) > 1e-6 or np.max(np.abs(t_file - t_bc)) > 1e-6:
+            raise ValueError("result: T_base_cam is not the inverse of T_cam_base")
+        R_bc, t_bc = R_file, t_file
+    return (R_cb, t_cb), (R_bc, t_bc)
+
+
+def sigma3_base_cam(result: Mapping[str, Any]) -> dict[str, list[float]] | None:
+    """3-sigma bounds of the camera's pose in the base frame, from ``covariance_cam_base``.
+
+    ``rotation_deg``: about the base axes (``R_base_cam_true = Exp(dphi) R_base_cam``); ``position_mm``:
+    the camera centre's position in the base frame along the base axes. None without a covariance.
+    First order: with ``dtheta, dt`` of SPEC.md, ``dphi = -R^T dtheta`` and
+    ``dt' = -R^T dt - R^T [t]x dtheta``.
+    """
+    cov = result.get("covariance_cam_base")
+    if cov is None:
+        return None
+    P = np.asarray(cov, dtype=float)
+    if P.shape != (6, 6) or not np.all(np.isfinite(P)):
+        raise ValueError(f"result covariance_cam_base: expected a finite 6x6 matrix, got shape {P.shape}")
+    (R, t), _ = _transforms(result)
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    J = np.zeros((6, 6))
+    J[:3, :3] = -R.T
+    J[3:, :3] = -R.T @ tx
+    J[3:, 3:] = -R.T
+    sd = 3.0 * np.sqrt(np.clip(np.diag(J @ P @ J.T), 0.0, None))
+    return {
+        "rotation_deg": [float(x) for x in np.rad2deg(sd[:3])],
+        "position_mm": [float(x) for x in 1e3 * sd[3:]],
+    }
+
+
+# --------------------------------------------------------------------------------------------------
+# Snippets
+# --------------------------------------------------------------------------------------------------
+
+
+def check_frame_name(name: Any, what: str) -> str:
+    if not isinstance(name, str) or not _FRAME_ID.match(name):
+        raise ValueError(
+            f"{what} {name!r}: a frame name must be non-empty and use only letters, digits and _ . / : -"
+        )
+    return name
+
+
+def urdf_joint(
+    R_base_cam: np.ndarray,
+    t_base_cam: np.ndarray,
+    base_frame: str = DEFAULT_BASE_FRAME,
+    camera_frame: str = DEFAULT_CAMERA_FRAME,
+    name: str | None = None,
+) -> str:
+    """A fixed URDF ``<joint>`` from ``base_frame`` (parent) to ``camera_frame`` (child).
+
+    ``<origin xyz rpy>`` is the child's pose in the parent, ``T_base_cam`` (metres, fixed-axis radians).
+    """
+    base_frame = check_frame_name(base_frame, "base frame")
+    camera_frame = check_frame_name(camera_frame, "camera frame")
+    name = name or f"{base_frame}_to_{camera_frame}".replace("/", "_")
+    xyz = " ".join(_num(x) for x in np.asarray(t_base_cam, dtype=float))
+    rpy = " ".join(_num(x) for x in rotation_to_rpy(R_base_cam))
+    return (
+        f'<joint name={quoteattr(name)} type="fixed">\n'
+        f"  <parent link={quoteattr(base_frame)}/>\n"
+        f"  <child link={quoteattr(camera_frame)}/>\n"
+        f'  <origin xyz="{xyz}" rpy="{rpy}"/>\n'
+        "</joint>\n"
+    )
+
+
+def static_transform_publisher_args(
+    R_base_cam: np.ndarray,
+    t_base_cam: np.ndarray,
+    base_frame: str = DEFAULT_BASE_FRAME,
+    camera_frame: str = DEFAULT_CAMERA_FRAME,
+) -> str:
+    """ROS 2 ``tf2_ros static_transform_publisher`` arguments (new-style flags) for ``T_base_cam``.
+
+    ``--x --y --z`` metres, ``--qx --qy --qz --qw`` quaternion, ``--frame-id`` the parent (base frame),
+    ``--child-frame-id`` the camera frame. Use as
+    ``ros2 run tf2_ros static_transform_publisher <args>``.
+    """
+    base_frame = check_frame_name(base_frame, "base frame")
+    camera_frame = check_frame_name(camera_frame, "camera frame")
+    t = np.asarray(t_base_cam, dtype=float)
+    q = rotation_to_quaternion_xyzw(R_base_cam)
+    parts = [f"--{k} {_num(v)}" for k, v in zip(("x", "y", "z", "qx", "qy", "qz", "qw"), [*t, *q])]
+    parts += [f"--frame-id {base_frame}", f"--child-frame-id {camera_frame}"]
+    return " ".join(parts)
+
+
+# --------------------------------------------------------------------------------------------------
+# The YAML content and files
+# --------------------------------------------------------------------------------------------------
+
+
+def _transform_entry(R: np.ndarray, t: np.ndarray, q_hint: Any, description: str) -> dict[str, Any]:
+    """Matrix, translation, quaternion (sign of ``q_hint`` when given) and URDF rpy of one transform."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    q = rotation_to_quaternion_xyzw(R)
+    if q_hint is not None:
+        hint = np.asarray(q_hint, dtype=float)
+        if hint.shape == (4,) and float(hint @ q) < 0.0:
+            q = -q  # same rotation; keep the sign the result file uses
+    return {
+        "description": description,
+        "matrix": [[_clean(x) for x in row] for row in T],
+        "translation": [_clean(x) for x in t],
+        "quaternion_xyzw": [_clean(x) for x in q],
+        "rpy": list(rotation_to_rpy(R)),
+    }
+
+
+def ros_outputs(
+    result: Mapping[str, Any],
+    base_frame: str = DEFAULT_BASE_FRAME,
+    camera_frame: str = DEFAULT_CAMERA_FRAME,
+) -> dict[str, Any]:
+    """The content of ``<stem>.ros.yaml`` for a result@1 dictionary.
+
+    Keys: ``frames``; ``T_base_cam`` (camera pose in the base frame: ``p_base = R p_cam + t``) and
+    ``T_cam_base`` (its inverse), each with ``matrix`` (4x4 homogeneous), ``translation`` (metres),
+    ``quaternion_xyzw`` and URDF ``rpy`` (radians); ``sigma3`` (``rotation_deg``, ``position_mm`` of
+    ``T_cam_base`` in SPEC.md's convention, as in the result); ``sigma3_base_cam`` (the camera's pose
+    in the base frame, when the result has a covariance); ``rms_px`` and ``max_px`` (pixels, or
+    normalized units for a dataset without a camera); ``urdf_joint`` (XML text);
+    ``static_transform_publisher`` (ROS 2 argument string) and ``static_transform_publisher_command``.
+    Raises ValueError on a malformed result or frame name.
+    """
+    base_frame = check_frame_name(base_frame, "base frame")
+    camera_frame = check_frame_name(camera_frame, "camera frame")
+    (R_cb, t_cb), (R_bc, t_bc) = _transforms(result)
+    hint_cb = result["T_cam_base"].get("q_xyzw")
+    hint_bc = result["T_base_cam"].get("q_xyzw") if isinstance(result.get("T_base_cam"), Mapping) else None
+    sigma = result.get("sigma3_cam_base") or {}
+    residuals = result.get("residuals") or {}
+    args = static_transform_publisher_args(R_bc, t_bc, base_frame, camera_frame)
+    out: dict[str, Any] = {
+        "frames": {"base": base_frame, "camera": camera_frame, "camera_convention": _CAMERA_CONVENTION},
+        "T_base_cam": _transform_entry(
+            R_bc, t_bc, hint_bc,
+            f"pose of {camera_frame} in {base_frame} (parent {base_frame}, child {camera_frame}): "
+            "p_base = R p_cam + t, metres",
+        ),
+        "T_cam_base": _transform_entry(
+            R_cb, t_cb, hint_cb, f"inverse: p_cam = R p_base + t, metres ({camera_frame} <- {base_frame})"
+        ),
+        "sigma3": {
+            "rotation_deg": [float(x) for x in sigma.get("rotation_deg", [])] or None,
+            "position_mm": [float(x) for x in sigma.get("position_mm", [])] or None,
+            "convention": "T_cam_base, SPEC.md: R_true = Exp(dtheta) R (camera axes), t_true = t + dt",
+        },
+        "sigma3_base_cam": sigma3_base_cam(result),
+        "rms_px": _optional_float(residuals.get("rms_px")),
+        "max_px": _optional_float(residuals.get("max_px")),
+        "urdf_joint": urdf_joint(R_bc, t_bc, base_frame, camera_frame),
+        "static_transform_publisher": args,
+        "static_transform_publisher_command": f"ros2 run tf2_ros static_transform_publisher {args}",
+    }
+    return out
+
+
+def _optional_float(x: Any) -> float | None:
+    return None if x is None else float(x)
+
+
+#: YAML line width: never fold a long string (the publisher arguments are copied as one line).
+_NO_WRAP = 1 << 16
+
+
+class _Dumper(yaml.SafeDumper):
+    """SafeDumper writing multi-line strings (the URDF joint) as literal blocks."""
+
+
+def _str_representer(dumper: yaml.SafeDumper, data: str) -> yaml.ScalarNode:
+    return dumper.represent_scalar("tag:yaml.org,2002:str", data, style="|" if "\n" in data else None)
+
+
+_Dumper.add_representer(str, _str_representer)
+
+
+def _yaml_text(content: Mapping[str, Any], header: str) -> str:
+    """``header`` then ``content`` as YAML (innermost lists in flow style, keys in insertion order)."""
+    body = yaml.dump(
+        dict(content), Dumper=_Dumper, default_flow_style=None, sort_keys=False, width=_NO_WRAP, allow_unicode=True
+    )
+    return header + body
+
+
+def _atomic_write(path: str | os.PathLike[str], data: bytes | str) -> Path:
+    """Write ``data`` to ``path`` through a temporary file in the same directory and ``os.replace``.
+
+    An existing file is replaced only when the new content is completely written; on any failure the
+    temporary file is removed and the old file stays as it was.
+    """
+    target = Path(path)
+    raw = data.encode("utf-8") if isinstance(data, str) else data
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(raw)
+            f.flush()
+            os.fsync(f.fileno())
+        mask = os.umask(0o022)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)  # mkstemp makes 0600; give the mode open() would
+        os.replace(tmp, target)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    return target
+
+
+def ros_output_paths(result_path: str | os.PathLike[str]) -> tuple[Path, Path]:
+    """``(<stem>.ros.yaml, <stem>.urdf.xml)`` beside ``result_path``."""
+    p = Path(result_path)
+    return p.with_name(f"{p.stem}.ros.yaml"), p.with_name(f"{p.stem}.urdf.xml")
+
+
+def write_ros_outputs(
+    result: Mapping[str, Any],
+    result_path: str | os.PathLike[str],
+    base_frame: str = DEFAULT_BASE_FRAME,
+    camera_frame: str = DEFAULT_CAMERA_FRAME,
+) -> list[Path]:
+    """Write ``<stem>.ros.yaml`` (:func:`ros_outputs`) and ``<stem>.urdf.xml`` (the joint) beside ``result_path``.
+
+    Both writes are atomic. Returns the two paths. Raises ValueError on a malformed result or frame
+    name (nothing is written then), OSError when a file cannot be written.
+    """
+    content = ros_outputs(result, base_frame, camera_frame)
+    yaml_path, urdf_path = ros_output_paths(result_path)
+    source = " ".join(Path(result_path).name.split())  # one line in a comment
+    header = (
+        f"# mirror-fg camera-to-base calibration from {source}.\n"
+        f"# Frames: {base_frame} (base), {camera_frame} (camera: {_CAMERA_CONVENTION}).\n"
+        "# Metres, radians; quaternions x y z w; URDF rpy fixed-axis: R = Rz(yaw) Ry(pitch) Rx(roll).\n"
+    )
+    urdf = (
+        '<?xml version="1.0"?>\n'
+        f"<!-- mirror-fg calibration from {_xml_comment(source)}: pose of {camera_frame} in {base_frame}.\n"
+        f"     {camera_frame} is the {_CAMERA_CONVENTION} frame.\n"
+        "     Paste the joint into your robot description. -->\n" + content["urdf_joint"]
+    )
+    _atomic_write(yaml_path, _yaml_text(content, header))
+    _atomic_write(urdf_path, urdf)
+    return [yaml_path, urdf_path]
+
+
+def _xml_comment(text: str) -> str:
+    """``text`` safe inside an XML comment (no ``--``)."""
+    return text.replace("--", "- -")
