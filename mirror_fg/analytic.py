@@ -160,17 +160,14 @@ def _normals_from_pairwise_axes(child_A: list[np.ndarray]) -> np.ndarray:
     Eq. (15) crosses two axes; with more children each normal is the direction most perpendicular
     to all of its axes (least squares, weighted by how well each axis is defined).
     """
-    K = len(child_A)
     A = np.stack(child_A)
     Q = np.einsum("iab,jcb->ijac", A, A)  # A_m A_m'^T, eq. (14)
     axes = np.stack(
         [Q[..., 2, 1] - Q[..., 1, 2], Q[..., 0, 2] - Q[..., 2, 0], Q[..., 1, 0] - Q[..., 0, 1]], axis=-1
     )
-    normals = np.empty((K, 3))
-    for m in range(K):
-        others = np.delete(axes[m], m, axis=0)
-        normals[m] = np.linalg.svd(others)[2][-1]
-    return normals
+    # the smallest right singular vector of each child's stacked axes (its own axis is zero)
+    scatter = np.einsum("mja,mjb->mab", axes, axes)
+    return np.linalg.eigh(scatter)[1][:, :, 0]
 
 
 def _reflection_normal(M_estimate: np.ndarray) -> np.ndarray:
@@ -263,10 +260,10 @@ def _choose_candidates(
     for i, k in enumerate(image_children):
         first_image_of_child.setdefault(k, i)
     children = sorted(first_image_of_child)
-    triples = list(combinations(children, 3))
-    if len(triples) > NUM_TRIPLE_HYPOTHESES:
-        picks = rng.choice(len(triples), size=NUM_TRIPLE_HYPOTHESES, replace=False)
-        triples = [triples[p] for p in sorted(picks)]
+    if len(children) <= 5:  # at most 10 triples: take them all
+        triples = list(combinations(children, 3))
+    else:
+        triples = [tuple(sorted(rng.choice(children, size=3, replace=False))) for _ in range(NUM_TRIPLE_HYPOTHESES)]
     hypotheses: dict[tuple[int, ...], float] = {}
     for triple in triples:
         images = [first_image_of_child[k] for k in triple]
