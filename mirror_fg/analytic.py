@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from mirror_fg.dataset import Dataset, DatasetError, Image
-from mirror_fg.geometry import FLIP_Y, apply_transform, householder, nested_transform, project, project_to_orthogonal
+from mirror_fg.geometry import FLIP_Y, apply_transform, nested_transform, project, project_to_orthogonal
 
 __all__ = ["AnalyticSolution", "SolveError", "pnp_candidates", "solve_analytic", "triangulate_point"]
 
@@ -149,11 +149,6 @@ class _NodeSolution:
     residual: float  # combined residual of eqs. (13) and (16), unitless
 
 
-def _vee_axis(Q: np.ndarray) -> np.ndarray:
-    """Rotation axis scaled by 2 sin(angle) of a rotation matrix (the +1 eigenvector of eq. 14)."""
-    return np.array([Q[2, 1] - Q[1, 2], Q[0, 2] - Q[2, 0], Q[1, 0] - Q[0, 1]])
-
-
 def _normals_from_pairwise_axes(child_A: list[np.ndarray]) -> np.ndarray:
     """Unit normals (K, 3) of K mirror placements from the axes of ``A_m A_m'^T`` (eqs. 14-15).
 
@@ -168,12 +163,6 @@ def _normals_from_pairwise_axes(child_A: list[np.ndarray]) -> np.ndarray:
     # the smallest right singular vector of each child's stacked axes (its own axis is zero)
     scatter = np.einsum("mja,mjb->mab", axes, axes)
     return np.linalg.eigh(scatter)[1][:, :, 0]
-
-
-def _reflection_normal(M_estimate: np.ndarray) -> np.ndarray:
-    """Unit normal of the reflection nearest to ``M_estimate``: eigenvector of its -1 eigenvalue."""
-    eigenvalues, eigenvectors = np.linalg.eigh(0.5 * (M_estimate + M_estimate.T))
-    return eigenvectors[:, 0]
 
 
 def _solve_node(

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from pathlib import Path
 
 DATASET_FORMAT = "mirror-fg/dataset@1"
 RESULT_FORMAT = "mirror-fg/result@1"
@@ -473,7 +474,7 @@ def dataset_to_dict(ds: Dataset) -> dict[str, Any]:
 
 def save_dataset(path: PathLike, ds: Dataset) -> None:
     """Write ``ds`` as a dataset@1 JSON file, atomically (an existing file is replaced only on success)."""
-    _atomic_write_text(os.fspath(path), _json_text(dataset_to_dict(ds), allow_nan=False))
+    atomic_write(os.fspath(path), _json_text(dataset_to_dict(ds), allow_nan=False))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -497,7 +498,7 @@ def write_result(path: PathLike, result: Mapping[str, Any]) -> None:
         text = yaml.safe_dump(plain, default_flow_style=None, sort_keys=False, allow_unicode=True)
     else:
         text = _json_text(plain, allow_nan=True)
-    _atomic_write_text(target, text)
+    atomic_write(target, text)
 
 
 def load_result(path: PathLike) -> dict[str, Any]:
@@ -604,14 +605,17 @@ def _parse_json(text: str, source: str) -> Any:
         raise DatasetError(f"{source}: not valid JSON: nested too deeply") from None
 
 
-def _atomic_write_text(path: str, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file in the same directory and ``os.replace``."""
-    target = os.path.realpath(path)  # keep a symlink a symlink: replace what it points to
+def atomic_write(path: str | os.PathLike[str], data: str | bytes) -> Path:
+    """Write ``data`` (text is UTF-8) to ``path`` through a temporary file in the same directory and
+    ``os.replace``: an existing file is replaced only once the new content is complete, and on any
+    failure the temporary file is removed and the old file stays as it was."""
+    raw = data.encode("utf-8") if isinstance(data, str) else data
+    target = os.path.realpath(os.fspath(path))  # keep a symlink a symlink: replace what it points to
     directory = os.path.dirname(target)
     fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(target)}.", suffix=".tmp", dir=directory)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
-            f.write(text)
+        with os.fdopen(fd, "wb") as f:
+            f.write(raw)
             f.flush()
             os.fsync(f.fileno())
         # mkstemp makes the file 0600; give it the mode an ordinary open() would have.
@@ -627,6 +631,7 @@ def _atomic_write_text(path: str, text: str) -> None:
         except FileNotFoundError:
             pass
         raise
+    return Path(path)
 
 
 def _umask() -> int:

@@ -23,12 +23,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .dataset import DatasetError
+from .dataset import DatasetError, atomic_write
 from .geometry import nested_transform, project
 from .ros import (
     DEFAULT_BASE_FRAME,
     DEFAULT_CAMERA_FRAME,
-    _atomic_write,
     _transforms,
     rotation_to_quaternion_xyzw,
     rotation_to_rpy,
@@ -695,7 +694,7 @@ def write_report(
         pdf = _pdf(title, summary, figures)
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        paths = {"html": _atomic_write(out / "report.html", page), "pdf": _atomic_write(out / "report.pdf", pdf)}
+        paths = {"html": atomic_write(out / "report.html", page), "pdf": atomic_write(out / "report.pdf", pdf)}
         bar.update()
     return paths
 

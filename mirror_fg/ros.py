@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 import os
 import re
-import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -25,6 +24,8 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 import yaml
+
+from mirror_fg.dataset import atomic_write
 
 __all__ = [
     "ros_outputs",
@@ -368,33 +369,6 @@ def _yaml_text(content: Mapping[str, Any], header: str) -> str:
     return header + body
 
 
-def _atomic_write(path: str | os.PathLike[str], data: bytes | str) -> Path:
-    """Write ``data`` to ``path`` through a temporary file in the same directory and ``os.replace``.
-
-    An existing file is replaced only when the new content is completely written; on any failure the
-    temporary file is removed and the old file stays as it was.
-    """
-    target = Path(path)
-    raw = data.encode("utf-8") if isinstance(data, str) else data
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(raw)
-            f.flush()
-            os.fsync(f.fileno())
-        mask = os.umask(0o022)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)  # mkstemp makes 0600; give the mode open() would
-        os.replace(tmp, target)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    return target
-
-
 def ros_output_paths(result_path: str | os.PathLike[str]) -> tuple[Path, Path]:
     """``(<stem>.ros.yaml, <stem>.urdf.xml)`` beside ``result_path``."""
     p = Path(result_path)
@@ -426,8 +400,8 @@ def write_ros_outputs(
         f"     {camera_frame} is the {_CAMERA_CONVENTION} frame.\n"
         "     Paste the joint into your robot description. -->\n" + content["urdf_joint"]
     )
-    _atomic_write(yaml_path, _yaml_text(content, header))
-    _atomic_write(urdf_path, urdf)
+    atomic_write(yaml_path, _yaml_text(content, header))
+    atomic_write(urdf_path, urdf)
     return [yaml_path, urdf_path]
 
 
