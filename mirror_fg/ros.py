@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import os
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 from xml.sax.saxutils import quoteattr
@@ -26,6 +26,7 @@ import numpy as np
 import yaml
 
 from mirror_fg.dataset import atomic_write
+from mirror_fg.transforms import quaternion_xyzw_to_rotation, rotation_to_quaternion_xyzw
 
 __all__ = [
     "ros_outputs",
@@ -100,41 +101,6 @@ def rotation_to_rpy(R: np.ndarray) -> tuple[float, float, float]:
     X = rpy_to_rotation(0.0, pitch, yaw).T @ R  # = Rx(roll) up to rounding
     roll = math.atan2(X[2, 1] - X[1, 2], X[1, 1] + X[2, 2])
     return _clean(roll), _clean(pitch), _clean(yaw)
-
-
-def rotation_to_quaternion_xyzw(R: np.ndarray) -> np.ndarray:
-    """Hamilton unit quaternion ``(x, y, z, w)`` of a rotation matrix, ``w >= 0`` (Shepperd's method)."""
-    R = _rotation(R, "rotation_to_quaternion_xyzw")
-    trace = float(np.trace(R))
-    diag = np.diag(R)
-    k = int(np.argmax([trace, *diag]))  # largest of 4w^2-1, 4x^2-1, ... : no cancellation
-    if k == 0:
-        s = 2.0 * math.sqrt(1.0 + trace)
-        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
-    elif k == 1:
-        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        q = [0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
-    elif k == 2:
-        s = 2.0 * math.sqrt(1.0 - R[0, 0] + R[1, 1] - R[2, 2])
-        q = [(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 - R[0, 0] - R[1, 1] + R[2, 2])
-        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s]
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0.0 else q
-
-
-def quaternion_xyzw_to_rotation(q: Sequence[float]) -> np.ndarray:
-    """Rotation matrix of a Hamilton quaternion ``(x, y, z, w)`` (normalised first)."""
-    x, y, z, w = np.asarray(q, dtype=float) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 def _clean(x: float) -> float:

@@ -7,27 +7,30 @@ __all__ = ["rotation_to_quaternion_xyzw", "quaternion_xyzw_to_rotation", "spec_c
 
 
 def rotation_to_quaternion_xyzw(R: np.ndarray) -> np.ndarray:
-    """Hamilton unit quaternion ``(x, y, z, w)`` (ROS order, w >= 0) of a rotation matrix."""
+    """Hamilton unit quaternion ``(x, y, z, w)`` of a rotation matrix, ``w >= 0`` (Shepperd's method)."""
     R = np.asarray(R, dtype=float)
-    trace = np.trace(R)
-    if trace > 0:
+    trace = float(np.trace(R))
+    diag = np.diag(R)
+    k = int(np.argmax([trace, *diag]))  # largest of 4w^2-1, 4x^2-1, ... : no cancellation
+    if k == 0:
         s = 2.0 * np.sqrt(1.0 + trace)
-        q = np.array([(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s])
+        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
+    elif k == 1:
+        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = [0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
+    elif k == 2:
+        s = 2.0 * np.sqrt(1.0 - R[0, 0] + R[1, 1] - R[2, 2])
+        q = [(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
     else:
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
-        q = np.empty(4)
-        q[i] = 0.25 * s
-        q[j] = (R[j, i] + R[i, j]) / s
-        q[k] = (R[k, i] + R[i, k]) / s
-        q[3] = (R[k, j] - R[j, k]) / s
+        s = 2.0 * np.sqrt(1.0 - R[0, 0] - R[1, 1] + R[2, 2])
+        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s]
+    q = np.array(q)
     q /= np.linalg.norm(q)
-    return q if q[3] >= 0 else -q
+    return -q if q[3] < 0.0 else q
 
 
 def quaternion_xyzw_to_rotation(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a Hamilton quaternion ``(x, y, z, w)``."""
+    """Rotation matrix of a Hamilton quaternion ``(x, y, z, w)`` (normalised first)."""
     x, y, z, w = np.asarray(q, dtype=float) / np.linalg.norm(q)
     return np.array(
         [
