@@ -166,9 +166,9 @@ def _print_detection_report(out: _Printer, reports) -> None:
     out.info(f"detection: target found in {found} of {len(reports)} image(s)")
     for r in reports:
         if r.status != "found":
-            out.info(f"  {r.id}: {r.status}: {r.reason}")
+            out.info("  " + r.line())
         else:
-            out.detail(f"  {r.id}: found {r.num_points} points")
+            out.detail("  " + r.line())
 
 
 def cmd_simulate(args, out: _Printer) -> int:

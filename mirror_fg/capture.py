@@ -1,0 +1,1037 @@
+"""Capture files (``mirror-fg/capture@1``): what a user writes to go from photographs or a video to a dataset.
+
+A capture file is YAML or JSON. Paths in it are relative to the capture file. Top-level keys:
+
+``format``
+    ``mirror-fg/capture@1``.
+``num_mirrors``
+    Integer >= 1: how many mirrors the light meets between the target and the camera.
+``camera``
+    Either the dataset@1 camera object (``model: pinhole``, ``width``, ``height``, ``fx``, ``fy``, ``cx``,
+    ``cy`` in pixels, OpenCV ``dist`` ``(k1, k2, p1, p2[, k3, ...])``) or a path to a calibration file,
+    or ``{file: PATH, name: cam1}``. Files understood: OpenCV ``FileStorage`` YAML/XML
+    (``camera_matrix``/``cameraMatrix``/``K``, ``distortion_coefficients``/``dist_coeffs``/``D``,
+    ``image_width``/``image_height``), ROS ``camera_info`` YAML, and Kalibr camchains (``cam0``...;
+    ``camera_model: pinhole`` with ``distortion_model`` ``radtan`` or ``none``). Where a file gives no
+    image size, the size of the first image read is used.
+``pixel_sigma``
+    Optional measurement standard deviation in pixels (0.5 when absent).
+``target``
+    What is detected, one of:
+
+    * ``kind: chessboard`` with ``cols``, ``rows`` (inner corners) and ``square`` (metres). Inner corner
+      (col, row) is fiducial ``C{row*cols+col:02d}`` at ``(col*square, row*square, 0)`` in the board
+      frame. ``cols + rows`` must be odd (one count odd, the other even): only then do the square
+      colours tell the board's two half-turn orientations apart. Corner C00: look at the printed face
+      with the rows (``cols + 1`` squares each) horizontal and turn the board so that its top-left
+      corner square is black; C00 is the inner corner of that square, C01, C02, ... run to the right
+      along the top row, row 1 is the next row down. The board frame has x to the right, y down and z
+      into the board. The detector enforces this order in every image (handedness from the number of
+      mirrors, the half turn from the colour of the squares) or refuses the image with the reason.
+    * ``kind: apriltag`` (or ``aruco``) with ``dictionary`` (``tag36h11``, ``tag25h9``, ``tag16h5``,
+      ``tag36h10`` or an OpenCV ArUco name such as ``DICT_4X4_50``), ``tag_size`` (metres, edge of the
+      black square) and either ``tags: {id: {R, t}}``, each tag's frame in the base frame
+      (``Bp = R @ p_tag + t``), or ``grid: {cols, rows, spacing, first_id}``: tag ``first_id +
+      row*cols + col`` at ``(col*spacing, -row*spacing, 0)`` in the target frame, whose axes are those
+      of every tag (``spacing`` is centre to centre, metres; tag ``first_id`` is top left). The tag
+      frame is OpenCV's ArUco marker frame (origin at the centre of the black square, x right and y up
+      on the printed face, z out of it). Fiducial ``T{id}_{k}`` is corner k in cv2.aruco's order, at
+      ``(-s/2, s/2, 0)``, ``(s/2, s/2, 0)``, ``(s/2, -s/2, 0)``, ``(-s/2, -s/2, 0)`` in the tag frame.
+      Tags not listed are ignored. Optional ``corner_refinement``: ``subpix`` (default: markers found
+      by ``cv2.aruco``, corners refined by ``cv2.cornerSubPix``), ``contour``, ``apriltag`` or ``none``
+      (OpenCV's own ``CORNER_REFINE_*``); optional ``image_gamma``: ``srgb`` (default; images encoded
+      like a camera's JPEG/PNG, linearized before ``subpix`` refinement, which otherwise pulls corners
+      about 0.5 px into the black square) or ``linear``.
+    * ``kind: points`` with ``fiducials: {name: [x, y, z]}`` (metres, target frame); each image then
+      gives its pixels under ``observations`` instead of detection.
+``T_base_target``
+    Optional ``{R: 3x3, t: [3]}`` (or ``{q_xyzw: [4], t: [3]}``): the target frame in the base frame,
+    ``Bp = R @ p_target + t``, for chessboard, tag grid and points targets; identity when absent. Tag
+    poses under ``tags`` are already in the base frame and do not take it.
+``images``
+    A list of ``{file, mirror_configs, observations?, id?}``. ``mirror_configs[l-1]`` is the placement
+    of mirror l: a non-negative integer, or ``each`` (a placement of its own, given a fresh integer in
+    the dataset). ``observations`` (optional; required with a points target, where ``file`` may then be
+    left out) gives measured pixels ``{name: [u, v]}`` inline or as a file: JSON/YAML of that shape, or
+    text with one ``name u v`` or ``u v`` per line (the latter in the order of the target's fiducials,
+    like a hand-measured ``inputN.txt``). Names that are not fiducials are reconstruction points. The
+    image id in the dataset is ``id`` if given, else the stem of ``file`` (else of the observations
+    file).
+``video``
+    Instead of ``images``: ``{file, segments: [{frames: [first, last], mirror_configs, step?}]}`` with
+    inclusive frame ranges (0-based) that do not overlap. Every frame of a segment is tracked (KLT,
+    forward-backward checked) and re-detected; every ``step``-th frame (1 when absent) becomes an image
+    ``stem:frame``. ``each`` means a new placement of that mirror in every such frame.
+``track``
+    Optional, with a video: ``{name: {frame, pixel: [u, v]}}`` unknown points that the KLT tracker
+    follows from the given starting pixel of that frame to the end of its run of frames.
+
+Everything is checked on loading; :func:`load_capture` raises :class:`~mirror_fg.dataset.DatasetError`
+with one line naming the file, the entry and the problem.
+"""
+from __future__ import annotations
+
+import json
+import math
+import numbers
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mirror_fg.dataset import DatasetError
+
+__all__ = [
+    "CAPTURE_FORMAT",
+    "EACH",
+    "Capture",
+    "ChessboardTarget",
+    "TagTarget",
+    "PointsTarget",
+    "ImageEntry",
+    "VideoSegment",
+    "VideoSpec",
+    "TrackStart",
+    "load_capture",
+    "capture_from_dict",
+    "tag_dictionary",
+]
+
+CAPTURE_FORMAT = "mirror-fg/capture@1"
+#: ``mirror_configs`` entry meaning "a placement of its own in this image / frame".
+EACH = "each"
+DEFAULT_PIXEL_SIGMA = 0.5
+#: Largest ``|R^T R - I|`` entry accepted for a rotation matrix typed into a capture file.
+ROTATION_TOL = 1e-4
+
+#: Short AprilTag family names -> OpenCV dictionary attribute.
+_APRILTAG_NAMES = {
+    "tag16h5": "DICT_APRILTAG_16h5",
+    "tag25h9": "DICT_APRILTAG_25h9",
+    "tag36h10": "DICT_APRILTAG_36h10",
+    "tag36h11": "DICT_APRILTAG_36h11",
+}
+_CORNER_REFINEMENTS = ("subpix", "contour", "apriltag", "none")
+_IMAGE_GAMMAS = ("srgb", "linear")
+
+
+# --------------------------------------------------------------------------------------------------
+# Value objects
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ChessboardTarget:
+    """Chessboard of ``cols`` x ``rows`` inner corners, ``square`` metres; fiducial ``C{row*cols+col:02d}``."""
+
+    cols: int
+    rows: int
+    square: float
+    kind: str = "chessboard"
+
+    def name(self, col: int, row: int) -> str:
+        """Fiducial name of inner corner (col, row)."""
+        return f"C{row * self.cols + col:02d}"
+
+    def target_points(self) -> dict[str, np.ndarray]:
+        """Corner positions in the board frame (metres), row-major."""
+        return {
+            self.name(c, r): np.array([c * self.square, r * self.square, 0.0])
+            for r in range(self.rows)
+            for c in range(self.cols)
+        }
+
+
+@dataclass(frozen=True)
+class TagTarget:
+    """AprilTag/ArUco markers: ``tags`` maps an id to its frame ``(R, t)`` in the frame named by ``frame``.
+
+    ``frame`` is ``"base"`` for tags listed under ``tags`` and ``"target"`` for a grid (then
+    ``T_base_target`` applies). ``dictionary_id`` is the ``cv2.aruco.DICT_*`` constant.
+    """
+
+    dictionary: str
+    dictionary_id: int
+    tag_size: float
+    tags: dict[int, tuple[np.ndarray, np.ndarray]]
+    frame: str = "base"
+    corner_refinement: str = "subpix"
+    image_gamma: str = "srgb"
+    kind: str = "apriltag"
+
+    @staticmethod
+    def corner_name(tag_id: int, k: int) -> str:
+        """Fiducial name of corner k (cv2.aruco order) of tag ``tag_id``."""
+        return f"T{tag_id}_{k}"
+
+    def corners_in_tag(self) -> np.ndarray:
+        """(4, 3) corners in the tag frame, cv2.aruco order (metres)."""
+        h = self.tag_size / 2.0
+        return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+
+    def target_points(self) -> dict[str, np.ndarray]:
+        """Every listed tag's corners in the frame of ``tags`` (metres)."""
+        corners = self.corners_in_tag()
+        out: dict[str, np.ndarray] = {}
+        for tag_id in sorted(self.tags):
+            R, t = self.tags[tag_id]
+            for k in range(4):
+                out[self.corner_name(tag_id, k)] = R @ corners[k] + t
+        return out
+
+
+@dataclass(frozen=True)
+class PointsTarget:
+    """Points measured on the robot (target frame, metres); pixels come with each image."""
+
+    fiducials: dict[str, np.ndarray]
+    kind: str = "points"
+
+    def target_points(self) -> dict[str, np.ndarray]:
+        return {name: p.copy() for name, p in self.fiducials.items()}
+
+
+Target = ChessboardTarget | TagTarget | PointsTarget
+Config = int | str  # an integer placement or EACH
+
+
+@dataclass
+class ImageEntry:
+    """One listed image. ``file`` is absolute (None for a points capture without image files)."""
+
+    id: str
+    file: str | None
+    mirror_configs: tuple[Config, ...]
+    observations: dict[str, np.ndarray] = field(default_factory=dict)
+    where: str = "images[0]"
+
+
+@dataclass
+class VideoSegment:
+    """Frames ``first..last`` (inclusive, 0-based); every ``step``-th one becomes an image."""
+
+    first: int
+    last: int
+    mirror_configs: tuple[Config, ...]
+    step: int = 1
+    where: str = "video.segments[0]"
+
+    def output_frames(self) -> range:
+        return range(self.first, self.last + 1, self.step)
+
+
+@dataclass
+class VideoSpec:
+    file: str
+    segments: list[VideoSegment]
+    frame_count: int
+
+    @property
+    def stem(self) -> str:
+        return Path(self.file).stem
+
+
+@dataclass
+class TrackStart:
+    """An unknown point for KLT: its pixel (OpenCV convention) in video frame ``frame``."""
+
+    name: str
+    frame: int
+    pixel: np.ndarray
+
+
+@dataclass
+class Capture:
+    """A validated ``mirror-fg/capture@1``.
+
+    ``camera`` is the dataset@1 camera dictionary (``width``/``height`` None when a calibration file
+    did not give them: the first image read fills them in). ``R_base_target``, ``t_base_target``:
+    ``Bp = R @ p_target + t``. Exactly one of ``images`` and ``video`` is set.
+    """
+
+    source: str
+    num_mirrors: int
+    camera: dict[str, Any]
+    pixel_sigma: float
+    target: Target
+    R_base_target: np.ndarray
+    t_base_target: np.ndarray
+    images: list[ImageEntry] | None = None
+    video: VideoSpec | None = None
+    track: dict[str, TrackStart] = field(default_factory=dict)
+
+    @property
+    def mirrored(self) -> bool:
+        """True when the target is seen through an odd number of mirrors (the image is mirror-imaged)."""
+        return self.num_mirrors % 2 == 1
+
+    def fiducials(self) -> dict[str, np.ndarray]:
+        """Fiducials in the BASE frame (metres): ``T_base_target`` applied where it applies."""
+        points = self.target.target_points()
+        if isinstance(self.target, TagTarget) and self.target.frame == "base":
+            return points
+        return {name: self.R_base_target @ p + self.t_base_target for name, p in points.items()}
+
+
+# --------------------------------------------------------------------------------------------------
+# Loading
+# --------------------------------------------------------------------------------------------------
+
+
+def load_capture(path: str | os.PathLike[str]) -> Capture:
+    """Read and validate a capture@1 file (YAML or JSON). Raises DatasetError (one line) on any problem.
+
+    Image, observation and video files must exist; the video must open and hold the listed frames.
+    """
+    source = os.fspath(path)
+    data = _load_structured(source, source)
+    return capture_from_dict(data, source=source, base_dir=os.path.dirname(os.path.abspath(source)))
+
+
+def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".") -> Capture:
+    """Validate a capture@1 dictionary; relative paths are taken from ``base_dir``."""
+    if not isinstance(d, Mapping):
+        raise DatasetError(f"{source}: expected a mapping at the top level, got {_kind(d)}")
+    fmt = d.get("format")
+    if fmt != CAPTURE_FORMAT:
+        what = "missing 'format'" if fmt is None else f"unknown format {_short(fmt)}"
+        raise DatasetError(f"{source}: {what} (expected {CAPTURE_FORMAT!r})")
+    known = {"format", "num_mirrors", "camera", "pixel_sigma", "target", "T_base_target", "images", "video", "track"}
+    extra = sorted(str(k) for k in d if k not in known)
+    if extra:
+        raise DatasetError(f"{source}: unknown key {extra[0]!r} (expected some of {', '.join(sorted(known))})")
+
+    num_mirrors = d.get("num_mirrors")
+    if not _is_int(num_mirrors) or num_mirrors < 1:
+        raise DatasetError(f"{source}: num_mirrors must be an integer >= 1, got {_short(num_mirrors)}")
+
+    if "camera" not in d:
+        raise DatasetError(f"{source}: missing 'camera' (intrinsics, or a path to a calibration file)")
+    camera = _camera(d["camera"], source, base_dir)
+
+    pixel_sigma = d.get("pixel_sigma", DEFAULT_PIXEL_SIGMA)
+    if not _is_number(pixel_sigma) or not math.isfinite(pixel_sigma) or pixel_sigma <= 0:
+        raise DatasetError(f"{source}: pixel_sigma must be a finite number > 0 (pixels), got {_short(pixel_sigma)}")
+
+    if "target" not in d:
+        raise DatasetError(f"{source}: missing 'target' (chessboard, apriltag or points)")
+    target = _target(d["target"], source)
+
+    if d.get("T_base_target") is not None:
+        if isinstance(target, TagTarget) and target.frame == "base":
+            raise DatasetError(
+                f"{source}: T_base_target: tag poses under target.tags are already in the base frame; "
+                "give T_base_target with a chessboard, a tag grid or points"
+            )
+        R, t = _pose(d["T_base_target"], f"{source}: T_base_target")
+    else:
+        R, t = np.eye(3), np.zeros(3)
+
+    cap = Capture(
+        source=source,
+        num_mirrors=int(num_mirrors),
+        camera=camera,
+        pixel_sigma=float(pixel_sigma),
+        target=target,
+        R_base_target=R,
+        t_base_target=t,
+    )
+
+    has_images, has_video = d.get("images") is not None, d.get("video") is not None
+    if has_images == has_video:
+        raise DatasetError(f"{source}: give exactly one of 'images' and 'video'")
+    if has_images:
+        cap.images = _images(d["images"], cap, base_dir)
+    else:
+        if isinstance(target, PointsTarget):
+            raise DatasetError(f"{source}: video: a points target needs 'images' with per-image observations")
+        cap.video = _video(d["video"], cap, base_dir)
+    if d.get("track") is not None:
+        if cap.video is None:
+            raise DatasetError(
+                f"{source}: track: KLT tracking needs a video; with images give the pixels under each image's 'observations'"
+            )
+        cap.track = _track(d["track"], cap)
+    return cap
+
+
+# --- camera ---------------------------------------------------------------------------------------
+
+
+def _camera(value: Any, source: str, base_dir: str) -> dict[str, Any]:
+    where = f"{source}: camera"
+    if isinstance(value, str) or (isinstance(value, Mapping) and "file" in value):
+        name = None
+        if isinstance(value, Mapping):
+            extra = sorted(str(k) for k in value if k not in ("file", "name"))
+            if extra:
+                raise DatasetError(f"{where}: unknown key {extra[0]!r} next to 'file' (expected 'name')")
+            name = value.get("name")
+            value = value["file"]
+            if not isinstance(value, str):
+                raise DatasetError(f"{where}: file must be a path, got {_short(value)}")
+        path = _resolve(value, base_dir)
+        if not os.path.isfile(path):
+            raise DatasetError(f"{where}: calibration file {value!r} not found")
+        return _camera_from_file(path, name, f"{where} ({value})")
+    if not isinstance(value, Mapping):
+        raise DatasetError(f"{where}: expected intrinsics or a path to a calibration file, got {_kind(value)}")
+    return _camera_dict(value, where, need_size=True)
+
+
+def _camera_dict(c: Mapping[str, Any], where: str, need_size: bool) -> dict[str, Any]:
+    model = c.get("model", "pinhole")
+    if model != "pinhole":
+        raise DatasetError(f"{where}: unsupported model {_short(model)} (only 'pinhole')")
+    keys = ("width", "height", "fx", "fy", "cx", "cy") if need_size else ("fx", "fy", "cx", "cy")
+    missing = [k for k in keys if k not in c]
+    if missing:
+        raise DatasetError(f"{where}: missing {', '.join(repr(k) for k in missing)}")
+    out: dict[str, Any] = {"model": "pinhole"}
+    for key in ("width", "height"):
+        v = c.get(key)
+        if v is None and not need_size:
+            out[key] = None
+            continue
+        if not _is_int(v) or v < 1:
+            raise DatasetError(f"{where}: {key} must be a positive integer (pixels), got {_short(v)}")
+        out[key] = int(v)
+    for key in ("fx", "fy", "cx", "cy"):
+        v = c[key]
+        if not _is_number(v) or not math.isfinite(v) or (key in ("fx", "fy") and v <= 0):
+            cond = "> 0" if key in ("fx", "fy") else "finite"
+            raise DatasetError(f"{where}: {key} must be a {cond} number (pixels), got {_short(v)}")
+        out[key] = float(v)
+    dist = c.get("dist", [0.0] * 5)
+    if isinstance(dist, np.ndarray):
+        dist = dist.ravel().tolist()
+    if (
+        not isinstance(dist, (list, tuple))
+        or len(dist) not in (4, 5, 8, 12, 14)
+        or not all(_is_number(x) and math.isfinite(x) for x in dist)
+    ):
+        raise DatasetError(
+            f"{where}: dist must be 4, 5, 8, 12 or 14 finite numbers (OpenCV k1, k2, p1, p2[, k3, ...]), got {_short(dist)}"
+        )
+    out["dist"] = [float(x) for x in dist]
+    return out
+
+
+def _camera_from_file(path: str, name: Any, where: str) -> dict[str, Any]:
+    """Intrinsics from an OpenCV FileStorage file, a ROS camera_info YAML or a Kalibr camchain."""
+    with open(path, "rb") as f:
+        head = f.read(4096).decode("utf-8", "replace")
+    if head.lstrip().startswith(("%YAML:1", "<?xml")) or "opencv-matrix" in head:
+        return _camera_from_filestorage(path, where)
+    data = _load_structured(path, where)
+    if not isinstance(data, Mapping):
+        raise DatasetError(f"{where}: expected a mapping, got {_kind(data)}")
+    cams = sorted(k for k in data if isinstance(k, str) and k.startswith("cam") and isinstance(data[k], Mapping))
+    if name is not None or (cams and "camera_model" in data.get(cams[0], {})):
+        key = name if name is not None else cams[0]
+        if key not in data or not isinstance(data[key], Mapping):
+            raise DatasetError(f"{where}: no camera {key!r} (has {', '.join(cams) or 'none'})")
+        return _camera_from_kalibr(data[key], f"{where}: {key}")
+    if "intrinsics" in data and "camera_model" in data:
+        return _camera_from_kalibr(data, where)
+    K = _first(data, ("camera_matrix", "cameraMatrix", "K", "intrinsic_matrix"))
+    if K is None:
+        raise DatasetError(
+            f"{where}: not a camera file I know (no camera_matrix / K, no Kalibr cam0 with intrinsics)"
+        )
+    D = _first(data, ("distortion_coefficients", "dist_coeffs", "distCoeffs", "D", "distortion"))
+    K = _matrix(K, f"{where}: camera_matrix")
+    dist = [0.0] * 5 if D is None else _matrix(D, f"{where}: distortion_coefficients").ravel().tolist()
+    return _camera_from_K(K, dist, data.get("image_width", data.get("width")), data.get("image_height", data.get("height")), where)
+
+
+def _camera_from_filestorage(path: str, where: str) -> dict[str, Any]:
+    import cv2
+
+    try:
+        fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+    except cv2.error as exc:
+        raise DatasetError(f"{where}: cannot parse OpenCV calibration file: {str(exc).strip().splitlines()[-1]}") from None
+    try:
+        if not fs.isOpened():
+            raise DatasetError(f"{where}: cannot open as an OpenCV calibration file")
+
+        def node(*names: str) -> Any:
+            for n in names:
+                nd = fs.getNode(n)
+                if not nd.empty():
+                    return nd
+            return None
+
+        k_node = node("camera_matrix", "cameraMatrix", "K", "intrinsic_matrix")
+        if k_node is None or k_node.mat() is None:
+            raise DatasetError(f"{where}: no camera_matrix in the OpenCV calibration file")
+        K = np.asarray(k_node.mat(), dtype=float)
+        d_node = node("distortion_coefficients", "dist_coeffs", "distCoeffs", "D")
+        dist = [0.0] * 5 if d_node is None or d_node.mat() is None else np.asarray(d_node.mat(), float).ravel().tolist()
+        w_node, h_node = node("image_width", "imageWidth"), node("image_height", "imageHeight")
+        width = int(w_node.real()) if w_node is not None else None
+        height = int(h_node.real()) if h_node is not None else None
+        size = node("image_size", "imageSize")
+        if size is not None and width is None:
+            vals = [size.at(i).real() for i in range(size.size())] if size.isSeq() else size.mat()
+            s = np.asarray(vals if vals is not None else [], dtype=float).ravel()
+            if s.size == 2:
+                width, height = int(s[0]), int(s[1])
+    finally:
+        fs.release()
+    return _camera_from_K(K, dist, width, height, where)
+
+
+def _camera_from_kalibr(cam: Mapping[str, Any], where: str) -> dict[str, Any]:
+    model = cam.get("camera_model", "pinhole")
+    if model != "pinhole":
+        raise DatasetError(f"{where}: camera_model {_short(model)} is not supported (only pinhole)")
+    intr = cam.get("intrinsics")
+    if not isinstance(intr, list) or len(intr) != 4 or not all(_is_number(x) for x in intr):
+        raise DatasetError(f"{where}: intrinsics must be [fu, fv, pu, pv], got {_short(intr)}")
+    dmodel = cam.get("distortion_model", "none")
+    coeffs = cam.get("distortion_coeffs", [])
+    if dmodel in ("radtan", "plumb_bob"):
+        if not isinstance(coeffs, list) or len(coeffs) not in (4, 5):
+            raise DatasetError(f"{where}: radtan distortion_coeffs must be [k1, k2, r1, r2], got {_short(coeffs)}")
+        dist = [float(x) for x in coeffs]
+    elif dmodel in ("none", None):
+        dist = [0.0] * 5
+    else:
+        raise DatasetError(
+            f"{where}: distortion_model {_short(dmodel)} is not supported (radtan or none; OpenCV's pinhole model)"
+        )
+    res = cam.get("resolution")
+    width = height = None
+    if res is not None:
+        if not isinstance(res, list) or len(res) != 2:
+            raise DatasetError(f"{where}: resolution must be [width, height], got {_short(res)}")
+        width, height = res
+    K = np.array([[intr[0], 0, intr[2]], [0, intr[1], intr[3]], [0, 0, 1]], dtype=float)
+    return _camera_from_K(K, dist, width, height, where)
+
+
+def _camera_from_K(K: np.ndarray, dist: list[float], width: Any, height: Any, where: str) -> dict[str, Any]:
+    if K.shape != (3, 3):
+        raise DatasetError(f"{where}: camera matrix must be 3x3, got shape {K.shape}")
+    if abs(K[0, 1]) > 1e-9 * abs(K[0, 0]) or not np.allclose(K[2], [0, 0, 1]) or abs(K[1, 0]) > 0:
+        raise DatasetError(f"{where}: camera matrix must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew)")
+    c = {"model": "pinhole", "width": width, "height": height,
+         "fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]), "dist": list(dist)}
+    return _camera_dict(c, where, need_size=False)
+
+
+def _first(data: Mapping[str, Any], names: tuple[str, ...]) -> Any:
+    for n in names:
+        if n in data:
+            return data[n]
+    return None
+
+
+def _matrix(value: Any, where: str) -> np.ndarray:
+    """A matrix given as nested lists or a ROS/OpenCV ``{rows, cols, data}`` mapping."""
+    if isinstance(value, Mapping) and "data" in value:
+        data = value["data"]
+        rows, cols = value.get("rows"), value.get("cols")
+        try:
+            arr = np.asarray(data, dtype=float)
+            if _is_int(rows) and _is_int(cols):
+                arr = arr.reshape(rows, cols)
+        except (TypeError, ValueError):
+            raise DatasetError(f"{where}: data must be {rows} x {cols} numbers") from None
+    else:
+        try:
+            arr = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            raise DatasetError(f"{where}: expected numbers, got {_short(value)}") from None
+    if arr.size == 9 and arr.ndim == 1:
+        arr = arr.reshape(3, 3)
+    if not np.all(np.isfinite(arr)):
+        raise DatasetError(f"{where}: not finite")
+    return arr
+
+
+# --- target ---------------------------------------------------------------------------------------
+
+
+def tag_dictionary(name: Any, where: str = "dictionary") -> tuple[str, int]:
+    """``(canonical name, cv2.aruco.DICT_* value)`` of an AprilTag family or ArUco dictionary name."""
+    import cv2
+
+    if not isinstance(name, str) or not name:
+        raise DatasetError(f"{where}: must be a name such as 'tag36h11' or 'DICT_4X4_50', got {_short(name)}")
+    key = name.strip()
+    attr = _APRILTAG_NAMES.get(key.lower())
+    if attr is None:
+        upper = key.upper()
+        candidates = [upper, "DICT_" + upper, "DICT_APRILTAG_" + upper.removeprefix("TAG")]
+        attr = next((c for c in candidates if hasattr(cv2.aruco, c)), None)
+    if attr is None or not hasattr(cv2.aruco, attr):
+        raise DatasetError(
+            f"{where}: unknown dictionary {name!r} (AprilTag: tag16h5, tag25h9, tag36h10, tag36h11; "
+            "ArUco: DICT_4X4_50 ... DICT_7X7_1000, DICT_ARUCO_ORIGINAL)"
+        )
+    return key, int(getattr(cv2.aruco, attr))
+
+
+def _target(t: Any, source: str) -> Target:
+    where = f"{source}: target"
+    if not isinstance(t, Mapping):
+        raise DatasetError(f"{where}: expected a mapping with 'kind', got {_kind(t)}")
+    kind = t.get("kind")
+    if kind == "chessboard":
+        _only(t, ("kind", "cols", "rows", "square"), where)
+        cols, rows, square = t.get("cols"), t.get("rows"), t.get("square")
+        for key, v in (("cols", cols), ("rows", rows)):
+            if not _is_int(v) or v < 3:
+                raise DatasetError(f"{where}: {key} must be an integer >= 3 (inner corners), got {_short(v)}")
+        if not _is_number(square) or not math.isfinite(square) or square <= 0:
+            raise DatasetError(f"{where}: square must be a number > 0 (metres), got {_short(square)}")
+        if (cols + rows) % 2 == 0:
+            raise DatasetError(
+                f"{where}: a {cols} x {rows}-corner board looks the same turned half a turn (cols + rows is even), "
+                "so its corner order cannot be told from an image; use a board with one count odd and the other even"
+            )
+        return ChessboardTarget(int(cols), int(rows), float(square))
+    if kind in ("apriltag", "aruco"):
+        _only(t, ("kind", "dictionary", "tag_size", "tags", "grid", "corner_refinement", "image_gamma"), where)
+        name, dict_id = tag_dictionary(t.get("dictionary"), f"{where}: dictionary")
+        import cv2
+
+        num_ids = int(cv2.aruco.getPredefinedDictionary(dict_id).bytesList.shape[0])
+        size = t.get("tag_size")
+        if not _is_number(size) or not math.isfinite(size) or size <= 0:
+            raise DatasetError(f"{where}: tag_size must be a number > 0 (metres, edge of the black square), got {_short(size)}")
+        refine = t.get("corner_refinement", "subpix")
+        if refine not in _CORNER_REFINEMENTS:
+            raise DatasetError(f"{where}: corner_refinement must be one of {', '.join(_CORNER_REFINEMENTS)}, got {_short(refine)}")
+        gamma = t.get("image_gamma", "srgb")
+        if gamma not in _IMAGE_GAMMAS:
+            raise DatasetError(f"{where}: image_gamma must be one of {', '.join(_IMAGE_GAMMAS)}, got {_short(gamma)}")
+        if (t.get("tags") is None) == (t.get("grid") is None):
+            raise DatasetError(f"{where}: give exactly one of 'tags' (each tag's pose) and 'grid'")
+        if t.get("tags") is not None:
+            tags_in = t["tags"]
+            if not isinstance(tags_in, Mapping) or not tags_in:
+                raise DatasetError(f"{where}: tags must be a non-empty mapping {{id: {{R, t}}}}, got {_short(tags_in)}")
+            tags: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+            for key, pose in tags_in.items():
+                tag_id = _tag_id(key, num_ids, name, f"{where}: tags")
+                if tag_id in tags:
+                    raise DatasetError(f"{where}: tags: tag {tag_id} is listed twice")
+                tags[tag_id] = _pose(pose, f"{where}: tags[{tag_id}]")
+            frame = "base"
+        else:
+            tags = _grid(t["grid"], num_ids, name, f"{where}: grid")
+            frame = "target"
+        return TagTarget(name, dict_id, float(size), tags, frame=frame, corner_refinement=refine, image_gamma=gamma)
+    if kind == "points":
+        _only(t, ("kind", "fiducials"), where)
+        fids = t.get("fiducials")
+        if not isinstance(fids, Mapping) or not fids:
+            raise DatasetError(f"{where}: fiducials must be a non-empty mapping {{name: [x, y, z]}} (metres)")
+        out: dict[str, np.ndarray] = {}
+        for key, value in fids.items():
+            if not isinstance(key, str) or not key:
+                raise DatasetError(f"{where}: fiducial name must be a non-empty string, got {_short(key)}")
+            out[key] = _vector(value, 3, f"{where}: fiducial {key!r}")
+        if len(out) < 3:
+            raise DatasetError(f"{where}: needs at least 3 fiducials, got {len(out)}")
+        return PointsTarget(out)
+    raise DatasetError(f"{where}: kind must be 'chessboard', 'apriltag' or 'points', got {_short(kind)}")
+
+
+def _tag_id(key: Any, num_ids: int, dict_name: str, where: str) -> int:
+    if isinstance(key, str) and key.strip().isdigit():
+        key = int(key)
+    if not _is_int(key) or key < 0:
+        raise DatasetError(f"{where}: tag id must be a non-negative integer, got {_short(key)}")
+    if key >= num_ids:
+        raise DatasetError(f"{where}: tag id {key} is not in dictionary {dict_name} (ids 0-{num_ids - 1})")
+    return int(key)
+
+
+def _grid(g: Any, num_ids: int, dict_name: str, where: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    if not isinstance(g, Mapping):
+        raise DatasetError(f"{where}: expected {{cols, rows, spacing, first_id}}, got {_kind(g)}")
+    _only(g, ("cols", "rows", "spacing", "first_id"), where)
+    cols, rows, spacing, first = g.get("cols"), g.get("rows"), g.get("spacing"), g.get("first_id", 0)
+    for key, v in (("cols", cols), ("rows", rows)):
+        if not _is_int(v) or v < 1:
+            raise DatasetError(f"{where}: {key} must be an integer >= 1, got {_short(v)}")
+    if not _is_number(spacing) or not math.isfinite(spacing) or spacing <= 0:
+        raise DatasetError(f"{where}: spacing must be a number > 0 (metres, centre to centre), got {_short(spacing)}")
+    if not _is_int(first) or first < 0:
+        raise DatasetError(f"{where}: first_id must be a non-negative integer, got {_short(first)}")
+    last = first + cols * rows - 1
+    if last >= num_ids:
+        raise DatasetError(f"{where}: tag ids {first}-{last} are not all in dictionary {dict_name} (ids 0-{num_ids - 1})")
+    return {
+        first + r * cols + c: (np.eye(3), np.array([c * spacing, -r * spacing, 0.0]))
+        for r in range(rows)
+        for c in range(cols)
+    }
+
+
+def _pose(value: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, t)`` from ``{R: 3x3, t: [3]}`` or ``{q_xyzw: [4], t: [3]}``; R must be a rotation."""
+    if not isinstance(value, Mapping):
+        raise DatasetError(f"{where}: expected {{R: 3x3, t: [x, y, z]}}, got {_kind(value)}")
+    _only(value, ("R", "t", "q_xyzw"), where)
+    if "t" not in value:
+        raise DatasetError(f"{where}: missing 't' (metres)")
+    t = _vector(value["t"], 3, f"{where}: t")
+    if ("R" in value) == ("q_xyzw" in value):
+        raise DatasetError(f"{where}: give exactly one of 'R' (3x3) and 'q_xyzw'")
+    if "q_xyzw" in value:
+        q = _vector(value["q_xyzw"], 4, f"{where}: q_xyzw")
+        n = float(np.linalg.norm(q))
+        if abs(n - 1.0) > 1e-3:
+            raise DatasetError(f"{where}: q_xyzw must be a unit quaternion, has norm {n:.6g}")
+        x, y, z, w = q / n
+        R = np.array([
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ])
+        return R, t
+    rows = value["R"]
+    if not isinstance(rows, (list, tuple)) or len(rows) != 3:
+        raise DatasetError(f"{where}: R must be 3 rows of 3 numbers, got {_short(rows)}")
+    R = np.array([_vector(r, 3, f"{where}: R row {i}") for i, r in enumerate(rows)])
+    err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if err > ROTATION_TOL or np.linalg.det(R) < 0:
+        raise DatasetError(f"{where}: R is not a rotation matrix (|R^T R - I| = {err:.2g}, det = {np.linalg.det(R):.4g})")
+    u, _, vt = np.linalg.svd(R)
+    return u @ vt, t
+
+
+# --- images, video, tracks --------------------------------------------------------------------------
+
+
+def _configs(value: Any, num_mirrors: int, where: str) -> tuple[Config, ...]:
+    if not isinstance(value, (list, tuple)):
+        raise DatasetError(f"{where}: mirror_configs must be a list of {num_mirrors} integers or 'each', got {_short(value)}")
+    if len(value) != num_mirrors:
+        raise DatasetError(f"{where}: mirror_configs has {len(value)} entries, expected {num_mirrors} (num_mirrors)")
+    out: list[Config] = []
+    for l, m in enumerate(value):
+        if m == EACH:
+            out.append(EACH)
+        elif _is_int(m) and m >= 0:
+            out.append(int(m))
+        else:
+            raise DatasetError(
+                f"{where}: mirror_configs[{l}] (mirror {l + 1}) must be a non-negative integer or 'each', got {_short(m)}"
+            )
+    return tuple(out)
+
+
+def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
+    source = cap.source
+    if not isinstance(value, list) or not value:
+        raise DatasetError(f"{source}: images must be a non-empty list of {{file, mirror_configs}}")
+    points_target = isinstance(cap.target, PointsTarget)
+    entries: list[ImageEntry] = []
+    seen: dict[str, str] = {}
+    for index, e in enumerate(value):
+        where = f"{source}: images[{index}]"
+        if not isinstance(e, Mapping):
+            raise DatasetError(f"{where}: expected {{file, mirror_configs}}, got {_kind(e)}")
+        _only(e, ("file", "mirror_configs", "observations", "id"), where)
+        file = e.get("file")
+        path = None
+        if file is not None:
+            if not isinstance(file, str) or not file:
+                raise DatasetError(f"{where}: file must be a path, got {_short(file)}")
+            where = f"{source}: images[{index}] ({file})"
+            path = _resolve(file, base_dir)
+            if not os.path.isfile(path):
+                raise DatasetError(f"{where}: image file not found")
+        elif not points_target:
+            raise DatasetError(f"{where}: missing 'file' (the image)")
+        if "mirror_configs" not in e:
+            raise DatasetError(f"{where}: missing 'mirror_configs'")
+        configs = _configs(e["mirror_configs"], cap.num_mirrors, where)
+        obs_value = e.get("observations")
+        obs_file = None
+        if obs_value is None:
+            if points_target:
+                raise DatasetError(f"{where}: missing 'observations' (pixels of the fiducials; a points target detects nothing)")
+            observations: dict[str, np.ndarray] = {}
+        else:
+            if isinstance(obs_value, str):
+                obs_file = obs_value
+            observations = _observations(obs_value, cap, base_dir, where)
+        image_id = e.get("id")
+        if image_id is None:
+            stem_of = file if file is not None else obs_file
+            if stem_of is None:
+                raise DatasetError(f"{where}: give 'file' or 'id' (the image id)")
+            image_id = Path(stem_of).stem
+        if not isinstance(image_id, str) or not image_id:
+            raise DatasetError(f"{where}: id must be a non-empty string, got {_short(image_id)}")
+        if image_id in seen:
+            raise DatasetError(f"{where}: image id {image_id!r} is also that of {seen[image_id]}; give each an 'id'")
+        seen[image_id] = f"images[{index}]"
+        entries.append(ImageEntry(image_id, path, configs, observations, where=where))
+    return entries
+
+
+def _observations(value: Any, cap: Capture, base_dir: str, where: str) -> dict[str, np.ndarray]:
+    """Pixels ``{name: [u, v]}`` inline or from a file (JSON/YAML mapping, or ``name u v`` / ``u v`` lines)."""
+    if isinstance(value, str):
+        path = _resolve(value, base_dir)
+        fwhere = f"{where}: observations file {value!r}"
+        if not os.path.isfile(path):
+            raise DatasetError(f"{fwhere} not found")
+        if path.lower().endswith((".json", ".yaml", ".yml")):
+            value = _load_structured(path, fwhere)
+            where = fwhere
+        else:
+            return _observations_text(path, cap, fwhere)
+    if not isinstance(value, Mapping) or not value:
+        raise DatasetError(f"{where}: observations must be a non-empty mapping {{name: [u, v]}} or a file, got {_short(value)}")
+    out: dict[str, np.ndarray] = {}
+    for name, uv in value.items():
+        if not isinstance(name, str) or not name:
+            raise DatasetError(f"{where}: point name must be a non-empty string, got {_short(name)}")
+        out[name] = _vector(uv, 2, f"{where}: point {name!r}")
+    return out
+
+
+def _observations_text(path: str, cap: Capture, where: str) -> dict[str, np.ndarray]:
+    try:
+        with open(path, encoding="utf-8") as f:
+            lines = [(n + 1, ln.split()) for n, ln in enumerate(f) if ln.strip() and not ln.lstrip().startswith("#")]
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{where}: cannot read: {exc}") from None
+    names = list(cap.target.target_points())
+    out: dict[str, np.ndarray] = {}
+    unnamed = [ln for ln in lines if len(ln[1]) == 2]
+    if unnamed and len(unnamed) != len(lines):
+        raise DatasetError(f"{where}: mixes 'u v' and 'name u v' lines")
+    if unnamed and len(lines) != len(names):
+        raise DatasetError(
+            f"{where}: has {len(lines)} 'u v' lines but the target has {len(names)} fiducials (one line each, in order)"
+        )
+    for k, (lineno, parts) in enumerate(lines):
+        if len(parts) == 2:
+            name, nums = names[k], parts
+        elif len(parts) == 3:
+            name, nums = parts[0], parts[1:]
+        else:
+            raise DatasetError(f"{where}: line {lineno}: expected 'u v' or 'name u v'")
+        try:
+            uv = np.array([float(x) for x in nums])
+        except ValueError:
+            raise DatasetError(f"{where}: line {lineno}: not numbers: {' '.join(nums)!r}") from None
+        if not np.all(np.isfinite(uv)):
+            raise DatasetError(f"{where}: line {lineno}: not finite")
+        if name in out:
+            raise DatasetError(f"{where}: line {lineno}: point {name!r} given twice")
+        out[name] = uv
+    if not out:
+        raise DatasetError(f"{where}: no observations in the file")
+    return out
+
+
+def _video(v: Any, cap: Capture, base_dir: str) -> VideoSpec:
+    source = cap.source
+    where = f"{source}: video"
+    if not isinstance(v, Mapping):
+        raise DatasetError(f"{where}: expected {{file, segments}}, got {_kind(v)}")
+    _only(v, ("file", "segments"), where)
+    file = v.get("file")
+    if not isinstance(file, str) or not file:
+        raise DatasetError(f"{where}: file must be a path, got {_short(file)}")
+    path = _resolve(file, base_dir)
+    where = f"{source}: video ({file})"
+    if not os.path.isfile(path):
+        raise DatasetError(f"{where}: video file not found")
+    frame_count = _video_frame_count(path, where)
+    segs = v.get("segments")
+    if not isinstance(segs, list) or not segs:
+        raise DatasetError(f"{where}: segments must be a non-empty list of {{frames: [first, last], mirror_configs}}")
+    segments: list[VideoSegment] = []
+    for i, s in enumerate(segs):
+        sw = f"{where}: segments[{i}]"
+        if not isinstance(s, Mapping):
+            raise DatasetError(f"{sw}: expected {{frames, mirror_configs}}, got {_kind(s)}")
+        _only(s, ("frames", "mirror_configs", "step"), sw)
+        fr = s.get("frames")
+        if not isinstance(fr, (list, tuple)) or len(fr) != 2 or not all(_is_int(x) and x >= 0 for x in fr) or fr[0] > fr[1]:
+            raise DatasetError(f"{sw}: frames must be [first, last] with 0 <= first <= last, got {_short(fr)}")
+        if fr[1] >= frame_count:
+            raise DatasetError(f"{sw}: frame {fr[1]} is past the end of the video ({frame_count} frames, 0-{frame_count - 1})")
+        step = s.get("step", 1)
+        if not _is_int(step) or step < 1:
+            raise DatasetError(f"{sw}: step must be an integer >= 1, got {_short(step)}")
+        if "mirror_configs" not in s:
+            raise DatasetError(f"{sw}: missing 'mirror_configs'")
+        configs = _configs(s["mirror_configs"], cap.num_mirrors, sw)
+        segments.append(VideoSegment(int(fr[0]), int(fr[1]), configs, int(step), where=sw))
+    ordered = sorted(segments, key=lambda s: s.first)
+    for a, b in zip(ordered, ordered[1:]):
+        if b.first <= a.last:
+            raise DatasetError(f"{where}: segments frames [{a.first}, {a.last}] and [{b.first}, {b.last}] overlap")
+    return VideoSpec(path, ordered, frame_count)
+
+
+def _video_frame_count(path: str, where: str) -> int:
+    import cv2
+
+    cap = cv2.VideoCapture(path)
+    try:
+        if not cap.isOpened():
+            raise DatasetError(f"{where}: cannot open the video (unknown or broken format)")
+        ok, _ = cap.read()
+        if not ok:
+            raise DatasetError(f"{where}: cannot read a frame from the video")
+        count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+    finally:
+        cap.release()
+    if count <= 0:
+        raise DatasetError(f"{where}: the video reports no frame count")
+    return count
+
+
+def _track(t: Any, cap: Capture) -> dict[str, TrackStart]:
+    where = f"{cap.source}: track"
+    if not isinstance(t, Mapping):
+        raise DatasetError(f"{where}: expected {{name: {{frame, pixel: [u, v]}}}}, got {_kind(t)}")
+    fiducials = cap.target.target_points()
+    assert cap.video is not None
+    out: dict[str, TrackStart] = {}
+    for name, spec in t.items():
+        pw = f"{where}: {name!r}"
+        if not isinstance(name, str) or not name:
+            raise DatasetError(f"{where}: point name must be a non-empty string, got {_short(name)}")
+        if name in fiducials:
+            raise DatasetError(f"{pw}: is a fiducial name; tracked points are unknown points with names of their own")
+        if not isinstance(spec, Mapping):
+            raise DatasetError(f"{pw}: expected {{frame, pixel: [u, v]}}, got {_kind(spec)}")
+        _only(spec, ("frame", "pixel"), pw)
+        frame = spec.get("frame")
+        if not _is_int(frame) or frame < 0:
+            raise DatasetError(f"{pw}: frame must be a non-negative integer, got {_short(frame)}")
+        if not any(s.first <= frame <= s.last for s in cap.video.segments):
+            raise DatasetError(f"{pw}: frame {frame} is in no video segment")
+        out[name] = TrackStart(name, int(frame), _vector(spec.get("pixel"), 2, f"{pw}: pixel"))
+    return out
+
+
+# --------------------------------------------------------------------------------------------------
+# Helpers
+# --------------------------------------------------------------------------------------------------
+
+
+def _resolve(path: str, base_dir: str) -> str:
+    path = os.path.expanduser(path)
+    return os.path.normpath(path if os.path.isabs(path) else os.path.join(base_dir, path))
+
+
+def _only(m: Mapping[str, Any], allowed: tuple[str, ...], where: str) -> None:
+    extra = sorted(str(k) for k in m if k not in allowed)
+    if extra:
+        raise DatasetError(f"{where}: unknown key {extra[0]!r} (expected some of {', '.join(allowed)})")
+
+
+def _load_structured(path: str, where: str) -> Any:
+    """Parse a YAML or JSON file (JSON is YAML); duplicate keys are an error. DatasetError on failure."""
+    import yaml
+
+    try:
+        with open(path, "rb") as f:
+            text = f.read().decode("utf-8-sig")
+    except OSError as exc:
+        raise DatasetError(f"{where}: cannot read file: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise DatasetError(f"{where}: not UTF-8 text (byte {exc.start})") from None
+    if path.lower().endswith(".json"):
+        try:
+            return json.loads(text, object_pairs_hook=_no_duplicate_pairs(where))
+        except json.JSONDecodeError as exc:
+            raise DatasetError(f"{where}: not valid JSON: {exc.msg} at line {exc.lineno}, column {exc.colno}") from None
+    try:
+        return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
+    except _DuplicateKey as exc:
+        raise DatasetError(f"{where}: {exc}") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or "syntax error"
+        raise DatasetError(f"{where}: not valid YAML: {problem}{at}") from None
+
+
+class _DuplicateKey(Exception):
+    pass
+
+
+def _no_duplicate_pairs(where: str):
+    def hook(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for k, v in pairs:
+            if k in out:
+                raise DatasetError(f"{where}: key {k!r} appears twice in one object")
+            out[k] = v
+        return out
+
+    return hook
+
+
+def _make_loader():
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    def construct_mapping(loader: Any, node: Any, deep: bool = False) -> dict[Any, Any]:
+        loader.flatten_mapping(node)
+        out: dict[Any, Any] = {}
+        for key_node, value_node in node.value:
+            key = loader.construct_object(key_node, deep=deep)
+            if key in out:
+                raise _DuplicateKey(f"key {key!r} appears twice in one mapping (line {key_node.start_mark.line + 1})")
+            out[key] = loader.construct_object(value_node, deep=deep)
+        return out
+
+    Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, construct_mapping)
+    return Loader
+
+
+_UniqueKeyLoader = _make_loader()
+
+
+def _vector(value: Any, n: int, where: str) -> np.ndarray:
+    if not isinstance(value, (list, tuple)) or len(value) != n or not all(_is_number(x) for x in value):
+        raise DatasetError(f"{where}: expected {n} numbers, got {_short(value)}")
+    arr = np.array([float(x) for x in value])
+    if not np.all(np.isfinite(arr)):
+        raise DatasetError(f"{where}: not finite: {_short(value)}")
+    return arr
+
+
+def _is_int(x: Any) -> bool:
+    return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, numbers.Real) and not isinstance(x, (bool, np.bool_))
+
+
+def _kind(x: Any) -> str:
+    names = {dict: "a mapping", list: "a list", str: "a string", bool: "a boolean", type(None): "null"}
+    for t, name in names.items():
+        if isinstance(x, t):
+            return name
+    return "a number" if _is_number(x) else type(x).__name__
+
+
+def _short(x: Any, limit: int = 60) -> str:
+    text = " ".join(repr(x).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
