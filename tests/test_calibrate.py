@@ -159,3 +159,18 @@ def test_covariance_convention_matches_perturbation_of_rotation_about_camera_axe
     assert np.all(np.abs(empirical - expected) < 5 * standard_error)
     # the unconverted GTSAM covariance is NOT the SPEC one (the test can fail)
     assert not np.all(np.abs(empirical - pose3_cov) < 5 * standard_error)
+
+
+def test_schur_marginals_equal_gtsam_marginals():
+    from mirror_fg.graph import _marginals_from_gtsam, build_graph, marginal_covariances
+
+    dataset, truth = simulate_base_case(num_images=40, num_points=4, pixel_sigma=1.0, seed=8)
+    for fast in (True, False):
+        graph, values, layout, _ = build_graph(dataset, truth, fast=fast)
+        ours = marginal_covariances(graph, values, layout, "x")
+        reference = _marginals_from_gtsam(graph, values, layout, "x")
+        np.testing.assert_allclose(ours[0], reference[0], rtol=1e-7, atol=1e-14)
+        for mine, theirs in zip(ours[1:], reference[1:]):
+            assert mine.keys() == theirs.keys()
+            for key in mine:
+                np.testing.assert_allclose(mine[key], theirs[key], rtol=1e-7, atol=1e-14)

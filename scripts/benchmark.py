@@ -1,0 +1,412 @@
+#!/usr/bin/env python
+"""Speed and memory of a calibration (issue 6), in one run on this machine.
+
+    python scripts/benchmark.py [--repeats 5] [--slow-repeats 3] [--quick] [--profile] [--json out.json]
+
+Problems (simulator, Sect. 7): two mirrors, 3 fiducials, 1 px; (a) 900 images, mirror 1 in three
+placements of 300, mirror 2 moving every image; (b) 200 images with 60 reconstruction points.
+Printed, medians of repeated runs:
+1. ``calibrate()`` time (analytical + build + LM + marginals), fast path and per-measurement reference;
+2. one linearisation of the measurement factors in us per measurement (and one ``error()``), beside
+   GTSAM's native ``GenericProjectionFactorCal3_S2`` on a graph of as many factors (the native floor),
+   and one Levenberg-Marquardt iteration of each inside GTSAM;
+3. the same problems with ``scipy.optimize.least_squares`` (sparse Jacobian structure given, finite
+   differences) from the same analytical start, plus a covariance by inverting ``J^T J``;
+4. peak resident memory (``ru_maxrss``) of each, every case in its own subprocess.
+``--profile`` adds a pyinstrument profile of one fast calibration per problem (pip install pyinstrument).
+The machine is shared: wall and CPU time and the load average are printed to show contention.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+CASES = {
+    "900img": {
+        "title": "900 images, 3 fiducials (mirror 1: 3 x 300 images, mirror 2 moving)",
+        "simulate": {"num_images": 900, "num_points": 0, "mirror1_placements": 3},
+    },
+    "200img+60pts": {
+        "title": "200 images, 3 fiducials + 60 reconstruction points",
+        "simulate": {"num_images": 200, "num_points": 60, "mirror1_placements": 3},
+    },
+}
+COMMON = {"pixel_sigma": 1.0, "mirror_distance": 0.5, "tilt_deg": 30.0, "seed": 0, "num_mirrors": 2, "num_fiducials": 3}
+GOALS = {"900img": 3.0, "200img+60pts": 1.0}  # seconds, calibrate() total
+LINEARISE_GOAL = 2.0  # x the native floor per measurement
+SPEEDUP_GOAL = 10.0  # x faster than scipy
+MEMORY_GOAL_MB = 1024.0  # 900-image problem with marginals
+
+
+# --------------------------------------------------------------------------------------------------
+# Worker side: one task of one problem, in its own process (peak memory per task).
+
+
+def _dataset(case: str):
+    from mirror_fg.simulate import simulate_base_case
+
+    return simulate_base_case(**CASES[case]["simulate"], **COMMON)
+
+
+def _peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: kilobytes
+
+
+def _estimate(cal) -> dict:
+    return {"R": cal.R_cam_base.tolist(), "t": cal.t_cam_base.tolist(), "final_error": cal.final_error, "iterations": cal.iterations}
+
+
+def task_baseline(case: str, repeats: int) -> dict:
+    """Interpreter + gtsam + numpy + the dataset: the memory floor of every other task."""
+    import gtsam  # noqa: F401
+
+    from mirror_fg.graph import measurements_of
+
+    dataset, _ = _dataset(case)
+    measurements_of(dataset)
+    return {"peak_mb": _peak_mb()}
+
+
+def task_calibrate(case: str, repeats: int, fast: bool) -> dict:
+    from mirror_fg.graph import calibrate
+
+    dataset, _ = _dataset(case)
+    runs = []
+    mode = "calibrate(fast=True): stacked factors" if fast else "calibrate(fast=False): one ReflectionFactor per measurement"
+    for _ in range(repeats):
+        start_wall, start_cpu = time.perf_counter(), time.process_time()
+        cal = calibrate(dataset, fast=fast)
+        runs.append({"wall": time.perf_counter() - start_wall, "cpu": time.process_time() - start_cpu, **cal.timings})
+    summary = {key: float(np.median([r[key] for r in runs])) for key in runs[0]}
+    return {"mode": mode, "median": summary, "runs": runs, "estimate": _estimate(cal), "peak_mb": _peak_mb()}
+
+
+def _native_graph(num_images: int, points_per_image: int, rng: np.random.Generator):
+    """GTSAM-native projection factors, one per measurement: image i sees landmark j (pixels, 1 px)."""
+    import gtsam
+    from gtsam.symbol_shorthand import L, X
+
+    K = gtsam.Cal3_S2(800.0, 800.0, 0.0, 512.0, 384.0)
+    noise = gtsam.noiseModel.Isotropic.Sigma(2, 1.0)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    landmarks = np.column_stack([rng.uniform(-0.3, 0.3, (points_per_image, 2)), rng.uniform(1.8, 2.2, points_per_image)])
+    for j, p in enumerate(landmarks):
+        values.insert(L(j), p)
+    for i in range(num_images):
+        pose = gtsam.Pose3(gtsam.Rot3.RzRyRx(*(0.05 * rng.normal(size=3))), 0.05 * rng.normal(size=3))
+        values.insert(X(i), pose)
+        camera = gtsam.PinholeCameraCal3_S2(pose, K)
+        for j, p in enumerate(landmarks):
+            graph.add(gtsam.GenericProjectionFactorCal3_S2(camera.project(p) + rng.normal(size=2), noise, X(i), L(j), K))
+    return graph, values
+
+
+def _nudged(values, scale: float = 1e-7):
+    """A second set of values (a tiny retraction), so each timed pass evaluates new values."""
+    import gtsam
+
+    delta = gtsam.VectorValues()
+    zero = values.zeroVectors()
+    for key in values.keys():
+        delta.insert(key, np.full(zero.at(key).shape[0], scale))
+    return values.retract(delta)
+
+
+def task_linearize(case: str, repeats: int) -> dict:
+    """us per measurement of linearize() and error() at new values, and of one LM iteration."""
+    import gtsam
+
+    from mirror_fg.factors.batched import batched_factors
+    from mirror_fg.graph import build_graph
+
+    dataset, truth = _dataset(case)
+    reference, values, layout, measurements = build_graph(dataset, truth)
+    values = _nudged(values, 1e-4)  # off the optimum
+    fast = gtsam.NonlinearFactorGraph()
+    for factor in batched_factors(dataset, layout, measurements, dataset.normalized_sigma):
+        fast.add(factor)
+    count = len(measurements)
+    per_image = count // len(dataset.images)
+    native, native_values = _native_graph(len(dataset.images), per_image, np.random.default_rng(0))
+    assert native.size() == count
+    passes = max(repeats, 3) * 4
+    graphs = {"native": (native, native_values), "fast": (fast, values), "reference": (reference, values)}
+    # Four sets of values used in turn: every timed call meets values the previous call did not see.
+    cycles = {name: [vals] + [_nudged(vals, 1e-7 * k) for k in (1, 2, 3)] for name, (_, vals) in graphs.items()}
+
+    def lm_iteration(graph, vals):
+        gtsam.LevenbergMarquardtOptimizer(graph, vals, gtsam.LevenbergMarquardtParams()).iterate()
+
+    # Native and batched passes interleaved, so that both see the same contention on a shared machine.
+    samples: dict[str, dict[str, list[float]]] = {name: {"linearize": [], "error": [], "lm": []} for name in graphs}
+    for i in range(passes):
+        for name in graphs:
+            if name == "reference" and i % 5:
+                continue  # ~50x slower: fewer passes
+            graph, cycle = graphs[name][0], cycles[name]
+            for what, run in (
+                ("linearize", lambda: graph.linearize(cycle[(3 * i) % 4])),
+                ("error", lambda: graph.error(cycle[(3 * i + 1) % 4])),
+                ("lm", lambda: lm_iteration(graph, cycle[(3 * i + 2) % 4])),
+            ):
+                if what == "lm" and i % 3:
+                    continue
+                start = time.process_time()
+                run()
+                samples[name][what].append(time.process_time() - start)
+    results = {
+        name: {
+            "factors": graphs[name][0].size(),
+            "linearize_us": 1e6 * float(np.median(s["linearize"])) / count,
+            "error_us": 1e6 * float(np.median(s["error"])) / count,
+            "lm_iteration_us": 1e6 * float(np.median(s["lm"])) / count,
+        }
+        for name, s in samples.items()
+    }
+    return {"measurements": count, "results": results, "peak_mb": _peak_mb()}
+
+
+def _scipy_problem(dataset, initial):
+    """Residuals (whitened, vectorised numpy), sparsity and start of the problem for least_squares."""
+    import scipy.sparse as sparse
+    from scipy.spatial.transform import Rotation
+
+    from mirror_fg.graph import measurements_of
+
+    measurements = measurements_of(dataset)
+    configs = sorted(dataset.configurations)
+    config_index = {c: i for i, c in enumerate(configs)}
+    names = dataset.reconstruction_point_names
+    point_index = {n: i for i, n in enumerate(names)}
+    mirror = np.array([[config_index[(l + 1, m)] for l, m in enumerate(meas.mirror_configs)] for meas in measurements])
+    landmark = np.array([point_index.get(meas.point, -1) for meas in measurements])
+    fiducial = np.array([dataset.fiducials.get(meas.point, np.zeros(3)) for meas in measurements])
+    observed = np.array([meas.normalized for meas in measurements])
+    sigma = dataset.normalized_sigma
+    is_landmark = landmark >= 0
+    R0 = np.asarray(initial.R_cam_base)
+    n_configs = len(configs)
+    x0 = np.concatenate(
+        [np.zeros(3), initial.t_cam_base]
+        + [initial.mirror_vectors[c] for c in configs]
+        + [initial.points[n] for n in names]
+    )
+
+    def unpack(x):
+        R = R0 @ Rotation.from_rotvec(x[:3]).as_matrix()  # R0 Exp(w)
+        return R, x[3:6], x[6 : 6 + 3 * n_configs].reshape(-1, 3), x[6 + 3 * n_configs :].reshape(-1, 3)
+
+    def residuals(x):
+        R, t, V, P = unpack(x)
+        base = fiducial.copy()
+        base[is_landmark] = P[landmark[is_landmark]]
+        p = base @ R.T + t  # eq. (2)
+        for level in range(mirror.shape[1]):  # eq. (3)
+            v = V[mirror[:, level]]
+            vv = np.einsum("ij,ij->i", v, v)
+            p = p - v * (2.0 * (np.einsum("ij,ij->i", v, p) - vv) / vv)[:, None]
+        return ((p[:, :2] / p[:, 2:3] - observed) / sigma).ravel()  # eq. (9), whitened
+
+    rows, cols = [], []
+    for i in range(len(measurements)):
+        columns = list(range(6)) + [6 + 3 * mirror[i, k] + d for k in range(mirror.shape[1]) for d in range(3)]
+        if landmark[i] >= 0:
+            columns += [6 + 3 * n_configs + 3 * landmark[i] + d for d in range(3)]
+        for r in (2 * i, 2 * i + 1):
+            rows += [r] * len(columns)
+            cols += columns
+    sparsity = sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(2 * len(measurements), len(x0)))
+    return residuals, sparsity, x0, unpack
+
+
+def task_scipy(case: str, repeats: int) -> dict:
+    from scipy.optimize import least_squares
+
+    from mirror_fg.analytic import solve_analytic
+
+    dataset, _ = _dataset(case)
+    runs = []
+    for _ in range(repeats):
+        start_wall, start_cpu = time.perf_counter(), time.process_time()
+        initial = solve_analytic(dataset)  # the same start as calibrate()
+        analytic = time.perf_counter() - start_wall
+        start = time.perf_counter()
+        residuals, sparsity, x0, unpack = _scipy_problem(dataset, initial)
+        build = time.perf_counter() - start
+        start = time.perf_counter()
+        # Exact-enough LSMR steps: with its default tolerances (1e-6) trf crawls (thousands of evaluations).
+        result = least_squares(residuals, x0, jac_sparsity=sparsity, method="trf", tr_options={"atol": 1e-12, "btol": 1e-12})
+        solve = time.perf_counter() - start
+        start = time.perf_counter()
+        J = result.jac
+        covariance = np.linalg.inv((J.T @ J).toarray())  # every block's covariance, as a user would
+        marginals = time.perf_counter() - start
+        runs.append({
+            "analytic": analytic, "build": build, "optimize": solve, "marginals": marginals,
+            "wall": time.perf_counter() - start_wall, "cpu": time.process_time() - start_cpu,
+        })
+    R, t, _, _ = unpack(result.x)
+    summary = {key: float(np.median([r[key] for r in runs])) for key in runs[0]}
+    return {
+        "median": summary, "runs": runs, "nfev": int(result.nfev), "status": int(result.status),
+        "final_error": float(0.5 * result.fun @ result.fun), "covariance_dim": int(covariance.shape[0]),
+        "estimate": {"R": R.tolist(), "t": np.asarray(t).tolist()}, "peak_mb": _peak_mb(),
+    }
+
+
+def task_profile(case: str, repeats: int) -> dict:
+    try:
+        from pyinstrument import Profiler
+    except ImportError:
+        return {"text": "pyinstrument is not installed (pip install pyinstrument)"}
+    from mirror_fg.graph import calibrate
+
+    dataset, _ = _dataset(case)
+    profiler = Profiler(interval=0.001)
+    profiler.start()
+    calibrate(dataset)
+    profiler.stop()
+    text = profiler.output_text(unicode=False, color=False, show_all=False)
+    return {"text": text}
+
+
+TASKS = {
+    "baseline": task_baseline,
+    "fast": lambda case, repeats: task_calibrate(case, repeats, fast=True),
+    "reference": lambda case, repeats: task_calibrate(case, repeats, fast=False),
+    "linearize": task_linearize,
+    "scipy": task_scipy,
+    "profile": task_profile,
+}
+
+
+# --------------------------------------------------------------------------------------------------
+# Parent side: run the tasks, print the report.
+
+
+def _run(task: str, case: str, repeats: int) -> dict:
+    command = [sys.executable, os.path.abspath(__file__), "--worker", task, case, str(repeats)]
+    done = subprocess.run(command, capture_output=True, text=True)
+    for line in done.stdout.splitlines():
+        if line.startswith("RESULT "):
+            return json.loads(line[len("RESULT ") :])
+    raise RuntimeError(f"benchmark task {task} on {case} failed:\n{done.stdout}\n{done.stderr}")
+
+
+def _rotation_angle_deg(R1, R2) -> float:
+    cos = (np.trace(np.asarray(R1).T @ np.asarray(R2)) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def _split(m: dict) -> str:
+    """The ``timings`` split, and the rest of the wall time (residuals and outliers after the solve)."""
+    parts = ("analytic", "build", "optimize", "marginals")
+    other = m["wall"] - sum(m.get(key, 0.0) for key in parts)
+    return " + ".join(f"{key} {m.get(key, 0.0):.3f}" for key in parts) + f" + other {other:.3f}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int, default=5, help="runs of the fast path and linearisation (median)")
+    parser.add_argument("--slow-repeats", type=int, default=3, help="runs of the reference and scipy baselines")
+    parser.add_argument("--quick", action="store_true", help="1 repeat each (a smoke test, not figures)")
+    parser.add_argument("--cases", nargs="*", default=list(CASES), choices=list(CASES))
+    parser.add_argument("--profile", action="store_true", help="pyinstrument profile of one fast calibration")
+    parser.add_argument("--json", help="also write every figure to this JSON file")
+    parser.add_argument("--worker", nargs=3, metavar=("TASK", "CASE", "REPEATS"), help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.worker:
+        task, case, repeats = args.worker
+        print("RESULT " + json.dumps(TASKS[task](case, int(repeats))))
+        return 0
+    repeats, slow = (1, 1) if args.quick else (args.repeats, args.slow_repeats)
+
+    from importlib.metadata import version
+
+    load_start = os.getloadavg()
+    print(f"mirror_fg benchmark  {time.strftime('%Y-%m-%d %H:%M:%S')}  python {sys.version.split()[0]}  "
+          f"gtsam {version('gtsam')}  numpy {np.__version__}  scipy {version('scipy')}")
+    print(f"cpus {os.cpu_count()}  load average at start {load_start[0]:.2f} {load_start[1]:.2f} {load_start[2]:.2f}  "
+          f"repeats: fast {repeats}, baselines {slow} (medians)")
+    report: dict = {"cases": {}}
+    goal_rows = []
+    for case in args.cases:
+        print(f"\n=== {CASES[case]['title']} ===")
+        base = _run("baseline", case, 1)
+        fast = _run("fast", case, repeats)
+        reference = _run("reference", case, slow)
+        linearize = _run("linearize", case, repeats)
+        baseline = _run("scipy", case, slow)
+        profile = _run("profile", case, 1) if args.profile else None
+        report["cases"][case] = {
+            "baseline": base, "fast": fast, "reference": reference, "linearize": linearize, "scipy": baseline,
+            "profile": profile,
+        }
+        fm, rm, sm = fast["median"], reference["median"], baseline["median"]
+        print(f"fast path: {fast['mode']}")
+        print("1. calibrate() seconds (median)       total   = analytic + build + optimize (LM) + marginals + other")
+        for name, m, runs in [("fast", fm, repeats), ("reference", rm, slow)]:
+            print(f"   {name:10s} wall {m['wall']:7.3f}  cpu {m['cpu']:7.3f}  = {_split(m)}   ({runs} runs)")
+        print(f"   fast vs reference: {rm['wall'] / fm['wall']:.1f}x overall, "
+              f"{(rm['optimize'] + rm['marginals']) / (fm['optimize'] + fm['marginals']):.1f}x on LM + marginals; "
+              f"LM iterations {fast['estimate']['iterations']} / {reference['estimate']['iterations']}")
+        lin = linearize["results"]
+        print(f"2. per measurement, {linearize['measurements']} measurements (medians, CPU time)")
+        print(f"   {'':34s} {'factors':>8s} {'linearize':>10s} {'error()':>9s} {'LM iter':>9s}  us/meas")
+        labels = {"native": "GTSAM GenericProjectionFactorCal3_S2", "fast": "batched (factors/batched.py)",
+                  "reference": "reference ReflectionFactor"}
+        for name in ("native", "fast", "reference"):
+            r = lin[name]
+            print(f"   {labels[name]:34s} {r['factors']:8d} {r['linearize_us']:10.3f} {r['error_us']:9.3f} {r['lm_iteration_us']:9.3f}")
+        ratio = lin["fast"]["linearize_us"] / lin["native"]["linearize_us"]
+        print(f"   batched linearisation = {ratio:.2f}x native floor; reference = "
+              f"{lin['reference']['linearize_us'] / lin['native']['linearize_us']:.0f}x")
+        fast_stage = fm["optimize"] + fm["marginals"]
+        scipy_stage = sm["optimize"] + sm["marginals"]
+        scipy_total = sm["wall"]
+        print(f"3. scipy least_squares (trf, sparse structure, 2-point differences) + inv(J^T J), {slow} runs")
+        print(f"   wall {scipy_total:7.3f}  cpu {sm['cpu']:7.3f}  = analytic {sm['analytic']:.3f} + build {sm['build']:.3f} + "
+              f"solve {sm['optimize']:.3f} ({baseline['nfev']} evaluations) + covariance {sm['marginals']:.3f} "
+              f"({baseline['covariance_dim']} unknowns)")
+        d_rot = _rotation_angle_deg(baseline["estimate"]["R"], fast["estimate"]["R"])
+        d_t = 1000.0 * np.linalg.norm(np.subtract(baseline["estimate"]["t"], fast["estimate"]["t"]))
+        print(f"   scipy vs GTSAM estimate: {d_rot:.2e} deg, {d_t:.2e} mm; cost {baseline['final_error']:.6f} vs "
+              f"{fast['estimate']['final_error']:.6f}")
+        print(f"   fast calibrate() is {scipy_total / fm['wall']:.1f}x faster overall, "
+              f"{scipy_stage / fast_stage:.1f}x on solve + covariance")
+        print("4. peak memory (ru_maxrss of each task's process), MB")
+        print(f"   interpreter + gtsam + data {base['peak_mb']:7.1f}   fast calibrate {fast['peak_mb']:7.1f}   "
+              f"reference {reference['peak_mb']:7.1f}   scipy {baseline['peak_mb']:7.1f}   linearisation runs {linearize['peak_mb']:7.1f}")
+        if profile:
+            print("profile of one fast calibrate() (pyinstrument):")
+            print("\n".join("   " + line for line in profile["text"].splitlines() if line.strip()))
+        goal_rows.append((f"{case}: calibrate() <= {GOALS[case]:.0f} s", f"{fm['wall']:.3f} s", fm["wall"] <= GOALS[case]))
+        goal_rows.append((f"{case}: linearisation <= {LINEARISE_GOAL:.0f}x native", f"{ratio:.2f}x", ratio <= LINEARISE_GOAL))
+        speedup = scipy_total / fm["wall"]
+        goal_rows.append((f"{case}: >= {SPEEDUP_GOAL:.0f}x faster than scipy (total)", f"{speedup:.1f}x", speedup >= SPEEDUP_GOAL))
+        stage = scipy_stage / fast_stage
+        goal_rows.append((f"{case}: >= {SPEEDUP_GOAL:.0f}x faster than scipy (solve + covariance)", f"{stage:.1f}x", stage >= SPEEDUP_GOAL))
+        if case == "900img":
+            goal_rows.append((f"{case}: peak memory <= {MEMORY_GOAL_MB:.0f} MB", f"{fast['peak_mb']:.0f} MB", fast["peak_mb"] <= MEMORY_GOAL_MB))
+    load_end = os.getloadavg()
+    print(f"\nload average at end {load_end[0]:.2f} {load_end[1]:.2f} {load_end[2]:.2f} on {os.cpu_count()} cpus "
+          "(wall >> cpu above means other processes took the cores)")
+    print("\nGoals")
+    for goal, value, met in goal_rows:
+        print(f"   {'met    ' if met else 'NOT met'}  {goal:55s} {value}")
+    report["goals"] = [{"goal": g, "value": v, "met": bool(m)} for g, v, m in goal_rows]
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(report, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
