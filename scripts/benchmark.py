@@ -127,7 +127,7 @@ def task_linearize(case: str, repeats: int) -> dict:
     from mirror_fg.graph import build_graph
 
     dataset, truth = _dataset(case)
-    reference, values, layout, measurements = build_graph(dataset, truth)
+    reference, values, layout, measurements = build_graph(dataset, truth, fast=False)
     values = _nudged(values, 1e-4)  # off the optimum
     fast = gtsam.NonlinearFactorGraph()
     for factor in batched_factors(dataset, layout, measurements, dataset.normalized_sigma):
