@@ -8,8 +8,9 @@ from mirror_fg.dataset import (
     Camera, Dataset, DatasetError, Image, dataset_from_dict, load_dataset, load_result, save_dataset, write_result,
 )
 from mirror_fg.graph import Calibration, calibrate
+from mirror_fg.incremental import IncrementalCalibrator
 
 __all__ = [
-    "AnalyticSolution", "Calibration", "Camera", "Dataset", "DatasetError", "Image", "SolveError",
+    "AnalyticSolution", "Calibration", "IncrementalCalibrator", "Camera", "Dataset", "DatasetError", "Image", "SolveError",
     "calibrate", "dataset_from_dict", "load_dataset", "load_result", "save_dataset", "solve_analytic", "write_result",
 ]

@@ -16,7 +16,7 @@ import numpy as np
 from mirror_fg.dataset import Dataset, DatasetError, Image
 from mirror_fg.geometry import FLIP_Y, apply_transform, nested_transform, project, project_to_orthogonal
 
-__all__ = ["AnalyticSolution", "SolveError", "pnp_candidates", "solve_analytic", "triangulate_point"]
+__all__ = ["AnalyticSolution", "SolveError", "pnp_candidates", "solve_analytic", "solve_node", "triangulate_point"]
 
 #: Smallest out-of-plane spread (third singular value of the unit normals, ~radians) of a node's mirrors.
 MIN_NORMAL_SPREAD = np.sin(np.deg2rad(0.5))
@@ -293,6 +293,25 @@ def _consistent_choice(
     return choice, score
 
 
+def solve_node(
+    children: list[int],
+    candidates: list[list[tuple[np.ndarray, np.ndarray]]],
+    num_children: int,
+    parent_det: float,
+    rng: np.random.Generator,
+) -> tuple[list[int], _NodeSolution]:
+    """One tree node (Sect. 4.2, eqs. 13-18): pick a candidate ``(A_l, b_l)`` per observation, then
+    solve the children's mirror vectors and the parent's ``(A_{l-1}, b_{l-1})``.
+
+    children: child index (0..num_children-1) of each observation; candidates: its candidates
+    (several for P3P); parent_det: ``det A_{l-1} = (-1)^(l-1)``. Returns the picks and the solution
+    (``A_parent``, ``b_parent``, ``mirror_vectors`` per child, ``residual``).
+    """
+    picks = _choose_candidates(children, candidates, num_children, parent_det, rng)
+    observations = [(k, *cands[p]) for k, cands, p in zip(children, candidates, picks)]
+    return picks, _solve_node(observations, num_children, parent_det)
+
+
 def _describe(prefix: tuple[int, ...]) -> str:
     if not prefix:
         return "the root (no mirror placed)"
@@ -350,12 +369,10 @@ def solve_analytic(dataset: Dataset, seed: int = 0) -> AnalyticSolution:
                 )
             index_of = {m: k for k, m in enumerate(child_ids)}
             children = [index_of[m] for m, _, _ in entries]
-            picks = _choose_candidates(children, [c for _, c, _ in entries], len(child_ids), parent_det, rng)
-            observations = [(k, *entry[1][p]) for k, entry, p in zip(children, entries, picks)]
+            picks, node = solve_node(children, [c for _, c, _ in entries], len(child_ids), parent_det, rng)
             for entry, p in zip(entries, picks):
                 if entry[2] is not None:
                     chosen[entry[2]] = entry[1][p]
-            node = _solve_node(observations, len(child_ids), parent_det)
             normals = np.stack([v / np.linalg.norm(v) for v in node.mirror_vectors])
             singular = np.linalg.svd(normals, compute_uv=False)
             if singular[2] < MIN_NORMAL_SPREAD:

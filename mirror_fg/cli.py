@@ -110,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
 # --- commands -------------------------------------------------------------------------------------
 
 
-def _print_transform_summary(out: _Printer, result: dict, elapsed: float) -> None:
+def _print_transform_summary(out: _Printer, result: dict, elapsed: float, incremental: bool = False) -> None:
     T = result["T_base_cam"]
     out.info("T_base_cam (camera pose in the base frame; camera axes x right, y down, z forward):")
     for row in T["R"]:
@@ -124,8 +124,9 @@ def _print_transform_summary(out: _Printer, result: dict, elapsed: float) -> Non
     res = result["residuals"]
     unit = "px" if res.get("units", "px") == "px" else "(normalized)"
     opt = result["optimizer"]
+    solver = "iSAM2 updates" if incremental else "LM iterations"
     out.info(f"residuals: RMS {res['rms_px']:.3f} {unit}, mean {res.get('mean_px', float('nan')):.3f}, "
-             f"max {res['max_px']:.3f}; LM iterations {opt['iterations']}"
+             f"max {res['max_px']:.3f}; {solver} {opt['iterations']}"
              f"{'' if opt['converged'] else ' (NOT converged)'}; time {elapsed:.2f} s")
     if res.get("outliers"):
         out.info(f"{len(res['outliers'])} measurement(s) above 5 sigma after the solve:")
@@ -220,6 +221,11 @@ def cmd_calibrate(args, out: _Printer) -> int:
         finally:
             if bar is not None:
                 bar.close()
+        if not calibration.converged:
+            from mirror_fg.analytic import SolveError
+
+            raise SolveError(f"{dataset.source}: Levenberg-Marquardt did not converge in {calibration.iterations} "
+                             "iterations (stalled); the result was not written")
         result = calibration.to_dict()
     write_result(args.output, result)
     written = [str(args.output)]
@@ -227,7 +233,7 @@ def cmd_calibrate(args, out: _Printer) -> int:
         from mirror_fg.ros import write_ros_outputs
 
         written += [str(p) for p in write_ros_outputs(result, args.output, args.base_frame, args.camera_frame)]
-    _print_transform_summary(out, result, time.perf_counter() - start)
+    _print_transform_summary(out, result, time.perf_counter() - start, args.incremental)
     out.info("wrote " + ", ".join(written))
     return EXIT_OK
 
@@ -235,7 +241,7 @@ def cmd_calibrate(args, out: _Printer) -> int:
 def _run_incremental(dataset, args, out: _Printer) -> dict:
     from mirror_fg.incremental import IncrementalCalibrator
 
-    calibrator = IncrementalCalibrator(dataset)
+    calibrator = IncrementalCalibrator(dataset, robust=args.robust)
     calibration = None
     for index, image in enumerate(dataset.images, start=1):
         estimate = calibrator.add_image(image)

@@ -413,7 +413,9 @@ def calibrate(
         raise SolveError(f"{dataset.source}: {unconstrained_message(error, layout)}") from None
     final_error = graph.error(result)
     iterations = optimizer.iterations()
-    converged = bool(np.isfinite(final_error)) and iterations < max_iterations
+    # LM also stops when its damping hits the upper bound: that is a stall, not convergence.
+    stalled = optimizer.lambda_() >= params.getlambdaUpperBound()
+    converged = bool(np.isfinite(final_error)) and iterations < max_iterations and not stalled
     timings["optimize"] = time.perf_counter() - start
 
     start = time.perf_counter()
