@@ -369,6 +369,18 @@ def unconstrained_message(error: Exception, layout: GraphLayout) -> str:
     return "the data leave some unknowns unconstrained (indeterminant linear system)"
 
 
+def _stationary(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, error: float) -> bool:
+    """Whether the Gauss-Newton step at ``values`` promises (almost) no decrease of the error."""
+    linear = graph.linearize(values)
+    try:
+        step = linear.optimize()
+    except RuntimeError:  # indeterminant: not a well-defined optimum
+        return False
+    zero = step.scale(0.0)
+    predicted_decrease = linear.error(zero) - linear.error(step)
+    return predicted_decrease <= 1e-6 * max(error, 1.0)
+
+
 def calibrate(
     dataset: Dataset,
     *,
@@ -413,8 +425,9 @@ def calibrate(
         raise SolveError(f"{dataset.source}: {unconstrained_message(error, layout)}") from None
     final_error = graph.error(result)
     iterations = optimizer.iterations()
-    # LM also stops when its damping hits the upper bound: that is a stall, not convergence.
-    stalled = optimizer.lambda_() >= params.getlambdaUpperBound()
+    # LM also stops when its damping hits the upper bound: a stall unless a Gauss-Newton step
+    # would no longer lower the error (then it is at a stationary point, e.g. noise-free data).
+    stalled = optimizer.lambda_() >= params.getlambdaUpperBound() and not _stationary(graph, result, final_error)
     converged = bool(np.isfinite(final_error)) and iterations < max_iterations and not stalled
     timings["optimize"] = time.perf_counter() - start
 
