@@ -94,6 +94,29 @@ def build_parser() -> argparse.ArgumentParser:
     det.add_argument("-o", "--output", required=True, type=Path, help="dataset file to write (JSON)")
     _add_common(det)
 
+    pln = sub.add_parser("plan", help="Cramer-Rao 3-sigma bounds of a setup before any data is taken",
+                         description="Predict the best achievable 3-sigma bounds on T_cam_base (Cramer-Rao, "
+                         "inverse Fisher information at simulated truths) for a described setup, so you can choose "
+                         "how many images and which mirror tilts to use before recording.", epilog=EPILOG,
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
+    pln.add_argument("--mirrors", type=int, default=2, help="number of mirrors Nv (default 2)")
+    pln.add_argument("--placements", type=int, default=3,
+                     help="placements of each mirror but the last per node (>= 3; default 3)")
+    pln.add_argument("--images", type=int, default=200, help="number of images (default 200)")
+    pln.add_argument("--fiducials", type=int, default=3, choices=[3, 4],
+                     help="the paper's 20 cm right triangle (3) or with a point 15 cm off its plane (4)")
+    pln.add_argument("--fiducials-file", type=Path,
+                     help="JSON {name: [x, y, z]} base-frame fiducial layout, metres (overrides --fiducials)")
+    pln.add_argument("--points", type=int, default=0, help="reconstruction points within 10 cm of the fiducials")
+    pln.add_argument("--distance", type=float, default=0.5, help="camera-to-mirror distance, metres (default 0.5)")
+    pln.add_argument("--tilt", type=float, default=30.0, help="largest mirror tilt, degrees (default 30)")
+    pln.add_argument("--sigma", type=float, default=1.0, help="pixel noise standard deviation, pixels (default 1)")
+    pln.add_argument("--focal", type=float, help="focal length, pixels (default: the simulator's 800)")
+    pln.add_argument("--draws", type=int, default=5, help="random scenes averaged (default 5)")
+    pln.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    pln.add_argument("--json", type=Path, help="also write the bounds to this JSON file")
+    _add_common(pln)
+
     rep = sub.add_parser("report", help="HTML + PDF report of a result",
                          description="Write report.html (self-contained) and report.pdf: summary, residuals, "
                          "3D scene, correlations.", epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -290,7 +313,26 @@ def cmd_report(args, out: _Printer) -> int:
     return EXIT_OK
 
 
-COMMANDS = {"simulate": cmd_simulate, "calibrate": cmd_calibrate, "detect": cmd_detect, "report": cmd_report}
+def cmd_plan(args, out: _Printer) -> int:
+    from mirror_fg.dataset import atomic_write
+    from mirror_fg.plan import PlanSetup, format_plan, load_fiducials, plan
+
+    fiducials = load_fiducials(args.fiducials_file) if args.fiducials_file is not None else None
+    setup = PlanSetup(num_mirrors=args.mirrors, placements=args.placements, num_images=args.images,
+                      num_fiducials=args.fiducials, fiducials=fiducials, num_points=args.points,
+                      mirror_distance_m=args.distance, tilt_deg=args.tilt, pixel_sigma=args.sigma,
+                      focal_px=args.focal)
+    result = plan(setup, draws=args.draws, seed=args.seed)
+    out.info(format_plan(result))
+    if args.json is not None:
+        import json
+
+        atomic_write(args.json, json.dumps(result.to_dict(), indent=2))
+        out.info(f"wrote {args.json}")
+    return EXIT_OK
+
+
+COMMANDS = {"plan": cmd_plan, "simulate": cmd_simulate, "calibrate": cmd_calibrate, "detect": cmd_detect, "report": cmd_report}
 
 
 def main(argv: list[str] | None = None) -> int:
