@@ -469,13 +469,19 @@ def batched_factors(
     image's landmarks split over several factors; ``None``: no limit).
 
     The factors share one :class:`BatchEvaluator`; :func:`batched_evaluator` returns it (its
-    ``factors``, and ``predicted(values)`` for every measurement's prediction in one vectorised pass).
+    ``factors``, and ``predicted(values)`` for every measurement's prediction in one vectorised pass;
+    its ``factors`` list makes a reference cycle through C++ that only ``evaluator.factors.clear()``
+    breaks).
     """
     evaluator = batched_evaluator(
         dataset, layout, measurements, noise_sigma, robust,
         robust_k=robust_k, images_per_factor=images_per_factor, max_points_per_factor=max_points_per_factor,
     )
-    return evaluator.factors
+    # The factors' error functions hold the evaluator; the evaluator must not hold the factors, or the
+    # C++ factors and the Python evaluator form a cycle Python's garbage collector cannot see (each
+    # calibration would leak its graph).
+    factors, evaluator.factors = evaluator.factors, []
+    return factors
 
 
 def batched_evaluator(

@@ -269,3 +269,18 @@ def test_default_calibrate_uses_the_fast_path_and_matches_reference():
     fast = calibrate(dataset)
     reference = calibrate(dataset, fast=False)
     _assert_same_calibration(fast, reference)
+
+
+def test_calibrations_do_not_leak_their_graphs():
+    """The factors' closures hold the evaluator; nothing may hold them back (a cycle through C++)."""
+    import gc
+
+    from mirror_fg.factors.batched import BatchEvaluator
+
+    dataset, _ = simulate_base_case(num_images=12, seed=3)
+    gc.collect()
+    before = sum(isinstance(o, BatchEvaluator) for o in gc.get_objects())
+    for _ in range(3):
+        calibrate(dataset)
+    gc.collect()
+    assert sum(isinstance(o, BatchEvaluator) for o in gc.get_objects()) == before
