@@ -151,6 +151,10 @@ def _print_transform_summary(out: _Printer, result: dict, elapsed: float, increm
     out.info(f"residuals: RMS {res['rms_px']:.3f} {unit}, mean {res.get('mean_px', float('nan')):.3f}, "
              f"max {res['max_px']:.3f}; {solver} {opt['iterations']}"
              f"{'' if opt['converged'] else ' (NOT converged)'}; time {elapsed:.2f} s")
+    expected = opt.get("expected_final_error")
+    if expected and opt["final_error"] > expected + 10.0 * max(expected, 1.0) ** 0.5:
+        out.info(f"warning: final cost {opt['final_error']:.4g} is far above its expected {expected:.4g} at the "
+                 "optimum: a local minimum, outliers (try --robust) or a pixel_sigma that is too small")
     if res.get("outliers"):
         out.info(f"{len(res['outliers'])} measurement(s) above 5 sigma after the solve:")
         for o in res["outliers"][:20]:

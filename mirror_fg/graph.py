@@ -151,6 +151,14 @@ class Calibration:
     residual_units: str
     outliers: list[tuple[str, str, float]] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    expected_final_error: float = float("nan")
+
+    @property
+    def cost_plausible(self) -> bool:
+        """Whether the final cost 0.5 chi^2 fits its distribution at the optimum (dof / 2, spread
+        sqrt(dof / 2)) within 10 spreads; far above it means a local minimum or a too small sigma."""
+        spread = np.sqrt(max(self.expected_final_error, 1.0))
+        return not self.final_error > self.expected_final_error + 10.0 * spread
 
     @property
     def R_base_cam(self) -> np.ndarray:
@@ -212,6 +220,7 @@ class Calibration:
                 "iterations": self.iterations,
                 "initial_error": self.initial_error,
                 "final_error": self.final_error,
+                "expected_final_error": self.expected_final_error,
                 "converged": self.converged,
             },
             "residuals": {
@@ -456,6 +465,7 @@ def calibrate(
         analytic=analytic,
         iterations=iterations,
         initial_error=float(initial_error),
+        expected_final_error=0.5 * max(2 * len(measurements) - values.dim(), 0),
         final_error=float(final_error),
         converged=converged,
         residuals=residuals,

@@ -174,3 +174,12 @@ def test_schur_marginals_equal_gtsam_marginals():
             assert mine.keys() == theirs.keys()
             for key in mine:
                 np.testing.assert_allclose(mine[key], theirs[key], rtol=1e-7, atol=1e-14)
+
+
+def test_cost_check_flags_a_too_small_sigma():
+    dataset, _ = simulate_base_case(num_images=60, pixel_sigma=1.0, seed=12)
+    calibration = calibrate(dataset)
+    assert calibration.cost_plausible
+    assert abs(calibration.final_error / calibration.expected_final_error - 1.0) < 0.3
+    dataset.pixel_sigma = 0.2  # claims 5x better measurements than the data have
+    assert not calibrate(dataset).cost_plausible
