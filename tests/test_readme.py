@@ -23,3 +23,14 @@ def test_readme_has_exactly_two_setup_commands():
 def test_ci_runs_the_readme_test_command():
     ci = (REPO / ".ci" / "run").read_text().splitlines()
     assert _readme_commands()[1] in ci
+
+
+def test_readme_python_example_runs(tmp_path, monkeypatch):
+    text = (REPO / "README.md").read_text()
+    code = re.search(r"## Python API\n\n```python\n(.*?)```", text, re.S).group(1)
+    monkeypatch.chdir(REPO)
+    code = code.replace('"result.json"', repr(str(tmp_path / "result.json")))
+    namespace: dict = {"print": lambda *args: None}
+    exec(compile(code, "README.md", "exec"), namespace)
+    assert (tmp_path / "result.json").exists()
+    assert namespace["final"].covariance.shape == (6, 6)
