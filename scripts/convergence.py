@@ -1,0 +1,259 @@
+#!/usr/bin/env python
+"""LM iterations and success rate from the analytical initial guess vs a naive one (paper's Sect. 7).
+
+Per run (simulator base case, seed = run index): the global optimum is the MLE started from the truth;
+the MLE is then started from the analytical solution and from a naive guess (identity rotation,
+``t_cam_base = 0``, every placement of mirror l facing the camera at ``--naive-distance`` m along its
+nominal axis - mirror Nv at +z in front, mirror Nv-1 at -z behind, ... - and every reconstruction
+point at the fiducials' centroid). A start *succeeds* when LM stops (before its iteration limit) at the
+global optimum: pose within 1e-5 rad / 1e-5 m of it (LM's stopping rule leaves about 1e-6 between two
+starts that end at the same optimum; other minima are centimetres and degrees away) and a cost no more
+than 1e-6 relative above it.
+A run whose analytical solution cannot be formed (degenerate mirror motion) is *singular*; the paper
+counts success over non-singular runs. The paper reports about 4 vs 18 iterations and 100 % success
+from its analytical guess.
+
+Usage: ``python scripts/convergence.py --runs 100 --jobs 2 --out out/convergence``; writes
+``runs.jsonl`` (resumable) and ``summary.json`` and prints the table.
+"""
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse
+import json
+import sys
+import time
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mirror_fg.analytic import SolveError, solve_analytic
+from mirror_fg.dataset import Dataset, DatasetError
+from mirror_fg.graph import calibrate
+from mirror_fg.simulate import simulate_base_case
+from mirror_fg.transforms import rotation_angle
+
+#: A start reached the global optimum when within these of the MLE started from the truth.
+POSE_TOL_RAD = 1e-5
+POSE_TOL_M = 1e-5
+COST_REL_TOL = 1e-6
+
+
+@dataclass
+class NaiveGuess:
+    """Initial values that know nothing about the scene (see the module docstring)."""
+
+    R_cam_base: np.ndarray
+    t_cam_base: np.ndarray
+    mirror_vectors: dict[tuple[int, int], np.ndarray]
+    points: dict[str, np.ndarray]
+
+
+def naive_guess(dataset: Dataset, distance_m: float = 0.5) -> NaiveGuess:
+    """Identity rotation, zero translation, mirrors facing the camera, points at the fiducials' centroid."""
+    Nv = dataset.num_mirrors
+    centroid = np.mean(np.array(list(dataset.fiducials.values())), axis=0)
+    # Mirror Nv faces the camera from the front (+z), the one before it from behind, alternating.
+    mirrors = {(l, m): np.array([0.0, 0.0, distance_m if (Nv - l) % 2 == 0 else -distance_m])
+               for l, m in dataset.configurations}
+    points = {name: centroid.copy() for name in dataset.reconstruction_point_names}
+    return NaiveGuess(np.eye(3), np.zeros(3), mirrors, points)
+
+
+def _outcome(cal, optimum) -> dict:
+    """How far one LM start ended from the global optimum."""
+    return {
+        "iterations": cal.iterations,
+        "rotation_off_rad": rotation_angle(cal.R_cam_base, optimum.R_cam_base),
+        "translation_off_m": float(np.linalg.norm(cal.t_cam_base - optimum.t_cam_base)),
+        "cost_gap_rel": (cal.final_error - optimum.final_error) / max(optimum.final_error, 1e-12),
+        "final_error": cal.final_error,
+        "initial_error": cal.initial_error,
+    }
+
+
+def succeeded(outcome: dict, max_iterations: int = 100) -> bool:
+    """Whether an LM start stopped, before its iteration limit, at the global optimum (tolerances above)."""
+    if "rotation_off_rad" not in outcome:  # the start failed outright
+        return False
+    return bool(outcome["iterations"] < max_iterations and outcome["rotation_off_rad"] < POSE_TOL_RAD
+                and outcome["translation_off_m"] < POSE_TOL_M and outcome["cost_gap_rel"] < COST_REL_TOL)
+
+
+def run_trial(seed: int, sigma_px: float = 1.0, distance_m: float = 0.5, num_images: int = 200,
+              num_points: int = 0, naive_distance_m: float = 0.5, max_iterations: int = 100) -> dict:
+    """The three LM starts of one simulated base case (see the module docstring)."""
+    record: dict = {"seed": seed, "sigma_px": sigma_px, "distance_m": distance_m, "num_images": num_images,
+                    "num_points": num_points, "max_iterations": max_iterations}
+    start = time.perf_counter()
+    dataset, truth = simulate_base_case(num_images=num_images, num_points=num_points, pixel_sigma=sigma_px,
+                                        mirror_distance=distance_m, seed=seed)
+    optimum = calibrate(dataset, initial=truth, compute_covariance=False, max_iterations=max_iterations)
+    record["optimum"] = {"iterations": optimum.iterations, "final_error": optimum.final_error,
+                         "converged": optimum.converged}
+    try:
+        analytic = solve_analytic(dataset)
+    except (SolveError, DatasetError) as error:
+        record["analytic"] = {"singular": True, "message": str(error)}
+    else:
+        cal = calibrate(dataset, initial=analytic, compute_covariance=False, max_iterations=max_iterations)
+        record["analytic"] = {"singular": False, **_outcome(cal, optimum)}
+    try:
+        cal = calibrate(dataset, initial=naive_guess(dataset, naive_distance_m), compute_covariance=False,
+                        max_iterations=max_iterations)
+    except (SolveError, RuntimeError) as error:  # an indeterminant system from a wild start is a failure
+        record["naive"] = {"iterations": max_iterations, "error": str(error)}
+    else:
+        record["naive"] = _outcome(cal, optimum)
+    record["seconds"] = time.perf_counter() - start
+    return record
+
+
+def summarize(records: list[dict]) -> dict:
+    """Success rates and iteration counts of both starts (analytical: over non-singular runs)."""
+    def ok(r: dict, start: str) -> bool:
+        return succeeded(r[start], r.get("max_iterations", 100))
+
+    nonsingular = [r for r in records if not r["analytic"]["singular"]]
+    analytic_it = [r["analytic"]["iterations"] for r in nonsingular]
+    naive_it = [r["naive"]["iterations"] for r in records]
+    naive_ok_it = [r["naive"]["iterations"] for r in records if ok(r, "naive")]
+    return {
+        "runs": len(records),
+        "singular": len(records) - len(nonsingular),
+        "optimum_iterations_median": float(np.median([r["optimum"]["iterations"] for r in records])),
+        "analytic_success": sum(ok(r, "analytic") for r in nonsingular),
+        "analytic_success_rate": float(np.mean([ok(r, "analytic") for r in nonsingular])) if nonsingular else None,
+        "analytic_iterations_median": float(np.median(analytic_it)) if analytic_it else None,
+        "analytic_iterations_mean": float(np.mean(analytic_it)) if analytic_it else None,
+        "analytic_iterations_max": int(np.max(analytic_it)) if analytic_it else None,
+        "naive_success": sum(ok(r, "naive") for r in records),
+        "naive_success_rate": float(np.mean([ok(r, "naive") for r in records])),
+        "naive_success_nonsingular_rate": float(np.mean([ok(r, "naive") for r in nonsingular])) if nonsingular else None,
+        "naive_iterations_median": float(np.median(naive_it)),
+        "naive_iterations_mean": float(np.mean(naive_it)),
+        "naive_iterations_median_successful": float(np.median(naive_ok_it)) if naive_ok_it else None,
+        "failed_analytic_seeds": [r["seed"] for r in nonsingular if not ok(r, "analytic")],
+        "singular_seeds": [r["seed"] for r in records if r["analytic"]["singular"]],
+    }
+
+
+def format_summary(s: dict) -> str:
+    lines = [
+        f"runs: {s['runs']} ({s['singular']} singular: analytical solution impossible)",
+        f"global optimum (MLE from the truth): median {s['optimum_iterations_median']:.0f} LM iterations",
+        f"from the analytical guess: success {s['analytic_success']}/{s['runs'] - s['singular']} non-singular runs "
+        f"({100 * (s['analytic_success_rate'] or 0):.1f} %), LM iterations median {s['analytic_iterations_median']}, "
+        f"mean {s['analytic_iterations_mean']:.2f}, max {s['analytic_iterations_max']}"
+        if s["analytic_iterations_median"] is not None else "from the analytical guess: no non-singular run",
+        f"from the naive guess: success {s['naive_success']}/{s['runs']} ({100 * s['naive_success_rate']:.1f} %), "
+        f"LM iterations median {s['naive_iterations_median']:.0f} (mean {s['naive_iterations_mean']:.1f}; "
+        f"median over its successful runs {s['naive_iterations_median_successful']})",
+        "paper (Sect. 7): typically 4 iterations from the analytical guess (100 % success on non-singular "
+        "configurations) vs 18 from a naive one",
+    ]
+    if s["failed_analytic_seeds"]:
+        lines.append(f"analytical-guess failures at seeds {s['failed_analytic_seeds']}")
+    return "\n".join(lines)
+
+
+def run_all(runs: int, jobs: int, trial_kwargs: dict, log_path: Path | None, time_budget_s: float | None,
+            progress: bool = True) -> list[dict]:
+    """Every run (resumed from and appended to ``log_path``), in parallel over ``jobs`` processes."""
+    from tqdm import tqdm
+
+    def same_setup(r: dict) -> bool:
+        return all(r.get(k) == v for k, v in trial_kwargs.items() if k in ("sigma_px", "distance_m", "num_images",
+                                                                             "num_points"))
+
+    records = []
+    if log_path is not None and log_path.exists():
+        records = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
+        records = [r for r in records if same_setup(r) and r["seed"] < runs]
+    have = {r["seed"] for r in records}
+    todo = [seed for seed in range(runs) if seed not in have]
+    log = open(log_path, "a", encoding="utf-8") if log_path is not None else None
+    bar = tqdm(total=runs, initial=runs - len(todo), desc="convergence runs", unit="run", disable=not progress,
+               file=sys.stderr)
+    start = time.monotonic()
+
+    def keep(record: dict) -> None:
+        records.append(record)
+        if log is not None:
+            log.write(json.dumps(record) + "\n")
+            log.flush()
+        bar.update(1)
+
+    def over_budget() -> bool:
+        return time_budget_s is not None and time.monotonic() - start > time_budget_s
+
+    try:
+        if jobs <= 1:
+            for seed in todo:
+                if over_budget():
+                    break
+                keep(run_trial(seed, **trial_kwargs))
+        else:
+            with ProcessPoolExecutor(max_workers=jobs) as pool:
+                queue = iter(todo)
+                pending = set()
+                while True:
+                    while len(pending) < 2 * jobs and not over_budget():
+                        seed = next(queue, None)
+                        if seed is None:
+                            break
+                        pending.add(pool.submit(run_trial, seed, **trial_kwargs))
+                    if not pending:
+                        break
+                    finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                    for future in finished:
+                        keep(future.result())
+    finally:
+        bar.close()
+        if log is not None:
+            log.close()
+    return sorted(records, key=lambda r: r["seed"])
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--runs", type=int, default=100, help="Monte Carlo runs (default 100)")
+    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="worker processes (default: all cores)")
+    parser.add_argument("--sigma", type=float, default=1.0, help="pixel noise, pixels (default 1)")
+    parser.add_argument("--distance", type=float, default=0.5, help="mirror distance, metres (default 0.5)")
+    parser.add_argument("--images", type=int, default=200, help="images per run (default 200)")
+    parser.add_argument("--points", type=int, default=0,
+                        help="reconstruction points per run (default 0: the paper's base case for this claim)")
+    parser.add_argument("--naive-distance", type=float, default=0.5, help="naive guess's mirror distance, m")
+    parser.add_argument("--max-iterations", type=int, default=100, help="LM iteration limit (default 100)")
+    parser.add_argument("--out", type=Path, default=Path("out/convergence"), help="output directory")
+    parser.add_argument("--fresh", action="store_true", help="ignore runs already in OUT/runs.jsonl")
+    parser.add_argument("--time-budget", type=float, default=None, metavar="MIN",
+                        help="stop starting new runs after MIN minutes")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    log_path = args.out / "runs.jsonl"
+    if args.fresh and log_path.exists():
+        log_path.unlink()
+    trial_kwargs = dict(sigma_px=args.sigma, distance_m=args.distance, num_images=args.images,
+                        num_points=args.points, naive_distance_m=args.naive_distance,
+                        max_iterations=args.max_iterations)
+    records = run_all(args.runs, args.jobs, trial_kwargs, log_path,
+                      None if args.time_budget is None else 60.0 * args.time_budget, not args.no_progress)
+    summary = summarize(records)
+    summary["setup"] = trial_kwargs
+    (args.out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    print(format_summary(summary))
+    print(f"wrote {args.out / 'summary.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

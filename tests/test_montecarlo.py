@@ -1,0 +1,144 @@
+"""Monte Carlo checks of the MLE (scripts/reproduce_fig4.py, scripts/convergence.py): efficiency against the
+Cramér-Rao bound, consistency of the reported covariance, NEES, convergence from the analytical guess.
+
+Sampling error: an RMS over N runs estimates a standard deviation to about 1/sqrt(2N) (7 % at N = 100,
+22 % at N = 10), so a per-axis ratio "MLE RMS / CRB 1-sigma" is compared with its chi-square band. The
+efficiency itself is measured without that error against the first-order estimator
+``x_true + I^-1 J^T Sigma^-1 (z - h(x_true))`` on the *same* noise, which is efficient by construction.
+"""
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mirror_fg.crb import chi2_quantile
+
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+
+
+def _script(name: str):
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # worker processes unpickle its functions by this name
+    spec.loader.exec_module(module)
+    return module
+
+
+def _sampling_band(num_runs: int, comparisons: int, alpha: float = 0.01) -> tuple[float, float]:
+    """Two-sided band of ``RMS / sigma`` over ``num_runs`` Gaussian runs, Bonferroni over ``comparisons``."""
+    a = alpha / comparisons / 2
+    return (float(np.sqrt(chi2_quantile(a, num_runs) / num_runs)),
+            float(np.sqrt(chi2_quantile(1 - a, num_runs) / num_runs)))
+
+
+def _check_statistics(stats: dict, runs: int, comparisons: int) -> None:
+    """The MLE checks over ``runs`` runs at the global optimum."""
+    assert stats["runs_global"] == runs
+    # Efficiency, sampling error removed: the MLE is no worse than the efficient first-order estimator.
+    assert np.all(stats["efficiency_first_order"] <= 1.10), stats["efficiency_first_order"]
+    assert np.all(stats["point_mle_rms_global"] / stats["point_first_order_rms"] <= 1.10)
+    # The reported covariance is the bound (evaluated at the estimate instead of the truth).
+    np.testing.assert_allclose(stats["reported_sigma_global"] / stats["crb_sigma_global"], 1.0, atol=0.10)
+    np.testing.assert_allclose(stats["point_reported_sigma_global"] / stats["point_crb_sigma_global"], 1.0, atol=0.10)
+    # Efficiency and consistency as raw ratios: inside the sampling band of `runs` runs.
+    lo, hi = _sampling_band(runs, comparisons)
+    assert np.all(stats["efficiency"] <= hi), (stats["efficiency"], hi)
+    assert np.all((lo <= 1 / stats["consistency"]) & (1 / stats["consistency"] <= hi)), (stats["consistency"], lo, hi)
+    # NEES of the 6-DoF pose with the reported covariance, inside the 95 % band of the mean.
+    band = stats["nees_band"]
+    assert band[0] < stats["nees_reported"] < band[1], (stats["nees_reported"], band)
+
+
+def test_small_monte_carlo_is_efficient_and_consistent():
+    fig4 = _script("reproduce_fig4")
+    runs = 10
+    points = [("a", 0.5, 0.5)]
+    records = fig4.run_sweep(points, runs, num_images=60, num_points=10, jobs=1, progress=False)
+    stats = fig4.summarize(records)
+    assert stats["runs_ok"] == runs and stats["runs_singular"] == 0 and stats["converged_fraction"] == 1.0
+    assert stats["runs_local_minimum"] == 0, stats["local_minimum_seeds"]  # every LM reached the global optimum
+    _check_statistics(stats, runs, comparisons=6)
+    # The analytical solution is worse than the MLE but within the paper's range (<= ~4 cm, ~4 deg at 2 px).
+    assert np.all(stats["analytic_rms"] >= stats["mle_rms"])
+    rot_deg, pos_m = fig4.worst_axis(stats["analytic_rms"])
+    assert rot_deg < 5.0 and pos_m < 0.10
+    rows = fig4.csv_rows(records, points)
+    assert rows[0]["runs_ok"] == runs
+    assert rows[0]["mle_rms_pos_worst_m"] == pytest.approx(np.max(stats["mle_rms"][3:]))
+    assert rows[0]["crb_sigma_rot_worst_deg"] == pytest.approx(np.degrees(np.max(stats["crb_sigma"][:3])))
+
+
+@pytest.fixture(scope="module")
+def base_case_runs(tmp_path_factory):
+    """Reduced Fig. 4 run: the full base case (200 images, 60 points) at 0.5 and 2 px, 30 runs each."""
+    fig4 = _script("reproduce_fig4")
+    points = [("a", 0.5, 0.5), ("a", 2.0, 0.5)]
+    out = tmp_path_factory.mktemp("fig4")
+    records = fig4.run_sweep(points, 30, num_images=200, num_points=60, jobs=2, log_path=out / "runs.jsonl",
+                             progress=False)
+    return fig4, points, records, out
+
+
+@pytest.mark.slow
+def test_base_case_monte_carlo_is_efficient_and_consistent(base_case_runs):
+    """Efficiency and consistency of the MLE over the runs whose LM reached the global optimum."""
+    fig4, points, records, out = base_case_runs
+    for _, sigma, _ in points:
+        stats = fig4.summarize([r for r in records if r["sigma_px"] == sigma])
+        assert stats["runs_global"] >= 0.9 * stats["runs_ok"]
+        _check_statistics(stats, stats["runs_global"], comparisons=6 * len(points))
+    rows = fig4.csv_rows(records, points)
+    fig4.write_csv(out / "fig4.csv", rows)
+    fig4.plot(rows, out / "fig4.png", "test")
+    assert (out / "fig4.png").stat().st_size > 10_000
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="known: at 2 px the analytical guess (tens of CRB sigmas off, growing faster than sigma) "
+                   "sometimes lies outside LM's basin; LM then stops in a local minimum (issue 4 note)")
+def test_lm_from_the_analytical_guess_reaches_the_global_optimum(base_case_runs):
+    fig4, points, records, _ = base_case_runs
+    for _, sigma, _ in points:
+        stats = fig4.summarize([r for r in records if r["sigma_px"] == sigma])
+        assert stats["runs_local_minimum"] == 0, (sigma, stats["local_minimum_seeds"])
+
+
+def test_sweep_resumes_from_its_log(tmp_path):
+    fig4 = _script("reproduce_fig4")
+    log = tmp_path / "runs.jsonl"
+    points = [("a", 0.5, 0.5)]
+    first = fig4.run_sweep(points, 1, num_images=9, num_points=2, jobs=1, log_path=log, progress=False)
+    again = fig4.run_sweep(points, 2, num_images=9, num_points=2, jobs=1, log_path=log, progress=False)
+    assert len(first) == 1 and len(again) == 2
+    assert len(log.read_text().splitlines()) == 2
+    assert again[0]["mle_pose"] == first[0]["mle_pose"]
+
+
+def test_convergence_from_the_analytical_guess():
+    conv = _script("convergence")
+    record = conv.run_trial(seed=0, num_images=30, num_points=3, max_iterations=30)
+    assert not record["analytic"]["singular"]
+    assert conv.succeeded(record["analytic"], 30) and record["analytic"]["iterations"] <= 10
+    assert record["naive"]["iterations"] >= 1
+    summary = conv.summarize([record])
+    assert summary["analytic_success_rate"] == 1.0 and summary["runs"] == 1
+
+
+def test_naive_guess_knows_nothing():
+    conv = _script("convergence")
+    from mirror_fg.simulate import simulate_base_case
+
+    dataset, _ = simulate_base_case(num_images=9, num_points=2, pixel_sigma=0.0, seed=0)
+    guess = conv.naive_guess(dataset)
+    np.testing.assert_array_equal(guess.R_cam_base, np.eye(3))
+    assert {tuple(v) for (l, _), v in guess.mirror_vectors.items() if l == 2} == {(0.0, 0.0, 0.5)}  # in front
+    assert {tuple(v) for (l, _), v in guess.mirror_vectors.items() if l == 1} == {(0.0, 0.0, -0.5)}  # behind
+    centroid = np.mean(list(dataset.fiducials.values()), axis=0)
+    for p in guess.points.values():
+        np.testing.assert_allclose(p, centroid)
