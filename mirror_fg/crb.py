@@ -14,10 +14,9 @@ Covariances that leave this module follow SPEC.md: the pose block as ``[dtheta (
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from statistics import NormalDist
-from typing import Protocol
 
 import gtsam
 import numpy as np
@@ -25,6 +24,7 @@ import numpy as np
 from mirror_fg.analytic import SolveError
 from mirror_fg.dataset import Dataset
 from mirror_fg.geometry import measurement_jacobians
+from mirror_fg.graph import InitialEstimate as Unknowns  # any values of every unknown (truth, analytic, MLE)
 from mirror_fg.transforms import spec_covariance_from_pose3
 
 __all__ = [
@@ -47,15 +47,6 @@ AXIS_NAMES = (
     "rotation about camera x", "rotation about camera y", "rotation about camera z",
     "translation along camera x", "translation along camera y", "translation along camera z",
 )
-
-
-class Unknowns(Protocol):
-    """Values of every unknown: a ``GroundTruth``, an ``AnalyticSolution`` or a ``Calibration``."""
-
-    R_cam_base: np.ndarray
-    t_cam_base: np.ndarray
-    mirror_vectors: Mapping[tuple[int, int], np.ndarray]
-    points: Mapping[str, np.ndarray]
 
 
 @dataclass

@@ -6,7 +6,7 @@ import pytest
 from scipy.stats import chi2
 
 from conftest import pose_difference
-from mirror_fg import calibrate, load_dataset, solve_analytic
+from mirror_fg import calibrate, load_dataset
 from mirror_fg.graph import Calibration
 from mirror_fg.simulate import simulate_base_case
 from mirror_fg.transforms import rotation_angle

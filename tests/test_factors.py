@@ -1,5 +1,4 @@
 """Factor Jacobians against central finite differences on GTSAM's own retractions."""
-import functools
 
 import gtsam
 import numpy as np

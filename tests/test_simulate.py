@@ -89,7 +89,7 @@ def test_visible_rejects_points_outside_or_behind():
 
 def test_scene_geometry():
     ds, truth = simulate_base_case(num_images=30, num_points=30, pixel_sigma=0.0, num_fiducials=4, seed=5)
-    R, t = truth.R_cam_base, truth.t_cam_base
+    R = truth.R_cam_base
     assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(R), 1.0)
     angle = np.degrees(np.arccos((np.trace(R) - 1.0) / 2.0))
     assert 20.0 <= angle <= 40.0
