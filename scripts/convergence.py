@@ -27,7 +27,6 @@ import argparse
 import json
 import sys
 import time
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,6 +35,7 @@ import numpy as np
 from mirror_fg.analytic import SolveError, solve_analytic
 from mirror_fg.dataset import Dataset, DatasetError
 from mirror_fg.graph import calibrate
+from mirror_fg.montecarlo import run_trials
 from mirror_fg.simulate import simulate_base_case
 from mirror_fg.transforms import rotation_angle
 
@@ -166,7 +166,6 @@ def format_summary(s: dict) -> str:
 def run_all(runs: int, jobs: int, trial_kwargs: dict, log_path: Path | None, time_budget_s: float | None,
             progress: bool = True) -> list[dict]:
     """Every run (resumed from and appended to ``log_path``), in parallel over ``jobs`` processes."""
-    from tqdm import tqdm
 
     def same_setup(r: dict) -> bool:
         return all(r.get(k) == v for k, v in trial_kwargs.items() if k in ("sigma_px", "distance_m", "num_images",
@@ -178,46 +177,8 @@ def run_all(runs: int, jobs: int, trial_kwargs: dict, log_path: Path | None, tim
         records = [r for r in records if same_setup(r) and r["seed"] < runs]
     have = {r["seed"] for r in records}
     todo = [seed for seed in range(runs) if seed not in have]
-    log = open(log_path, "a", encoding="utf-8") if log_path is not None else None
-    bar = tqdm(total=runs, initial=runs - len(todo), desc="convergence runs", unit="run", disable=not progress,
-               file=sys.stderr)
-    start = time.monotonic()
-
-    def keep(record: dict) -> None:
-        records.append(record)
-        if log is not None:
-            log.write(json.dumps(record) + "\n")
-            log.flush()
-        bar.update(1)
-
-    def over_budget() -> bool:
-        return time_budget_s is not None and time.monotonic() - start > time_budget_s
-
-    try:
-        if jobs <= 1:
-            for seed in todo:
-                if over_budget():
-                    break
-                keep(run_trial(seed, **trial_kwargs))
-        else:
-            with ProcessPoolExecutor(max_workers=jobs) as pool:
-                queue = iter(todo)
-                pending = set()
-                while True:
-                    while len(pending) < 2 * jobs and not over_budget():
-                        seed = next(queue, None)
-                        if seed is None:
-                            break
-                        pending.add(pool.submit(run_trial, seed, **trial_kwargs))
-                    if not pending:
-                        break
-                    finished, pending = wait(pending, return_when=FIRST_COMPLETED)
-                    for future in finished:
-                        keep(future.result())
-    finally:
-        bar.close()
-        if log is not None:
-            log.close()
+    run_trials(run_trial, [dict(seed=seed, **trial_kwargs) for seed in todo], records, total=runs,
+               log_path=log_path, desc="convergence runs", progress=progress, jobs=jobs, time_budget_s=time_budget_s)
     return sorted(records, key=lambda r: r["seed"])
 
 

@@ -33,7 +33,6 @@ import json
 import sys
 import time
 from collections import defaultdict
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +41,7 @@ from mirror_fg.analytic import SolveError
 from mirror_fg.crb import cramer_rao_bound, nees, nees_band, pose_error
 from mirror_fg.dataset import DatasetError
 from mirror_fg.graph import calibrate
+from mirror_fg.montecarlo import run_trials
 from mirror_fg.simulate import simulate_base_case
 
 SIGMAS_PX = (0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 1.75, 2.0)
@@ -389,7 +389,6 @@ def run_sweep(
     Runs go seed-major (run 0 of every point, then run 1, ...), so a ``time_budget_s`` that stops
     submitting early leaves every point with about the same number of runs.
     """
-    from tqdm import tqdm
 
     done = _load_records(log_path) if log_path is not None else []
     done = [r for r in done if r["num_images"] == num_images and r["num_points"] == num_points]
@@ -403,46 +402,8 @@ def run_sweep(
     todo = [t for t in tasks if _key(t) not in have]
     wanted = {_key(t) for t in tasks}
     records = [r for r in done if _key(r) in wanted]
-    start = time.monotonic()
-    log = open(log_path, "a", encoding="utf-8") if log_path is not None else None
-    bar = tqdm(total=len(tasks), initial=len(tasks) - len(todo), desc="Monte Carlo runs", unit="run",
-               disable=not progress, file=sys.stderr)
-
-    def keep(record: dict) -> None:
-        records.append(record)
-        if log is not None:
-            log.write(json.dumps(record) + "\n")
-            log.flush()
-        bar.update(1)
-
-    def over_budget() -> bool:
-        return time_budget_s is not None and time.monotonic() - start > time_budget_s
-
-    try:
-        if jobs <= 1:
-            for task in todo:
-                if over_budget():
-                    break
-                keep(run_trial(**task))
-        else:
-            with ProcessPoolExecutor(max_workers=jobs) as pool:
-                pending = set()
-                queue = iter(todo)
-                while True:
-                    while len(pending) < 2 * jobs and not over_budget():
-                        task = next(queue, None)
-                        if task is None:
-                            break
-                        pending.add(pool.submit(run_trial, **task))
-                    if not pending:
-                        break
-                    finished, pending = wait(pending, return_when=FIRST_COMPLETED)
-                    for future in finished:
-                        keep(future.result())
-    finally:
-        bar.close()
-        if log is not None:
-            log.close()
+    run_trials(run_trial, todo, records, total=len(tasks), log_path=log_path, desc="Monte Carlo runs",
+               progress=progress, jobs=jobs, time_budget_s=time_budget_s)
     return records
 
 
