@@ -26,6 +26,7 @@ import numpy as np
 from .dataset import DatasetError, atomic_write
 from .geometry import nested_transform, project
 from .ros import (
+    pose_covariance,
     DEFAULT_BASE_FRAME,
     DEFAULT_CAMERA_FRAME,
     _transforms,
@@ -581,12 +582,9 @@ def _figure_scene(result: Mapping[str, Any], dataset: Dataset | None) -> Figure:
 
 def _figure_correlation(result: Mapping[str, Any]) -> Figure | None:
     """Correlation matrix of ``covariance_cam_base`` ([rx, ry, rz, x, y, z], SPEC.md convention)."""
-    cov = result.get("covariance_cam_base")
-    if cov is None:
+    P = pose_covariance(result)
+    if P is None:
         return None
-    P = np.asarray(cov, dtype=float)
-    if P.shape != (6, 6) or not np.all(np.isfinite(P)):
-        raise ValueError(f"result covariance_cam_base: expected a finite 6x6 matrix, got shape {P.shape}")
     sd = np.sqrt(np.clip(np.diag(P), 1e-300, None))
     corr = P / np.outer(sd, sd)
     fig = _new_figure(6.0, 5.2)

@@ -150,6 +150,17 @@ def _transforms(result: Mapping[str, Any]) -> tuple[tuple[np.ndarray, np.ndarray
     return (R_cb, t_cb), (R_bc, t_bc)
 
 
+def pose_covariance(result: Mapping[str, Any]) -> np.ndarray | None:
+    """The result's 6x6 ``covariance_cam_base`` (SPEC convention), validated; None when absent."""
+    cov = result.get("covariance_cam_base")
+    if cov is None:
+        return None
+    P = np.asarray(cov, dtype=float)
+    if P.shape != (6, 6) or not np.all(np.isfinite(P)):
+        raise ValueError(f"result covariance_cam_base: expected a finite 6x6 matrix, got shape {P.shape}")
+    return P
+
+
 def sigma3_base_cam(result: Mapping[str, Any]) -> dict[str, list[float]] | None:
     """3-sigma bounds of the camera's pose in the base frame, from ``covariance_cam_base``.
 
@@ -158,12 +169,9 @@ def sigma3_base_cam(result: Mapping[str, Any]) -> dict[str, list[float]] | None:
     First order: with ``dtheta, dt`` of SPEC.md, ``dphi = -R^T dtheta`` and
     ``dt' = -R^T dt - R^T [t]x dtheta``.
     """
-    cov = result.get("covariance_cam_base")
-    if cov is None:
+    P = pose_covariance(result)
+    if P is None:
         return None
-    P = np.asarray(cov, dtype=float)
-    if P.shape != (6, 6) or not np.all(np.isfinite(P)):
-        raise ValueError(f"result covariance_cam_base: expected a finite 6x6 matrix, got shape {P.shape}")
     (R, t), _ = _transforms(result)
     tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
     J = np.zeros((6, 6))
