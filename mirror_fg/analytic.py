@@ -26,8 +26,6 @@ CONSISTENCY_CAP = 0.05
 NUM_TRIPLE_HYPOTHESES = 12
 #: Best distinct hypotheses re-solved over all of a node's children.
 NUM_FULL_HYPOTHESES = 4
-#: Best solutions of a node handed to the level above (which picks by its own residual).
-NODE_HYPOTHESES_KEPT = 2
 #: Alternations between mirror normals and the parent transform per node.
 NODE_ALTERNATIONS = 30
 
@@ -219,17 +217,6 @@ def _solve_node(
     return _NodeSolution(A_parent, b_parent, mirror_vectors, rotation_residual + translation_residual)
 
 
-@dataclass
-class _Hypothesis:
-    """One candidate ``(A_l, b_l)`` of a tree node with what its subtree chose to get there."""
-
-    A: np.ndarray
-    b: np.ndarray
-    mirror_vectors: dict[tuple[int, int], list[np.ndarray]]
-    image_transforms: dict[str, tuple[np.ndarray, np.ndarray]]
-    residual: float = 0.0
-
-
 def _candidate_inconsistency(A: np.ndarray, b: np.ndarray, A_parent: np.ndarray, b_parent: np.ndarray) -> np.ndarray:
     """How far candidates ``(A_l, b_l)`` (stacked (n, 3, 3), (n, 3)) are from a reflection of the parent
     (eqs. 6-7): squared, unitless, one value per candidate."""
@@ -248,20 +235,16 @@ def _choose_candidates(
     num_children: int,
     parent_det: float,
     rng: np.random.Generator,
-) -> list[tuple[list[int], _NodeSolution]]:
-    """Ranked choices of one candidate per observation of a node, each with its node solution.
+) -> list[int]:
+    """Pick one PnP candidate per image of a node without enumerating all combinations.
 
-    Without enumerating all combinations: minimal triples of children are solved over every
-    candidate combination, each keeping the one with the lowest residual of eq. (16); each such
-    hypothesis picks every observation's candidate by consistency (robustly capped score). A distant
-    target's P3P "twin" can be consistent across many images on its own, so the best few hypotheses
-    are re-solved over every child (candidates re-picked by consistency with that full solution) and
-    returned best residual first: the parent level decides between close ones.
+    Minimal triples of children are solved over every candidate combination, each keeping the one
+    with the lowest residual of eq. (16); each such hypothesis then scores how many images have a
+    candidate consistent with it (robustly capped), and the best hypothesis picks every image's
+    candidate by consistency.
     """
     if all(len(c) == 1 for c in image_candidates):
-        choice = [0] * len(image_candidates)
-        observations = [(k, *candidates[0]) for k, candidates in zip(image_children, image_candidates)]
-        return [(choice, _solve_node(observations, num_children, parent_det))]
+        return [0] * len(image_candidates)
     first_image_of_child: dict[int, int] = {}
     for i, k in enumerate(image_children):
         first_image_of_child.setdefault(k, i)
@@ -273,22 +256,28 @@ def _choose_candidates(
     hypotheses: dict[tuple[int, ...], float] = {}
     for triple in triples:
         images = [first_image_of_child[k] for k in triple]
-        ranked = []
+        best_node, best_residual = None, np.inf
         for combo in product(*(range(len(image_candidates[i])) for i in images)):
             observations = [(j, *image_candidates[i][c]) for j, (i, c) in enumerate(zip(images, combo))]
-            ranked.append(_solve_node(observations, 3, parent_det))
-        for node in sorted(ranked, key=lambda n: n.residual)[:2]:
-            choice, score = _consistent_choice(image_candidates, node)
+            node = _solve_node(observations, 3, parent_det)
+            if node.residual < best_residual:
+                best_node, best_residual = node, node.residual
+        if best_node is not None:
+            choice, score = _consistent_choice(image_candidates, best_node)
             hypotheses[choice] = min(score, hypotheses.get(choice, np.inf))
-    results: dict[tuple[int, ...], _NodeSolution] = {}
+    # A distant target's P3P "twin" can be consistent across many images on its own, so the best
+    # few hypotheses are judged by the residual of eqs. (13) and (16) over every child, and the
+    # winner's candidates are re-picked by consistency with that full solution.
+    best_choice, best_residual = None, np.inf
     for choice in sorted(hypotheses, key=hypotheses.get)[:NUM_FULL_HYPOTHESES]:
         for _ in range(2):
             observations = [(k, *candidates[c]) for k, candidates, c in zip(image_children, image_candidates, choice)]
             node = _solve_node(observations, num_children, parent_det)
             choice, _ = _consistent_choice(image_candidates, node)
-        if choice not in results or node.residual < results[choice].residual:
-            results[choice] = node
-    return sorted(((list(c), n) for c, n in results.items()), key=lambda item: item[1].residual)
+        if node.residual < best_residual:
+            best_choice, best_residual = list(choice), node.residual
+    assert best_choice is not None
+    return best_choice
 
 
 def _consistent_choice(
@@ -315,10 +304,12 @@ def solve_node(
     solve the children's mirror vectors and the parent's ``(A_{l-1}, b_{l-1})``.
 
     children: child index (0..num_children-1) of each observation; candidates: its candidates
-    (several for P3P); parent_det: ``det A_{l-1} = (-1)^(l-1)``. Returns the best picks and their
-    solution (``A_parent``, ``b_parent``, ``mirror_vectors`` per child, ``residual``).
+    (several for P3P); parent_det: ``det A_{l-1} = (-1)^(l-1)``. Returns the picks and the solution
+    (``A_parent``, ``b_parent``, ``mirror_vectors`` per child, ``residual``).
     """
-    return _choose_candidates(children, candidates, num_children, parent_det, rng)[0]
+    picks = _choose_candidates(children, candidates, num_children, parent_det, rng)
+    observations = [(k, *cands[p]) for k, cands, p in zip(children, candidates, picks)]
+    return picks, _solve_node(observations, num_children, parent_det)
 
 
 def _describe(prefix: tuple[int, ...]) -> str:
@@ -359,60 +350,50 @@ def solve_analytic(dataset: Dataset, seed: int = 0) -> AnalyticSolution:
                 f"{dataset.source}: mirror {l} placement {m} is only seen in images with fewer than 3 fiducials"
             )
 
-    # Each observation of a node carries candidate hypotheses: PnP candidates for images, and for an
-    # inner node the best few solutions of its subtree, so the level above can reject a subtree's
-    # self-consistent P3P twin that a node alone cannot tell apart (Sect. 4.2, "multiple solutions").
-    level_obs: dict[tuple[int, ...], list[tuple[int, list[_Hypothesis]]]] = defaultdict(list)
+    estimates: dict[tuple[int, int], list[np.ndarray]] = defaultdict(list)
+    chosen: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    # Level Nv: observations are images; the node is the prefix of the first Nv-1 configurations.
+    level_obs: dict[tuple[int, ...], list[tuple[int, list[tuple[np.ndarray, np.ndarray]], str | None]]] = defaultdict(list)
     for im in images:
-        hypotheses = [_Hypothesis(A, b, {}, {im.id: (A, b)}) for A, b in leaf_candidates[im.id]]
-        level_obs[im.mirror_configs[:-1]].append((im.mirror_configs[-1], hypotheses))
+        level_obs[im.mirror_configs[:-1]].append((im.mirror_configs[-1], leaf_candidates[im.id], im.id))
     for level in range(Nv, 0, -1):
         parent_det = (-1.0) ** (level - 1)
-        next_obs: dict[tuple[int, ...], list[tuple[int, list[_Hypothesis]]]] = defaultdict(list)
+        next_obs: dict[tuple[int, ...], list] = defaultdict(list)
         for prefix in sorted(level_obs):
             entries = level_obs[prefix]
-            child_ids = sorted({m for m, _ in entries})
+            child_ids = sorted({m for m, _, _ in entries})
             if len(child_ids) < 3:
                 raise DatasetError(
                     f"{dataset.source}: {_describe(prefix)} has {len(child_ids)} placement(s) of mirror {level} "
                     f"under it ({', '.join(str(m) for m in child_ids)}); the analytical solution needs >= 3"
                 )
             index_of = {m: k for k, m in enumerate(child_ids)}
-            children = [index_of[m] for m, _ in entries]
-            ranked = _choose_candidates(
-                children, [[(h.A, h.b) for h in hyps] for _, hyps in entries], len(child_ids), parent_det, rng
-            )
-            kept = []
-            for rank, (picks, node) in enumerate(ranked[:NODE_HYPOTHESES_KEPT]):
-                normals = np.stack([v / np.linalg.norm(v) for v in node.mirror_vectors])
-                if np.linalg.svd(normals, compute_uv=False)[2] < MIN_NORMAL_SPREAD:
-                    if rank == 0:  # the best explanation is degenerate: say so (eqs. 14-15 fail)
-                        break
-                    continue
-                hypothesis = _Hypothesis(node.A_parent, node.b_parent, defaultdict(list), {}, node.residual)
-                for (_, hyps), p in zip(entries, picks):
-                    for config, vectors in hyps[p].mirror_vectors.items():
-                        hypothesis.mirror_vectors[config].extend(vectors)
-                    hypothesis.image_transforms.update(hyps[p].image_transforms)
-                for m, v in zip(child_ids, node.mirror_vectors):
-                    hypothesis.mirror_vectors[(level, m)].append(v)
-                kept.append(hypothesis)
-            if not kept:
+            children = [index_of[m] for m, _, _ in entries]
+            picks, node = solve_node(children, [c for _, c, _ in entries], len(child_ids), parent_det, rng)
+            for entry, p in zip(entries, picks):
+                if entry[2] is not None:
+                    chosen[entry[2]] = entry[1][p]
+            normals = np.stack([v / np.linalg.norm(v) for v in node.mirror_vectors])
+            singular = np.linalg.svd(normals, compute_uv=False)
+            if singular[2] < MIN_NORMAL_SPREAD:
                 listed = ", ".join(f"({level}, {m})" for m in child_ids)
                 raise SolveError(
                     f"{dataset.source}: under {_describe(prefix)}, the normals of mirror {level} placements "
                     f"{listed} are nearly coplanar; move the mirror about a second axis"
                 )
+            for m, v in zip(child_ids, node.mirror_vectors):
+                estimates[(level, m)].append(v)
             if level > 1:
-                next_obs[prefix[:-1]].append((prefix[-1], kept))
+                next_obs[prefix[:-1]].append((prefix[-1], [(node.A_parent, node.b_parent)], None))
             else:
-                root = kept[0]
+                root = node
         level_obs = next_obs
+    mirror_vectors = {key: np.mean(vs, axis=0) for key, vs in estimates.items()}
     solution = AnalyticSolution(
-        R_cam_base=project_to_orthogonal(root.A, 1.0),
-        t_cam_base=root.b,
-        mirror_vectors={key: np.mean(vs, axis=0) for key, vs in root.mirror_vectors.items()},
-        image_transforms=root.image_transforms,
+        R_cam_base=project_to_orthogonal(root.A_parent, 1.0),
+        t_cam_base=root.b_parent,
+        mirror_vectors=mirror_vectors,
+        image_transforms=chosen,
     )
     solution.points = reconstruct_points(dataset, solution)
     return solution
