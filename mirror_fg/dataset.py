@@ -612,6 +612,7 @@ def atomic_write(path: str | os.PathLike[str], data: str | bytes) -> Path:
     raw = data.encode("utf-8") if isinstance(data, str) else data
     target = os.path.realpath(os.fspath(path))  # keep a symlink a symlink: replace what it points to
     directory = os.path.dirname(target)
+    os.makedirs(directory, exist_ok=True)  # "-o out/result.json" creates out/
     fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(target)}.", suffix=".tmp", dir=directory)
     try:
         with os.fdopen(fd, "wb") as f:

@@ -137,3 +137,9 @@ def test_stalled_optimisation_exits_3_and_writes_nothing(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "did not converge" in err
     assert not out.exists()
+
+
+def test_result_directory_is_created(small_dataset, tmp_path):
+    out = tmp_path / "new" / "dir" / "result.json"
+    assert main(["calibrate", str(small_dataset), "-o", str(out), "-q"]) == 0
+    assert out.exists() and (out.parent / "result.ros.yaml").exists()
