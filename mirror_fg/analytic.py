@@ -16,7 +16,7 @@ import numpy as np
 from mirror_fg.dataset import Dataset, DatasetError, Image
 from mirror_fg.geometry import FLIP_Y, apply_transform, nested_transform, project, project_to_orthogonal
 
-__all__ = ["AnalyticSolution", "SolveError", "pnp_candidates", "solve_analytic", "solve_node", "triangulate_point"]
+__all__ = ["AnalyticSolution", "SolveError", "pnp_candidates", "reflection_fit", "solve_analytic", "solve_node", "triangulate_point"]
 
 #: Smallest out-of-plane spread (third singular value of the unit normals, ~radians) of a node's mirrors.
 MIN_NORMAL_SPREAD = np.sin(np.deg2rad(0.5))
@@ -217,16 +217,24 @@ def _solve_node(
     return _NodeSolution(A_parent, b_parent, mirror_vectors, rotation_residual + translation_residual)
 
 
-def _candidate_inconsistency(A: np.ndarray, b: np.ndarray, A_parent: np.ndarray, b_parent: np.ndarray) -> np.ndarray:
-    """How far candidates ``(A_l, b_l)`` (stacked (n, 3, 3), (n, 3)) are from a reflection of the parent
-    (eqs. 6-7): squared, unitless, one value per candidate."""
+def reflection_fit(
+    A: np.ndarray, b: np.ndarray, A_parent: np.ndarray, b_parent: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The reflection nearest to each candidate ``(A_l, b_l)`` (stacked (n, 3, 3), (n, 3)) of a known
+    parent ``(A_{l-1}, b_{l-1})`` (eqs. 6-7): misfits (n,), squared and unitless, and mirror vectors (n, 3).
+
+    ``A_l A_{l-1}^T`` must be a Householder matrix (normal: eigenvector of its -1 eigenvalue) and
+    ``b_l - M b_{l-1}`` must be ``2 v``, parallel to that normal; the misfit is how far both are off.
+    """
     M = A @ A_parent.T
     normals = np.linalg.eigh(0.5 * (M + M.transpose(0, 2, 1)))[1][:, :, 0]
     H = np.eye(3) - 2.0 * np.einsum("ia,ib->iab", normals, normals)
     offsets = b - H @ b_parent  # must be 2 v, parallel to the normal (eq. 7)
-    perpendicular = offsets - normals * np.einsum("ia,ia->i", normals, offsets)[:, None]
+    along = np.einsum("ia,ia->i", normals, offsets)
+    perpendicular = offsets - normals * along[:, None]
     scale = np.maximum(np.linalg.norm(b, axis=1), 1e-9)
-    return np.sum((M - H) ** 2, axis=(1, 2)) + np.sum(perpendicular**2, axis=1) / scale**2
+    misfits = np.sum((M - H) ** 2, axis=(1, 2)) + np.sum(perpendicular**2, axis=1) / scale**2
+    return misfits, 0.5 * along[:, None] * normals
 
 
 def _choose_candidates(
@@ -287,7 +295,7 @@ def _consistent_choice(
     counts = [len(candidates) for candidates in image_candidates]
     A = np.array([A for candidates in image_candidates for A, _ in candidates])
     b = np.array([b for candidates in image_candidates for _, b in candidates])
-    costs = np.split(_candidate_inconsistency(A, b, node.A_parent, node.b_parent), np.cumsum(counts)[:-1])
+    costs = np.split(reflection_fit(A, b, node.A_parent, node.b_parent)[0], np.cumsum(counts)[:-1])
     choice = tuple(int(np.argmin(c)) for c in costs)
     score = float(sum(min(float(np.min(c)), CONSISTENCY_CAP) for c in costs))
     return choice, score

@@ -378,6 +378,15 @@ def unconstrained_message(error: Exception, layout: GraphLayout) -> str:
     return "the data leave some unknowns unconstrained (indeterminant linear system)"
 
 
+def lm_params(max_iterations: int) -> gtsam.LevenbergMarquardtParams:
+    """Levenberg-Marquardt settings of the MLE (eq. 23): tight tolerances, at most ``max_iterations``."""
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(1e-10)
+    params.setAbsoluteErrorTol(1e-12)
+    return params
+
+
 def _stationary(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, error: float) -> bool:
     """Whether the Gauss-Newton step at ``values`` promises (almost) no decrease of the error."""
     linear = graph.linearize(values)
@@ -420,10 +429,7 @@ def calibrate(
     timings["build"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(max_iterations)
-    params.setRelativeErrorTol(1e-10)
-    params.setAbsoluteErrorTol(1e-12)
+    params = lm_params(max_iterations)
     if on_iteration is not None:
         params.iterationHook = on_iteration
     initial_error = graph.error(values)

@@ -58,6 +58,7 @@ from mirror_fg.analytic import (
     SolveError,
     solve_node,
     pnp_candidates,
+    reflection_fit,
     solve_analytic,
     triangulate_point,
 )
@@ -70,6 +71,7 @@ from mirror_fg.graph import (
     GraphLayout,
     Measurement,
     extract_values,
+    lm_params,
     marginal_covariances,
     predicted_normalized,
     residual_statistics,
@@ -441,7 +443,7 @@ class IncrementalCalibrator:
         analytic.points = dict(self._points)  # eq. (20) at the analytical solution
         initial_error = float(factors.error(values))
         lm_start = time.perf_counter()
-        optimizer = gtsam.LevenbergMarquardtOptimizer(factors, values, _lm_params(lm_iterations))
+        optimizer = gtsam.LevenbergMarquardtOptimizer(factors, values, lm_params(lm_iterations))
         try:
             optimized = optimizer.optimize()
         except RuntimeError as error:  # IndeterminantLinearSystemException
@@ -640,9 +642,12 @@ class IncrementalCalibrator:
                     self._R, self._t, [self._mirrors[(l + 1, m)] for l, m in enumerate(prefix[:-1])]
                 )
                 for candidates in self._node_entries(j, prefix, images):
-                    fits = [_reflection_fit(cand.A, cand.b, A_parent, b_parent) for cand in candidates]
-                    best = int(np.argmin([misfit for misfit, _ in fits]))
-                    estimates[(j, c)].append(fits[best][1])
+                    misfits, vectors = reflection_fit(
+                        np.array([cand.A for cand in candidates]), np.array([cand.b for cand in candidates]),
+                        A_parent, b_parent,
+                    )
+                    best = int(np.argmin(misfits))
+                    estimates[(j, c)].append(vectors[best])
                     for config, vs in candidates[best].mirrors.items():
                         estimates[config].extend(vs)
         return {config: np.mean(vs, axis=0) for config, vs in estimates.items()}
@@ -814,30 +819,3 @@ class IncrementalCalibrator:
         )
 
 
-def _lm_params(max_iterations: int) -> gtsam.LevenbergMarquardtParams:
-    """The batch pipeline's Levenberg-Marquardt tolerances (``graph.calibrate``)."""
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(max_iterations)
-    params.setRelativeErrorTol(1e-10)
-    params.setAbsoluteErrorTol(1e-12)
-    return params
-
-
-def _reflection_fit(
-    A: np.ndarray, b: np.ndarray, A_parent: np.ndarray, b_parent: np.ndarray
-) -> tuple[float, np.ndarray]:
-    """The one reflection between ``(A_{l-1}, b_{l-1})`` and ``(A_l, b_l)`` (eqs. 6-7): misfit and mirror vector.
-
-    ``A_l A_{l-1}^T`` must be a Householder matrix: its normal is the eigenvector of the smallest
-    eigenvalue (-1); ``b_l - M b_{l-1}`` must be ``2 v``, parallel to it. The misfit (squared, unitless)
-    is how far both are from that; it picks among a P3P image's candidates.
-    """
-    M = A @ A_parent.T
-    normal = np.linalg.eigh(0.5 * (M + M.T))[1][:, 0]
-    H = householder(normal)
-    offset = b - H @ b_parent
-    along = float(normal @ offset)
-    perpendicular = offset - along * normal
-    scale = max(float(np.linalg.norm(b)), 1e-9)
-    misfit = float(np.sum((M - H) ** 2) + perpendicular @ perpendicular / scale**2)
-    return misfit, 0.5 * along * normal
