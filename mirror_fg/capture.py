@@ -73,7 +73,6 @@ from __future__ import annotations
 
 import json
 import math
-import numbers
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -82,7 +81,7 @@ from typing import Any
 
 import numpy as np
 
-from mirror_fg.dataset import DatasetError
+from mirror_fg.dataset import DatasetError, _is_int, _is_number, _short  # shared value checks and messages
 
 __all__ = [
     "CAPTURE_FORMAT",
@@ -1016,22 +1015,9 @@ def _vector(value: Any, n: int, where: str) -> np.ndarray:
     return arr
 
 
-def _is_int(x: Any) -> bool:
-    return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
-
-
-def _is_number(x: Any) -> bool:
-    return isinstance(x, numbers.Real) and not isinstance(x, (bool, np.bool_))
-
-
 def _kind(x: Any) -> str:
     names = {dict: "a mapping", list: "a list", str: "a string", bool: "a boolean", type(None): "null"}
     for t, name in names.items():
         if isinstance(x, t):
             return name
     return "a number" if _is_number(x) else type(x).__name__
-
-
-def _short(x: Any, limit: int = 60) -> str:
-    text = " ".join(repr(x).split())
-    return text if len(text) <= limit else text[: limit - 3] + "..."

@@ -163,7 +163,7 @@ def _print_transform_summary(out: _Printer, result: dict, elapsed: float, increm
 
 def _load_any(path: Path, out: _Printer):
     """A Dataset from a dataset@1 file, or from a capture@1 file after detection."""
-    from mirror_fg.dataset import DatasetError, dataset_from_dict, load_dataset
+    from mirror_fg.dataset import dataset_from_dict, load_dataset
 
     if path.suffix.lower() in (".yaml", ".yml") or _looks_like_capture(path):
         from mirror_fg.capture import load_capture
@@ -173,10 +173,7 @@ def _load_any(path: Path, out: _Printer):
         data, reports = detect_capture(capture, progress=out.progress)
         _print_detection_report(out, reports)
         return dataset_from_dict(data, source=str(path))
-    try:
-        return load_dataset(path)
-    except DatasetError:
-        raise
+    return load_dataset(path)
 
 
 def _looks_like_capture(path: Path) -> bool:
