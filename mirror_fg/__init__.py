@@ -7,10 +7,10 @@ from mirror_fg.analytic import AnalyticSolution, SolveError, solve_analytic
 from mirror_fg.dataset import (
     Camera, Dataset, DatasetError, Image, dataset_from_dict, load_dataset, load_result, save_dataset, write_result,
 )
-from mirror_fg.graph import Calibration, calibrate
+from mirror_fg.graph import Calibration, calibrate, initial_estimate
 from mirror_fg.incremental import IncrementalCalibrator
 
 __all__ = [
     "AnalyticSolution", "Calibration", "IncrementalCalibrator", "Camera", "Dataset", "DatasetError", "Image", "SolveError",
-    "calibrate", "dataset_from_dict", "load_dataset", "load_result", "save_dataset", "solve_analytic", "write_result",
+    "calibrate", "dataset_from_dict", "initial_estimate", "load_dataset", "load_result", "save_dataset", "solve_analytic", "write_result",
 ]

@@ -7,6 +7,7 @@ mirror configurations; its children are the configurations of mirror ``l`` seen 
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from itertools import combinations, product
 
@@ -28,6 +29,13 @@ NUM_TRIPLE_HYPOTHESES = 12
 NUM_FULL_HYPOTHESES = 4
 #: Alternations between mirror normals and the parent transform per node.
 NODE_ALTERNATIONS = 30
+#: Best solutions of an inner node handed to the level above (a subtree's P3P "twin" is only told
+#: apart from the truth by the images of the other subtrees).
+NODE_HYPOTHESES_KEPT = 2
+#: At most this many combinations of the root's child hypotheses are each solved and scored.
+MAX_ROOT_COMBINATIONS = 64
+#: Partners per child when its normal is started from pairwise axes (eqs. 14-15); more add nothing.
+MAX_AXIS_PARTNERS = 24
 
 
 class SolveError(RuntimeError):
@@ -149,19 +157,21 @@ class _NodeSolution:
     residual: float  # combined residual of eqs. (13) and (16), unitless
 
 
-def _normals_from_pairwise_axes(child_A: list[np.ndarray]) -> np.ndarray:
+def _normals_from_pairwise_axes(child_A: np.ndarray) -> np.ndarray:
     """Unit normals (K, 3) of K mirror placements from the axes of ``A_m A_m'^T`` (eqs. 14-15).
 
     Eq. (15) crosses two axes; with more children each normal is the direction most perpendicular
     to all of its axes (least squares, weighted by how well each axis is defined).
     """
-    A = np.stack(child_A)
-    Q = np.einsum("iab,jcb->ijac", A, A)  # A_m A_m'^T, eq. (14)
+    A = np.asarray(child_A)
+    # Only a start for the alternation in _solve_node: a few partners spread over the children will do.
+    partners = np.unique(np.linspace(0, len(A) - 1, min(len(A), MAX_AXIS_PARTNERS)).round().astype(int))
+    Q = np.matmul(A[:, None], np.swapaxes(A[partners], 1, 2)[None])  # A_m A_m'^T, eq. (14)
     axes = np.stack(
         [Q[..., 2, 1] - Q[..., 1, 2], Q[..., 0, 2] - Q[..., 2, 0], Q[..., 1, 0] - Q[..., 0, 1]], axis=-1
     )
     # the smallest right singular vector of each child's stacked axes (its own axis is zero)
-    scatter = np.einsum("mja,mjb->mab", axes, axes)
+    scatter = np.matmul(np.swapaxes(axes, 1, 2), axes)
     return np.linalg.eigh(scatter)[1][:, :, 0]
 
 
@@ -178,7 +188,7 @@ def _solve_node(
     rotations = np.array([A for _, A, _ in observations])
     child_sums = np.zeros((num_children, 3, 3))
     np.add.at(child_sums, children, rotations)
-    child_A = [project_to_orthogonal(child_sums[k], -parent_det) for k in range(num_children)]
+    child_A = project_to_orthogonal(child_sums, -parent_det)
     normals = _normals_from_pairwise_axes(child_A)  # eqs. (14)-(15)
     A_parent = np.eye(3)
     for _ in range(NODE_ALTERNATIONS):
@@ -243,16 +253,20 @@ def _choose_candidates(
     num_children: int,
     parent_det: float,
     rng: np.random.Generator,
-) -> list[int]:
-    """Pick one PnP candidate per image of a node without enumerating all combinations.
+) -> list[tuple[list[int], _NodeSolution]]:
+    """Ranked choices of one candidate per observation of a node, each with its node solution.
 
-    Minimal triples of children are solved over every candidate combination, each keeping the one
-    with the lowest residual of eq. (16); each such hypothesis then scores how many images have a
-    candidate consistent with it (robustly capped), and the best hypothesis picks every image's
-    candidate by consistency.
+    Without enumerating all combinations: minimal triples of children are solved over every
+    candidate combination; each triple's best two solutions (lowest residual of eqs. 13 and 16) pick
+    every observation's candidate by consistency (robustly capped score). A distant target's P3P
+    "twin" can be consistent across many images on its own, so the best few of these choices are
+    re-solved over every child (candidates re-picked by consistency with that full solution) and
+    returned best residual first.
     """
     if all(len(c) == 1 for c in image_candidates):
-        return [0] * len(image_candidates)
+        choice = [0] * len(image_candidates)
+        observations = [(k, *candidates[0]) for k, candidates in zip(image_children, image_candidates)]
+        return [(choice, _solve_node(observations, num_children, parent_det))]
     first_image_of_child: dict[int, int] = {}
     for i, k in enumerate(image_children):
         first_image_of_child.setdefault(k, i)
@@ -264,40 +278,37 @@ def _choose_candidates(
     hypotheses: dict[tuple[int, ...], float] = {}
     for triple in triples:
         images = [first_image_of_child[k] for k in triple]
-        best_node, best_residual = None, np.inf
+        ranked = []
         for combo in product(*(range(len(image_candidates[i])) for i in images)):
             observations = [(j, *image_candidates[i][c]) for j, (i, c) in enumerate(zip(images, combo))]
-            node = _solve_node(observations, 3, parent_det)
-            if node.residual < best_residual:
-                best_node, best_residual = node, node.residual
-        if best_node is not None:
-            choice, score = _consistent_choice(image_candidates, best_node)
+            ranked.append(_solve_node(observations, 3, parent_det))
+        for node in sorted(ranked, key=lambda n: n.residual)[:2]:
+            choice, score = _consistent_choice(image_candidates, node)
             hypotheses[choice] = min(score, hypotheses.get(choice, np.inf))
-    # A distant target's P3P "twin" can be consistent across many images on its own, so the best
-    # few hypotheses are judged by the residual of eqs. (13) and (16) over every child, and the
-    # winner's candidates are re-picked by consistency with that full solution.
-    best_choice, best_residual = None, np.inf
+    results: dict[tuple[int, ...], _NodeSolution] = {}
     for choice in sorted(hypotheses, key=hypotheses.get)[:NUM_FULL_HYPOTHESES]:
         for _ in range(2):
             observations = [(k, *candidates[c]) for k, candidates, c in zip(image_children, image_candidates, choice)]
             node = _solve_node(observations, num_children, parent_det)
             choice, _ = _consistent_choice(image_candidates, node)
-        if node.residual < best_residual:
-            best_choice, best_residual = list(choice), node.residual
-    assert best_choice is not None
-    return best_choice
+        if choice not in results or node.residual < results[choice].residual:
+            results[choice] = node
+    return sorted(((list(c), n) for c, n in results.items()), key=lambda item: item[1].residual)
 
 
 def _consistent_choice(
     image_candidates: list[list[tuple[np.ndarray, np.ndarray]]], node: _NodeSolution
 ) -> tuple[tuple[int, ...], float]:
     """Each image's candidate most consistent with a node's parent, and the capped total inconsistency."""
-    counts = [len(candidates) for candidates in image_candidates]
+    counts = np.array([len(candidates) for candidates in image_candidates])
     A = np.array([A for candidates in image_candidates for A, _ in candidates])
     b = np.array([b for candidates in image_candidates for _, b in candidates])
-    costs = np.split(reflection_fit(A, b, node.A_parent, node.b_parent)[0], np.cumsum(counts)[:-1])
-    choice = tuple(int(np.argmin(c)) for c in costs)
-    score = float(sum(min(float(np.min(c)), CONSISTENCY_CAP) for c in costs))
+    costs = np.full((len(counts), counts.max()), np.inf)
+    image_of = np.repeat(np.arange(len(counts)), counts)
+    slot = np.arange(len(A)) - np.repeat(np.cumsum(counts) - counts, counts)
+    costs[image_of, slot] = reflection_fit(A, b, node.A_parent, node.b_parent)[0]
+    choice = tuple(np.argmin(costs, axis=1).tolist())
+    score = float(np.sum(np.minimum(costs.min(axis=1), CONSISTENCY_CAP)))
     return choice, score
 
 
@@ -312,12 +323,118 @@ def solve_node(
     solve the children's mirror vectors and the parent's ``(A_{l-1}, b_{l-1})``.
 
     children: child index (0..num_children-1) of each observation; candidates: its candidates
-    (several for P3P); parent_det: ``det A_{l-1} = (-1)^(l-1)``. Returns the picks and the solution
-    (``A_parent``, ``b_parent``, ``mirror_vectors`` per child, ``residual``).
+    (several for P3P); parent_det: ``det A_{l-1} = (-1)^(l-1)``. Returns the best picks (lowest
+    residual) and their solution (``A_parent``, ``b_parent``, ``mirror_vectors`` per child, ``residual``).
     """
-    picks = _choose_candidates(children, candidates, num_children, parent_det, rng)
-    observations = [(k, *cands[p]) for k, cands, p in zip(children, candidates, picks)]
-    return picks, _solve_node(observations, num_children, parent_det)
+    return _choose_candidates(children, candidates, num_children, parent_det, rng)[0]
+
+
+@dataclass
+class _Hypothesis:
+    """One candidate ``(A_l, b_l)`` of a tree node with what its subtree chose to get there."""
+
+    A: np.ndarray
+    b: np.ndarray
+    mirror_vectors: dict[tuple[int, int], list[np.ndarray]]
+    image_transforms: dict[str, tuple[np.ndarray, np.ndarray]]
+
+
+def _node_hypotheses(
+    entries: list[tuple[int, list[_Hypothesis]]],
+    level: int,
+    child_ids: list[int],
+    score: Callable[[_Hypothesis], tuple[float, _Hypothesis]],
+    rng: np.random.Generator,
+    exhaustive: bool,
+) -> list[_Hypothesis]:
+    """Solutions of one node from its observations' hypotheses, best first, without those whose mirror
+    normals are nearly coplanar (eqs. 14-15 cannot be trusted); none at all when the best one is (then
+    the motion itself is degenerate).
+
+    The search proposes solutions by the algebraic residual of eqs. (13) and (16), but under noise a
+    wrong P3P pick can lower that residual, so they are ranked by ``score``: the reprojection cost of
+    the node's fiducials, after refining the hypothesis when a refiner is given.
+    ``exhaustive``: solve every combination of the observations' hypotheses (when there are at most
+    ``MAX_ROOT_COMBINATIONS``) instead of the sampled search of ``_choose_candidates``.
+    """
+    index_of = {m: k for k, m in enumerate(child_ids)}
+    children = [index_of[m] for m, _ in entries]
+    candidates = [[(h.A, h.b) for h in hyps] for _, hyps in entries]
+    parent_det = (-1.0) ** (level - 1)
+    if exhaustive and int(np.prod([len(c) for c in candidates])) <= MAX_ROOT_COMBINATIONS:
+        ranked = []
+        for combo in product(*(range(len(c)) for c in candidates)):
+            observations = [(k, *cands[c]) for k, cands, c in zip(children, candidates, combo)]
+            ranked.append((list(combo), _solve_node(observations, len(child_ids), parent_det)))
+        ranked.sort(key=lambda item: item[1].residual)
+    else:
+        ranked = _choose_candidates(children, candidates, len(child_ids), parent_det, rng)
+    solutions: list[tuple[float, int, _Hypothesis, bool]] = []
+    for rank, (picks, node) in enumerate(ranked):
+        normals = np.stack([v / np.linalg.norm(v) for v in node.mirror_vectors])
+        degenerate = bool(np.linalg.svd(normals, compute_uv=False)[2] < MIN_NORMAL_SPREAD)
+        hypothesis = _Hypothesis(node.A_parent, node.b_parent, defaultdict(list), {})
+        for (_, hyps), p in zip(entries, picks):
+            for config, vectors in hyps[p].mirror_vectors.items():
+                hypothesis.mirror_vectors[config].extend(vectors)
+            hypothesis.image_transforms.update(hyps[p].image_transforms)
+        for m, v in zip(child_ids, node.mirror_vectors):
+            hypothesis.mirror_vectors[(level, m)].append(v)
+        cost, hypothesis = score(hypothesis)
+        solutions.append((cost, rank, hypothesis, degenerate))
+    solutions.sort(key=lambda item: item[:2])
+    if solutions[0][3]:
+        return []
+    distinct: list[_Hypothesis] = []  # refined starts often meet in one optimum: keep it once
+    for _, _, hypothesis, degenerate in solutions:
+        if not degenerate and not any(_same_transform(hypothesis, kept) for kept in distinct):
+            distinct.append(hypothesis)
+    return distinct
+
+
+def _same_transform(first: _Hypothesis, second: _Hypothesis, tolerance: float = 1e-3) -> bool:
+    """Whether two hypotheses' ``(A, b)`` agree to ``tolerance`` (unitless, and relative for ``b``)."""
+    scale = max(1.0, float(np.linalg.norm(first.b)))
+    return bool(np.max(np.abs(first.A - second.A)) < tolerance
+                and np.linalg.norm(first.b - second.b) < tolerance * scale)
+
+
+class _FiducialObservations:
+    """Every fiducial observation of a dataset, flattened for a vectorised reprojection cost."""
+
+    def __init__(self, dataset: Dataset, images: list[Image], normalized: dict[str, dict[str, np.ndarray]]):
+        self.configs = [im.mirror_configs for im in images]
+        image_index, points, observed = [], [], []
+        for i, im in enumerate(images):
+            for name in im.observations:
+                if name in dataset.fiducials:
+                    image_index.append(i)
+                    points.append(dataset.fiducials[name])
+                    observed.append(normalized[im.id][name])
+        self.image_index = np.array(image_index, dtype=np.intp)
+        self.points = np.array(points, dtype=float).reshape(-1, 3)
+        self.observed = np.array(observed, dtype=float).reshape(-1, 2)
+        self.sigma = dataset.normalized_sigma
+
+    def cost(
+        self, A_start: np.ndarray, b_start: np.ndarray, mirror_vectors: dict[tuple[int, int], np.ndarray],
+        first_mirror: int = 1,
+    ) -> float:
+        """Sum of squared whitened reprojection errors of every fiducial (eq. 23 without the points),
+        given ``(A, b)`` before mirror ``first_mirror`` (``R_cam_base, t_cam_base`` for mirror 1) and the
+        vectors of that mirror's and every later mirror's placements."""
+        A = np.broadcast_to(A_start, (len(self.configs), 3, 3)).copy()
+        b = np.broadcast_to(b_start, (len(self.configs), 3)).copy()
+        for level in range(first_mirror - 1, len(self.configs[0]) if self.configs else 0):
+            v = np.array([mirror_vectors[(level + 1, configs[level])] for configs in self.configs])
+            n = v / np.linalg.norm(v, axis=1, keepdims=True)
+            M = np.eye(3) - 2.0 * np.einsum("ia,ib->iab", n, n)  # eq. (3)
+            A = M @ A  # eq. (6)
+            b = np.einsum("iab,ib->ia", M, b) + 2.0 * v  # eq. (7)
+        camera_points = np.einsum("iab,ib->ia", A[self.image_index], self.points) + b[self.image_index]  # eq. (5)
+        if not len(camera_points) or np.any(camera_points[:, 2] <= 0):
+            return np.inf
+        return float(np.sum(((project(camera_points) - self.observed) / self.sigma) ** 2))  # eq. (9)
 
 
 def _describe(prefix: tuple[int, ...]) -> str:
@@ -326,8 +443,59 @@ def _describe(prefix: tuple[int, ...]) -> str:
     return "placement " + ", ".join(f"({l + 1}, {m})" for l, m in enumerate(prefix))
 
 
-def solve_analytic(dataset: Dataset, seed: int = 0) -> AnalyticSolution:
+#: Refines a subtree's solution: ``(sub-dataset, its closed-form solution) -> (cost, refined solution)``
+#: or ``None`` when it fails. The sub-dataset is a :func:`subtree_dataset`; the cost is comparable with
+#: that of the other hypotheses of the same subtree (e.g. half the whitened squared reprojection error).
+SubtreeRefiner = Callable[[Dataset, AnalyticSolution], "tuple[float, AnalyticSolution] | None"]
+
+
+def subtree_dataset(dataset: Dataset, images: list[Image], level: int) -> Dataset:
+    """The images under one node at ``level`` (mirrors ``level..Nv`` move) as a dataset of their own.
+
+    The node's ``(A_{l-1}, b_{l-1})`` plays ``(R_cam_base, t_cam_base)``; when it is a reflection
+    (``l - 1`` odd) the fiducials are mirrored in y (``A Bp = (A F)(F Bp)``, ``F`` = diag(1, -1, 1)) so it
+    becomes a rotation. Mirror ``level`` becomes mirror 1; reconstruction points are left out.
+    """
+    flip = (level - 1) % 2 == 1
+    fiducials = {name: FLIP_Y @ p if flip else p.copy() for name, p in dataset.fiducials.items()}
+    sub_images = [
+        Image(im.id, im.mirror_configs[level - 1 :], {n: z for n, z in im.observations.items() if n in fiducials})
+        for im in images
+    ]
+    return Dataset(dataset.num_mirrors - level + 1, dataset.camera, dataset.pixel_sigma, fiducials, sub_images,
+                   source=dataset.source)
+
+
+def _subtree_solution(hypothesis: _Hypothesis, level: int) -> AnalyticSolution:
+    """A node's hypothesis as the solution of its :func:`subtree_dataset`."""
+    flip = (level - 1) % 2 == 1
+    return AnalyticSolution(
+        R_cam_base=hypothesis.A @ FLIP_Y if flip else hypothesis.A.copy(),
+        t_cam_base=hypothesis.b.copy(),
+        mirror_vectors={(l - level + 1, m): np.mean(vs, axis=0) for (l, m), vs in hypothesis.mirror_vectors.items()},
+    )
+
+
+def _hypothesis_of_subtree(solution: AnalyticSolution, hypothesis: _Hypothesis, level: int) -> _Hypothesis:
+    """Back from :func:`_subtree_solution` (after refinement) to the node's hypothesis."""
+    flip = (level - 1) % 2 == 1
+    return _Hypothesis(
+        A=solution.R_cam_base @ FLIP_Y if flip else solution.R_cam_base,
+        b=solution.t_cam_base,
+        mirror_vectors={(l + level - 1, m): [v] for (l, m), v in solution.mirror_vectors.items()},
+        image_transforms=hypothesis.image_transforms,
+    )
+
+
+def solve_analytic(dataset: Dataset, seed: int = 0, refine_subtree: SubtreeRefiner | None = None) -> AnalyticSolution:
     """Closed-form camera-to-base transform, mirror vectors and reconstruction points (Sects. 4-5).
+
+    With three fiducials P3P leaves up to four candidates per image, and a whole subtree of the
+    mirror tree can agree on a wrong ("twin") one. Each node therefore hands its best two solutions
+    to the level above, ranked by how well they reproject the node's fiducials; the root's
+    combinations are each solved and ranked by every fiducial (the cost of eq. 23 without points).
+    ``refine_subtree``: refine each hypothesis of every node below the root on its own images first
+    (e.g. by Levenberg-Marquardt, ``graph.initial_estimate``); without it the solution is closed-form.
 
     Raises ``DatasetError`` when the mirror schedule cannot support a solution (a placement with fewer
     than three child placements, a configuration only seen without three fiducials, a point seen in
@@ -335,15 +503,15 @@ def solve_analytic(dataset: Dataset, seed: int = 0) -> AnalyticSolution:
     """
     rng = np.random.default_rng(seed)
     Nv = dataset.num_mirrors
+    normalized = {image.id: dataset.normalized(image) for image in dataset.images}
     # Sect. 4.1: (A_Nv, b_Nv) candidates per image from its fiducials.
     leaf_candidates: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     for image in dataset.images:
-        normalized = dataset.normalized(image)
         names = [n for n in image.observations if n in dataset.fiducials]
         if len(names) < 3:
             continue
         base_points = np.array([dataset.fiducials[n] for n in names])
-        observed = np.array([normalized[n] for n in names])
+        observed = np.array([normalized[image.id][n] for n in names])
         candidates = pnp_candidates(base_points, observed, Nv)
         if not candidates:
             raise SolveError(
@@ -358,52 +526,58 @@ def solve_analytic(dataset: Dataset, seed: int = 0) -> AnalyticSolution:
                 f"{dataset.source}: mirror {l} placement {m} is only seen in images with fewer than 3 fiducials"
             )
 
-    estimates: dict[tuple[int, int], list[np.ndarray]] = defaultdict(list)
-    chosen: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     # Level Nv: observations are images; the node is the prefix of the first Nv-1 configurations.
-    level_obs: dict[tuple[int, ...], list[tuple[int, list[tuple[np.ndarray, np.ndarray]], str | None]]] = defaultdict(list)
+    level_obs: dict[tuple[int, ...], list[tuple[int, list[_Hypothesis]]]] = defaultdict(list)
     for im in images:
-        level_obs[im.mirror_configs[:-1]].append((im.mirror_configs[-1], leaf_candidates[im.id], im.id))
+        hypotheses = [_Hypothesis(A, b, {}, {im.id: (A, b)}) for A, b in leaf_candidates[im.id]]
+        level_obs[im.mirror_configs[:-1]].append((im.mirror_configs[-1], hypotheses))
     for level in range(Nv, 0, -1):
-        parent_det = (-1.0) ** (level - 1)
-        next_obs: dict[tuple[int, ...], list] = defaultdict(list)
+        next_obs: dict[tuple[int, ...], list[tuple[int, list[_Hypothesis]]]] = defaultdict(list)
+        images_under: dict[tuple[int, ...], list[Image]] = defaultdict(list)
+        for im in images:
+            images_under[im.mirror_configs[: level - 1]].append(im)
         for prefix in sorted(level_obs):
             entries = level_obs[prefix]
-            child_ids = sorted({m for m, _, _ in entries})
+            child_ids = sorted({m for m, _ in entries})
             if len(child_ids) < 3:
                 raise DatasetError(
                     f"{dataset.source}: {_describe(prefix)} has {len(child_ids)} placement(s) of mirror {level} "
                     f"under it ({', '.join(str(m) for m in child_ids)}); the analytical solution needs >= 3"
                 )
-            index_of = {m: k for k, m in enumerate(child_ids)}
-            children = [index_of[m] for m, _, _ in entries]
-            picks, node = solve_node(children, [c for _, c, _ in entries], len(child_ids), parent_det, rng)
-            for entry, p in zip(entries, picks):
-                if entry[2] is not None:
-                    chosen[entry[2]] = entry[1][p]
-            normals = np.stack([v / np.linalg.norm(v) for v in node.mirror_vectors])
-            singular = np.linalg.svd(normals, compute_uv=False)
-            if singular[2] < MIN_NORMAL_SPREAD:
+            fiducials = _FiducialObservations(dataset, images_under[prefix], normalized)
+
+            def score(hypothesis: _Hypothesis, level: int = level, images: list[Image] = images_under[prefix],
+                      fiducials: _FiducialObservations = fiducials) -> tuple[float, _Hypothesis]:
+                if refine_subtree is None or level == 1:
+                    vectors = {key: np.mean(vs, axis=0) for key, vs in hypothesis.mirror_vectors.items()}
+                    return 0.5 * fiducials.cost(hypothesis.A, hypothesis.b, vectors, level), hypothesis
+                refined = refine_subtree(subtree_dataset(dataset, images, level), _subtree_solution(hypothesis, level))
+                if refined is None or not np.isfinite(refined[0]):
+                    return np.inf, hypothesis
+                return refined[0], _hypothesis_of_subtree(refined[1], hypothesis, level)
+
+            solutions = _node_hypotheses(entries, level, child_ids, score, rng, exhaustive=level == 1)
+            # the root's solutions are ranked by every fiducial: the best one is the answer
+            kept = solutions[: NODE_HYPOTHESES_KEPT if level > 1 else 1]
+            if not kept:
                 listed = ", ".join(f"({level}, {m})" for m in child_ids)
                 raise SolveError(
                     f"{dataset.source}: under {_describe(prefix)}, the normals of mirror {level} placements "
                     f"{listed} are nearly coplanar; move the mirror about a second axis"
                 )
-            for m, v in zip(child_ids, node.mirror_vectors):
-                estimates[(level, m)].append(v)
             if level > 1:
-                next_obs[prefix[:-1]].append((prefix[-1], [(node.A_parent, node.b_parent)], None))
+                next_obs[prefix[:-1]].append((prefix[-1], kept))
             else:
-                root = node
+                roots = kept
         level_obs = next_obs
-    mirror_vectors = {key: np.mean(vs, axis=0) for key, vs in estimates.items()}
+    root = roots[0]
     solution = AnalyticSolution(
-        R_cam_base=project_to_orthogonal(root.A_parent, 1.0),
-        t_cam_base=root.b_parent,
-        mirror_vectors=mirror_vectors,
-        image_transforms=chosen,
+        R_cam_base=project_to_orthogonal(root.A, 1.0),
+        t_cam_base=root.b,
+        mirror_vectors={key: np.mean(vs, axis=0) for key, vs in root.mirror_vectors.items()},
+        image_transforms=root.image_transforms,
     )
-    solution.points = reconstruct_points(dataset, solution)
+    solution.points = reconstruct_points(dataset, solution, normalized)
     return solution
 
 
@@ -416,14 +590,14 @@ def triangulate_point(transforms: list[tuple[np.ndarray, np.ndarray]], normalize
     The depths ``s_j`` are eliminated exactly: for a unit ray ``u_j`` the least-squares residual of
     image j is ``(I - u_j u_j^T)(A_j Bp + b_j)``, so eq. (20) reduces to a 3x3 normal equation.
     """
-    normal_matrix = np.zeros((3, 3))
-    rhs = np.zeros(3)
-    for (A, b), z in zip(transforms, normalized):
-        ray = np.array([z[0], z[1], 1.0])
-        ray /= np.linalg.norm(ray)  # eq. (19)
-        projector = np.eye(3) - np.outer(ray, ray)
-        normal_matrix += A.T @ projector @ A
-        rhs -= A.T @ projector @ b
+    A = np.array([A for A, _ in transforms])
+    b = np.array([b for _, b in transforms])
+    rays = np.column_stack([np.asarray(normalized, dtype=float).reshape(-1, 2), np.ones(len(transforms))])
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)  # eq. (19)
+    projectors = np.eye(3) - np.einsum("ia,ib->iab", rays, rays)
+    weighted = np.swapaxes(A, 1, 2) @ projectors  # A_j^T (I - u_j u_j^T)
+    normal_matrix = np.sum(weighted @ A, axis=0)
+    rhs = -np.einsum("iab,ib->a", weighted, b)
     return np.linalg.solve(normal_matrix, rhs)
 
 
@@ -433,13 +607,22 @@ def image_transform(solution: AnalyticSolution, image: Image) -> tuple[np.ndarra
     return nested_transform(solution.R_cam_base, solution.t_cam_base, vectors)
 
 
-def reconstruct_points(dataset: Dataset, solution: AnalyticSolution) -> dict[str, np.ndarray]:
-    """Every reconstruction point by eq. (20) from all images that see it."""
+def reconstruct_points(
+    dataset: Dataset, solution: AnalyticSolution, normalized: dict[str, dict[str, np.ndarray]] | None = None
+) -> dict[str, np.ndarray]:
+    """Every reconstruction point by eq. (20) from all images that see it.
+
+    ``normalized``: each image's normalized observations (``Dataset.normalized``) when already at hand.
+    """
     seen: dict[str, list[Image]] = defaultdict(list)
     for image in dataset.images:
         for name in image.observations:
             if name not in dataset.fiducials:
                 seen[name].append(image)
+    if not seen:
+        return {}
+    if normalized is None:
+        normalized = {}
     transforms: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     points = {}
     for name in sorted(seen):
@@ -452,6 +635,8 @@ def reconstruct_points(dataset: Dataset, solution: AnalyticSolution) -> dict[str
         for im in images:
             if im.id not in transforms:
                 transforms[im.id] = image_transform(solution, im)
-        rays = [dataset.normalized(im)[name] for im in images]
+            if im.id not in normalized:
+                normalized[im.id] = dataset.normalized(im)
+        rays = [normalized[im.id][name] for im in images]
         points[name] = triangulate_point([transforms[im.id] for im in images], rays)
     return points

@@ -96,13 +96,16 @@ def project_jacobian(camera_point: np.ndarray) -> np.ndarray:
 
 
 def project_to_orthogonal(matrix: np.ndarray, determinant: float | None = None) -> np.ndarray:
-    """Nearest orthogonal matrix (Frobenius norm) to ``matrix``, optionally with a fixed determinant sign."""
+    """Nearest orthogonal matrix (Frobenius norm) to ``matrix`` (3, 3) or a stack (..., 3, 3), optionally
+    with a fixed determinant sign."""
     U, _, Vt = np.linalg.svd(matrix)
     Q = U @ Vt
-    if determinant is not None and np.sign(np.linalg.det(Q)) != np.sign(determinant):
-        U = U.copy()
-        U[:, -1] *= -1.0
-        Q = U @ Vt
+    if determinant is not None:
+        wrong = np.sign(np.linalg.det(Q)) != np.sign(determinant)
+        if np.any(wrong):
+            U = U.copy()
+            U[..., :, -1] *= np.where(wrong, -1.0, 1.0)[..., None]
+            Q = U @ Vt
     return Q
 
 

@@ -22,7 +22,7 @@ from mirror_fg.factors.reflection import ReflectionFactor, noise_model
 from mirror_fg.geometry import nested_transform, project
 from mirror_fg.transforms import rotation_to_quaternion_xyzw, spec_covariance_from_pose3
 
-__all__ = ["Calibration", "InitialEstimate", "GraphLayout", "build_graph", "calibrate", "OUTLIER_SIGMAS"]
+__all__ = ["Calibration", "InitialEstimate", "GraphLayout", "build_graph", "calibrate", "initial_estimate", "OUTLIER_SIGMAS"]
 
 #: Measurements whose whitened residual exceeds this many sigmas after the solve are reported.
 OUTLIER_SIGMAS = 5.0
@@ -399,6 +399,38 @@ def _stationary(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, error: 
     return predicted_decrease <= 1e-6 * max(error, 1.0)
 
 
+#: LM iterations allowed when refining one subtree hypothesis of the initial estimate.
+SUBTREE_MAX_ITERATIONS = 50
+#: Relative decrease of the cost below which a subtree refinement stops.
+SUBTREE_RELATIVE_TOLERANCE = 1e-4
+
+
+def _refine_subtree(subtree: Dataset, closed_form: AnalyticSolution) -> tuple[float, AnalyticSolution] | None:
+    """The MLE (eq. 23) of one subtree's own images from its closed-form hypothesis: its cost and values."""
+    try:
+        graph, values, layout, _ = build_graph(subtree, closed_form, None)
+        params = lm_params(SUBTREE_MAX_ITERATIONS)
+        params.setRelativeErrorTol(SUBTREE_RELATIVE_TOLERANCE)  # a start and a ranking: no need for the last digits
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    except (RuntimeError, SolveError):  # an under-determined subtree: no refinement, no score
+        return None
+    R, t, mirror_vectors, _ = extract_values(result, layout)
+    return float(graph.error(result)), AnalyticSolution(R, t, mirror_vectors)
+
+
+def initial_estimate(dataset: Dataset, seed: int = 0) -> AnalyticSolution:
+    """The initial guess of :func:`calibrate`: the analytical solution (Sects. 4-5) with every P3P
+    hypothesis of a mirror placement below the root refined on its own images by LM before the
+    levels above choose between them (``analytic.solve_analytic(refine_subtree=...)``).
+
+    The closed form alone weights every PnP pose equally, so under noise (2 px, or a mirror 0.25 m
+    away) a mirror placement whose images mostly took the wrong P3P twin can look better than the
+    right one and start LM in another minimum; refined, the right hypothesis is the cheaper one.
+    Frames and units as :class:`~mirror_fg.analytic.AnalyticSolution`.
+    """
+    return solve_analytic(dataset, seed, refine_subtree=_refine_subtree)
+
+
 def calibrate(
     dataset: Dataset,
     *,
@@ -420,7 +452,7 @@ def calibrate(
     start = time.perf_counter()
     analytic = None
     if initial is None:
-        analytic = solve_analytic(dataset)
+        analytic = initial_estimate(dataset)
         initial = analytic
     timings["analytic"] = time.perf_counter() - start
 

@@ -59,7 +59,6 @@ from mirror_fg.analytic import (
     solve_node,
     pnp_candidates,
     reflection_fit,
-    solve_analytic,
     triangulate_point,
 )
 from mirror_fg.dataset import Dataset, DatasetError, Image, validate_image
@@ -71,6 +70,7 @@ from mirror_fg.graph import (
     GraphLayout,
     Measurement,
     extract_values,
+    initial_estimate,
     lm_params,
     marginal_covariances,
     predicted_normalized,
@@ -426,7 +426,7 @@ class IncrementalCalibrator:
             source=self._ds.source,
         )
         try:
-            analytic = solve_analytic(fiducial_only, seed=self._seed)
+            analytic = initial_estimate(fiducial_only, seed=self._seed)
         except (SolveError, DatasetError):
             self._failed_tree = placements
             raise

@@ -229,13 +229,13 @@ def _scipy_problem(dataset, initial):
 def task_scipy(case: str, repeats: int) -> dict:
     from scipy.optimize import least_squares
 
-    from mirror_fg.analytic import solve_analytic
+    from mirror_fg.graph import initial_estimate
 
     dataset, _ = _dataset(case)
     runs = []
     for _ in range(repeats):
         start_wall, start_cpu = time.perf_counter(), time.process_time()
-        initial = solve_analytic(dataset)  # the same start as calibrate()
+        initial = initial_estimate(dataset)  # the same start as calibrate()
         analytic = time.perf_counter() - start_wall
         start = time.perf_counter()
         residuals, sparsity, x0, unpack = _scipy_problem(dataset, initial)

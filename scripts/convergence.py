@@ -2,7 +2,10 @@
 """LM iterations and success rate from the analytical initial guess vs a naive one (paper's Sect. 7).
 
 Per run (simulator base case, seed = run index): the global optimum is the MLE started from the truth;
-the MLE is then started from the analytical solution and from a naive guess (identity rotation,
+the MLE is then started from the analytical solution (``calibrate()``'s start,
+``mirror_fg.graph.initial_estimate``: the closed form with each mirror placement's P3P hypotheses
+refined on its own images), from the bare closed form of Sects. 4-5 (``solve_analytic``), and from a
+naive guess (identity rotation,
 ``t_cam_base = 0``, every placement of mirror l facing the camera at ``--naive-distance`` m along its
 nominal axis - mirror Nv at +z in front, mirror Nv-1 at -z behind, ... - and every reconstruction
 point at the fiducials' centroid). A start *succeeds* when LM stops (before its iteration limit) at the
@@ -34,7 +37,7 @@ import numpy as np
 
 from mirror_fg.analytic import SolveError, solve_analytic
 from mirror_fg.dataset import Dataset, DatasetError
-from mirror_fg.graph import calibrate
+from mirror_fg.graph import calibrate, initial_estimate
 from mirror_fg.montecarlo import run_trials
 from mirror_fg.simulate import simulate_base_case
 from mirror_fg.transforms import rotation_angle
@@ -97,13 +100,18 @@ def run_trial(seed: int, sigma_px: float = 1.0, distance_m: float = 0.5, num_ima
     optimum = calibrate(dataset, initial=truth, compute_covariance=False, max_iterations=max_iterations)
     record["optimum"] = {"iterations": optimum.iterations, "final_error": optimum.final_error,
                          "converged": optimum.converged}
-    try:
-        analytic = solve_analytic(dataset)
-    except (SolveError, DatasetError) as error:
-        record["analytic"] = {"singular": True, "message": str(error)}
-    else:
-        cal = calibrate(dataset, initial=analytic, compute_covariance=False, max_iterations=max_iterations)
-        record["analytic"] = {"singular": False, **_outcome(cal, optimum)}
+    for name, solve in (("analytic", initial_estimate), ("closed_form", solve_analytic)):
+        try:
+            start_values = solve(dataset)
+        except (SolveError, DatasetError) as error:
+            record[name] = {"singular": True, "message": str(error)}
+            continue
+        try:
+            cal = calibrate(dataset, initial=start_values, compute_covariance=False, max_iterations=max_iterations)
+        except SolveError as error:  # LM from this start met an indeterminant system: a failure
+            record[name] = {"singular": False, "iterations": max_iterations, "error": str(error)}
+        else:
+            record[name] = {"singular": False, **_outcome(cal, optimum)}
     try:
         cal = calibrate(dataset, initial=naive_guess(dataset, naive_distance_m), compute_covariance=False,
                         max_iterations=max_iterations)
@@ -122,6 +130,8 @@ def summarize(records: list[dict]) -> dict:
 
     nonsingular = [r for r in records if not r["analytic"]["singular"]]
     analytic_it = [r["analytic"]["iterations"] for r in nonsingular]
+    closed = [r for r in nonsingular if "closed_form" in r]
+    closed_it = [r["closed_form"]["iterations"] for r in closed]
     naive_it = [r["naive"]["iterations"] for r in records]
     naive_ok_it = [r["naive"]["iterations"] for r in records if ok(r, "naive")]
     return {
@@ -133,6 +143,10 @@ def summarize(records: list[dict]) -> dict:
         "analytic_iterations_median": float(np.median(analytic_it)) if analytic_it else None,
         "analytic_iterations_mean": float(np.mean(analytic_it)) if analytic_it else None,
         "analytic_iterations_max": int(np.max(analytic_it)) if analytic_it else None,
+        "closed_form_runs": len(closed),
+        "closed_form_success": sum(ok(r, "closed_form") for r in closed),
+        "closed_form_iterations_median": float(np.median(closed_it)) if closed_it else None,
+        "failed_closed_form_seeds": [r["seed"] for r in closed if not ok(r, "closed_form")],
         "naive_success": sum(ok(r, "naive") for r in records),
         "naive_success_rate": float(np.mean([ok(r, "naive") for r in records])),
         "naive_success_nonsingular_rate": float(np.mean([ok(r, "naive") for r in nonsingular])) if nonsingular else None,
@@ -152,6 +166,9 @@ def format_summary(s: dict) -> str:
         f"({100 * (s['analytic_success_rate'] or 0):.1f} %), LM iterations median {s['analytic_iterations_median']}, "
         f"mean {s['analytic_iterations_mean']:.2f}, max {s['analytic_iterations_max']}"
         if s["analytic_iterations_median"] is not None else "from the analytical guess: no non-singular run",
+        f"from the bare closed form (Sects. 4-5, no refinement): success {s['closed_form_success']}/"
+        f"{s['closed_form_runs']}, LM iterations median {s['closed_form_iterations_median']}"
+        + (f", failures at seeds {s['failed_closed_form_seeds']}" if s["failed_closed_form_seeds"] else ""),
         f"from the naive guess: success {s['naive_success']}/{s['runs']} ({100 * s['naive_success_rate']:.1f} %), "
         f"LM iterations median {s['naive_iterations_median']:.0f} (mean {s['naive_iterations_mean']:.1f}; "
         f"median over its successful runs {s['naive_iterations_median_successful']})",

@@ -2,11 +2,23 @@
 import numpy as np
 import pytest
 
-from mirror_fg import DatasetError, SolveError, calibrate, solve_analytic
-from mirror_fg.analytic import pnp_candidates, triangulate_point
+from mirror_fg import (
+    DatasetError,
+    SolveError,
+    calibrate,
+    initial_estimate,
+    solve_analytic,
+)
+from mirror_fg.analytic import (
+    _Hypothesis,
+    _subtree_solution,
+    pnp_candidates,
+    subtree_dataset,
+    triangulate_point,
+)
 from mirror_fg.dataset import Dataset, Image
 from mirror_fg.geometry import apply_transform, nested_transform, project, so3_exp
-from mirror_fg.simulate import simulate_tree
+from mirror_fg.simulate import simulate_base_case, simulate_tree
 from mirror_fg.transforms import rotation_angle
 
 
@@ -75,6 +87,47 @@ def test_root_with_two_placements_of_mirror_one_is_refused():
     reduced = _drop_images(dataset, lambda im: im.mirror_configs[0] != 2)
     with pytest.raises(DatasetError, match="root.*2 placement"):
         solve_analytic(reduced)
+
+
+@pytest.mark.parametrize("num_mirrors", [2, 3])
+def test_a_subtree_dataset_is_explained_by_its_node(num_mirrors):
+    """A node's (A_{l-1}, b_{l-1}) and its subtree's mirror vectors, as the subtree dataset's unknowns,
+    reproduce every observation of the images under it (odd l - 1: fiducials mirrored in y)."""
+    dataset, truth = simulate_tree(num_mirrors, pixel_sigma=0.0, seed=4)
+    for level in range(2, num_mirrors + 1):
+        prefix = dataset.images[-1].mirror_configs[: level - 1]
+        images = [im for im in dataset.images if im.mirror_configs[: level - 1] == prefix]
+        A, b = nested_transform(truth.R_cam_base, truth.t_cam_base,
+                                [truth.mirror_vectors[(l + 1, m)] for l, m in enumerate(prefix)])
+        below = {key: [v] for key, v in truth.mirror_vectors.items()
+                 if key[0] >= level and any(im.mirror_configs[key[0] - 1] == key[1] for im in images)}
+        sub = subtree_dataset(dataset, images, level)
+        solution = _subtree_solution(_Hypothesis(A, b, below, {}), level)
+        assert sub.num_mirrors == num_mirrors - level + 1 and len(sub.images) == len(images)
+        assert np.linalg.det(solution.R_cam_base) == pytest.approx(1.0)
+        for image in sub.images:
+            A_sub, b_sub = nested_transform(solution.R_cam_base, solution.t_cam_base,
+                                            [solution.mirror_vectors[(l + 1, m)] for l, m in enumerate(image.mirror_configs)])
+            observed = sub.normalized(image)
+            for name, point in sub.fiducials.items():
+                np.testing.assert_allclose(project(A_sub @ point + b_sub), observed[name], atol=1e-9)
+
+
+def test_initial_estimate_rejects_a_subtrees_p3p_twin():
+    """2 px at 0.25 m: under one placement of mirror 1, the bare closed form prefers a P3P twin that most
+    of its images agree on, and LM from it stops in another minimum; refined on their own images, the
+    hypotheses rank right, and calibrate() reaches the MLE started from the truth."""
+    dataset, truth = simulate_base_case(num_images=60, pixel_sigma=2.0, mirror_distance=0.25, seed=50)
+    optimum = calibrate(dataset, initial=truth, compute_covariance=False)
+    from_closed_form = calibrate(dataset, initial=solve_analytic(dataset), compute_covariance=False)
+    assert rotation_angle(from_closed_form.R_cam_base, optimum.R_cam_base) > 1e-3, "no twin here: pick another seed"
+    assert from_closed_form.final_error > optimum.final_error  # a worse minimum, not another optimum
+    estimate = initial_estimate(dataset)
+    calibration = calibrate(dataset, compute_covariance=False)
+    assert np.array_equal(calibration.analytic.t_cam_base, estimate.t_cam_base)
+    assert rotation_angle(calibration.R_cam_base, optimum.R_cam_base) < 1e-6
+    assert np.linalg.norm(calibration.t_cam_base - optimum.t_cam_base) < 1e-6
+    assert calibration.cost_plausible
 
 
 def test_coplanar_mirror_normals_are_refused_naming_placements():

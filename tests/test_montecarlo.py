@@ -100,8 +100,6 @@ def test_base_case_monte_carlo_is_efficient_and_consistent(base_case_runs):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="known: at 2 px the analytical guess (tens of CRB sigmas off, growing faster than sigma) "
-                   "sometimes lies outside LM's basin; LM then stops in a local minimum (issue 4 note)")
 def test_lm_from_the_analytical_guess_reaches_the_global_optimum(base_case_runs):
     fig4, points, records, _ = base_case_runs
     for _, sigma, _ in points:
