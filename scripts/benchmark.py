@@ -13,7 +13,8 @@ Printed, medians of repeated runs:
 3. the same problems with ``scipy.optimize.least_squares`` (sparse Jacobian structure given, finite
    differences) from the same analytical start, plus a covariance by inverting ``J^T J``;
 4. peak resident memory (``ru_maxrss``) of each, every case in its own subprocess.
-``--profile`` adds a pyinstrument profile of one fast calibration per problem (pip install pyinstrument).
+``--profile`` adds a pyinstrument profile of one fast calibration per problem, and ``--native-profile``
+a py-spy profile with native frames that splits the time inside GTSAM (pip install '.[bench]').
 The machine is shared: wall and CPU time and the load average are printed to show contention.
 """
 from __future__ import annotations
@@ -277,6 +278,76 @@ def task_profile(case: str, repeats: int) -> dict:
     return {"text": text}
 
 
+def task_loop(case: str, repeats: int) -> dict:
+    """``repeats`` fast calibrations, for a sampling profiler to watch."""
+    from mirror_fg.graph import calibrate
+
+    dataset, _ = _dataset(case)
+    for _ in range(repeats):
+        calibrate(dataset)
+    return {}
+
+
+#: Where a native stack sample inside ``calibrate()`` is counted: the first rule whose frame name
+#: occurs in the stack (``*`` rules only inside an LM run, subtree or main).
+_NATIVE_RULES = [
+    ("marginals (Schur complement, GTSAM Marginals)", "marginal_covariances"),
+    ("graph building (factors, initial values)", "build_graph"),
+    ("initial estimate: PnP and closed form (numpy, OpenCV)", "!solve_analytic"),
+    ("{lm}: our Python factors (error and Jacobians)", "*CustomFactor::unwhitenedError"),
+    ("{lm}: GTSAM forms the Hessian of each dense factor", "*JacobianFactor::updateHessian"),
+    ("{lm}: GTSAM Cholesky elimination (the rest)", "*eliminate"),
+    ("{lm}: GTSAM other (Values, damping, error sums)", "*LevenbergMarquardtOptimizer"),
+    ("residual statistics and the rest (Python)", ""),
+]
+
+
+def native_breakdown(raw: str) -> list[tuple[str, float]]:
+    """Shares of ``calibrate()`` time per :data:`_NATIVE_RULES` from py-spy's raw (collapsed) output."""
+    counts: dict[str, int] = {}
+    total = 0
+    for line in raw.splitlines():
+        stack, _, number = line.rpartition(" ")
+        if "calibrate (" not in stack or not number.isdigit():
+            continue
+        samples = int(number)
+        total += samples
+        lm = "initial estimate: subtree LM" if "_refine_subtree (" in stack else "main LM"
+        in_lm = "LevenbergMarquardtOptimizer" in stack
+        for label, rule in _NATIVE_RULES:
+            if rule.startswith("*"):
+                if in_lm and rule[1:] in stack:
+                    break
+            elif rule.startswith("!"):
+                if rule[1:] in stack and not in_lm:
+                    break
+            elif rule in stack:
+                break
+        label = label.format(lm=lm)
+        counts[label] = counts.get(label, 0) + samples
+    return sorted(((k, v / total) for k, v in counts.items()), key=lambda item: -item[1]) if total else []
+
+
+def native_profile(case: str, repeats: int) -> str:
+    """py-spy (``--native``) over ``repeats`` calibrations: the table of :func:`native_breakdown`."""
+    import shutil
+    import tempfile
+
+    spy = shutil.which("py-spy") or os.path.join(os.path.dirname(sys.executable), "py-spy")
+    if not os.path.exists(spy):
+        return "py-spy is not installed (pip install '.[bench]')"
+    with tempfile.TemporaryDirectory() as tmp:
+        out = os.path.join(tmp, "raw.txt")
+        command = [spy, "record", "--native", "--rate", "250", "--format", "raw", "--output", out, "--",
+                   sys.executable, os.path.abspath(__file__), "--worker", "loop", case, str(repeats)]
+        done = subprocess.run(command, capture_output=True, text=True)
+        if done.returncode != 0 or not os.path.exists(out):
+            return f"py-spy failed: {done.stderr.strip()[-300:]}"
+        with open(out, encoding="utf-8") as handle:
+            rows = native_breakdown(handle.read())
+    return "\n".join(f"{100 * share:5.1f} %  {label}" for label, share in rows)
+
+
 TASKS = {
     "baseline": task_baseline,
     "fast": lambda case, repeats: task_calibrate(case, repeats, fast=True),
@@ -284,6 +355,7 @@ TASKS = {
     "linearize": task_linearize,
     "scipy": task_scipy,
     "profile": task_profile,
+    "loop": task_loop,
 }
 
 
@@ -319,6 +391,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="1 repeat each (a smoke test, not figures)")
     parser.add_argument("--cases", nargs="*", default=list(CASES), choices=list(CASES))
     parser.add_argument("--profile", action="store_true", help="pyinstrument profile of one fast calibration")
+    parser.add_argument("--native-profile", action="store_true",
+                        help="py-spy profile (native frames) of fast calibrations: where the time goes inside GTSAM")
     parser.add_argument("--json", help="also write every figure to this JSON file")
     parser.add_argument("--worker", nargs=3, metavar=("TASK", "CASE", "REPEATS"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -345,9 +419,10 @@ def main(argv: list[str] | None = None) -> int:
         linearize = _run("linearize", case, repeats)
         baseline = _run("scipy", case, slow)
         profile = _run("profile", case, 1) if args.profile else None
+        native = native_profile(case, max(repeats, 3)) if args.native_profile else None
         report["cases"][case] = {
             "baseline": base, "fast": fast, "reference": reference, "linearize": linearize, "scipy": baseline,
-            "profile": profile,
+            "profile": profile, "native_profile": native,
         }
         fm, rm, sm = fast["median"], reference["median"], baseline["median"]
         print(f"fast path: {fast['mode']}")
@@ -387,6 +462,9 @@ def main(argv: list[str] | None = None) -> int:
         if profile:
             print("profile of one fast calibrate() (pyinstrument):")
             print("\n".join("   " + line for line in profile["text"].splitlines() if line.strip()))
+        if native:
+            print("where calibrate() spends its time (py-spy --native, share of samples):")
+            print("\n".join("   " + line for line in native.splitlines()))
         goal_rows.append((f"{case}: calibrate() <= {GOALS[case]:.0f} s", f"{fm['wall']:.3f} s", fm["wall"] <= GOALS[case]))
         goal_rows.append((f"{case}: linearisation <= {LINEARISE_GOAL:.0f}x native", f"{ratio:.2f}x", ratio <= LINEARISE_GOAL))
         speedup = scipy_total / fm["wall"]

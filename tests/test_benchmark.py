@@ -1,0 +1,46 @@
+"""scripts/benchmark.py: the native-profile breakdown puts each sample where it belongs."""
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "benchmark.py"
+
+
+@pytest.fixture(scope="module")
+def benchmark():
+    spec = importlib.util.spec_from_file_location("benchmark_script", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["benchmark_script"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_native_breakdown_splits_calibrate_samples(benchmark):
+    top = "<module> (x.py:1);calibrate (mirror_fg/graph.py:455)"
+    lm = "gtsam::NonlinearOptimizer::optimize (libgtsam.so);gtsam::LevenbergMarquardtOptimizer::iterate (libgtsam.so)"
+    subtree = "initial_estimate (g.py:1);solve_analytic (a.py:1);_refine_subtree (mirror_fg/graph.py:414)"
+    raw = "\n".join([
+        f"{top};solve_analytic (a.py:3);_choose_candidates (a.py:9) 30",
+        f"{top};{subtree};{lm};gtsam::CustomFactor::unwhitenedError (libgtsam.so) 10",
+        f"{top};{lm};gtsam::JacobianFactor::updateHessian (libgtsam.so) 20",
+        f"{top};{lm};gtsam::EliminateCholesky (libgtsam.so);gtsam::eliminate (libgtsam.so) 15",
+        f"{top};{lm};gtsam::Values::Values (libgtsam.so) 5",
+        f"{top};marginal_covariances (mirror_fg/graph.py:300) 10",
+        f"{top};build_graph (mirror_fg/graph.py:99) 5",
+        f"{top};residual_statistics (mirror_fg/graph.py:250) 5",
+        "<module> (x.py:1);simulate_base_case (s.py:1) 400",  # outside calibrate(): not counted
+    ])
+    shares = dict(benchmark.native_breakdown(raw))
+    assert shares == pytest.approx({
+        "initial estimate: PnP and closed form (numpy, OpenCV)": 0.30,
+        "initial estimate: subtree LM: our Python factors (error and Jacobians)": 0.10,
+        "main LM: GTSAM forms the Hessian of each dense factor": 0.20,
+        "main LM: GTSAM Cholesky elimination (the rest)": 0.15,
+        "main LM: GTSAM other (Values, damping, error sums)": 0.05,
+        "marginals (Schur complement, GTSAM Marginals)": 0.10,
+        "graph building (factors, initial values)": 0.05,
+        "residual statistics and the rest (Python)": 0.05,
+    })
+    assert benchmark.native_breakdown("") == []
