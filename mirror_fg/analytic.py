@@ -49,6 +49,7 @@ class AnalyticSolution:
     ``R_cam_base``, ``t_cam_base``: camera <- base (``Cp = R Bp + t``, metres). ``mirror_vectors``:
     ``(l, m) -> v`` (camera frame, metres). ``points``: reconstruction points, base frame, metres.
     ``image_transforms``: the PnP ``(A_Nv, b_Nv)`` chosen for each image that had one.
+    ``alternatives``: the root's runner-up hypotheses (other P3P choices), best first, without points.
     """
 
     R_cam_base: np.ndarray
@@ -56,6 +57,7 @@ class AnalyticSolution:
     mirror_vectors: dict[tuple[int, int], np.ndarray]
     points: dict[str, np.ndarray] = field(default_factory=dict)
     image_transforms: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    alternatives: list[AnalyticSolution] = field(default_factory=list, repr=False)
 
 
 # --- PnP per image (Sect. 4.1) -------------------------------------------------------------------
@@ -558,7 +560,7 @@ def solve_analytic(dataset: Dataset, seed: int = 0, refine_subtree: SubtreeRefin
 
             solutions = _node_hypotheses(entries, level, child_ids, score, rng, exhaustive=level == 1)
             # the root's solutions are ranked by every fiducial: the best one is the answer
-            kept = solutions[: NODE_HYPOTHESES_KEPT if level > 1 else 1]
+            kept = solutions[:NODE_HYPOTHESES_KEPT] if level > 1 else solutions
             if not kept:
                 listed = ", ".join(f"({level}, {m})" for m in child_ids)
                 raise SolveError(
@@ -570,14 +572,17 @@ def solve_analytic(dataset: Dataset, seed: int = 0, refine_subtree: SubtreeRefin
             else:
                 roots = kept
         level_obs = next_obs
-    root = roots[0]
-    solution = AnalyticSolution(
-        R_cam_base=project_to_orthogonal(root.A, 1.0),
-        t_cam_base=root.b,
-        mirror_vectors={key: np.mean(vs, axis=0) for key, vs in root.mirror_vectors.items()},
-        image_transforms=root.image_transforms,
-    )
+    solution, *alternatives = [
+        AnalyticSolution(
+            R_cam_base=project_to_orthogonal(root.A, 1.0),
+            t_cam_base=root.b,
+            mirror_vectors={key: np.mean(vs, axis=0) for key, vs in root.mirror_vectors.items()},
+            image_transforms=root.image_transforms,
+        )
+        for root in roots
+    ]
     solution.points = reconstruct_points(dataset, solution, normalized)
+    solution.alternatives = alternatives
     return solution
 
 

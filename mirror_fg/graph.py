@@ -15,7 +15,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, V, X
 
-from mirror_fg.analytic import AnalyticSolution, SolveError, solve_analytic
+from mirror_fg.analytic import AnalyticSolution, SolveError, reconstruct_points, solve_analytic
 from mirror_fg.dataset import RESULT_FORMAT, Dataset
 from mirror_fg.factors.batched import batched_factors
 from mirror_fg.factors.reflection import ReflectionFactor, noise_model
@@ -152,13 +152,13 @@ class Calibration:
     outliers: list[tuple[str, str, float]] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
     expected_final_error: float = float("nan")
+    restarts: int = 0  # LM runs from the analytical solution's runner-up hypotheses (see calibrate)
 
     @property
     def cost_plausible(self) -> bool:
         """Whether the final cost 0.5 chi^2 fits its distribution at the optimum (dof / 2, spread
         sqrt(dof / 2)) within 10 spreads; far above it means a local minimum or a too small sigma."""
-        spread = np.sqrt(max(self.expected_final_error, 1.0))
-        return not self.final_error > self.expected_final_error + 10.0 * spread
+        return _plausible(self.final_error, self.expected_final_error)
 
     @property
     def R_base_cam(self) -> np.ndarray:
@@ -399,6 +399,61 @@ def _stationary(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, error: 
     return predicted_decrease <= 1e-6 * max(error, 1.0)
 
 
+def _plausible(final_error: float, expected_final_error: float) -> bool:
+    """Whether a final cost 0.5 chi^2 is within 10 spreads (sqrt(dof / 2)) above its mean dof / 2."""
+    spread = np.sqrt(max(expected_final_error, 1.0))
+    return not final_error > expected_final_error + 10.0 * spread
+
+
+#: At most this many restarts of LM from the analytical solution's runner-up hypotheses.
+MAX_RESTARTS = 4
+
+
+@dataclass
+class _Run:
+    """One Levenberg-Marquardt run of :func:`calibrate`."""
+
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+    result: gtsam.Values
+    layout: GraphLayout
+    measurements: list[Measurement]
+    initial_error: float
+    final_error: float
+    iterations: int
+    converged: bool
+
+
+def _levenberg_marquardt(
+    dataset: Dataset, initial: InitialEstimate, robust: str | None, fast: bool, max_iterations: int,
+    on_iteration: Callable[[int, float, float], None] | None, timings: dict[str, float],
+) -> _Run:
+    """Build the graph from ``initial`` and run LM (eq. 23); times added to ``timings``."""
+    start = time.perf_counter()
+    graph, values, layout, measurements = build_graph(dataset, initial, robust, fast=fast)
+    timings["build"] = timings.get("build", 0.0) + time.perf_counter() - start
+
+    start = time.perf_counter()
+    params = lm_params(max_iterations)
+    if on_iteration is not None:
+        params.iterationHook = on_iteration
+    initial_error = graph.error(values)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    try:
+        result = optimizer.optimize()
+    except RuntimeError as error:
+        raise SolveError(f"{dataset.source}: {unconstrained_message(error, layout)}") from None
+    final_error = graph.error(result)
+    iterations = optimizer.iterations()
+    # LM also stops when its damping hits the upper bound: a stall unless a Gauss-Newton step
+    # would no longer lower the error (then it is at a stationary point, e.g. noise-free data).
+    stalled = optimizer.lambda_() >= params.getlambdaUpperBound() and not _stationary(graph, result, final_error)
+    converged = bool(np.isfinite(final_error)) and iterations < max_iterations and not stalled
+    timings["optimize"] = timings.get("optimize", 0.0) + time.perf_counter() - start
+    return _Run(graph, values, result, layout, measurements, float(initial_error), float(final_error), iterations,
+                converged)
+
+
 #: LM iterations allowed when refining one subtree hypothesis of the initial estimate.
 SUBTREE_MAX_ITERATIONS = 50
 #: Relative decrease of the cost below which a subtree refinement stops.
@@ -456,27 +511,27 @@ def calibrate(
         initial = analytic
     timings["analytic"] = time.perf_counter() - start
 
-    start = time.perf_counter()
-    graph, values, layout, measurements = build_graph(dataset, initial, robust, fast=fast)
-    timings["build"] = time.perf_counter() - start
-
-    start = time.perf_counter()
-    params = lm_params(max_iterations)
-    if on_iteration is not None:
-        params.iterationHook = on_iteration
-    initial_error = graph.error(values)
-    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    try:
-        result = optimizer.optimize()
-    except RuntimeError as error:
-        raise SolveError(f"{dataset.source}: {unconstrained_message(error, layout)}") from None
-    final_error = graph.error(result)
-    iterations = optimizer.iterations()
-    # LM also stops when its damping hits the upper bound: a stall unless a Gauss-Newton step
-    # would no longer lower the error (then it is at a stationary point, e.g. noise-free data).
-    stalled = optimizer.lambda_() >= params.getlambdaUpperBound() and not _stationary(graph, result, final_error)
-    converged = bool(np.isfinite(final_error)) and iterations < max_iterations and not stalled
-    timings["optimize"] = time.perf_counter() - start
+    run = _levenberg_marquardt(dataset, initial, robust, fast, max_iterations, on_iteration, timings)
+    graph, result, layout, measurements, values = run.graph, run.result, run.layout, run.measurements, run.values
+    expected_final_error = 0.5 * max(2 * len(measurements) - values.dim(), 0)
+    restarts = 0
+    if analytic is not None and not (run.converged and _plausible(run.final_error, expected_final_error)):
+        # A cost far above its chi-square range: LM stopped in another minimum. Start again from the
+        # root's runner-up hypotheses (best fiducial reprojection first); keep the lowest cost.
+        for alternative in analytic.alternatives[:MAX_RESTARTS]:
+            if not alternative.points and layout.point_keys:
+                alternative.points = reconstruct_points(dataset, alternative)
+            restarts += 1
+            try:
+                other = _levenberg_marquardt(dataset, alternative, robust, fast, max_iterations, None, timings)
+            except SolveError:
+                continue
+            if (other.converged, -other.final_error) > (run.converged, -run.final_error):
+                run, analytic = other, alternative
+            if run.converged and _plausible(run.final_error, expected_final_error):
+                break
+        graph, result, layout, measurements, values = run.graph, run.result, run.layout, run.measurements, run.values
+    initial_error, final_error, iterations, converged = run.initial_error, run.final_error, run.iterations, run.converged
 
     start = time.perf_counter()
     covariance, mirror_covs, point_covs = (None, {}, {})
@@ -503,7 +558,8 @@ def calibrate(
         analytic=analytic,
         iterations=iterations,
         initial_error=float(initial_error),
-        expected_final_error=0.5 * max(2 * len(measurements) - values.dim(), 0),
+        expected_final_error=expected_final_error,
+        restarts=restarts,
         final_error=float(final_error),
         converged=converged,
         residuals=residuals,

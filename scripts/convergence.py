@@ -2,15 +2,17 @@
 """LM iterations and success rate from the analytical initial guess vs a naive one (paper's Sect. 7).
 
 Per run (simulator base case, seed = run index): the global optimum is the MLE started from the truth;
-the MLE is then started from the analytical solution (``calibrate()``'s start,
-``mirror_fg.graph.initial_estimate``: the closed form with each mirror placement's P3P hypotheses
-refined on its own images), from the bare closed form of Sects. 4-5 (``solve_analytic``), and from a
-naive guess (identity rotation,
+the MLE is then computed by ``calibrate()`` from its analytical solution
+(``mirror_fg.graph.initial_estimate``: the closed form with each mirror placement's P3P hypotheses
+refined on its own images; when LM ends at an implausible cost it restarts from the runner-up
+hypotheses, counted as ``restarts``), by LM from the bare closed form of Sects. 4-5
+(``solve_analytic``), and by LM from a naive guess (identity rotation,
 ``t_cam_base = 0``, every placement of mirror l facing the camera at ``--naive-distance`` m along its
 nominal axis - mirror Nv at +z in front, mirror Nv-1 at -z behind, ... - and every reconstruction
 point at the fiducials' centroid). A start *succeeds* when LM stops (before its iteration limit) at the
-global optimum: pose within 1e-5 rad / 1e-5 m of it (LM's stopping rule leaves about 1e-6 between two
-starts that end at the same optimum; other minima are centimetres and degrees away) and a cost no more
+global optimum: pose within 1e-4 rad / 1e-4 m of it (LM's stopping rule usually leaves about 1e-6
+between two starts that end at the same optimum, but 1e-5 m in a flat valley - seed 28 of the base
+case, cost gap 1.5e-11 relative; other minima are centimetres and degrees away) and a cost no more
 than 1e-6 relative above it.
 A run whose analytical solution cannot be formed (degenerate mirror motion) is *singular*; the paper
 counts success over non-singular runs. The paper reports about 4 vs 18 iterations and 100 % success
@@ -43,8 +45,8 @@ from mirror_fg.simulate import simulate_base_case
 from mirror_fg.transforms import rotation_angle
 
 #: A start reached the global optimum when within these of the MLE started from the truth.
-POSE_TOL_RAD = 1e-5
-POSE_TOL_M = 1e-5
+POSE_TOL_RAD = 1e-4
+POSE_TOL_M = 1e-4
 COST_REL_TOL = 1e-6
 
 
@@ -100,18 +102,28 @@ def run_trial(seed: int, sigma_px: float = 1.0, distance_m: float = 0.5, num_ima
     optimum = calibrate(dataset, initial=truth, compute_covariance=False, max_iterations=max_iterations)
     record["optimum"] = {"iterations": optimum.iterations, "final_error": optimum.final_error,
                          "converged": optimum.converged}
-    for name, solve in (("analytic", initial_estimate), ("closed_form", solve_analytic)):
+    try:
+        initial_estimate(dataset)  # raises when the analytical solution cannot be formed: a singular run
+    except (SolveError, DatasetError) as error:
+        record["analytic"] = {"singular": True, "message": str(error)}
+    else:
         try:
-            start_values = solve(dataset)
-        except (SolveError, DatasetError) as error:
-            record[name] = {"singular": True, "message": str(error)}
-            continue
-        try:
-            cal = calibrate(dataset, initial=start_values, compute_covariance=False, max_iterations=max_iterations)
-        except SolveError as error:  # LM from this start met an indeterminant system: a failure
-            record[name] = {"singular": False, "iterations": max_iterations, "error": str(error)}
+            cal = calibrate(dataset, compute_covariance=False, max_iterations=max_iterations)
+        except SolveError as error:  # LM met an indeterminant system: a failure
+            record["analytic"] = {"singular": False, "iterations": max_iterations, "error": str(error)}
         else:
-            record[name] = {"singular": False, **_outcome(cal, optimum)}
+            record["analytic"] = {"singular": False, "restarts": cal.restarts, **_outcome(cal, optimum)}
+    try:
+        closed_form = solve_analytic(dataset)
+    except (SolveError, DatasetError) as error:
+        record["closed_form"] = {"singular": True, "message": str(error)}
+    else:
+        try:
+            cal = calibrate(dataset, initial=closed_form, compute_covariance=False, max_iterations=max_iterations)
+        except SolveError as error:
+            record["closed_form"] = {"singular": False, "iterations": max_iterations, "error": str(error)}
+        else:
+            record["closed_form"] = {"singular": False, **_outcome(cal, optimum)}
     try:
         cal = calibrate(dataset, initial=naive_guess(dataset, naive_distance_m), compute_covariance=False,
                         max_iterations=max_iterations)
@@ -130,7 +142,7 @@ def summarize(records: list[dict]) -> dict:
 
     nonsingular = [r for r in records if not r["analytic"]["singular"]]
     analytic_it = [r["analytic"]["iterations"] for r in nonsingular]
-    closed = [r for r in nonsingular if "closed_form" in r]
+    closed = [r for r in nonsingular if "closed_form" in r and not r["closed_form"]["singular"]]
     closed_it = [r["closed_form"]["iterations"] for r in closed]
     naive_it = [r["naive"]["iterations"] for r in records]
     naive_ok_it = [r["naive"]["iterations"] for r in records if ok(r, "naive")]
@@ -143,6 +155,7 @@ def summarize(records: list[dict]) -> dict:
         "analytic_iterations_median": float(np.median(analytic_it)) if analytic_it else None,
         "analytic_iterations_mean": float(np.mean(analytic_it)) if analytic_it else None,
         "analytic_iterations_max": int(np.max(analytic_it)) if analytic_it else None,
+        "analytic_restarted": sum(r["analytic"].get("restarts", 0) > 0 for r in nonsingular),
         "closed_form_runs": len(closed),
         "closed_form_success": sum(ok(r, "closed_form") for r in closed),
         "closed_form_iterations_median": float(np.median(closed_it)) if closed_it else None,
@@ -164,7 +177,8 @@ def format_summary(s: dict) -> str:
         f"global optimum (MLE from the truth): median {s['optimum_iterations_median']:.0f} LM iterations",
         f"from the analytical guess: success {s['analytic_success']}/{s['runs'] - s['singular']} non-singular runs "
         f"({100 * (s['analytic_success_rate'] or 0):.1f} %), LM iterations median {s['analytic_iterations_median']}, "
-        f"mean {s['analytic_iterations_mean']:.2f}, max {s['analytic_iterations_max']}"
+        f"mean {s['analytic_iterations_mean']:.2f}, max {s['analytic_iterations_max']}; "
+        f"{s['analytic_restarted']} run(s) needed a restart from a runner-up hypothesis"
         if s["analytic_iterations_median"] is not None else "from the analytical guess: no non-singular run",
         f"from the bare closed form (Sects. 4-5, no refinement): success {s['closed_form_success']}/"
         f"{s['closed_form_runs']}, LM iterations median {s['closed_form_iterations_median']}"

@@ -179,7 +179,31 @@ def test_schur_marginals_equal_gtsam_marginals():
 def test_cost_check_flags_a_too_small_sigma():
     dataset, _ = simulate_base_case(num_images=60, pixel_sigma=1.0, seed=12)
     calibration = calibrate(dataset)
-    assert calibration.cost_plausible
+    assert calibration.cost_plausible and calibration.restarts == 0
     assert abs(calibration.final_error / calibration.expected_final_error - 1.0) < 0.3
     dataset.pixel_sigma = 0.2  # claims 5x better measurements than the data have
     assert not calibrate(dataset).cost_plausible
+
+
+def test_an_implausible_optimum_restarts_from_the_runner_up_hypotheses(monkeypatch):
+    """When LM from the analytical solution ends far above the chi-square range of the cost, calibrate()
+    starts again from the root's runner-up hypotheses and keeps the best: here the first hypothesis is
+    a deliberately wrong pose (rotated 150 deg, 2 m off), the runner-up the real solution."""
+    import mirror_fg.graph as graph_module
+    from mirror_fg.analytic import AnalyticSolution
+    from mirror_fg.geometry import so3_exp
+
+    dataset, truth = simulate_base_case(num_images=60, num_points=4, pixel_sigma=1.0, seed=5)
+    right = graph_module.initial_estimate(dataset)
+    wrong = AnalyticSolution(so3_exp(np.array([0.0, np.radians(150.0), 0.0])) @ right.R_cam_base,
+                             right.t_cam_base + np.array([2.0, 0.0, 0.0]), dict(right.mirror_vectors),
+                             points=dict(right.points), alternatives=[right])
+    monkeypatch.setattr(graph_module, "initial_estimate", lambda ds: wrong)
+    optimum = calibrate(dataset, initial=truth, compute_covariance=False)
+    alone = calibrate(dataset, initial=wrong, compute_covariance=False)  # no restart with a given start
+    assert alone.restarts == 0 and not (alone.converged and alone.cost_plausible)
+    calibration = calibrate(dataset, compute_covariance=False)
+    assert calibration.restarts == 1 and calibration.analytic is right
+    assert calibration.converged and calibration.cost_plausible
+    assert rotation_angle(calibration.R_cam_base, optimum.R_cam_base) < 1e-6
+    assert np.linalg.norm(calibration.t_cam_base - optimum.t_cam_base) < 1e-6
