@@ -245,6 +245,9 @@ def cmd_calibrate(args, out: _Printer) -> int:
         finally:
             if bar is not None:
                 bar.close()
+        if calibration.restarts:
+            out.info(f"LM ended in a local minimum from the analytical solution; restarted from {calibration.restarts} "
+                     "runner-up P3P hypothesis(es) and kept the lowest cost")
         if not calibration.converged:
             from mirror_fg.analytic import SolveError
 
