@@ -1,4 +1,6 @@
-"""Shared fixtures: paths to the real data shipped beside the repository."""
+"""Shared fixtures: paths to the real data shipped beside the repository; loading a script as a module."""
+import importlib.util
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -6,6 +8,17 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 TAKAHASHI = REPO.parent / "shared" / "data" / "takahashi2012"
+
+
+def load_script(name: str):
+    """``scripts/<name>.py`` as a module, registered under ``name`` (worker processes unpickle by it)."""
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, REPO / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
 
 
 @pytest.fixture

@@ -1,20 +1,11 @@
 """scripts/benchmark.py: the native-profile breakdown puts each sample where it belongs."""
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
-
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "benchmark.py"
+from conftest import load_script
 
 
 @pytest.fixture(scope="module")
 def benchmark():
-    spec = importlib.util.spec_from_file_location("benchmark_script", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["benchmark_script"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmark")
 
 
 def test_native_breakdown_splits_calibrate_samples(benchmark):

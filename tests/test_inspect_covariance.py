@@ -1,24 +1,16 @@
 """scripts/inspect_covariance.py: standard deviations, correlations, 3-sigma bounds, weakest direction, PNG."""
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "inspect_covariance.py"
+from conftest import load_script
 
 
 @pytest.fixture(scope="module")
 def inspect():
-    spec = importlib.util.spec_from_file_location("inspect_covariance", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["inspect_covariance"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_script("inspect_covariance")
 
 
 def _result(covariance: np.ndarray) -> dict:

@@ -10,26 +10,13 @@ MLE's mean squared error that holds the issue's 10 % thresholds.
 """
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
+from conftest import load_script
 
 from mirror_fg.crb import chi2_quantile
 
-SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
-
-
-def _script(name: str):
-    if name in sys.modules:
-        return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # worker processes unpickle its functions by this name
-    spec.loader.exec_module(module)
-    return module
+_script = load_script
 
 
 def _sampling_band(num_runs: int, comparisons: int, alpha: float = 0.01) -> tuple[float, float]:
