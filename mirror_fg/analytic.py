@@ -6,6 +6,7 @@ mirror configurations; its children are the configurations of mirror ``l`` seen 
 """
 from __future__ import annotations
 
+import math
 from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -363,7 +364,7 @@ def _node_hypotheses(
     children = [index_of[m] for m, _ in entries]
     candidates = [[(h.A, h.b) for h in hyps] for _, hyps in entries]
     parent_det = (-1.0) ** (level - 1)
-    if exhaustive and int(np.prod([len(c) for c in candidates])) <= MAX_ROOT_COMBINATIONS:
+    if exhaustive and math.prod(len(c) for c in candidates) <= MAX_ROOT_COMBINATIONS:  # no int64 overflow
         ranked = []
         for combo in product(*(range(len(c)) for c in candidates)):
             observations = [(k, *cands[c]) for k, cands, c in zip(children, candidates, combo)]

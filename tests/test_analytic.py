@@ -170,3 +170,26 @@ def test_placement_seen_only_without_three_fiducials_is_refused():
     bad = Dataset(1, None, 1e-3, dataset.fiducials, dataset.images + [extra], "few.json")
     with pytest.raises(DatasetError, match="few.json: mirror 1 placement 7 is only seen in images with fewer than 3"):
         solve_analytic(bad)
+
+
+def test_one_mirror_with_many_p3p_images_is_not_enumerated():
+    """Nv = 1, 3 fiducials, 70 images: the root's candidate combinations (2^70 or more) overflow int64;
+    they must go to the sampled search, not be enumerated (which never ends)."""
+    import signal
+
+    dataset, truth = simulate_base_case(num_images=70, num_mirrors=1, pixel_sigma=0.5, seed=2)
+
+    def too_slow(signum, frame):
+        raise TimeoutError("solve_analytic enumerated the P3P combinations")
+
+    previous = signal.signal(signal.SIGALRM, too_slow)
+    signal.alarm(60)
+    try:
+        solution = initial_estimate(dataset)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+    assert rotation_angle(solution.R_cam_base, truth.R_cam_base) < np.radians(5.0)
+    calibration = calibrate(dataset, compute_covariance=False)
+    optimum = calibrate(dataset, initial=truth, compute_covariance=False)
+    assert np.linalg.norm(calibration.t_cam_base - optimum.t_cam_base) < 1e-6
