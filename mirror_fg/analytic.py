@@ -32,7 +32,7 @@ NUM_FULL_HYPOTHESES = 4
 NODE_ALTERNATIONS = 30
 #: Best solutions of an inner node handed to the level above (a subtree's P3P "twin" is only told
 #: apart from the truth by the images of the other subtrees).
-NODE_HYPOTHESES_KEPT = 2
+NODE_HYPOTHESES_KEPT = 3
 #: At most this many combinations of the root's child hypotheses are each solved and scored.
 MAX_ROOT_COMBINATIONS = 64
 #: Partners per child when its normal is started from pairwise axes (eqs. 14-15); more add nothing.
@@ -494,7 +494,7 @@ def solve_analytic(dataset: Dataset, seed: int = 0, refine_subtree: SubtreeRefin
     """Closed-form camera-to-base transform, mirror vectors and reconstruction points (Sects. 4-5).
 
     With three fiducials P3P leaves up to four candidates per image, and a whole subtree of the
-    mirror tree can agree on a wrong ("twin") one. Each node therefore hands its best two solutions
+    mirror tree can agree on a wrong ("twin") one. Each node therefore hands its best three solutions
     to the level above, ranked by how well they reproject the node's fiducials; the root's
     combinations are each solved and ranked by every fiducial (the cost of eq. 23 without points).
     ``refine_subtree``: refine each hypothesis of every node below the root on its own images first
