@@ -547,14 +547,17 @@ def solve_analytic(dataset: Dataset, seed: int = 0, refine_subtree: SubtreeRefin
                     f"{dataset.source}: {_describe(prefix)} has {len(child_ids)} placement(s) of mirror {level} "
                     f"under it ({', '.join(str(m) for m in child_ids)}); the analytical solution needs >= 3"
                 )
-            fiducials = _FiducialObservations(dataset, images_under[prefix], normalized)
+            refine = refine_subtree is not None and level > 1
+            # Built once per node: the subtree a refiner works on, or the fiducials that score closed forms.
+            subtree = subtree_dataset(dataset, images_under[prefix], level) if refine else None
+            fiducials = None if refine else _FiducialObservations(dataset, images_under[prefix], normalized)
 
-            def score(hypothesis: _Hypothesis, level: int = level, images: list[Image] = images_under[prefix],
-                      fiducials: _FiducialObservations = fiducials) -> tuple[float, _Hypothesis]:
-                if refine_subtree is None or level == 1:
+            def score(hypothesis: _Hypothesis, level: int = level, subtree: Dataset | None = subtree,
+                      fiducials: _FiducialObservations | None = fiducials) -> tuple[float, _Hypothesis]:
+                if fiducials is not None:
                     vectors = {key: np.mean(vs, axis=0) for key, vs in hypothesis.mirror_vectors.items()}
                     return 0.5 * fiducials.cost(hypothesis.A, hypothesis.b, vectors, level), hypothesis
-                refined = refine_subtree(subtree_dataset(dataset, images, level), _subtree_solution(hypothesis, level))
+                refined = refine_subtree(subtree, _subtree_solution(hypothesis, level))
                 if refined is None or not np.isfinite(refined[0]):
                     return np.inf, hypothesis
                 return refined[0], _hypothesis_of_subtree(refined[1], hypothesis, level)
