@@ -215,7 +215,11 @@ def _solve_node(
     children = np.array([k for k, _, _ in observations])
     obs_normals = normals[children]
     projectors = np.eye(3) - np.einsum("ia,ib->iab", obs_normals, obs_normals)
-    b_parent = np.linalg.solve(projectors.sum(axis=0), np.einsum("iab,ib->a", projectors, offsets))
+    normal_matrix, rhs = projectors.sum(axis=0), np.einsum("iab,ib->a", projectors, offsets)
+    try:
+        b_parent = np.linalg.solve(normal_matrix, rhs)
+    except np.linalg.LinAlgError:  # parallel normals: the caller's spread check names the degenerate motion
+        b_parent = np.linalg.lstsq(normal_matrix, rhs, rcond=None)[0]
     along = np.einsum("ia,ia->i", obs_normals, offsets) + obs_normals @ b_parent
     counts = np.bincount(children, minlength=num_children)
     distances = np.bincount(children, weights=along, minlength=num_children) / (2.0 * np.maximum(counts, 1))

@@ -71,6 +71,21 @@ def test_bad_input_gives_one_line_and_exit_2_and_keeps_old_result(small_dataset,
     assert out.read_text() == '{"keep": "me"}'
 
 
+def test_identical_images_exit_3_naming_the_motion(tmp_path, capsys):
+    """Every image the same: the mirror never moved, the normals are parallel (the node's translation
+    system is singular), and the refusal is the one clear line of degenerate motion, not a LinAlgError."""
+    dataset, _ = simulate_tree(1, pixel_sigma=0.0, seed=2)
+    data = dataset_to_dict(dataset)
+    for image in data["images"]:
+        image["observations"] = data["images"][0]["observations"]
+    path = tmp_path / "still.json"
+    path.write_text(json.dumps(data))
+    assert main(["calibrate", str(path), "-o", str(tmp_path / "r.json")]) == 3
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "still.json" in err and "coplanar" in err, err
+    assert not (tmp_path / "r.json").exists()
+
+
 def test_degenerate_geometry_exits_3(tmp_path, capsys):
     dataset, truth = simulate_tree(1, pixel_sigma=0.0, seed=2)
     from mirror_fg.geometry import nested_transform, project, so3_exp
