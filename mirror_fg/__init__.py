@@ -1,7 +1,7 @@
 """mirror_fg: camera-to-base calibration through multiple planar mirrors (Hesch et al., ECCV 2010).
 
 Frames: {B} base, {C} camera (OpenCV axes). ``T_cam_base = (R, t)`` with ``Cp = R @ Bp + t`` (metres);
-covariances are ``[dtheta (rad), dt (m)]`` with ``R_true = Exp(dtheta) @ R_est`` (SPEC.md).
+covariances are ``[dtheta (rad), dt (m)]`` with ``R_true = Exp(dtheta) @ R_est`` (docs/formats.md).
 """
 from mirror_fg.analytic import AnalyticSolution, SolveError, solve_analytic
 from mirror_fg.dataset import (

@@ -71,17 +71,20 @@ with one line naming the file, the entry and the problem.
 """
 from __future__ import annotations
 
-import json
 import math
 import os
-from collections.abc import Mapping
+import re
+import sys
+import tempfile
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from mirror_fg.dataset import DatasetError, _is_int, _is_number, _short  # shared value checks and messages
+from mirror_fg.dataset import DatasetError, _is_int, _is_number, _short, check_format, check_keys  # shared value checks and messages
 
 __all__ = [
     "CAPTURE_FORMAT",
@@ -97,6 +100,9 @@ __all__ = [
     "load_capture",
     "capture_from_dict",
     "tag_dictionary",
+    "native_stderr",
+    "open_video",
+    "MAX_IMAGE_PIXELS",
 ]
 
 CAPTURE_FORMAT = "mirror-fg/capture@1"
@@ -105,6 +111,15 @@ EACH = "each"
 DEFAULT_PIXEL_SIGMA = 0.5
 #: Largest ``|R^T R - I|`` entry accepted for a rotation matrix typed into a capture file.
 ROTATION_TOL = 1e-4
+#: Largest image or video frame read (width x height, pixels): 8000 x 6000 photographs pass; a larger
+#: image is refused from its header before it is decoded (a 20000 x 20000 PNG of 2 MB decodes to GBs).
+MAX_IMAGE_PIXELS = 100_000_000
+#: Largest camera calibration file read (bytes); real ones are a few hundred bytes.
+MAX_CAMERA_FILE_BYTES = 1 << 20
+#: Deepest nesting read from an OpenCV FileStorage file (a camera file needs 2 levels).
+_MAX_FILESTORAGE_DEPTH = 8
+#: User-given names (files, keys) are quoted in messages up to this many characters.
+_NAME_LIMIT = 80
 
 #: Short AprilTag family names -> OpenCV dictionary attribute.
 _APRILTAG_NAMES = {
@@ -206,6 +221,10 @@ class ImageEntry:
     mirror_configs: tuple[Config, ...]
     observations: dict[str, np.ndarray] = field(default_factory=dict)
     where: str = "images[0]"
+    #: ``where`` without the capture file: ``images[3] (img3.png)``, for per-image reasons.
+    label: str = "images[0]"
+    #: Absolute path of the observations file, when the pixels come from one.
+    observations_file: str | None = None
 
 
 @dataclass
@@ -248,7 +267,9 @@ class Capture:
 
     ``camera`` is the dataset@1 camera dictionary (``width``/``height`` None when a calibration file
     did not give them: the first image read fills them in). ``R_base_target``, ``t_base_target``:
-    ``Bp = R @ p_target + t``. Exactly one of ``images`` and ``video`` is set.
+    ``Bp = R @ p_target + t``. Exactly one of ``images`` and ``video`` is set. ``file`` is the capture
+    file's absolute path (None when built from a dictionary), ``camera_file`` that of the calibration
+    file the camera came from (None for inline intrinsics).
     """
 
     source: str
@@ -261,6 +282,18 @@ class Capture:
     images: list[ImageEntry] | None = None
     video: VideoSpec | None = None
     track: dict[str, TrackStart] = field(default_factory=dict)
+    file: str | None = None
+    camera_file: str | None = None
+
+    def input_files(self) -> list[str]:
+        """Absolute paths of every file this capture reads, once each: the capture file, the camera file,
+        then per image its image and observations files, or the video. Symbolic links are not resolved."""
+        paths = [self.file, self.camera_file]
+        for e in self.images or []:
+            paths += [e.file, e.observations_file]
+        if self.video is not None:
+            paths.append(self.video.file)
+        return list(dict.fromkeys(os.path.abspath(p) for p in paths if p is not None))
 
     @property
     def mirrored(self) -> bool:
@@ -287,21 +320,16 @@ def load_capture(path: str | os.PathLike[str]) -> Capture:
     """
     source = os.fspath(path)
     data = _load_structured(source, source)
-    return capture_from_dict(data, source=source, base_dir=os.path.dirname(os.path.abspath(source)))
+    cap = capture_from_dict(data, source=source, base_dir=os.path.dirname(os.path.abspath(source)))
+    cap.file = os.path.abspath(source)
+    return cap
 
 
 def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".") -> Capture:
     """Validate a capture@1 dictionary; relative paths are taken from ``base_dir``."""
-    if not isinstance(d, Mapping):
-        raise DatasetError(f"{source}: expected a mapping at the top level, got {_kind(d)}")
-    fmt = d.get("format")
-    if fmt != CAPTURE_FORMAT:
-        what = "missing 'format'" if fmt is None else f"unknown format {_short(fmt)}"
-        raise DatasetError(f"{source}: {what} (expected {CAPTURE_FORMAT!r})")
-    known = {"format", "num_mirrors", "camera", "pixel_sigma", "target", "T_base_target", "images", "video", "track"}
-    extra = sorted(str(k) for k in d if k not in known)
-    if extra:
-        raise DatasetError(f"{source}: unknown key {extra[0]!r} (expected some of {', '.join(sorted(known))})")
+    check_format(d, CAPTURE_FORMAT, source)
+    check_keys(d, ("format", "num_mirrors", "camera", "pixel_sigma", "target", "T_base_target", "images", "video",
+                   "track"), source)
 
     num_mirrors = d.get("num_mirrors")
     if not _is_int(num_mirrors) or num_mirrors < 1:
@@ -309,10 +337,10 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".") ->
 
     if "camera" not in d:
         raise DatasetError(f"{source}: missing 'camera' (intrinsics, or a path to a calibration file)")
-    camera = _camera(d["camera"], source, base_dir)
+    camera, camera_file = _camera(d["camera"], source, base_dir)
 
     pixel_sigma = d.get("pixel_sigma", DEFAULT_PIXEL_SIGMA)
-    if not _is_number(pixel_sigma) or not math.isfinite(pixel_sigma) or pixel_sigma <= 0:
+    if _finite(pixel_sigma) is None or pixel_sigma <= 0:
         raise DatasetError(f"{source}: pixel_sigma must be a finite number > 0 (pixels), got {_short(pixel_sigma)}")
 
     if "target" not in d:
@@ -337,6 +365,7 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".") ->
         target=target,
         R_base_target=R,
         t_base_target=t,
+        camera_file=camera_file,
     )
 
     has_images, has_video = d.get("images") is not None, d.get("video") is not None
@@ -360,25 +389,28 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".") ->
 # --- camera ---------------------------------------------------------------------------------------
 
 
-def _camera(value: Any, source: str, base_dir: str) -> dict[str, Any]:
+def _camera(value: Any, source: str, base_dir: str) -> tuple[dict[str, Any], str | None]:
+    """The camera dictionary and the calibration file it was read from (None for inline intrinsics)."""
     where = f"{source}: camera"
     if isinstance(value, str) or (isinstance(value, Mapping) and "file" in value):
         name = None
         if isinstance(value, Mapping):
             extra = sorted(str(k) for k in value if k not in ("file", "name"))
             if extra:
-                raise DatasetError(f"{where}: unknown key {extra[0]!r} next to 'file' (expected 'name')")
+                raise DatasetError(f"{where}: unknown key {_short(extra[0])} next to 'file' (expected 'name')")
             name = value.get("name")
+            if name is not None and not isinstance(name, str):
+                raise DatasetError(f"{where}: name must be a camera name such as 'cam0', got {_short(name)}")
             value = value["file"]
-            if not isinstance(value, str):
+            if not isinstance(value, str) or not value:
                 raise DatasetError(f"{where}: file must be a path, got {_short(value)}")
         path = _resolve(value, base_dir)
         if not os.path.isfile(path):
-            raise DatasetError(f"{where}: calibration file {value!r} not found")
-        return _camera_from_file(path, name, f"{where} ({value})")
+            raise DatasetError(f"{where}: calibration file {_name(value)!r} not found")
+        return _camera_from_file(path, name, f"{where} ({_name(value)})"), path
     if not isinstance(value, Mapping):
         raise DatasetError(f"{where}: expected intrinsics or a path to a calibration file, got {_kind(value)}")
-    return _camera_dict(value, where, need_size=True)
+    return _camera_dict(value, where, need_size=True), None
 
 
 def _camera_dict(c: Mapping[str, Any], where: str, need_size: bool) -> dict[str, Any]:
@@ -390,6 +422,8 @@ def _camera_dict(c: Mapping[str, Any], where: str, need_size: bool) -> dict[str,
     if missing:
         raise DatasetError(f"{where}: missing {', '.join(repr(k) for k in missing)}")
     out: dict[str, Any] = {"model": "pinhole"}
+    if (c.get("width") is None) != (c.get("height") is None):
+        raise DatasetError(f"{where}: gives only one of the image width and height")
     for key in ("width", "height"):
         v = c.get(key)
         if v is None and not need_size:
@@ -398,42 +432,59 @@ def _camera_dict(c: Mapping[str, Any], where: str, need_size: bool) -> dict[str,
         if not _is_int(v) or v < 1:
             raise DatasetError(f"{where}: {key} must be a positive integer (pixels), got {_short(v)}")
         out[key] = int(v)
+    if out["width"] is not None and out["width"] * out["height"] > MAX_IMAGE_PIXELS:
+        raise DatasetError(
+            f"{where}: image size {_short(out['width'])} x {_short(out['height'])} is above the limit of "
+            f"{MAX_IMAGE_PIXELS} pixels"
+        )
     for key in ("fx", "fy", "cx", "cy"):
-        v = c[key]
-        if not _is_number(v) or not math.isfinite(v) or (key in ("fx", "fy") and v <= 0):
+        v = _finite(c[key])
+        if v is None or (key in ("fx", "fy") and v <= 0):
             cond = "> 0" if key in ("fx", "fy") else "finite"
-            raise DatasetError(f"{where}: {key} must be a {cond} number (pixels), got {_short(v)}")
-        out[key] = float(v)
+            raise DatasetError(f"{where}: {key} must be a {cond} number (pixels), got {_short(c[key])}")
+        out[key] = v
     dist = c.get("dist", [0.0] * 5)
     if isinstance(dist, np.ndarray):
         dist = dist.ravel().tolist()
-    if (
-        not isinstance(dist, (list, tuple))
-        or len(dist) not in (4, 5, 8, 12, 14)
-        or not all(_is_number(x) and math.isfinite(x) for x in dist)
-    ):
+    values = [_finite(x) for x in dist] if isinstance(dist, (list, tuple)) else [None]
+    if len(values) not in (4, 5, 8, 12, 14) or None in values:
         raise DatasetError(
             f"{where}: dist must be 4, 5, 8, 12 or 14 finite numbers (OpenCV k1, k2, p1, p2[, k3, ...]), got {_short(dist)}"
         )
-    out["dist"] = [float(x) for x in dist]
+    out["dist"] = values
     return out
 
 
-def _camera_from_file(path: str, name: Any, where: str) -> dict[str, Any]:
-    """Intrinsics from an OpenCV FileStorage file, a ROS camera_info YAML or a Kalibr camchain."""
-    with open(path, "rb") as f:
-        head = f.read(4096).decode("utf-8", "replace")
-    if head.lstrip().startswith(("%YAML:1", "<?xml")) or "opencv-matrix" in head:
-        return _camera_from_filestorage(path, where)
-    data = _load_structured(path, where)
+def _camera_from_file(path: str, name: str | None, where: str) -> dict[str, Any]:
+    """Intrinsics from an OpenCV FileStorage file, a ROS camera_info YAML or a Kalibr camchain.
+
+    Every format is first turned into plain data (mappings, lists, numbers, strings) and then read by
+    one reader, :func:`_camera_from_mapping`, whose numbers all pass :func:`_real_array`.
+    """
+    try:
+        with open(path, "rb") as f:
+            head = f.read(MAX_CAMERA_FILE_BYTES + 1)
+    except OSError as exc:
+        raise DatasetError(f"{where}: cannot read file: {exc.strerror or exc}") from None
+    if len(head) > MAX_CAMERA_FILE_BYTES:
+        raise DatasetError(f"{where}: larger than {MAX_CAMERA_FILE_BYTES} bytes: not a camera calibration file")
+    text = head[:4096].decode("utf-8", "replace")
+    if text.lstrip().startswith(("%YAML:1", "<?xml")) or "opencv-matrix" in text:
+        data = _filestorage_data(path, where)
+    else:
+        data = _load_structured(path, where)
     if not isinstance(data, Mapping):
         raise DatasetError(f"{where}: expected a mapping, got {_kind(data)}")
+    return _camera_from_mapping(data, name, where)
+
+
+def _camera_from_mapping(data: Mapping[Any, Any], name: str | None, where: str) -> dict[str, Any]:
     cams = sorted(k for k in data if isinstance(k, str) and k.startswith("cam") and isinstance(data[k], Mapping))
-    if name is not None or (cams and "camera_model" in data.get(cams[0], {})):
+    if name is not None or (cams and "camera_model" in data[cams[0]]):
         key = name if name is not None else cams[0]
         if key not in data or not isinstance(data[key], Mapping):
-            raise DatasetError(f"{where}: no camera {key!r} (has {', '.join(cams) or 'none'})")
-        return _camera_from_kalibr(data[key], f"{where}: {key}")
+            raise DatasetError(f"{where}: no camera {_short(key)} (has {_short(', '.join(cams) or 'none')})")
+        return _camera_from_kalibr(data[key], f"{where}: {_short(key)}")
     if "intrinsics" in data and "camera_model" in data:
         return _camera_from_kalibr(data, where)
     K = _first(data, ("camera_matrix", "cameraMatrix", "K", "intrinsic_matrix"))
@@ -444,60 +495,83 @@ def _camera_from_file(path: str, name: Any, where: str) -> dict[str, Any]:
     D = _first(data, ("distortion_coefficients", "dist_coeffs", "distCoeffs", "D", "distortion"))
     K = _matrix(K, f"{where}: camera_matrix")
     dist = [0.0] * 5 if D is None else _matrix(D, f"{where}: distortion_coefficients").ravel().tolist()
-    return _camera_from_K(K, dist, data.get("image_width", data.get("width")), data.get("image_height", data.get("height")), where)
+    width = _first(data, ("image_width", "imageWidth", "width"))
+    height = _first(data, ("image_height", "imageHeight", "height"))
+    size = _first(data, ("image_size", "imageSize"))
+    if size is not None and width is None and height is None:
+        if isinstance(size, Mapping):  # a FileStorage matrix {rows, cols, data}
+            size = size.get("data")
+        if not isinstance(size, list) or len(size) != 2:
+            raise DatasetError(f"{where}: image_size must be [width, height], got {_short(size)}")
+        width, height = size
+    return _camera_from_K(K, dist, width, height, where)
 
 
-def _camera_from_filestorage(path: str, where: str) -> dict[str, Any]:
+def _filestorage_data(path: str, where: str) -> dict[str, Any]:
+    """An OpenCV FileStorage file (YAML/XML) as plain data; a matrix becomes ``{rows, cols, dt, data}``."""
     import cv2
 
+    with native_stderr():
+        try:
+            fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+        except (cv2.error, SystemError) as exc:  # SystemError wraps the cv2.error of a failed constructor
+            raise DatasetError(f"{where}: not a valid OpenCV calibration file: {_cv_error(exc)}") from None
     try:
-        fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
-    except cv2.error as exc:
-        raise DatasetError(f"{where}: cannot parse OpenCV calibration file: {str(exc).strip().splitlines()[-1]}") from None
-    try:
-        if not fs.isOpened():
-            raise DatasetError(f"{where}: cannot open as an OpenCV calibration file")
-
-        def node(*names: str) -> Any:
-            for n in names:
-                nd = fs.getNode(n)
-                if not nd.empty():
-                    return nd
-            return None
-
-        k_node = node("camera_matrix", "cameraMatrix", "K", "intrinsic_matrix")
-        if k_node is None or k_node.mat() is None:
-            raise DatasetError(f"{where}: no camera_matrix in the OpenCV calibration file")
-        K = np.asarray(k_node.mat(), dtype=float)
-        d_node = node("distortion_coefficients", "dist_coeffs", "distCoeffs", "D")
-        dist = [0.0] * 5 if d_node is None or d_node.mat() is None else np.asarray(d_node.mat(), float).ravel().tolist()
-        w_node, h_node = node("image_width", "imageWidth"), node("image_height", "imageHeight")
-        width = int(w_node.real()) if w_node is not None else None
-        height = int(h_node.real()) if h_node is not None else None
-        size = node("image_size", "imageSize")
-        if size is not None and width is None:
-            vals = [size.at(i).real() for i in range(size.size())] if size.isSeq() else size.mat()
-            s = np.asarray(vals if vals is not None else [], dtype=float).ravel()
-            if s.size == 2:
-                width, height = int(s[0]), int(s[1])
+        root = fs.root() if fs.isOpened() else None
+        if root is None or not root.isMap():
+            raise DatasetError(f"{where}: cannot open as an OpenCV calibration file (no top-level mapping)")
+        return {k: _filenode_value(root.getNode(k), f"{where}: {_short(k)}", 1) for k in root.keys()}
     finally:
         fs.release()
-    return _camera_from_K(K, dist, width, height, where)
+
+
+def _filenode_value(node: Any, where: str, depth: int) -> Any:
+    """A cv2.FileNode as plain data, without ``mat()`` (which trusts ``rows``/``cols`` and may allocate GBs)."""
+    if depth > _MAX_FILESTORAGE_DEPTH:
+        raise DatasetError(f"{where}: nested more than {_MAX_FILESTORAGE_DEPTH} levels deep")
+    if node.isMap():
+        return {k: _filenode_value(node.getNode(k), where, depth + 1) for k in node.keys()}
+    if node.isSeq():
+        return [_filenode_value(node.at(i), where, depth + 1) for i in range(node.size())]
+    if node.isInt():
+        value = node.real()
+        if abs(value) >= 2.0**63 - 1:  # the parser clamps what overflows int64 (a 400-digit integer)
+            raise DatasetError(f"{where}: integer out of range")
+        return int(value)
+    if node.isReal():
+        return node.real()
+    if node.isString():
+        return node.string()
+    return None
+
+
+def _cv_error(exc: BaseException) -> str:
+    """The useful tail of an OpenCV exception's text (``line 6: Missing , between the elements``), short."""
+    text = str(exc.__cause__ or exc).strip()
+    text = text.splitlines()[-1] if text else type(exc).__name__
+    m = re.search(r"\((\d+)\): (.*?)'?$", text)
+    if m:
+        text = f"line {m.group(1)}: {m.group(2)}"
+    else:
+        text = re.sub(r"^.*error: \([-\d]+:[^)]*\) ", "", text)
+    return _clip(text)
 
 
 def _camera_from_kalibr(cam: Mapping[str, Any], where: str) -> dict[str, Any]:
     model = cam.get("camera_model", "pinhole")
     if model != "pinhole":
         raise DatasetError(f"{where}: camera_model {_short(model)} is not supported (only pinhole)")
-    intr = cam.get("intrinsics")
-    if not isinstance(intr, list) or len(intr) != 4 or not all(_is_number(x) for x in intr):
-        raise DatasetError(f"{where}: intrinsics must be [fu, fv, pu, pv], got {_short(intr)}")
+    intr = _real_array(cam.get("intrinsics"), f"{where}: intrinsics [fu, fv, pu, pv]")
+    if intr.shape != (4,):
+        raise DatasetError(f"{where}: intrinsics must be [fu, fv, pu, pv], got {_short(cam.get('intrinsics'))}")
     dmodel = cam.get("distortion_model", "none")
-    coeffs = cam.get("distortion_coeffs", [])
     if dmodel in ("radtan", "plumb_bob"):
-        if not isinstance(coeffs, list) or len(coeffs) not in (4, 5):
-            raise DatasetError(f"{where}: radtan distortion_coeffs must be [k1, k2, r1, r2], got {_short(coeffs)}")
-        dist = [float(x) for x in coeffs]
+        coeffs = _real_array(cam.get("distortion_coeffs"), f"{where}: distortion_coeffs")
+        if coeffs.shape not in ((4,), (5,)):
+            raise DatasetError(
+                f"{where}: radtan distortion_coeffs must be [k1, k2, r1, r2], got {_short(cam.get('distortion_coeffs'))}"
+            )
+        dist = coeffs.tolist()
     elif dmodel in ("none", None):
         dist = [0.0] * 5
     else:
@@ -515,6 +589,8 @@ def _camera_from_kalibr(cam: Mapping[str, Any], where: str) -> dict[str, Any]:
 
 
 def _camera_from_K(K: np.ndarray, dist: list[float], width: Any, height: Any, where: str) -> dict[str, Any]:
+    if K.size == 9 and K.ndim == 1:
+        K = K.reshape(3, 3)
     if K.shape != (3, 3):
         raise DatasetError(f"{where}: camera matrix must be 3x3, got shape {K.shape}")
     if abs(K[0, 1]) > 1e-9 * abs(K[0, 0]) or not np.allclose(K[2], [0, 0, 1]) or abs(K[1, 0]) > 0:
@@ -532,26 +608,40 @@ def _first(data: Mapping[str, Any], names: tuple[str, ...]) -> Any:
 
 
 def _matrix(value: Any, where: str) -> np.ndarray:
-    """A matrix given as nested lists or a ROS/OpenCV ``{rows, cols, data}`` mapping."""
-    if isinstance(value, Mapping) and "data" in value:
-        data = value["data"]
-        rows, cols = value.get("rows"), value.get("cols")
-        try:
-            arr = np.asarray(data, dtype=float)
-            if _is_int(rows) and _is_int(cols):
-                arr = arr.reshape(rows, cols)
-        except (TypeError, ValueError):
-            raise DatasetError(f"{where}: data must be {rows} x {cols} numbers") from None
+    """A matrix given as (nested) lists or a ROS/OpenCV ``{rows, cols, data}`` mapping; numbers checked."""
+    if not isinstance(value, Mapping):
+        return _real_array(value, where)
+    _only(value, ("rows", "cols", "data", "dt"), where)
+    data = _real_array(value.get("data"), f"{where}: data")
+    rows, cols = value.get("rows"), value.get("cols")
+    if rows is None and cols is None:
+        return data
+    if not (_is_int(rows) and _is_int(cols) and rows >= 1 and cols >= 1):
+        raise DatasetError(f"{where}: rows and cols must be positive integers, got {_short(rows)} and {_short(cols)}")
+    if data.ndim != 1 or data.size != rows * cols:
+        raise DatasetError(f"{where}: data has {data.size} numbers, rows x cols is {_short(rows)} x {_short(cols)}")
+    return data.reshape(rows, cols)
+
+
+def _real_array(value: Any, where: str) -> np.ndarray:
+    """Finite real numbers from a list, or a list of equal-length lists (a matrix). Anything else (bools,
+    strings, null, deeper nesting, numbers too large for a float, NaN, inf) is a DatasetError naming the entry."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if not isinstance(value, (list, tuple)) or not value:
+        raise DatasetError(f"{where}: expected a list of numbers, got {_short(value)}")
+    if all(isinstance(r, (list, tuple)) for r in value):
+        widths = {len(r) for r in value}
+        if len(widths) != 1:
+            raise DatasetError(f"{where}: rows of different lengths: {_short(value)}")
+        flat, shape = [x for r in value for x in r], (len(value), widths.pop())
     else:
-        try:
-            arr = np.asarray(value, dtype=float)
-        except (TypeError, ValueError):
-            raise DatasetError(f"{where}: expected numbers, got {_short(value)}") from None
-    if arr.size == 9 and arr.ndim == 1:
-        arr = arr.reshape(3, 3)
-    if not np.all(np.isfinite(arr)):
-        raise DatasetError(f"{where}: not finite")
-    return arr
+        flat, shape = list(value), (len(value),)
+    numbers = [_finite(x) for x in flat]
+    if None in numbers:
+        k = numbers.index(None)
+        raise DatasetError(f"{where}: entry {k} is not a finite number: {_short(flat[k])}")
+    return np.array(numbers, dtype=float).reshape(shape)
 
 
 # --- target ---------------------------------------------------------------------------------------
@@ -571,7 +661,7 @@ def tag_dictionary(name: Any, where: str = "dictionary") -> tuple[str, int]:
         attr = next((c for c in candidates if hasattr(cv2.aruco, c)), None)
     if attr is None or not hasattr(cv2.aruco, attr):
         raise DatasetError(
-            f"{where}: unknown dictionary {name!r} (AprilTag: tag16h5, tag25h9, tag36h10, tag36h11; "
+            f"{where}: unknown dictionary {_short(name)} (AprilTag: tag16h5, tag25h9, tag36h10, tag36h11; "
             "ArUco: DICT_4X4_50 ... DICT_7X7_1000, DICT_ARUCO_ORIGINAL)"
         )
     return key, int(getattr(cv2.aruco, attr))
@@ -588,7 +678,7 @@ def _target(t: Any, source: str) -> Target:
         for key, v in (("cols", cols), ("rows", rows)):
             if not _is_int(v) or v < 3:
                 raise DatasetError(f"{where}: {key} must be an integer >= 3 (inner corners), got {_short(v)}")
-        if not _is_number(square) or not math.isfinite(square) or square <= 0:
+        if _finite(square) is None or square <= 0:
             raise DatasetError(f"{where}: square must be a number > 0 (metres), got {_short(square)}")
         if (cols + rows) % 2 == 0:
             raise DatasetError(
@@ -603,7 +693,7 @@ def _target(t: Any, source: str) -> Target:
 
         num_ids = int(cv2.aruco.getPredefinedDictionary(dict_id).bytesList.shape[0])
         size = t.get("tag_size")
-        if not _is_number(size) or not math.isfinite(size) or size <= 0:
+        if _finite(size) is None or size <= 0:
             raise DatasetError(f"{where}: tag_size must be a number > 0 (metres, edge of the black square), got {_short(size)}")
         refine = t.get("corner_refinement", "subpix")
         if refine not in _CORNER_REFINEMENTS:
@@ -633,11 +723,7 @@ def _target(t: Any, source: str) -> Target:
         fids = t.get("fiducials")
         if not isinstance(fids, Mapping) or not fids:
             raise DatasetError(f"{where}: fiducials must be a non-empty mapping {{name: [x, y, z]}} (metres)")
-        out: dict[str, np.ndarray] = {}
-        for key, value in fids.items():
-            if not isinstance(key, str) or not key:
-                raise DatasetError(f"{where}: fiducial name must be a non-empty string, got {_short(key)}")
-            out[key] = _vector(value, 3, f"{where}: fiducial {key!r}")
+        out = _named_vectors(fids, 3, where, "fiducial")
         if len(out) < 3:
             raise DatasetError(f"{where}: needs at least 3 fiducials, got {len(out)}")
         return PointsTarget(out)
@@ -662,7 +748,7 @@ def _grid(g: Any, num_ids: int, dict_name: str, where: str) -> dict[int, tuple[n
     for key, v in (("cols", cols), ("rows", rows)):
         if not _is_int(v) or v < 1:
             raise DatasetError(f"{where}: {key} must be an integer >= 1, got {_short(v)}")
-    if not _is_number(spacing) or not math.isfinite(spacing) or spacing <= 0:
+    if _finite(spacing) is None or spacing <= 0:
         raise DatasetError(f"{where}: spacing must be a number > 0 (metres, centre to centre), got {_short(spacing)}")
     if not _is_int(first) or first < 0:
         raise DatasetError(f"{where}: first_id must be a non-negative integer, got {_short(first)}")
@@ -747,7 +833,7 @@ def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
         if file is not None:
             if not isinstance(file, str) or not file:
                 raise DatasetError(f"{where}: file must be a path, got {_short(file)}")
-            where = f"{source}: images[{index}] ({file})"
+            where = f"{source}: images[{index}] ({_name(file)})"
             path = _resolve(file, base_dir)
             if not os.path.isfile(path):
                 raise DatasetError(f"{where}: image file not found")
@@ -775,9 +861,11 @@ def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
         if not isinstance(image_id, str) or not image_id:
             raise DatasetError(f"{where}: id must be a non-empty string, got {_short(image_id)}")
         if image_id in seen:
-            raise DatasetError(f"{where}: image id {image_id!r} is also that of {seen[image_id]}; give each an 'id'")
+            raise DatasetError(f"{where}: image id {_short(image_id)} is also that of {seen[image_id]}; give each an 'id'")
         seen[image_id] = f"images[{index}]"
-        entries.append(ImageEntry(image_id, path, configs, observations, where=where))
+        label = where.removeprefix(f"{source}: ")
+        obs_path = _resolve(obs_file, base_dir) if obs_file is not None else None
+        entries.append(ImageEntry(image_id, path, configs, observations, where, label, obs_path))
     return entries
 
 
@@ -785,7 +873,7 @@ def _observations(value: Any, cap: Capture, base_dir: str, where: str) -> dict[s
     """Pixels ``{name: [u, v]}`` inline or from a file (JSON/YAML mapping, or ``name u v`` / ``u v`` lines)."""
     if isinstance(value, str):
         path = _resolve(value, base_dir)
-        fwhere = f"{where}: observations file {value!r}"
+        fwhere = f"{where}: observations file {_name(value)!r}"
         if not os.path.isfile(path):
             raise DatasetError(f"{fwhere} not found")
         if path.lower().endswith((".json", ".yaml", ".yml")):
@@ -795,12 +883,7 @@ def _observations(value: Any, cap: Capture, base_dir: str, where: str) -> dict[s
             return _observations_text(path, cap, fwhere)
     if not isinstance(value, Mapping) or not value:
         raise DatasetError(f"{where}: observations must be a non-empty mapping {{name: [u, v]}} or a file, got {_short(value)}")
-    out: dict[str, np.ndarray] = {}
-    for name, uv in value.items():
-        if not isinstance(name, str) or not name:
-            raise DatasetError(f"{where}: point name must be a non-empty string, got {_short(name)}")
-        out[name] = _vector(uv, 2, f"{where}: point {name!r}")
-    return out
+    return _named_vectors(value, 2, where, "point")
 
 
 def _observations_text(path: str, cap: Capture, where: str) -> dict[str, np.ndarray]:
@@ -828,11 +911,11 @@ def _observations_text(path: str, cap: Capture, where: str) -> dict[str, np.ndar
         try:
             uv = np.array([float(x) for x in nums])
         except ValueError:
-            raise DatasetError(f"{where}: line {lineno}: not numbers: {' '.join(nums)!r}") from None
+            raise DatasetError(f"{where}: line {lineno}: not numbers: {_short(' '.join(nums))}") from None
         if not np.all(np.isfinite(uv)):
             raise DatasetError(f"{where}: line {lineno}: not finite")
         if name in out:
-            raise DatasetError(f"{where}: line {lineno}: point {name!r} given twice")
+            raise DatasetError(f"{where}: line {lineno}: point {_short(name)} given twice")
         out[name] = uv
     if not out:
         raise DatasetError(f"{where}: no observations in the file")
@@ -849,7 +932,7 @@ def _video(v: Any, cap: Capture, base_dir: str) -> VideoSpec:
     if not isinstance(file, str) or not file:
         raise DatasetError(f"{where}: file must be a path, got {_short(file)}")
     path = _resolve(file, base_dir)
-    where = f"{source}: video ({file})"
+    where = f"{source}: video ({_name(file)})"
     if not os.path.isfile(path):
         raise DatasetError(f"{where}: video file not found")
     frame_count = _video_frame_count(path, where)
@@ -881,19 +964,36 @@ def _video(v: Any, cap: Capture, base_dir: str) -> VideoSpec:
     return VideoSpec(path, ordered, frame_count)
 
 
+def open_video(path: str, where: str) -> Any:
+    """An opened ``cv2.VideoCapture`` whose frames are within MAX_IMAGE_PIXELS (from the container's
+    header, before any frame is decoded); DatasetError otherwise. The caller releases it."""
+    import cv2
+
+    with native_stderr() as native:
+        vc = cv2.VideoCapture(path)
+    if not vc.isOpened():
+        vc.release()
+        raise DatasetError(f"{where}: cannot open the video (unknown or broken format){native.detail}")
+    w, h = vc.get(cv2.CAP_PROP_FRAME_WIDTH), vc.get(cv2.CAP_PROP_FRAME_HEIGHT)
+    if not (math.isfinite(w) and math.isfinite(h)) or w * h > MAX_IMAGE_PIXELS:
+        vc.release()
+        raise DatasetError(f"{where}: frames of {w:.0f} x {h:.0f} pixels are above the limit of {MAX_IMAGE_PIXELS} pixels")
+    return vc
+
+
 def _video_frame_count(path: str, where: str) -> int:
     import cv2
 
-    cap = cv2.VideoCapture(path)
+    vc = open_video(path, where)
     try:
-        if not cap.isOpened():
-            raise DatasetError(f"{where}: cannot open the video (unknown or broken format)")
-        ok, _ = cap.read()
+        with native_stderr() as native:
+            ok, _ = vc.read()
         if not ok:
-            raise DatasetError(f"{where}: cannot read a frame from the video")
-        count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+            raise DatasetError(f"{where}: cannot read a frame from the video{native.detail}")
+        reported = vc.get(cv2.CAP_PROP_FRAME_COUNT)
+        count = int(reported) if math.isfinite(reported) else 0
     finally:
-        cap.release()
+        vc.release()
     if count <= 0:
         raise DatasetError(f"{where}: the video reports no frame count")
     return count
@@ -907,7 +1007,7 @@ def _track(t: Any, cap: Capture) -> dict[str, TrackStart]:
     assert cap.video is not None
     out: dict[str, TrackStart] = {}
     for name, spec in t.items():
-        pw = f"{where}: {name!r}"
+        pw = f"{where}: {_short(name)}"
         if not isinstance(name, str) or not name:
             raise DatasetError(f"{where}: point name must be a non-empty string, got {_short(name)}")
         if name in fiducials:
@@ -935,84 +1035,108 @@ def _resolve(path: str, base_dir: str) -> str:
 
 
 def _only(m: Mapping[str, Any], allowed: tuple[str, ...], where: str) -> None:
-    extra = sorted(str(k) for k in m if k not in allowed)
-    if extra:
-        raise DatasetError(f"{where}: unknown key {extra[0]!r} (expected some of {', '.join(allowed)})")
+    check_keys(m, allowed, where)
 
 
 def _load_structured(path: str, where: str) -> Any:
-    """Parse a YAML or JSON file (JSON is YAML); duplicate keys are an error. DatasetError on failure."""
-    import yaml
+    """Parse a YAML or JSON file once, within fileio's bounds; duplicate keys are an error."""
+    from mirror_fg.fileio import load_structured
 
-    try:
-        with open(path, "rb") as f:
-            text = f.read().decode("utf-8-sig")
-    except OSError as exc:
-        raise DatasetError(f"{where}: cannot read file: {exc.strerror or exc}") from None
-    except UnicodeDecodeError as exc:
-        raise DatasetError(f"{where}: not UTF-8 text (byte {exc.start})") from None
-    if path.lower().endswith(".json"):
-        try:
-            return json.loads(text, object_pairs_hook=_no_duplicate_pairs(where))
-        except json.JSONDecodeError as exc:
-            raise DatasetError(f"{where}: not valid JSON: {exc.msg} at line {exc.lineno}, column {exc.colno}") from None
-    try:
-        return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
-    except _DuplicateKey as exc:
-        raise DatasetError(f"{where}: {exc}") from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        problem = getattr(exc, "problem", None) or "syntax error"
-        raise DatasetError(f"{where}: not valid YAML: {problem}{at}") from None
-
-
-class _DuplicateKey(Exception):
-    pass
-
-
-def _no_duplicate_pairs(where: str):
-    def hook(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        for k, v in pairs:
-            if k in out:
-                raise DatasetError(f"{where}: key {k!r} appears twice in one object")
-            out[k] = v
-        return out
-
-    return hook
-
-
-def _make_loader():
-    import yaml
-
-    class Loader(yaml.SafeLoader):
-        pass
-
-    def construct_mapping(loader: Any, node: Any, deep: bool = False) -> dict[Any, Any]:
-        loader.flatten_mapping(node)
-        out: dict[Any, Any] = {}
-        for key_node, value_node in node.value:
-            key = loader.construct_object(key_node, deep=deep)
-            if key in out:
-                raise _DuplicateKey(f"key {key!r} appears twice in one mapping (line {key_node.start_mark.line + 1})")
-            out[key] = loader.construct_object(value_node, deep=deep)
-        return out
-
-    Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, construct_mapping)
-    return Loader
-
-
-_UniqueKeyLoader = _make_loader()
+    return load_structured(path, where)
 
 
 def _vector(value: Any, n: int, where: str) -> np.ndarray:
     if not isinstance(value, (list, tuple)) or len(value) != n or not all(_is_number(x) for x in value):
         raise DatasetError(f"{where}: expected {n} numbers, got {_short(value)}")
-    arr = np.array([float(x) for x in value])
-    if not np.all(np.isfinite(arr)):
+    numbers = [_finite(x) for x in value]
+    if None in numbers:
         raise DatasetError(f"{where}: not finite: {_short(value)}")
-    return arr
+    return np.array(numbers)
+
+
+def _named_vectors(value: Mapping[Any, Any], n: int, where: str, what: str) -> dict[str, np.ndarray]:
+    """``{name: [n numbers]}`` with non-empty string names; ``what`` names an entry in messages."""
+    out: dict[str, np.ndarray] = {}
+    for name, v in value.items():
+        if not isinstance(name, str) or not name:
+            raise DatasetError(f"{where}: {what} name must be a non-empty string, got {_short(name)}")
+        out[name] = _vector(v, n, f"{where}: {what} {_short(name)}")
+    return out
+
+
+def _finite(x: Any) -> float | None:
+    """``x`` as a finite float; None for what is not a real number (bools, strings, null), NaN, inf, or an
+    integer too large for a float (a 400-digit integer)."""
+    if not _is_number(x):
+        return None
+    try:
+        value = float(x)
+    except (OverflowError, ValueError, TypeError):
+        return None
+    return value if math.isfinite(value) else None
+
+
+def _clip(text: str, limit: int = _NAME_LIMIT) -> str:
+    """One line of at most ``limit`` characters."""
+    text = " ".join(text.split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _name(path: str) -> str:
+    """A user-given path for messages, on one line; a long one keeps its end (the file name)."""
+    path = " ".join(path.split())
+    return path if len(path) <= _NAME_LIMIT else "..." + path[-(_NAME_LIMIT - 3):]
+
+
+class NativeOutput:
+    """What native code (libpng, libjpeg, FFmpeg, OpenCV) wrote to stderr inside :func:`native_stderr`."""
+
+    def __init__(self) -> None:
+        self.text = ""
+
+    @property
+    def problem(self) -> str:
+        """The first line that is not marked as a mere warning (a decode error, corrupt data), short; ''."""
+        for line in self.text.splitlines():
+            if line.strip() and "warn" not in line.lower():
+                return _clip(line.strip())
+        return ""
+
+    @property
+    def detail(self) -> str:
+        """``": <problem>"`` to end a message with, or ''."""
+        return f": {self.problem}" if self.problem else ""
+
+
+@contextmanager
+def native_stderr() -> Iterator[NativeOutput]:
+    """Divert file descriptor 2 to a temporary file during native decoding; the text is kept, not printed.
+
+    Native libraries write their own lines (``libpng error: IDAT: CRC error``) straight to fd 2, which
+    would precede our one-line message. After the block, ``.text`` holds what they wrote (first 4 kB).
+    When fd 2 cannot be duplicated (closed), nothing is diverted. Not thread-safe: fd 2 is per process.
+    """
+    out = NativeOutput()
+    try:
+        sys.stderr.flush()
+    except (AttributeError, OSError, ValueError):
+        pass
+    try:
+        saved = os.dup(2)
+    except OSError:
+        yield out
+        return
+    try:
+        with tempfile.TemporaryFile() as tmp:
+            os.dup2(tmp.fileno(), 2)
+            try:
+                yield out
+            finally:
+                os.dup2(saved, 2)
+            tmp.seek(0)
+            out.text = tmp.read(4096).decode("utf-8", "replace")
+    finally:
+        os.close(saved)
 
 
 def _kind(x: Any) -> str:

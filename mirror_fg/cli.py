@@ -5,36 +5,102 @@ Exit status: 0 success, 2 bad input, 3 could not solve (degenerate data, no conv
 from __future__ import annotations
 
 import argparse
+import math
+import os
+import re
 import sys
 import time
 import traceback
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from mirror_fg.dataset import Dataset
+    from mirror_fg.fileio import OutputPlan
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_UNSOLVABLE, EXIT_INTERNAL = 0, 2, 3, 1
 
 EPILOG = """exit status: 0 success, 2 bad input (the message names the file, image or point),
-3 could not solve (degenerate data, no convergence), 1 internal error.
+3 could not solve (degenerate data, no convergence), 1 internal error. Output files are written
+all-or-nothing and never over an input; if standard output fails (a closed pipe, a full disk), the
+files are still written, a warning goes to stderr and the exit status is that of the work.
 frames: T_cam_base maps base points into the camera (Cp = R Bp + t, OpenCV camera axes:
 x right, y down, z forward); T_base_cam is its inverse, the camera's pose on the robot."""
 
 
 class _Printer:
+    """Human output on stdout. A failing stdout (closed pipe, full disk) is reported once on stderr and
+    then ignored: it never changes the exit status or the files."""
+
     def __init__(self, quiet: bool, verbose: bool):
         self.quiet, self.verbose = quiet, verbose
+        self.stdout_failed = False
 
     def info(self, text: str = "") -> None:
         if not self.quiet:
-            print(text)
+            self._print(text)
 
     def detail(self, text: str) -> None:
         if self.verbose and not self.quiet:
-            print(text)
+            self._print(text)
+
+    def _print(self, text: str) -> None:
+        if self.stdout_failed:
+            return
+        try:
+            print(text, flush=True)
+        except OSError as error:
+            self.stdout_broken(error)
+
+    def stdout_broken(self, error: OSError) -> None:
+        """Stop printing; send what is left of stdout to /dev/null so the exit flush stays quiet."""
+        self.stdout_failed = True
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            os.close(devnull)
+        except (OSError, ValueError):
+            pass
+        try:
+            print(f"mirror-fg: warning: standard output failed ({error.strerror or error}); output files are "
+                  "not affected", file=sys.stderr, flush=True)
+        except OSError:
+            pass
 
     @property
     def progress(self) -> bool:
         return not self.quiet and sys.stderr.isatty()
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, but a usage error is one line (exit 2) like every other bad input."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _number(kind: type, low: float, high: float = math.inf, low_open: bool = False):
+    """An argparse type: a finite ``kind`` in [low, high] (``(low, high]`` with ``low_open``)."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'}, got {text[:40]!r}")
+        if not math.isfinite(value) or value < low or (low_open and value == low) or value > high:
+            bound = f"> {low:g}" if low_open else f">= {low:g}"
+            if high < math.inf:
+                bound += f" and <= {high:g}"
+            raise argparse.ArgumentTypeError(f"must be a finite {'integer' if kind is int else 'number'} {bound}, "
+                                             f"got {text[:40]!r}")
+        return value
+
+    parse.__name__ = kind.__name__
+    return parse
+
+
+_COUNT, _COUNT0, _POSITIVE = _number(int, 1), _number(int, 0), _number(float, 0.0, low_open=True)
 
 
 def _add_common(parser: argparse.ArgumentParser) -> None:
@@ -44,29 +110,29 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="mirror-fg",
         description="Calibrate a camera to a robot base it sees only through planar mirrors "
         "(Hesch, Mourikis & Roumeliotis, ECCV 2010): analytical solution, GTSAM MLE, 3-sigma bounds.",
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
 
     sim = sub.add_parser("simulate", help="write a synthetic dataset and its ground truth",
                          description="Write a synthetic mirror-fg/dataset@1 (the paper's Sect. 7 base case by "
                          "default) and, beside it, <name>.truth.json with the true unknowns.", epilog=EPILOG,
                          formatter_class=argparse.RawDescriptionHelpFormatter)
     sim.add_argument("-o", "--output", required=True, type=Path, help="dataset file to write (JSON)")
-    sim.add_argument("--mirrors", type=int, default=2, help="number of mirrors Nv (default 2)")
-    sim.add_argument("--images", type=int, default=200, help="number of images (base case; default 200)")
-    sim.add_argument("--points", type=int, default=0, help="reconstruction points near the fiducials (default 0)")
-    sim.add_argument("--sigma", type=float, default=1.0, help="pixel noise standard deviation, pixels (default 1.0)")
+    sim.add_argument("--mirrors", type=_COUNT, default=2, help="number of mirrors Nv (default 2)")
+    sim.add_argument("--images", type=_COUNT, default=200, help="number of images (base case; default 200)")
+    sim.add_argument("--points", type=_COUNT0, default=0, help="reconstruction points near the fiducials (default 0)")
+    sim.add_argument("--sigma", type=_POSITIVE, default=1.0, help="pixel noise standard deviation, pixels (default 1.0)")
     sim.add_argument("--fiducials", type=int, default=3, choices=[3, 4], help="3 (paper) or 4 fiducials")
-    sim.add_argument("--distance", type=float, default=0.5, help="camera-to-mirror distance, metres (default 0.5)")
-    sim.add_argument("--placements", type=int, default=3, help="placements of mirror 1 (default 3)")
+    sim.add_argument("--distance", type=_POSITIVE, default=0.5, help="camera-to-mirror distance, metres (default 0.5)")
+    sim.add_argument("--placements", type=_COUNT, default=3, help="placements of mirror 1 (default 3)")
     sim.add_argument("--tree", action="store_true", help="minimal tree instead: 3 placements per node, 3^Nv images")
-    sim.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    sim.add_argument("--seed", type=_COUNT0, default=0, help="random seed (default 0)")
     _add_common(sim)
 
     cal = sub.add_parser("calibrate", help="analytical solution + MLE from a dataset or capture file",
@@ -79,7 +145,7 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("-o", "--output", required=True, type=Path, help="result file (.json or .yaml)")
     cal.add_argument("--robust", choices=["huber", "cauchy"], help="robust kernel on every measurement (threshold 1.345 sigma)")
     cal.add_argument("--incremental", action="store_true", help="iSAM2: stream the images in file order")
-    cal.add_argument("--every", type=int, default=25, help="with --incremental: progress line every N images (default 25)")
+    cal.add_argument("--every", type=_COUNT, default=25, help="with --incremental: progress line every N images (default 25)")
     cal.add_argument("--base-frame", default="base_link", help="base frame name for the ROS outputs (default base_link)")
     cal.add_argument("--camera-frame", default="camera_optical_frame",
                      help="camera frame name for the ROS outputs (default camera_optical_frame)")
@@ -99,21 +165,21 @@ def build_parser() -> argparse.ArgumentParser:
                          "inverse Fisher information at simulated truths) for a described setup, so you can choose "
                          "how many images and which mirror tilts to use before recording.", epilog=EPILOG,
                          formatter_class=argparse.RawDescriptionHelpFormatter)
-    pln.add_argument("--mirrors", type=int, default=2, help="number of mirrors Nv (default 2)")
-    pln.add_argument("--placements", type=int, default=3,
+    pln.add_argument("--mirrors", type=_COUNT, default=2, help="number of mirrors Nv (default 2)")
+    pln.add_argument("--placements", type=_number(int, 3), default=3,
                      help="placements of each mirror but the last per node (>= 3; default 3)")
-    pln.add_argument("--images", type=int, default=200, help="number of images (default 200)")
+    pln.add_argument("--images", type=_COUNT, default=200, help="number of images (default 200)")
     pln.add_argument("--fiducials", type=int, default=3, choices=[3, 4],
                      help="the paper's 20 cm right triangle (3) or with a point 15 cm off its plane (4)")
     pln.add_argument("--fiducials-file", type=Path,
                      help="JSON {name: [x, y, z]} base-frame fiducial layout, metres (overrides --fiducials)")
-    pln.add_argument("--points", type=int, default=0, help="reconstruction points within 10 cm of the fiducials")
-    pln.add_argument("--distance", type=float, default=0.5, help="camera-to-mirror distance, metres (default 0.5)")
-    pln.add_argument("--tilt", type=float, default=30.0, help="largest mirror tilt, degrees (default 30)")
-    pln.add_argument("--sigma", type=float, default=1.0, help="pixel noise standard deviation, pixels (default 1)")
-    pln.add_argument("--focal", type=float, help="focal length, pixels (default: the simulator's 800)")
-    pln.add_argument("--draws", type=int, default=5, help="random scenes averaged (default 5)")
-    pln.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    pln.add_argument("--points", type=_COUNT0, default=0, help="reconstruction points within 10 cm of the fiducials")
+    pln.add_argument("--distance", type=_POSITIVE, default=0.5, help="camera-to-mirror distance, metres (default 0.5)")
+    pln.add_argument("--tilt", type=_number(float, 0.0, 89.0, low_open=True), default=30.0, help="largest mirror tilt, degrees (default 30)")
+    pln.add_argument("--sigma", type=_POSITIVE, default=1.0, help="pixel noise standard deviation, pixels (default 1)")
+    pln.add_argument("--focal", type=_POSITIVE, help="focal length, pixels (default: the simulator's 800)")
+    pln.add_argument("--draws", type=_COUNT, default=5, help="random scenes averaged (default 5)")
+    pln.add_argument("--seed", type=_COUNT0, default=0, help="random seed (default 0)")
     pln.add_argument("--json", type=Path, help="also write the bounds to this JSON file")
     _add_common(pln)
 
@@ -161,29 +227,26 @@ def _print_transform_summary(out: _Printer, result: dict, elapsed: float, increm
             out.info(f"  image '{o['image']}' point '{o['point']}': {o['sigmas']:.1f} sigma")
 
 
-def _load_any(path: Path, out: _Printer):
-    """A Dataset from a dataset@1 file, or from a capture@1 file after detection."""
-    from mirror_fg.dataset import dataset_from_dict, load_dataset
+def _load_input(path: Path, out: _Printer, plan: OutputPlan) -> Dataset:
+    """A Dataset from a dataset@1 file, or from a capture@1 file after detection; read once.
 
-    if path.suffix.lower() in (".yaml", ".yml") or _looks_like_capture(path):
-        from mirror_fg.capture import load_capture
-        from mirror_fg.detect import detect_capture
+    The files a capture names are added to ``plan``'s inputs before any detection, so an output that
+    would overwrite one of them is refused first.
+    """
+    from mirror_fg.capture import CAPTURE_FORMAT, capture_from_dict
+    from mirror_fg.dataset import dataset_from_dict
+    from mirror_fg.detect import detect_capture
+    from mirror_fg.fileio import load_structured
 
-        capture = load_capture(path)
+    source = os.fspath(path)
+    data = load_structured(source)
+    fmt = data.get("format") if isinstance(data, dict) else None
+    if fmt == CAPTURE_FORMAT:
+        capture = capture_from_dict(data, source=source, base_dir=os.path.dirname(os.path.abspath(source)))
+        plan.add_inputs(capture.input_files())
         data, reports = detect_capture(capture, progress=out.progress)
         _print_detection_report(out, reports)
-        return dataset_from_dict(data, source=str(path))
-    return load_dataset(path)
-
-
-def _looks_like_capture(path: Path) -> bool:
-    import json
-
-    try:
-        with open(path, encoding="utf-8") as handle:
-            return str(json.load(handle).get("format", "")).startswith("mirror-fg/capture@")
-    except (OSError, ValueError, AttributeError):
-        return False
+    return dataset_from_dict(data, source=source)
 
 
 def _print_detection_report(out: _Printer, reports) -> None:
@@ -197,8 +260,12 @@ def _print_detection_report(out: _Printer, reports) -> None:
 
 
 def cmd_simulate(args, out: _Printer) -> int:
-    from mirror_fg.simulate import simulate_base_case, simulate_tree, write_simulation
+    from mirror_fg.fileio import OutputPlan
+    from mirror_fg.simulate import simulate_base_case, simulate_tree, truth_path, write_simulation
 
+    plan = OutputPlan()  # checked before the work; write_simulation writes both all-or-nothing
+    plan.add(args.output, "dataset")
+    plan.add(truth_path(args.output), "ground truth")
     if args.tree:
         dataset, truth = simulate_tree(args.mirrors, num_fiducials=args.fiducials, num_points=args.points,
                                        pixel_sigma=args.sigma, seed=args.seed, mirror_distance=args.distance)
@@ -213,21 +280,30 @@ def cmd_simulate(args, out: _Printer) -> int:
 
 
 def cmd_calibrate(args, out: _Printer) -> int:
-    from mirror_fg.dataset import DatasetError, write_result
-    from mirror_fg.graph import calibrate
+    from mirror_fg.dataset import DatasetError, result_text
+    from mirror_fg.fileio import OutputPlan
+    from mirror_fg.graph import calibrate, require_converged
+    from mirror_fg.ros import check_frame_name, ros_output_paths, ros_output_texts
 
     start = time.perf_counter()
-    if not args.no_ros:
-        from mirror_fg.ros import check_frame_name
-
+    plan = OutputPlan(inputs=[os.fspath(args.input)])
+    plan.add(args.output, "result")
+    ros = not args.no_ros
+    if ros and plan.is_device(args.output):
+        ros = False
+        out.info(f"note: the result goes to a device ({args.output}): no ROS outputs written beside it")
+    if ros:
         try:
             check_frame_name(args.base_frame, "--base-frame")
             check_frame_name(args.camera_frame, "--camera-frame")
         except ValueError as error:
             raise DatasetError(str(error)) from None
-    dataset = _load_any(args.input, out)
+        yaml_path, urdf_path = ros_output_paths(args.output)
+        plan.add(yaml_path, "ROS YAML", marker=b"mirror-fg")  # side files: never replace a stranger's file
+        plan.add(urdf_path, "URDF", marker=b"mirror-fg")
+    dataset = _load_input(args.input, out, plan)
     if args.incremental:
-        result = _run_incremental(dataset, args, out)
+        calibration = _run_incremental(dataset, args, out)
     else:
         bar = None
         if out.progress:
@@ -248,66 +324,61 @@ def cmd_calibrate(args, out: _Printer) -> int:
         if calibration.restarts:
             out.info(f"LM ended in a local minimum from the analytical solution; restarted from {calibration.restarts} "
                      "runner-up P3P hypothesis(es) and kept the lowest cost")
-        if not calibration.converged:
-            from mirror_fg.analytic import SolveError
-
-            raise SolveError(f"{dataset.source}: Levenberg-Marquardt did not converge in {calibration.iterations} "
-                             "iterations (stalled); the result was not written")
-        result = calibration.to_dict()
-    write_result(args.output, result)
-    written = [str(args.output)]
-    if not args.no_ros:
-        from mirror_fg.ros import write_ros_outputs
-
-        written += [str(p) for p in write_ros_outputs(result, args.output, args.base_frame, args.camera_frame)]
+        require_converged(calibration, dataset.source)
+    result = calibration.to_dict()
+    texts = {os.fspath(args.output): result_text(result, args.output)}
+    if ros:
+        texts.update(ros_output_texts(result, args.output, args.base_frame, args.camera_frame))
+    written = plan.commit(texts)
     _print_transform_summary(out, result, time.perf_counter() - start, args.incremental)
-    out.info("wrote " + ", ".join(written))
+    out.info("wrote " + ", ".join(str(p) for p in written))
     return EXIT_OK
 
 
-def _run_incremental(dataset, args, out: _Printer) -> dict:
-    from mirror_fg.incremental import IncrementalCalibrator
+def _run_incremental(dataset, args, out: _Printer):
+    from mirror_fg.incremental import calibrate_incremental
 
-    calibrator = IncrementalCalibrator(dataset, robust=args.robust)
-    calibration = None
-    for index, image in enumerate(dataset.images, start=1):
-        estimate = calibrator.add_image(image)
-        if estimate is not None:
-            calibration = estimate
-            if index % max(args.every, 1) == 0 or index == len(dataset.images):
-                s = estimate.to_dict()["sigma3_cam_base"]
-                out.info(f"[{index:5d}/{len(dataset.images)}] 3-sigma rot [" + ", ".join(f"{x:.3f}" for x in s["rotation_deg"])
-                         + "] deg, pos [" + ", ".join(f"{x:.1f}" for x in s["position_mm"]) + "] mm")
-    if calibration is None:
-        from mirror_fg.analytic import SolveError
+    total = len(dataset.images)
 
-        raise SolveError(f"{dataset.source}: the images never allowed an analytical solution "
-                         "(each placement needs >= 3 child placements)")
-    return calibrator.calibration(full=True).to_dict()
+    def on_estimate(index: int, estimate) -> None:
+        if index % args.every == 0 or index == total:
+            s = estimate.to_dict()["sigma3_cam_base"]
+            out.info(f"[{index:5d}/{total}] 3-sigma rot [" + ", ".join(f"{x:.3f}" for x in s["rotation_deg"])
+                     + "] deg, pos [" + ", ".join(f"{x:.1f}" for x in s["position_mm"]) + "] mm")
+
+    return calibrate_incremental(dataset, robust=args.robust, on_estimate=on_estimate)
 
 
 def cmd_detect(args, out: _Printer) -> int:
-    from mirror_fg.capture import load_capture
-    from mirror_fg.dataset import dataset_from_dict, save_dataset
-    from mirror_fg.detect import detect_capture
+    from mirror_fg.capture import CAPTURE_FORMAT
+    from mirror_fg.dataset import DatasetError, dataset_text
+    from mirror_fg.fileio import OutputPlan, load_structured
 
-    capture = load_capture(args.capture)
-    data, reports = detect_capture(capture, progress=out.progress)
-    _print_detection_report(out, reports)
-    dataset = dataset_from_dict(data, source=str(args.capture))
-    save_dataset(args.output, dataset)
+    plan = OutputPlan(inputs=[os.fspath(args.capture)])
+    plan.add(args.output, "dataset")
+    data = load_structured(args.capture)
+    if not isinstance(data, dict) or data.get("format") != CAPTURE_FORMAT:
+        raise DatasetError(f"{args.capture}: not a capture file (expected format {CAPTURE_FORMAT!r})")
+    dataset = _load_input(args.capture, out, plan)
+    plan.commit({os.fspath(args.output): dataset_text(dataset)})
     out.info(f"wrote {args.output} ({len(dataset.images)} images)")
     return EXIT_OK
 
 
 def cmd_report(args, out: _Printer) -> int:
     from mirror_fg.dataset import DatasetError, load_dataset, load_result
+    from mirror_fg.fileio import OutputPlan
     from mirror_fg.report import write_report
 
+    plan = OutputPlan(inputs=[os.fspath(p) for p in (args.result, args.dataset) if p is not None])
+    if os.path.exists(args.output) and not os.path.isdir(args.output):
+        raise DatasetError(f"{args.output}: exists and is not a directory (report -o takes a directory)")
+    for name in ("report.html", "report.pdf"):
+        plan.add(Path(args.output) / name, "report")
     result = load_result(args.result)
     dataset = load_dataset(args.dataset) if args.dataset is not None else None
     try:
-        paths = write_report(result, dataset, args.output, progress=out.progress,
+        paths = write_report(result, dataset, args.output, progress=out.progress, source=os.fspath(args.result),
                              base_frame=args.base_frame, camera_frame=args.camera_frame)
     except ValueError as error:  # a malformed result file
         if isinstance(error, DatasetError):
@@ -318,20 +389,24 @@ def cmd_report(args, out: _Printer) -> int:
 
 
 def cmd_plan(args, out: _Printer) -> int:
-    from mirror_fg.dataset import atomic_write
+    from mirror_fg.fileio import OutputPlan
     from mirror_fg.plan import PlanSetup, format_plan, load_fiducials, plan
 
+    outputs = OutputPlan(inputs=[os.fspath(args.fiducials_file)] if args.fiducials_file is not None else [])
+    if args.json is not None:
+        outputs.add(args.json, "plan JSON")
     fiducials = load_fiducials(args.fiducials_file) if args.fiducials_file is not None else None
     setup = PlanSetup(num_mirrors=args.mirrors, placements=args.placements, num_images=args.images,
                       num_fiducials=args.fiducials, fiducials=fiducials, num_points=args.points,
                       mirror_distance_m=args.distance, tilt_deg=args.tilt, pixel_sigma=args.sigma,
                       focal_px=args.focal)
     result = plan(setup, draws=args.draws, seed=args.seed)
-    out.info(format_plan(result))
     if args.json is not None:
         import json
 
-        atomic_write(args.json, json.dumps(result.to_dict(), indent=2))
+        outputs.commit({os.fspath(args.json): json.dumps(result.to_dict(), indent=2)})
+    out.info(format_plan(result))
+    if args.json is not None:
         out.info(f"wrote {args.json}")
     return EXIT_OK
 
@@ -339,31 +414,61 @@ def cmd_plan(args, out: _Printer) -> int:
 COMMANDS = {"plan": cmd_plan, "simulate": cmd_simulate, "calibrate": cmd_calibrate, "detect": cmd_detect, "report": cmd_report}
 
 
+#: Longest run of user data (a path, a value) quoted in an error line.
+_MAX_QUOTE = 80
+
+
+def _one_line(message: str) -> str:
+    """``message`` on one line, any run of more than _MAX_QUOTE non-blank characters elided in the middle."""
+    def elide(match: re.Match[str]) -> str:
+        word = match.group(0)
+        half = (_MAX_QUOTE - 3) // 2
+        return word[:half] + "..." + word[-half:]
+
+    return re.sub(r"\S{%d,}" % (_MAX_QUOTE + 1), elide, " ".join(str(message).split()))
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``mirror-fg`` console script."""
-    from mirror_fg.analytic import SolveError
-    from mirror_fg.dataset import DatasetError
-
     args = build_parser().parse_args(argv)
     out = _Printer(args.quiet, args.verbose)
     np.set_printoptions(suppress=True)
+    status = _run(args, out)
+    try:
+        sys.stdout.flush()
+    except OSError as error:
+        out.stdout_broken(error)
+    return status
+
+
+def _run(args, out: _Printer) -> int:
+    from mirror_fg.analytic import SolveError
+    from mirror_fg.dataset import DatasetError
+
     try:
         return COMMANDS[args.command](args, out)
     except DatasetError as error:
-        print(f"mirror-fg: error: {error}", file=sys.stderr)
+        _error_line(f"mirror-fg: error: {_one_line(str(error))}")
         return EXIT_BAD_INPUT
     except SolveError as error:
-        print(f"mirror-fg: cannot solve: {error}", file=sys.stderr)
+        _error_line(f"mirror-fg: cannot solve: {_one_line(str(error))}")
         return EXIT_UNSOLVABLE
     except KeyboardInterrupt:
-        print("mirror-fg: interrupted", file=sys.stderr)
+        _error_line("mirror-fg: interrupted")
         return 130
     except Exception as error:  # noqa: BLE001 - the one place that turns bugs into one line
         if args.verbose:
             traceback.print_exc()
-        print(f"mirror-fg: internal error: {type(error).__name__}: {error} (run with --verbose for details)",
-              file=sys.stderr)
+        _error_line(f"mirror-fg: internal error: {type(error).__name__}: {_one_line(str(error))} "
+                    "(run with --verbose for details)")
         return EXIT_INTERNAL
+
+
+def _error_line(text: str) -> None:
+    try:
+        print(text, file=sys.stderr, flush=True)
+    except OSError:
+        pass
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@ in ``dataset.reconstruction_point_names`` order). With iid Gaussian noise of sta
 ``J^T Sigma^-1 J`` with ``J`` the stacked Jacobian of eq. (9) (``geometry.measurement_jacobians``), and
 its inverse is the Cramér-Rao bound on the covariance of any unbiased estimator.
 
-Covariances that leave this module follow SPEC.md: the pose block as ``[dtheta (rad), dt (m)]`` with
+Covariances that leave this module follow docs/formats.md: the pose block as ``[dtheta (rad), dt (m)]`` with
 ``R_true = Exp(dtheta) R_est``, ``t_true = t_est + dt``; errors likewise, "true minus estimate".
 """
 from __future__ import annotations

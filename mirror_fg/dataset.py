@@ -5,12 +5,13 @@ camera (undistorted and normalized here with OpenCV), else normalized image coor
 """
 from __future__ import annotations
 
+import difflib
 import json
 import math
 import numbers
 import os
 import re
-import tempfile
+import reprlib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -25,6 +26,7 @@ __all__ = [
     "DATASET_FORMAT",
     "RESULT_FORMAT",
     "DatasetError",
+    "OutputError",
     "Camera",
     "Image",
     "Dataset",
@@ -34,6 +36,8 @@ __all__ = [
     "save_dataset",
     "validate_image",
     "write_result",
+    "result_text",
+    "dataset_text",
     "load_result",
 ]
 
@@ -44,10 +48,21 @@ COLLINEAR_TOL = 1e-6
 # cv2.undistortPoints stops after 5 fixed-point iterations by default (errors ~1e-5 on a wide-angle
 # lens); iterate until the reprojection error is below 1e-12 px (at most 100 times) instead.
 _UNDISTORT_CRITERIA = (100, 1e-12)  # (max iterations, epsilon in pixels)
+#: Pixel observations may lie this fraction of the image size outside it (detections at the border).
+PIXEL_MARGIN_FRACTION = 0.02
+#: Intrinsics that ``camera.estimate`` may name (OpenCV's model).
+INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+_DATASET_KEYS = ("format", "num_mirrors", "camera", "pixel_sigma", "fiducials", "images")
+_CAMERA_KEYS = ("model", "width", "height", "fx", "fy", "cx", "cy", "dist", "estimate", "prior_sigma")
+_IMAGE_KEYS = ("id", "mirror_configs", "observations")
 
 
 class DatasetError(ValueError):
     """Bad input: the message names the file, image or point and what is wrong, in one line."""
+
+
+class OutputError(DatasetError, OSError):
+    """An output file cannot be written (full disk, no permission): one line naming the file."""
 
 
 @dataclass(frozen=True)
@@ -61,6 +76,16 @@ class Camera:
     cx: float
     cy: float
     dist: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    #: Intrinsics to estimate through the mirrors (``camera.estimate``), and their prior sigmas.
+    estimate: tuple[str, ...] = ()
+    prior_sigma: tuple[tuple[str, float], ...] = ()
+
+    def contains(self, pixels: np.ndarray) -> np.ndarray:
+        """Whether each pixel (N, 2) lies in the image, extended by PIXEL_MARGIN_FRACTION of its size."""
+        pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+        margin = PIXEL_MARGIN_FRACTION * np.array([self.width, self.height])
+        low, high = -0.5 - margin, np.array([self.width, self.height]) - 0.5 + margin
+        return np.all((pixels >= low) & (pixels <= high), axis=1)
 
     @property
     def K(self) -> np.ndarray:
@@ -176,8 +201,10 @@ def load_dataset(path: PathLike) -> Dataset:
     Raises DatasetError (one line naming the file, the image or point and the problem) on an unreadable
     file, invalid JSON (with line and column) or any content that :func:`dataset_from_dict` rejects.
     """
+    from mirror_fg.fileio import parse_json, read_text
+
     source = os.fspath(path)
-    return dataset_from_dict(_parse_json(_read_text(source), source), source=source)
+    return dataset_from_dict(parse_json(read_text(source), source), source=source)
 
 
 def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Dataset:
@@ -187,13 +214,8 @@ def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Datase
     camera or normalized image coordinates without one; ``mirror_configs`` tuples of ints.
     ``source`` names the data in every error message (a file name for :func:`load_dataset`).
     """
-    if not isinstance(d, Mapping):
-        raise DatasetError(f"{source}: expected a JSON object at the top level, got {_kind(d)}")
-    fmt = d.get("format")
-    if fmt is None:
-        raise DatasetError(f"{source}: missing 'format' (expected {DATASET_FORMAT!r})")
-    if fmt != DATASET_FORMAT:
-        raise DatasetError(f"{source}: unknown format {_short(fmt)} (expected {DATASET_FORMAT!r})")
+    check_format(d, DATASET_FORMAT, source)
+    check_keys(d, _DATASET_KEYS, source)
 
     num_mirrors = d.get("num_mirrors")
     if not _is_int(num_mirrors) or num_mirrors < 1:
@@ -258,6 +280,7 @@ def validate_image(
         configs: Any = image.mirror_configs
         observations: Any = image.observations
     elif isinstance(image, Mapping):
+        check_keys(image, _IMAGE_KEYS, f"{source}: {where}")
         image_id = image.get("id")
         configs = image.get("mirror_configs")
         observations = image.get("observations")
@@ -302,6 +325,15 @@ def validate_image(
         if known_points is not None and name not in ds.fiducials and name not in known_points:
             raise DatasetError(f"{prefix}: unknown point {name!r} (neither a fiducial nor a known point)")
         obs[name] = _coordinates(value, 2, "[u, v]", f"{prefix}: point {name!r}")
+    if ds.camera is not None:
+        names = list(obs)
+        inside = ds.camera.contains(np.array([obs[n] for n in names]))
+        if not inside.all():
+            name = names[int(np.argmin(inside))]
+            raise DatasetError(
+                f"{prefix}: point {_short(name)} at {_short([round(float(x), 2) for x in obs[name]])} px is "
+                f"outside the {ds.camera.width}x{ds.camera.height} image"
+            )
     return Image(id=image_id, mirror_configs=tuple(int(m) for m in configs), observations=obs)
 
 
@@ -312,10 +344,16 @@ def _camera_from_dict(camera: Any, source: str) -> Camera | None:
     prefix = f"{source}: camera"
     if not isinstance(camera, Mapping):
         raise DatasetError(f"{prefix}: expected an object or null, got {_kind(camera)}")
+    check_keys(camera, _CAMERA_KEYS, prefix)
+    estimate, prior_sigma = _estimated_intrinsics(camera, prefix)
     model = camera.get("model", "pinhole")
     if model != "pinhole":
         raise DatasetError(f"{prefix}: unsupported model {_short(model)} (only 'pinhole')")
     missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if k not in camera]
+    unstarted = [k for k in missing if k in estimate]
+    if unstarted:
+        raise DatasetError(f"{prefix}: {', '.join(unstarted)} absent: starting intrinsics from the photographs "
+                           "is not supported by this version; give a starting value")
     if missing:
         raise DatasetError(f"{prefix}: missing {', '.join(repr(k) for k in missing)}")
     for key in ("width", "height"):
@@ -347,7 +385,56 @@ def _camera_from_dict(camera: Any, source: str) -> Camera | None:
         cx=float(camera["cx"]),
         cy=float(camera["cy"]),
         dist=tuple(float(x) for x in dist),
+        estimate=estimate,
+        prior_sigma=prior_sigma,
     )
+
+
+def _estimated_intrinsics(camera: Mapping[str, Any], prefix: str) -> tuple[tuple[str, ...], tuple[tuple[str, float], ...]]:
+    """``camera.estimate`` (names of intrinsics) and ``camera.prior_sigma`` ({name: sigma > 0}), checked."""
+    estimate = camera.get("estimate", [])
+    if not isinstance(estimate, list) or not all(isinstance(n, str) for n in estimate):
+        raise DatasetError(f"{prefix}: estimate must be a list of intrinsic names, got {_short(estimate)}")
+    for name in estimate:
+        _check_name(name, INTRINSIC_NAMES, f"{prefix}: estimate", "intrinsic")
+    if len(set(estimate)) != len(estimate):
+        raise DatasetError(f"{prefix}: estimate names an intrinsic twice: {_short(estimate)}")
+    prior = camera.get("prior_sigma", {})
+    if not isinstance(prior, Mapping):
+        raise DatasetError(f"{prefix}: prior_sigma must be an object {{name: sigma}}, got {_kind(prior)}")
+    for name, sigma in prior.items():
+        _check_name(name, INTRINSIC_NAMES, f"{prefix}: prior_sigma", "intrinsic")
+        if not _is_number(sigma) or not math.isfinite(sigma) or sigma <= 0:
+            raise DatasetError(f"{prefix}: prior_sigma {name}: must be a finite number > 0, got {_short(sigma)}")
+    return tuple(estimate), tuple((str(n), float(s)) for n, s in prior.items())
+
+
+def check_format(d: Any, expected: str, source: str) -> None:
+    """Refuse anything but an object whose ``format`` is ``expected`` (one line naming ``source``)."""
+    if not isinstance(d, Mapping):
+        raise DatasetError(f"{source}: expected an object at the top level, got {_kind(d)}")
+    fmt = d.get("format")
+    if fmt != expected:
+        what = "missing 'format'" if fmt is None else f"unknown format {_short(fmt)}"
+        raise DatasetError(f"{source}: {what} (expected {expected!r})")
+
+
+def check_keys(mapping: Mapping[Any, Any], allowed: Iterable[str], where: str) -> None:
+    """Refuse a key of ``mapping`` outside ``allowed``, naming the key meant where one is close."""
+    allowed = tuple(allowed)
+    for key in mapping:
+        if key not in allowed:
+            _check_name(key, allowed, where, "key")
+
+
+def _check_name(name: Any, allowed: tuple[str, ...], where: str, what: str) -> None:
+    if name in allowed:
+        return
+    close = difflib.get_close_matches(str(name), allowed, n=1, cutoff=0.5) if isinstance(name, str) else []
+    if not close and isinstance(name, str):  # "distortion" -> "dist": a known name that starts it
+        close = [a for a in allowed if len(a) >= 3 and str(name).lower().startswith(a)][:1]
+    hint = f" (did you mean {close[0]!r}?)" if close else f" (expected one of {', '.join(allowed)})"
+    raise DatasetError(f"{where}: unknown {what} {_short(name)}{hint}")
 
 
 def _fiducials_from_dict(fiducials: Any, source: str) -> dict[str, np.ndarray]:
@@ -428,10 +515,29 @@ def _kind(x: Any) -> str:
     return "a number" if _is_number(x) else type(x).__name__
 
 
+class _Quoter(reprlib.Repr):
+    """reprlib with small limits, and without expanding huge integers (str() of one can raise)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.maxlevel, self.maxlist, self.maxtuple, self.maxdict = 2, 6, 6, 3
+        self.maxstring, self.maxother, self.maxlong = 40, 40, 40
+
+    def repr_int(self, x: int, level: int) -> str:
+        if x.bit_length() > 128:
+            return f"<integer of {int(x.bit_length() * 0.30103) + 1} digits>"
+        return super().repr_int(x, level)
+
+
+_QUOTER = _Quoter()
+
+
 def _short(x: Any, limit: int = 60) -> str:
-    """One-line, bounded repr of a value for messages."""
-    text = repr(x.tolist() if isinstance(x, np.ndarray) else x)
-    text = " ".join(text.split())
+    """One-line repr of user data for messages, bounded in length and in work (an aliased or deeply
+    nested value is not expanded)."""
+    if isinstance(x, np.ndarray):
+        x = x.tolist() if x.size <= 8 else f"<array of shape {x.shape}>"
+    text = " ".join(_QUOTER.repr(x).split())
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
@@ -455,6 +561,10 @@ def dataset_to_dict(ds: Dataset) -> dict[str, Any]:
             "cy": float(c.cy),
             "dist": [float(x) for x in c.dist],
         }
+        if c.estimate:
+            camera["estimate"] = list(c.estimate)
+        if c.prior_sigma:
+            camera["prior_sigma"] = dict(c.prior_sigma)
     return {
         "format": DATASET_FORMAT,
         "num_mirrors": int(ds.num_mirrors),
@@ -474,7 +584,7 @@ def dataset_to_dict(ds: Dataset) -> dict[str, Any]:
 
 def save_dataset(path: PathLike, ds: Dataset) -> None:
     """Write ``ds`` as a dataset@1 JSON file, atomically (an existing file is replaced only on success)."""
-    atomic_write(os.fspath(path), _json_text(dataset_to_dict(ds), allow_nan=False))
+    atomic_write(os.fspath(path), dataset_text(ds))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -491,39 +601,33 @@ def write_result(path: PathLike, result: Mapping[str, Any]) -> None:
     temporary file behind. Raises TypeError naming the key of a value that cannot be written.
     """
     target = os.fspath(path)
+    atomic_write(target, result_text(result, target))
+
+
+def result_text(result: Mapping[str, Any], path: PathLike) -> str:
+    """The text of a result@1 file: YAML where ``path`` ends in .yaml/.yml, else JSON (indent 2)."""
     plain = _plain(result, "result")
-    if _is_yaml(target):
+    if _is_yaml(os.fspath(path)):
         import yaml
 
-        text = yaml.safe_dump(plain, default_flow_style=None, sort_keys=False, allow_unicode=True)
-    else:
-        text = _json_text(plain, allow_nan=True)
-    atomic_write(target, text)
+        return yaml.safe_dump(plain, default_flow_style=None, sort_keys=False, allow_unicode=True)
+    return _json_text(plain, allow_nan=True)
+
+
+def dataset_text(ds: Dataset) -> str:
+    """The dataset@1 JSON text of ``ds``."""
+    return _json_text(dataset_to_dict(ds), allow_nan=False)
 
 
 def load_result(path: PathLike) -> dict[str, Any]:
     """Read a result@1 file (JSON, or YAML where the name ends in .yaml/.yml). Raises DatasetError."""
-    source = os.fspath(path)
-    text = _read_text(source)
-    if _is_yaml(source):
-        import yaml
+    from mirror_fg.fileio import parse_json, parse_yaml, read_text
+    from mirror_fg.result import validate_result
 
-        try:
-            data = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            mark = getattr(exc, "problem_mark", None)
-            at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-            problem = getattr(exc, "problem", None) or "syntax error"
-            raise DatasetError(f"{source}: not valid YAML: {problem}{at}") from None
-    else:
-        data = _parse_json(text, source)
-    if not isinstance(data, dict):
-        raise DatasetError(f"{source}: expected an object at the top level, got {_kind(data)}")
-    fmt = data.get("format")
-    if fmt != RESULT_FORMAT:
-        what = "missing 'format'" if fmt is None else f"unknown format {_short(fmt)}"
-        raise DatasetError(f"{source}: {what} (expected {RESULT_FORMAT!r})")
-    return data
+    source = os.fspath(path)
+    text = read_text(source)
+    data = parse_yaml(text, source) if _is_yaml(source) else parse_json(text, source)
+    return validate_result(data, source)
 
 
 def _plain(value: Any, where: str) -> Any:
@@ -572,78 +676,13 @@ def _is_yaml(path: str) -> bool:
     return path.lower().endswith((".yaml", ".yml"))
 
 
-def _read_text(source: str) -> str:
-    """The UTF-8 text of a file; DatasetError naming the file when it cannot be read."""
-    try:
-        with open(source, "rb") as f:
-            raw = f.read()
-    except OSError as exc:
-        raise DatasetError(f"{source}: cannot read file: {exc.strerror or exc}") from None
-    try:
-        return raw.decode("utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise DatasetError(f"{source}: not UTF-8 text (byte {exc.start})") from None
-
-
-def _parse_json(text: str, source: str) -> Any:
-    """Parse JSON; DatasetError with line and column on a syntax error or a key repeated in one object."""
-
-    def no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        for key, value in pairs:
-            if key in out:
-                raise DatasetError(f"{source}: key {key!r} appears twice in one JSON object")
-            out[key] = value
-        return out
-
-    try:
-        return json.loads(text, object_pairs_hook=no_duplicates)
-    except json.JSONDecodeError as exc:
-        at = f"line {exc.lineno}, column {exc.colno}"
-        raise DatasetError(f"{source}: not valid JSON: {exc.msg} at {at}") from None
-    except RecursionError:
-        raise DatasetError(f"{source}: not valid JSON: nested too deeply") from None
-
-
 def atomic_write(path: str | os.PathLike[str], data: str | bytes) -> Path:
-    """Write ``data`` (text is UTF-8) to ``path`` through a temporary file in the same directory and
-    ``os.replace``: an existing file is replaced only once the new content is complete, and on any
-    failure the temporary file is removed and the old file stays as it was."""
-    raw = data.encode("utf-8") if isinstance(data, str) else data
-    target = os.path.realpath(os.fspath(path))  # keep a symlink a symlink: replace what it points to
-    directory = os.path.dirname(target)
-    os.makedirs(directory, exist_ok=True)  # "-o out/result.json" creates out/
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(target)}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(raw)
-            f.flush()
-            os.fsync(f.fileno())
-        # mkstemp makes the file 0600; give it the mode an ordinary open() would have.
-        try:
-            mode = os.stat(target).st_mode & 0o7777
-        except FileNotFoundError:
-            mode = 0o666 & ~_umask()
-        os.chmod(tmp, mode)
-        os.replace(tmp, target)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    """Write ``data`` (text is UTF-8) to ``path`` all-or-nothing (:class:`mirror_fg.fileio.OutputPlan`):
+    a temporary file in the same directory replaces an existing file only once complete; on any
+    failure the old file stays as it was. DatasetError (one line) where ``path`` cannot be written."""
+    from mirror_fg.fileio import OutputPlan
+
+    plan = OutputPlan()
+    plan.add(path)
+    plan.commit({os.fspath(path): data})
     return Path(path)
-
-
-def _umask() -> int:
-    """The process umask, read without changing it where /proc allows."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
-        pass
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask

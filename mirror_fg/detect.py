@@ -19,7 +19,9 @@ re-detected.
 """
 from __future__ import annotations
 
+import os
 import sys
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -28,11 +30,15 @@ import numpy as np
 
 from mirror_fg.capture import (
     EACH,
+    MAX_IMAGE_PIXELS,
     Capture,
     ChessboardTarget,
     ImageEntry,
     PointsTarget,
     TagTarget,
+    _name,
+    native_stderr,
+    open_video,
 )
 from mirror_fg.dataset import DATASET_FORMAT, DatasetError
 from mirror_fg.tracking import KLTParams, PointTracker
@@ -47,6 +53,7 @@ __all__ = [
     "FOUND",
     "NOT_FOUND",
     "REFUSED",
+    "MAX_IMAGE_PIXELS",
 ]
 
 FOUND, NOT_FOUND, REFUSED = "found", "not found", "refused"
@@ -66,6 +73,9 @@ GRID_MISFIT_MIN_PX, GRID_MISFIT_FRACTION = 2.0, 0.1
 #: Tag corner refinement: half window as a fraction of a tag cell, and its bounds (pixels).
 TAG_WINDOW_FRACTION = 0.5
 TAG_WINDOW_MIN, TAG_WINDOW_MAX = 2, 5
+#: An image whose format Pillow cannot read from its header (so its size is unknown before decoding)
+#: is decoded by OpenCV only up to this file size (bytes), which bounds what it can expand to.
+MAX_UNSIZED_IMAGE_BYTES = 4 << 20
 #: Inverse sRGB transfer function, 8-bit code -> linear intensity on the same 0-255 scale.
 _x = np.arange(256) / 255.0
 SRGB_TO_LINEAR = (np.where(_x <= 0.04045, _x / 12.92, ((_x + 0.055) / 1.055) ** 2.4) * 255.0).astype(np.float32)
@@ -349,7 +359,8 @@ def detect_capture(capture: Capture, progress: bool = True) -> tuple[dict[str, A
     Returns the dataset@1 dictionary (camera as a pixel model, fiducials in the base frame, images with
     ids = file stems or ``stem:frame``, ``each`` placements expanded into fresh integers) and one
     :class:`ImageReport` per image/frame in capture order. ``progress`` shows a tqdm bar on stderr when
-    it is a terminal. Raises DatasetError when an image cannot be decoded or no image is kept.
+    it is a terminal. An image that cannot be decoded, or is above MAX_IMAGE_PIXELS, is refused with the
+    reason. Raises DatasetError when no image is kept, or the video cannot be read.
     """
     camera = dict(capture.camera)
     outputs: list[_Output] = []
@@ -442,9 +453,14 @@ def _detect_images(
 def _detect_entry(entry: ImageEntry, detector: _Detector, capture: Capture, camera: dict[str, Any]) -> Detection:
     if isinstance(capture.target, PointsTarget):
         if entry.file is not None and camera.get("width") is None:
-            _check_size(_read_gray(entry), camera)
+            gray, why = _read_gray(entry)
+            if gray is None:
+                return Detection(status=REFUSED, reason=why)
+            _check_size(gray, camera)
         return Detection(points=dict(entry.observations))
-    gray = _read_gray(entry)
+    gray, why = _read_gray(entry)
+    if gray is None:
+        return Detection(status=REFUSED, reason=why)
     mismatch = _check_size(gray, camera)
     if mismatch:
         return Detection(status=REFUSED, reason=mismatch)
@@ -457,12 +473,46 @@ def _detect_entry(entry: ImageEntry, detector: _Detector, capture: Capture, came
     return det
 
 
-def _read_gray(entry: ImageEntry) -> np.ndarray:
+def _read_gray(entry: ImageEntry) -> tuple[np.ndarray | None, str]:
+    """The image as 8-bit gray, or ``(None, reason)``: too large (from its header, before decoding),
+    not an image, or damaged (the decoder's own complaint, e.g. ``Premature end of JPEG file``)."""
     assert entry.file is not None
-    gray = cv2.imread(entry.file, cv2.IMREAD_GRAYSCALE)
+    too_large = _too_large(entry.file)
+    if too_large:
+        return None, f"{entry.label}: {too_large}"
+    with native_stderr() as native:
+        gray = cv2.imread(entry.file, cv2.IMREAD_GRAYSCALE)
     if gray is None:
-        raise DatasetError(f"{entry.where}: cannot decode the image (not an image file OpenCV reads, or damaged)")
-    return gray
+        return None, f"{entry.label}: cannot decode the image (not an image file OpenCV reads, or damaged){native.detail}"
+    if native.problem:
+        return None, f"{entry.label}: damaged image{native.detail}"
+    return gray, ""
+
+
+def _too_large(path: str) -> str:
+    """Why the image at ``path`` must not be decoded (above MAX_IMAGE_PIXELS), or ''.
+
+    The size comes from the header through Pillow, which reads no pixel data. A file Pillow cannot
+    identify (not an image, or a format only OpenCV reads) is let through only when small.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as im:
+                width, height = im.size
+    except Image.DecompressionBombError:
+        return f"image is above the limit of {MAX_IMAGE_PIXELS} pixels (from its header; not decoded)"
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError, EOFError):
+        try:
+            small = os.path.getsize(path) <= MAX_UNSIZED_IMAGE_BYTES
+        except OSError as exc:
+            return f"cannot read the image: {exc.strerror or exc}"
+        return "" if small else f"not an image format whose size can be read before decoding, and over {MAX_UNSIZED_IMAGE_BYTES} bytes"
+    if width * height > MAX_IMAGE_PIXELS:
+        return f"image is {width} x {height} pixels, above the limit of {MAX_IMAGE_PIXELS} (not decoded)"
+    return ""
 
 
 def _detect_video(
@@ -476,7 +526,8 @@ def _detect_video(
     starts: dict[int, list[Any]] = {}
     for start in capture.track.values():
         starts.setdefault(start.frame, []).append(start)
-    vc = cv2.VideoCapture(video.file)
+    where = f"{capture.source}: video ({_name(os.path.basename(video.file))})"
+    vc = open_video(video.file, where)
     total = sum(s.last - s.first + 1 for s in video.segments)
     position = 0  # index of the next frame vc.read() returns
     last_read = -2
@@ -484,7 +535,9 @@ def _detect_video(
         with _progress(total, "frame", show) as bar:
             for seg in video.segments:
                 while position < seg.first:
-                    if not vc.grab():
+                    with native_stderr():
+                        grabbed = vc.grab()
+                    if not grabbed:
                         break
                     position += 1
                 if seg.first != last_read + 1:
@@ -492,11 +545,13 @@ def _detect_video(
                 outputs_of_seg = set(seg.output_frames())
                 for frame in range(seg.first, seg.last + 1):
                     frame_id = f"{video.stem}:{frame}"
-                    ok, image = vc.read() if position == frame else (False, None)
+                    with native_stderr() as native:
+                        ok, image = vc.read() if position == frame else (False, None)
                     if not ok:
+                        why = f"frame could not be read from the video{native.detail}"
                         for f in range(frame, seg.last + 1):
                             if f in outputs_of_seg:
-                                reports.append(ImageReport(f"{video.stem}:{f}", NOT_FOUND, "frame could not be read from the video"))
+                                reports.append(ImageReport(f"{video.stem}:{f}", NOT_FOUND, why))
                         bar.update(seg.last + 1 - frame)
                         tracker.reset()
                         break
@@ -505,7 +560,7 @@ def _detect_video(
                     gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
                     mismatch = _check_size(gray, camera)
                     if mismatch:
-                        raise DatasetError(f"{capture.source}: video ({video.file}): {mismatch}")
+                        raise DatasetError(f"{where}: {mismatch}")
                     tracker.step(gray)
                     det = detector(gray)
                     for name, p in det.points.items():

@@ -7,16 +7,16 @@ per reconstruction point (base frame, metres).
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, V, X
 
 from mirror_fg.analytic import AnalyticSolution, SolveError, reconstruct_points, solve_analytic
-from mirror_fg.dataset import RESULT_FORMAT, Dataset
+from mirror_fg.dataset import RESULT_FORMAT, Dataset, DatasetError, dataset_from_dict
 from mirror_fg.factors.batched import batched_factors
 from mirror_fg.factors.reflection import ReflectionFactor, noise_model
 from mirror_fg.geometry import nested_transform, project
@@ -186,7 +186,7 @@ class Calibration:
         return np.linalg.norm(self.residuals, axis=1)
 
     def to_dict(self) -> dict:
-        """The ``mirror-fg/result@1`` dictionary (SPEC.md)."""
+        """The ``mirror-fg/result@1`` dictionary (docs/formats.md)."""
 
         def transform(R: np.ndarray, t: np.ndarray) -> dict:
             return {"R": R.tolist(), "t": np.asarray(t).tolist(), "q_xyzw": rotation_to_quaternion_xyzw(R).tolist()}
@@ -378,17 +378,40 @@ def unconstrained_message(error: Exception, layout: GraphLayout) -> str:
     return "the data leave some unknowns unconstrained (indeterminant linear system)"
 
 
-def lm_params(max_iterations: int) -> gtsam.LevenbergMarquardtParams:
-    """Levenberg-Marquardt settings of the MLE (eq. 23): tight tolerances, at most ``max_iterations``."""
+#: Normalized measurement noise at which the LM settings below were chosen: 1 px at fx = 800 px
+#: (the paper's base case).
+REFERENCE_NORMALIZED_SIGMA = 1.0 / 800.0
+
+
+def cost_scale(dataset: Dataset) -> float:
+    """How many times larger every whitened cost, gradient and Hessian are than at the reference noise.
+
+    With a uniform ``pixel_sigma`` the MLE does not depend on it, but the cost scales as
+    ``1 / sigma^2``: every absolute threshold of LM (its damping, its absolute tolerance, the stall
+    test) is multiplied by this factor so that LM takes the same steps whatever the sigma.
+    """
+    sigma = float(np.sqrt(np.prod(dataset.normalized_sigma)))
+    return (REFERENCE_NORMALIZED_SIGMA / sigma) ** 2
+
+
+def lm_params(max_iterations: int, scale: float = 1.0) -> gtsam.LevenbergMarquardtParams:
+    """Levenberg-Marquardt settings of the MLE (eq. 23): tight tolerances, at most ``max_iterations``.
+
+    ``scale``: :func:`cost_scale` of the data; the damping and the absolute tolerance scale with it
+    (GTSAM's defaults, 1e-5 and 1e5 for the damping, hold at the reference noise).
+    """
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
     params.setRelativeErrorTol(1e-10)
-    params.setAbsoluteErrorTol(1e-12)
+    params.setAbsoluteErrorTol(1e-12 * scale)
+    params.setlambdaInitial(1e-5 * scale)
+    params.setlambdaUpperBound(1e5 * scale)
     return params
 
 
-def _stationary(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, error: float) -> bool:
-    """Whether the Gauss-Newton step at ``values`` promises (almost) no decrease of the error."""
+def _stationary(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, error: float, scale: float) -> bool:
+    """Whether the Gauss-Newton step at ``values`` promises (almost) no decrease of the error
+    (relative to the error, or to ``scale`` (:func:`cost_scale`) near a zero error)."""
     linear = graph.linearize(values)
     try:
         step = linear.optimize()
@@ -396,7 +419,7 @@ def _stationary(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, error: 
         return False
     zero = step.scale(0.0)
     predicted_decrease = linear.error(zero) - linear.error(step)
-    return predicted_decrease <= 1e-6 * max(error, 1.0)
+    return predicted_decrease <= 1e-6 * max(error, scale)
 
 
 def _plausible(final_error: float, expected_final_error: float) -> bool:
@@ -434,7 +457,8 @@ def _levenberg_marquardt(
     timings["build"] = timings.get("build", 0.0) + time.perf_counter() - start
 
     start = time.perf_counter()
-    params = lm_params(max_iterations)
+    scale = cost_scale(dataset)
+    params = lm_params(max_iterations, scale)
     if on_iteration is not None:
         params.iterationHook = on_iteration
     initial_error = graph.error(values)
@@ -447,7 +471,7 @@ def _levenberg_marquardt(
     iterations = optimizer.iterations()
     # LM also stops when its damping hits the upper bound: a stall unless a Gauss-Newton step
     # would no longer lower the error (then it is at a stationary point, e.g. noise-free data).
-    stalled = optimizer.lambda_() >= params.getlambdaUpperBound() and not _stationary(graph, result, final_error)
+    stalled = optimizer.lambda_() >= params.getlambdaUpperBound() and not _stationary(graph, result, final_error, scale)
     converged = bool(np.isfinite(final_error)) and iterations < max_iterations and not stalled
     timings["optimize"] = timings.get("optimize", 0.0) + time.perf_counter() - start
     return _Run(graph, values, result, layout, measurements, float(initial_error), float(final_error), iterations,
@@ -464,7 +488,7 @@ def _refine_subtree(subtree: Dataset, closed_form: AnalyticSolution) -> tuple[fl
     """The MLE (eq. 23) of one subtree's own images from its closed-form hypothesis: its cost and values."""
     try:
         graph, values, layout, _ = build_graph(subtree, closed_form, None)
-        params = lm_params(SUBTREE_MAX_ITERATIONS)
+        params = lm_params(SUBTREE_MAX_ITERATIONS, cost_scale(subtree))
         params.setRelativeErrorTol(SUBTREE_RELATIVE_TOLERANCE)  # a start and a ranking: no need for the last digits
         result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
     except (RuntimeError, SolveError):  # an under-determined subtree: no refinement, no score
@@ -486,8 +510,32 @@ def initial_estimate(dataset: Dataset, seed: int = 0) -> AnalyticSolution:
     return solve_analytic(dataset, seed, refine_subtree=_refine_subtree)
 
 
+def as_dataset(data: Dataset | Mapping[str, Any], what: str = "calibrate()") -> Dataset:
+    """``data`` as a :class:`Dataset` (a dataset@1 dictionary is validated) that the solver can take.
+
+    Raises DatasetError on anything else, or where the dataset asks for what this version cannot do
+    (intrinsics estimated through the mirrors, ``camera.estimate``).
+    """
+    if isinstance(data, Mapping):
+        data = dataset_from_dict(data, source="<dataset dict>")
+    if not isinstance(data, Dataset):
+        raise DatasetError(f"{what}: expected a mirror_fg.Dataset or a dataset@1 dictionary, got {type(data).__name__}")
+    if data.camera is not None and data.camera.estimate:
+        raise DatasetError(f"{data.source}: camera.estimate ({', '.join(data.camera.estimate)}): estimating "
+                           "intrinsics through the mirrors is not supported by this version")
+    return data
+
+
+def require_converged(calibration: Calibration, source: str, solver: str = "Levenberg-Marquardt") -> Calibration:
+    """``calibration`` if its solver converged, else SolveError: one rule for batch and incremental runs."""
+    if not calibration.converged:
+        raise SolveError(f"{source}: {solver} did not converge in {calibration.iterations} iterations "
+                         "(stalled); the result was not written")
+    return calibration
+
+
 def calibrate(
-    dataset: Dataset,
+    dataset: Dataset | Mapping[str, Any],
     *,
     initial: InitialEstimate | None = None,
     robust: str | None = None,
@@ -503,6 +551,7 @@ def calibrate(
     ``(iteration, error_before, error_after)`` after each LM iteration. fast: stacked vectorised
     factors (default) or the per-measurement reference factors (same estimates).
     """
+    dataset = as_dataset(dataset)
     timings: dict[str, float] = {}
     start = time.perf_counter()
     analytic = None

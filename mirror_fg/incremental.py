@@ -44,7 +44,7 @@ from __future__ import annotations
 import math
 import time
 from collections import defaultdict
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -71,7 +71,10 @@ from mirror_fg.graph import (
     Measurement,
     extract_values,
     initial_estimate,
+    as_dataset,
+    cost_scale,
     lm_params,
+    require_converged,
     marginal_covariances,
     predicted_normalized,
     residual_statistics,
@@ -183,6 +186,7 @@ class IncrementalCalibrator:
         thresholds: RelinearizeThresholds | None = None,
         seed: int = 0,
     ) -> None:
+        dataset = as_dataset(dataset, "IncrementalCalibrator()")
         # Our own Dataset holds the images in the graph: normalisation cache, residuals, messages.
         self._ds = Dataset(
             num_mirrors=dataset.num_mirrors,
@@ -443,7 +447,7 @@ class IncrementalCalibrator:
         analytic.points = dict(self._points)  # eq. (20) at the analytical solution
         initial_error = float(factors.error(values))
         lm_start = time.perf_counter()
-        optimizer = gtsam.LevenbergMarquardtOptimizer(factors, values, lm_params(lm_iterations))
+        optimizer = gtsam.LevenbergMarquardtOptimizer(factors, values, lm_params(lm_iterations, cost_scale(self._ds)))
         try:
             optimized = optimizer.optimize()
         except RuntimeError as error:  # IndeterminantLinearSystemException
@@ -819,3 +823,30 @@ class IncrementalCalibrator:
         )
 
 
+def calibrate_incremental(
+    dataset: Dataset | Mapping[str, Any],
+    *,
+    robust: str | None = None,
+    on_estimate: Callable[[int, Calibration], None] | None = None,
+) -> Calibration:
+    """Stream ``dataset``'s images in file order through :class:`IncrementalCalibrator` and return the
+    full final calibration (``calibration(full=True)``).
+
+    ``on_estimate(index, estimate)`` is called after every image (1-based index) once an estimate
+    exists. Refuses what the batch :func:`~mirror_fg.graph.calibrate` path refuses, with the same
+    errors: bad input is DatasetError (at load or in ``add_image``), and a final estimate that did not
+    converge is SolveError (:func:`~mirror_fg.graph.require_converged`).
+    """
+    dataset = as_dataset(dataset)
+    calibrator = IncrementalCalibrator(dataset, robust=robust)
+    started = False
+    for index, image in enumerate(dataset.images, start=1):
+        estimate = calibrator.add_image(image)
+        if estimate is not None:
+            started = True
+            if on_estimate is not None:
+                on_estimate(index, estimate)
+    if not started:
+        raise SolveError(f"{dataset.source}: the images never allowed an analytical solution "
+                         "(each placement needs >= 3 child placements)")
+    return require_converged(calibrator.calibration(full=True), dataset.source, "iSAM2")

@@ -1,6 +1,6 @@
 """Calibration report: a self-contained HTML page and a PDF (matplotlib, Agg) of a ``mirror-fg/result@1``.
 
-Frames (SPEC.md): {B} base, {C} camera (OpenCV: x right, y down, z forward); ``T_cam_base = (R, t)``
+Frames (docs/formats.md): {B} base, {C} camera (OpenCV: x right, y down, z forward); ``T_cam_base = (R, t)``
 with ``Cp = R @ Bp + t``; the 3D scene is drawn in the base frame, metres. Residuals are
 ``predicted - observed`` in pixels when the dataset has a camera, else in normalized image
 coordinates. "RMS" is the root mean square of the measurements' Euclidean residual lengths, as
@@ -25,11 +25,12 @@ import numpy as np
 
 from .dataset import DatasetError, atomic_write
 from .geometry import nested_transform, project
+from .result import mirror_vectors, pose, pose_covariance, transforms, validate_result
+from .result import points as reconstruction_points
 from .ros import (
-    pose_covariance,
     DEFAULT_BASE_FRAME,
     DEFAULT_CAMERA_FRAME,
-    _transforms,
+    check_frame_name,
     rotation_to_quaternion_xyzw,
     rotation_to_rpy,
     sigma3_base_cam,
@@ -48,7 +49,7 @@ __all__ = ["write_report", "compute_residuals", "Residuals", "OUTLIER_FACTOR"]
 OUTLIER_FACTOR = 3.0
 #: Resolution of the PNG figures embedded in the HTML (dots per inch).
 PNG_DPI = 100
-#: Covariance labels in SPEC.md's order: rotation about the camera axes, then translation.
+#: Covariance labels in docs/formats.md's order: rotation about the camera axes, then translation.
 COVARIANCE_LABELS = ("rx", "ry", "rz", "x", "y", "z")
 _MIRROR_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink")
 
@@ -129,47 +130,28 @@ class Residuals:
         return {k: v for k, v in per_image.items() if v > factor * median}
 
 
-def _mirror_vectors(result: Mapping[str, Any]) -> dict[tuple[int, int], np.ndarray]:
-    """``(l, m) -> v`` (camera frame, metres) from ``result["mirrors"]``."""
-    out: dict[tuple[int, int], np.ndarray] = {}
-    for k, entry in enumerate(result.get("mirrors") or []):
-        try:
-            key = (int(entry["mirror"]), int(entry["config"]))
-            v = np.asarray(entry["v"], dtype=float)
-        except (KeyError, TypeError, ValueError):
-            raise ValueError(f"result mirrors[{k}]: expected {{'mirror': l, 'config': m, 'v': [3]}}") from None
-        if v.shape != (3,) or not np.all(np.isfinite(v)) or not np.any(v):
-            raise ValueError(f"result mirrors[{k}]: v must be 3 finite numbers, not all zero (metres)")
-        out[key] = v
-    return out
-
-
-def _points(result: Mapping[str, Any]) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
-    """``name -> (xyz metres in {B}, sigma3 mm or None)`` of the reconstruction points."""
-    out: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
-    for name, entry in (result.get("points") or {}).items():
-        try:
-            xyz = np.asarray(entry["xyz"], dtype=float).reshape(3)
-        except (KeyError, TypeError, ValueError):
-            raise ValueError(f"result points[{name!r}]: expected {{'xyz': [3], 'sigma3_mm': [3]}}") from None
-        sigma = entry.get("sigma3_mm")
-        sigma3 = np.asarray(sigma, dtype=float).reshape(3) if sigma is not None else None
-        out[name] = (xyz, sigma3)
-    return out
-
-
-def compute_residuals(result: Mapping[str, Any], dataset: Dataset) -> Residuals:
+def compute_residuals(result: Mapping[str, Any], dataset: Dataset, *, source: str = "result") -> Residuals:
     """Residuals of every observation in ``dataset`` under the estimates in ``result`` (eqs. 5-9).
 
     Per image, ``(A, b) = nested_transform(R_cam_base, t_cam_base, [v(l, m) for each mirror])``; a
     point ``Bp`` (a fiducial, or the result's reconstruction point) is predicted at
     ``project(A @ Bp + b)``, distorted to pixels with ``dataset.camera`` when there is one.
-    Raises DatasetError when the dataset needs a mirror configuration or point the result lacks
-    (a result of another dataset), ValueError on a malformed result.
+    Raises DatasetError naming ``source`` (the result's file) on a malformed result, and naming it
+    and the dataset's file when the dataset is not the result's (other mirrors, or a mirror
+    configuration or point the result lacks).
     """
-    (R, t), _ = _transforms(result)
-    mirrors = _mirror_vectors(result)
-    points = {name: xyz for name, (xyz, _) in _points(result).items()}
+    return _residuals(validate_result(result, source), dataset, source)
+
+
+def _residuals(result: Mapping[str, Any], dataset: Dataset, source: str) -> Residuals:
+    """:func:`compute_residuals` of a validated result."""
+    (R, t), _ = transforms(result)
+    mirrors = mirror_vectors(result)
+    points = {name: xyz for name, (xyz, _) in reconstruction_points(result).items()}
+    mismatch = f"{source} does not belong to {dataset.source}"
+    num_mirrors = max((l for l, _ in mirrors), default=dataset.num_mirrors)
+    if num_mirrors != dataset.num_mirrors:
+        raise DatasetError(f"{mismatch}: the result has {num_mirrors} mirror(s), the dataset {dataset.num_mirrors}")
     image_ids: list[str] = []
     names: list[str] = []
     fiducial: list[bool] = []
@@ -182,8 +164,8 @@ def compute_residuals(result: Mapping[str, Any], dataset: Dataset) -> Residuals:
         for l, m in enumerate(image.mirror_configs, start=1):
             if (l, int(m)) not in mirrors:
                 raise DatasetError(
-                    f"{dataset.source}: image {image.id!r} uses mirror {l} configuration {m}, which the "
-                    "result has no mirror vector for (is the result from this dataset?)"
+                    f"{mismatch}: image {image.id!r} uses mirror {l} configuration {m}, which the "
+                    "result has no mirror vector for"
                 )
             vectors.append(mirrors[(l, int(m))])
         A, b = nested_transform(R, t, vectors)  # eqs. (5)-(8)
@@ -198,8 +180,8 @@ def compute_residuals(result: Mapping[str, Any], dataset: Dataset) -> Residuals:
                 base.append(points[name])
             else:
                 raise DatasetError(
-                    f"{dataset.source}: image {image.id!r} observes {name!r}, which is neither a fiducial "
-                    "nor a point of the result (is the result from this dataset?)"
+                    f"{mismatch}: image {image.id!r} observes {name!r}, which is neither a fiducial "
+                    "nor a point of the result"
                 )
         camera_points = np.asarray(base, dtype=float) @ A.T + b
         normalized = project(camera_points)  # eq. (9)
@@ -259,8 +241,8 @@ class _Summary:
 def _summary(
     result: Mapping[str, Any], dataset: Dataset | None, residuals: Residuals | None, base_frame: str
 ) -> _Summary:
-    """Summary table rows, a one-line verdict and notes."""
-    (R_cb, t_cb), (R_bc, t_bc) = _transforms(result)
+    """Summary table rows, a one-line verdict and notes (``result`` validated)."""
+    (R_cb, t_cb), (R_bc, t_bc) = transforms(result)
     rows: list[tuple[str, str]] = []
     notes: list[str] = []
     rows.append((f"T_base_cam translation (camera centre in {base_frame}), m", _fmt(t_bc, 6)))
@@ -287,18 +269,18 @@ def _summary(
         )
         rows.append(("measurements", str(int(np.sum(residuals.valid)))))
     outliers = res.get("outliers")
-    if isinstance(outliers, list):
+    if outliers is not None:
         rows.append(("measurements flagged by the calibration", str(len(outliers))))
     opt = result.get("optimizer") or {}
-    rows.append(("iterations", str(opt.get("iterations", "–"))))
+    rows.append(("iterations", "–" if opt.get("iterations") is None else str(opt["iterations"])))
     rows.append(("converged", {True: "yes", False: "NO"}.get(opt.get("converged"), "–")))
     if "initial_error" in opt or "final_error" in opt:
         rows.append(("error initial → final", f"{_fmt(opt.get('initial_error'))} → {_fmt(opt.get('final_error'))}"))
     analytic = (result.get("analytic") or {}).get("T_cam_base")
     if analytic is not None:
-        (R_a, t_a), _ = _transforms({"T_cam_base": analytic})
+        R_a, t_a = pose(analytic)
         rows.append(("analytic vs MLE: rotation, deg", _fmt(_rotation_angle_deg(R_a, R_cb))))
-        dt = 1e3 * (np.asarray(t_a) - t_cb)
+        dt = 1e3 * (t_a - t_cb)
         rows.append(("analytic vs MLE: translation, mm", f"{_fmt(np.linalg.norm(dt))} (Δt = {_fmt(dt)})"))
     else:
         notes.append("The result carries no analytic solution: no analytic vs MLE comparison.")
@@ -308,8 +290,8 @@ def _summary(
             (
                 "dataset",
                 f"{len(dataset.images)} images, {dataset.num_mirrors} mirror(s), {len(configs)} mirror "
-                f"configurations, {len(dataset.fiducials)} fiducials, {len(_points(result))} reconstruction "
-                f"points, σ = {_fmt(dataset.pixel_sigma)} {units}",
+                f"configurations, {len(dataset.fiducials)} fiducials, {len(result.get('points') or {})} "
+                f"reconstruction points, σ = {_fmt(dataset.pixel_sigma)} {units}",
             )
         )
 
@@ -319,7 +301,7 @@ def _summary(
         ratio = residuals.rms / residuals.expected_rms
         # At the MLE the residuals lose one degree of freedom per unknown: E[RMS^2] = 2 sigma^2 (1 - p / 2N).
         coordinates = 2 * int(np.sum(residuals.valid))
-        unknowns = 6 + 3 * len(_mirror_vectors(result)) + 3 * len(_points(result))
+        unknowns = 6 + 3 * len(mirror_vectors(result)) + 3 * len(reconstruction_points(result))
         expected = math.sqrt(max(1.0 - unknowns / coordinates, 0.0)) if coordinates else 1.0
         flagged = residuals.flagged_images()
         parts.append(
@@ -511,9 +493,9 @@ def _figure_scene(result: Mapping[str, Any], dataset: Dataset | None) -> Figure:
     """3D scene in the base frame: axes, camera frustum, mirror patches, fiducials, points, 3σ ellipsoids."""
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    (_, _), (R_bc, t_bc) = _transforms(result)
-    mirrors = _mirror_vectors(result)
-    points = _points(result)
+    (_, _), (R_bc, t_bc) = transforms(result)
+    mirrors = mirror_vectors(result)
+    points = reconstruction_points(result)
     fiducials = np.array(list(dataset.fiducials.values())).reshape(-1, 3) if dataset is not None else np.zeros((0, 3))
     target = np.vstack([fiducials, *[p[None] for p, _ in points.values()]]) if (len(fiducials) or points) else None
 
@@ -564,7 +546,8 @@ def _figure_scene(result: Mapping[str, Any], dataset: Dataset | None) -> Figure:
     ax.set_ylabel("y (m)")
     ax.set_zlabel("z (m)")
     ax.set_title("Scene in the base frame {B}")
-    ax.legend(fontsize=7, loc="upper left")
+    if ax.get_legend_handles_labels()[0]:  # a result without mirrors or target has nothing to label
+        ax.legend(fontsize=7, loc="upper left")
     if target is not None:
         ax2 = fig.add_subplot(1, 2, 2, projection="3d")
         _draw_target(ax2, fiducials, points)
@@ -581,7 +564,7 @@ def _figure_scene(result: Mapping[str, Any], dataset: Dataset | None) -> Figure:
 
 
 def _figure_correlation(result: Mapping[str, Any]) -> Figure | None:
-    """Correlation matrix of ``covariance_cam_base`` ([rx, ry, rz, x, y, z], SPEC.md convention)."""
+    """Correlation matrix of ``covariance_cam_base`` ([rx, ry, rz, x, y, z], docs/formats.md convention)."""
     P = pose_covariance(result)
     if P is None:
         return None
@@ -664,23 +647,29 @@ def write_report(
     base_frame: str = DEFAULT_BASE_FRAME,
     camera_frame: str = DEFAULT_CAMERA_FRAME,
     title: str | None = None,
+    source: str = "result",
 ) -> dict[str, Path]:
     """Write ``out_dir/report.html`` (self-contained: CSS inline, figures as base64 PNG) and ``out_dir/report.pdf``.
 
     ``result``: a result@1 dictionary. ``dataset``: the dataset it was computed from, or None (the
     residual figures are then left out with a note). ``progress``: a progress bar on stderr.
     ``base_frame``, ``camera_frame``: frame names in the ROS snippets. Returns
-    ``{"html": path, "pdf": path}``. Both files are written atomically. Raises ValueError on a
-    malformed result, DatasetError when the dataset does not belong to the result.
+    ``{"html": path, "pdf": path}``. Both files are written atomically. ``source``: the result's
+    file name, for messages. Raises DatasetError (before any work) on a malformed result
+    (:func:`mirror_fg.result.validate_result`) and when the dataset does not belong to the result,
+    ValueError on a bad frame name.
     """
     from tqdm import tqdm
 
+    result = validate_result(result, source)
+    base_frame = check_frame_name(base_frame, "base frame")
+    camera_frame = check_frame_name(camera_frame, "camera frame")
     title = title or "mirror-fg calibration report"
     with tqdm(total=8, desc="report", unit="step", disable=not progress, file=sys.stderr, leave=False) as bar:
-        residuals = compute_residuals(result, dataset) if dataset is not None else None
+        residuals = _residuals(result, dataset, source) if dataset is not None else None
         bar.update()
         summary = _summary(result, dataset, residuals, base_frame)
-        (_, _), (R_bc, t_bc) = _transforms(result)
+        (_, _), (R_bc, t_bc) = transforms(result)
         joint = urdf_joint(R_bc, t_bc, base_frame, camera_frame)
         publisher = static_transform_publisher_args(R_bc, t_bc, base_frame, camera_frame)
         bar.update()
@@ -781,7 +770,7 @@ def _html(
         f"<table class='summary'>{rows}</table>",
         "<p class='note'>Frames: {B} base, {C} camera (OpenCV: x right, y down, z forward). T_cam_base maps "
         "base points into the camera (Cp = R Bp + t); T_base_cam is the camera's pose on the robot. 3σ bounds "
-        "as in SPEC.md: R_true = Exp(dθ) R (camera axes), t_true = t + dt.</p>",
+        "as in docs/formats.md: R_true = Exp(dθ) R (camera axes), t_true = t + dt.</p>",
     ]
     if residuals is not None:
         parts.append(f"<h2>Flagged images (RMS &gt; {OUTLIER_FACTOR:g} × median)</h2>")
@@ -794,9 +783,7 @@ def _html(
             parts.append("<p id='flagged-images'>None.</p>")
     if outliers:
         items = "".join(
-            f"<li>image {e(str(o.get('image')))}, point {e(str(o.get('point')))}: {_fmt(o.get('sigmas'), 3)} σ</li>"
-            for o in outliers
-            if isinstance(o, Mapping)
+            f"<li>image {e(o['image'])}, point {e(o['point'])}: {_fmt(o['sigmas'], 3)} σ</li>" for o in outliers
         )
         parts.append(f"<h2>Measurements flagged by the calibration</h2><ul id='outlier-measurements'>{items}</ul>")
     if notes:

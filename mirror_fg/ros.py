@@ -1,7 +1,7 @@
 """ROS-facing outputs of a ``mirror-fg/result@1``: a YAML with both transforms, a URDF ``<joint>`` and
 ``static_transform_publisher`` arguments.
 
-Frames (SPEC.md): ``T_cam_base = (R, t)`` maps base points into the camera, ``Cp = R @ Bp + t``; its
+Frames (docs/formats.md): ``T_cam_base = (R, t)`` maps base points into the camera, ``Cp = R @ Bp + t``; its
 inverse ``T_base_cam`` is the camera's pose in the base frame, ``Bp = R' @ Cp + t'``: the transform from
 the parent ``base_frame`` to the child ``camera_frame`` that a URDF joint or a tf2 static transform
 wants. The camera frame is OpenCV's (x right, y down, z forward), which is ROS's *optical* frame
@@ -26,6 +26,7 @@ import numpy as np
 import yaml
 
 from mirror_fg.dataset import atomic_write
+from mirror_fg.result import nearest_rotation, pose_covariance, transforms, validate_result
 from mirror_fg.transforms import quaternion_xyzw_to_rotation, rotation_to_quaternion_xyzw
 
 __all__ = [
@@ -39,14 +40,13 @@ __all__ = [
     "static_transform_publisher_args",
     "sigma3_base_cam",
     "ros_output_paths",
+    "ros_output_texts",
     "DEFAULT_BASE_FRAME",
     "DEFAULT_CAMERA_FRAME",
 ]
 
 DEFAULT_BASE_FRAME = "base_link"
 DEFAULT_CAMERA_FRAME = "camera_optical_frame"
-#: A rotation in a result file may be off orthonormal by rounding; beyond this it is rejected.
-_ORTHONORMAL_TOL = 1e-6
 #: Below this |cos(pitch)| the rotation is treated as gimbal-locked: yaw is set to 0.
 _GIMBAL_LOCK_COS = 1e-12
 #: ROS / tf2 frame ids: no whitespace, quotes or XML-special characters (they are pasted into XML and shells).
@@ -63,16 +63,14 @@ def _rotation(matrix: Any, what: str) -> np.ndarray:
     """``matrix`` as a proper rotation (3, 3), re-orthonormalised; ValueError if it is not one."""
     try:
         R = np.asarray(matrix, dtype=float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise ValueError(f"{what}: rotation must be a 3x3 matrix of numbers") from None
     if R.shape != (3, 3) or not np.all(np.isfinite(R)):
         raise ValueError(f"{what}: rotation must be a finite 3x3 matrix, got shape {R.shape}")
-    if np.max(np.abs(R.T @ R - np.eye(3))) > _ORTHONORMAL_TOL or np.linalg.det(R) <= 0.0:
+    rotation = nearest_rotation(R)
+    if rotation is None:
         raise ValueError(f"{what}: not a rotation matrix (R^T R != I or det R != +1)")
-    if np.max(np.abs(R.T @ R - np.eye(3))) <= 1e-13:
-        return R  # orthonormal to rounding: keep the file's numbers bit for bit
-    U, _, Vt = np.linalg.svd(R)
-    return U @ Vt  # nearest rotation; det stays +1 for a matrix this close to SO(3)
+    return rotation
 
 
 def rpy_to_rotation(roll: float, pitch: float, yaw: float) -> np.ndarray:
@@ -115,64 +113,24 @@ def _num(x: float) -> str:
 
 
 # --------------------------------------------------------------------------------------------------
-# Result -> transforms
+# Result -> bounds of the camera's pose in the base frame
 # --------------------------------------------------------------------------------------------------
 
 
-def _transform_from_result(result: Mapping[str, Any], key: str) -> tuple[np.ndarray, np.ndarray]:
-    """``(R, t)`` of ``result[key]`` (``{"R": 3x3, "t": [3]}``); ValueError naming the key when malformed."""
-    entry = result.get(key) if isinstance(result, Mapping) else None
-    if not isinstance(entry, Mapping) or "R" not in entry or "t" not in entry:
-        raise ValueError(f"result: missing or malformed {key!r} (expected {{'R': 3x3, 't': [x, y, z]}})")
-    R = _rotation(entry["R"], f"result {key}.R")
-    try:
-        t = np.asarray(entry["t"], dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"result {key}.t: expected 3 numbers (metres)") from None
-    if t.shape != (3,) or not np.all(np.isfinite(t)):
-        raise ValueError(f"result {key}.t: expected 3 finite numbers (metres), got shape {t.shape}")
-    return R, t
-
-
-def _transforms(result: Mapping[str, Any]) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
-    """``((R_cam_base, t_cam_base), (R_base_cam, t_base_cam))`` from a result.
-
-    ``T_base_cam`` is the file's own (so the numbers match result.json exactly) after checking that it
-    is the inverse of ``T_cam_base`` to 1e-6; computed as the inverse when the file lacks it.
-    """
-    R_cb, t_cb = _transform_from_result(result, "T_cam_base")
-    R_bc, t_bc = R_cb.T, -R_cb.T @ t_cb
-    if "T_base_cam" in result:
-        R_file, t_file = _transform_from_result(result, "T_base_cam")
-        if np.max(np.abs(R_file - R_bc)) > 1e-6 or np.max(np.abs(t_file - t_bc)) > 1e-6:
-            raise ValueError("result: T_base_cam is not the inverse of T_cam_base")
-        R_bc, t_bc = R_file, t_file
-    return (R_cb, t_cb), (R_bc, t_bc)
-
-
-def pose_covariance(result: Mapping[str, Any]) -> np.ndarray | None:
-    """The result's 6x6 ``covariance_cam_base`` (SPEC convention), validated; None when absent."""
-    cov = result.get("covariance_cam_base")
-    if cov is None:
-        return None
-    P = np.asarray(cov, dtype=float)
-    if P.shape != (6, 6) or not np.all(np.isfinite(P)):
-        raise ValueError(f"result covariance_cam_base: expected a finite 6x6 matrix, got shape {P.shape}")
-    return P
-
-
-def sigma3_base_cam(result: Mapping[str, Any]) -> dict[str, list[float]] | None:
+def sigma3_base_cam(result: Mapping[str, Any], source: str = "result") -> dict[str, list[float]] | None:
     """3-sigma bounds of the camera's pose in the base frame, from ``covariance_cam_base``.
 
     ``rotation_deg``: about the base axes (``R_base_cam_true = Exp(dphi) R_base_cam``); ``position_mm``:
     the camera centre's position in the base frame along the base axes. None without a covariance.
-    First order: with ``dtheta, dt`` of SPEC.md, ``dphi = -R^T dtheta`` and
-    ``dt' = -R^T dt - R^T [t]x dtheta``.
+    First order: with ``dtheta, dt`` of docs/formats.md, ``dphi = -R^T dtheta`` and
+    ``dt' = -R^T dt - R^T [t]x dtheta``. ``result`` is validated first (DatasetError starting with
+    ``source``).
     """
+    result = validate_result(result, source)
     P = pose_covariance(result)
     if P is None:
         return None
-    (R, t), _ = _transforms(result)
+    (R, t), _ = transforms(result)
     tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
     J = np.zeros((6, 6))
     J[:3, :3] = -R.T
@@ -254,10 +212,8 @@ def _transform_entry(R: np.ndarray, t: np.ndarray, q_hint: Any, description: str
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
     q = rotation_to_quaternion_xyzw(R)
-    if q_hint is not None:
-        hint = np.asarray(q_hint, dtype=float)
-        if hint.shape == (4,) and float(hint @ q) < 0.0:
-            q = -q  # same rotation; keep the sign the result file uses
+    if q_hint is not None and float(np.asarray(q_hint, dtype=float) @ q) < 0.0:
+        q = -q  # same rotation; keep the sign the result file uses
     return {
         "description": description,
         "matrix": [[_clean(x) for x in row] for row in T],
@@ -271,23 +227,27 @@ def ros_outputs(
     result: Mapping[str, Any],
     base_frame: str = DEFAULT_BASE_FRAME,
     camera_frame: str = DEFAULT_CAMERA_FRAME,
+    *,
+    source: str = "result",
 ) -> dict[str, Any]:
     """The content of ``<stem>.ros.yaml`` for a result@1 dictionary.
 
     Keys: ``frames``; ``T_base_cam`` (camera pose in the base frame: ``p_base = R p_cam + t``) and
     ``T_cam_base`` (its inverse), each with ``matrix`` (4x4 homogeneous), ``translation`` (metres),
     ``quaternion_xyzw`` and URDF ``rpy`` (radians); ``sigma3`` (``rotation_deg``, ``position_mm`` of
-    ``T_cam_base`` in SPEC.md's convention, as in the result); ``sigma3_base_cam`` (the camera's pose
+    ``T_cam_base`` in docs/formats.md's convention, as in the result); ``sigma3_base_cam`` (the camera's pose
     in the base frame, when the result has a covariance); ``rms_px`` and ``max_px`` (pixels, or
     normalized units for a dataset without a camera); ``urdf_joint`` (XML text);
     ``static_transform_publisher`` (ROS 2 argument string) and ``static_transform_publisher_command``.
-    Raises ValueError on a malformed result or frame name.
+    Raises DatasetError (a ValueError) naming ``source`` and the key on a malformed result
+    (:func:`mirror_fg.result.validate_result`), ValueError on a bad frame name.
     """
     base_frame = check_frame_name(base_frame, "base frame")
     camera_frame = check_frame_name(camera_frame, "camera frame")
-    (R_cb, t_cb), (R_bc, t_bc) = _transforms(result)
+    result = validate_result(result, source)
+    (R_cb, t_cb), (R_bc, t_bc) = transforms(result)
     hint_cb = result["T_cam_base"].get("q_xyzw")
-    hint_bc = result["T_base_cam"].get("q_xyzw") if isinstance(result.get("T_base_cam"), Mapping) else None
+    hint_bc = (result.get("T_base_cam") or {}).get("q_xyzw")
     sigma = result.get("sigma3_cam_base") or {}
     residuals = result.get("residuals") or {}
     args = static_transform_publisher_args(R_bc, t_bc, base_frame, camera_frame)
@@ -302,22 +262,18 @@ def ros_outputs(
             R_cb, t_cb, hint_cb, f"inverse: p_cam = R p_base + t, metres ({camera_frame} <- {base_frame})"
         ),
         "sigma3": {
-            "rotation_deg": [float(x) for x in sigma.get("rotation_deg", [])] or None,
-            "position_mm": [float(x) for x in sigma.get("position_mm", [])] or None,
-            "convention": "T_cam_base, SPEC.md: R_true = Exp(dtheta) R (camera axes), t_true = t + dt",
+            "rotation_deg": sigma.get("rotation_deg"),
+            "position_mm": sigma.get("position_mm"),
+            "convention": "T_cam_base, docs/formats.md: R_true = Exp(dtheta) R (camera axes), t_true = t + dt",
         },
-        "sigma3_base_cam": sigma3_base_cam(result),
-        "rms_px": _optional_float(residuals.get("rms_px")),
-        "max_px": _optional_float(residuals.get("max_px")),
+        "sigma3_base_cam": sigma3_base_cam(result, source),
+        "rms_px": residuals.get("rms_px"),
+        "max_px": residuals.get("max_px"),
         "urdf_joint": urdf_joint(R_bc, t_bc, base_frame, camera_frame),
         "static_transform_publisher": args,
         "static_transform_publisher_command": f"ros2 run tf2_ros static_transform_publisher {args}",
     }
     return out
-
-
-def _optional_float(x: Any) -> float | None:
-    return None if x is None else float(x)
 
 
 #: YAML line width: never fold a long string (the publisher arguments are copied as one line).
@@ -349,18 +305,18 @@ def ros_output_paths(result_path: str | os.PathLike[str]) -> tuple[Path, Path]:
     return p.with_name(f"{p.stem}.ros.yaml"), p.with_name(f"{p.stem}.urdf.xml")
 
 
-def write_ros_outputs(
+def ros_output_texts(
     result: Mapping[str, Any],
     result_path: str | os.PathLike[str],
     base_frame: str = DEFAULT_BASE_FRAME,
     camera_frame: str = DEFAULT_CAMERA_FRAME,
-) -> list[Path]:
-    """Write ``<stem>.ros.yaml`` (:func:`ros_outputs`) and ``<stem>.urdf.xml`` (the joint) beside ``result_path``.
+) -> dict[str, str]:
+    """``{path: text}`` of ``<stem>.ros.yaml`` (:func:`ros_outputs`) and ``<stem>.urdf.xml`` (the joint).
 
-    Both writes are atomic. Returns the two paths. Raises ValueError on a malformed result or frame
-    name (nothing is written then), OSError when a file cannot be written.
+    Nothing is written (the caller writes all its outputs together). Raises DatasetError naming
+    ``result_path`` on a malformed result, ValueError on a bad frame name.
     """
-    content = ros_outputs(result, base_frame, camera_frame)
+    content = ros_outputs(result, base_frame, camera_frame, source=os.fspath(result_path))
     yaml_path, urdf_path = ros_output_paths(result_path)
     source = " ".join(Path(result_path).name.split())  # one line in a comment
     header = (
@@ -374,9 +330,23 @@ def write_ros_outputs(
         f"     {camera_frame} is the {_CAMERA_CONVENTION} frame.\n"
         "     Paste the joint into your robot description. -->\n" + content["urdf_joint"]
     )
-    atomic_write(yaml_path, _yaml_text(content, header))
-    atomic_write(urdf_path, urdf)
-    return [yaml_path, urdf_path]
+    return {os.fspath(yaml_path): _yaml_text(content, header), os.fspath(urdf_path): urdf}
+
+
+def write_ros_outputs(
+    result: Mapping[str, Any],
+    result_path: str | os.PathLike[str],
+    base_frame: str = DEFAULT_BASE_FRAME,
+    camera_frame: str = DEFAULT_CAMERA_FRAME,
+) -> list[Path]:
+    """Write :func:`ros_output_texts`: ``<stem>.ros.yaml`` and ``<stem>.urdf.xml`` beside ``result_path``.
+
+    Both writes are atomic. Returns the two paths. Raises DatasetError naming ``result_path`` on a
+    malformed result, ValueError on a bad frame name (nothing is written then), OSError when a file
+    cannot be written.
+    """
+    texts = ros_output_texts(result, result_path, base_frame, camera_frame)
+    return [atomic_write(path, text) for path, text in texts.items()]
 
 
 def _xml_comment(text: str) -> str:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .dataset import Camera, Dataset, Image, save_dataset
+from .dataset import Camera, Dataset, Image
 from .geometry import apply_transform, nested_transform, project, so3_exp
 
 __all__ = [
@@ -465,9 +465,13 @@ def write_simulation(path: str | Path, dataset: Dataset, truth: GroundTruth) -> 
 
     Returns the path of the ground-truth file.
     """
+    from mirror_fg.dataset import dataset_text
+    from mirror_fg.fileio import OutputPlan
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    save_dataset(path, dataset)
     out = truth_path(path)
-    out.write_text(json.dumps(truth.to_dict(), indent=1) + "\n")
+    plan = OutputPlan()
+    plan.add(path, "dataset")
+    plan.add(out, "ground truth")
+    plan.commit({path: dataset_text(dataset), out: json.dumps(truth.to_dict(), indent=1) + "\n"})
     return out

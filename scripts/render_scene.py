@@ -22,6 +22,11 @@ is ``(W/2 - 0.5, H/2 - 0.5)`` and ``fx = (W/2) / tan(fov_x/2)``; a ``bitmap`` te
 at the rectangle's local -y, so textures are written upside down to put the tag's top at local +y.
 
 Needs ``pip install mitsuba`` (scalar_rgb variant, CPU). Takes about a minute.
+
+``--sequence SEED`` instead writes a video-like sequence (issue 18) without Mitsuba: one mirror moving
+along a smooth loop, a new placement every frame, a textured plane with a corner-like and a blob-like
+unknown point and four dark squares (fiducials), rendered exactly through the plane's homography with
+sRGB gamma and 4 x 4 supersampling (:func:`render_sequence`); ``frame_KKK.png`` and ``truth.json``.
 """
 from __future__ import annotations
 
@@ -367,6 +372,175 @@ def write_capture(path: Path, camera: dict, images: list[dict], listed: list[int
     path.write_text("\n".join(lines) + "\n")
 
 
+# --------------------------------------------------------------------------------------------------
+# Video-like sequence: one mirror moving along a smooth loop (planar-homography renderer, no Mitsuba)
+# --------------------------------------------------------------------------------------------------
+# The target is a textured plane (the robot's front face, base z = 0; x right, y up). Through one
+# mirror the camera sees it as a pinhole "virtual camera" would: base point (x, y, 0) lands at pixel
+# K (A [x, y, 0] + b) with (A, b) of eqs. (5)-(8), i.e. the plane's homography H = K [a1 a2 b]. Each
+# output pixel is the box average of SEQ_SUPERSAMPLE^2 samples of the texture in *linear* intensity,
+# then sRGB-encoded to 8 bits like a camera (plus a little sensor noise). The mirror covers the view.
+
+SEQ_SIZE = (800, 600)
+SEQ_FOV_DEG = 50.0
+SEQ_SUPERSAMPLE = 4
+SEQ_TEXEL_M = 0.0002  # texture resolution (metres per texel): ~ 1/7 of a supersample at 1.2 m
+SEQ_EXTENT_M = (0.24, 0.18)  # the plane's textured half sizes (metres, x and y)
+#: Unknown points on the plane (base frame, metres) and their feature kind: the top-left corner of a
+#: dark box on a light mat, and the centre of a dark disc of radius SEQ_DOT_RADIUS_M.
+SEQ_POINTS = {"P0": ((-0.03, 0.04, 0.0), "corner"), "P1": ((0.09, -0.06, 0.0), "blob")}
+SEQ_BOX_M = (0.07, 0.05)  # P0's box: width (+x from the corner) and height (-y)
+SEQ_DOT_RADIUS_M = 0.006
+#: Fiducials: the corners of four dark squares (SEQ_SQUARE_M side) near the plane's corners.
+SEQ_SQUARE_M = 0.05
+SEQ_SQUARE_CENTRES = [(-0.17, 0.12), (0.17, 0.12), (0.17, -0.12), (-0.17, -0.12)]
+
+
+def sequence_fiducials() -> dict[str, np.ndarray]:
+    """``F{i}_{k}``: corner k (tag order: top-left, top-right, bottom-right, bottom-left) of square i."""
+    h = SEQ_SQUARE_M / 2
+    local = [(-h, h), (h, h), (h, -h), (-h, -h)]
+    return {f"F{i}_{k}": np.array([cx + dx, cy + dy, 0.0])
+            for i, (cx, cy) in enumerate(SEQ_SQUARE_CENTRES) for k, (dx, dy) in enumerate(local)}
+
+
+def plane_texture(seed: int = 0) -> np.ndarray:
+    """The plane's linear-intensity texture (float32, 0..1); texel (i, j) is centred at
+    ``x = -EXTENT_x + (i + 0.5) * TEXEL``, ``y = EXTENT_y - (j + 0.5) * TEXEL``."""
+    ex, ey = SEQ_EXTENT_M
+    w, h = int(round(2 * ex / SEQ_TEXEL_M)), int(round(2 * ey / SEQ_TEXEL_M))
+    rng = np.random.default_rng(seed)
+    coarse = rng.uniform(0.15, 0.7, size=(int(2 * ey / 0.006), int(2 * ex / 0.006))).astype(np.float32)
+    tex = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_CUBIC).clip(0.05, 0.9)  # ~6 mm blotches
+    xs = -ex + (np.arange(w) + 0.5) * SEQ_TEXEL_M
+    ys = ey - (np.arange(h) + 0.5) * SEQ_TEXEL_M
+    X, Y = np.meshgrid(xs, ys)
+
+    def rect(x0, x1, y0, y1, value):
+        tex[(X >= x0) & (X < x1) & (Y >= y0) & (Y < y1)] = value
+
+    for cx, cy in SEQ_SQUARE_CENTRES:  # fiducial squares on white margins
+        rect(cx - SEQ_SQUARE_M, cx + SEQ_SQUARE_M, cy - SEQ_SQUARE_M, cy + SEQ_SQUARE_M, 0.8)
+        rect(cx - SEQ_SQUARE_M / 2, cx + SEQ_SQUARE_M / 2, cy - SEQ_SQUARE_M / 2, cy + SEQ_SQUARE_M / 2, 0.03)
+    (px, py, _), _ = SEQ_POINTS["P0"]
+    m = 0.012  # light mat around the box's corner
+    rect(px - m, px + SEQ_BOX_M[0] + m, py - SEQ_BOX_M[1] - m, py + m, 0.8)
+    rect(px, px + SEQ_BOX_M[0], py - SEQ_BOX_M[1], py, 0.04)
+    (qx, qy, _), _ = SEQ_POINTS["P1"]
+    rect(qx - 0.014, qx + 0.035, qy - 0.014, qy + 0.03, 0.8)  # off-centre: KLT's window sees its edges
+    tex[(X - qx) ** 2 + (Y - qy) ** 2 < SEQ_DOT_RADIUS_M**2] = 0.04
+    return tex
+
+
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    """Linear 0..1 -> sRGB-encoded float 0..255."""
+    x = np.clip(linear, 0.0, 1.0)
+    return 255.0 * np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def render_plane_view(texture: np.ndarray, H: np.ndarray, size=SEQ_SIZE, noise: float = 0.5,
+                      rng: np.random.Generator | None = None) -> np.ndarray:
+    """8-bit sRGB grayscale image of the plane whose homography (base (x, y, 1) -> pixel) is ``H``.
+
+    Exact pinhole geometry through the mirror; anti-aliased by box-averaging SEQ_SUPERSAMPLE^2
+    bilinear texture samples per pixel in linear intensity; ``noise``: Gaussian sensor noise (grey
+    levels) added before rounding.
+    """
+    s = SEQ_SUPERSAMPLE
+    ex, ey = SEQ_EXTENT_M
+    # supersample pixel (us, vs) -> image pixel ((us + 0.5)/s - 0.5, ...) -> plane -> texel
+    sub = np.array([[1 / s, 0, 0.5 / s - 0.5], [0, 1 / s, 0.5 / s - 0.5], [0, 0, 1]])
+    texel = np.array([[1 / SEQ_TEXEL_M, 0, ex / SEQ_TEXEL_M - 0.5], [0, -1 / SEQ_TEXEL_M, ey / SEQ_TEXEL_M - 0.5], [0, 0, 1]])
+    M = texel @ np.linalg.inv(H) @ sub
+    fine = cv2.warpPerspective(texture, M, (size[0] * s, size[1] * s), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=0.3)
+    linear = cv2.resize(fine, size, interpolation=cv2.INTER_AREA)  # exact box average (integer factor)
+    encoded = srgb_encode(linear)
+    if noise > 0:
+        encoded = encoded + (rng or np.random.default_rng(0)).normal(0.0, noise, encoded.shape)
+    return np.clip(np.round(encoded), 0, 255).astype(np.uint8)
+
+
+def sequence_geometry(seed: int = 0, frames: int = 54) -> tuple[dict, np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Camera, ``R_cam_base``, ``t_cam_base`` and one mirror vector per frame.
+
+    The camera looks at a mirror 0.6 m ahead whose normal is turned ~20 deg about y (scene-dependent),
+    so it sees the plane 0.6 m beyond, beside and behind the camera. Over the sequence the mirror's
+    normal runs once around a cone (tilt ``beta`` deg) while its distance breathes by +-4 cm: a smooth
+    closed loop, a new placement in every frame.
+    """
+    rng = np.random.default_rng(1000 + seed)
+    camera = camera_model(SEQ_SIZE[0], SEQ_SIZE[1], SEQ_FOV_DEG)
+    alpha = np.deg2rad(rng.uniform(32.0, 38.0))
+    n0 = rot("x", rng.uniform(-5.0, 5.0)) @ np.array([-np.sin(alpha), 0.0, -np.cos(alpha)])
+    c0 = np.array([0.0, 0.0, 0.6])
+    d_out = unit(np.array([0.0, 0.0, 1.0]) - 2 * (n0 @ [0.0, 0.0, 1.0]) * n0)  # view direction after the mirror
+    X = c0 + rng.uniform(0.4, 0.5) * d_out  # the plane's origin, camera frame
+    z_b = -d_out
+    y_b = unit(np.array([0.0, -1.0, 0.0]) - (np.array([0.0, -1.0, 0.0]) @ z_b) * z_b)
+    R = np.column_stack([np.cross(y_b, z_b), y_b, z_b]) @ rot("y", rng.uniform(-20, 20)) @ rot("x", rng.uniform(-15, 15)) @ rot("z", rng.uniform(-30, 30))
+    t = X
+    u_axis, w_axis = plane_frame(n0)[:, 0], plane_frame(n0)[:, 1]
+    beta = np.deg2rad(rng.uniform(6.0, 8.0))
+    phase = rng.uniform(0, 2 * np.pi)
+    vs = []
+    for k in range(frames):
+        phi = 2 * np.pi * k / frames
+        n = unit(n0 + np.tan(beta) * (np.cos(phi) * u_axis + 0.7 * np.sin(phi) * w_axis))
+        c = c0 + np.array([0.0, 0.0, 0.06 * np.sin(phi + phase)])
+        vs.append(float(n @ c) * n)
+    return camera, R, t, vs
+
+
+def plane_homography(K: np.ndarray, R: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Base-plane (x, y, 1) -> pixel through one mirror (eqs. 5-9)."""
+    A, b = nested_transform(R, t, [v])
+    return K @ np.column_stack([A[:, 0], A[:, 1], b])
+
+
+def render_sequence(seed: int = 0, frames: int = 54, noise: float = 0.5) -> tuple[list[np.ndarray], dict]:
+    """The frames (8-bit grayscale) and the truth: camera, ``T_cam_base``, mirror vectors, base points
+    (unknown points with their kinds, fiducials) and every point's true pixel in every frame."""
+    camera, R, t, vs = sequence_geometry(seed, frames)
+    K = np.array([[camera["fx"], 0, camera["cx"]], [0, camera["fy"], camera["cy"]], [0, 0, 1.0]])
+    texture = plane_texture(seed)
+    rng = np.random.default_rng(seed)
+    points = {name: np.array(p) for name, (p, _) in SEQ_POINTS.items()}
+    points.update(sequence_fiducials())
+    images, pixels = [], []
+    for v in vs:
+        H = plane_homography(K, R, t, v)
+        images.append(render_plane_view(texture, H, noise=noise, rng=rng))
+        uvw = (H @ np.array([[p[0], p[1], 1.0] for p in points.values()]).T).T
+        pixels.append({n: [float(q[0] / q[2]), float(q[1] / q[2])] for n, q in zip(points, uvw)})
+    truth = {
+        "note": "Ground truth of scripts/render_scene.py --sequence (planar homography renderer). Pixels: OpenCV convention.",
+        "seed": seed,
+        "camera": camera,
+        "T_cam_base": pose_dict(R, t),
+        "mirror_vectors": [[float(x) for x in v] for v in vs],
+        "points": {n: {"xyz": [float(x) for x in p], "kind": kind} for n, (p, kind) in SEQ_POINTS.items()},
+        "fiducials": {n: [float(x) for x in p] for n, p in sequence_fiducials().items()},
+        "pixels": pixels,
+    }
+    return images, truth
+
+
+
+def write_sequence(out: Path, seed: int, frames: int) -> int:
+    """``frame_KKK.png`` and ``truth.json`` (every point's true pixel per frame) of the loop into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    images, truth = render_sequence(seed, frames)
+    truth["frames"] = []
+    for k, image in enumerate(images):
+        name = f"frame_{k:03d}.png"
+        cv2.imwrite(str(out / name), image, [cv2.IMWRITE_PNG_COMPRESSION, 9])
+        truth["frames"].append(name)
+    (out / "truth.json").write_text(json.dumps(truth, indent=1) + "\n")
+    print(f"wrote {len(images)} frames and truth.json to {out}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default=str(REPO / "tests" / "data" / "capture" / "rendered"))
@@ -374,7 +548,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--height", type=int, default=600)
     parser.add_argument("--fov", type=float, default=50.0, help="horizontal field of view, degrees")
     parser.add_argument("--spp", type=int, default=16, help="samples per pixel (a square number)")
+    parser.add_argument("--sequence", type=int, metavar="SEED", default=None,
+                        help="instead: the one-mirror loop of scene SEED (homography renderer, no Mitsuba)")
+    parser.add_argument("--frames", type=int, default=54, help="frames of --sequence")
     args = parser.parse_args(argv)
+    if args.sequence is not None:
+        return write_sequence(Path(args.out), args.sequence, args.frames)
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
