@@ -63,8 +63,12 @@ A capture file is YAML or JSON. Paths in it are relative to the capture file. To
     forward-backward checked) and re-detected; every ``step``-th frame (1 when absent) becomes an image
     ``stem:frame``. ``each`` means a new placement of that mirror in every such frame.
 ``track``
-    Optional, with a video: ``{name: {frame, pixel: [u, v]}}`` unknown points that the KLT tracker
-    follows from the given starting pixel of that frame to the end of its run of frames.
+    Optional: ``{name: {frame, pixel: [u, v], feature?, sigma?}}`` unknown points that the tracker
+    (:mod:`mirror_fg.tracking`: KLT, then refinement onto the feature) follows from the given starting
+    pixel of that frame to the end of its run of frames. With a video ``frame`` is a video frame; with
+    ``images`` (a photo sequence, in list order) it is the image's 0-based position in the list.
+    ``feature``: ``corner`` (default), ``blob`` / ``dot`` or ``template`` (what the refinement fits);
+    ``sigma``: the track's pixel sigma (pixels), overriding the tracker's own estimate.
 
 Everything is checked on loading; :func:`load_capture` raises :class:`~mirror_fg.dataset.DatasetError`
 with one line naming the file, the entry and the problem.
@@ -109,6 +113,9 @@ CAPTURE_FORMAT = "mirror-fg/capture@1"
 #: ``mirror_configs`` entry meaning "a placement of its own in this image / frame".
 EACH = "each"
 DEFAULT_PIXEL_SIGMA = 0.5
+#: Feature kinds a ``track:`` entry may name (mirror_fg.tracking refines onto them; ``klt``, no
+#: refinement, is for the API only).
+TRACK_FEATURES = ("corner", "blob", "dot", "template")
 #: Largest ``|R^T R - I|`` entry accepted for a rotation matrix typed into a capture file.
 ROTATION_TOL = 1e-4
 #: Largest image or video frame read (width x height, pixels): 8000 x 6000 photographs pass; a larger
@@ -254,11 +261,15 @@ class VideoSpec:
 
 @dataclass
 class TrackStart:
-    """An unknown point for KLT: its pixel (OpenCV convention) in video frame ``frame``."""
+    """An unknown point to track: its pixel (OpenCV convention) in video frame ``frame`` (with
+    ``images``: the image at that position), the ``feature`` kind the refinement fits, and an optional
+    pixel ``sigma`` given by the user (None: the tracker's)."""
 
     name: str
     frame: int
     pixel: np.ndarray
+    feature: str = "corner"
+    sigma: float | None = None
 
 
 @dataclass
@@ -378,9 +389,9 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".") ->
             raise DatasetError(f"{source}: video: a points target needs 'images' with per-image observations")
         cap.video = _video(d["video"], cap, base_dir)
     if d.get("track") is not None:
-        if cap.video is None:
+        if cap.images is not None and any(e.file is None for e in cap.images):
             raise DatasetError(
-                f"{source}: track: KLT tracking needs a video; with images give the pixels under each image's 'observations'"
+                f"{source}: track: tracking needs image files; without them give the pixels under each image's 'observations'"
             )
         cap.track = _track(d["track"], cap)
     return cap
@@ -1004,7 +1015,6 @@ def _track(t: Any, cap: Capture) -> dict[str, TrackStart]:
     if not isinstance(t, Mapping):
         raise DatasetError(f"{where}: expected {{name: {{frame, pixel: [u, v]}}}}, got {_kind(t)}")
     fiducials = cap.target.target_points()
-    assert cap.video is not None
     out: dict[str, TrackStart] = {}
     for name, spec in t.items():
         pw = f"{where}: {_short(name)}"
@@ -1014,13 +1024,22 @@ def _track(t: Any, cap: Capture) -> dict[str, TrackStart]:
             raise DatasetError(f"{pw}: is a fiducial name; tracked points are unknown points with names of their own")
         if not isinstance(spec, Mapping):
             raise DatasetError(f"{pw}: expected {{frame, pixel: [u, v]}}, got {_kind(spec)}")
-        _only(spec, ("frame", "pixel"), pw)
+        _only(spec, ("frame", "pixel", "feature", "sigma"), pw)
         frame = spec.get("frame")
         if not _is_int(frame) or frame < 0:
             raise DatasetError(f"{pw}: frame must be a non-negative integer, got {_short(frame)}")
-        if not any(s.first <= frame <= s.last for s in cap.video.segments):
+        if cap.video is not None and not any(s.first <= frame <= s.last for s in cap.video.segments):
             raise DatasetError(f"{pw}: frame {frame} is in no video segment")
-        out[name] = TrackStart(name, int(frame), _vector(spec.get("pixel"), 2, f"{pw}: pixel"))
+        if cap.images is not None and frame >= len(cap.images):
+            raise DatasetError(f"{pw}: frame {frame} is past the last image (images[{len(cap.images) - 1}]); with images, frame is the position in the list")
+        feature = spec.get("feature", "corner")
+        if feature not in TRACK_FEATURES:
+            raise DatasetError(f"{pw}: feature must be one of {', '.join(TRACK_FEATURES)}, got {_short(feature)}")
+        sigma = spec.get("sigma")
+        if sigma is not None and (_finite(sigma) is None or sigma <= 0):
+            raise DatasetError(f"{pw}: sigma must be a finite number > 0 (pixels), got {_short(sigma)}")
+        out[name] = TrackStart(name, int(frame), _vector(spec.get("pixel"), 2, f"{pw}: pixel"), str(feature),
+                               None if sigma is None else float(sigma))
     return out
 
 

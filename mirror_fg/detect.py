@@ -14,8 +14,16 @@ Tags: ``cv2.aruco.ArucoDetector`` finds and decodes the markers; by default (``s
 is then refined by ``cv2.cornerSubPix`` on the linearized image (inverse sRGB, float) with a half
 window of half a tag cell (2 to 5 px): on gamma-encoded images OpenCV's own ``CORNER_REFINE_SUBPIX``
 sits ~0.5 px inside the black square on each axis (measured on the rendered test scene: 0.71 px median
-off; linearized: 0.21 px). Video: every frame is tracked with KLT (:mod:`mirror_fg.tracking`) and
-re-detected.
+off; linearized: 0.21 px). Video: every frame is tracked (:mod:`mirror_fg.tracking`: KLT, then
+refinement onto the feature) and re-detected; fiducials that detection misses are carried as corners.
+``track:`` points are followed through a video or through ``images`` in list order (a photo sequence),
+each refined by its ``feature`` kind; a cut track is named, with the reason, in the next kept image's
+report.
+
+Noise of tracked points: dataset@1 has one ``pixel_sigma``. Each track has its own sigma (the
+``track:`` entry's ``sigma``, else :meth:`~mirror_fg.tracking.PointTracker.sigma`, never below
+0.5 px, the default ``pixel_sigma``); ``detect_capture(..., tracks=...)`` hands back every track's
+path, residuals and sigma for the report.
 """
 from __future__ import annotations
 
@@ -41,7 +49,7 @@ from mirror_fg.capture import (
     open_video,
 )
 from mirror_fg.dataset import DATASET_FORMAT, DatasetError
-from mirror_fg.tracking import KLTParams, PointTracker
+from mirror_fg.tracking import SRGB_TO_LINEAR, KLTParams, PointTracker, Track
 
 __all__ = [
     "ImageReport",
@@ -76,10 +84,6 @@ TAG_WINDOW_MIN, TAG_WINDOW_MAX = 2, 5
 #: An image whose format Pillow cannot read from its header (so its size is unknown before decoding)
 #: is decoded by OpenCV only up to this file size (bytes), which bounds what it can expand to.
 MAX_UNSIZED_IMAGE_BYTES = 4 << 20
-#: Inverse sRGB transfer function, 8-bit code -> linear intensity on the same 0-255 scale.
-_x = np.arange(256) / 255.0
-SRGB_TO_LINEAR = (np.where(_x <= 0.04045, _x / 12.92, ((_x + 0.055) / 1.055) ** 2.4) * 255.0).astype(np.float32)
-del _x
 
 _REFINEMENT = {
     "subpix": "CORNER_REFINE_SUBPIX",
@@ -353,23 +357,31 @@ class _Output:
     points: dict[str, np.ndarray]
 
 
-def detect_capture(capture: Capture, progress: bool = True) -> tuple[dict[str, Any], list[ImageReport]]:
+def detect_capture(
+    capture: Capture, progress: bool = True, tracks: dict[str, Track] | None = None
+) -> tuple[dict[str, Any], list[ImageReport]]:
     """Detect the target in every image (or video frame) of ``capture``.
 
     Returns the dataset@1 dictionary (camera as a pixel model, fiducials in the base frame, images with
     ids = file stems or ``stem:frame``, ``each`` placements expanded into fresh integers) and one
     :class:`ImageReport` per image/frame in capture order. ``progress`` shows a tqdm bar on stderr when
     it is a terminal. An image that cannot be decoded, or is above MAX_IMAGE_PIXELS, is refused with the
-    reason. Raises DatasetError when no image is kept, or the video cannot be read.
+    reason. ``tracks`` (optional, filled in): every ``track:`` point's :class:`~mirror_fg.tracking.Track`
+    (kind, history of KLT and refined pixels with residuals; ``.sigma()``). Raises DatasetError when no
+    image is kept, or the video cannot be read.
     """
     camera = dict(capture.camera)
     outputs: list[_Output] = []
     reports: list[ImageReport] = []
     show = bool(progress) and sys.stderr.isatty()
+    gamma = getattr(capture.target, "image_gamma", "srgb")
+    tracker = PointTracker(KLTParams(), default_kind="corner", image_gamma=gamma)
     if capture.images is not None:
-        _detect_images(capture, camera, outputs, reports, show)
+        _detect_images(capture, camera, outputs, reports, show, tracker)
     else:
-        _detect_video(capture, camera, outputs, reports, show)
+        _detect_video(capture, camera, outputs, reports, show, tracker)
+    if tracks is not None:
+        tracks.update({name: t for name, t in tracker.tracks.items() if name in capture.track})
 
     if not outputs:
         reasons = "; ".join(r.line() for r in reports[:3]) + ("; ..." if len(reports) > 3 else "")
@@ -433,14 +445,48 @@ def _check_size(gray: np.ndarray, camera: dict[str, Any]) -> str:
     return ""
 
 
+def _start_tracks(tracker: PointTracker, starts: list[Any]) -> None:
+    for start in starts:  # a hand-given pixel is snapped onto its feature (a template keeps it)
+        tracker.set(start.name, start.pixel, kind=start.feature, snap=True)
+
+
+def _track_starts(capture: Capture) -> dict[int, list[Any]]:
+    starts: dict[int, list[Any]] = {}
+    for start in capture.track.values():
+        starts.setdefault(start.frame, []).append(start)
+    return starts
+
+
+def _cut_notes(tracker: PointTracker, dropped: list[str], capture: Capture) -> list[str]:
+    return [f"track {name} cut at {tracker.cut[name]}" for name in dropped if name in capture.track]
+
+
 def _detect_images(
-    capture: Capture, camera: dict[str, Any], outputs: list[_Output], reports: list[ImageReport], show: bool
+    capture: Capture, camera: dict[str, Any], outputs: list[_Output], reports: list[ImageReport], show: bool,
+    tracker: PointTracker,
 ) -> None:
+    """Each image detected on its own; ``track:`` points followed through the images in list order."""
     detector = _Detector(capture, camera)
     entries: list[ImageEntry] = capture.images or []
+    starts = _track_starts(capture)
+    cuts: list[str] = []
     with _progress(len(entries), "image", show) as bar:
-        for entry in entries:
+        for index, entry in enumerate(entries):
             det = _detect_entry(entry, detector, capture, camera)
+            if capture.track:
+                gray = _read_gray(entry)[0] if det.status != REFUSED else None  # decoded again: tracking only
+                if gray is None:
+                    tracker.reset()  # unreadable or of another size: tracks cannot cross it
+                else:
+                    cuts += _cut_notes(tracker, tracker.step(gray, index=index), capture)
+                    _start_tracks(tracker, starts.get(index, []))
+                    tracked = {n: p.copy() for n, p in tracker.points.items() if n in capture.track and n not in det.points}
+                    if tracked and det.status == FOUND and det.points:
+                        det.points.update(tracked)
+                        cuts.insert(0, f"{len(tracked)} point{'s' if len(tracked) != 1 else ''} tracked")
+                if det.status == FOUND and det.points and cuts:
+                    det.reason = "; ".join(([det.reason] if det.reason else []) + cuts)
+                    cuts = []
             if det.status == FOUND and det.points:
                 outputs.append(_Output(entry.id, entry.mirror_configs, det.points))
                 reports.append(ImageReport(entry.id, FOUND, det.reason, len(det.points)))
@@ -516,16 +562,15 @@ def _too_large(path: str) -> str:
 
 
 def _detect_video(
-    capture: Capture, camera: dict[str, Any], outputs: list[_Output], reports: list[ImageReport], show: bool
+    capture: Capture, camera: dict[str, Any], outputs: list[_Output], reports: list[ImageReport], show: bool,
+    tracker: PointTracker,
 ) -> None:
     video = capture.video
     assert video is not None
     detector = _Detector(capture, camera)
     fiducial_names = set(capture.target.target_points())
-    tracker = PointTracker(KLTParams())
-    starts: dict[int, list[Any]] = {}
-    for start in capture.track.values():
-        starts.setdefault(start.frame, []).append(start)
+    starts = _track_starts(capture)
+    cuts: list[str] = []
     where = f"{capture.source}: video ({_name(os.path.basename(video.file))})"
     vc = open_video(video.file, where)
     total = sum(s.last - s.first + 1 for s in video.segments)
@@ -561,12 +606,11 @@ def _detect_video(
                     mismatch = _check_size(gray, camera)
                     if mismatch:
                         raise DatasetError(f"{where}: {mismatch}")
-                    tracker.step(gray)
+                    cuts += _cut_notes(tracker, tracker.step(gray, index=frame), capture)
                     det = detector(gray)
                     for name, p in det.points.items():
-                        tracker.set(name, p)
-                    for start in starts.get(frame, []):
-                        tracker.set(start.name, start.pixel)
+                        tracker.set(name, p, kind="corner")  # tag and chessboard corners
+                    _start_tracks(tracker, starts.get(frame, []))
                     bar.update(1)
                     if frame not in outputs_of_seg:
                         continue
@@ -584,6 +628,7 @@ def _detect_video(
                         notes.append(f"{tracked_fids} fiducial points tracked by KLT")
                     elif det.reason:
                         notes.append(det.reason)
+                    notes, cuts = notes + cuts, []
                     outputs.append(_Output(frame_id, seg.mirror_configs, points))
                     reports.append(ImageReport(frame_id, FOUND, "; ".join(notes), len(points)))
     finally:

@@ -194,7 +194,9 @@ def test_camera_from_kalibr_and_ros(tmp_path):
         ({"images": [{"file": "a.png", "mirror_configs": [0, 1]}]}, "expected 1"),
         ({"images": [{"file": "a.png", "mirror_configs": ["sometimes"]}]}, "'each'"),
         ({"images": [{"file": "a.png", "mirror_configs": [0]}, {"file": "a.png", "mirror_configs": [1]}]}, "image id 'a'"),
-        ({"track": {"P0": {"frame": 0, "pixel": [1, 2]}}}, "needs a video"),
+        ({"track": {"P0": {"frame": 5, "pixel": [1, 2]}}}, "past the last image"),
+        ({"track": {"P0": {"frame": 0, "pixel": [1, 2], "feature": "edge"}}}, "feature must be one of"),
+        ({"track": {"P0": {"frame": 0, "pixel": [1, 2], "sigma": 0}}}, "sigma must be"),
         ({"extra": 1}, "unknown key 'extra'"),
         ({"video": {"file": "a.png", "segments": []}}, "exactly one of 'images' and 'video'"),
     ],
@@ -224,9 +226,10 @@ def test_unreadable_and_short_video(tmp_path):
     assert "is a fiducial name" in error_of(tmp_path, capture)
     capture["track"] = {"P0": {"frame": 7, "pixel": [1, 1]}}
     assert "in no video segment" in error_of(tmp_path, capture)
-    capture["track"] = {"P0": {"frame": 1, "pixel": [1, 1]}}
+    capture["track"] = {"P0": {"frame": 1, "pixel": [1, 1], "feature": "blob", "sigma": 0.7}}
     cap = load_capture(write(tmp_path, capture))
     assert cap.video.frame_count == 5 and cap.track["P0"].frame == 1
+    assert cap.track["P0"].feature == "blob" and cap.track["P0"].sigma == 0.7
 
 
 def test_yaml_syntax_and_duplicate_keys(tmp_path):
