@@ -15,7 +15,7 @@ from functools import partial
 import gtsam
 import numpy as np
 
-from mirror_fg.geometry import measurement_jacobians
+from mirror_fg.core.geometry import measurement_jacobians
 
 __all__ = ["reflection_error", "ReflectionFactor", "noise_model"]
 

@@ -17,8 +17,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from mirror_fg.dataset import Dataset
-    from mirror_fg.fileio import OutputPlan
+    from mirror_fg.io.dataset import Dataset
+    from mirror_fg.io.fileio import OutputPlan
 
 EXIT_OK, EXIT_BAD_INPUT, EXIT_UNSOLVABLE, EXIT_INTERNAL = 0, 2, 3, 1
 
@@ -233,10 +233,10 @@ def _load_input(path: Path, out: _Printer, plan: OutputPlan) -> Dataset:
     The files a capture names are added to ``plan``'s inputs before any detection, so an output that
     would overwrite one of them is refused first.
     """
-    from mirror_fg.capture import CAPTURE_FORMAT, capture_from_dict
-    from mirror_fg.dataset import dataset_from_dict
-    from mirror_fg.detect import detect_capture
-    from mirror_fg.fileio import load_structured
+    from mirror_fg.io.capture import CAPTURE_FORMAT, capture_from_dict
+    from mirror_fg.io.dataset import dataset_from_dict
+    from mirror_fg.vision.detect import detect_capture
+    from mirror_fg.io.fileio import load_structured
 
     source = os.fspath(path)
     data = load_structured(source)
@@ -260,8 +260,8 @@ def _print_detection_report(out: _Printer, reports) -> None:
 
 
 def cmd_simulate(args, out: _Printer) -> int:
-    from mirror_fg.fileio import OutputPlan
-    from mirror_fg.simulate import simulate_base_case, simulate_tree, truth_path, write_simulation
+    from mirror_fg.io.fileio import OutputPlan
+    from mirror_fg.tools.simulate import simulate_base_case, simulate_tree, truth_path, write_simulation
 
     plan = OutputPlan()  # checked before the work; write_simulation writes both all-or-nothing
     plan.add(args.output, "dataset")
@@ -280,10 +280,10 @@ def cmd_simulate(args, out: _Printer) -> int:
 
 
 def cmd_calibrate(args, out: _Printer) -> int:
-    from mirror_fg.dataset import DatasetError, result_text
-    from mirror_fg.fileio import OutputPlan
-    from mirror_fg.graph import calibrate, require_converged
-    from mirror_fg.ros import check_frame_name, ros_output_paths, ros_output_texts
+    from mirror_fg.io.dataset import DatasetError, result_text
+    from mirror_fg.io.fileio import OutputPlan
+    from mirror_fg.solver.graph import calibrate, require_converged
+    from mirror_fg.io.ros import check_frame_name, ros_output_paths, ros_output_texts
 
     start = time.perf_counter()
     plan = OutputPlan(inputs=[os.fspath(args.input)])
@@ -336,7 +336,7 @@ def cmd_calibrate(args, out: _Printer) -> int:
 
 
 def _run_incremental(dataset, args, out: _Printer):
-    from mirror_fg.incremental import calibrate_incremental
+    from mirror_fg.solver.incremental import calibrate_incremental
 
     total = len(dataset.images)
 
@@ -350,9 +350,9 @@ def _run_incremental(dataset, args, out: _Printer):
 
 
 def cmd_detect(args, out: _Printer) -> int:
-    from mirror_fg.capture import CAPTURE_FORMAT
-    from mirror_fg.dataset import DatasetError, dataset_text
-    from mirror_fg.fileio import OutputPlan, load_structured
+    from mirror_fg.io.capture import CAPTURE_FORMAT
+    from mirror_fg.io.dataset import DatasetError, dataset_text
+    from mirror_fg.io.fileio import OutputPlan, load_structured
 
     plan = OutputPlan(inputs=[os.fspath(args.capture)])
     plan.add(args.output, "dataset")
@@ -366,9 +366,9 @@ def cmd_detect(args, out: _Printer) -> int:
 
 
 def cmd_report(args, out: _Printer) -> int:
-    from mirror_fg.dataset import DatasetError, load_dataset, load_result
-    from mirror_fg.fileio import OutputPlan
-    from mirror_fg.report import write_report
+    from mirror_fg.io.dataset import DatasetError, load_dataset, load_result
+    from mirror_fg.io.fileio import OutputPlan
+    from mirror_fg.tools.report import write_report
 
     plan = OutputPlan(inputs=[os.fspath(p) for p in (args.result, args.dataset) if p is not None])
     if os.path.exists(args.output) and not os.path.isdir(args.output):
@@ -389,8 +389,8 @@ def cmd_report(args, out: _Printer) -> int:
 
 
 def cmd_plan(args, out: _Printer) -> int:
-    from mirror_fg.fileio import OutputPlan
-    from mirror_fg.plan import PlanSetup, format_plan, load_fiducials, plan
+    from mirror_fg.io.fileio import OutputPlan
+    from mirror_fg.tools.plan import PlanSetup, format_plan, load_fiducials, plan
 
     outputs = OutputPlan(inputs=[os.fspath(args.fiducials_file)] if args.fiducials_file is not None else [])
     if args.json is not None:
@@ -442,8 +442,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args, out: _Printer) -> int:
-    from mirror_fg.analytic import SolveError
-    from mirror_fg.dataset import DatasetError
+    from mirror_fg.solver.analytic import SolveError
+    from mirror_fg.io.dataset import DatasetError
 
     try:
         return COMMANDS[args.command](args, out)

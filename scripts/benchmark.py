@@ -51,7 +51,7 @@ MEMORY_GOAL_MB = 1024.0  # 900-image problem with marginals
 
 
 def _dataset(case: str):
-    from mirror_fg.simulate import simulate_base_case
+    from mirror_fg.tools.simulate import simulate_base_case
 
     return simulate_base_case(**CASES[case]["simulate"], **COMMON)
 
@@ -68,7 +68,7 @@ def task_baseline(case: str, repeats: int) -> dict:
     """Interpreter + gtsam + numpy + the dataset: the memory floor of every other task."""
     import gtsam  # noqa: F401
 
-    from mirror_fg.graph import measurements_of
+    from mirror_fg.solver.graph import measurements_of
 
     dataset, _ = _dataset(case)
     measurements_of(dataset)
@@ -76,7 +76,7 @@ def task_baseline(case: str, repeats: int) -> dict:
 
 
 def task_calibrate(case: str, repeats: int, fast: bool) -> dict:
-    from mirror_fg.graph import calibrate
+    from mirror_fg.solver.graph import calibrate
 
     dataset, _ = _dataset(case)
     runs = []
@@ -125,7 +125,7 @@ def task_linearize(case: str, repeats: int) -> dict:
     import gtsam
 
     from mirror_fg.factors.batched import batched_factors
-    from mirror_fg.graph import build_graph
+    from mirror_fg.solver.graph import build_graph
 
     dataset, truth = _dataset(case)
     reference, values, layout, measurements = build_graph(dataset, truth, fast=False)
@@ -179,7 +179,7 @@ def _scipy_problem(dataset, initial):
     import scipy.sparse as sparse
     from scipy.spatial.transform import Rotation
 
-    from mirror_fg.graph import measurements_of
+    from mirror_fg.solver.graph import measurements_of
 
     measurements = measurements_of(dataset)
     configs = sorted(dataset.configurations)
@@ -230,7 +230,7 @@ def _scipy_problem(dataset, initial):
 def task_scipy(case: str, repeats: int) -> dict:
     from scipy.optimize import least_squares
 
-    from mirror_fg.graph import initial_estimate
+    from mirror_fg.solver.graph import initial_estimate
 
     dataset, _ = _dataset(case)
     runs = []
@@ -267,7 +267,7 @@ def task_profile(case: str, repeats: int) -> dict:
         from pyinstrument import Profiler
     except ImportError:
         return {"text": "pyinstrument is not installed (pip install pyinstrument)"}
-    from mirror_fg.graph import calibrate
+    from mirror_fg.solver.graph import calibrate
 
     dataset, _ = _dataset(case)
     profiler = Profiler(interval=0.001)
@@ -280,7 +280,7 @@ def task_profile(case: str, repeats: int) -> dict:
 
 def task_loop(case: str, repeats: int) -> dict:
     """``repeats`` fast calibrations, for a sampling profiler to watch."""
-    from mirror_fg.graph import calibrate
+    from mirror_fg.solver.graph import calibrate
 
     dataset, _ = _dataset(case)
     for _ in range(repeats):

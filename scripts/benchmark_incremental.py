@@ -8,7 +8,7 @@ of 100 images, mirror 2 new in every image, 10 reconstruction points, 1 px) thro
 * the image of the first estimate and what that start-up cost;
 * the per-image update latency (median, p95, max) after start-up: over every image, and over the
   images of a *settled* calibrator (the start-up's LM solution was a clean minimum; before that each
-  image re-runs the start-up, see ``mirror_fg.incremental``);
+  image re-runs the start-up, see ``mirror_fg.solver.incremental``);
 * the total time of the stream and of ``calibration(full=True)``, and how far the last per-image and
   the full estimate are from the batch MLE (per pose axis, in batch standard deviations);
 * the time a batch solve (``graph.calibrate``) re-run after every image from the first estimate on
@@ -25,10 +25,10 @@ import time
 
 import numpy as np
 
-from mirror_fg.dataset import Dataset
-from mirror_fg.graph import calibrate
-from mirror_fg.incremental import IncrementalCalibrator
-from mirror_fg.simulate import simulate_base_case
+from mirror_fg.io.dataset import Dataset
+from mirror_fg.solver.graph import calibrate
+from mirror_fg.solver.incremental import IncrementalCalibrator
+from mirror_fg.tools.simulate import simulate_base_case
 
 
 def pose_sigmas(batch, estimate) -> np.ndarray:

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mirror_fg.crb import AXIS_NAMES, WeakestDirection, weakest_direction
-from mirror_fg.dataset import DatasetError, load_result
+from mirror_fg.tools.crb import AXIS_NAMES, WeakestDirection, weakest_direction
+from mirror_fg.io.dataset import DatasetError, load_result
 
 LABELS = ("θx", "θy", "θz", "tx", "ty", "tz")
 PLANES = (("x", "y", 0, 1), ("x", "z", 0, 2), ("y", "z", 1, 2))

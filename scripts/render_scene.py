@@ -43,7 +43,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from mirror_fg.geometry import householder, nested_transform  # noqa: E402
+from mirror_fg.core.geometry import householder, nested_transform  # noqa: E402
 
 DICTIONARY = cv2.aruco.DICT_APRILTAG_36h11
 TAG_SIZE = 0.12  # metres, edge of the black square

@@ -6,7 +6,7 @@ within 10 cm of the fiducials. Sweeps: (a) pixel sigma at 0.5 m mirror distance,
 1 px. Per point of a sweep, ``--runs`` Monte Carlo runs (seed = run index; in sweep (a) a run keeps its
 mirror placements and only the noise scale changes). Each run: the analytical solution and the MLE
 (``mirror_fg.calibrate``), its reported covariance, and the Cramér-Rao bound (inverse Fisher
-information at the truth, ``mirror_fg.crb``). "Analytical" is ``calibrate()``'s start
+information at the truth, ``mirror_fg.tools.crb``). "Analytical" is ``calibrate()``'s start
 (``graph.initial_estimate``: the closed form with each mirror placement's P3P hypotheses refined on its
 own images); the bare closed form of Sects. 4-5 (``solve_analytic``, the paper's method) is reported
 beside it as "closed form".
@@ -46,12 +46,12 @@ from pathlib import Path
 
 import numpy as np
 
-from mirror_fg.analytic import SolveError, solve_analytic
-from mirror_fg.crb import cramer_rao_bound, nees, nees_band, pose_error
-from mirror_fg.dataset import DatasetError
-from mirror_fg.graph import calibrate
-from mirror_fg.montecarlo import run_trials
-from mirror_fg.simulate import simulate_base_case
+from mirror_fg.solver.analytic import SolveError, solve_analytic
+from mirror_fg.tools.crb import cramer_rao_bound, nees, nees_band, pose_error
+from mirror_fg.io.dataset import DatasetError
+from mirror_fg.solver.graph import calibrate
+from mirror_fg.tools.montecarlo import run_trials
+from mirror_fg.tools.simulate import simulate_base_case
 
 SIGMAS_PX = (0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 1.75, 2.0)
 DISTANCES_M = (0.25, 0.5, 0.75, 1.0, 1.25, 1.5)

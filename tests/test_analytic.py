@@ -9,17 +9,17 @@ from mirror_fg import (
     initial_estimate,
     solve_analytic,
 )
-from mirror_fg.analytic import (
+from mirror_fg.solver.analytic import (
     _Hypothesis,
     _subtree_solution,
     pnp_candidates,
     subtree_dataset,
     triangulate_point,
 )
-from mirror_fg.dataset import Dataset, Image
-from mirror_fg.geometry import apply_transform, nested_transform, project, so3_exp
-from mirror_fg.simulate import simulate_base_case, simulate_tree
-from mirror_fg.transforms import rotation_angle
+from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.core.geometry import apply_transform, nested_transform, project, so3_exp
+from mirror_fg.tools.simulate import simulate_base_case, simulate_tree
+from mirror_fg.core.transform import rotation_angle
 
 
 @pytest.mark.parametrize("num_mirrors", [1, 2, 3])

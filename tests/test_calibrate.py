@@ -7,9 +7,9 @@ from scipy.stats import chi2
 
 from conftest import pose_difference
 from mirror_fg import calibrate, load_dataset
-from mirror_fg.graph import Calibration
-from mirror_fg.simulate import simulate_base_case
-from mirror_fg.transforms import rotation_angle
+from mirror_fg.solver.graph import Calibration
+from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.core.transform import rotation_angle
 
 # The authors' bundle adjustment on the five real photographs (shared/data/takahashi2012/README.md).
 TAKAHASHI_R = np.array([[-0.59533, -0.02049, 0.80322], [0.02015, 0.99898, 0.04042], [-0.80323, 0.04025, -0.59431]])
@@ -138,8 +138,8 @@ def test_result_dict_matches_spec_shape():
 
 def test_covariance_convention_matches_perturbation_of_rotation_about_camera_axes():
     """SPEC: R_true = Exp(dtheta) R_est; the reported covariance must match the spread of such dtheta."""
-    from mirror_fg.transforms import spec_covariance_from_pose3
-    from mirror_fg.geometry import so3_exp
+    from mirror_fg.core.transform import spec_covariance_from_pose3
+    from mirror_fg.core.geometry import so3_exp
 
     rng = np.random.default_rng(0)
     R = so3_exp(np.array([0.3, -1.0, 0.4]))
@@ -162,7 +162,7 @@ def test_covariance_convention_matches_perturbation_of_rotation_about_camera_axe
 
 
 def test_schur_marginals_equal_gtsam_marginals():
-    from mirror_fg.graph import _marginals_from_gtsam, build_graph, marginal_covariances
+    from mirror_fg.solver.graph import _marginals_from_gtsam, build_graph, marginal_covariances
 
     dataset, truth = simulate_base_case(num_images=40, num_points=4, pixel_sigma=1.0, seed=8)
     for fast in (True, False):
@@ -189,9 +189,9 @@ def test_an_implausible_optimum_restarts_from_the_runner_up_hypotheses(monkeypat
     """When LM from the analytical solution ends far above the chi-square range of the cost, calibrate()
     starts again from the root's runner-up hypotheses and keeps the best: here the first hypothesis is
     a deliberately wrong pose (rotated 150 deg, 2 m off), the runner-up the real solution."""
-    import mirror_fg.graph as graph_module
-    from mirror_fg.analytic import AnalyticSolution
-    from mirror_fg.geometry import so3_exp
+    import mirror_fg.solver.graph as graph_module
+    from mirror_fg.solver.analytic import AnalyticSolution
+    from mirror_fg.core.geometry import so3_exp
 
     dataset, truth = simulate_base_case(num_images=60, num_points=4, pixel_sigma=1.0, seed=5)
     right = graph_module.initial_estimate(dataset)

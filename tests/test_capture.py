@@ -1,4 +1,4 @@
-"""capture@1 loading and validation (mirror_fg.capture)."""
+"""capture@1 loading and validation (mirror_fg.io.capture)."""
 from __future__ import annotations
 
 import json
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import yaml
 
-from mirror_fg.capture import EACH, ChessboardTarget, PointsTarget, TagTarget, load_capture
-from mirror_fg.dataset import DatasetError
+from mirror_fg.io.capture import EACH, ChessboardTarget, PointsTarget, TagTarget, load_capture
+from mirror_fg.io.dataset import DatasetError
 
 DATA = Path(__file__).parent / "data" / "capture"
 TAKAHASHI = DATA.parent.parent.parent.parent / "shared" / "data" / "takahashi2012"

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from mirror_fg.cli import main
-from mirror_fg.dataset import dataset_to_dict
-from mirror_fg.simulate import simulate_base_case, simulate_tree
+from mirror_fg.io.dataset import dataset_to_dict
+from mirror_fg.tools.simulate import simulate_base_case, simulate_tree
 
 
 @pytest.fixture
@@ -88,7 +88,7 @@ def test_identical_images_exit_3_naming_the_motion(tmp_path, capsys):
 
 def test_degenerate_geometry_exits_3(tmp_path, capsys):
     dataset, truth = simulate_tree(1, pixel_sigma=0.0, seed=2)
-    from mirror_fg.geometry import nested_transform, project, so3_exp
+    from mirror_fg.core.geometry import nested_transform, project, so3_exp
 
     data = dataset_to_dict(dataset)
     data["camera"] = None

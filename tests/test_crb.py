@@ -1,20 +1,20 @@
-"""Fisher information / Cramér-Rao bound (mirror_fg.crb) against finite differences, GTSAM and chi-square."""
+"""Fisher information / Cramér-Rao bound (mirror_fg.tools.crb) against finite differences, GTSAM and chi-square."""
 from __future__ import annotations
 
 import gtsam
 import numpy as np
 import pytest
 
-from mirror_fg.analytic import SolveError
-from mirror_fg.crb import (
+from mirror_fg.solver.analytic import SolveError
+from mirror_fg.tools.crb import (
     UnknownIndex, chi2_quantile, cramer_rao_bound, fisher_information, linearize, nees, nees_band, pose_error,
     weakest_direction,
 )
-from mirror_fg.dataset import Dataset, Image
-from mirror_fg.geometry import measurement, so3_exp
-from mirror_fg.graph import build_graph, calibrate
-from mirror_fg.simulate import GroundTruth, simulate_base_case
-from mirror_fg.transforms import spec_covariance_from_pose3
+from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.core.geometry import measurement, so3_exp
+from mirror_fg.solver.graph import build_graph, calibrate
+from mirror_fg.tools.simulate import GroundTruth, simulate_base_case
+from mirror_fg.core.transform import spec_covariance_from_pose3
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Tests of mirror_fg.dataset: dataset@1 / result@1 files, validation messages, atomic writes."""
+"""Tests of mirror_fg.io.dataset: dataset@1 / result@1 files, validation messages, atomic writes."""
 from __future__ import annotations
 
 import copy
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import yaml
 
-from mirror_fg.dataset import (
+from mirror_fg.io.dataset import (
     DATASET_FORMAT,
     RESULT_FORMAT,
     Camera,

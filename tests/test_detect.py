@@ -1,4 +1,4 @@
-"""Detectors and detect_capture (mirror_fg.detect) on the real Takahashi photographs and synthetic images."""
+"""Detectors and detect_capture (mirror_fg.vision.detect) on the real Takahashi photographs and synthetic images."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import yaml
 
-from mirror_fg.capture import ChessboardTarget, TagTarget, load_capture, tag_dictionary
-from mirror_fg.dataset import DatasetError, dataset_from_dict
-from mirror_fg.detect import (
+from mirror_fg.io.capture import ChessboardTarget, TagTarget, load_capture, tag_dictionary
+from mirror_fg.io.dataset import DatasetError, dataset_from_dict
+from mirror_fg.vision.detect import (
     FOUND,
     NOT_FOUND,
     REFUSED,
@@ -241,7 +241,7 @@ def test_target_never_found_and_undecodable_image(tmp_path):
 
 
 def test_grid_misfit_flags_corners_off_a_plane():
-    from mirror_fg.detect import _grid_misfit_px
+    from mirror_fg.vision.detect import _grid_misfit_px
 
     target = ChessboardTarget(6, 5, 0.02)
     camera = {"fx": 300.0, "fy": 300.0, "cx": 160.0, "cy": 120.0, "dist": [0.0] * 5}

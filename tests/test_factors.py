@@ -6,7 +6,7 @@ import pytest
 from gtsam.symbol_shorthand import L, V, X
 
 from mirror_fg.factors.reflection import ReflectionFactor, noise_model
-from mirror_fg.geometry import measurement, so3_exp
+from mirror_fg.core.geometry import measurement, so3_exp
 
 
 def _scene(num_mirrors, rng):

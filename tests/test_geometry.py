@@ -3,7 +3,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mirror_fg.geometry import (
+from mirror_fg.core.geometry import (
     householder, measurement, measurement_jacobians, nested_transform, project, project_to_orthogonal, reflect, so3_exp,
 )
 

@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import yaml
 
-from mirror_fg.capture import MAX_IMAGE_PIXELS, capture_from_dict, load_capture
-from mirror_fg.dataset import DatasetError
-from mirror_fg.detect import FOUND, REFUSED, _too_large, detect_capture
+from mirror_fg.io.capture import MAX_IMAGE_PIXELS, capture_from_dict, load_capture
+from mirror_fg.io.dataset import DatasetError
+from mirror_fg.vision.detect import FOUND, REFUSED, _too_large, detect_capture
 
 SQUARE_PX = 20
 COLS, ROWS = 5, 4  # inner corners; cols + rows odd
@@ -214,9 +214,9 @@ def test_camera_file_name_is_checked_and_good_files_still_read(tmp_path):
 
 CHILD_PRELUDE = textwrap.dedent("""
     import resource, sys
-    from mirror_fg.capture import load_capture
-    from mirror_fg.dataset import DatasetError
-    from mirror_fg.detect import detect_capture, format_reports
+    from mirror_fg.io.capture import load_capture
+    from mirror_fg.io.dataset import DatasetError
+    from mirror_fg.vision.detect import detect_capture, format_reports
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     try:
         _, reports = detect_capture(load_capture(sys.argv[1]), progress=False)

@@ -1,4 +1,4 @@
-"""Tests of mirror_fg.incremental: iSAM2 image by image against the batch MLE (graph.calibrate).
+"""Tests of mirror_fg.solver.incremental: iSAM2 image by image against the batch MLE (graph.calibrate).
 
 Deviations are per axis of the 6-DoF pose in SPEC's convention, ``|incremental - batch| / sigma`` with
 the batch's marginal standard deviations.
@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from conftest import pose_difference
 
-from mirror_fg.analytic import SolveError, solve_analytic
-from mirror_fg.dataset import Dataset, DatasetError, Image, dataset_to_dict
-from mirror_fg.graph import calibrate
-from mirror_fg.incremental import IncrementalCalibrator, complete_tree
-from mirror_fg.simulate import simulate_base_case
+from mirror_fg.solver.analytic import SolveError, solve_analytic
+from mirror_fg.io.dataset import Dataset, DatasetError, Image, dataset_to_dict
+from mirror_fg.solver.graph import calibrate
+from mirror_fg.solver.incremental import IncrementalCalibrator, complete_tree
+from mirror_fg.tools.simulate import simulate_base_case
 
 #: Largest allowed deviation from the batch MLE, in batch standard deviations (the issue's figure).
 MAX_SIGMAS = 0.1

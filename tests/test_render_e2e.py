@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from conftest import pose_difference
-from mirror_fg.capture import load_capture
-from mirror_fg.dataset import dataset_from_dict
-from mirror_fg.detect import FOUND, detect_capture
+from mirror_fg.io.capture import load_capture
+from mirror_fg.io.dataset import dataset_from_dict
+from mirror_fg.vision.detect import FOUND, detect_capture
 
 DATA = Path(__file__).parent / "data" / "capture"
 RENDERED = DATA / "rendered"

@@ -1,4 +1,4 @@
-"""Tests of mirror_fg.report: residuals, the HTML page (rendered in headless Chromium) and the PDF."""
+"""Tests of mirror_fg.tools.report: residuals, the HTML page (rendered in headless Chromium) and the PDF."""
 from __future__ import annotations
 
 import base64
@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mirror_fg.dataset import Camera, Dataset, DatasetError, Image
-from mirror_fg.geometry import nested_transform, project, so3_exp
-from mirror_fg.report import OUTLIER_FACTOR, compute_residuals, write_report
-from mirror_fg.ros import rotation_to_quaternion_xyzw
+from mirror_fg.io.dataset import Camera, Dataset, DatasetError, Image
+from mirror_fg.core.geometry import nested_transform, project, so3_exp
+from mirror_fg.tools.report import OUTLIER_FACTOR, compute_residuals, write_report
+from mirror_fg.io.ros import rotation_to_quaternion_xyzw
 
 PIXEL_SIGMA = 0.5
 OUTLIER_IMAGE = "img004"
@@ -193,7 +193,7 @@ def test_report_without_dataset(tmp_path):
 
 def test_report_figures_normalized_dataset():
     """Without a camera: normalized units, no image size for the frustum or the residual arrows."""
-    from mirror_fg.report import _figure_per_point, _figure_scene, _png, _summary
+    from mirror_fg.tools.report import _figure_per_point, _figure_scene, _png, _summary
 
     ds, result = make_scene(camera=False)
     res = compute_residuals(result, ds)
@@ -300,7 +300,7 @@ def _calibrate():
 
 
 def _check_pipeline_report(ds, result, out: Path, render: bool) -> None:
-    from mirror_fg.ros import write_ros_outputs
+    from mirror_fg.io.ros import write_ros_outputs
 
     res = compute_residuals(result, ds)
     # The report recomputes exactly what the calibration reports.
@@ -317,7 +317,7 @@ def _check_pipeline_report(ds, result, out: Path, render: bool) -> None:
 
 def test_report_simulated_base_case(tmp_path):
     calibrate = _calibrate()
-    from mirror_fg.simulate import simulate_base_case
+    from mirror_fg.tools.simulate import simulate_base_case
 
     ds, _ = simulate_base_case(num_images=30, num_points=2, pixel_sigma=1.0, seed=3)
     _check_pipeline_report(ds, calibrate(ds).to_dict(), tmp_path, render=False)  # rendering: the fixture
@@ -325,7 +325,7 @@ def test_report_simulated_base_case(tmp_path):
 
 def test_report_real_photographs(takahashi_dir, tmp_path):
     calibrate = _calibrate()
-    from mirror_fg.dataset import load_dataset
+    from mirror_fg.io.dataset import load_dataset
 
     ds = load_dataset(takahashi_dir / "dataset.json")
     _check_pipeline_report(ds, calibrate(ds).to_dict(), tmp_path, render=True)

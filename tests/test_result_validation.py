@@ -1,4 +1,4 @@
-"""mirror_fg.result.validate_result: a corrupt result@1 fails with one line naming the key (issue 12).
+"""mirror_fg.io.result.validate_result: a corrupt result@1 fails with one line naming the key (issue 12).
 
 Every key path of a real result is replaced, in turn, by each of a few wrong values; the validator
 either refuses it with a short line naming that path, or (optional keys, NaN statistics, extras)
@@ -19,12 +19,12 @@ import pytest
 
 import mirror_fg
 from mirror_fg.cli import main
-from mirror_fg.dataset import DatasetError, dataset_to_dict
-from mirror_fg.report import _summary, compute_residuals, write_report
-from mirror_fg.result import validate_result
-from mirror_fg.ros import ros_outputs, write_ros_outputs
-from mirror_fg.simulate import simulate_base_case
-from mirror_fg.transforms import rotation_to_quaternion_xyzw
+from mirror_fg.io.dataset import DatasetError, dataset_to_dict
+from mirror_fg.tools.report import _summary, compute_residuals, write_report
+from mirror_fg.io.result import validate_result
+from mirror_fg.io.ros import ros_outputs, write_ros_outputs
+from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.core.transform import rotation_to_quaternion_xyzw
 
 SOURCE = "r.json"
 #: A message quotes at most ~80 characters of user data; the whole line stays short.

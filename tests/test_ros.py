@@ -1,4 +1,4 @@
-"""Tests of mirror_fg.ros: URDF joint round trip, quaternions, static_transform_publisher arguments, files."""
+"""Tests of mirror_fg.io.ros: URDF joint round trip, quaternions, static_transform_publisher arguments, files."""
 from __future__ import annotations
 
 import argparse
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import yaml
 
-from mirror_fg.geometry import so3_exp
-from mirror_fg.ros import (
+from mirror_fg.core.geometry import so3_exp
+from mirror_fg.io.ros import (
     quaternion_xyzw_to_rotation,
     ros_outputs,
     rotation_to_quaternion_xyzw,

@@ -1,4 +1,4 @@
-"""Tests of mirror_fg.simulate: the scenes agree with their ground truth and the paper's Sect. 7 / Fig. 3."""
+"""Tests of mirror_fg.tools.simulate: the scenes agree with their ground truth and the paper's Sect. 7 / Fig. 3."""
 from __future__ import annotations
 
 import json
@@ -7,10 +7,10 @@ from collections import defaultdict
 import numpy as np
 import pytest
 
-from mirror_fg import simulate
-from mirror_fg.dataset import DATASET_FORMAT, Dataset
-from mirror_fg.geometry import apply_transform, nested_transform, project
-from mirror_fg.simulate import (
+from mirror_fg.tools import simulate
+from mirror_fg.io.dataset import DATASET_FORMAT, Dataset
+from mirror_fg.core.geometry import apply_transform, nested_transform, project
+from mirror_fg.tools.simulate import (
     GroundTruth,
     ground_truth_from_dict,
     simulate_base_case,
@@ -227,7 +227,7 @@ def test_write_simulation(tmp_path):
 
 
 def test_written_dataset_loads_and_normalizes(tmp_path):
-    from mirror_fg.dataset import load_dataset
+    from mirror_fg.io.dataset import load_dataset
 
     ds, truth = simulate_tree(3, num_points=3, num_fiducials=4, seed=2)
     path = tmp_path / "tree.json"

@@ -1,4 +1,4 @@
-"""KLT tracking (mirror_fg.tracking) and video captures through detect_capture."""
+"""KLT tracking (mirror_fg.vision.tracking) and video captures through detect_capture."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import yaml
 
-from mirror_fg.capture import load_capture
-from mirror_fg.dataset import dataset_from_dict
-from mirror_fg.detect import FOUND, detect_capture
-from mirror_fg.tracking import KLTParams, PointTracker, track_klt
+from mirror_fg.io.capture import load_capture
+from mirror_fg.io.dataset import dataset_from_dict
+from mirror_fg.vision.detect import FOUND, detect_capture
+from mirror_fg.vision.tracking import KLTParams, PointTracker, track_klt
 
 from test_detect import board_image  # tests/ is on sys.path under pytest's default (prepend) import mode
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import load_script
-from mirror_fg.tracking import (
+from mirror_fg.vision.tracking import (
     TRACK_SIGMA_FLOOR_PX,
     KLTParams,
     PointTracker,

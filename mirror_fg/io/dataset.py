@@ -201,7 +201,7 @@ def load_dataset(path: PathLike) -> Dataset:
     Raises DatasetError (one line naming the file, the image or point and the problem) on an unreadable
     file, invalid JSON (with line and column) or any content that :func:`dataset_from_dict` rejects.
     """
-    from mirror_fg.fileio import parse_json, read_text
+    from mirror_fg.io.fileio import parse_json, read_text
 
     source = os.fspath(path)
     return dataset_from_dict(parse_json(read_text(source), source), source=source)
@@ -621,8 +621,8 @@ def dataset_text(ds: Dataset) -> str:
 
 def load_result(path: PathLike) -> dict[str, Any]:
     """Read a result@1 file (JSON, or YAML where the name ends in .yaml/.yml). Raises DatasetError."""
-    from mirror_fg.fileio import parse_json, parse_yaml, read_text
-    from mirror_fg.result import validate_result
+    from mirror_fg.io.fileio import parse_json, parse_yaml, read_text
+    from mirror_fg.io.result import validate_result
 
     source = os.fspath(path)
     text = read_text(source)
@@ -677,10 +677,10 @@ def _is_yaml(path: str) -> bool:
 
 
 def atomic_write(path: str | os.PathLike[str], data: str | bytes) -> Path:
-    """Write ``data`` (text is UTF-8) to ``path`` all-or-nothing (:class:`mirror_fg.fileio.OutputPlan`):
+    """Write ``data`` (text is UTF-8) to ``path`` all-or-nothing (:class:`mirror_fg.io.fileio.OutputPlan`):
     a temporary file in the same directory replaces an existing file only once complete; on any
     failure the old file stays as it was. DatasetError (one line) where ``path`` cannot be written."""
-    from mirror_fg.fileio import OutputPlan
+    from mirror_fg.io.fileio import OutputPlan
 
     plan = OutputPlan()
     plan.add(path)

@@ -21,11 +21,11 @@ from statistics import NormalDist
 import gtsam
 import numpy as np
 
-from mirror_fg.analytic import SolveError
-from mirror_fg.dataset import Dataset
-from mirror_fg.geometry import measurement_jacobians
-from mirror_fg.graph import InitialEstimate as Unknowns  # any values of every unknown (truth, analytic, MLE)
-from mirror_fg.transforms import spec_covariance_from_pose3
+from mirror_fg.solver.analytic import SolveError
+from mirror_fg.io.dataset import Dataset
+from mirror_fg.core.geometry import measurement_jacobians
+from mirror_fg.solver.graph import InitialEstimate as Unknowns  # any values of every unknown (truth, analytic, MLE)
+from mirror_fg.core.transform import spec_covariance_from_pose3
 
 __all__ = [
     "UnknownIndex",

@@ -15,12 +15,12 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, V, X
 
-from mirror_fg.analytic import AnalyticSolution, SolveError, reconstruct_points, solve_analytic
-from mirror_fg.dataset import RESULT_FORMAT, Dataset, DatasetError, dataset_from_dict
+from mirror_fg.solver.analytic import AnalyticSolution, SolveError, reconstruct_points, solve_analytic
+from mirror_fg.io.dataset import RESULT_FORMAT, Dataset, DatasetError, dataset_from_dict
 from mirror_fg.factors.batched import batched_factors
 from mirror_fg.factors.reflection import ReflectionFactor, noise_model
-from mirror_fg.geometry import nested_transform, project
-from mirror_fg.transforms import rotation_to_quaternion_xyzw, spec_covariance_from_pose3
+from mirror_fg.core.geometry import nested_transform, project
+from mirror_fg.core.transform import rotation_to_quaternion_xyzw, spec_covariance_from_pose3
 
 __all__ = ["Calibration", "InitialEstimate", "GraphLayout", "build_graph", "calibrate", "initial_estimate", "OUTLIER_SIGMAS"]
 
@@ -505,7 +505,7 @@ def initial_estimate(dataset: Dataset, seed: int = 0) -> AnalyticSolution:
     The closed form alone weights every PnP pose equally, so under noise (2 px, or a mirror 0.25 m
     away) a mirror placement whose images mostly took the wrong P3P twin can look better than the
     right one and start LM in another minimum; refined, the right hypothesis is the cheaper one.
-    Frames and units as :class:`~mirror_fg.analytic.AnalyticSolution`.
+    Frames and units as :class:`~mirror_fg.solver.analytic.AnalyticSolution`.
     """
     return solve_analytic(dataset, seed, refine_subtree=_refine_subtree)
 

@@ -14,14 +14,14 @@ Tags: ``cv2.aruco.ArucoDetector`` finds and decodes the markers; by default (``s
 is then refined by ``cv2.cornerSubPix`` on the linearized image (inverse sRGB, float) with a half
 window of half a tag cell (2 to 5 px): on gamma-encoded images OpenCV's own ``CORNER_REFINE_SUBPIX``
 sits ~0.5 px inside the black square on each axis (measured on the rendered test scene: 0.71 px median
-off; linearized: 0.21 px). Video: every frame is tracked (:mod:`mirror_fg.tracking`: KLT, then
+off; linearized: 0.21 px). Video: every frame is tracked (:mod:`mirror_fg.vision.tracking`: KLT, then
 refinement onto the feature) and re-detected; fiducials that detection misses are carried as corners.
 ``track:`` points are followed through a video or through ``images`` in list order (a photo sequence),
 each refined by its ``feature`` kind; a cut track is named, with the reason, in the next kept image's
 report.
 
 Noise of tracked points: dataset@1 has one ``pixel_sigma``. Each track has its own sigma (the
-``track:`` entry's ``sigma``, else :meth:`~mirror_fg.tracking.PointTracker.sigma`, never below
+``track:`` entry's ``sigma``, else :meth:`~mirror_fg.vision.tracking.PointTracker.sigma`, never below
 0.5 px, the default ``pixel_sigma``); ``detect_capture(..., tracks=...)`` hands back every track's
 path, residuals and sigma for the report.
 """
@@ -36,7 +36,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from mirror_fg.capture import (
+from mirror_fg.io.capture import (
     EACH,
     MAX_IMAGE_PIXELS,
     Capture,
@@ -48,8 +48,8 @@ from mirror_fg.capture import (
     native_stderr,
     open_video,
 )
-from mirror_fg.dataset import DATASET_FORMAT, DatasetError
-from mirror_fg.tracking import SRGB_TO_LINEAR, KLTParams, PointTracker, Track
+from mirror_fg.io.dataset import DATASET_FORMAT, DatasetError
+from mirror_fg.vision.tracking import SRGB_TO_LINEAR, KLTParams, PointTracker, Track
 
 __all__ = [
     "ImageReport",
@@ -366,7 +366,7 @@ def detect_capture(
     ids = file stems or ``stem:frame``, ``each`` placements expanded into fresh integers) and one
     :class:`ImageReport` per image/frame in capture order. ``progress`` shows a tqdm bar on stderr when
     it is a terminal. An image that cannot be decoded, or is above MAX_IMAGE_PIXELS, is refused with the
-    reason. ``tracks`` (optional, filled in): every ``track:`` point's :class:`~mirror_fg.tracking.Track`
+    reason. ``tracks`` (optional, filled in): every ``track:`` point's :class:`~mirror_fg.vision.tracking.Track`
     (kind, history of KLT and refined pixels with residuals; ``.sigma()``). Raises DatasetError when no
     image is kept, or the video cannot be read.
     """

@@ -64,13 +64,13 @@ A capture file is YAML or JSON. Paths in it are relative to the capture file. To
     ``stem:frame``. ``each`` means a new placement of that mirror in every such frame.
 ``track``
     Optional: ``{name: {frame, pixel: [u, v], feature?, sigma?}}`` unknown points that the tracker
-    (:mod:`mirror_fg.tracking`: KLT, then refinement onto the feature) follows from the given starting
+    (:mod:`mirror_fg.vision.tracking`: KLT, then refinement onto the feature) follows from the given starting
     pixel of that frame to the end of its run of frames. With a video ``frame`` is a video frame; with
     ``images`` (a photo sequence, in list order) it is the image's 0-based position in the list.
     ``feature``: ``corner`` (default), ``blob`` / ``dot`` or ``template`` (what the refinement fits);
     ``sigma``: the track's pixel sigma (pixels), overriding the tracker's own estimate.
 
-Everything is checked on loading; :func:`load_capture` raises :class:`~mirror_fg.dataset.DatasetError`
+Everything is checked on loading; :func:`load_capture` raises :class:`~mirror_fg.io.dataset.DatasetError`
 with one line naming the file, the entry and the problem.
 """
 from __future__ import annotations
@@ -88,7 +88,7 @@ from typing import Any
 
 import numpy as np
 
-from mirror_fg.dataset import DatasetError, _is_int, _is_number, _short, check_format, check_keys  # shared value checks and messages
+from mirror_fg.io.dataset import DatasetError, _is_int, _is_number, _short, check_format, check_keys  # shared value checks and messages
 
 __all__ = [
     "CAPTURE_FORMAT",
@@ -113,7 +113,7 @@ CAPTURE_FORMAT = "mirror-fg/capture@1"
 #: ``mirror_configs`` entry meaning "a placement of its own in this image / frame".
 EACH = "each"
 DEFAULT_PIXEL_SIGMA = 0.5
-#: Feature kinds a ``track:`` entry may name (mirror_fg.tracking refines onto them; ``klt``, no
+#: Feature kinds a ``track:`` entry may name (mirror_fg.vision.tracking refines onto them; ``klt``, no
 #: refinement, is for the API only).
 TRACK_FEATURES = ("corner", "blob", "dot", "template")
 #: Largest ``|R^T R - I|`` entry accepted for a rotation matrix typed into a capture file.
@@ -1059,7 +1059,7 @@ def _only(m: Mapping[str, Any], allowed: tuple[str, ...], where: str) -> None:
 
 def _load_structured(path: str, where: str) -> Any:
     """Parse a YAML or JSON file once, within fileio's bounds; duplicate keys are an error."""
-    from mirror_fg.fileio import load_structured
+    from mirror_fg.io.fileio import load_structured
 
     return load_structured(path, where)
 

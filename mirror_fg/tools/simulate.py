@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .dataset import Camera, Dataset, Image
-from .geometry import apply_transform, nested_transform, project, so3_exp
+from mirror_fg.io.dataset import Camera, Dataset, Image
+from mirror_fg.core.geometry import apply_transform, nested_transform, project, so3_exp
 
 __all__ = [
     "GroundTruth",
@@ -465,8 +465,8 @@ def write_simulation(path: str | Path, dataset: Dataset, truth: GroundTruth) -> 
 
     Returns the path of the ground-truth file.
     """
-    from mirror_fg.dataset import dataset_text
-    from mirror_fg.fileio import OutputPlan
+    from mirror_fg.io.dataset import dataset_text
+    from mirror_fg.io.fileio import OutputPlan
 
     path = Path(path)
     out = truth_path(path)

@@ -7,7 +7,7 @@ lands within ``fb_threshold_px`` of where it started (Kalal et al.'s forward-bac
 stays inside the image, then *refines* the KLT position onto the feature the track started on:
 
 - ``corner`` (default): ``cv2.cornerSubPix`` (half window 4 px, i.e. 9 x 9) on the linearised frame
-  (inverse sRGB, as :mod:`mirror_fg.detect` does for tag corners);
+  (inverse sRGB, as :mod:`mirror_fg.vision.detect` does for tag corners);
 - ``blob`` / ``dot`` (the same): intensity-weighted centroid of a dark or bright disc (polarity from the
   first frame) against the median of its window's border, on the linearised frame;
 - ``template``: ``cv2.findTransformECC`` (affine) of the *first* frame's patch around the point,

@@ -2,8 +2,8 @@
 
 A setup (number of mirrors, placements per node of the configuration tree, images, fiducial layout,
 mirror distance and tilt spread, pixel sigma) is turned into ``draws`` noise-free scenes by the
-simulator (random mirror placements as in the paper's Sect. 7, ``mirror_fg.simulate``); the Fisher
-information of each scene at its truth (``mirror_fg.crb``) gives the best covariance any unbiased
+simulator (random mirror placements as in the paper's Sect. 7, ``mirror_fg.tools.simulate``); the Fisher
+information of each scene at its truth (``mirror_fg.tools.crb``) gives the best covariance any unbiased
 estimator - and, in practice, the MLE - reaches with that geometry. The bounds reported are the
 quadratic mean over the draws (what a Monte Carlo RMS error would show), with the spread over draws.
 
@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from mirror_fg.crb import CramerRaoBound, WeakestDirection, cramer_rao_bound, weakest_direction
-from mirror_fg.dataset import Dataset, DatasetError, Image
-from mirror_fg.simulate import default_camera, measure, simulate_base_case, visible
-from mirror_fg.geometry import apply_transform
+from mirror_fg.tools.crb import CramerRaoBound, WeakestDirection, cramer_rao_bound, weakest_direction
+from mirror_fg.io.dataset import Dataset, DatasetError, Image
+from mirror_fg.tools.simulate import default_camera, measure, simulate_base_case, visible
+from mirror_fg.core.geometry import apply_transform
 
 __all__ = ["PlanSetup", "PlanResult", "plan", "format_plan", "load_fiducials"]
 

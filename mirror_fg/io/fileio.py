@@ -15,7 +15,7 @@ Every file the user gives goes through here:
   written, so a failed run leaves every existing file as it was. A character device (``/dev/null``)
   is written into, never replaced.
 
-Every problem is a :class:`~mirror_fg.dataset.DatasetError` with one line that names the file.
+Every problem is a :class:`~mirror_fg.io.dataset.DatasetError` with one line that names the file.
 Formats: ``docs/formats.md``.
 """
 from __future__ import annotations
@@ -61,13 +61,13 @@ INT_LIMIT = 2**63
 
 
 def _error(message: str) -> Exception:
-    from mirror_fg.dataset import DatasetError
+    from mirror_fg.io.dataset import DatasetError
 
     return DatasetError(message)
 
 
 def _write_error(target: str, exc: OSError) -> Exception:
-    from mirror_fg.dataset import OutputError
+    from mirror_fg.io.dataset import OutputError
 
     return OutputError(f"{target}: cannot write: {exc.strerror or exc}")
 
@@ -279,7 +279,7 @@ _UniqueKeyLoader = _make_loader()
 
 
 def _quote(value: Any, limit: int = 60) -> str:
-    from mirror_fg.dataset import _short
+    from mirror_fg.io.dataset import _short
 
     return _short(value, limit)
 

@@ -52,7 +52,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, V, X
 
-from mirror_fg.analytic import (
+from mirror_fg.solver.analytic import (
     MIN_NORMAL_SPREAD,
     AnalyticSolution,
     SolveError,
@@ -61,10 +61,10 @@ from mirror_fg.analytic import (
     reflection_fit,
     triangulate_point,
 )
-from mirror_fg.dataset import Dataset, DatasetError, Image, validate_image
+from mirror_fg.io.dataset import Dataset, DatasetError, Image, validate_image
 from mirror_fg.factors.batched import batched_factors
-from mirror_fg.geometry import householder, nested_transform
-from mirror_fg.graph import (
+from mirror_fg.core.geometry import householder, nested_transform
+from mirror_fg.solver.graph import (
     OUTLIER_SIGMAS,
     Calibration,
     GraphLayout,
@@ -80,7 +80,7 @@ from mirror_fg.graph import (
     residual_statistics,
     unconstrained_message,
 )
-from mirror_fg.transforms import spec_covariance_from_pose3
+from mirror_fg.core.transform import spec_covariance_from_pose3
 
 __all__ = ["IncrementalCalibrator", "RelinearizeThresholds", "complete_tree"]
 
@@ -833,9 +833,9 @@ def calibrate_incremental(
     full final calibration (``calibration(full=True)``).
 
     ``on_estimate(index, estimate)`` is called after every image (1-based index) once an estimate
-    exists. Refuses what the batch :func:`~mirror_fg.graph.calibrate` path refuses, with the same
+    exists. Refuses what the batch :func:`~mirror_fg.solver.graph.calibrate` path refuses, with the same
     errors: bad input is DatasetError (at load or in ``add_image``), and a final estimate that did not
-    converge is SolveError (:func:`~mirror_fg.graph.require_converged`).
+    converge is SolveError (:func:`~mirror_fg.solver.graph.require_converged`).
     """
     dataset = as_dataset(dataset)
     calibrator = IncrementalCalibrator(dataset, robust=robust)

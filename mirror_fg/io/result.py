@@ -1,7 +1,7 @@
 """result@1 (``mirror-fg/result@1``): the one validator of a result, and its read-only accessors.
 
 docs/formats.md (Result file) fixes the keys. :func:`validate_result` checks every key a reader uses (types,
-shapes, finiteness, rotations, index ranges) and raises :class:`~mirror_fg.dataset.DatasetError` with
+shapes, finiteness, rotations, index ranges) and raises :class:`~mirror_fg.io.dataset.DatasetError` with
 one line ``SOURCE: KEY.PATH: problem`` that quotes at most a few dozen characters of the file. Keys
 beyond the documented ones are kept as they are (result@1 allows extras); ``null`` means absent for
 every optional key. The accessors (:func:`transforms`, :func:`mirror_vectors`, :func:`points`,
@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from mirror_fg.dataset import RESULT_FORMAT, DatasetError, _is_int, _is_number, _kind, _short, check_format
-from mirror_fg.transforms import quaternion_xyzw_to_rotation
+from mirror_fg.io.dataset import RESULT_FORMAT, DatasetError, _is_int, _is_number, _kind, _short, check_format
+from mirror_fg.core.transform import quaternion_xyzw_to_rotation
 
 __all__ = [
     "validate_result",

@@ -25,9 +25,9 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 import yaml
 
-from mirror_fg.dataset import atomic_write
-from mirror_fg.result import nearest_rotation, pose_covariance, transforms, validate_result
-from mirror_fg.transforms import quaternion_xyzw_to_rotation, rotation_to_quaternion_xyzw
+from mirror_fg.io.dataset import atomic_write
+from mirror_fg.io.result import nearest_rotation, pose_covariance, transforms, validate_result
+from mirror_fg.core.transform import quaternion_xyzw_to_rotation, rotation_to_quaternion_xyzw
 
 __all__ = [
     "ros_outputs",
@@ -240,7 +240,7 @@ def ros_outputs(
     normalized units for a dataset without a camera); ``urdf_joint`` (XML text);
     ``static_transform_publisher`` (ROS 2 argument string) and ``static_transform_publisher_command``.
     Raises DatasetError (a ValueError) naming ``source`` and the key on a malformed result
-    (:func:`mirror_fg.result.validate_result`), ValueError on a bad frame name.
+    (:func:`mirror_fg.io.result.validate_result`), ValueError on a bad frame name.
     """
     base_frame = check_frame_name(base_frame, "base frame")
     camera_frame = check_frame_name(camera_frame, "camera frame")

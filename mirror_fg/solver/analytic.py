@@ -15,8 +15,8 @@ from itertools import combinations, product
 import cv2
 import numpy as np
 
-from mirror_fg.dataset import Dataset, DatasetError, Image
-from mirror_fg.geometry import FLIP_Y, apply_transform, nested_transform, project, project_to_orthogonal
+from mirror_fg.io.dataset import Dataset, DatasetError, Image
+from mirror_fg.core.geometry import FLIP_Y, apply_transform, nested_transform, project, project_to_orthogonal
 
 __all__ = ["AnalyticSolution", "SolveError", "pnp_candidates", "reflection_fit", "solve_analytic", "solve_node", "triangulate_point"]
 

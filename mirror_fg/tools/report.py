@@ -23,11 +23,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .dataset import DatasetError, atomic_write
-from .geometry import nested_transform, project
-from .result import mirror_vectors, pose, pose_covariance, transforms, validate_result
-from .result import points as reconstruction_points
-from .ros import (
+from mirror_fg.io.dataset import DatasetError, atomic_write
+from mirror_fg.core.geometry import nested_transform, project
+from mirror_fg.io.result import mirror_vectors, pose, pose_covariance, transforms, validate_result
+from mirror_fg.io.result import points as reconstruction_points
+from mirror_fg.io.ros import (
     DEFAULT_BASE_FRAME,
     DEFAULT_CAMERA_FRAME,
     check_frame_name,
@@ -41,7 +41,7 @@ from .ros import (
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-    from .dataset import Dataset
+    from mirror_fg.io.dataset import Dataset
 
 __all__ = ["write_report", "compute_residuals", "Residuals", "OUTLIER_FACTOR"]
 
@@ -656,7 +656,7 @@ def write_report(
     ``base_frame``, ``camera_frame``: frame names in the ROS snippets. Returns
     ``{"html": path, "pdf": path}``. Both files are written atomically. ``source``: the result's
     file name, for messages. Raises DatasetError (before any work) on a malformed result
-    (:func:`mirror_fg.result.validate_result`) and when the dataset does not belong to the result,
+    (:func:`mirror_fg.io.result.validate_result`) and when the dataset does not belong to the result,
     ValueError on a bad frame name.
     """
     from tqdm import tqdm

@@ -1,0 +1,1 @@
+"""From pixels to observations: target detection in photographs and video, point tracking."""
