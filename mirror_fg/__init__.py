@@ -3,9 +3,10 @@
 Frames: {B} base, {C} camera (OpenCV axes). ``T_cam_base = (R, t)`` with ``Cp = R @ Bp + t`` (metres);
 covariances are ``[dtheta (rad), dt (m)]`` with ``R_true = Exp(dtheta) @ R_est`` (docs/formats.md).
 """
-from mirror_fg.solver.analytic import AnalyticSolution, SolveError, solve_analytic
+from mirror_fg.core.errors import DatasetError, MirrorFgError, SolveError
+from mirror_fg.solver.analytic import AnalyticSolution, solve_analytic
 from mirror_fg.io.dataset import (
-    Camera, Dataset, DatasetError, Image, dataset_from_dict, load_dataset, load_result, save_dataset, write_result,
+    Camera, Dataset, Image, dataset_from_dict, load_dataset, load_result, save_dataset, write_result,
 )
 from mirror_fg.solver.graph import Calibration, calibrate, initial_estimate
 from mirror_fg.solver.incremental import IncrementalCalibrator

@@ -16,11 +16,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from mirror_fg.core.errors import DatasetError, MirrorFgError
+
 if TYPE_CHECKING:
     from mirror_fg.io.dataset import Dataset
     from mirror_fg.io.fileio import OutputPlan
 
-EXIT_OK, EXIT_BAD_INPUT, EXIT_UNSOLVABLE, EXIT_INTERNAL = 0, 2, 3, 1
+EXIT_OK, EXIT_INTERNAL = 0, 1  # bad input and unsolvable data: MirrorFgError.exit_code (2, 3)
 
 EPILOG = """exit status: 0 success, 2 bad input (the message names the file, image or point),
 3 could not solve (degenerate data, no convergence), 1 internal error. Output files are written
@@ -280,7 +282,7 @@ def cmd_simulate(args, out: _Printer) -> int:
 
 
 def cmd_calibrate(args, out: _Printer) -> int:
-    from mirror_fg.io.dataset import DatasetError, result_text
+    from mirror_fg.io.dataset import result_text
     from mirror_fg.io.fileio import OutputPlan
     from mirror_fg.solver.graph import calibrate, require_converged
     from mirror_fg.io.ros import check_frame_name, ros_output_paths, ros_output_texts
@@ -351,7 +353,7 @@ def _run_incremental(dataset, args, out: _Printer):
 
 def cmd_detect(args, out: _Printer) -> int:
     from mirror_fg.io.capture import CAPTURE_FORMAT
-    from mirror_fg.io.dataset import DatasetError, dataset_text
+    from mirror_fg.io.dataset import dataset_text
     from mirror_fg.io.fileio import OutputPlan, load_structured
 
     plan = OutputPlan(inputs=[os.fspath(args.capture)])
@@ -366,7 +368,7 @@ def cmd_detect(args, out: _Printer) -> int:
 
 
 def cmd_report(args, out: _Printer) -> int:
-    from mirror_fg.io.dataset import DatasetError, load_dataset, load_result
+    from mirror_fg.io.dataset import load_dataset, load_result
     from mirror_fg.io.fileio import OutputPlan
     from mirror_fg.tools.report import write_report
 
@@ -442,17 +444,11 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args, out: _Printer) -> int:
-    from mirror_fg.solver.analytic import SolveError
-    from mirror_fg.io.dataset import DatasetError
-
     try:
         return COMMANDS[args.command](args, out)
-    except DatasetError as error:
-        _error_line(f"mirror-fg: error: {_one_line(str(error))}")
-        return EXIT_BAD_INPUT
-    except SolveError as error:
-        _error_line(f"mirror-fg: cannot solve: {_one_line(str(error))}")
-        return EXIT_UNSOLVABLE
+    except MirrorFgError as error:  # bad input (2) or cannot solve (3): one line
+        _error_line(f"mirror-fg: {error.label}: {_one_line(str(error))}")
+        return error.exit_code
     except KeyboardInterrupt:
         _error_line("mirror-fg: interrupted")
         return 130

@@ -26,6 +26,10 @@ __all__ = [
     "project_to_orthogonal",
     "measurement",
     "measurement_jacobians",
+    "householders",
+    "reflect_transforms",
+    "nested_transforms",
+    "predict_camera_points",
     "FLIP_Y",
 ]
 
@@ -75,6 +79,51 @@ def nested_transform(
         A = M @ A  # eq. (6)
         b = M @ b + 2.0 * np.asarray(v, dtype=float)  # eq. (7)
     return A, b
+
+
+# --------------------------------------------------------------------------------------------------
+# Batched: many images (mirror placements) at once. The one way to predict every measurement.
+# --------------------------------------------------------------------------------------------------
+
+
+def householders(mirror_vectors: np.ndarray) -> np.ndarray:
+    """Householder matrices (K, 3, 3) of mirror vectors (K, 3): ``I - 2 v v^T / (v^T v)`` (eq. 3)."""
+    v = np.asarray(mirror_vectors, dtype=float).reshape(-1, 3)
+    n = v / np.linalg.norm(v, axis=1, keepdims=True)
+    return np.eye(3) - 2.0 * np.einsum("ka,kb->kab", n, n)
+
+
+def reflect_transforms(A: np.ndarray, b: np.ndarray, mirror_vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One more mirror on K composite transforms: ``A <- M A``, ``b <- M b + 2 v`` (eqs. 6-7).
+
+    ``A`` (K, 3, 3), ``b`` (K, 3) (or one transform, broadcast), ``mirror_vectors`` (K, 3).
+    """
+    v = np.asarray(mirror_vectors, dtype=float).reshape(-1, 3)
+    M = householders(v)
+    return M @ A, np.einsum("kab,kb->ka", M, np.broadcast_to(b, v.shape)) + 2.0 * v
+
+
+def nested_transforms(
+    R_cam_base: np.ndarray, t_cam_base: np.ndarray, mirror_vectors: Sequence[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Composite ``(A_Nv, b_Nv)`` of K mirror placements at once (eqs. 5-8, batched).
+
+    ``mirror_vectors[l]`` (K, 3): the vector of mirror l+1 in each of the K placements. Returns ``A``
+    (K, 3, 3) and ``b`` (K, 3); row k equals ``nested_transform(R, t, [v[k] for v in mirror_vectors])``.
+    """
+    count = len(mirror_vectors[0]) if len(mirror_vectors) else 1
+    A = np.broadcast_to(np.asarray(R_cam_base, dtype=float), (count, 3, 3)).copy()  # eq. (8)
+    b = np.broadcast_to(np.asarray(t_cam_base, dtype=float), (count, 3)).copy()
+    for vectors in mirror_vectors:
+        A, b = reflect_transforms(A, b, vectors)
+    return A, b
+
+
+def predict_camera_points(A: np.ndarray, b: np.ndarray, transform_index: np.ndarray, base_points: np.ndarray) -> np.ndarray:
+    """Camera-frame positions (N, 3) of N measured base points (eq. 5), point i seen through
+    transform ``transform_index[i]`` of ``A`` (K, 3, 3), ``b`` (K, 3). Project them with :func:`project`."""
+    index = np.asarray(transform_index, dtype=int)
+    return np.einsum("iab,ib->ia", A[index], np.asarray(base_points, dtype=float)) + b[index]
 
 
 def apply_transform(A: np.ndarray, b: np.ndarray, base_points: np.ndarray) -> np.ndarray:

@@ -88,7 +88,8 @@ from typing import Any
 
 import numpy as np
 
-from mirror_fg.io.dataset import DatasetError, _is_int, _is_number, _short, check_format, check_keys  # shared value checks and messages
+from mirror_fg.core.errors import DatasetError
+from mirror_fg.io.dataset import _is_int, _is_number, _short, check_format, check_keys  # shared value checks and messages
 
 __all__ = [
     "CAPTURE_FORMAT",

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
+from mirror_fg.core.errors import DatasetError, OutputError
 from pathlib import Path
 
 DATASET_FORMAT = "mirror-fg/dataset@1"
@@ -57,12 +59,6 @@ _CAMERA_KEYS = ("model", "width", "height", "fx", "fy", "cx", "cy", "dist", "est
 _IMAGE_KEYS = ("id", "mirror_configs", "observations")
 
 
-class DatasetError(ValueError):
-    """Bad input: the message names the file, image or point and what is wrong, in one line."""
-
-
-class OutputError(DatasetError, OSError):
-    """An output file cannot be written (full disk, no permission): one line naming the file."""
 
 
 @dataclass(frozen=True)

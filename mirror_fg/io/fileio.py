@@ -61,13 +61,13 @@ INT_LIMIT = 2**63
 
 
 def _error(message: str) -> Exception:
-    from mirror_fg.io.dataset import DatasetError
+    from mirror_fg.core.errors import DatasetError
 
     return DatasetError(message)
 
 
 def _write_error(target: str, exc: OSError) -> Exception:
-    from mirror_fg.io.dataset import OutputError
+    from mirror_fg.core.errors import OutputError
 
     return OutputError(f"{target}: cannot write: {exc.strerror or exc}")
 

@@ -20,7 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from mirror_fg.io.dataset import RESULT_FORMAT, DatasetError, _is_int, _is_number, _kind, _short, check_format
+from mirror_fg.core.errors import DatasetError
+from mirror_fg.io.dataset import RESULT_FORMAT, _is_int, _is_number, _kind, _short, check_format
 from mirror_fg.core.transform import quaternion_xyzw_to_rotation
 
 __all__ = [

@@ -15,7 +15,8 @@ from itertools import combinations, product
 import cv2
 import numpy as np
 
-from mirror_fg.io.dataset import Dataset, DatasetError, Image
+from mirror_fg.core.errors import DatasetError, SolveError
+from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.core.geometry import FLIP_Y, apply_transform, nested_transform, project, project_to_orthogonal
 
 __all__ = ["AnalyticSolution", "SolveError", "pnp_candidates", "reflection_fit", "solve_analytic", "solve_node", "triangulate_point"]
@@ -39,8 +40,6 @@ MAX_ROOT_COMBINATIONS = 64
 MAX_AXIS_PARTNERS = 24
 
 
-class SolveError(RuntimeError):
-    """The data cannot be solved (degenerate geometry, PnP failure, no convergence): exit status 3."""
 
 
 @dataclass

@@ -15,8 +15,9 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, V, X
 
-from mirror_fg.solver.analytic import AnalyticSolution, SolveError, reconstruct_points, solve_analytic
-from mirror_fg.io.dataset import RESULT_FORMAT, Dataset, DatasetError, dataset_from_dict
+from mirror_fg.core.errors import DatasetError, SolveError
+from mirror_fg.io.dataset import RESULT_FORMAT, Dataset, dataset_from_dict
+from mirror_fg.solver.analytic import AnalyticSolution, reconstruct_points, solve_analytic
 from mirror_fg.factors.batched import batched_factors
 from mirror_fg.factors.reflection import ReflectionFactor, noise_model
 from mirror_fg.core.geometry import nested_transform, project

@@ -55,13 +55,13 @@ from gtsam.symbol_shorthand import L, V, X
 from mirror_fg.solver.analytic import (
     MIN_NORMAL_SPREAD,
     AnalyticSolution,
-    SolveError,
     solve_node,
     pnp_candidates,
     reflection_fit,
     triangulate_point,
 )
-from mirror_fg.io.dataset import Dataset, DatasetError, Image, validate_image
+from mirror_fg.core.errors import DatasetError, SolveError
+from mirror_fg.io.dataset import Dataset, Image, validate_image
 from mirror_fg.factors.batched import batched_factors
 from mirror_fg.core.geometry import householder, nested_transform
 from mirror_fg.solver.graph import (

@@ -21,7 +21,7 @@ from statistics import NormalDist
 import gtsam
 import numpy as np
 
-from mirror_fg.solver.analytic import SolveError
+from mirror_fg.core.errors import SolveError
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.core.geometry import measurement_jacobians
 from mirror_fg.solver.graph import InitialEstimate as Unknowns  # any values of every unknown (truth, analytic, MLE)

@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from mirror_fg.tools.crb import CramerRaoBound, WeakestDirection, cramer_rao_bound, weakest_direction
-from mirror_fg.io.dataset import Dataset, DatasetError, Image
+from mirror_fg.core.errors import DatasetError
+from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.tools.simulate import default_camera, measure, simulate_base_case, visible
 from mirror_fg.core.geometry import apply_transform
 

@@ -23,7 +23,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from mirror_fg.io.dataset import DatasetError, atomic_write
+from mirror_fg.core.errors import DatasetError
+from mirror_fg.io.dataset import atomic_write
 from mirror_fg.core.geometry import nested_transform, project
 from mirror_fg.io.result import mirror_vectors, pose, pose_covariance, transforms, validate_result
 from mirror_fg.io.result import points as reconstruction_points

@@ -48,7 +48,8 @@ from mirror_fg.io.capture import (
     native_stderr,
     open_video,
 )
-from mirror_fg.io.dataset import DATASET_FORMAT, DatasetError
+from mirror_fg.core.errors import DatasetError
+from mirror_fg.io.dataset import DATASET_FORMAT
 from mirror_fg.vision.tracking import SRGB_TO_LINEAR, KLTParams, PointTracker, Track
 
 __all__ = [
