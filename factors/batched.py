@@ -41,20 +41,27 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import gtsam
 import numpy as np
 
-__all__ = ["BatchEvaluator", "batched_factors", "batched_evaluator", "robust_weight_and_loss", "ROBUST_K"]
+from mirror_fg.core.geometry import nested_transforms, predict_camera_points, project
+from mirror_fg.factors.stacking import (
+    MAX_POINTS_PER_FACTOR,
+    Fiducials,
+    KeyLayout,
+    Observation,
+    auto_images_per_factor,
+    group_measurements,
+)
+
+__all__ = [
+    "BatchEvaluator", "batched_factors", "batched_evaluator", "robust_weight_and_loss", "ROBUST_K",
+]
+
 
 #: Default robust threshold in sigmas (as ``reflection.noise_model``).
 ROBUST_K = 1.345
-#: Default grouping (measured, see ``_auto_images_per_factor``): landmarks per factor, about how many
-#: measurements a factor holds when ``images_per_factor`` is automatic, and at most how many images.
-MAX_POINTS_PER_FACTOR = 16
-TARGET_MEASUREMENTS_PER_FACTOR = 72
-MAX_IMAGES_PER_FACTOR = 12
 #: Measured costs (us) to choose how a factor checks that the cache holds its variables: reading and
 #: comparing each of its keys, or comparing the whole ``Values`` with the cached copy (C++).
 _KEY_CHECK_US = 0.5
@@ -149,7 +156,7 @@ class BatchEvaluator:
         self._layouts: list[_FactorLayout] = []
         self._err_views: list[np.ndarray] = []
         self._err_lin_views: list[np.ndarray] = []
-        views_of: list[list[Any]] = []
+        views_of: list[list[np.ndarray | tuple[int, int]]] = []
         scatter_meas: list[list[np.ndarray]] = [[] for _ in range(num_mirrors + 1)]
         scatter_offset: list[list[np.ndarray]] = [[] for _ in range(num_mirrors + 1)]
         num_values = 1 + len(self.point_keys)
@@ -161,7 +168,7 @@ class BatchEvaluator:
             local = np.arange(n)
             keys = [self.pose_key]
             slots: list[int] = []
-            views: list[Any] = [self._H_pose[start:stop].reshape(2 * n, 6)]
+            views: list[np.ndarray | tuple[int, int]] = [self._H_pose[start:stop].reshape(2 * n, 6)]
             for slot in range(num_mirrors + 1):  # mirror levels, then landmarks
                 if slot < num_mirrors:
                     members, rows = local, self.mirror_rows[slot, start:stop]
@@ -237,12 +244,13 @@ class BatchEvaluator:
                 return False
         return True
 
-    def _load(self, values: gtsam.Values) -> None:
-        """Read the pose and every point of ``values`` (one C++ call for the points when possible)."""
+    def _read(self, values: gtsam.Values) -> tuple[gtsam.Pose3, np.ndarray, np.ndarray, np.ndarray]:
+        """The pose, its ``R`` and ``t``, and every point row (K, 3) of ``values`` (one C++ call for the
+        points when possible)."""
         pose = values.atPose3(self.pose_key)
         T = pose.matrix()
-        self._R = np.ascontiguousarray(T[:3, :3])
-        self._t = T[:3, 3].copy()
+        R = np.ascontiguousarray(T[:3, :3])
+        t = T[:3, 3].copy()
         P = None
         if values.size() == len(self._all_keys_sorted) and values.keys() == self._all_keys_sorted:
             extracted = gtsam.utilities.extractPoint3(values)
@@ -258,6 +266,11 @@ class BatchEvaluator:
             for row, key in enumerate(self.point_keys):
                 if values.exists(key):
                     P[row] = values.atPoint3(key)
+        return pose, R, t, P
+
+    def _load(self, values: gtsam.Values) -> None:
+        """Read ``values`` into the cache (:meth:`_read`)."""
+        pose, self._R, self._t, P = self._read(values)
         self._P = P
         self._pose = gtsam.Pose3(pose)
         flat = P.tobytes()
@@ -302,7 +315,6 @@ class BatchEvaluator:
         inv_depth = 1.0 / x[2]
         residual = x[:2] * inv_depth
         residual -= self._observed_T  # eq. (9), h - z, (2, M)
-        self._residual = residual
         if self.robust is None:
             self._err.T[...] = residual
         else:
@@ -367,7 +379,7 @@ class BatchEvaluator:
         err_lin_views = self._err_lin_views[f]
         jacobian_views = self._jacobian_views[f]
 
-        def error(this: Any, values: gtsam.Values, H: Any) -> np.ndarray:
+        def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
             if not matches(f, values):
                 self.evaluate(values, H is not None)
             elif H is not None and not self._has_jacobians:
@@ -382,10 +394,14 @@ class BatchEvaluator:
 
     def predicted(self, values: gtsam.Values) -> np.ndarray:
         """Predicted normalized coordinates ``h`` (N, 2) of every measurement at ``values`` (eqs. 5, 9),
-        in the order of the ``measurements`` the factors were built from (no robust scaling)."""
-        self.evaluate(values, False)
+        in the order of the ``measurements`` the factors were built from (no robust scaling). The core's
+        batched primitives, one composite ``(A, b)`` per measurement; the cache is left as it is."""
+        _, R, t, P = self._read(values)
+        base_points = self.base_points.copy()
+        base_points[self.landmark_index] = P[self._landmark_point_rows]
+        A, b = nested_transforms(R, t, [P[rows] for rows in self.mirror_rows])  # eqs. (5)-(8)
         out = np.empty_like(self.observed)
-        out[self.order] = self._residual.T + self.observed
+        out[self.order] = project(predict_camera_points(A, b, np.arange(self.num_measurements), base_points))  # eq. (9)
         return out
 
     def factor_layout(self, f: int) -> tuple[list[int], np.ndarray]:
@@ -394,62 +410,10 @@ class BatchEvaluator:
         return list(layout.keys), self.order[layout.start : layout.stop].copy()
 
 
-def _auto_images_per_factor(measurements: Sequence[Any], landmark_of: list[int], max_points_per_factor: int | None) -> int:
-    """Images per factor so that a factor holds about ``TARGET_MEASUREMENTS_PER_FACTOR`` measurements.
-
-    Measured (scripts/benchmark.py problems): bigger factors amortise the ~5-25 us fixed cost of a
-    Python factor call (more inside GTSAM's optimizers, which copy the whole ``Values`` per call), but
-    their zero-padded dense Jacobians make elimination and per-key ``Marginals`` slower.
-    """
-    per_image: dict[str, list[int]] = {}
-    for i, meas in enumerate(measurements):
-        per_image.setdefault(meas.image_id, [0, 0])[landmark_of[i] >= 0] += 1
-    chunk = [f + (min(p, max_points_per_factor) if max_points_per_factor else p) for f, p in per_image.values()]
-    typical = max(float(np.median(chunk)), 1.0)
-    return int(np.clip(round(TARGET_MEASUREMENTS_PER_FACTOR / typical), 1, MAX_IMAGES_PER_FACTOR))
-
-
-def _group_measurements(
-    measurements: Sequence[Any], landmark_of: list[int], images_per_factor: int, max_points_per_factor: int | None
-) -> list[list[int]]:
-    """Measurement indices of each factor: by image (file order), consecutive images under the same
-    parent placements merged up to ``images_per_factor``, landmarks split into chunks of at most
-    ``max_points_per_factor`` (an image's fiducials go with its first chunk)."""
-    images: dict[str, list[int]] = {}
-    for i, meas in enumerate(measurements):
-        images.setdefault(meas.image_id, []).append(i)
-    merged: list[list[int]] = []
-    parent = None
-    count = 0
-    for indices in images.values():
-        configs = tuple(measurements[indices[0]].mirror_configs)
-        if merged and count < images_per_factor and configs[:-1] == parent:
-            merged[-1].extend(indices)
-            count += 1
-        else:
-            merged.append(list(indices))
-            parent, count = configs[:-1], 1
-    if max_points_per_factor is None:
-        return merged
-    groups = []
-    for indices in merged:
-        fiducial = [i for i in indices if landmark_of[i] < 0]
-        landmarks = list(dict.fromkeys(landmark_of[i] for i in indices if landmark_of[i] >= 0))
-        chunks = [landmarks[c : c + max_points_per_factor] for c in range(0, len(landmarks), max_points_per_factor)]
-        if not chunks:
-            groups.append(fiducial)
-            continue
-        for c, chunk in enumerate(chunks):
-            members = set(chunk)
-            rows = [i for i in indices if landmark_of[i] in members]
-            groups.append((fiducial if c == 0 else []) + rows)
-    return [g for g in groups if g]
-
-
 def batched_factors(
-    dataset: Any,
-    layout: Any,
-    measurements: Sequence[Any],
+    dataset: Fiducials,
+    layout: KeyLayout,
+    measurements: Sequence[Observation],
     noise_sigma: np.ndarray,
     robust: str | None = None,
     *,
@@ -485,9 +449,9 @@ def batched_factors(
 
 
 def batched_evaluator(
-    dataset: Any,
-    layout: Any,
-    measurements: Sequence[Any],
+    dataset: Fiducials,
+    layout: KeyLayout,
+    measurements: Sequence[Observation],
     noise_sigma: np.ndarray,
     robust: str | None = None,
     *,
@@ -533,8 +497,8 @@ def batched_evaluator(
         observed[i] = meas.normalized
     landmark_of = landmark_rows.tolist()
     if images_per_factor is None:
-        images_per_factor = _auto_images_per_factor(measurements, landmark_of, max_points_per_factor)
-    groups = _group_measurements(measurements, landmark_of, images_per_factor, max_points_per_factor)
+        images_per_factor = auto_images_per_factor(measurements, landmark_of, max_points_per_factor)
+    groups = group_measurements(measurements, landmark_of, images_per_factor, max_points_per_factor)
     sigma = np.asarray(noise_sigma, dtype=float).reshape(2)
     evaluator = BatchEvaluator(
         layout.pose_key, point_keys, mirror_rows, landmark_rows, base_points, observed, groups, sigma, robust, robust_k

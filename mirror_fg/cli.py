@@ -16,11 +16,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from mirror_fg import __version__
 from mirror_fg.core.errors import DatasetError, MirrorFgError
+from mirror_fg.factors.batched import ROBUST_K
 
 if TYPE_CHECKING:
     from mirror_fg.io.dataset import Dataset
-    from mirror_fg.io.fileio import OutputPlan
+    from mirror_fg.io.output import OutputPlan
+    from mirror_fg.solver.calibration import Calibration
 
 EXIT_OK, EXIT_INTERNAL = 0, 1  # bad input and unsolvable data: MirrorFgError.exit_code (2, 3)
 
@@ -119,6 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument("--version", action="version", version=f"mirror-fg {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
 
     sim = sub.add_parser("simulate", help="write a synthetic dataset and its ground truth",
@@ -145,7 +149,8 @@ def build_parser() -> argparse.ArgumentParser:
                          formatter_class=argparse.RawDescriptionHelpFormatter)
     cal.add_argument("input", type=Path, help="dataset@1 JSON or capture@1 YAML/JSON file")
     cal.add_argument("-o", "--output", required=True, type=Path, help="result file (.json or .yaml)")
-    cal.add_argument("--robust", choices=["huber", "cauchy"], help="robust kernel on every measurement (threshold 1.345 sigma)")
+    cal.add_argument("--robust", choices=["huber", "cauchy"],
+                     help=f"robust kernel on every measurement (threshold {ROBUST_K:g} sigma)")
     cal.add_argument("--incremental", action="store_true", help="iSAM2: stream the images in file order")
     cal.add_argument("--every", type=_COUNT, default=25, help="with --incremental: progress line every N images (default 25)")
     cal.add_argument("--base-frame", default="base_link", help="base frame name for the ROS outputs (default base_link)")
@@ -201,7 +206,10 @@ def build_parser() -> argparse.ArgumentParser:
 # --- commands -------------------------------------------------------------------------------------
 
 
-def _print_transform_summary(out: _Printer, result: dict, elapsed: float, incremental: bool = False) -> None:
+def _print_transform_summary(out: _Printer, calibration: Calibration, result: dict, elapsed: float,
+                             incremental: bool = False) -> None:
+    from mirror_fg.solver.residuals import OUTLIER_SIGMAS
+
     T = result["T_base_cam"]
     out.info("T_base_cam (camera pose in the base frame; camera axes x right, y down, z forward):")
     for row in T["R"]:
@@ -219,12 +227,12 @@ def _print_transform_summary(out: _Printer, result: dict, elapsed: float, increm
     out.info(f"residuals: RMS {res['rms_px']:.3f} {unit}, mean {res.get('mean_px', float('nan')):.3f}, "
              f"max {res['max_px']:.3f}; {solver} {opt['iterations']}"
              f"{'' if opt['converged'] else ' (NOT converged)'}; time {elapsed:.2f} s")
-    expected = opt.get("expected_final_error")
-    if expected and opt["final_error"] > expected + 10.0 * max(expected, 1.0) ** 0.5:
-        out.info(f"warning: final cost {opt['final_error']:.4g} is far above its expected {expected:.4g} at the "
-                 "optimum: a local minimum, outliers (try --robust) or a pixel_sigma that is too small")
+    if not calibration.cost_plausible:
+        out.info(f"warning: final cost {calibration.final_error:.4g} is far above its expected "
+                 f"{calibration.expected_final_error:.4g} at the optimum: a local minimum, outliers (try --robust) or "
+                 "a pixel_sigma that is too small")
     if res.get("outliers"):
-        out.info(f"{len(res['outliers'])} measurement(s) above 5 sigma after the solve:")
+        out.info(f"{len(res['outliers'])} measurement(s) above {OUTLIER_SIGMAS:g} sigma after the solve:")
         for o in res["outliers"][:20]:
             out.info(f"  image '{o['image']}' point '{o['point']}': {o['sigmas']:.1f} sigma")
 
@@ -246,8 +254,9 @@ def _load_input(path: Path, out: _Printer, plan: OutputPlan) -> Dataset:
     if fmt == CAPTURE_FORMAT:
         capture = capture_from_dict(data, source=source, base_dir=os.path.dirname(os.path.abspath(source)))
         plan.add_inputs(capture.input_files())
-        data, reports = detect_capture(capture, progress=out.progress)
+        dataset, reports = detect_capture(capture, progress=out.progress)
         _print_detection_report(out, reports)
+        return dataset
     return dataset_from_dict(data, source=source)
 
 
@@ -262,7 +271,7 @@ def _print_detection_report(out: _Printer, reports) -> None:
 
 
 def cmd_simulate(args, out: _Printer) -> int:
-    from mirror_fg.io.fileio import OutputPlan
+    from mirror_fg.io.output import OutputPlan
     from mirror_fg.tools.simulate import simulate_base_case, simulate_tree, truth_path, write_simulation
 
     plan = OutputPlan()  # checked before the work; write_simulation writes both all-or-nothing
@@ -282,9 +291,10 @@ def cmd_simulate(args, out: _Printer) -> int:
 
 
 def cmd_calibrate(args, out: _Printer) -> int:
-    from mirror_fg.io.dataset import result_text
-    from mirror_fg.io.fileio import OutputPlan
-    from mirror_fg.solver.graph import calibrate, require_converged
+    from mirror_fg.io.result import result_text
+    from mirror_fg.io.output import OutputPlan
+    from mirror_fg.solver.calibrate import calibrate
+    from mirror_fg.solver.calibration import require_converged
     from mirror_fg.io.ros import check_frame_name, ros_output_paths, ros_output_texts
 
     start = time.perf_counter()
@@ -332,7 +342,7 @@ def cmd_calibrate(args, out: _Printer) -> int:
     if ros:
         texts.update(ros_output_texts(result, args.output, args.base_frame, args.camera_frame))
     written = plan.commit(texts)
-    _print_transform_summary(out, result, time.perf_counter() - start, args.incremental)
+    _print_transform_summary(out, calibration, result, time.perf_counter() - start, args.incremental)
     out.info("wrote " + ", ".join(str(p) for p in written))
     return EXIT_OK
 
@@ -354,7 +364,8 @@ def _run_incremental(dataset, args, out: _Printer):
 def cmd_detect(args, out: _Printer) -> int:
     from mirror_fg.io.capture import CAPTURE_FORMAT
     from mirror_fg.io.dataset import dataset_text
-    from mirror_fg.io.fileio import OutputPlan, load_structured
+    from mirror_fg.io.output import OutputPlan
+    from mirror_fg.io.fileio import load_structured
 
     plan = OutputPlan(inputs=[os.fspath(args.capture)])
     plan.add(args.output, "dataset")
@@ -368,8 +379,9 @@ def cmd_detect(args, out: _Printer) -> int:
 
 
 def cmd_report(args, out: _Printer) -> int:
-    from mirror_fg.io.dataset import load_dataset, load_result
-    from mirror_fg.io.fileio import OutputPlan
+    from mirror_fg.io.dataset import load_dataset
+    from mirror_fg.io.result import load_result
+    from mirror_fg.io.output import OutputPlan
     from mirror_fg.tools.report import write_report
 
     plan = OutputPlan(inputs=[os.fspath(p) for p in (args.result, args.dataset) if p is not None])
@@ -391,7 +403,7 @@ def cmd_report(args, out: _Printer) -> int:
 
 
 def cmd_plan(args, out: _Printer) -> int:
-    from mirror_fg.io.fileio import OutputPlan
+    from mirror_fg.io.output import OutputPlan
     from mirror_fg.tools.plan import PlanSetup, format_plan, load_fiducials, plan
 
     outputs = OutputPlan(inputs=[os.fspath(args.fiducials_file)] if args.fiducials_file is not None else [])

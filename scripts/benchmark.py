@@ -76,7 +76,7 @@ def task_baseline(case: str, repeats: int) -> dict:
 
 
 def task_calibrate(case: str, repeats: int, fast: bool) -> dict:
-    from mirror_fg.solver.graph import calibrate
+    from mirror_fg import calibrate
 
     dataset, _ = _dataset(case)
     runs = []
@@ -123,8 +123,8 @@ def _nudged(values, scale: float = 1e-7):
 def task_linearize(case: str, repeats: int) -> dict:
     """us per measurement of linearize() and error() at new values, and of one LM iteration."""
     import gtsam
-
     from mirror_fg.factors.batched import batched_factors
+
     from mirror_fg.solver.graph import build_graph
 
     dataset, truth = _dataset(case)
@@ -230,7 +230,7 @@ def _scipy_problem(dataset, initial):
 def task_scipy(case: str, repeats: int) -> dict:
     from scipy.optimize import least_squares
 
-    from mirror_fg.solver.graph import initial_estimate
+    from mirror_fg import initial_estimate
 
     dataset, _ = _dataset(case)
     runs = []
@@ -267,7 +267,7 @@ def task_profile(case: str, repeats: int) -> dict:
         from pyinstrument import Profiler
     except ImportError:
         return {"text": "pyinstrument is not installed (pip install pyinstrument)"}
-    from mirror_fg.solver.graph import calibrate
+    from mirror_fg import calibrate
 
     dataset, _ = _dataset(case)
     profiler = Profiler(interval=0.001)
@@ -280,7 +280,7 @@ def task_profile(case: str, repeats: int) -> dict:
 
 def task_loop(case: str, repeats: int) -> dict:
     """``repeats`` fast calibrations, for a sampling profiler to watch."""
-    from mirror_fg.solver.graph import calibrate
+    from mirror_fg import calibrate
 
     dataset, _ = _dataset(case)
     for _ in range(repeats):
@@ -372,11 +372,6 @@ def _run(task: str, case: str, repeats: int) -> dict:
     raise RuntimeError(f"benchmark task {task} on {case} failed:\n{done.stdout}\n{done.stderr}")
 
 
-def _rotation_angle_deg(R1, R2) -> float:
-    cos = (np.trace(np.asarray(R1).T @ np.asarray(R2)) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
-
-
 def _split(m: dict) -> str:
     """The ``timings`` split, and the rest of the wall time (residuals and outliers after the solve)."""
     parts = ("analytic", "build", "optimize", "marginals")
@@ -403,6 +398,8 @@ def main(argv: list[str] | None = None) -> int:
     repeats, slow = (1, 1) if args.quick else (args.repeats, args.slow_repeats)
 
     from importlib.metadata import version
+
+    from mirror_fg.core.transform import rotation_angle
 
     load_start = os.getloadavg()
     print(f"mirror_fg benchmark  {time.strftime('%Y-%m-%d %H:%M:%S')}  python {sys.version.split()[0]}  "
@@ -450,7 +447,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"   wall {scipy_total:7.3f}  cpu {sm['cpu']:7.3f}  = analytic {sm['analytic']:.3f} + build {sm['build']:.3f} + "
               f"solve {sm['optimize']:.3f} ({baseline['nfev']} evaluations) + covariance {sm['marginals']:.3f} "
               f"({baseline['covariance_dim']} unknowns)")
-        d_rot = _rotation_angle_deg(baseline["estimate"]["R"], fast["estimate"]["R"])
+        d_rot = np.degrees(rotation_angle(baseline["estimate"]["R"], fast["estimate"]["R"]))
         d_t = 1000.0 * np.linalg.norm(np.subtract(baseline["estimate"]["t"], fast["estimate"]["t"]))
         print(f"   scipy vs GTSAM estimate: {d_rot:.2e} deg, {d_t:.2e} mm; cost {baseline['final_error']:.6f} vs "
               f"{fast['estimate']['final_error']:.6f}")

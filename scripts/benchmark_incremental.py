@@ -11,7 +11,7 @@ of 100 images, mirror 2 new in every image, 10 reconstruction points, 1 px) thro
   image re-runs the start-up, see ``mirror_fg.solver.incremental``);
 * the total time of the stream and of ``calibration(full=True)``, and how far the last per-image and
   the full estimate are from the batch MLE (per pose axis, in batch standard deviations);
-* the time a batch solve (``graph.calibrate``) re-run after every image from the first estimate on
+* the time a batch solve (``mirror_fg.calibrate``) re-run after every image from the first estimate on
   would take: timed at ``--batch-samples`` image counts and interpolated between them (trapezoids),
   unless ``--batch-every-image`` times every one.
 
@@ -25,19 +25,16 @@ import time
 
 import numpy as np
 
+from mirror_fg import calibrate
 from mirror_fg.io.dataset import Dataset
-from mirror_fg.solver.graph import calibrate
 from mirror_fg.solver.incremental import IncrementalCalibrator
+from mirror_fg.tools.crb import pose_error
 from mirror_fg.tools.simulate import simulate_base_case
 
 
 def pose_sigmas(batch, estimate) -> np.ndarray:
     """Per-axis ``|estimate - batch| / sigma_batch`` in SPEC's ``[dtheta, dt]``."""
-    D = estimate.R_cam_base @ batch.R_cam_base.T
-    angle = np.arccos(np.clip((np.trace(D) - 1.0) / 2.0, -1.0, 1.0))
-    axis = np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]])
-    dtheta = axis * (0.5 if angle < 1e-8 else angle / (2.0 * np.sin(angle)))
-    difference = np.r_[dtheta, estimate.t_cam_base - batch.t_cam_base]
+    difference = pose_error(estimate.R_cam_base, estimate.t_cam_base, batch.R_cam_base, batch.t_cam_base)
     return np.abs(difference) / np.sqrt(np.diag(batch.covariance))
 
 

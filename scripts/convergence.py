@@ -3,7 +3,7 @@
 
 Per run (simulator base case, seed = run index): the global optimum is the MLE started from the truth;
 the MLE is then computed by ``calibrate()`` from its analytical solution
-(``mirror_fg.solver.graph.initial_estimate``: the closed form with each mirror placement's P3P hypotheses
+(``mirror_fg.initial_estimate``: the closed form with each mirror placement's P3P hypotheses
 refined on its own images; when LM ends at an implausible cost it restarts from the runner-up
 hypotheses, counted as ``restarts``), by LM from the bare closed form of Sects. 4-5
 (``solve_analytic``), and by LM from a naive guess (identity rotation,
@@ -37,12 +37,13 @@ from pathlib import Path
 
 import numpy as np
 
-from mirror_fg.solver.analytic import SolveError, solve_analytic
-from mirror_fg.io.dataset import Dataset, DatasetError
-from mirror_fg.solver.graph import calibrate, initial_estimate
+from mirror_fg import calibrate, initial_estimate
+from mirror_fg.core.errors import DatasetError, SolveError
+from mirror_fg.core.transform import rotation_angle
+from mirror_fg.io.dataset import Dataset
+from mirror_fg.solver.analytic import solve_analytic
 from mirror_fg.tools.montecarlo import run_trials
 from mirror_fg.tools.simulate import simulate_base_case
-from mirror_fg.core.transform import rotation_angle
 
 #: A start reached the global optimum when within these of the MLE started from the truth.
 POSE_TOL_RAD = 1e-4

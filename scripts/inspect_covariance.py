@@ -17,17 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
+from mirror_fg.core.errors import DatasetError
+from mirror_fg.io.result import load_result
 from mirror_fg.tools.crb import AXIS_NAMES, WeakestDirection, weakest_direction
-from mirror_fg.io.dataset import DatasetError, load_result
+from mirror_fg.tools.report_figures import correlation, draw_correlation
 
 LABELS = ("θx", "θy", "θz", "tx", "ty", "tz")
 PLANES = (("x", "y", 0, 1), ("x", "z", 0, 2), ("y", "z", 1, 2))
-
-
-def correlation(covariance: np.ndarray) -> np.ndarray:
-    """Correlation matrix of a covariance."""
-    sigma = np.sqrt(np.diag(covariance))
-    return covariance / np.outer(sigma, sigma)
 
 
 def covariance_of(result: dict, source: str = "result") -> np.ndarray:
@@ -115,13 +111,7 @@ def plot(result: dict, path: Path, title: str = "") -> None:
     fig = plt.figure(figsize=(14, 4.0), layout="constrained")
     grid = fig.add_gridspec(1, 4, width_ratios=[1.3, 1, 1, 1])
     ax = fig.add_subplot(grid[0, 0])
-    image = ax.imshow(rho, cmap="RdBu_r", vmin=-1, vmax=1)
-    ax.set_xticks(range(6), LABELS)
-    ax.set_yticks(range(6), LABELS)
-    for i in range(6):
-        for j in range(6):
-            ax.text(j, i, f"{rho[i, j]:.2f}", ha="center", va="center", fontsize=7,
-                    color="white" if abs(rho[i, j]) > 0.6 else "black")
+    image = draw_correlation(ax, rho, LABELS, fontsize=7)
     ax.set_title("correlation of T_cam_base")
     fig.colorbar(image, ax=ax, shrink=0.8)
     position_mm = 1e6 * covariance[3:, 3:]  # m^2 -> mm^2

@@ -27,6 +27,8 @@ Needs ``pip install mitsuba`` (scalar_rgb variant, CPU). Takes about a minute.
 along a smooth loop, a new placement every frame, a textured plane with a corner-like and a blob-like
 unknown point and four dark squares (fiducials), rendered exactly through the plane's homography with
 sRGB gamma and 4 x 4 supersampling (:func:`render_sequence`); ``frame_KKK.png`` and ``truth.json``.
+
+Over 500 lines: one standalone script (tests load it by path) whose two renderers share its scene helpers.
 """
 from __future__ import annotations
 
@@ -43,7 +45,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from mirror_fg.core.geometry import householder, nested_transform  # noqa: E402
+from mirror_fg.core.geometry import nested_transform, reflect  # noqa: E402
 
 DICTIONARY = cv2.aruco.DICT_APRILTAG_36h11
 TAG_SIZE = 0.12  # metres, edge of the black square
@@ -187,12 +189,9 @@ def scene_truth() -> tuple[np.ndarray, np.ndarray, list[Mirror], list[list[Mirro
     nominal2 = Mirror(c2, n2, *M2_HALF)
     V0 = np.array([0.0, 0.0, D_CAM_M2 + D_M2_M1 + D_M1_ROBOT])  # nominal final image of X
 
-    def reflect_point(p: np.ndarray, m: Mirror) -> np.ndarray:
-        return householder(m.v) @ p + 2 * m.v
-
     mirror1, mirror2 = [], []
     for i, off1 in enumerate(M1_OFFSETS):
-        W = reflect_point(V0 + np.asarray(off1), nominal2)  # where mirror 1 must put X
+        W = reflect(V0 + np.asarray(off1), nominal2.v)  # where mirror 1 must put X
         m1 = bisector_mirror(X, W, c2, M1_HALF)
         mirror1.append(m1)
         row = []

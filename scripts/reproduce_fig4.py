@@ -7,7 +7,7 @@ within 10 cm of the fiducials. Sweeps: (a) pixel sigma at 0.5 m mirror distance,
 mirror placements and only the noise scale changes). Each run: the analytical solution and the MLE
 (``mirror_fg.calibrate``), its reported covariance, and the Cramér-Rao bound (inverse Fisher
 information at the truth, ``mirror_fg.tools.crb``). "Analytical" is ``calibrate()``'s start
-(``graph.initial_estimate``: the closed form with each mirror placement's P3P hypotheses refined on its
+(``mirror_fg.initial_estimate``: the closed form with each mirror placement's P3P hypotheses refined on its
 own images); the bare closed form of Sects. 4-5 (``solve_analytic``, the paper's method) is reported
 beside it as "closed form".
 
@@ -28,6 +28,8 @@ mean squared error without bias and with the noise of the estimate mostly cancel
 
 Writes ``runs.jsonl`` (one line per run; a re-run resumes from it), ``fig4.csv`` and ``fig4.png`` in
 ``--out``. Usage: ``python scripts/reproduce_fig4.py --runs 100 --jobs 2 --out out/fig4``.
+
+Over 500 lines: the whole experiment (trials, summary, CSV, figure) as one runnable, resumable script.
 """
 from __future__ import annotations
 
@@ -46,10 +48,10 @@ from pathlib import Path
 
 import numpy as np
 
-from mirror_fg.solver.analytic import SolveError, solve_analytic
+from mirror_fg import calibrate
+from mirror_fg.core.errors import DatasetError, SolveError
+from mirror_fg.solver.analytic import solve_analytic
 from mirror_fg.tools.crb import cramer_rao_bound, nees, nees_band, pose_error
-from mirror_fg.io.dataset import DatasetError
-from mirror_fg.solver.graph import calibrate
 from mirror_fg.tools.montecarlo import run_trials
 from mirror_fg.tools.simulate import simulate_base_case
 

@@ -10,12 +10,12 @@ from mirror_fg import (
     solve_analytic,
 )
 from mirror_fg.solver.analytic import (
-    _Hypothesis,
+    Hypothesis as _Hypothesis,
     _subtree_solution,
-    pnp_candidates,
     subtree_dataset,
     triangulate_point,
 )
+from mirror_fg.solver.pnp import pnp_candidates
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.core.geometry import apply_transform, nested_transform, project, so3_exp
 from mirror_fg.tools.simulate import simulate_base_case, simulate_tree

@@ -7,7 +7,7 @@ from scipy.stats import chi2
 
 from conftest import pose_difference
 from mirror_fg import calibrate, load_dataset
-from mirror_fg.solver.graph import Calibration
+from mirror_fg.solver.calibration import Calibration
 from mirror_fg.tools.simulate import simulate_base_case
 from mirror_fg.core.transform import rotation_angle
 
@@ -138,7 +138,7 @@ def test_result_dict_matches_spec_shape():
 
 def test_covariance_convention_matches_perturbation_of_rotation_about_camera_axes():
     """SPEC: R_true = Exp(dtheta) R_est; the reported covariance must match the spread of such dtheta."""
-    from mirror_fg.core.transform import spec_covariance_from_pose3
+    from mirror_fg.core.transform import covariance_from_pose3 as spec_covariance_from_pose3
     from mirror_fg.core.geometry import so3_exp
 
     rng = np.random.default_rng(0)
@@ -162,7 +162,8 @@ def test_covariance_convention_matches_perturbation_of_rotation_about_camera_axe
 
 
 def test_schur_marginals_equal_gtsam_marginals():
-    from mirror_fg.solver.graph import _marginals_from_gtsam, build_graph, marginal_covariances
+    from mirror_fg.solver.graph import build_graph
+    from mirror_fg.solver.marginals import _marginals_from_gtsam, marginal_covariances
 
     dataset, truth = simulate_base_case(num_images=40, num_points=4, pixel_sigma=1.0, seed=8)
     for fast in (True, False):
@@ -189,16 +190,16 @@ def test_an_implausible_optimum_restarts_from_the_runner_up_hypotheses(monkeypat
     """When LM from the analytical solution ends far above the chi-square range of the cost, calibrate()
     starts again from the root's runner-up hypotheses and keeps the best: here the first hypothesis is
     a deliberately wrong pose (rotated 150 deg, 2 m off), the runner-up the real solution."""
-    import mirror_fg.solver.graph as graph_module
+    import mirror_fg.solver.calibrate as calibrate_module
     from mirror_fg.solver.analytic import AnalyticSolution
     from mirror_fg.core.geometry import so3_exp
 
     dataset, truth = simulate_base_case(num_images=60, num_points=4, pixel_sigma=1.0, seed=5)
-    right = graph_module.initial_estimate(dataset)
+    right = calibrate_module.initial_estimate(dataset)
     wrong = AnalyticSolution(so3_exp(np.array([0.0, np.radians(150.0), 0.0])) @ right.R_cam_base,
                              right.t_cam_base + np.array([2.0, 0.0, 0.0]), dict(right.mirror_vectors),
                              points=dict(right.points), alternatives=[right])
-    monkeypatch.setattr(graph_module, "initial_estimate", lambda ds: wrong)
+    monkeypatch.setattr(calibrate_module, "initial_estimate", lambda ds: wrong)
     optimum = calibrate(dataset, initial=truth, compute_covariance=False)
     alone = calibrate(dataset, initial=wrong, compute_covariance=False)  # no restart with a given start
     assert alone.restarts == 0 and not (alone.converged and alone.cost_plausible)

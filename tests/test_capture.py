@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import yaml
 
-from mirror_fg.io.capture import EACH, ChessboardTarget, PointsTarget, TagTarget, load_capture
-from mirror_fg.io.dataset import DatasetError
+from mirror_fg.io.capture import EACH, load_capture
+from mirror_fg.io.target import ChessboardTarget, PointsTarget, TagTarget
+from mirror_fg.core.errors import DatasetError
 
 DATA = Path(__file__).parent / "data" / "capture"
 TAKAHASHI = DATA.parent.parent.parent.parent / "shared" / "data" / "takahashi2012"

@@ -5,16 +5,17 @@ import gtsam
 import numpy as np
 import pytest
 
-from mirror_fg.solver.analytic import SolveError
+from mirror_fg.core.errors import SolveError
 from mirror_fg.tools.crb import (
     UnknownIndex, chi2_quantile, cramer_rao_bound, fisher_information, linearize, nees, nees_band, pose_error,
     weakest_direction,
 )
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.core.geometry import measurement, so3_exp
-from mirror_fg.solver.graph import build_graph, calibrate
+from mirror_fg import calibrate
+from mirror_fg.solver.graph import build_graph
 from mirror_fg.tools.simulate import GroundTruth, simulate_base_case
-from mirror_fg.core.transform import spec_covariance_from_pose3
+from mirror_fg.core.transform import covariance_from_pose3 as spec_covariance_from_pose3
 
 
 @pytest.fixture(scope="module")

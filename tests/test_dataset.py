@@ -16,19 +16,17 @@ import yaml
 
 from mirror_fg.io.dataset import (
     DATASET_FORMAT,
-    RESULT_FORMAT,
-    Camera,
     Dataset,
-    DatasetError,
     Image,
     dataset_from_dict,
     dataset_to_dict,
     load_dataset,
-    load_result,
     save_dataset,
     validate_image,
-    write_result,
 )
+from mirror_fg.io.result import RESULT_FORMAT, load_result, write_result
+from mirror_fg.core.camera import Camera
+from mirror_fg.core.errors import DatasetError
 
 SHARED = Path("/work/shared/data/takahashi2012")
 DIST = [-0.28, 0.09, 0.0012, -0.0008, -0.015]  # a wide-angle lens, OpenCV (k1, k2, p1, p2, k3)

@@ -8,18 +8,13 @@ import numpy as np
 import pytest
 import yaml
 
-from mirror_fg.io.capture import ChessboardTarget, TagTarget, load_capture, tag_dictionary
-from mirror_fg.io.dataset import DatasetError, dataset_from_dict
-from mirror_fg.vision.detect import (
-    FOUND,
-    NOT_FOUND,
-    REFUSED,
-    _first_square_dark,
-    detect_capture,
-    detect_chessboard,
-    detect_tags,
-    format_reports,
-)
+from mirror_fg.io.capture import load_capture
+from mirror_fg.core.errors import DatasetError
+from mirror_fg.io.dataset import dataset_from_dict, dataset_to_dict
+from mirror_fg.io.target import ChessboardTarget, TagTarget, tag_dictionary
+from mirror_fg.vision.detectors import FOUND, NOT_FOUND, REFUSED
+from mirror_fg.vision.detect import detect_capture, format_reports
+from mirror_fg.vision.detectors import _first_square_dark, detect_chessboard, detect_tags
 
 DATA = Path(__file__).parent / "data" / "capture"
 TAKAHASHI = DATA.parent.parent.parent.parent / "shared" / "data" / "takahashi2012"
@@ -86,7 +81,8 @@ def tag_canvas(ids: list[int], dictionary: str = "tag36h11", side: int = 80) -> 
 @needs_takahashi
 def test_takahashi_all_corners_in_published_order():
     cap = load_capture(DATA / "takahashi.yaml")
-    d, reports = detect_capture(cap, progress=False)
+    ds, reports = detect_capture(cap, progress=False)
+    d = dataset_to_dict(ds)
     assert [r.status for r in reports] == [FOUND] * 5
     assert [im["id"] for im in d["images"]] == [f"input{n}" for n in range(1, 6)]
     assert [im["mirror_configs"] for im in d["images"]] == [[0], [1], [2], [3], [4]]
@@ -218,7 +214,8 @@ def test_detect_capture_reports_and_each(tmp_path, capsys):
     )
     # two mirrors: the image is not mirror-imaged, so the mirrored board is read in the other handedness
     cap = load_capture(path)
-    d, reports = detect_capture(cap, progress=True)  # stderr is not a terminal here: no bar
+    ds, reports = detect_capture(cap, progress=True)  # stderr is not a terminal here: no bar
+    d = dataset_to_dict(ds)
     assert capsys.readouterr().err == ""
     assert [r.status for r in reports] == [FOUND, NOT_FOUND, FOUND, REFUSED]
     assert "150" in reports[3].reason and "not found" in reports[1].reason
@@ -241,7 +238,7 @@ def test_target_never_found_and_undecodable_image(tmp_path):
 
 
 def test_grid_misfit_flags_corners_off_a_plane():
-    from mirror_fg.vision.detect import _grid_misfit_px
+    from mirror_fg.vision.detectors import _grid_misfit_px
 
     target = ChessboardTarget(6, 5, 0.02)
     camera = {"fx": 300.0, "fy": 300.0, "cx": 160.0, "cy": 120.0, "dist": [0.0] * 5}

@@ -1,10 +1,13 @@
 """Algebraic identities of the geometry kernel (eqs. 3-9)."""
+import gtsam
 import numpy as np
+from gtsam.utils.numerical_derivative import numericalDerivative11
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mirror_fg.core.geometry import (
-    householder, measurement, measurement_jacobians, nested_transform, project, project_to_orthogonal, reflect, so3_exp,
+    householder, measurement, measurement_jacobians, nested_transform, project, project_jacobian, project_to_orthogonal,
+    reflect, so3_exp,
 )
 
 finite = st.floats(-1.0, 1.0, allow_nan=False)
@@ -52,9 +55,18 @@ def test_householder_matches_eq3():
 
 def test_projection_and_measurement_jacobian_value():
     np.testing.assert_allclose(project(np.array([1.0, 2.0, 4.0])), [0.25, 0.5])
+    point = np.array([0.3, -0.2, 1.5])
+    np.testing.assert_allclose(project_jacobian(point), numericalDerivative11(project, point, 1e-6), rtol=1e-8, atol=1e-10)
     R, t, v, p = so3_exp(np.array([0.1, 0.2, 0.3])), np.array([0.0, 0.0, -0.2]), [np.array([0.0, 0.1, 0.5])], np.ones(3) * 0.1
-    z, *_ = measurement_jacobians(R, t, v, p)
+    z, H_pose, H_mirrors, H_point = measurement_jacobians(R, t, v, p)
     np.testing.assert_allclose(z, measurement(R, t, v, p))
+    # Jacobians against central differences on GTSAM's Pose3 retraction and on the Point3 vectors
+    pose = gtsam.Pose3(gtsam.Rot3(R), t)
+    numeric_pose = numericalDerivative11(lambda x: measurement(x.rotation().matrix(), x.translation(), v, p), pose, 1e-6)
+    numeric_mirror = numericalDerivative11(lambda x: measurement(R, t, [x], p), v[0], 1e-6)
+    numeric_point = numericalDerivative11(lambda x: measurement(R, t, v, x), p, 1e-6)
+    for analytic, numeric in ((H_pose, numeric_pose), (H_mirrors[0], numeric_mirror), (H_point, numeric_point)):
+        np.testing.assert_allclose(analytic, numeric, rtol=1e-6, atol=1e-8 * np.abs(numeric).max())
 
 
 def test_project_to_orthogonal_keeps_requested_determinant():

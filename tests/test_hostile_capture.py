@@ -15,9 +15,11 @@ import numpy as np
 import pytest
 import yaml
 
-from mirror_fg.io.capture import MAX_IMAGE_PIXELS, capture_from_dict, load_capture
-from mirror_fg.io.dataset import DatasetError
-from mirror_fg.vision.detect import FOUND, REFUSED, _too_large, detect_capture
+from mirror_fg.io.capture import capture_from_dict, load_capture
+from mirror_fg.io.fileio import MAX_IMAGE_PIXELS
+from mirror_fg.core.errors import DatasetError
+from mirror_fg.vision.detectors import FOUND, REFUSED
+from mirror_fg.vision.detect import _too_large, detect_capture
 
 SQUARE_PX = 20
 COLS, ROWS = 5, 4  # inner corners; cols + rows odd

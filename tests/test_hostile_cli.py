@@ -18,7 +18,8 @@ import pytest
 
 import mirror_fg
 from mirror_fg.cli import main
-from mirror_fg.io.dataset import DatasetError, dataset_from_dict, dataset_to_dict
+from mirror_fg.core.errors import DatasetError
+from mirror_fg.io.dataset import dataset_from_dict, dataset_to_dict
 from mirror_fg.tools.simulate import simulate_base_case
 
 REPO = Path(__file__).resolve().parents[1]

@@ -11,9 +11,11 @@ import numpy as np
 import pytest
 from conftest import pose_difference
 
-from mirror_fg.solver.analytic import SolveError, solve_analytic
-from mirror_fg.io.dataset import Dataset, DatasetError, Image, dataset_to_dict
-from mirror_fg.solver.graph import calibrate
+from mirror_fg.core.errors import SolveError
+from mirror_fg.solver.analytic import solve_analytic
+from mirror_fg.io.dataset import Dataset, Image, dataset_to_dict
+from mirror_fg.core.errors import DatasetError
+from mirror_fg.solver.calibrate import calibrate
 from mirror_fg.solver.incremental import IncrementalCalibrator, complete_tree
 from mirror_fg.tools.simulate import simulate_base_case
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from mirror_fg.tools.crb import chi2_quantile, nees, nees_band, pose_error
-from mirror_fg.io.dataset import DatasetError
-from mirror_fg.solver.graph import calibrate
+from mirror_fg.core.errors import DatasetError
+from mirror_fg import calibrate
 from mirror_fg.tools.plan import PlanSetup, format_plan, load_fiducials, plan
 from mirror_fg.tools.simulate import simulate_base_case
 

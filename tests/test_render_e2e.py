@@ -13,26 +13,23 @@ import pytest
 
 from conftest import pose_difference
 from mirror_fg.io.capture import load_capture
-from mirror_fg.io.dataset import dataset_from_dict
-from mirror_fg.vision.detect import FOUND, detect_capture
+from mirror_fg.io.dataset import dataset_from_dict, dataset_to_dict
+from mirror_fg.vision.detectors import FOUND
+from mirror_fg.vision.detect import detect_capture
 
 DATA = Path(__file__).parent / "data" / "capture"
 RENDERED = DATA / "rendered"
 TAKAHASHI = DATA.parent.parent.parent.parent / "shared" / "data" / "takahashi2012"
 
-try:
-    from mirror_fg import calibrate
-except ImportError:  # the MLE back end is not there yet
-    calibrate = None
-needs_calibrate = pytest.mark.skipif(calibrate is None, reason="mirror_fg.calibrate not available yet")
+from mirror_fg import calibrate
 
 
 @pytest.fixture(scope="module")
 def rendered():
     truth = json.loads((RENDERED / "truth.json").read_text())
     cap = load_capture(RENDERED / "capture.yaml")
-    d, reports = detect_capture(cap, progress=False)
-    return truth, d, reports
+    ds, reports = detect_capture(cap, progress=False)
+    return truth, dataset_to_dict(ds), reports
 
 
 def test_rendered_tags_detected_within_half_a_pixel_of_truth(rendered):
@@ -50,7 +47,6 @@ def test_rendered_tags_detected_within_half_a_pixel_of_truth(rendered):
     assert len(fiducials) == 12 and "T7_0" not in fiducials
 
 
-@needs_calibrate
 def test_rendered_detect_calibrate_recovers_the_camera_within_3_sigma(rendered):
     truth, d, _ = rendered
     cal = calibrate(dataset_from_dict(d, source="rendered"))
@@ -62,11 +58,10 @@ def test_rendered_detect_calibrate_recovers_the_camera_within_3_sigma(rendered):
     assert np.all(bound[:3] < np.radians(10)) and np.all(bound[3:] < 0.2)  # the scene constrains it
 
 
-@needs_calibrate
 @pytest.mark.skipif(not TAKAHASHI.is_dir(), reason="shared/data/takahashi2012 not beside the repository")
 def test_takahashi_photographs_detect_calibrate_land_on_published_optimum():
-    d, _ = detect_capture(load_capture(DATA / "takahashi.yaml"), progress=False)
-    cal = calibrate(dataset_from_dict(d, source="takahashi.yaml"))
+    ds, _ = detect_capture(load_capture(DATA / "takahashi.yaml"), progress=False)
+    cal = calibrate(dataset_from_dict(dataset_to_dict(ds), source="takahashi.yaml"))
     R_pub = np.array([[-0.59533, -0.02049, 0.80322], [0.02015, 0.99898, 0.04042], [-0.80323, 0.04025, -0.59431]])
     t_pub = np.array([340.55, 11.66, 354.54]) / 1000.0
     np.testing.assert_allclose(cal.t_cam_base, t_pub, atol=0.5e-3)  # published to 0.01 mm; ours within 0.02 mm

@@ -11,10 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mirror_fg.io.dataset import Camera, Dataset, DatasetError, Image
+from mirror_fg import calibrate
+from mirror_fg.core.errors import DatasetError
+from mirror_fg.core.camera import Camera
+from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.core.geometry import nested_transform, project, so3_exp
-from mirror_fg.tools.report import OUTLIER_FACTOR, compute_residuals, write_report
-from mirror_fg.io.ros import rotation_to_quaternion_xyzw
+from mirror_fg.tools.residuals import OUTLIER_FACTOR, compute_residuals
+from mirror_fg.tools.report import write_report
+from mirror_fg.core.transform import rotation_to_quaternion_xyzw
 
 PIXEL_SIGMA = 0.5
 OUTLIER_IMAGE = "img004"
@@ -193,7 +197,10 @@ def test_report_without_dataset(tmp_path):
 
 def test_report_figures_normalized_dataset():
     """Without a camera: normalized units, no image size for the frustum or the residual arrows."""
-    from mirror_fg.tools.report import _figure_per_point, _figure_scene, _png, _summary
+    from mirror_fg.tools.report import _summary
+    from mirror_fg.tools.report_figures import figure_per_point as _figure_per_point
+    from mirror_fg.tools.report_figures import figure_scene as _figure_scene
+    from mirror_fg.tools.report_figures import png as _png
 
     ds, result = make_scene(camera=False)
     res = compute_residuals(result, ds)
@@ -291,14 +298,6 @@ def test_report_pdf_pages_render(report, tmp_path):
 # On the real pipeline: the simulated base case and the real photographs (Takahashi et al. 2012)
 
 
-def _calibrate():
-    import mirror_fg
-
-    if not hasattr(mirror_fg, "calibrate"):
-        pytest.skip("mirror_fg.calibrate not available yet")
-    return mirror_fg.calibrate
-
-
 def _check_pipeline_report(ds, result, out: Path, render: bool) -> None:
     from mirror_fg.io.ros import write_ros_outputs
 
@@ -316,7 +315,6 @@ def _check_pipeline_report(ds, result, out: Path, render: bool) -> None:
 
 
 def test_report_simulated_base_case(tmp_path):
-    calibrate = _calibrate()
     from mirror_fg.tools.simulate import simulate_base_case
 
     ds, _ = simulate_base_case(num_images=30, num_points=2, pixel_sigma=1.0, seed=3)
@@ -324,7 +322,6 @@ def test_report_simulated_base_case(tmp_path):
 
 
 def test_report_real_photographs(takahashi_dir, tmp_path):
-    calibrate = _calibrate()
     from mirror_fg.io.dataset import load_dataset
 
     ds = load_dataset(takahashi_dir / "dataset.json")

@@ -19,8 +19,10 @@ import pytest
 
 import mirror_fg
 from mirror_fg.cli import main
-from mirror_fg.io.dataset import DatasetError, dataset_to_dict
-from mirror_fg.tools.report import _summary, compute_residuals, write_report
+from mirror_fg.core.errors import DatasetError
+from mirror_fg.io.dataset import dataset_to_dict
+from mirror_fg.tools.report import _summary, write_report
+from mirror_fg.tools.residuals import compute_residuals
 from mirror_fg.io.result import validate_result
 from mirror_fg.io.ros import ros_outputs, write_ros_outputs
 from mirror_fg.tools.simulate import simulate_base_case

@@ -11,14 +11,8 @@ import pytest
 import yaml
 
 from mirror_fg.core.geometry import so3_exp
-from mirror_fg.io.ros import (
-    quaternion_xyzw_to_rotation,
-    ros_outputs,
-    rotation_to_quaternion_xyzw,
-    rotation_to_rpy,
-    sigma3_base_cam,
-    write_ros_outputs,
-)
+from mirror_fg.core.transform import quaternion_xyzw_to_rotation, rotation_to_quaternion_xyzw
+from mirror_fg.io.ros import ros_outputs, rotation_to_rpy, sigma3_base_cam, write_ros_outputs
 
 
 def _Rx(a: float) -> np.ndarray:

@@ -9,8 +9,9 @@ import pytest
 import yaml
 
 from mirror_fg.io.capture import load_capture
-from mirror_fg.io.dataset import dataset_from_dict
-from mirror_fg.vision.detect import FOUND, detect_capture
+from mirror_fg.io.dataset import dataset_from_dict, dataset_to_dict
+from mirror_fg.vision.detectors import FOUND
+from mirror_fg.vision.detect import detect_capture
 from mirror_fg.vision.tracking import KLTParams, PointTracker, track_klt
 
 from test_detect import board_image  # tests/ is on sys.path under pytest's default (prepend) import mode
@@ -108,7 +109,8 @@ def test_video_capture_tracks_where_detection_fails(tmp_path: Path):
         "track": {"P0": {"frame": 0, "pixel": [float(w - 1 - point[0]), float(point[1])]}},
     }
     (tmp_path / "capture.yaml").write_text(yaml.safe_dump(capture))
-    d, reports = detect_capture(load_capture(tmp_path / "capture.yaml"), progress=False)
+    dataset, reports = detect_capture(load_capture(tmp_path / "capture.yaml"), progress=False)
+    d = dataset_to_dict(dataset)
     assert [r.id for r in reports] == [f"run:{k}" for k in range(frames)]
     assert all(r.status == FOUND for r in reports), [r.line() for r in reports]
     tracked = [k for k, r in enumerate(reports) if "tracked by KLT" in r.reason]

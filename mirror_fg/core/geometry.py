@@ -86,10 +86,14 @@ def nested_transform(
 # --------------------------------------------------------------------------------------------------
 
 
-def householders(mirror_vectors: np.ndarray) -> np.ndarray:
-    """Householder matrices (K, 3, 3) of mirror vectors (K, 3): ``I - 2 v v^T / (v^T v)`` (eq. 3)."""
+def householders(mirror_vectors: np.ndarray, unit: bool = False) -> np.ndarray:
+    """Householder matrices (K, 3, 3) of mirror vectors (K, 3): ``I - 2 v v^T / (v^T v)`` (eq. 3).
+
+    ``unit``: the vectors are unit normals already; use them as they are (renormalising changes their
+    last bits, which the mirror peeling's alternation amplifies to ~5e-11 in the covariances).
+    """
     v = np.asarray(mirror_vectors, dtype=float).reshape(-1, 3)
-    n = v / np.linalg.norm(v, axis=1, keepdims=True)
+    n = v if unit else v / np.linalg.norm(v, axis=1, keepdims=True)
     return np.eye(3) - 2.0 * np.einsum("ka,kb->kab", n, n)
 
 

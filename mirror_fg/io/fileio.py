@@ -1,4 +1,4 @@
-"""Reading input files once, within bounds, and writing output files all-or-nothing.
+"""Reading input files once, within bounds (writing them: :mod:`mirror_fg.io.output`).
 
 Every file the user gives goes through here:
 
@@ -9,11 +9,9 @@ Every file the user gives goes through here:
   as often as they are expanded, so an alias bomb is refused before it is built) and integers of at
   smaller than :data:`INT_LIMIT` (larger ones become infinities, which every validator refuses by
   name); a key repeated in one object is an error.
-- :class:`OutputPlan` checks every output path before any work (never an input, never a directory,
-  never under a regular file, never a FIFO or block device) and :meth:`OutputPlan.commit` writes all
-  outputs to temporary files first and renames them over their targets only when every one was
-  written, so a failed run leaves every existing file as it was. A character device (``/dev/null``)
-  is written into, never replaced.
+- :func:`native_stderr` keeps what native decoders (libpng, libjpeg, FFmpeg, OpenCV's FileStorage)
+  write to file descriptor 2 while they read a user's file, so that the problem is reported in our one
+  line; :data:`MAX_IMAGE_PIXELS` bounds what an image or video frame may decode to.
 
 Every problem is a :class:`~mirror_fg.io.dataset.DatasetError` with one line that names the file.
 Formats: ``docs/formats.md``.
@@ -24,15 +22,15 @@ import json
 import math
 import os
 import re
-import stat
 import sys
 import tempfile
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
-from pathlib import Path
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
+
+from mirror_fg.core.values import clip, short
 
 __all__ = [
     "MAX_INPUT_BYTES",
@@ -45,8 +43,10 @@ __all__ = [
     "parse_yaml",
     "parse_structured",
     "load_structured",
-    "OutputPlan",
-    "same_file",
+    "resolve_path",
+    "MAX_IMAGE_PIXELS",
+    "NativeOutput",
+    "native_stderr",
 ]
 
 #: Largest input file read (bytes); a larger file (or an endless one such as /dev/zero) is refused.
@@ -58,18 +58,15 @@ MAX_NODES = 20_000_000
 #: Integers at least this large in magnitude are read as +-inf (they fit no int64 or float64 field;
 #: the validators then refuse them as not finite, naming the field).
 INT_LIMIT = 2**63
+#: Largest image or video frame read (width x height, pixels): 8000 x 6000 photographs pass; a larger
+#: image is refused from its header before it is decoded (a 20000 x 20000 PNG of 2 MB decodes to GBs).
+MAX_IMAGE_PIXELS = 100_000_000
 
 
 def _error(message: str) -> Exception:
     from mirror_fg.core.errors import DatasetError
 
     return DatasetError(message)
-
-
-def _write_error(target: str, exc: OSError) -> Exception:
-    from mirror_fg.core.errors import OutputError
-
-    return OutputError(f"{target}: cannot write: {exc.strerror or exc}")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -196,6 +193,12 @@ def load_structured(path: str | os.PathLike[str], where: str | None = None) -> A
     return parse_json(text, where) if source.lower().endswith(".json") else parse_yaml(text, where)
 
 
+def resolve_path(path: str, base_dir: str) -> str:
+    """``path`` (``~`` expanded) taken from ``base_dir`` where relative, normalised; links not resolved."""
+    path = os.path.expanduser(path)
+    return os.path.normpath(path if os.path.isabs(path) else os.path.join(base_dir, path))
+
+
 def _check_yaml_size(root: Any, source: str) -> None:
     """Refuse a YAML node graph with more than MAX_NODES values once its aliases are expanded."""
     import yaml
@@ -279,197 +282,60 @@ _UniqueKeyLoader = _make_loader()
 
 
 def _quote(value: Any, limit: int = 60) -> str:
-    from mirror_fg.io.dataset import _short
-
-    return _short(value, limit)
+    return short(value, limit)
 
 
 # --------------------------------------------------------------------------------------------------
-# Writing
+# What native decoders write
 # --------------------------------------------------------------------------------------------------
 
 
-def same_file(a: str | os.PathLike[str], b: str | os.PathLike[str]) -> bool:
-    """Whether two paths name the same file (through symlinks, hard links, ``..``)."""
-    a, b = os.fspath(a), os.fspath(b)
-    if os.path.realpath(a) == os.path.realpath(b):
-        return True
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return False
+class NativeOutput:
+    """What native code (libpng, libjpeg, FFmpeg, OpenCV) wrote to stderr inside :func:`native_stderr`."""
+
+    def __init__(self) -> None:
+        self.text = ""
+
+    @property
+    def problem(self) -> str:
+        """The first line that is not marked as a mere warning (a decode error, corrupt data), short; ''."""
+        for line in self.text.splitlines():
+            if line.strip() and "warn" not in line.lower():
+                return clip(line.strip())
+        return ""
+
+    @property
+    def detail(self) -> str:
+        """``": <problem>"`` to end a message with, or ''."""
+        return f": {self.problem}" if self.problem else ""
 
 
-@dataclass
-class OutputPlan:
-    """The files one command will write, checked before any work and written all-or-nothing.
+@contextmanager
+def native_stderr() -> Iterator[NativeOutput]:
+    """Divert file descriptor 2 to a temporary file during native decoding; the text is kept, not printed.
 
-    ``inputs``: every file the command reads (the dataset or capture and what it names); no output
-    may be one of them. Add outputs with :meth:`add` (which checks the path at once), then
-    :meth:`commit` their contents.
+    Native libraries write their own lines (``libpng error: IDAT: CRC error``) straight to fd 2, which
+    would precede our one-line message. After the block, ``.text`` holds what they wrote (first 4 kB).
+    When fd 2 cannot be duplicated (closed), nothing is diverted. Not thread-safe: fd 2 is per process.
     """
-
-    inputs: list[str] = field(default_factory=list)
-    outputs: dict[str, str] = field(default_factory=dict)  # path -> what it is ("result", "ROS YAML", ...)
-
-    def add_inputs(self, paths: Iterable[str | os.PathLike[str]]) -> None:
-        """Record more input files (e.g. the images a capture names, once it is read)."""
-        self.inputs.extend(os.fspath(p) for p in paths)
-        for path, role in self.outputs.items():
-            self._check_not_input(path, role)
-
-    def add(self, path: str | os.PathLike[str], role: str = "output", marker: bytes | None = None) -> str:
-        """Check ``path`` as an output and record it; DatasetError (one line) if it must not be written.
-
-        ``marker``: for a file the user did not name (a side file derived from another output's name),
-        an existing file is replaced only if its first bytes contain ``marker`` (it was written by us).
-        """
-        target = os.fspath(path)
-        for other, other_role in self.outputs.items():
-            if same_file(other, target):
-                raise _error(f"{target}: the {role} and the {other_role} would be the same file")
-        self._check_not_input(target, role)
-        kind = _existing_kind(target)
-        if kind == "directory":
-            raise _error(f"{target}: is a directory; give a file name for the {role}")
-        if kind not in (None, "file", "character device"):
-            raise _error(f"{target}: is a {kind}; the {role} must go to a regular file")
-        if kind == "file" and marker is not None and marker not in _head(target):
-            raise _error(f"{target}: exists and was not written by mirror-fg; refusing to replace it with the "
-                         f"{role} (move it, or choose another output name)")
-        if kind is None:
-            parent = _nearest_existing_parent(target)
-            if parent is not None and not os.path.isdir(parent):
-                raise _error(f"{target}: cannot create the {role}: {parent} is a file, not a directory")
-        self.outputs[target] = role
-        return target
-
-    def is_device(self, path: str | os.PathLike[str]) -> bool:
-        """Whether ``path`` is a character device (written into, e.g. /dev/null)."""
-        return _existing_kind(os.fspath(path)) == "character device"
-
-    def _check_not_input(self, target: str, role: str) -> None:
-        for source in self.inputs:
-            if same_file(source, target):
-                raise _error(f"{target}: refusing to write the {role} over an input file "
-                             f"({source}); choose another name")
-
-    def commit(self, contents: Mapping[str | os.PathLike[str], str | bytes]) -> list[Path]:
-        """Write every ``{path: content}`` (text is UTF-8): temporary files first, then renames.
-
-        Each path must have been :meth:`add`-ed. Any failure before the renames removes every
-        temporary file and leaves every existing file untouched (DatasetError naming the file).
-        """
-        staged: list[tuple[str, str]] = []  # (temporary, target)
-        devices: list[tuple[str, bytes]] = []
-        try:
-            for path, data in contents.items():
-                target = os.fspath(path)
-                if target not in self.outputs:
-                    raise ValueError(f"{target}: not an output of this plan")
-                raw = data.encode("utf-8") if isinstance(data, str) else data
-                if self.is_device(target):
-                    devices.append((target, raw))
-                else:
-                    staged.append((_stage(target, raw), os.path.realpath(target)))
-        except BaseException:
-            for tmp, _ in staged:
-                _unlink(tmp)
-            raise
-        renamed = 0
-        try:
-            for tmp, target in staged:
-                os.replace(tmp, target)
-                renamed += 1
-        except BaseException:
-            for tmp, _ in staged[renamed:]:
-                _unlink(tmp)
-            raise
-        for target, raw in devices:
+    out = NativeOutput()
+    try:
+        sys.stderr.flush()
+    except (AttributeError, OSError, ValueError):
+        pass
+    try:
+        saved = os.dup(2)
+    except OSError:
+        yield out
+        return
+    try:
+        with tempfile.TemporaryFile() as tmp:
+            os.dup2(tmp.fileno(), 2)
             try:
-                with open(target, "wb") as handle:
-                    handle.write(raw)
-            except OSError as exc:
-                raise _write_error(target, exc) from None
-        return [Path(p) for p in contents]
-
-
-def _existing_kind(path: str) -> str | None:
-    try:
-        mode = os.stat(path).st_mode
-    except FileNotFoundError:
-        return None
-    except NotADirectoryError:
-        return None  # a parent is a file: reported by add()
-    except OSError:
-        return None
-    kinds = ((stat.S_ISREG, "file"), (stat.S_ISDIR, "directory"), (stat.S_ISCHR, "character device"),
-             (stat.S_ISFIFO, "named pipe"), (stat.S_ISSOCK, "socket"), (stat.S_ISBLK, "block device"))
-    return next((name for test, name in kinds if test(mode)), "special file")
-
-
-def _head(path: str, size: int = 512) -> bytes:
-    try:
-        with open(path, "rb") as handle:
-            return handle.read(size)
-    except OSError:
-        return b""
-
-
-def _nearest_existing_parent(path: str) -> str | None:
-    parent = os.path.dirname(os.path.abspath(os.path.realpath(path)))
-    while parent and not os.path.lexists(parent):
-        up = os.path.dirname(parent)
-        if up == parent:
-            return None
-        parent = up
-    return parent or None
-
-
-def _stage(target: str, raw: bytes) -> str:
-    """Write ``raw`` to a temporary file beside ``target`` (through symlinks); return its path."""
-    real = os.path.realpath(target)  # keep a symlink a symlink: replace what it points to
-    directory = os.path.dirname(real)
-    try:
-        os.makedirs(directory, exist_ok=True)  # "-o out/result.json" creates out/
-        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(real)}.", suffix=".tmp", dir=directory)
-    except OSError as exc:
-        raise _write_error(target, exc) from None
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(raw)
-            handle.flush()
-            os.fsync(handle.fileno())
-        try:  # mkstemp makes the file 0600; give it the mode an ordinary open() would have
-            mode = os.stat(real).st_mode & 0o7777
-        except FileNotFoundError:
-            mode = 0o666 & ~_umask()
-        os.chmod(tmp, mode)
-    except OSError as exc:
-        _unlink(tmp)
-        raise _write_error(target, exc) from None
-    except BaseException:
-        _unlink(tmp)
-        raise
-    return tmp
-
-
-def _unlink(path: str) -> None:
-    try:
-        os.unlink(path)
-    except FileNotFoundError:
-        pass
-
-
-def _umask() -> int:
-    """The process umask, read without changing it where /proc allows."""
-    try:
-        with open("/proc/self/status") as handle:
-            for line in handle:
-                if line.startswith("Umask:"):
-                    return int(line.split()[1], 8)
-    except (OSError, ValueError, IndexError):
-        pass
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
+                yield out
+            finally:
+                os.dup2(saved, 2)
+            tmp.seek(0)
+            out.text = tmp.read(4096).decode("utf-8", "replace")
+    finally:
+        os.close(saved)

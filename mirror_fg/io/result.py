@@ -1,30 +1,44 @@
-"""result@1 (``mirror-fg/result@1``): the one validator of a result, and its read-only accessors.
+"""result@1 (``mirror-fg/result@1``): its writer, its reader and one validator, and read-only accessors.
 
-docs/formats.md (Result file) fixes the keys. :func:`validate_result` checks every key a reader uses (types,
-shapes, finiteness, rotations, index ranges) and raises :class:`~mirror_fg.io.dataset.DatasetError` with
-one line ``SOURCE: KEY.PATH: problem`` that quotes at most a few dozen characters of the file. Keys
-beyond the documented ones are kept as they are (result@1 allows extras); ``null`` means absent for
-every optional key. The accessors (:func:`transforms`, :func:`mirror_vectors`, :func:`points`,
+:func:`result_dict` makes the result@1 dictionary of a calibration; :func:`write_result` /
+:func:`result_text` write it (JSON, or YAML where the file ends in .yaml/.yml) and :func:`load_result`
+reads one back through :func:`validate_result`. docs/formats.md (Result file) fixes the keys.
+:func:`validate_result` checks every key a reader uses (types, shapes, finiteness, rotations, index
+ranges) and raises :class:`~mirror_fg.core.errors.DatasetError` with one line ``SOURCE: KEY.PATH:
+problem`` that quotes at most a few dozen characters of the file. Keys beyond the documented ones are
+kept as they are (result@1 allows extras); ``null`` means absent for every optional key. The accessors (:func:`transforms`, :func:`mirror_vectors`, :func:`points`,
 :func:`pose_covariance`) turn a validated result into numpy values and check nothing themselves.
 
 Frames and units as in docs/formats.md: ``T_cam_base = (R, t)`` with ``Cp = R @ Bp + t`` (metres),
 ``T_base_cam`` its inverse; mirror vectors in the camera frame, points in the base frame (metres);
 ``covariance_cam_base`` 6x6 in ``[dtheta (rad), dt (m)]``; 3-sigma bounds in degrees and millimetres.
+Over 500 lines for one reason: result@1 has one owner, its writer, reader, validator and accessors.
 """
 from __future__ import annotations
 
 import math
+import os
 import re
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.io.dataset import RESULT_FORMAT, _is_int, _is_number, _kind, _short, check_format
-from mirror_fg.core.transform import quaternion_xyzw_to_rotation
+from mirror_fg.core.transform import quaternion_xyzw_to_rotation, rotation_to_quaternion_xyzw
+from mirror_fg.io.output import atomic_write, is_yaml, json_text
+from mirror_fg.io.fileio import parse_json, parse_yaml, read_text
+from mirror_fg.core.values import check_format, is_int, is_number, short, type_name
+
+RESULT_FORMAT = "mirror-fg/result@1"
 
 __all__ = [
+    "RESULT_FORMAT",
+    "CalibrationLike",
+    "result_dict",
+    "write_result",
+    "result_text",
+    "load_result",
     "validate_result",
     "nearest_rotation",
     "transforms",
@@ -55,13 +69,170 @@ class _Invalid(Exception):
 
 
 # --------------------------------------------------------------------------------------------------
-# Messages
+# Writing and reading result@1
 # --------------------------------------------------------------------------------------------------
 
 
-def _quote(value: Any, limit: int = 60) -> str:
-    """One-line repr of user data bounded in work and length (no alias or recursion expansion)."""
-    return _short(value, limit)
+class _Pose(Protocol):
+    R_cam_base: np.ndarray
+    t_cam_base: np.ndarray
+
+
+class CalibrationLike(Protocol):
+    """What :func:`result_dict` reads of a calibration (:class:`mirror_fg.solver.graph.Calibration`).
+
+    ``R_cam_base``, ``t_cam_base`` (metres): ``Cp = R Bp + t``; ``covariance`` 6x6 ``[dtheta, dt]`` or
+    None; mirror vectors ``(l, m) -> v`` (camera frame, metres) and points (base frame, metres) with
+    their 3x3 covariances; ``analytic``: the analytical solution's pose or None.
+    """
+
+    R_cam_base: np.ndarray
+    t_cam_base: np.ndarray
+    covariance: np.ndarray | None
+    mirror_vectors: dict[tuple[int, int], np.ndarray]
+    mirror_covariances: dict[tuple[int, int], np.ndarray]
+    points: dict[str, np.ndarray]
+    point_covariances: dict[str, np.ndarray]
+    analytic: _Pose | None
+    iterations: int
+    initial_error: float
+    final_error: float
+    expected_final_error: float
+    converged: bool
+    residual_units: str
+    outliers: list[tuple[str, str, float]]
+
+    @property
+    def R_base_cam(self) -> np.ndarray: ...
+
+    @property
+    def t_base_cam(self) -> np.ndarray: ...
+
+    @property
+    def sigma3_rotation_deg(self) -> np.ndarray: ...
+
+    @property
+    def sigma3_position_mm(self) -> np.ndarray: ...
+
+    @property
+    def residual_norms(self) -> np.ndarray: ...
+
+
+def result_dict(calibration: CalibrationLike) -> dict:
+    """The ``mirror-fg/result@1`` dictionary of ``calibration`` (docs/formats.md)."""
+
+    def transform(R: np.ndarray, t: np.ndarray) -> dict:
+        return {"R": R.tolist(), "t": np.asarray(t).tolist(), "q_xyzw": rotation_to_quaternion_xyzw(R).tolist()}
+
+    c = calibration
+    norms = c.residual_norms
+    result = {
+        "format": RESULT_FORMAT,
+        "T_cam_base": transform(c.R_cam_base, c.t_cam_base),
+        "T_base_cam": transform(c.R_base_cam, c.t_base_cam),
+        "covariance_cam_base": None if c.covariance is None else c.covariance.tolist(),
+        "sigma3_cam_base": None
+        if c.covariance is None
+        else {"rotation_deg": c.sigma3_rotation_deg.tolist(), "position_mm": c.sigma3_position_mm.tolist()},
+        "analytic": None
+        if c.analytic is None
+        else {"T_cam_base": transform(c.analytic.R_cam_base, c.analytic.t_cam_base)},
+        "mirrors": [
+            {
+                "mirror": l,
+                "config": m,
+                "v": c.mirror_vectors[(l, m)].tolist(),
+                "sigma3_mm": _sigma3_mm(c.mirror_covariances.get((l, m))),
+            }
+            for l, m in sorted(c.mirror_vectors)
+        ],
+        "points": {
+            name: {"xyz": c.points[name].tolist(), "sigma3_mm": _sigma3_mm(c.point_covariances.get(name))}
+            for name in sorted(c.points)
+        },
+        "optimizer": {
+            "iterations": c.iterations,
+            "initial_error": c.initial_error,
+            "final_error": c.final_error,
+            "expected_final_error": c.expected_final_error,
+            "converged": c.converged,
+        },
+        "residuals": {
+            "rms_px": float(np.sqrt(np.mean(norms**2))) if len(norms) else 0.0,
+            "max_px": float(np.max(norms)) if len(norms) else 0.0,
+            "mean_px": float(np.mean(norms)) if len(norms) else 0.0,
+            "units": c.residual_units,
+            "outliers": [
+                {"image": image, "point": point, "sigmas": sigmas} for image, point, sigmas in c.outliers
+            ],
+        },
+    }
+    return result
+
+
+def _sigma3_mm(covariance: np.ndarray | None) -> list[float] | None:
+    """3-sigma bounds (mm) of a 3x3 covariance (m^2), or None."""
+    if covariance is None:
+        return None
+    return (1000.0 * 3.0 * np.sqrt(np.diag(covariance))).tolist()
+
+
+def write_result(path: str | os.PathLike[str], result: Mapping[str, Any]) -> None:
+    """Write a ``mirror-fg/result@1`` dictionary: JSON (indent 2), or YAML where ``path`` ends in .yaml/.yml.
+
+    numpy arrays and scalars become lists and plain numbers first. The write is atomic: the text goes
+    to a temporary file in the same directory that replaces ``path`` only when complete, so any
+    failure (a value that cannot be serialised, a full disk) leaves an existing file as it was and no
+    temporary file behind. Raises TypeError naming the key of a value that cannot be written.
+    """
+    target = os.fspath(path)
+    atomic_write(target, result_text(result, target))
+
+
+def result_text(result: Mapping[str, Any], path: str | os.PathLike[str]) -> str:
+    """The text of a result@1 file: YAML where ``path`` ends in .yaml/.yml, else JSON (indent 2)."""
+    plain = _plain(result, "result")
+    if is_yaml(os.fspath(path)):
+        import yaml
+
+        return yaml.safe_dump(plain, default_flow_style=None, sort_keys=False, allow_unicode=True)
+    return json_text(plain, allow_nan=True)
+
+
+def load_result(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Read a result@1 file (JSON, or YAML where the name ends in .yaml/.yml). Raises DatasetError."""
+    source = os.fspath(path)
+    text = read_text(source)
+    data = parse_yaml(text, source) if is_yaml(source) else parse_json(text, source)
+    return validate_result(data, source)
+
+
+def _plain(value: Any, where: str) -> Any:
+    """``value`` with numpy arrays/scalars and tuples turned into lists, floats, ints, bools."""
+    if isinstance(value, np.ndarray):
+        if value.ndim == 0:
+            return _plain(value[()], where)
+        return [_plain(v, f"{where}[{i}]") for i, v in enumerate(value)]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, Mapping):
+        out: dict[Any, Any] = {}
+        for key, v in value.items():
+            k = key.item() if isinstance(key, np.generic) else key
+            if not isinstance(k, (str, int)) or isinstance(k, bool):
+                raise TypeError(f"{where}: cannot write a key of type {type(key).__name__}: {short(key)}")
+            out[k] = _plain(v, f"{where}[{k!r}]")
+        return out
+    if isinstance(value, (list, tuple)):
+        return [_plain(v, f"{where}[{i}]") for i, v in enumerate(value)]
+    raise TypeError(f"{where}: cannot write a value of type {type(value).__name__}")
+
+
+# --------------------------------------------------------------------------------------------------
+# Messages
+# --------------------------------------------------------------------------------------------------
 
 
 def _child(path: str, key: Any) -> str:
@@ -70,7 +241,7 @@ def _child(path: str, key: Any) -> str:
         return f"{path}[{key}]"
     if isinstance(key, str) and _IDENTIFIER.match(key):
         return f"{path}.{key}" if path else key
-    return f"{path}[{_quote(key, 40)}]"
+    return f"{path}[{short(key, 40)}]"
 
 
 # --------------------------------------------------------------------------------------------------
@@ -80,7 +251,7 @@ def _child(path: str, key: Any) -> str:
 
 def _mapping(value: Any, path: str) -> Mapping[Any, Any]:
     if not isinstance(value, Mapping):
-        raise _Invalid(path, f"expected an object, got {_kind(value)} {_quote(value)}")
+        raise _Invalid(path, f"expected an object, got {type_name(value)} {short(value)}")
     return value
 
 
@@ -90,7 +261,7 @@ def _items(value: Any, n: int | None, what: str, path: str) -> list[Any]:
         value = value.tolist()
     if not isinstance(value, (list, tuple)):
         expected = f"{n} {what}" if n is not None else f"a list of {what}"
-        raise _Invalid(path, f"expected {expected}, got {_kind(value)} {_quote(value)}")
+        raise _Invalid(path, f"expected {expected}, got {type_name(value)} {short(value)}")
     if n is not None and len(value) != n:
         raise _Invalid(path, f"expected {n} {what}, got {len(value)}")
     return list(value)
@@ -100,18 +271,18 @@ def _number(value: Any, path: str, *, nan_ok: bool = False, minimum: float | Non
     """A finite real number (NaN too where ``nan_ok``: a statistic that could not be computed)."""
     if isinstance(value, np.generic):
         value = value.item()
-    if not _is_number(value):
-        raise _Invalid(path, f"expected a number, got {_kind(value)} {_quote(value)}")
+    if not is_number(value):
+        raise _Invalid(path, f"expected a number, got {type_name(value)} {short(value)}")
     try:
         x = float(value)
     except OverflowError:
-        raise _Invalid(path, f"number out of range: {_quote(value)}") from None
+        raise _Invalid(path, f"number out of range: {short(value)}") from None
     if nan_ok and math.isnan(x):
         return x
     if not math.isfinite(x):
-        raise _Invalid(path, f"expected a finite number, got {_quote(value)}")
+        raise _Invalid(path, f"expected a finite number, got {short(value)}")
     if minimum is not None and x < minimum:
-        raise _Invalid(path, f"expected a number >= {minimum:g}, got {_quote(value)}")
+        raise _Invalid(path, f"expected a number >= {minimum:g}, got {short(value)}")
     return x
 
 
@@ -133,16 +304,16 @@ def _matrix(value: Any, n: int, path: str) -> np.ndarray:
 def _integer(value: Any, path: str, minimum: int) -> int:
     if isinstance(value, np.generic):
         value = value.item()
-    if not _is_int(value):
-        raise _Invalid(path, f"expected an integer, got {_kind(value)} {_quote(value)}")
+    if not is_int(value):
+        raise _Invalid(path, f"expected an integer, got {type_name(value)} {short(value)}")
     if not minimum <= value <= MAX_INDEX:
-        raise _Invalid(path, f"expected an integer from {minimum} to {MAX_INDEX}, got {_quote(value)}")
+        raise _Invalid(path, f"expected an integer from {minimum} to {MAX_INDEX}, got {short(value)}")
     return int(value)
 
 
 def _text(value: Any, path: str) -> str:
     if not isinstance(value, str) or not value:
-        raise _Invalid(path, f"expected a non-empty string, got {_kind(value)} {_quote(value)}")
+        raise _Invalid(path, f"expected a non-empty string, got {type_name(value)} {short(value)}")
     return value
 
 
@@ -150,7 +321,7 @@ def _boolean(value: Any, path: str) -> bool:
     if isinstance(value, np.bool_):
         value = bool(value)
     if not isinstance(value, bool):
-        raise _Invalid(path, f"expected true or false, got {_kind(value)} {_quote(value)}")
+        raise _Invalid(path, f"expected true or false, got {type_name(value)} {short(value)}")
     return value
 
 
@@ -224,7 +395,7 @@ def _covariance(value: Any, path: str) -> list[list[float]]:
     if np.max(np.abs(P - P.T)) > SYMMETRY_TOL * max(float(np.max(np.abs(P))), 1e-300):
         raise _Invalid(path, "not symmetric")
     if np.any(np.diag(P) < 0.0):
-        raise _Invalid(path, f"negative variance on the diagonal: {_quote(np.diag(P).tolist())}")
+        raise _Invalid(path, f"negative variance on the diagonal: {short(np.diag(P).tolist())}")
     return P.tolist()
 
 

@@ -14,7 +14,6 @@ back to the same double) so a pasted transform is the computed one to the last b
 """
 from __future__ import annotations
 
-import math
 import os
 import re
 from collections.abc import Mapping
@@ -25,17 +24,15 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 import yaml
 
-from mirror_fg.io.dataset import atomic_write
+from mirror_fg.core import transform
+from mirror_fg.core.transform import Transform, _clean, rotation_to_quaternion_xyzw  # _clean: no -0.0 in YAML/URDF
+from mirror_fg.io.output import atomic_write
 from mirror_fg.io.result import nearest_rotation, pose_covariance, transforms, validate_result
-from mirror_fg.core.transform import quaternion_xyzw_to_rotation, rotation_to_quaternion_xyzw
 
 __all__ = [
     "ros_outputs",
     "write_ros_outputs",
     "rotation_to_rpy",
-    "rpy_to_rotation",
-    "rotation_to_quaternion_xyzw",
-    "quaternion_xyzw_to_rotation",
     "urdf_joint",
     "static_transform_publisher_args",
     "sigma3_base_cam",
@@ -47,8 +44,6 @@ __all__ = [
 
 DEFAULT_BASE_FRAME = "base_link"
 DEFAULT_CAMERA_FRAME = "camera_optical_frame"
-#: Below this |cos(pitch)| the rotation is treated as gimbal-locked: yaw is set to 0.
-_GIMBAL_LOCK_COS = 1e-12
 #: ROS / tf2 frame ids: no whitespace, quotes or XML-special characters (they are pasted into XML and shells).
 _FRAME_ID = re.compile(r"^[A-Za-z0-9_./:-]+$")
 _CAMERA_CONVENTION = "OpenCV / ROS optical (REP 103): x right, y down, z forward"
@@ -73,38 +68,10 @@ def _rotation(matrix: Any, what: str) -> np.ndarray:
     return rotation
 
 
-def rpy_to_rotation(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """URDF fixed-axis rotation ``Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (radians)."""
-    cr, sr = math.cos(roll), math.sin(roll)
-    cp, sp = math.cos(pitch), math.sin(pitch)
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    Rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
-    Ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
-    Rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
-    return Rz @ Ry @ Rx
-
-
 def rotation_to_rpy(R: np.ndarray) -> tuple[float, float, float]:
-    """URDF ``(roll, pitch, yaw)`` in radians of a rotation, ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
-
-    pitch in [-pi/2, pi/2], roll and yaw in (-pi, pi]. Near gimbal lock (pitch = +/-pi/2) yaw is taken
-    from the matrix where it is still defined (0 at exact lock) and roll is solved from what remains,
-    ``Rx(roll) = Ry(pitch)^T Rz(yaw)^T R``, so that an imprecise yaw is absorbed by roll and
-    :func:`rpy_to_rotation` gives ``R`` back to rounding error at any pitch.
-    """
-    R = _rotation(R, "rotation_to_rpy")
-    cos_pitch = math.hypot(R[0, 0], R[1, 0])
-    pitch = math.atan2(-R[2, 0], cos_pitch)
-    yaw = math.atan2(R[1, 0], R[0, 0]) if cos_pitch > _GIMBAL_LOCK_COS else 0.0
-    X = rpy_to_rotation(0.0, pitch, yaw).T @ R  # = Rx(roll) up to rounding
-    roll = math.atan2(X[2, 1] - X[1, 2], X[1, 1] + X[2, 2])
-    return _clean(roll), _clean(pitch), _clean(yaw)
-
-
-def _clean(x: float) -> float:
-    """``x`` as a plain float without a negative zero (``-0.0`` reads oddly in a URDF)."""
-    x = float(x)
-    return 0.0 if x == 0.0 else x
+    """URDF ``(roll, pitch, yaw)`` (radians) of ``R`` checked as a rotation first (ValueError if it is not
+    one): :func:`mirror_fg.core.transform.rotation_to_rpy` for matrices that come from users."""
+    return transform.rotation_to_rpy(_rotation(R, "rotation_to_rpy"))
 
 
 def _num(x: float) -> str:
@@ -122,21 +89,16 @@ def sigma3_base_cam(result: Mapping[str, Any], source: str = "result") -> dict[s
 
     ``rotation_deg``: about the base axes (``R_base_cam_true = Exp(dphi) R_base_cam``); ``position_mm``:
     the camera centre's position in the base frame along the base axes. None without a covariance.
-    First order: with ``dtheta, dt`` of docs/formats.md, ``dphi = -R^T dtheta`` and
-    ``dt' = -R^T dt - R^T [t]x dtheta``. ``result`` is validated first (DatasetError starting with
-    ``source``).
+    First order (:meth:`Transform.inverse_covariance`). ``result`` is validated first (DatasetError
+    starting with ``source``).
     """
     result = validate_result(result, source)
     P = pose_covariance(result)
     if P is None:
         return None
     (R, t), _ = transforms(result)
-    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-    J = np.zeros((6, 6))
-    J[:3, :3] = -R.T
-    J[3:, :3] = -R.T @ tx
-    J[3:, 3:] = -R.T
-    sd = 3.0 * np.sqrt(np.clip(np.diag(J @ P @ J.T), 0.0, None))
+    P_base_cam = Transform(R, t).inverse_covariance(P)
+    sd = 3.0 * np.sqrt(np.clip(np.diag(P_base_cam), 0.0, None))
     return {
         "rotation_deg": [float(x) for x in np.rad2deg(sd[:3])],
         "position_mm": [float(x) for x in 1e3 * sd[3:]],
@@ -209,8 +171,7 @@ def static_transform_publisher_args(
 
 def _transform_entry(R: np.ndarray, t: np.ndarray, q_hint: Any, description: str) -> dict[str, Any]:
     """Matrix, translation, quaternion (sign of ``q_hint`` when given) and URDF rpy of one transform."""
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
+    T = Transform(R, t).matrix()
     q = rotation_to_quaternion_xyzw(R)
     if q_hint is not None and float(np.asarray(q_hint, dtype=float) @ q) < 0.0:
         q = -q  # same rotation; keep the sign the result file uses

@@ -22,10 +22,10 @@ import gtsam
 import numpy as np
 
 from mirror_fg.core.errors import SolveError
-from mirror_fg.io.dataset import Dataset
 from mirror_fg.core.geometry import measurement_jacobians
+from mirror_fg.core.transform import covariance_from_pose3
+from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.graph import InitialEstimate as Unknowns  # any values of every unknown (truth, analytic, MLE)
-from mirror_fg.core.transform import spec_covariance_from_pose3
 
 __all__ = [
     "UnknownIndex",
@@ -145,7 +145,7 @@ def linearize(
     """Fisher information ``J^T Sigma^-1 J`` of every observation of ``dataset`` at ``values``.
 
     sigma_normalized: noise standard deviation per image coordinate in normalized units (scalar or
-    (x, y)); default the dataset's (``pixel_sigma / f``), the same noise model as ``graph.calibrate``.
+    (x, y)); default the dataset's (``pixel_sigma / f``), the same noise model as ``mirror_fg.calibrate``.
     with_score: also form ``J^T Sigma^-1 (z - h(values))`` from the dataset's observations.
     """
     sigma = _sigma(dataset, sigma_normalized)
@@ -249,14 +249,14 @@ def cramer_rao_bound(
     """Cramér-Rao bound of every unknown of ``dataset``, the Fisher information evaluated at ``truth``.
 
     sigma_normalized: measurement noise in normalized units (default the dataset's, as in
-    ``graph.calibrate``). with_score: also keep the first-order estimator's step (needs the dataset's
+    ``mirror_fg.calibrate``). with_score: also keep the first-order estimator's step (needs the dataset's
     observations; see :meth:`CramerRaoBound.first_order_errors`). Raises ``SolveError`` naming an
     unknown the measurements leave unconstrained.
     """
     lin = linearize(dataset, truth, sigma_normalized, with_score=with_score)
     covariance = _invert(lin.information, lin.index, dataset.source)
     R = np.asarray(truth.R_cam_base, dtype=float)
-    pose = spec_covariance_from_pose3(R, covariance[:POSE_DIM, :POSE_DIM])
+    pose = covariance_from_pose3(R, covariance[:POSE_DIM, :POSE_DIM])
     mirrors = {c: covariance[s : s + 3, s : s + 3].copy() for c, s in lin.index.mirrors.items()}
     points = {p: covariance[s : s + 3, s : s + 3].copy() for p, s in lin.index.points.items()}
     step = covariance @ lin.score if with_score else None

@@ -20,11 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
-from mirror_fg.tools.crb import CramerRaoBound, WeakestDirection, cramer_rao_bound, weakest_direction
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.io.dataset import Dataset, Image
-from mirror_fg.tools.simulate import default_camera, measure, simulate_base_case, visible
 from mirror_fg.core.geometry import apply_transform
+from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.tools.crb import CramerRaoBound, WeakestDirection, cramer_rao_bound, weakest_direction
+from mirror_fg.tools.simulate import default_camera, measure, simulate_base_case, visible
 
 __all__ = ["PlanSetup", "PlanResult", "plan", "format_plan", "load_fiducials"]
 
@@ -109,8 +109,7 @@ def _with_fiducials(dataset: Dataset, truth, fiducials: Mapping[str, Sequence[fl
     camera_points = apply_transform(truth.R_cam_base, truth.t_cam_base, np.array(list(layout.values())))
     images, in_view = [], 0
     for image in dataset.images:
-        vectors = [truth.mirror_vectors[(l + 1, m)] for l, m in enumerate(image.mirror_configs)]
-        in_view += visible(camera, camera_points, vectors, margin_px=0.0)
+        in_view += visible(camera, camera_points, truth.vectors(image.mirror_configs), margin_px=0.0)
         observations = measure(truth, camera, layout, image.mirror_configs)
         images.append(Image(id=image.id, mirror_configs=image.mirror_configs, observations=observations))
     scene = Dataset(num_mirrors=dataset.num_mirrors, camera=camera, pixel_sigma=dataset.pixel_sigma,

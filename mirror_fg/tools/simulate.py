@@ -24,8 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mirror_fg.io.dataset import Camera, Dataset, Image
-from mirror_fg.core.geometry import apply_transform, nested_transform, project, so3_exp
+from mirror_fg.core.camera import Camera
+from mirror_fg.core.geometry import apply_transform, nested_transform, project, reflect, so3_exp
+from mirror_fg.io.dataset import Dataset, Image
 
 __all__ = [
     "GroundTruth",
@@ -76,10 +77,13 @@ class GroundTruth:
     mirror_vectors: dict[tuple[int, int], np.ndarray]
     points: dict[str, np.ndarray] = field(default_factory=dict)
 
+    def vectors(self, mirror_configs: Sequence[int]) -> list[np.ndarray]:
+        """The mirror vectors of an image with these mirror configurations, mirror 1 first."""
+        return [self.mirror_vectors[(l + 1, m)] for l, m in enumerate(mirror_configs)]
+
     def transform(self, mirror_configs: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
         """``(A_Nv, b_Nv)`` of an image with these mirror configurations (eqs. 5-8)."""
-        vectors = [self.mirror_vectors[(l + 1, m)] for l, m in enumerate(mirror_configs)]
-        return nested_transform(self.R_cam_base, self.t_cam_base, vectors)
+        return nested_transform(self.R_cam_base, self.t_cam_base, self.vectors(mirror_configs))
 
     def to_dict(self) -> dict:
         """JSON-able dictionary (``mirror-fg/truth@1``)."""
@@ -207,7 +211,7 @@ def visible(
         vv = float(v @ v)
         if np.any(x @ v >= vv):
             return False
-        x = x - np.outer(2.0 * (x @ v - vv) / vv, v)  # eq. (3): M x + 2 v
+        x = reflect(x, v)  # eq. (3)
     if np.any(x[:, 2] <= 1e-6):
         return False
     pixels = _to_pixels(camera, project(x))
@@ -466,7 +470,7 @@ def write_simulation(path: str | Path, dataset: Dataset, truth: GroundTruth) -> 
     Returns the path of the ground-truth file.
     """
     from mirror_fg.io.dataset import dataset_text
-    from mirror_fg.io.fileio import OutputPlan
+    from mirror_fg.io.output import OutputPlan
 
     path = Path(path)
     out = truth_path(path)

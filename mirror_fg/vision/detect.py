@@ -1,22 +1,11 @@
-"""Detection: photographs or a video of a capture@1 -> a dataset@1 dictionary, with OpenCV's detectors.
+"""Detection: photographs or a video of a capture@1 -> a validated dataset, with OpenCV's detectors.
 
-Pixels follow OpenCV's convention (the centre of the top-left pixel is (0, 0)). A target seen through
-an odd number of mirrors appears mirror-imaged; detectors that need handedness (ArUco/AprilTag
-decoding, chessboard ordering) then run on ``cv2.flip(image, 1)`` and every x is mapped back with
-``x = width - 1 - x_flipped``.
-
-Chessboard: ``cv2.findChessboardCorners`` (adaptive threshold) refined by ``cv2.cornerSubPix`` (half
-window 5 px, smaller on small squares), falling back to ``cv2.findChessboardCornersSB``. The order is
-then made the one of capture@1 in every image: the rows run left to right with the columns top to
-bottom in the un-mirrored view (handedness), and the square inside C00 is the black one (the half
-turn, from the colours of all inner squares); an image whose square colours do not tell is refused.
-Tags: ``cv2.aruco.ArucoDetector`` finds and decodes the markers; by default (``subpix``) each corner
-is then refined by ``cv2.cornerSubPix`` on the linearized image (inverse sRGB, float) with a half
-window of half a tag cell (2 to 5 px): on gamma-encoded images OpenCV's own ``CORNER_REFINE_SUBPIX``
-sits ~0.5 px inside the black square on each axis (measured on the rendered test scene: 0.71 px median
-off; linearized: 0.21 px). Video: every frame is tracked (:mod:`mirror_fg.vision.tracking`: KLT, then
-refinement onto the feature) and re-detected; fiducials that detection misses are carried as corners.
-``track:`` points are followed through a video or through ``images`` in list order (a photo sequence),
+Pixels follow OpenCV's convention (the centre of the top-left pixel is (0, 0)). The detectors on one
+image (chessboard, tags; mirror-imaged views) are :mod:`mirror_fg.vision.detectors`'. Images are
+decoded only when their header says they fit :data:`~mirror_fg.io.fileio.MAX_IMAGE_PIXELS`; what the
+native decoders complain about becomes the image's reason. Video: every frame is tracked
+(:mod:`mirror_fg.vision.tracking`: KLT, then refinement onto the feature) and re-detected; fiducials
+that detection misses are carried as corners. ``track:`` points are followed through a video or through ``images`` in list order (a photo sequence),
 each refined by its ``feature`` kind; a cut track is named, with the reason, in the next kept image's
 report.
 
@@ -30,68 +19,38 @@ from __future__ import annotations
 import os
 import sys
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
 
-from mirror_fg.io.capture import (
-    EACH,
-    MAX_IMAGE_PIXELS,
-    Capture,
-    ChessboardTarget,
-    ImageEntry,
-    PointsTarget,
-    TagTarget,
-    _name,
-    native_stderr,
-    open_video,
-)
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.io.dataset import DATASET_FORMAT
-from mirror_fg.vision.tracking import SRGB_TO_LINEAR, KLTParams, PointTracker, Track
+from mirror_fg.io.capture import EACH, Capture, ImageEntry, open_video
+from mirror_fg.io.dataset import DATASET_FORMAT, Dataset, dataset_from_dict
+from mirror_fg.io.fileio import MAX_IMAGE_PIXELS, native_stderr
+from mirror_fg.io.target import ChessboardTarget, PointsTarget, TagTarget
+from mirror_fg.core.values import short_path
+from mirror_fg.vision.detectors import (
+    FOUND,
+    NOT_FOUND,
+    REFUSED,
+    Detection,
+    aruco_detector,
+    detect_chessboard,
+    detect_tags,
+)
+from mirror_fg.vision.tracking import KLTParams, PointTracker, Track
 
 __all__ = [
     "ImageReport",
-    "Detection",
-    "detect_chessboard",
-    "detect_tags",
     "detect_capture",
     "format_reports",
-    "FOUND",
-    "NOT_FOUND",
-    "REFUSED",
-    "MAX_IMAGE_PIXELS",
 ]
 
-FOUND, NOT_FOUND, REFUSED = "found", "not found", "refused"
-
-#: cornerSubPix half window (pixels) for chessboard corners, and its cap as a fraction of the
-#: smallest corner spacing (the window must stay inside the four squares around a corner).
-SUBPIX_HALF_WINDOW = 5
-SUBPIX_MAX_FRACTION = 0.25
-#: Square colours decide the board's half turn only when at least this fraction of the inner squares
-#: is darker (or lighter) than its neighbours as its parity predicts...
-COLOUR_AGREEMENT = 0.9
-#: ... and squares differ from their neighbours by this many grey levels (of 255) on average.
-COLOUR_CONTRAST = 10.0
-#: A chessboard detection is refused as false when its undistorted corners miss the best plane
-#: homography by more than this (RMS pixels, and fraction of the corner spacing, whichever is larger).
-GRID_MISFIT_MIN_PX, GRID_MISFIT_FRACTION = 2.0, 0.1
-#: Tag corner refinement: half window as a fraction of a tag cell, and its bounds (pixels).
-TAG_WINDOW_FRACTION = 0.5
-TAG_WINDOW_MIN, TAG_WINDOW_MAX = 2, 5
 #: An image whose format Pillow cannot read from its header (so its size is unknown before decoding)
 #: is decoded by OpenCV only up to this file size (bytes), which bounds what it can expand to.
 MAX_UNSIZED_IMAGE_BYTES = 4 << 20
-
-_REFINEMENT = {
-    "subpix": "CORNER_REFINE_SUBPIX",
-    "contour": "CORNER_REFINE_CONTOUR",
-    "apriltag": "CORNER_REFINE_APRILTAG",
-    "none": "CORNER_REFINE_NONE",
-}
 
 
 @dataclass
@@ -114,15 +73,6 @@ class ImageReport:
         return f"{self.id}: {self.status}: {self.reason}"
 
 
-@dataclass
-class Detection:
-    """Observations (name -> pixel (2,)) in one image, or None with the status and reason."""
-
-    points: dict[str, np.ndarray] = field(default_factory=dict)
-    status: str = FOUND
-    reason: str = ""
-
-
 def format_reports(reports: list[ImageReport]) -> str:
     """Per-image lines and a closing count, for printing."""
     counts = {s: sum(r.status == s for r in reports) for s in (FOUND, NOT_FOUND, REFUSED)}
@@ -134,199 +84,6 @@ def format_reports(reports: list[ImageReport]) -> str:
     return "\n".join(lines)
 
 
-# --------------------------------------------------------------------------------------------------
-# Detectors on one grayscale image
-# --------------------------------------------------------------------------------------------------
-
-
-def _unflip(points: np.ndarray, width: int) -> np.ndarray:
-    out = np.array(points, dtype=np.float64, copy=True)
-    out[..., 0] = width - 1 - out[..., 0]
-    return out
-
-
-def detect_chessboard(
-    gray: np.ndarray, board: ChessboardTarget, mirrored: bool, camera: dict[str, Any] | None = None
-) -> Detection:
-    """Inner corners of ``board`` in capture@1 order (C00 first), or a not-found/refused Detection.
-
-    ``mirrored``: the board is seen through an odd number of mirrors (detect on the flipped image).
-    ``camera`` (dataset@1 camera dict, optional): when given, a grid whose undistorted corners do not
-    fit a plane's homography is refused (a false detection).
-    """
-    img = cv2.flip(gray, 1) if mirrored else gray
-    corners = _find_chessboard(img, board.cols, board.rows)
-    if corners is None:
-        return Detection(status=NOT_FOUND, reason=f"chessboard {board.cols} x {board.rows} not found")
-    grid = corners.reshape(board.rows, board.cols, 2)
-    # Handedness: in the un-mirrored view the columns run right and the rows down (x cross y > 0).
-    a, b = grid[0, -1] - grid[0, 0], grid[-1, 0] - grid[0, 0]
-    if a[0] * b[1] - a[1] * b[0] < 0:
-        grid = grid[:, ::-1]
-    first_dark, why = _first_square_dark(img, grid)
-    if first_dark is None:
-        return Detection(status=REFUSED, reason=f"cannot tell the board's orientation: {why}")
-    if not first_dark:
-        grid = grid[::-1, ::-1]  # the half turn: C00 is at the black corner square
-    pts = grid.reshape(-1, 2)
-    if mirrored:
-        pts = _unflip(pts, gray.shape[1])
-    if camera is not None and camera.get("fx") is not None:
-        misfit = _grid_misfit_px(pts, board, camera)
-        spacing = _min_spacing(grid)
-        if misfit > max(GRID_MISFIT_MIN_PX, GRID_MISFIT_FRACTION * spacing):
-            return Detection(status=REFUSED, reason=f"the corners do not lie on a plane grid (homography misfit {misfit:.1f} px)")
-    names = [board.name(c, r) for r in range(board.rows) for c in range(board.cols)]
-    return Detection(points={n: p.astype(np.float64) for n, p in zip(names, pts)})
-
-
-def _min_spacing(grid: np.ndarray) -> float:
-    """Smallest distance between neighbouring corners of a (rows, cols, 2) grid (pixels)."""
-    return min(
-        float(np.linalg.norm(np.diff(grid, axis=1), axis=2).min()),
-        float(np.linalg.norm(np.diff(grid, axis=0), axis=2).min()),
-    )
-
-
-def _grid_misfit_px(pixels: np.ndarray, board: ChessboardTarget, camera: dict[str, Any]) -> float:
-    """RMS distance (pixels, at the focal length) of the undistorted corners from the best homography."""
-    K = np.array([[camera["fx"], 0.0, camera["cx"]], [0.0, camera["fy"], camera["cy"]], [0.0, 0.0, 1.0]])
-    dist = np.asarray(camera.get("dist", [0.0] * 5), dtype=np.float64)
-    normalized = cv2.undistortPoints(pixels.reshape(-1, 1, 2), K, dist).reshape(-1, 2)
-    model = np.array([[c, r] for r in range(board.rows) for c in range(board.cols)], dtype=np.float64)
-    H, _ = cv2.findHomography(model, normalized, 0)
-    if H is None:
-        return float("inf")
-    fitted = cv2.perspectiveTransform(model[None], H)[0]
-    return float(np.sqrt(np.mean(np.sum((fitted - normalized) ** 2, axis=1)))) * float(camera["fx"])
-
-
-def _find_chessboard(img: np.ndarray, cols: int, rows: int) -> np.ndarray | None:
-    """(rows*cols, 2) corners in OpenCV's order (rows of ``cols``), or None."""
-    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
-    ok, corners = cv2.findChessboardCorners(img, (cols, rows), flags=flags)
-    if ok:
-        spacing = _min_spacing(corners.reshape(rows, cols, 2))
-        half = int(max(2, min(SUBPIX_HALF_WINDOW, np.floor(SUBPIX_MAX_FRACTION * spacing))))
-        criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
-        corners = cv2.cornerSubPix(img, corners, (half, half), (-1, -1), criteria)
-        return corners.reshape(-1, 2).astype(np.float64)
-    sb_flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
-    ok, corners = cv2.findChessboardCornersSB(img, (cols, rows), flags=sb_flags)
-    if ok:
-        return corners.reshape(-1, 2).astype(np.float64)
-    return None
-
-
-def _first_square_dark(img: np.ndarray, grid: np.ndarray) -> tuple[bool | None, str]:
-    """Is the inner square between corners (0, 0) and (1, 1) dark? Decided from all inner squares.
-
-    Samples each square's middle through the homography of the corner grid and checks that the
-    squares alternate as a chessboard must; returns ``(None, reason)`` when they do not.
-    """
-    rows, cols = grid.shape[:2]
-    gx, gy = np.meshgrid(np.arange(cols, dtype=np.float64), np.arange(rows, dtype=np.float64))
-    H, _ = cv2.findHomography(np.stack([gx.ravel(), gy.ravel()], 1), grid.reshape(-1, 2), 0)
-    if H is None:
-        return None, "the corners do not form a plane grid"
-    offsets = np.linspace(-0.2, 0.2, 5)
-    ox, oy = np.meshgrid(offsets, offsets)
-    ci, cj = np.meshgrid(np.arange(cols - 1) + 0.5, np.arange(rows - 1) + 0.5)  # square middles, row-major
-    sx = (ci.ravel()[:, None] + ox.ravel()[None, :]).astype(np.float64)
-    sy = (cj.ravel()[:, None] + oy.ravel()[None, :]).astype(np.float64)
-    pts = cv2.perspectiveTransform(np.stack([sx.ravel(), sy.ravel()], 1)[None], H)[0]
-    samples = cv2.remap(
-        img.astype(np.float32),
-        pts[:, 0].astype(np.float32).reshape(1, -1),
-        pts[:, 1].astype(np.float32).reshape(1, -1),
-        cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REPLICATE,
-    )
-    means = samples.reshape(-1, offsets.size**2).mean(axis=1).reshape(rows - 1, cols - 1)
-    # Each square against the mean of its 4-neighbours (robust to light falling off across the board).
-    padded = np.pad(means, 1, mode="constant", constant_values=np.nan)
-    neighbours = np.stack([padded[:-2, 1:-1], padded[2:, 1:-1], padded[1:-1, :-2], padded[1:-1, 2:]])
-    contrast = means - np.nanmean(neighbours, axis=0)  # < 0: darker than its neighbours
-    parity = (np.add.outer(np.arange(rows - 1), np.arange(cols - 1)) % 2).astype(bool)
-    signed = np.where(parity, -contrast, contrast)  # all < 0 when the squares of parity 0 are dark
-    level = float(np.mean(np.abs(contrast)))
-    if level < COLOUR_CONTRAST:
-        return None, f"dark and light squares differ by only {level:.1f} grey levels"
-    first_dark = float(np.mean(signed)) < 0
-    agreement = float(np.mean((signed < 0) == first_dark))
-    if agreement < COLOUR_AGREEMENT:
-        return None, f"only {100 * agreement:.0f}% of the squares alternate in colour as a chessboard's do"
-    return first_dark, ""
-
-
-def _aruco_detector(target: TagTarget) -> Any:
-    params = cv2.aruco.DetectorParameters()
-    # "subpix" refines after detection (on the linearized image), so the detector itself does not.
-    method = "none" if target.corner_refinement == "subpix" else target.corner_refinement
-    params.cornerRefinementMethod = int(getattr(cv2.aruco, _REFINEMENT[method]))
-    dictionary = cv2.aruco.getPredefinedDictionary(target.dictionary_id)
-    return cv2.aruco.ArucoDetector(dictionary, params)
-
-
-def detect_tags(gray: np.ndarray, target: TagTarget, mirrored: bool, detector: Any = None) -> Detection:
-    """Corners ``T{id}_{k}`` of the listed tags found in ``gray``, or a not-found Detection.
-
-    A listed id seen more than once is left out (which copy is the target is unknown).
-    """
-    detector = detector if detector is not None else _aruco_detector(target)
-    img = cv2.flip(gray, 1) if mirrored else gray
-    corners, ids, _ = detector.detectMarkers(img)
-    if ids is None or len(ids) == 0:
-        return Detection(status=NOT_FOUND, reason=f"no {target.dictionary} tag found")
-    found: dict[int, list[np.ndarray]] = {}
-    for tag_id, c in zip(ids.ravel().tolist(), corners):
-        found.setdefault(int(tag_id), []).append(np.asarray(c, dtype=np.float64).reshape(4, 2))
-    listed = {i: cs for i, cs in found.items() if i in target.tags}
-    twice = sorted(i for i, cs in listed.items() if len(cs) > 1)
-    points: dict[str, np.ndarray] = {}
-    refine_on = None
-    if target.corner_refinement == "subpix" and any(i not in twice for i in listed):
-        refine_on = SRGB_TO_LINEAR[img] if target.image_gamma == "srgb" else img.astype(np.float32)
-    for tag_id in sorted(listed):
-        if tag_id in twice:
-            continue
-        c = listed[tag_id][0]
-        if refine_on is not None:
-            c = _refine_tag_corners(refine_on, c, target)
-        if mirrored:
-            c = _unflip(c, gray.shape[1])
-        for k in range(4):
-            points[TagTarget.corner_name(tag_id, k)] = c[k]
-    notes = []
-    if twice:
-        notes.append(f"tag{'s' if len(twice) > 1 else ''} {_ids(twice)} seen more than once, left out")
-    if not points:
-        unlisted = sorted(set(found) - set(target.tags))
-        if unlisted and not twice:
-            reason = f"only tags not in target.tags seen ({_ids(unlisted)}; listed: {_ids(sorted(target.tags))})"
-        else:
-            reason = "; ".join(notes) or "no listed tag found"
-        return Detection(status=NOT_FOUND, reason=reason)
-    return Detection(points=points, reason="; ".join(notes))
-
-
-def _refine_tag_corners(image: np.ndarray, corners: np.ndarray, target: TagTarget) -> np.ndarray:
-    """cv2.cornerSubPix on the four corners (4, 2) of one tag, half window ~half a tag cell."""
-    import math
-
-    side = float(np.mean(np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1)))
-    bits = cv2.aruco.getPredefinedDictionary(target.dictionary_id).markerSize + 2  # data bits + black border
-    half = int(min(TAG_WINDOW_MAX, max(TAG_WINDOW_MIN, math.floor(TAG_WINDOW_FRACTION * side / bits))))
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
-    refined = cv2.cornerSubPix(image, corners.reshape(-1, 1, 2).astype(np.float32), (half, half), (-1, -1), criteria)
-    return refined.reshape(4, 2).astype(np.float64)
-
-
-def _ids(ids: list[int], limit: int = 8) -> str:
-    text = ", ".join(str(i) for i in ids[:limit])
-    return text + (", ..." if len(ids) > limit else "")
-
-
 class _Detector:
     """The capture's detector bound to its target and mirror parity."""
 
@@ -334,7 +91,7 @@ class _Detector:
         self.capture = capture
         self.camera = camera
         self.target = capture.target
-        self.aruco = _aruco_detector(self.target) if isinstance(self.target, TagTarget) else None
+        self.aruco = aruco_detector(self.target) if isinstance(self.target, TagTarget) else None
 
     def __call__(self, gray: np.ndarray) -> Detection:
         if isinstance(self.target, ChessboardTarget):
@@ -360,16 +117,17 @@ class _Output:
 
 def detect_capture(
     capture: Capture, progress: bool = True, tracks: dict[str, Track] | None = None
-) -> tuple[dict[str, Any], list[ImageReport]]:
+) -> tuple[Dataset, list[ImageReport]]:
     """Detect the target in every image (or video frame) of ``capture``.
 
-    Returns the dataset@1 dictionary (camera as a pixel model, fiducials in the base frame, images with
-    ids = file stems or ``stem:frame``, ``each`` placements expanded into fresh integers) and one
+    Returns the validated :class:`~mirror_fg.io.dataset.Dataset` (pixel observations with the capture's
+    camera, fiducials in the base frame, images with ids = file stems or ``stem:frame``, ``each``
+    placements expanded into fresh integers; ``source`` is ``capture.source``) and one
     :class:`ImageReport` per image/frame in capture order. ``progress`` shows a tqdm bar on stderr when
     it is a terminal. An image that cannot be decoded, or is above MAX_IMAGE_PIXELS, is refused with the
     reason. ``tracks`` (optional, filled in): every ``track:`` point's :class:`~mirror_fg.vision.tracking.Track`
     (kind, history of KLT and refined pixels with residuals; ``.sigma()``). Raises DatasetError when no
-    image is kept, or the video cannot be read.
+    image is kept, the video cannot be read, or the dataset is refused (as ``dataset_from_dict`` would).
     """
     camera = dict(capture.camera)
     outputs: list[_Output] = []
@@ -391,7 +149,7 @@ def detect_capture(
         raise DatasetError(f"{capture.source}: camera: no image size (give width and height)")
 
     fiducials = capture.fiducials()
-    return {
+    data = {
         "format": DATASET_FORMAT,
         "num_mirrors": capture.num_mirrors,
         "camera": camera,
@@ -405,7 +163,8 @@ def detect_capture(
             }
             for out, configs in zip(outputs, _expand_each(capture, outputs))
         ],
-    }, reports
+    }
+    return dataset_from_dict(data, source=capture.source), reports
 
 
 def _expand_each(capture: Capture, outputs: list[_Output]) -> list[list[int]]:
@@ -572,7 +331,7 @@ def _detect_video(
     fiducial_names = set(capture.target.target_points())
     starts = _track_starts(capture)
     cuts: list[str] = []
-    where = f"{capture.source}: video ({_name(os.path.basename(video.file))})"
+    where = f"{capture.source}: video ({short_path(os.path.basename(video.file))})"
     vc = open_video(video.file, where)
     total = sum(s.last - s.first + 1 for s in video.segments)
     position = 0  # index of the next frame vc.read() returns

@@ -1,0 +1,223 @@
+"""The camera: OpenCV's pinhole model with distortion, and the one check of a camera object.
+
+:class:`Camera` turns pixels into normalized image coordinates (``cv2.undistortPoints``) and back
+(``cv2.projectPoints``); focal lengths and centre in pixels, pixels in OpenCV's convention (the centre
+of the top-left pixel is (0, 0)). :func:`check_camera` is the one validator of a camera object (the
+``camera`` of dataset@1 and capture@1, and what the camera-file readers of
+:mod:`mirror_fg.io.camera_files` extract), with one line naming the key on any problem;
+:func:`camera_from_dict` / :func:`camera_to_dict` convert between it and :class:`Camera`.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from mirror_fg.core.errors import DatasetError
+from mirror_fg.core.values import check_keys, check_name, finite, is_int, short, type_name
+
+__all__ = [
+    "Camera",
+    "check_camera",
+    "camera_from_dict",
+    "camera_to_dict",
+    "DIST_LENGTHS",
+    "INTRINSIC_NAMES",
+    "CAMERA_KEYS",
+    "PIXEL_MARGIN_FRACTION",
+]
+
+#: Lengths of OpenCV distortion vectors ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, tx, ty]]]])``.
+DIST_LENGTHS = (4, 5, 8, 12, 14)
+#: Intrinsics that ``camera.estimate`` may name (OpenCV's model).
+INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+#: Keys of a camera object (docs/formats.md); any other is refused with the key probably meant.
+CAMERA_KEYS = ("model", "width", "height", "fx", "fy", "cx", "cy", "dist", "estimate", "prior_sigma")
+#: Pixel observations may lie this fraction of the image size outside it (detections at the border).
+PIXEL_MARGIN_FRACTION = 0.02
+# cv2.undistortPoints stops after 5 fixed-point iterations by default (errors ~1e-5 on a wide-angle
+# lens); iterate until the reprojection error is below 1e-12 px (at most 100 times) instead.
+_UNDISTORT_CRITERIA = (100, 1e-12)  # (max iterations, epsilon in pixels)
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole camera with OpenCV distortion ``(k1, k2, p1, p2[, k3])``; focal lengths and centre in pixels."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    dist: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    #: Intrinsics to estimate through the mirrors (``camera.estimate``), and their prior sigmas.
+    estimate: tuple[str, ...] = ()
+    prior_sigma: tuple[tuple[str, float], ...] = ()
+
+    def contains(self, pixels: np.ndarray) -> np.ndarray:
+        """Whether each pixel (N, 2) lies in the image, extended by PIXEL_MARGIN_FRACTION of its size."""
+        pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+        margin = PIXEL_MARGIN_FRACTION * np.array([self.width, self.height])
+        low, high = -0.5 - margin, np.array([self.width, self.height]) - 0.5 + margin
+        return np.all((pixels >= low) & (pixels <= high), axis=1)
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 intrinsic matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def normalize(self, pixels: np.ndarray) -> np.ndarray:
+        """Undistorted normalized coordinates (N, 2) of pixel coordinates (N, 2) (cv2.undistortPoints)."""
+        import cv2
+
+        pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
+        if pixels.shape[0] == 0:
+            return np.zeros((0, 2))
+        dist = np.asarray(self.dist, dtype=np.float64)
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, *_UNDISTORT_CRITERIA)
+        if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x spelling; 5.x takes criteria directly
+            out = cv2.undistortPointsIter(pixels, self.K, dist, None, None, criteria)
+        else:
+            out = cv2.undistortPoints(pixels, self.K, dist, criteria=criteria)
+        return out.reshape(-1, 2)
+
+    def distort(self, normalized: np.ndarray) -> np.ndarray:
+        """Pixel coordinates (N, 2) of normalized coordinates (N, 2) through the distortion (cv2.projectPoints)."""
+        import cv2
+
+        normalized = np.asarray(normalized, dtype=np.float64).reshape(-1, 2)
+        if normalized.shape[0] == 0:
+            return np.zeros((0, 2))
+        rays = np.hstack([normalized, np.ones((len(normalized), 1))])
+        pixels, _ = cv2.projectPoints(
+            rays, np.zeros(3), np.zeros(3), self.K, np.asarray(self.dist, dtype=np.float64)
+        )
+        return pixels.reshape(-1, 2)
+
+
+# --------------------------------------------------------------------------------------------------
+# The camera object (dataset@1 and capture@1 ``camera``)
+# --------------------------------------------------------------------------------------------------
+
+
+def check_camera(
+    camera: Mapping[str, Any], where: str, *, need_size: bool = True, max_pixels: int | None = None
+) -> dict[str, Any]:
+    """Check a camera object and return it as plain values; DatasetError (one line starting ``where``).
+
+    Returns ``{"model": "pinhole", "width", "height", "fx", "fy", "cx", "cy", "dist"}`` (ints, floats
+    in pixels, ``dist`` a list of OpenCV's ``k1, k2, p1, p2[, k3, ...]``, five zeros when absent), and
+    ``estimate`` (list) and ``prior_sigma`` (dict) where given. ``need_size``: False where the image
+    size may be missing (a calibration file without it; ``width`` and ``height`` are then None, both
+    or neither). ``max_pixels``: refuse an image size above it (images will be decoded).
+    """
+    if not isinstance(camera, Mapping):
+        raise DatasetError(f"{where}: expected an object, got {type_name(camera)}")
+    check_keys(camera, CAMERA_KEYS, where)
+    estimate, prior_sigma = _estimated_intrinsics(camera, where)
+    model = camera.get("model", "pinhole")
+    if model != "pinhole":
+        raise DatasetError(f"{where}: unsupported model {short(model)} (only 'pinhole')")
+    required = ("width", "height", "fx", "fy", "cx", "cy") if need_size else ("fx", "fy", "cx", "cy")
+    missing = [k for k in required if k not in camera]
+    unstarted = [k for k in missing if k in estimate]
+    if unstarted:
+        raise DatasetError(f"{where}: {', '.join(unstarted)} absent: starting intrinsics from the photographs "
+                           "is not supported by this version; give a starting value")
+    if missing:
+        raise DatasetError(f"{where}: missing {', '.join(repr(k) for k in missing)}")
+    out: dict[str, Any] = {"model": "pinhole"}
+    if not need_size and (camera.get("width") is None) != (camera.get("height") is None):
+        raise DatasetError(f"{where}: gives only one of the image width and height")
+    for key in ("width", "height"):
+        value = camera.get(key)
+        if value is None and not need_size:
+            out[key] = None
+            continue
+        if not is_int(value) or value < 1:
+            raise DatasetError(f"{where}: {key} must be a positive integer (pixels), got {short(value)}")
+        out[key] = int(value)
+    if max_pixels is not None and out["width"] is not None and out["width"] * out["height"] > max_pixels:
+        raise DatasetError(
+            f"{where}: image size {short(out['width'])} x {short(out['height'])} is above the limit of "
+            f"{max_pixels} pixels"
+        )
+    for key in ("fx", "fy", "cx", "cy"):
+        value = finite(camera[key])
+        if value is None:
+            raise DatasetError(f"{where}: {key} must be a finite number (pixels), got {short(camera[key])}")
+        if key in ("fx", "fy") and value <= 0:
+            raise DatasetError(f"{where}: {key} must be > 0, got {short(camera[key])}")
+        out[key] = value
+    dist = camera.get("dist", [0.0] * 5)
+    if isinstance(dist, np.ndarray):
+        dist = dist.ravel().tolist()
+    values = [finite(x) for x in dist] if isinstance(dist, (list, tuple)) else [None]
+    if len(values) not in DIST_LENGTHS or None in values:
+        raise DatasetError(
+            f"{where}: dist must be 4, 5, 8, 12 or 14 finite numbers (OpenCV k1, k2, p1, p2[, k3, ...]), "
+            f"got {short(dist)}"
+        )
+    out["dist"] = values
+    if estimate:
+        out["estimate"] = list(estimate)
+    if prior_sigma:
+        out["prior_sigma"] = dict(prior_sigma)
+    return out
+
+
+def camera_from_dict(camera: Mapping[str, Any], where: str) -> Camera:
+    """A :class:`Camera` from a camera object with its image size (:func:`check_camera`)."""
+    c = check_camera(camera, where)
+    return Camera(
+        width=c["width"],
+        height=c["height"],
+        fx=c["fx"],
+        fy=c["fy"],
+        cx=c["cx"],
+        cy=c["cy"],
+        dist=tuple(c["dist"]),
+        estimate=tuple(c.get("estimate", ())),
+        prior_sigma=tuple(c.get("prior_sigma", {}).items()),
+    )
+
+
+def camera_to_dict(c: Camera) -> dict[str, Any]:
+    """The camera object of ``c`` (plain ints, floats and lists; ``estimate``/``prior_sigma`` where set)."""
+    camera: dict[str, Any] = {
+        "model": "pinhole",
+        "width": int(c.width),
+        "height": int(c.height),
+        "fx": float(c.fx),
+        "fy": float(c.fy),
+        "cx": float(c.cx),
+        "cy": float(c.cy),
+        "dist": [float(x) for x in c.dist],
+    }
+    if c.estimate:
+        camera["estimate"] = list(c.estimate)
+    if c.prior_sigma:
+        camera["prior_sigma"] = dict(c.prior_sigma)
+    return camera
+
+
+def _estimated_intrinsics(camera: Mapping[str, Any], where: str) -> tuple[tuple[str, ...], tuple[tuple[str, float], ...]]:
+    """``camera.estimate`` (names of intrinsics) and ``camera.prior_sigma`` ({name: sigma > 0}), checked."""
+    estimate = camera.get("estimate", [])
+    if not isinstance(estimate, list) or not all(isinstance(n, str) for n in estimate):
+        raise DatasetError(f"{where}: estimate must be a list of intrinsic names, got {short(estimate)}")
+    for name in estimate:
+        check_name(name, INTRINSIC_NAMES, f"{where}: estimate", "intrinsic")
+    if len(set(estimate)) != len(estimate):
+        raise DatasetError(f"{where}: estimate names an intrinsic twice: {short(estimate)}")
+    prior = camera.get("prior_sigma", {})
+    if not isinstance(prior, Mapping):
+        raise DatasetError(f"{where}: prior_sigma must be an object {{name: sigma}}, got {type_name(prior)}")
+    for name, sigma in prior.items():
+        check_name(name, INTRINSIC_NAMES, f"{where}: prior_sigma", "intrinsic")
+        if finite(sigma) is None or sigma <= 0:
+            raise DatasetError(f"{where}: prior_sigma {name}: must be a finite number > 0, got {short(sigma)}")
+    return tuple(estimate), tuple((str(n), float(s)) for n, s in prior.items())

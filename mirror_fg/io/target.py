@@ -1,0 +1,344 @@
+"""Targets of a capture@1: what is detected (chessboard, AprilTag/ArUco tags) or measured by hand (points).
+
+``target`` (docs/formats.md, and :mod:`mirror_fg.io.capture` for the whole file):
+
+* ``kind: chessboard`` with ``cols``, ``rows`` (inner corners) and ``square`` (metres). Inner corner
+  (col, row) is fiducial ``C{row*cols+col:02d}`` at ``(col*square, row*square, 0)`` in the board
+  frame. ``cols + rows`` must be odd (one count odd, the other even): only then do the square
+  colours tell the board's two half-turn orientations apart. Corner C00: look at the printed face
+  with the rows (``cols + 1`` squares each) horizontal and turn the board so that its top-left
+  corner square is black; C00 is the inner corner of that square, C01, C02, ... run to the right
+  along the top row, row 1 is the next row down. The board frame has x to the right, y down and z
+  into the board. The detector enforces this order in every image (handedness from the number of
+  mirrors, the half turn from the colour of the squares) or refuses the image with the reason.
+* ``kind: apriltag`` (or ``aruco``) with ``dictionary`` (``tag36h11``, ``tag25h9``, ``tag16h5``,
+  ``tag36h10`` or an OpenCV ArUco name such as ``DICT_4X4_50``), ``tag_size`` (metres, edge of the
+  black square) and either ``tags: {id: {R, t}}``, each tag's frame in the base frame
+  (``Bp = R @ p_tag + t``), or ``grid: {cols, rows, spacing, first_id}``: tag ``first_id +
+  row*cols + col`` at ``(col*spacing, -row*spacing, 0)`` in the target frame, whose axes are those
+  of every tag (``spacing`` is centre to centre, metres; tag ``first_id`` is top left). The tag
+  frame is OpenCV's ArUco marker frame (origin at the centre of the black square, x right and y up
+  on the printed face, z out of it). Fiducial ``T{id}_{k}`` is corner k in cv2.aruco's order, at
+  ``(-s/2, s/2, 0)``, ``(s/2, s/2, 0)``, ``(s/2, -s/2, 0)``, ``(-s/2, -s/2, 0)`` in the tag frame.
+  Tags not listed are ignored. Optional ``corner_refinement``: ``subpix`` (default: markers found
+  by ``cv2.aruco``, corners refined by ``cv2.cornerSubPix``), ``contour``, ``apriltag`` or ``none``
+  (OpenCV's own ``CORNER_REFINE_*``); optional ``image_gamma``: ``srgb`` (default; images encoded
+  like a camera's JPEG/PNG, linearized before ``subpix`` refinement, which otherwise pulls corners
+  about 0.5 px into the black square) or ``linear``.
+* ``kind: points`` with ``fiducials: {name: [x, y, z]}`` (metres, target frame); each image then
+  gives its pixels under ``observations`` instead of detection.
+
+A pose (a tag's, or ``T_base_target``) is ``{R: 3x3, t: [3]}`` or ``{q_xyzw: [4], t: [3]}``:
+``Bp = R @ p + t``, metres. Pixels measured by hand (an image's ``observations``, required with a points
+target) are ``{name: [u, v]}`` inline or a file: JSON/YAML of that shape, or text with one ``name u v``
+or ``u v`` per line, the latter in the order of the target's fiducials (:func:`observations_from`).
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from mirror_fg.core.errors import DatasetError
+from mirror_fg.core.transform import quaternion_xyzw_to_rotation
+from mirror_fg.io.fileio import load_structured, resolve_path
+from mirror_fg.core.values import check_keys, finite, is_int, named_vectors, short, short_path, type_name, vector
+
+__all__ = [
+    "ChessboardTarget",
+    "TagTarget",
+    "PointsTarget",
+    "Target",
+    "target_from_dict",
+    "tag_dictionary",
+    "pose_from_dict",
+    "observations_from",
+    "ROTATION_TOL",
+]
+
+#: Largest ``|R^T R - I|`` entry accepted for a rotation matrix typed into a capture file.
+ROTATION_TOL = 1e-4
+
+#: Short AprilTag family names -> OpenCV dictionary attribute.
+_APRILTAG_NAMES = {
+    "tag16h5": "DICT_APRILTAG_16h5",
+    "tag25h9": "DICT_APRILTAG_25h9",
+    "tag36h10": "DICT_APRILTAG_36h10",
+    "tag36h11": "DICT_APRILTAG_36h11",
+}
+_CORNER_REFINEMENTS = ("subpix", "contour", "apriltag", "none")
+_IMAGE_GAMMAS = ("srgb", "linear")
+
+
+@dataclass(frozen=True)
+class ChessboardTarget:
+    """Chessboard of ``cols`` x ``rows`` inner corners, ``square`` metres; fiducial ``C{row*cols+col:02d}``."""
+
+    cols: int
+    rows: int
+    square: float
+    kind: str = "chessboard"
+
+    def name(self, col: int, row: int) -> str:
+        """Fiducial name of inner corner (col, row)."""
+        return f"C{row * self.cols + col:02d}"
+
+    def target_points(self) -> dict[str, np.ndarray]:
+        """Corner positions in the board frame (metres), row-major."""
+        return {
+            self.name(c, r): np.array([c * self.square, r * self.square, 0.0])
+            for r in range(self.rows)
+            for c in range(self.cols)
+        }
+
+
+@dataclass(frozen=True)
+class TagTarget:
+    """AprilTag/ArUco markers: ``tags`` maps an id to its frame ``(R, t)`` in the frame named by ``frame``.
+
+    ``frame`` is ``"base"`` for tags listed under ``tags`` and ``"target"`` for a grid (then
+    ``T_base_target`` applies). ``dictionary_id`` is the ``cv2.aruco.DICT_*`` constant.
+    """
+
+    dictionary: str
+    dictionary_id: int
+    tag_size: float
+    tags: dict[int, tuple[np.ndarray, np.ndarray]]
+    frame: str = "base"
+    corner_refinement: str = "subpix"
+    image_gamma: str = "srgb"
+    kind: str = "apriltag"
+
+    @staticmethod
+    def corner_name(tag_id: int, k: int) -> str:
+        """Fiducial name of corner k (cv2.aruco order) of tag ``tag_id``."""
+        return f"T{tag_id}_{k}"
+
+    def corners_in_tag(self) -> np.ndarray:
+        """(4, 3) corners in the tag frame, cv2.aruco order (metres)."""
+        h = self.tag_size / 2.0
+        return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+
+    def target_points(self) -> dict[str, np.ndarray]:
+        """Every listed tag's corners in the frame of ``tags`` (metres)."""
+        corners = self.corners_in_tag()
+        out: dict[str, np.ndarray] = {}
+        for tag_id in sorted(self.tags):
+            R, t = self.tags[tag_id]
+            for k in range(4):
+                out[self.corner_name(tag_id, k)] = R @ corners[k] + t
+        return out
+
+
+@dataclass(frozen=True)
+class PointsTarget:
+    """Points measured on the robot (target frame, metres); pixels come with each image."""
+
+    fiducials: dict[str, np.ndarray]
+    kind: str = "points"
+
+    def target_points(self) -> dict[str, np.ndarray]:
+        return {name: p.copy() for name, p in self.fiducials.items()}
+
+
+Target = ChessboardTarget | TagTarget | PointsTarget
+
+
+def tag_dictionary(name: Any, where: str = "dictionary") -> tuple[str, int]:
+    """``(canonical name, cv2.aruco.DICT_* value)`` of an AprilTag family or ArUco dictionary name."""
+    import cv2
+
+    if not isinstance(name, str) or not name:
+        raise DatasetError(f"{where}: must be a name such as 'tag36h11' or 'DICT_4X4_50', got {short(name)}")
+    key = name.strip()
+    attr = _APRILTAG_NAMES.get(key.lower())
+    if attr is None:
+        upper = key.upper()
+        candidates = [upper, "DICT_" + upper, "DICT_APRILTAG_" + upper.removeprefix("TAG")]
+        attr = next((c for c in candidates if hasattr(cv2.aruco, c)), None)
+    if attr is None or not hasattr(cv2.aruco, attr):
+        raise DatasetError(
+            f"{where}: unknown dictionary {short(name)} (AprilTag: tag16h5, tag25h9, tag36h10, tag36h11; "
+            "ArUco: DICT_4X4_50 ... DICT_7X7_1000, DICT_ARUCO_ORIGINAL)"
+        )
+    return key, int(getattr(cv2.aruco, attr))
+
+
+def target_from_dict(t: Any, source: str) -> Target:
+    """The ``target`` of a capture@1 (``source`` starts every message); DatasetError on any problem."""
+    where = f"{source}: target"
+    if not isinstance(t, Mapping):
+        raise DatasetError(f"{where}: expected a mapping with 'kind', got {type_name(t)}")
+    kind = t.get("kind")
+    if kind == "chessboard":
+        check_keys(t, ("kind", "cols", "rows", "square"), where)
+        cols, rows, square = t.get("cols"), t.get("rows"), t.get("square")
+        for key, v in (("cols", cols), ("rows", rows)):
+            if not is_int(v) or v < 3:
+                raise DatasetError(f"{where}: {key} must be an integer >= 3 (inner corners), got {short(v)}")
+        if finite(square) is None or square <= 0:
+            raise DatasetError(f"{where}: square must be a number > 0 (metres), got {short(square)}")
+        if (cols + rows) % 2 == 0:
+            raise DatasetError(
+                f"{where}: a {cols} x {rows}-corner board looks the same turned half a turn (cols + rows is even), "
+                "so its corner order cannot be told from an image; use a board with one count odd and the other even"
+            )
+        return ChessboardTarget(int(cols), int(rows), float(square))
+    if kind in ("apriltag", "aruco"):
+        check_keys(t, ("kind", "dictionary", "tag_size", "tags", "grid", "corner_refinement", "image_gamma"), where)
+        name, dict_id = tag_dictionary(t.get("dictionary"), f"{where}: dictionary")
+        import cv2
+
+        num_ids = int(cv2.aruco.getPredefinedDictionary(dict_id).bytesList.shape[0])
+        size = t.get("tag_size")
+        if finite(size) is None or size <= 0:
+            raise DatasetError(f"{where}: tag_size must be a number > 0 (metres, edge of the black square), got {short(size)}")
+        refine = t.get("corner_refinement", "subpix")
+        if refine not in _CORNER_REFINEMENTS:
+            raise DatasetError(f"{where}: corner_refinement must be one of {', '.join(_CORNER_REFINEMENTS)}, got {short(refine)}")
+        gamma = t.get("image_gamma", "srgb")
+        if gamma not in _IMAGE_GAMMAS:
+            raise DatasetError(f"{where}: image_gamma must be one of {', '.join(_IMAGE_GAMMAS)}, got {short(gamma)}")
+        if (t.get("tags") is None) == (t.get("grid") is None):
+            raise DatasetError(f"{where}: give exactly one of 'tags' (each tag's pose) and 'grid'")
+        if t.get("tags") is not None:
+            tags_in = t["tags"]
+            if not isinstance(tags_in, Mapping) or not tags_in:
+                raise DatasetError(f"{where}: tags must be a non-empty mapping {{id: {{R, t}}}}, got {short(tags_in)}")
+            tags: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+            for key, pose in tags_in.items():
+                tag_id = _tag_id(key, num_ids, name, f"{where}: tags")
+                if tag_id in tags:
+                    raise DatasetError(f"{where}: tags: tag {tag_id} is listed twice")
+                tags[tag_id] = pose_from_dict(pose, f"{where}: tags[{tag_id}]")
+            frame = "base"
+        else:
+            tags = _grid(t["grid"], num_ids, name, f"{where}: grid")
+            frame = "target"
+        return TagTarget(name, dict_id, float(size), tags, frame=frame, corner_refinement=refine, image_gamma=gamma)
+    if kind == "points":
+        check_keys(t, ("kind", "fiducials"), where)
+        fids = t.get("fiducials")
+        if not isinstance(fids, Mapping) or not fids:
+            raise DatasetError(f"{where}: fiducials must be a non-empty mapping {{name: [x, y, z]}} (metres)")
+        out = named_vectors(fids, 3, where, "fiducial")
+        if len(out) < 3:
+            raise DatasetError(f"{where}: needs at least 3 fiducials, got {len(out)}")
+        return PointsTarget(out)
+    raise DatasetError(f"{where}: kind must be 'chessboard', 'apriltag' or 'points', got {short(kind)}")
+
+
+def _tag_id(key: Any, num_ids: int, dict_name: str, where: str) -> int:
+    if isinstance(key, str) and key.strip().isdigit():
+        key = int(key)
+    if not is_int(key) or key < 0:
+        raise DatasetError(f"{where}: tag id must be a non-negative integer, got {short(key)}")
+    if key >= num_ids:
+        raise DatasetError(f"{where}: tag id {key} is not in dictionary {dict_name} (ids 0-{num_ids - 1})")
+    return int(key)
+
+
+def _grid(g: Any, num_ids: int, dict_name: str, where: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    if not isinstance(g, Mapping):
+        raise DatasetError(f"{where}: expected {{cols, rows, spacing, first_id}}, got {type_name(g)}")
+    check_keys(g, ("cols", "rows", "spacing", "first_id"), where)
+    cols, rows, spacing, first = g.get("cols"), g.get("rows"), g.get("spacing"), g.get("first_id", 0)
+    for key, v in (("cols", cols), ("rows", rows)):
+        if not is_int(v) or v < 1:
+            raise DatasetError(f"{where}: {key} must be an integer >= 1, got {short(v)}")
+    if finite(spacing) is None or spacing <= 0:
+        raise DatasetError(f"{where}: spacing must be a number > 0 (metres, centre to centre), got {short(spacing)}")
+    if not is_int(first) or first < 0:
+        raise DatasetError(f"{where}: first_id must be a non-negative integer, got {short(first)}")
+    last = first + cols * rows - 1
+    if last >= num_ids:
+        raise DatasetError(f"{where}: tag ids {first}-{last} are not all in dictionary {dict_name} (ids 0-{num_ids - 1})")
+    return {
+        first + r * cols + c: (np.eye(3), np.array([c * spacing, -r * spacing, 0.0]))
+        for r in range(rows)
+        for c in range(cols)
+    }
+
+
+def pose_from_dict(value: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, t)`` from ``{R: 3x3, t: [3]}`` or ``{q_xyzw: [4], t: [3]}``; R must be a rotation."""
+    if not isinstance(value, Mapping):
+        raise DatasetError(f"{where}: expected {{R: 3x3, t: [x, y, z]}}, got {type_name(value)}")
+    check_keys(value, ("R", "t", "q_xyzw"), where)
+    if "t" not in value:
+        raise DatasetError(f"{where}: missing 't' (metres)")
+    t = vector(value["t"], 3, f"{where}: t")
+    if ("R" in value) == ("q_xyzw" in value):
+        raise DatasetError(f"{where}: give exactly one of 'R' (3x3) and 'q_xyzw'")
+    if "q_xyzw" in value:
+        q = vector(value["q_xyzw"], 4, f"{where}: q_xyzw")
+        n = float(np.linalg.norm(q))
+        if abs(n - 1.0) > 1e-3:
+            raise DatasetError(f"{where}: q_xyzw must be a unit quaternion, has norm {n:.6g}")
+        return quaternion_xyzw_to_rotation(q), t
+    rows = value["R"]
+    if not isinstance(rows, (list, tuple)) or len(rows) != 3:
+        raise DatasetError(f"{where}: R must be 3 rows of 3 numbers, got {short(rows)}")
+    R = np.array([vector(r, 3, f"{where}: R row {i}") for i, r in enumerate(rows)])
+    err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if err > ROTATION_TOL or np.linalg.det(R) < 0:
+        raise DatasetError(f"{where}: R is not a rotation matrix (|R^T R - I| = {err:.2g}, det = {np.linalg.det(R):.4g})")
+    u, _, vt = np.linalg.svd(R)
+    return u @ vt, t
+
+
+def observations_from(value: Any, target: Target, base_dir: str, where: str) -> dict[str, np.ndarray]:
+    """Pixels ``{name: [u, v]}`` inline or from a file (JSON/YAML mapping, or ``name u v`` / ``u v`` lines,
+    the latter in the order of ``target``'s fiducials); a relative path is taken from ``base_dir``."""
+    if isinstance(value, str):
+        path = resolve_path(value, base_dir)
+        fwhere = f"{where}: observations file {short_path(value)!r}"
+        if not os.path.isfile(path):
+            raise DatasetError(f"{fwhere} not found")
+        if path.lower().endswith((".json", ".yaml", ".yml")):
+            value = load_structured(path, fwhere)
+            where = fwhere
+        else:
+            return _observations_text(path, target, fwhere)
+    if not isinstance(value, Mapping) or not value:
+        raise DatasetError(f"{where}: observations must be a non-empty mapping {{name: [u, v]}} or a file, got {short(value)}")
+    return named_vectors(value, 2, where, "point")
+
+
+def _observations_text(path: str, target: Target, where: str) -> dict[str, np.ndarray]:
+    try:
+        with open(path, encoding="utf-8") as f:
+            lines = [(n + 1, ln.split()) for n, ln in enumerate(f) if ln.strip() and not ln.lstrip().startswith("#")]
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{where}: cannot read: {exc}") from None
+    names = list(target.target_points())
+    out: dict[str, np.ndarray] = {}
+    unnamed = [ln for ln in lines if len(ln[1]) == 2]
+    if unnamed and len(unnamed) != len(lines):
+        raise DatasetError(f"{where}: mixes 'u v' and 'name u v' lines")
+    if unnamed and len(lines) != len(names):
+        raise DatasetError(
+            f"{where}: has {len(lines)} 'u v' lines but the target has {len(names)} fiducials (one line each, in order)"
+        )
+    for k, (lineno, parts) in enumerate(lines):
+        if len(parts) == 2:
+            name, nums = names[k], parts
+        elif len(parts) == 3:
+            name, nums = parts[0], parts[1:]
+        else:
+            raise DatasetError(f"{where}: line {lineno}: expected 'u v' or 'name u v'")
+        try:
+            uv = np.array([float(x) for x in nums])
+        except ValueError:
+            raise DatasetError(f"{where}: line {lineno}: not numbers: {short(' '.join(nums))}") from None
+        if not np.all(np.isfinite(uv)):
+            raise DatasetError(f"{where}: line {lineno}: not finite")
+        if name in out:
+            raise DatasetError(f"{where}: line {lineno}: point {short(name)} given twice")
+        out[name] = uv
+    if not out:
+        raise DatasetError(f"{where}: no observations in the file")
+    return out

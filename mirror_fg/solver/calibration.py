@@ -1,0 +1,100 @@
+"""``Calibration``: the result of a calibration (batch or incremental) as a plain value.
+
+Frames and units as docs/formats.md: ``T_cam_base = (R, t)`` maps base points into the camera
+(``Cp = R Bp + t``, metres); the pose covariance is ``[dtheta (rad), dt (m)]`` with
+``R_true = Exp(dtheta) R_est``, ``t_true = t_est + dt``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mirror_fg.core.errors import SolveError
+from mirror_fg.core.transform import Transform
+from mirror_fg.solver.analytic import AnalyticSolution
+from mirror_fg.solver.lm import plausible
+
+__all__ = ["Calibration", "require_converged"]
+
+
+@dataclass
+class Calibration:
+    """Result of a calibration: MLE, its covariance, the analytical solution it started from.
+
+    ``R_cam_base``, ``t_cam_base``: camera <- base (``Cp = R Bp + t``; metres). ``covariance``: 6x6 in
+    SPEC's convention ``[dtheta (rad), dt (m)]``, ``R_true = Exp(dtheta) R_est``, ``t_true = t_est + dt``.
+    ``mirror_vectors``/``mirror_covariances``: per configuration ``(l, m)``, camera frame, metres / m^2.
+    ``points``/``point_covariances``: reconstruction points, base frame, metres / m^2. ``residuals``:
+    per measurement (N, 2), pixels when the dataset has a camera, else normalized units.
+    """
+
+    R_cam_base: np.ndarray
+    t_cam_base: np.ndarray
+    covariance: np.ndarray | None
+    mirror_vectors: dict[tuple[int, int], np.ndarray]
+    mirror_covariances: dict[tuple[int, int], np.ndarray]
+    points: dict[str, np.ndarray]
+    point_covariances: dict[str, np.ndarray]
+    analytic: AnalyticSolution | None
+    iterations: int
+    initial_error: float
+    final_error: float
+    converged: bool
+    residuals: np.ndarray
+    residual_labels: list[tuple[str, str]]
+    residual_units: str
+    outliers: list[tuple[str, str, float]] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    expected_final_error: float = float("nan")
+    restarts: int = 0  # LM runs from the analytical solution's runner-up hypotheses (see calibrate)
+
+    @property
+    def T_cam_base(self) -> Transform:
+        """Camera <- base as a :class:`~mirror_fg.core.transform.Transform`."""
+        return Transform(self.R_cam_base, self.t_cam_base)
+
+    @property
+    def cost_plausible(self) -> bool:
+        """Whether the final cost 0.5 chi^2 fits its distribution at the optimum (dof / 2, spread
+        sqrt(dof / 2)) within 10 spreads; far above it means a local minimum or a too small sigma."""
+        return plausible(self.final_error, self.expected_final_error)
+
+    @property
+    def R_base_cam(self) -> np.ndarray:
+        """Rotation of the camera frame in the base frame (``T_base_cam``)."""
+        return self.T_cam_base.inverse().R
+
+    @property
+    def t_base_cam(self) -> np.ndarray:
+        """Camera centre in the base frame, metres."""
+        return self.T_cam_base.inverse().t
+
+    @property
+    def sigma3_rotation_deg(self) -> np.ndarray:
+        """3-sigma bounds of the rotation about the camera axes, degrees."""
+        return np.degrees(3.0 * np.sqrt(np.diag(self.covariance)[:3]))
+
+    @property
+    def sigma3_position_mm(self) -> np.ndarray:
+        """3-sigma bounds of ``t_cam_base`` (camera axes), millimetres."""
+        return 1000.0 * 3.0 * np.sqrt(np.diag(self.covariance)[3:])
+
+    @property
+    def residual_norms(self) -> np.ndarray:
+        """Euclidean reprojection error of each measurement (pixels or normalized units)."""
+        return np.linalg.norm(self.residuals, axis=1)
+
+    def to_dict(self) -> dict:
+        """The ``mirror-fg/result@1`` dictionary (docs/formats.md), written by ``io.result``."""
+        from mirror_fg.io.result import result_dict  # the format's one writer
+
+        return result_dict(self)
+
+
+def require_converged(calibration: Calibration, source: str, solver: str = "Levenberg-Marquardt") -> Calibration:
+    """``calibration`` if its solver converged, else SolveError: one rule for batch and incremental runs."""
+    if not calibration.converged:
+        raise SolveError(f"{source}: {solver} did not converge in {calibration.iterations} iterations "
+                         "(stalled); the result was not written")
+    return calibration

@@ -1,0 +1,161 @@
+"""Levenberg-Marquardt for the MLE (eq. 23): settings scaled to the noise, one run, its stall test, the
+plausibility of its final cost, and the restarts from the analytical solution's runner-up hypotheses.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from mirror_fg.core.errors import SolveError
+from mirror_fg.io.dataset import Dataset
+from mirror_fg.solver.analytic import AnalyticSolution, reconstruct_points
+from mirror_fg.solver.graph import GraphLayout, InitialEstimate, Measurement, build_graph
+from mirror_fg.solver.marginals import unconstrained_message
+from mirror_fg.solver.timing import timed
+
+__all__ = [
+    "REFERENCE_NORMALIZED_SIGMA", "MAX_RESTARTS", "LMRun", "cost_scale", "lm_params", "plausible",
+    "levenberg_marquardt", "levenberg_marquardt_with_restarts",
+]
+
+
+#: Normalized measurement noise at which the LM settings below were chosen: 1 px at fx = 800 px
+#: (the paper's base case).
+REFERENCE_NORMALIZED_SIGMA = 1.0 / 800.0
+
+
+def cost_scale(dataset: Dataset) -> float:
+    """How many times larger every whitened cost, gradient and Hessian are than at the reference noise.
+
+    With a uniform ``pixel_sigma`` the MLE does not depend on it, but the cost scales as
+    ``1 / sigma^2``: every absolute threshold of LM (its damping, its absolute tolerance, the stall
+    test) is multiplied by this factor so that LM takes the same steps whatever the sigma.
+    """
+    sigma = float(np.sqrt(np.prod(dataset.normalized_sigma)))
+    return (REFERENCE_NORMALIZED_SIGMA / sigma) ** 2
+
+
+def lm_params(max_iterations: int, scale: float = 1.0) -> gtsam.LevenbergMarquardtParams:
+    """Levenberg-Marquardt settings of the MLE (eq. 23): tight tolerances, at most ``max_iterations``.
+
+    ``scale``: :func:`cost_scale` of the data; the damping and the absolute tolerance scale with it
+    (GTSAM's defaults, 1e-5 and 1e5 for the damping, hold at the reference noise).
+    """
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(1e-10)
+    params.setAbsoluteErrorTol(1e-12 * scale)
+    params.setlambdaInitial(1e-5 * scale)
+    params.setlambdaUpperBound(1e5 * scale)
+    return params
+
+
+def _stationary(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, error: float, scale: float) -> bool:
+    """Whether the Gauss-Newton step at ``values`` promises (almost) no decrease of the error
+    (relative to the error, or to ``scale`` (:func:`cost_scale`) near a zero error)."""
+    linear = graph.linearize(values)
+    try:
+        step = linear.optimize()
+    except RuntimeError:  # indeterminant: not a well-defined optimum
+        return False
+    zero = step.scale(0.0)
+    predicted_decrease = linear.error(zero) - linear.error(step)
+    return predicted_decrease <= 1e-6 * max(error, scale)
+
+
+def plausible(final_error: float, expected_final_error: float) -> bool:
+    """Whether a final cost 0.5 chi^2 is within 10 spreads (sqrt(dof / 2)) above its mean dof / 2."""
+    spread = np.sqrt(max(expected_final_error, 1.0))
+    return not final_error > expected_final_error + 10.0 * spread
+
+
+#: At most this many restarts of LM from the analytical solution's runner-up hypotheses.
+MAX_RESTARTS = 4
+
+
+@dataclass
+class LMRun:
+    """One Levenberg-Marquardt run: its graph, start and result values, costs and convergence."""
+
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+    result: gtsam.Values
+    layout: GraphLayout
+    measurements: list[Measurement]
+    initial_error: float
+    final_error: float
+    iterations: int
+    converged: bool
+
+    @property
+    def expected_final_error(self) -> float:
+        """Mean of the final cost 0.5 chi^2 at the optimum: half the degrees of freedom."""
+        return 0.5 * max(2 * len(self.measurements) - self.values.dim(), 0)
+
+    @property
+    def plausible(self) -> bool:
+        """Converged with a final cost within its chi-square range (:func:`plausible`)."""
+        return self.converged and plausible(self.final_error, self.expected_final_error)
+
+
+def levenberg_marquardt(
+    dataset: Dataset, initial: InitialEstimate, robust: str | None, fast: bool, max_iterations: int,
+    on_iteration: Callable[[int, float, float], None] | None, timings: dict[str, float],
+) -> LMRun:
+    """Build the graph from ``initial`` and run LM (eq. 23); times added to ``timings``."""
+    with timed(timings, "build"):
+        graph, values, layout, measurements = build_graph(dataset, initial, robust, fast=fast)
+
+    with timed(timings, "optimize"):
+        scale = cost_scale(dataset)
+        params = lm_params(max_iterations, scale)
+        if on_iteration is not None:
+            params.iterationHook = on_iteration
+        initial_error = graph.error(values)
+        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        try:
+            result = optimizer.optimize()
+        except RuntimeError as error:
+            raise SolveError(f"{dataset.source}: {unconstrained_message(error, layout)}") from None
+        final_error = graph.error(result)
+        iterations = optimizer.iterations()
+        # LM also stops when its damping hits the upper bound: a stall unless a Gauss-Newton step
+        # would no longer lower the error (then it is at a stationary point, e.g. noise-free data).
+        stalled = optimizer.lambda_() >= params.getlambdaUpperBound() and not _stationary(graph, result, final_error, scale)
+        converged = bool(np.isfinite(final_error)) and iterations < max_iterations and not stalled
+    return LMRun(graph, values, result, layout, measurements, float(initial_error), float(final_error), iterations,
+                 converged)
+
+
+def levenberg_marquardt_with_restarts(
+    dataset: Dataset, initial: InitialEstimate, analytic: AnalyticSolution | None, robust: str | None, fast: bool,
+    max_iterations: int, on_iteration: Callable[[int, float, float], None] | None, timings: dict[str, float],
+) -> tuple[LMRun, AnalyticSolution | None, int]:
+    """LM from ``initial``; when it ends implausibly and ``analytic`` is that start, LM again from the
+    root's runner-up hypotheses (best fiducial reprojection first, at most ``MAX_RESTARTS``).
+
+    Returns the best run (converged first, then lowest cost), the analytical solution it started from
+    and the number of restarts.
+    """
+    run = levenberg_marquardt(dataset, initial, robust, fast, max_iterations, on_iteration, timings)
+    restarts = 0
+    if analytic is None or run.plausible:
+        return run, analytic, restarts
+    # A cost far above its chi-square range: LM stopped in another minimum. Start again from the
+    # root's runner-up hypotheses; keep the lowest cost.
+    for alternative in analytic.alternatives[:MAX_RESTARTS]:
+        if not alternative.points and run.layout.point_keys:
+            alternative.points = reconstruct_points(dataset, alternative)
+        restarts += 1
+        try:
+            other = levenberg_marquardt(dataset, alternative, robust, fast, max_iterations, None, timings)
+        except SolveError:
+            continue
+        if (other.converged, -other.final_error) > (run.converged, -run.final_error):
+            run, analytic = other, alternative
+        if run.plausible:
+            break
+    return run, analytic, restarts
