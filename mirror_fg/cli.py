@@ -343,6 +343,8 @@ def cmd_calibrate(args, out: _Printer) -> int:
         texts.update(ros_output_texts(result, args.output, args.base_frame, args.camera_frame))
     written = plan.commit(texts)
     _print_transform_summary(out, calibration, result, time.perf_counter() - start, args.incremental)
+    if calibration.timings:
+        out.detail("stage timings: " + ", ".join(f"{stage} {seconds:.3f} s" for stage, seconds in calibration.timings.items()))
     out.info("wrote " + ", ".join(str(p) for p in written))
     return EXIT_OK
 

@@ -1,0 +1,33 @@
+"""Small command-line promises: --version, python -m mirror_fg, -v stage timings (issues 13 and 17)."""
+import json
+import subprocess
+import sys
+
+import mirror_fg
+from mirror_fg.cli import main
+from mirror_fg.io.dataset import dataset_to_dict
+from mirror_fg.tools.simulate import simulate_base_case
+
+
+def test_version_from_the_command_and_the_package(capsys):
+    try:
+        main(["--version"])
+    except SystemExit as stop:
+        assert stop.code == 0
+    assert capsys.readouterr().out.strip() == f"mirror-fg {mirror_fg.__version__}"
+    assert mirror_fg.__version__ and mirror_fg.__version__[0].isdigit()
+
+
+def test_python_dash_m_runs_the_command():
+    proc = subprocess.run([sys.executable, "-m", "mirror_fg", "--version"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and proc.stdout.startswith("mirror-fg ")
+
+
+def test_verbose_prints_stage_timings(tmp_path, capsys):
+    dataset, _ = simulate_base_case(num_images=30, seed=2)
+    path = tmp_path / "d.json"
+    path.write_text(json.dumps(dataset_to_dict(dataset)))
+    assert main(["calibrate", str(path), "-o", str(tmp_path / "r.json"), "-v"]) == 0
+    line = next(l for l in capsys.readouterr().out.splitlines() if l.startswith("stage timings:"))
+    for stage in ("analytic", "optimize", "marginals"):
+        assert stage in line
