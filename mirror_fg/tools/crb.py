@@ -125,7 +125,7 @@ def _observation_blocks(dataset: Dataset, values: Unknowns, with_residuals: bool
                 columns[row, -3:] = index.points[name] + np.arange(3)
             else:
                 columns[row, -3:] = dummy
-            if with_residuals:
+            if observed is not None:
                 residuals[row] = observed[name] - z
             row += 1
     return index, H, columns, residuals

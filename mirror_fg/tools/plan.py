@@ -24,7 +24,7 @@ from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.geometry import apply_transform
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.tools.crb import CramerRaoBound, WeakestDirection, cramer_rao_bound, weakest_direction
-from mirror_fg.tools.simulate import default_camera, measure, simulate_base_case, visible
+from mirror_fg.tools.simulate import GroundTruth, default_camera, measure, simulate_base_case, visible
 
 __all__ = ["PlanSetup", "PlanResult", "plan", "format_plan", "load_fiducials"]
 
@@ -47,7 +47,7 @@ class PlanSetup:
     placements: int = 3
     num_images: int = 200
     num_fiducials: int = 3
-    fiducials: Mapping[str, Sequence[float]] | None = None
+    fiducials: Mapping[str, Sequence[float] | np.ndarray] | None = None
     num_points: int = 0
     mirror_distance_m: float = 0.5
     tilt_deg: float = 30.0
@@ -102,10 +102,13 @@ class PlanResult:
         }
 
 
-def _with_fiducials(dataset: Dataset, truth, fiducials: Mapping[str, Sequence[float]]) -> tuple[Dataset, float]:
+def _with_fiducials(
+    dataset: Dataset, truth: GroundTruth, fiducials: Mapping[str, Sequence[float] | np.ndarray]
+) -> tuple[Dataset, float]:
     """The same scene observing another fiducial layout (noise-free), and the fraction of images in view."""
     layout = {str(name): np.asarray(p, dtype=float).reshape(3) for name, p in fiducials.items()}
     camera = dataset.camera
+    assert camera is not None  # simulated scenes are in pixels
     camera_points = apply_transform(truth.R_cam_base, truth.t_cam_base, np.array(list(layout.values())))
     images, in_view = [], 0
     for image in dataset.images:

@@ -295,6 +295,7 @@ def _place_mirrors(
                     if budget[0] < 0:
                         return None
                     v = draw(level)
+                    below: dict | None
                     if level == num_mirrors:
                         below = {} if is_visible(prefix + [v]) else None
                     else:
