@@ -7,12 +7,16 @@ Layout: ``core`` (errors, transforms, camera, geometry; numpy only), ``io`` (fil
 each), ``solver`` (analytical solution, factor graph, LM, marginals, iSAM2), ``vision`` (detection,
 tracking), ``tools`` (simulation, Cramer-Rao bounds and planning, reports, Monte Carlo).
 """
+import logging as _logging
 from importlib.metadata import PackageNotFoundError, version as _version
 
 try:
     __version__ = _version("mirror-fg")
 except PackageNotFoundError:  # a source tree that is not installed
     __version__ = "0+unknown"
+
+# Library messages go to the "mirror_fg" logger; applications attach their own handlers.
+_logging.getLogger("mirror_fg").addHandler(_logging.NullHandler())
 
 from mirror_fg.core.errors import DatasetError, MirrorFgError, SolveError
 from mirror_fg.core.transform import Transform

@@ -5,6 +5,7 @@ Exit status: 0 success, 2 bad input, 3 could not solve (degenerate data, no conv
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 import os
 import re
@@ -449,7 +450,19 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     out = _Printer(args.quiet, args.verbose)
     np.set_printoptions(suppress=True)
-    status = _run(args, out)
+    logger, handler = logging.getLogger("mirror_fg"), None
+    level = logger.level
+    if args.verbose:  # the library's messages (detection per image, solver stages) as they happen
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("%(message)s"))
+        logger.addHandler(handler)
+        logger.setLevel(logging.INFO)
+    try:
+        status = _run(args, out)
+    finally:
+        if handler is not None:
+            logger.removeHandler(handler)
+            logger.setLevel(level)
     try:
         sys.stdout.flush()
     except OSError as error:

@@ -445,8 +445,11 @@ def test_camera_dist_lengths_accepted(n: int) -> None:
 
 def test_camera_not_an_object_or_other_model(tmp_path: Path) -> None:
     assert_error(load_mutated(tmp_path, lambda d: d.update(camera=[800.0])), "camera", "object or null")
+    exc = load_mutated(tmp_path, lambda d: d["camera"].update(model="omni"))
+    assert_error(exc, "camera", "unsupported model", "omni")
+    # fisheye (issue 17) is a model now, with exactly 4 coefficients (k1..k4): the 5 here are refused
     exc = load_mutated(tmp_path, lambda d: d["camera"].update(model="fisheye"))
-    assert_error(exc, "camera", "unsupported model", "fisheye")
+    assert_error(exc, "camera", "fisheye", "4 finite numbers")
 
 
 def test_image_with_no_observations(tmp_path: Path) -> None:
@@ -680,3 +683,26 @@ def test_load_result_errors(tmp_path: Path) -> None:
     with pytest.raises(DatasetError) as exc:
         load_result(no_format)
     assert_error(exc, "none.json", "missing 'format'")
+
+
+def test_dataset_repr_is_short_and_its_html_summary_bounded(caplog) -> None:
+    """repr(ds) of 200 images is one short line (a dataclass repr printed every observation), and the
+    notebook table is bounded and escaped whatever the source name."""
+    import logging
+
+    from mirror_fg.tools.simulate import simulate_base_case
+
+    ds, _ = simulate_base_case(num_images=200, num_points=10)
+    text, table = repr(ds), ds._repr_html_()
+    assert len(text) < 400 and len(table) < 1000, (len(text), len(table))
+    assert text.startswith("Dataset(") and "images=200" in text and "pinhole 1024x768" in text
+    assert "points=10 (P0, P1, P2, P3, P4, P5, ...)" in text
+    assert table.startswith("<table>") and "<tr><th>images</th><td>200</td></tr>" in table
+    ds.source = "x" * 10_000 + "<script>"
+    ds.camera = Camera(1024, 768, 800.0, 800.0, 512.0, 384.0, (0.1,) * 14)
+    assert len(repr(ds)) < 500 and len(ds._repr_html_()) < 1000
+    assert "<script>" not in ds._repr_html_()
+    with caplog.at_level(logging.INFO, logger="mirror_fg"):
+        path = Path(__file__).parent.parent / "examples" / "base_case.json"
+        load_dataset(path)
+    assert any(r.name.startswith("mirror_fg.") and "dataset loaded" in r.getMessage() for r in caplog.records)

@@ -1,10 +1,12 @@
-"""The camera: OpenCV's pinhole model with distortion, and the one check of a camera object.
+"""The camera: OpenCV's pinhole model with distortion or its fisheye model, and the one check of a camera object.
 
-:class:`Camera` turns pixels into normalized image coordinates (``cv2.undistortPoints``) and back
-(``cv2.projectPoints``); focal lengths and centre in pixels, pixels in OpenCV's convention (the centre
-of the top-left pixel is (0, 0)). :func:`check_camera` is the one validator of a camera object (the
-``camera`` of dataset@1 and capture@1, and what the camera-file readers of
-:mod:`mirror_fg.io.camera_files` extract), with one line naming the key on any problem;
+:class:`Camera` turns pixels into normalized image coordinates and back: ``model`` ``"pinhole"``
+(``cv2.undistortPoints`` / ``cv2.projectPoints``, ``dist`` = ``k1, k2, p1, p2[, k3, ...]``) or
+``"fisheye"`` (OpenCV's equidistant fisheye model, Kalibr's ``equidistant``: ``cv2.fisheye.undistortPoints``
+/ ``cv2.fisheye.distortPoints``, ``dist`` = ``k1, k2, k3, k4``); focal lengths and centre in pixels,
+pixels in OpenCV's convention (the centre of the top-left pixel is (0, 0)). :func:`check_camera` is
+the one validator of a camera object (the ``camera`` of dataset@1 and capture@1, and what the
+camera-file readers of :mod:`mirror_fg.io.camera_files` extract), with one line naming the key on any problem;
 :func:`camera_from_dict` / :func:`camera_to_dict` convert between it and :class:`Camera`.
 """
 from __future__ import annotations
@@ -24,6 +26,7 @@ __all__ = [
     "camera_from_dict",
     "camera_to_dict",
     "DIST_LENGTHS",
+    "MODELS",
     "INTRINSIC_NAMES",
     "CAMERA_KEYS",
     "PIXEL_MARGIN_FRACTION",
@@ -31,7 +34,11 @@ __all__ = [
 
 #: Lengths of OpenCV distortion vectors ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, tx, ty]]]])``.
 DIST_LENGTHS = (4, 5, 8, 12, 14)
-#: Intrinsics that ``camera.estimate`` may name (OpenCV's model).
+#: Camera models: OpenCV's pinhole model with its distortion, and OpenCV's fisheye (equidistant) model.
+MODELS = ("pinhole", "fisheye")
+#: Length of a fisheye distortion vector ``(k1, k2, k3, k4)``: theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8).
+FISHEYE_DIST_LENGTH = 4
+#: Intrinsics that ``camera.estimate`` may name (OpenCV's pinhole model; p1, p2 are not fisheye terms).
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 #: Keys of a camera object (docs/formats.md); any other is refused with the key probably meant.
 CAMERA_KEYS = ("model", "width", "height", "fx", "fy", "cx", "cy", "dist", "estimate", "prior_sigma")
@@ -40,11 +47,20 @@ PIXEL_MARGIN_FRACTION = 0.02
 # cv2.undistortPoints stops after 5 fixed-point iterations by default (errors ~1e-5 on a wide-angle
 # lens); iterate until the reprojection error is below 1e-12 px (at most 100 times) instead.
 _UNDISTORT_CRITERIA = (100, 1e-12)  # (max iterations, epsilon in pixels)
+# cv2.fisheye.undistortPoints's mark for a point it could not undistort, and the largest round-trip
+# error (pixels) of a point it did undistort: above it the point is beyond the model's valid range.
+_FISHEYE_FAILED = -1e5
+_FISHEYE_ROUND_TRIP_PX = 1e-3
 
 
 @dataclass(frozen=True)
 class Camera:
-    """Pinhole camera with OpenCV distortion ``(k1, k2, p1, p2[, k3])``; focal lengths and centre in pixels."""
+    """OpenCV camera; focal lengths and centre in pixels.
+
+    ``model``: ``"pinhole"`` with ``dist`` = OpenCV's ``(k1, k2, p1, p2[, k3, ...])``, or ``"fisheye"``
+    (equidistant) with ``dist`` = ``(k1, k2, k3, k4)``. Last among the fields, so that positional
+    construction of a pinhole camera is unchanged.
+    """
 
     width: int
     height: int
@@ -56,6 +72,7 @@ class Camera:
     #: Intrinsics to estimate through the mirrors (``camera.estimate``), and their prior sigmas.
     estimate: tuple[str, ...] = ()
     prior_sigma: tuple[tuple[str, float], ...] = ()
+    model: str = "pinhole"
 
     def contains(self, pixels: np.ndarray) -> np.ndarray:
         """Whether each pixel (N, 2) lies in the image, extended by PIXEL_MARGIN_FRACTION of its size."""
@@ -70,7 +87,11 @@ class Camera:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     def normalize(self, pixels: np.ndarray) -> np.ndarray:
-        """Undistorted normalized coordinates (N, 2) of pixel coordinates (N, 2) (cv2.undistortPoints)."""
+        """Undistorted normalized coordinates (N, 2) of pixel coordinates (N, 2).
+
+        ``cv2.undistortPoints`` (pinhole) or ``cv2.fisheye.undistortPoints`` (fisheye). A pixel the
+        fisheye model cannot undistort (its ray would be at or beyond 90 degrees from the axis) gives NaN.
+        """
         import cv2
 
         pixels = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
@@ -78,6 +99,14 @@ class Camera:
             return np.zeros((0, 2))
         dist = np.asarray(self.dist, dtype=np.float64)
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, *_UNDISTORT_CRITERIA)
+        if self.model == "fisheye":
+            out = cv2.fisheye.undistortPoints(pixels, self.K, dist, criteria=criteria).reshape(-1, 2)
+            # OpenCV marks a point whose iteration did not converge with -1e6 (4.x) or leaves it non-finite.
+            failed = ~np.all(np.isfinite(out), axis=1) | np.all(out <= _FISHEYE_FAILED, axis=1)
+            back = self.distort(np.where(failed[:, None], 0.0, out))
+            failed |= np.linalg.norm(back - pixels.reshape(-1, 2), axis=1) > _FISHEYE_ROUND_TRIP_PX
+            out[failed] = np.nan
+            return out
         if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x spelling; 5.x takes criteria directly
             out = cv2.undistortPointsIter(pixels, self.K, dist, None, None, criteria)
         else:
@@ -85,12 +114,18 @@ class Camera:
         return out.reshape(-1, 2)
 
     def distort(self, normalized: np.ndarray) -> np.ndarray:
-        """Pixel coordinates (N, 2) of normalized coordinates (N, 2) through the distortion (cv2.projectPoints)."""
+        """Pixel coordinates (N, 2) of normalized coordinates (N, 2) through the distortion.
+
+        ``cv2.projectPoints`` (pinhole) or ``cv2.fisheye.distortPoints`` (fisheye, no skew).
+        """
         import cv2
 
         normalized = np.asarray(normalized, dtype=np.float64).reshape(-1, 2)
         if normalized.shape[0] == 0:
             return np.zeros((0, 2))
+        if self.model == "fisheye":
+            dist = np.asarray(self.dist, dtype=np.float64)
+            return np.asarray(cv2.fisheye.distortPoints(normalized.reshape(-1, 1, 2), self.K, dist)).reshape(-1, 2)
         rays = np.hstack([normalized, np.ones((len(normalized), 1))])
         pixels, _ = cv2.projectPoints(
             rays, np.zeros(3), np.zeros(3), self.K, np.asarray(self.dist, dtype=np.float64)
@@ -108,8 +143,10 @@ def check_camera(
 ) -> dict[str, Any]:
     """Check a camera object and return it as plain values; DatasetError (one line starting ``where``).
 
-    Returns ``{"model": "pinhole", "width", "height", "fx", "fy", "cx", "cy", "dist"}`` (ints, floats
-    in pixels, ``dist`` a list of OpenCV's ``k1, k2, p1, p2[, k3, ...]``, five zeros when absent), and
+    Returns ``{"model", "width", "height", "fx", "fy", "cx", "cy", "dist"}`` (``model`` ``pinhole``
+    when absent, or ``fisheye``; ints, floats in pixels; ``dist`` a list: OpenCV's ``k1, k2, p1, p2[,
+    k3, ...]``, five zeros when absent, or with ``fisheye`` exactly ``k1, k2, k3, k4``, four zeros
+    when absent), and
     ``estimate`` (list) and ``prior_sigma`` (dict) where given. ``need_size``: False where the image
     size may be missing (a calibration file without it; ``width`` and ``height`` are then None, both
     or neither). ``max_pixels``: refuse an image size above it (images will be decoded).
@@ -119,8 +156,10 @@ def check_camera(
     check_keys(camera, CAMERA_KEYS, where)
     estimate, prior_sigma = _estimated_intrinsics(camera, where)
     model = camera.get("model", "pinhole")
-    if model != "pinhole":
-        raise DatasetError(f"{where}: unsupported model {short(model)} (only 'pinhole')")
+    if model not in MODELS:
+        raise DatasetError(f"{where}: unsupported model {short(model)} ('pinhole' or 'fisheye')")
+    if model == "fisheye" and {"p1", "p2"} & set(estimate):
+        raise DatasetError(f"{where}: estimate: p1 and p2 are not terms of the fisheye model (k1..k4)")
     required = ("width", "height", "fx", "fy", "cx", "cy") if need_size else ("fx", "fy", "cx", "cy")
     missing = [k for k in required if k not in camera]
     unstarted = [k for k in missing if k in estimate]
@@ -129,7 +168,7 @@ def check_camera(
                            "is not supported by this version; give a starting value")
     if missing:
         raise DatasetError(f"{where}: missing {', '.join(repr(k) for k in missing)}")
-    out: dict[str, Any] = {"model": "pinhole"}
+    out: dict[str, Any] = {"model": model}
     if not need_size and (camera.get("width") is None) != (camera.get("height") is None):
         raise DatasetError(f"{where}: gives only one of the image width and height")
     for key in ("width", "height"):
@@ -152,11 +191,16 @@ def check_camera(
         if key in ("fx", "fy") and value <= 0:
             raise DatasetError(f"{where}: {key} must be > 0, got {short(camera[key])}")
         out[key] = value
-    dist = camera.get("dist", [0.0] * 5)
+    fisheye = model == "fisheye"
+    dist = camera.get("dist", [0.0] * (FISHEYE_DIST_LENGTH if fisheye else 5))
     if isinstance(dist, np.ndarray):
         dist = dist.ravel().tolist()
     values = [finite(x) for x in dist] if isinstance(dist, (list, tuple)) else [None]
-    if len(values) not in DIST_LENGTHS or None in values:
+    if fisheye and (len(values) != FISHEYE_DIST_LENGTH or None in values):
+        raise DatasetError(
+            f"{where}: dist of a fisheye camera must be 4 finite numbers (k1, k2, k3, k4), got {short(dist)}"
+        )
+    if not fisheye and (len(values) not in DIST_LENGTHS or None in values):
         raise DatasetError(
             f"{where}: dist must be 4, 5, 8, 12 or 14 finite numbers (OpenCV k1, k2, p1, p2[, k3, ...]), "
             f"got {short(dist)}"
@@ -182,13 +226,14 @@ def camera_from_dict(camera: Mapping[str, Any], where: str) -> Camera:
         dist=tuple(c["dist"]),
         estimate=tuple(c.get("estimate", ())),
         prior_sigma=tuple(c.get("prior_sigma", {}).items()),
+        model=c["model"],
     )
 
 
 def camera_to_dict(c: Camera) -> dict[str, Any]:
     """The camera object of ``c`` (plain ints, floats and lists; ``estimate``/``prior_sigma`` where set)."""
     camera: dict[str, Any] = {
-        "model": "pinhole",
+        "model": c.model,
         "width": int(c.width),
         "height": int(c.height),
         "fx": float(c.fx),

@@ -12,9 +12,12 @@ import math
 import numbers
 import reprlib
 from collections.abc import Iterable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:  # annotations only (``from __future__ import annotations``): no runtime dependency
+    from typing_extensions import TypeIs
 
 from mirror_fg.core.errors import DatasetError
 
@@ -44,7 +47,7 @@ NAME_LIMIT = 80
 # --------------------------------------------------------------------------------------------------
 
 
-def is_int(x: Any) -> bool:
+def is_int(x: Any) -> TypeIs[int | np.integer[Any]]:
     """An integer that is not a bool (JSON ``true`` is not a count)."""
     return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
 

@@ -6,8 +6,10 @@ through ``mat()``, whose ``rows``/``cols`` could allocate gigabytes; the native 
 off stderr) and returns the camera object of :func:`mirror_fg.core.camera.check_camera`, pixels in
 OpenCV's convention. Understood: ``camera_matrix``/``cameraMatrix``/``K``/``intrinsic_matrix``,
 ``distortion_coefficients``/``dist_coeffs``/``distCoeffs``/``D``/``distortion``, ``image_width``/
-``image_height`` (or ``image_size``); Kalibr ``cam0``... with ``camera_model: pinhole`` and
-``distortion_model`` ``radtan`` or ``none``.
+``image_height`` (or ``image_size``), and ``distortion_model`` where given (ROS: ``plumb_bob`` or
+``rational_polynomial``, OpenCV's pinhole model; ``equidistant`` or ``fisheye``, OpenCV's fisheye model
+with 4 coefficients); Kalibr ``cam0``... with ``camera_model: pinhole`` and ``distortion_model``
+``radtan``, ``none`` or ``equidistant`` (the fisheye model, ``k1..k4``).
 """
 from __future__ import annotations
 
@@ -71,8 +73,10 @@ def _camera_from_mapping(data: Mapping[Any, Any], name: str | None, where: str) 
             f"{where}: not a camera file I know (no camera_matrix / K, no Kalibr cam0 with intrinsics)"
         )
     D = _first(data, ("distortion_coefficients", "dist_coeffs", "distCoeffs", "D", "distortion"))
+    model = _distortion_model(data.get("distortion_model"), where)
     K = _matrix(K, f"{where}: camera_matrix")
-    dist = [0.0] * 5 if D is None else _matrix(D, f"{where}: distortion_coefficients").ravel().tolist()
+    default = [0.0] * (4 if model == "fisheye" else 5)
+    dist = default if D is None else _matrix(D, f"{where}: distortion_coefficients").ravel().tolist()
     width = _first(data, ("image_width", "imageWidth", "width"))
     height = _first(data, ("image_height", "imageHeight", "height"))
     size = _first(data, ("image_size", "imageSize"))
@@ -82,7 +86,25 @@ def _camera_from_mapping(data: Mapping[Any, Any], name: str | None, where: str) 
         if not isinstance(size, list) or len(size) != 2:
             raise DatasetError(f"{where}: image_size must be [width, height], got {short(size)}")
         width, height = size
-    return _camera_from_K(K, dist, width, height, where)
+    return _camera_from_K(K, dist, width, height, where, model)
+
+
+#: ``distortion_model`` names of ROS camera_info and OpenCV files -> our camera model.
+_DISTORTION_MODELS = {"plumb_bob": "pinhole", "rational_polynomial": "pinhole", "radtan": "pinhole",
+                      "equidistant": "fisheye", "fisheye": "fisheye"}
+
+
+def _distortion_model(name: Any, where: str) -> str:
+    """The camera model of a ROS/OpenCV ``distortion_model`` (pinhole when absent)."""
+    if name is None:
+        return "pinhole"
+    model = _DISTORTION_MODELS.get(name) if isinstance(name, str) else None
+    if model is None:
+        raise DatasetError(
+            f"{where}: distortion_model {short(name)} is not supported "
+            "(plumb_bob, rational_polynomial: OpenCV's pinhole model; equidistant: its fisheye model)"
+        )
+    return model
 
 
 def _filestorage_data(path: str, where: str) -> dict[str, Any]:
@@ -136,13 +158,17 @@ def _cv_error(exc: BaseException) -> str:
 
 
 def _camera_from_kalibr(cam: Mapping[str, Any], where: str) -> dict[str, Any]:
-    model = cam.get("camera_model", "pinhole")
-    if model != "pinhole":
-        raise DatasetError(f"{where}: camera_model {short(model)} is not supported (only pinhole)")
+    camera_model = cam.get("camera_model", "pinhole")
+    if camera_model != "pinhole":
+        raise DatasetError(
+            f"{where}: camera_model {short(camera_model)} is not supported "
+            "(pinhole, with radtan, none or equidistant distortion)"
+        )
     intr = _real_array(cam.get("intrinsics"), f"{where}: intrinsics [fu, fv, pu, pv]")
     if intr.shape != (4,):
         raise DatasetError(f"{where}: intrinsics must be [fu, fv, pu, pv], got {short(cam.get('intrinsics'))}")
     dmodel = cam.get("distortion_model", "none")
+    model = "pinhole"
     if dmodel in ("radtan", "plumb_bob"):
         coeffs = _real_array(cam.get("distortion_coeffs"), f"{where}: distortion_coeffs")
         if coeffs.shape not in ((4,), (5,)):
@@ -150,11 +176,20 @@ def _camera_from_kalibr(cam: Mapping[str, Any], where: str) -> dict[str, Any]:
                 f"{where}: radtan distortion_coeffs must be [k1, k2, r1, r2], got {short(cam.get('distortion_coeffs'))}"
             )
         dist = coeffs.tolist()
+    elif dmodel == "equidistant":  # Kalibr's pinhole-equi: OpenCV's fisheye model, the same k1..k4
+        coeffs = _real_array(cam.get("distortion_coeffs"), f"{where}: distortion_coeffs")
+        if coeffs.shape != (4,):
+            raise DatasetError(
+                f"{where}: equidistant distortion_coeffs must be [k1, k2, k3, k4], "
+                f"got {short(cam.get('distortion_coeffs'))}"
+            )
+        dist, model = coeffs.tolist(), "fisheye"
     elif dmodel in ("none", None):
         dist = [0.0] * 5
     else:
         raise DatasetError(
-            f"{where}: distortion_model {short(dmodel)} is not supported (radtan or none; OpenCV's pinhole model)"
+            f"{where}: distortion_model {short(dmodel)} is not supported "
+            "(radtan, none: OpenCV's pinhole model; equidistant: its fisheye model)"
         )
     res = cam.get("resolution")
     width = height = None
@@ -163,17 +198,19 @@ def _camera_from_kalibr(cam: Mapping[str, Any], where: str) -> dict[str, Any]:
             raise DatasetError(f"{where}: resolution must be [width, height], got {short(res)}")
         width, height = res
     K = np.array([[intr[0], 0, intr[2]], [0, intr[1], intr[3]], [0, 0, 1]], dtype=float)
-    return _camera_from_K(K, dist, width, height, where)
+    return _camera_from_K(K, dist, width, height, where, model)
 
 
-def _camera_from_K(K: np.ndarray, dist: list[float], width: Any, height: Any, where: str) -> dict[str, Any]:
+def _camera_from_K(
+    K: np.ndarray, dist: list[float], width: Any, height: Any, where: str, model: str = "pinhole"
+) -> dict[str, Any]:
     if K.size == 9 and K.ndim == 1:
         K = K.reshape(3, 3)
     if K.shape != (3, 3):
         raise DatasetError(f"{where}: camera matrix must be 3x3, got shape {K.shape}")
     if abs(K[0, 1]) > 1e-9 * abs(K[0, 0]) or not np.allclose(K[2], [0, 0, 1]) or abs(K[1, 0]) > 0:
         raise DatasetError(f"{where}: camera matrix must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew)")
-    c = {"model": "pinhole", "width": width, "height": height,
+    c = {"model": model, "width": width, "height": height,
          "fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]), "dist": list(dist)}
     return check_camera(c, where, need_size=False, max_pixels=MAX_IMAGE_PIXELS)
 
@@ -208,6 +245,7 @@ def _real_array(value: Any, where: str) -> np.ndarray:
         value = value.tolist()
     if not isinstance(value, (list, tuple)) or not value:
         raise DatasetError(f"{where}: expected a list of numbers, got {short(value)}")
+    shape: tuple[int, ...]
     if all(isinstance(r, (list, tuple)) for r in value):
         widths = {len(r) for r in value}
         if len(widths) != 1:

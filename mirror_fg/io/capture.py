@@ -7,21 +7,23 @@ A capture file is YAML or JSON. Paths in it are relative to the capture file. To
 ``num_mirrors``
     Integer >= 1: how many mirrors the light meets between the target and the camera.
 ``camera``
-    Either the dataset@1 camera object (``model: pinhole``, ``width``, ``height``, ``fx``, ``fy``, ``cx``,
-    ``cy`` in pixels, OpenCV ``dist`` ``(k1, k2, p1, p2[, k3, ...])``) or a path to a calibration file,
+    Either the dataset@1 camera object (``model: pinhole`` or ``fisheye``, ``width``, ``height``, ``fx``,
+    ``fy``, ``cx``, ``cy`` in pixels, OpenCV ``dist``: ``(k1, k2, p1, p2[, k3, ...])``, fisheye ``(k1, k2,
+    k3, k4)``) or a path to a calibration file,
     or ``{file: PATH, name: cam1}``: an OpenCV ``FileStorage`` YAML/XML, ROS ``camera_info`` YAML or
     Kalibr camchain (:mod:`mirror_fg.io.camera_files`). Where a file gives no image size, the size of
     the first image read is used. Both pass :func:`mirror_fg.core.camera.check_camera`.
 ``pixel_sigma``
     Optional measurement standard deviation in pixels (0.5 when absent).
 ``target``
-    What is detected: ``kind: chessboard`` (``cols``, ``rows``, ``square``), ``kind: apriltag`` / ``aruco``
+    What is detected: ``kind: chessboard`` (``cols``, ``rows``, ``square``), ``kind: charuco`` (``cols``,
+    ``rows``, ``square``, ``marker``, ``dictionary``), ``kind: apriltag`` / ``aruco``
     (``dictionary``, ``tag_size``, ``tags`` or ``grid``, optional ``corner_refinement`` and
     ``image_gamma``) or ``kind: points`` (``fiducials``); :mod:`mirror_fg.io.target` says what each
     means, which corner is which fiducial, and how the order is made the same in every image.
 ``T_base_target``
     Optional ``{R: 3x3, t: [3]}`` (or ``{q_xyzw: [4], t: [3]}``): the target frame in the base frame,
-    ``Bp = R @ p_target + t``, for chessboard, tag grid and points targets; identity when absent. Tag
+    ``Bp = R @ p_target + t``, for chessboard, ChArUco, tag grid and points targets; identity when absent. Tag
     poses under ``tags`` are already in the base frame and do not take it.
 ``images``
     A list of ``{file, mirror_configs, observations?, id?}``. ``mirror_configs[l-1]`` is the placement
@@ -50,6 +52,7 @@ with one line naming the file, the entry and the problem.
 """
 from __future__ import annotations
 
+import logging
 import math
 import os
 from collections.abc import Mapping
@@ -80,6 +83,8 @@ __all__ = [
 ]
 
 CAPTURE_FORMAT = "mirror-fg/capture@1"
+#: Library messages (a capture loaded, at INFO); a child of the ``mirror_fg`` logger.
+_log = logging.getLogger(__name__)
 #: ``mirror_configs`` entry meaning "a placement of its own in this image / frame".
 EACH = "each"
 DEFAULT_PIXEL_SIGMA = 0.5
@@ -210,6 +215,15 @@ def load_capture(path: str | os.PathLike[str]) -> Capture:
     data = load_structured(source, source)
     cap = capture_from_dict(data, source=source, base_dir=os.path.dirname(os.path.abspath(source)))
     cap.file = os.path.abspath(source)
+    if cap.images is not None:
+        inputs = f"{len(cap.images)} images"
+    else:
+        inputs = f"video of {cap.video.frame_count} frames" if cap.video is not None else "no images"
+    _log.info(
+        "%s: capture loaded: %d mirror%s, %s target, %s camera%s, %s",
+        source, cap.num_mirrors, "s" if cap.num_mirrors != 1 else "", cap.target.kind, cap.camera["model"],
+        f" from {short_path(cap.camera_file)}" if cap.camera_file else "", inputs,
+    )
     return cap
 
 
@@ -232,14 +246,14 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".") ->
         raise DatasetError(f"{source}: pixel_sigma must be a finite number > 0 (pixels), got {short(pixel_sigma)}")
 
     if "target" not in d:
-        raise DatasetError(f"{source}: missing 'target' (chessboard, apriltag or points)")
+        raise DatasetError(f"{source}: missing 'target' (chessboard, charuco, apriltag or points)")
     target = target_from_dict(d["target"], source)
 
     if d.get("T_base_target") is not None:
         if isinstance(target, TagTarget) and target.frame == "base":
             raise DatasetError(
                 f"{source}: T_base_target: tag poses under target.tags are already in the base frame; "
-                "give T_base_target with a chessboard, a tag grid or points"
+                "give T_base_target with a chessboard, a ChArUco board, a tag grid or points"
             )
         R, t = pose_from_dict(d["T_base_target"], f"{source}: T_base_target")
     else:

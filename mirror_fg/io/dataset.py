@@ -7,6 +7,8 @@ camera (undistorted and normalized once, where an image is validated, with the O
 """
 from __future__ import annotations
 
+import html
+import logging
 import math
 import os
 from collections.abc import Iterable, Mapping
@@ -18,9 +20,11 @@ import numpy as np
 from mirror_fg.core.camera import Camera, camera_from_dict, camera_to_dict
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.output import atomic_write, json_text
-from mirror_fg.core.values import check_format, check_keys, coordinates, is_int, is_number, short, type_name
+from mirror_fg.core.values import check_format, check_keys, clip, coordinates, is_int, is_number, short, type_name
 
 DATASET_FORMAT = "mirror-fg/dataset@1"
+#: Library messages (a dataset loaded, at INFO); a child of the ``mirror_fg`` logger.
+_log = logging.getLogger(__name__)
 
 __all__ = [
     "DATASET_FORMAT",
@@ -82,9 +86,46 @@ class Dataset:
         default_factory=dict, repr=False, compare=False
     )
 
+    def __repr__(self) -> str:
+        """One bounded line (a dataclass repr would print every observation)."""
+        return f"Dataset({', '.join(f'{k}={v}' for k, v in self._summary())})"
+
+    def _repr_html_(self) -> str:
+        """A summary table for notebooks, bounded like :meth:`__repr__`."""
+        rows = "".join(
+            f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>"
+            for k, v in self._summary()
+        )
+        return f"<table><caption>mirror_fg Dataset</caption>{rows}</table>"
+
+    def _summary(self) -> list[tuple[str, str]]:
+        """(label, value) pairs describing the dataset in bounded text."""
+        per_mirror = [sorted({image.mirror_configs[l] for image in self.images}) for l in range(self.num_mirrors)]
+        points = self.reconstruction_point_names
+        camera = "none (normalized coordinates)"
+        if self.camera is not None:
+            c = self.camera
+            camera = f"{c.model} {c.width}x{c.height} fx={c.fx:.6g} fy={c.fy:.6g} cx={c.cx:.6g} cy={c.cy:.6g}"
+            if any(k != 0.0 for k in c.dist):
+                camera += f" dist={short([round(k, 6) for k in c.dist], 70)}"
+        return [
+            ("source", short(self.source)),
+            ("num_mirrors", f"{self.num_mirrors} (placements: {', '.join(str(len(p)) for p in per_mirror[:8])})"),
+            ("camera", camera),
+            ("pixel_sigma", f"{self.pixel_sigma:.6g}{' px' if self.camera is not None else ' (normalized)'}"),
+            ("fiducials", _names(list(self.fiducials))),
+            ("images", str(len(self.images))),
+            ("observations", str(sum(len(image.observations) for image in self.images))),
+            ("points", _names(points)),
+        ]
+
     @property
     def normalized_sigma(self) -> np.ndarray:
-        """Measurement standard deviation (2,) in normalized image coordinates (x, y)."""
+        """Measurement standard deviation (2,) in normalized image coordinates (x, y).
+
+        ``pixel_sigma`` over the focal lengths: exact for a distortion-free camera, the value at the image
+        centre otherwise (a fisheye lens compresses the edges, where a pixel spans more normalized units).
+        """
         if self.camera is None:
             return np.array([self.pixel_sigma, self.pixel_sigma])
         return np.array([self.pixel_sigma / self.camera.fx, self.pixel_sigma / self.camera.fy])
@@ -139,7 +180,9 @@ def load_dataset(path: PathLike) -> Dataset:
     from mirror_fg.io.fileio import parse_json, read_text
 
     source = os.fspath(path)
-    return dataset_from_dict(parse_json(read_text(source), source), source=source)
+    ds = dataset_from_dict(parse_json(read_text(source), source), source=source)
+    _log.info("%s: dataset loaded: %s", source, ds)
+    return ds
 
 
 def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Dataset:
@@ -275,8 +318,22 @@ def validate_image(
     checked = Image(id=image_id, mirror_configs=tuple(int(m) for m in configs), observations=obs)
     raw = _observation_array(obs, list(obs))
     checked.normalized = _normalize(ds.camera, list(obs), raw)  # once, here (issue 13)
+    for name, z in checked.normalized.items():
+        if not np.all(np.isfinite(z)):
+            assert ds.camera is not None  # normalized coordinates are checked finite above
+            raise DatasetError(
+                f"{prefix}: point {short(name)} at {short([round(float(x), 2) for x in obs[name]])} px cannot be "
+                f"undistorted with the {ds.camera.model} camera model (beyond the lens's field of view)"
+            )
     checked.normalized_from = (ds.camera, raw)
     return checked
+
+
+def _names(names: list[str], limit: int = 6) -> str:
+    """``count (a, b, ...)`` with at most ``limit`` names, each bounded."""
+    shown = ", ".join(clip(n, 20) for n in names[:limit])
+    more = ", ..." if len(names) > limit else ""
+    return f"{len(names)} ({shown}{more})" if names else "0"
 
 
 def _observation_array(observations: Mapping[str, np.ndarray], names: list[str]) -> np.ndarray:

@@ -25,6 +25,16 @@
   (OpenCV's own ``CORNER_REFINE_*``); optional ``image_gamma``: ``srgb`` (default; images encoded
   like a camera's JPEG/PNG, linearized before ``subpix`` refinement, which otherwise pulls corners
   about 0.5 px into the black square) or ``linear``.
+* ``kind: charuco`` with ``cols``, ``rows`` (squares, both >= 2), ``square`` and ``marker`` (metres,
+  edges of a chessboard square and of a marker's black square, ``marker < square``), ``dictionary``
+  (an OpenCV ArUco name such as ``DICT_5X5_100``, or an AprilTag family) and optional
+  ``legacy_pattern`` (``true`` for boards made by OpenCV before 4.6 whose row count is even).
+  The board is OpenCV's ``cv2.aruco.CharucoBoard``: its top-left square is black, markers in the
+  white squares. ChArUco corner ``id`` (OpenCV's numbering: row by row over the inner corners,
+  ``id = row*(cols-1) + col``) is fiducial ``C{id:02d}`` at ``((col+1)*square, (row+1)*square, 0)``
+  in the board frame (OpenCV's: origin at the board's top-left outer corner, x right along the top
+  row, y down, z into the board). The marker ids tell every corner apart, so the names are the same
+  in every image, whatever the view; an image shows any subset of them.
 * ``kind: points`` with ``fiducials: {name: [x, y, z]}`` (metres, target frame); each image then
   gives its pixels under ``observations`` instead of detection.
 
@@ -49,6 +59,7 @@ from mirror_fg.core.values import check_keys, finite, is_int, named_vectors, sho
 
 __all__ = [
     "ChessboardTarget",
+    "CharucoTarget",
     "TagTarget",
     "PointsTarget",
     "Target",
@@ -134,6 +145,45 @@ class TagTarget:
 
 
 @dataclass(frozen=True)
+class CharucoTarget:
+    """ChArUco board of ``cols`` x ``rows`` squares (``square``, ``marker`` metres); fiducial ``C{id:02d}``.
+
+    ``dictionary_id`` is the ``cv2.aruco.DICT_*`` constant; ``legacy_pattern`` OpenCV's pre-4.6 layout.
+    """
+
+    cols: int
+    rows: int
+    square: float
+    marker: float
+    dictionary: str
+    dictionary_id: int
+    legacy_pattern: bool = False
+    kind: str = "charuco"
+
+    @staticmethod
+    def name(corner_id: int) -> str:
+        """Fiducial name of ChArUco corner ``corner_id`` (OpenCV's numbering)."""
+        return f"C{corner_id:02d}"
+
+    def board(self) -> Any:
+        """The ``cv2.aruco.CharucoBoard`` (its frame is the board frame of the fiducials)."""
+        import cv2
+
+        dictionary = cv2.aruco.getPredefinedDictionary(self.dictionary_id)
+        board = cv2.aruco.CharucoBoard((self.cols, self.rows), self.square, self.marker, dictionary)
+        board.setLegacyPattern(self.legacy_pattern)
+        return board
+
+    def target_points(self) -> dict[str, np.ndarray]:
+        """Inner corners in the board frame (metres), by id: ``((col+1)*square, (row+1)*square, 0)``."""
+        return {
+            self.name(r * (self.cols - 1) + c): np.array([(c + 1) * self.square, (r + 1) * self.square, 0.0])
+            for r in range(self.rows - 1)
+            for c in range(self.cols - 1)
+        }
+
+
+@dataclass(frozen=True)
 class PointsTarget:
     """Points measured on the robot (target frame, metres); pixels come with each image."""
 
@@ -144,7 +194,7 @@ class PointsTarget:
         return {name: p.copy() for name, p in self.fiducials.items()}
 
 
-Target = ChessboardTarget | TagTarget | PointsTarget
+Target = ChessboardTarget | CharucoTarget | TagTarget | PointsTarget
 
 
 def tag_dictionary(name: Any, where: str = "dictionary") -> tuple[str, int]:
@@ -175,27 +225,23 @@ def target_from_dict(t: Any, source: str) -> Target:
     kind = t.get("kind")
     if kind == "chessboard":
         check_keys(t, ("kind", "cols", "rows", "square"), where)
-        cols, rows, square = t.get("cols"), t.get("rows"), t.get("square")
-        for key, v in (("cols", cols), ("rows", rows)):
-            if not is_int(v) or v < 3:
-                raise DatasetError(f"{where}: {key} must be an integer >= 3 (inner corners), got {short(v)}")
-        if finite(square) is None or square <= 0:
-            raise DatasetError(f"{where}: square must be a number > 0 (metres), got {short(square)}")
+        cols, rows = (_count(t, key, 3, where, " (inner corners)") for key in ("cols", "rows"))
+        square = _length(t, "square", where)
         if (cols + rows) % 2 == 0:
             raise DatasetError(
                 f"{where}: a {cols} x {rows}-corner board looks the same turned half a turn (cols + rows is even), "
                 "so its corner order cannot be told from an image; use a board with one count odd and the other even"
             )
-        return ChessboardTarget(int(cols), int(rows), float(square))
+        return ChessboardTarget(cols, rows, square)
+    if kind == "charuco":
+        return _charuco(t, where)
     if kind in ("apriltag", "aruco"):
         check_keys(t, ("kind", "dictionary", "tag_size", "tags", "grid", "corner_refinement", "image_gamma"), where)
         name, dict_id = tag_dictionary(t.get("dictionary"), f"{where}: dictionary")
         import cv2
 
         num_ids = int(cv2.aruco.getPredefinedDictionary(dict_id).bytesList.shape[0])
-        size = t.get("tag_size")
-        if finite(size) is None or size <= 0:
-            raise DatasetError(f"{where}: tag_size must be a number > 0 (metres, edge of the black square), got {short(size)}")
+        size = _length(t, "tag_size", where, "metres, edge of the black square")
         refine = t.get("corner_refinement", "subpix")
         if refine not in _CORNER_REFINEMENTS:
             raise DatasetError(f"{where}: corner_refinement must be one of {', '.join(_CORNER_REFINEMENTS)}, got {short(refine)}")
@@ -218,7 +264,7 @@ def target_from_dict(t: Any, source: str) -> Target:
         else:
             tags = _grid(t["grid"], num_ids, name, f"{where}: grid")
             frame = "target"
-        return TagTarget(name, dict_id, float(size), tags, frame=frame, corner_refinement=refine, image_gamma=gamma)
+        return TagTarget(name, dict_id, size, tags, frame=frame, corner_refinement=refine, image_gamma=gamma)
     if kind == "points":
         check_keys(t, ("kind", "fiducials"), where)
         fids = t.get("fiducials")
@@ -228,7 +274,47 @@ def target_from_dict(t: Any, source: str) -> Target:
         if len(out) < 3:
             raise DatasetError(f"{where}: needs at least 3 fiducials, got {len(out)}")
         return PointsTarget(out)
-    raise DatasetError(f"{where}: kind must be 'chessboard', 'apriltag' or 'points', got {short(kind)}")
+    raise DatasetError(f"{where}: kind must be 'chessboard', 'charuco', 'apriltag' or 'points', got {short(kind)}")
+
+
+def _charuco(t: Mapping[str, Any], where: str) -> CharucoTarget:
+    check_keys(t, ("kind", "cols", "rows", "square", "marker", "dictionary", "legacy_pattern"), where)
+    cols, rows = (_count(t, key, 2, where, " (squares)") for key in ("cols", "rows"))
+    square = _length(t, "square", where)
+    marker = finite(t.get("marker"))
+    if marker is None or not 0 < marker < square:
+        raise DatasetError(
+            f"{where}: marker must be a number > 0 and below square (metres), got {short(t.get('marker'))}"
+        )
+    legacy = t.get("legacy_pattern", False)
+    if not isinstance(legacy, bool):
+        raise DatasetError(f"{where}: legacy_pattern must be true or false, got {short(legacy)}")
+    name, dict_id = tag_dictionary(t.get("dictionary"), f"{where}: dictionary")
+    import cv2
+
+    num_ids = int(cv2.aruco.getPredefinedDictionary(dict_id).bytesList.shape[0])
+    markers = cols * rows // 2
+    if markers > num_ids:
+        raise DatasetError(
+            f"{where}: a {cols} x {rows} board has {markers} markers; dictionary {name} has only {num_ids}"
+        )
+    return CharucoTarget(cols, rows, square, marker, name, dict_id, legacy)
+
+
+def _count(m: Mapping[str, Any], key: str, minimum: int, where: str, what: str = "") -> int:
+    """``m[key]`` checked to be an integer >= ``minimum``; ``what`` follows the bound in the message."""
+    value = m.get(key)
+    if not is_int(value) or value < minimum:
+        raise DatasetError(f"{where}: {key} must be an integer >= {minimum}{what}, got {short(value)}")
+    return int(value)
+
+
+def _length(m: Mapping[str, Any], key: str, where: str, what: str = "metres") -> float:
+    """``m[key]`` checked to be a finite number > 0 (a length, ``what`` says in what)."""
+    value = finite(m.get(key))
+    if value is None or value <= 0:
+        raise DatasetError(f"{where}: {key} must be a number > 0 ({what}), got {short(m.get(key))}")
+    return value
 
 
 def _tag_id(key: Any, num_ids: int, dict_name: str, where: str) -> int:
@@ -245,12 +331,9 @@ def _grid(g: Any, num_ids: int, dict_name: str, where: str) -> dict[int, tuple[n
     if not isinstance(g, Mapping):
         raise DatasetError(f"{where}: expected {{cols, rows, spacing, first_id}}, got {type_name(g)}")
     check_keys(g, ("cols", "rows", "spacing", "first_id"), where)
-    cols, rows, spacing, first = g.get("cols"), g.get("rows"), g.get("spacing"), g.get("first_id", 0)
-    for key, v in (("cols", cols), ("rows", rows)):
-        if not is_int(v) or v < 1:
-            raise DatasetError(f"{where}: {key} must be an integer >= 1, got {short(v)}")
-    if finite(spacing) is None or spacing <= 0:
-        raise DatasetError(f"{where}: spacing must be a number > 0 (metres, centre to centre), got {short(spacing)}")
+    cols, rows = (_count(g, key, 1, where) for key in ("cols", "rows"))
+    spacing = _length(g, "spacing", where, "metres, centre to centre")
+    first = g.get("first_id", 0)
     if not is_int(first) or first < 0:
         raise DatasetError(f"{where}: first_id must be a non-negative integer, got {short(first)}")
     last = first + cols * rows - 1

@@ -225,8 +225,8 @@ def visible(
 
 def _to_pixels(camera: Camera, normalized: np.ndarray) -> np.ndarray:
     """Pinhole pixels (N, 2) of normalized coordinates; the simulated camera has no distortion."""
-    if any(float(k) != 0.0 for k in camera.dist):
-        raise ValueError("simulate: only distortion-free cameras are simulated")
+    if camera.model != "pinhole" or any(float(k) != 0.0 for k in camera.dist):
+        raise ValueError("simulate: only distortion-free pinhole cameras are simulated")
     return np.column_stack(
         [camera.fx * normalized[:, 0] + camera.cx, camera.fy * normalized[:, 1] + camera.cy]
     )

@@ -16,6 +16,7 @@ path, residuals and sigma for the report.
 """
 from __future__ import annotations
 
+import logging
 import os
 import sys
 import warnings
@@ -29,7 +30,7 @@ from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.capture import EACH, Capture, ImageEntry, open_video
 from mirror_fg.io.dataset import DATASET_FORMAT, Dataset, dataset_from_dict
 from mirror_fg.io.fileio import MAX_IMAGE_PIXELS, native_stderr
-from mirror_fg.io.target import ChessboardTarget, PointsTarget, TagTarget
+from mirror_fg.io.target import CharucoTarget, ChessboardTarget, PointsTarget, TagTarget
 from mirror_fg.core.values import short_path
 from mirror_fg.vision.detectors import (
     FOUND,
@@ -37,6 +38,8 @@ from mirror_fg.vision.detectors import (
     REFUSED,
     Detection,
     aruco_detector,
+    charuco_detector,
+    detect_charuco,
     detect_chessboard,
     detect_tags,
 )
@@ -47,6 +50,10 @@ __all__ = [
     "detect_capture",
     "format_reports",
 ]
+
+#: Library messages (per image: found at DEBUG, not found / refused with the reason at INFO; a closing
+#: count at INFO). A child of the ``mirror_fg`` logger, which applications configure.
+_log = logging.getLogger(__name__)
 
 #: An image whose format Pillow cannot read from its header (so its size is unknown before decoding)
 #: is decoded by OpenCV only up to this file size (bytes), which bounds what it can expand to.
@@ -73,15 +80,23 @@ class ImageReport:
         return f"{self.id}: {self.status}: {self.reason}"
 
 
+def _report(reports: list[ImageReport], report: ImageReport) -> None:
+    """Keep ``report`` and log it (DEBUG when found, INFO when left out)."""
+    reports.append(report)
+    _log.log(logging.DEBUG if report.status == FOUND else logging.INFO, "%s", report.line())
+
+
 def format_reports(reports: list[ImageReport]) -> str:
     """Per-image lines and a closing count, for printing."""
+    return "\n".join([r.line() for r in reports] + [_count_line(reports)])
+
+
+def _count_line(reports: list[ImageReport]) -> str:
     counts = {s: sum(r.status == s for r in reports) for s in (FOUND, NOT_FOUND, REFUSED)}
-    lines = [r.line() for r in reports]
-    lines.append(
+    return (
         f"{len(reports)} image{'s' if len(reports) != 1 else ''}: {counts[FOUND]} found, "
         f"{counts[NOT_FOUND]} not found, {counts[REFUSED]} refused"
     )
-    return "\n".join(lines)
 
 
 class _Detector:
@@ -92,10 +107,13 @@ class _Detector:
         self.camera = camera
         self.target = capture.target
         self.aruco = aruco_detector(self.target) if isinstance(self.target, TagTarget) else None
+        self.charuco = charuco_detector(self.target) if isinstance(self.target, CharucoTarget) else None
 
     def __call__(self, gray: np.ndarray) -> Detection:
         if isinstance(self.target, ChessboardTarget):
             return detect_chessboard(gray, self.target, self.capture.mirrored, self.camera)
+        if isinstance(self.target, CharucoTarget):
+            return detect_charuco(gray, self.target, self.capture.mirrored, self.camera, self.charuco)
         if isinstance(self.target, TagTarget):
             return detect_tags(gray, self.target, self.capture.mirrored, self.aruco)
         return Detection(status=NOT_FOUND, reason="a points target detects nothing")
@@ -139,6 +157,7 @@ def detect_capture(
         _detect_images(capture, camera, outputs, reports, show, tracker)
     else:
         _detect_video(capture, camera, outputs, reports, show, tracker)
+    _log.info("%s: %s", capture.source, _count_line(reports))
     if tracks is not None:
         tracks.update({name: t for name, t in tracker.tracks.items() if name in capture.track})
 
@@ -249,10 +268,10 @@ def _detect_images(
                     cuts = []
             if det.status == FOUND and det.points:
                 outputs.append(_Output(entry.id, entry.mirror_configs, det.points))
-                reports.append(ImageReport(entry.id, FOUND, det.reason, len(det.points)))
+                _report(reports, ImageReport(entry.id, FOUND, det.reason, len(det.points)))
             else:
                 status = det.status if det.status != FOUND else NOT_FOUND
-                reports.append(ImageReport(entry.id, status, det.reason or "no observations"))
+                _report(reports, ImageReport(entry.id, status, det.reason or "no observations"))
             bar.update(1)
 
 
@@ -352,11 +371,11 @@ def _detect_video(
                     frame_id = f"{video.stem}:{frame}"
                     with native_stderr() as native:
                         ok, image = vc.read() if position == frame else (False, None)
-                    if not ok:
+                    if not ok or image is None:
                         why = f"frame could not be read from the video{native.detail}"
                         for f in range(frame, seg.last + 1):
                             if f in outputs_of_seg:
-                                reports.append(ImageReport(f"{video.stem}:{f}", NOT_FOUND, why))
+                                _report(reports, ImageReport(f"{video.stem}:{f}", NOT_FOUND, why))
                         bar.update(seg.last + 1 - frame)
                         tracker.reset()
                         break
@@ -376,7 +395,7 @@ def _detect_video(
                         continue
                     points = {n: p.copy() for n, p in tracker.points.items()}
                     if not points:
-                        reports.append(ImageReport(frame_id, det.status if det.status != FOUND else NOT_FOUND,
+                        _report(reports, ImageReport(frame_id, det.status if det.status != FOUND else NOT_FOUND,
                                                    det.reason or "nothing detected or tracked"))
                         continue
                     tracked_fids = sum(1 for n in points if n in fiducial_names and n not in det.points)
@@ -390,6 +409,6 @@ def _detect_video(
                         notes.append(det.reason)
                     notes, cuts = notes + cuts, []
                     outputs.append(_Output(frame_id, seg.mirror_configs, points))
-                    reports.append(ImageReport(frame_id, FOUND, "; ".join(notes), len(points)))
+                    _report(reports, ImageReport(frame_id, FOUND, "; ".join(notes), len(points)))
     finally:
         vc.release()

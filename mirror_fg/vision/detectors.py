@@ -14,7 +14,10 @@ tell is refused. Tags: ``cv2.aruco.ArucoDetector`` finds and decodes the markers
 (``subpix``) each corner is then refined by ``cv2.cornerSubPix`` on the linearized image (inverse
 sRGB, float) with a half window of half a tag cell (2 to 5 px): on gamma-encoded images OpenCV's own
 ``CORNER_REFINE_SUBPIX`` sits ~0.5 px inside the black square on each axis (measured on the rendered
-test scene: 0.71 px median off; linearized: 0.21 px).
+test scene: 0.71 px median off; linearized: 0.21 px). ChArUco: ``cv2.aruco.CharucoDetector`` finds
+the markers and interpolates and refines the chessboard corners between them (saddle points, which
+the sRGB gamma does not move); every corner is named by its id, so no ordering is needed, and a
+detection whose undistorted corners do not fit a plane is refused like a chessboard's.
 """
 from __future__ import annotations
 
@@ -24,10 +27,21 @@ from typing import Any
 import cv2
 import numpy as np
 
-from mirror_fg.io.target import ChessboardTarget, TagTarget
+from mirror_fg.core.camera import camera_from_dict
+from mirror_fg.io.target import CharucoTarget, ChessboardTarget, TagTarget
 from mirror_fg.vision.tracking import SRGB_TO_LINEAR
 
-__all__ = ["Detection", "detect_chessboard", "detect_tags", "aruco_detector", "FOUND", "NOT_FOUND", "REFUSED"]
+__all__ = [
+    "Detection",
+    "detect_chessboard",
+    "detect_charuco",
+    "charuco_detector",
+    "detect_tags",
+    "aruco_detector",
+    "FOUND",
+    "NOT_FOUND",
+    "REFUSED",
+]
 
 FOUND, NOT_FOUND, REFUSED = "found", "not found", "refused"
 
@@ -96,12 +110,11 @@ def detect_chessboard(
     pts = grid.reshape(-1, 2)
     if mirrored:
         pts = _unflip(pts, gray.shape[1])
-    if camera is not None and camera.get("fx") is not None:
-        misfit = _grid_misfit_px(pts, board, camera)
-        spacing = _min_spacing(grid)
-        if misfit > max(GRID_MISFIT_MIN_PX, GRID_MISFIT_FRACTION * spacing):
-            return Detection(status=REFUSED, reason=f"the corners do not lie on a plane grid (homography misfit {misfit:.1f} px)")
     names = [board.name(c, r) for r in range(board.rows) for c in range(board.cols)]
+    model = board.target_points()
+    misfit = _plane_misfit(pts, np.array([model[n][:2] for n in names]), _min_spacing(grid), camera)
+    if misfit:
+        return Detection(status=REFUSED, reason=misfit)
     return Detection(points={n: p.astype(np.float64) for n, p in zip(names, pts)})
 
 
@@ -113,17 +126,39 @@ def _min_spacing(grid: np.ndarray) -> float:
     )
 
 
+def _plane_misfit(pixels: np.ndarray, board_xy: np.ndarray, spacing_px: float, camera: dict[str, Any] | None) -> str:
+    """Why corners (N, 2) pixels are a false detection of the board points ``board_xy`` (N, 2), or ''.
+
+    Refused when :func:`_misfit_px` is above GRID_MISFIT_MIN_PX and GRID_MISFIT_FRACTION of the corner
+    spacing ``spacing_px``. Without a camera (``camera`` None or without ``fx``) nothing is checked.
+    """
+    if camera is None or camera.get("fx") is None:
+        return ""
+    misfit = _misfit_px(pixels, board_xy, camera)
+    if misfit > max(GRID_MISFIT_MIN_PX, GRID_MISFIT_FRACTION * spacing_px):
+        return f"the corners do not lie on a plane grid (homography misfit {misfit:.1f} px)"
+    return ""
+
+
 def _grid_misfit_px(pixels: np.ndarray, board: ChessboardTarget, camera: dict[str, Any]) -> float:
-    """RMS distance (pixels, at the focal length) of the undistorted corners from the best homography."""
-    K = np.array([[camera["fx"], 0.0, camera["cx"]], [0.0, camera["fy"], camera["cy"]], [0.0, 0.0, 1.0]])
-    dist = np.asarray(camera.get("dist", [0.0] * 5), dtype=np.float64)
-    normalized = cv2.undistortPoints(pixels.reshape(-1, 1, 2), K, dist).reshape(-1, 2)
-    model = np.array([[c, r] for r in range(board.rows) for c in range(board.cols)], dtype=np.float64)
+    """:func:`_misfit_px` of a chessboard's corners (capture@1 order)."""
+    return _misfit_px(pixels, np.array([p[:2] for p in board.target_points().values()]), camera)
+
+
+def _misfit_px(pixels: np.ndarray, board_xy: np.ndarray, camera: dict[str, Any]) -> float:
+    """RMS distance (pixels, at the focal length) of the undistorted corners from the best homography
+    of the board points ``board_xy``; inf where the camera model cannot undistort a corner."""
+    size = {"width": camera.get("width") or 1, "height": camera.get("height") or 1}  # not used by normalize
+    cam = camera_from_dict({**camera, **size}, "camera")
+    normalized = cam.normalize(pixels)
+    if not np.all(np.isfinite(normalized)):
+        return float("inf")
+    model = board_xy.astype(np.float64)
     H, _ = cv2.findHomography(model, normalized, 0)
     if H is None:
         return float("inf")
     fitted = cv2.perspectiveTransform(model[None], H)[0]
-    return float(np.sqrt(np.mean(np.sum((fitted - normalized) ** 2, axis=1)))) * float(camera["fx"])
+    return float(np.sqrt(np.mean(np.sum((fitted - normalized) ** 2, axis=1)))) * cam.fx
 
 
 def _find_chessboard(img: np.ndarray, cols: int, rows: int) -> np.ndarray | None:
@@ -182,6 +217,57 @@ def _first_square_dark(img: np.ndarray, grid: np.ndarray) -> tuple[bool | None, 
     if agreement < COLOUR_AGREEMENT:
         return None, f"only {100 * agreement:.0f}% of the squares alternate in colour as a chessboard's do"
     return first_dark, ""
+
+
+#: Fewest ChArUco corners kept from one image (not all on one line).
+MIN_CHARUCO_CORNERS = 4
+
+
+def charuco_detector(target: CharucoTarget) -> Any:
+    """A ``cv2.aruco.CharucoDetector`` for ``target``'s board."""
+    return cv2.aruco.CharucoDetector(target.board())
+
+
+def detect_charuco(
+    gray: np.ndarray, target: CharucoTarget, mirrored: bool, camera: dict[str, Any] | None = None, detector: Any = None
+) -> Detection:
+    """ChArUco corners ``C{id:02d}`` found in ``gray``, or a not-found/refused Detection.
+
+    ``mirrored``: seen through an odd number of mirrors (markers decode only on the flipped image).
+    ``camera`` (optional): refuse corners whose undistorted positions do not fit a plane's homography.
+    """
+    detector = detector if detector is not None else charuco_detector(target)
+    img = cv2.flip(gray, 1) if mirrored else gray
+    corners, ids, _, marker_ids = detector.detectBoard(img)
+    found = 0 if ids is None else len(ids)
+    if found < MIN_CHARUCO_CORNERS:
+        markers = 0 if marker_ids is None else len(marker_ids)
+        return Detection(
+            status=NOT_FOUND,
+            reason=f"ChArUco board: {found} corner{'s' if found != 1 else ''} from {markers} {target.dictionary} "
+            f"marker{'s' if markers != 1 else ''} (need {MIN_CHARUCO_CORNERS})",
+        )
+    ids = ids.ravel().astype(int)
+    if target.board().checkCharucoCornersCollinear(ids.reshape(-1, 1).astype(np.int32)):
+        return Detection(status=REFUSED, reason=f"the {found} ChArUco corners found lie on one line")
+    pts = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
+    if mirrored:
+        pts = _unflip(pts, gray.shape[1])
+    model = target.target_points()
+    names = [target.name(int(i)) for i in ids]
+    board_xy = np.array([model[n][:2] for n in names])
+    spacing = target.square * float(np.median(_nearest(pts) / _nearest(board_xy)))  # pixels per square
+    misfit = _plane_misfit(pts, board_xy, spacing, camera)
+    if misfit:
+        return Detection(status=REFUSED, reason=misfit)
+    return Detection(points={n: p.copy() for n, p in zip(names, pts)})
+
+
+def _nearest(points: np.ndarray) -> np.ndarray:
+    """Distance (N,) from each point (N, 2) to its nearest other point."""
+    d = np.linalg.norm(points[:, None, :] - points[None, :, :], axis=2)
+    np.fill_diagonal(d, np.inf)
+    return d.min(axis=1)
 
 
 def aruco_detector(target: TagTarget) -> Any:

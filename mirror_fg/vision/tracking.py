@@ -31,6 +31,7 @@ quadrature, :data:`TRACK_SIGMA_FLOOR_PX` per kind: ``sqrt(floor^2 + mean(s_frame
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -156,14 +157,15 @@ def _klt(prev: np.ndarray, nxt: np.ndarray, pts: np.ndarray, params: KLTParams) 
     n = pts.shape[0]
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0, dtype=bool), []
-    kwargs = dict(
+    kwargs: dict[str, Any] = dict(
         winSize=(params.win_size, params.win_size),
         maxLevel=params.max_level,
         criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, params.iterations, params.epsilon),
         minEigThreshold=params.min_eig,
     )
-    fwd, st_f, _ = cv2.calcOpticalFlowPyrLK(prev, nxt, pts, None, **kwargs)
-    back, st_b, _ = cv2.calcOpticalFlowPyrLK(nxt, prev, fwd, None, **kwargs)
+    # OpenCV's stubs want a Mat for the output argument that None leaves to OpenCV
+    fwd, st_f, _ = cv2.calcOpticalFlowPyrLK(prev, nxt, pts, None, **kwargs)  # type: ignore[call-overload]
+    back, st_b, _ = cv2.calcOpticalFlowPyrLK(nxt, prev, fwd, None, **kwargs)  # type: ignore[call-overload]
     fwd = fwd.reshape(n, 2).astype(np.float64)
     fb_error = np.linalg.norm(back.reshape(n, 2) - pts.reshape(n, 2), axis=1)
     h, w = nxt.shape[:2]
@@ -279,7 +281,7 @@ def _refine_template(linear: np.ndarray, start: np.ndarray, track: Track, p: Ref
     warp[:, 2] = np.array([big, big]) - track.affine @ np.array([half, half])
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-5)
     try:
-        rho, warp = cv2.findTransformECC(track.template, crop, warp, cv2.MOTION_AFFINE, criteria, None, 3)
+        rho, warp = cv2.findTransformECC(track.template, crop, warp, cv2.MOTION_AFFINE, criteria, None, 3)  # type: ignore[call-overload]  # OpenCV's stubs want a Mat for the optional mask
     except cv2.error as exc:
         raise RefineError(f"template match did not converge ({str(exc).strip().splitlines()[-1][:80]})") from None
     if not rho >= p.template_min_correlation:
