@@ -56,7 +56,7 @@ from mirror_fg.factors.stacking import (
 )
 
 __all__ = [
-    "BatchEvaluator", "batched_factors", "batched_evaluator", "robust_weight_and_loss", "ROBUST_K",
+    "BatchEvaluator", "batched_factors", "batched_evaluator", "reflection_model", "measurement_arrays", "robust_weight_and_loss", "ROBUST_K",
 ]
 
 
@@ -85,6 +85,90 @@ def robust_weight_and_loss(kind: str | None, residual: np.ndarray, k: float = RO
         k2 = k * k
         return k2 / (k2 + e * e), 0.5 * k2 * np.log1p(e * e / k2)
     raise ValueError(f"unknown robust kernel {kind!r}: use 'huber' or 'cauchy'")
+
+
+def reflection_model(
+    R: np.ndarray,
+    t: np.ndarray,
+    P: np.ndarray,
+    base_T: np.ndarray,
+    landmark_index: np.ndarray,
+    landmark_point_rows: np.ndarray,
+    mirror_rows: np.ndarray,
+    observed_T: np.ndarray,
+    jacobians: bool,
+    levels: Sequence[int] | None = None,
+) -> tuple[np.ndarray, np.ndarray, tuple | None]:
+    """Residuals ``h - z`` (2, M) of M measurements (eqs. 2, 3, 5-9) and, when asked, their Jacobians.
+
+    Structure of arrays: a point is (3, M), a 2x3 Jacobian per measurement is (2, 3, M), so every numpy
+    operation runs over all M measurements on contiguous rows. R, t: ``T_cam_base``; P: (K, 3) rows of
+    mirror vectors and landmarks; base_T: (3, M) base-frame points (fiducials; landmark columns are
+    taken from P at ``landmark_point_rows``); mirror_rows: (Nv, M) row of P of each mirror.
+    Returns ``(residual, B, blocks)``: B the (3, M) base points used; blocks ``(cross, GR, mirror)``:
+    the pose Jacobian's rotation (2, 3, M) and translation / landmark (2, 3, M) parts and
+    ``{level: (2, 3, M)}`` per mirror level (only ``levels`` when given, mirror 1 = level 0; then the
+    pose parts are None).
+    """
+    PT = np.ascontiguousarray(P.T)  # (3, num points)
+    B = base_T
+    if len(landmark_index):
+        B = B.copy()
+        B[:, landmark_index] = np.take(PT, landmark_point_rows, axis=1)
+    x = R @ B
+    x += t[:, None]  # eq. (2), (3, M)
+    num_mirrors = mirror_rows.shape[0]
+    before, vectors, vvs, vxs = [], [], [], []
+    for level in range(num_mirrors):
+        v = np.take(PT, mirror_rows[level], axis=1)
+        vv = np.einsum("im,im->m", v, v)
+        vx = np.einsum("im,im->m", v, x)
+        before.append(x)
+        vectors.append(v)
+        vvs.append(vv)
+        vxs.append(vx)
+        scale = vx - vv
+        scale *= 2.0
+        scale /= vv
+        x = x - v * scale  # eq. (3): M x + 2 v
+    inv_depth = 1.0 / x[2]
+    residual = x[:2] * inv_depth
+    residual -= observed_T  # eq. (9), h - z, (2, M)
+    if not jacobians:
+        return residual, B, None
+    # d z / d x (eq. 9), then back through the mirrors: G <- G M_k (eq. 3). Blocks are (2, 3, M).
+    G = np.zeros((2, 3, x.shape[1]))
+    G[0, 0] = inv_depth
+    G[1, 1] = inv_depth
+    inv_depth *= inv_depth
+    np.multiply(x[:2], inv_depth, out=G[:, 2])
+    G[:, 2] *= -1.0
+    mirror_blocks = {}
+    work = np.empty_like(G)
+    lowest = 0 if levels is None else min(levels)
+    for level in range(num_mirrors - 1, lowest - 1, -1):
+        v, xb, vv, vx = vectors[level], before[level], vvs[level], vxs[level]
+        Gv = np.einsum("ijm,jm->im", G, v)[:, None, :]  # (2, 1, M)
+        two_over_vv = 2.0 / vv
+        # G (2I - 2[(vx/vv) I + v x^T/vv - 2 vx v v^T/vv^2]) = G d(M x + 2v)/dv at x = xb.
+        H = G * (2.0 - vx * two_over_vv)
+        np.multiply(Gv, xb * two_over_vv, out=work)
+        H -= work
+        np.multiply(Gv, v * (2.0 * vx * two_over_vv / vv), out=work)
+        H += work
+        if levels is None or level in levels:
+            mirror_blocks[level] = H
+        if levels is not None and level == lowest:
+            return residual, B, (None, None, mirror_blocks)
+        np.multiply(Gv, v * two_over_vv, out=work)
+        G -= work  # G M_k
+    GR = np.matmul(R.T, G)  # d z / d Bp, (2, 3, M)
+    cross = np.empty_like(GR)  # rows Bp x (GR row) = rows of -GR [Bp]x
+    for c, (a, b) in enumerate(((1, 2), (2, 0), (0, 1))):
+        np.multiply(B[a], GR[:, b], out=cross[:, c])
+        cross[:, c] -= B[b] * GR[:, a]
+    return residual, B, (cross, GR, mirror_blocks)
+
 
 
 @dataclass
@@ -285,36 +369,15 @@ class BatchEvaluator:
         self._load(values)
         self._compute(jacobians)
 
-    # --- vectorised model (eqs. 2, 3, 5-9) -----------------------------------------------------------
-    # Structure of arrays: a point is (3, M), a 2x3 Jacobian per measurement is (2, 3, M), so every
-    # numpy operation runs over all M measurements on contiguous rows.
+    # --- vectorised model (eqs. 2, 3, 5-9): reflection_model() ------------------------------------
 
     def _compute(self, jacobians: bool) -> None:
         self.batches += 1
         R, t = self._R, self._t
-        PT = np.ascontiguousarray(self._P.T)  # (3, num points)
-        B = self._base_T
-        if len(self.landmark_index):
-            B = B.copy()
-            B[:, self.landmark_index] = np.take(PT, self._landmark_point_rows, axis=1)
-        x = R @ B
-        x += t[:, None]  # eq. (2), (3, M)
-        before, vectors, vvs, vxs = [], [], [], []
-        for level in range(self.num_mirrors):
-            v = np.take(PT, self.mirror_rows[level], axis=1)
-            vv = np.einsum("im,im->m", v, v)
-            vx = np.einsum("im,im->m", v, x)
-            before.append(x)
-            vectors.append(v)
-            vvs.append(vv)
-            vxs.append(vx)
-            scale = vx - vv
-            scale *= 2.0
-            scale /= vv
-            x = x - v * scale  # eq. (3): M x + 2 v
-        inv_depth = 1.0 / x[2]
-        residual = x[:2] * inv_depth
-        residual -= self._observed_T  # eq. (9), h - z, (2, M)
+        residual, B, blocks = reflection_model(
+            R, t, self._P, self._base_T, self.landmark_index, self._landmark_point_rows, self.mirror_rows,
+            self._observed_T, jacobians,
+        )
         if self.robust is None:
             self._err.T[...] = residual
         else:
@@ -329,33 +392,7 @@ class BatchEvaluator:
         self._has_jacobians = jacobians
         if not jacobians:
             return
-        # d z / d x (eq. 9), then back through the mirrors: G <- G M_k (eq. 3). Blocks are (2, 3, M).
-        G = np.zeros((2, 3, x.shape[1]))
-        G[0, 0] = inv_depth
-        G[1, 1] = inv_depth
-        inv_depth *= inv_depth
-        np.multiply(x[:2], inv_depth, out=G[:, 2])
-        G[:, 2] *= -1.0
-        mirror_blocks = {}
-        work = np.empty_like(G)
-        for level in range(self.num_mirrors - 1, -1, -1):
-            v, xb, vv, vx = vectors[level], before[level], vvs[level], vxs[level]
-            Gv = np.einsum("ijm,jm->im", G, v)[:, None, :]  # (2, 1, M)
-            two_over_vv = 2.0 / vv
-            # G (2I - 2[(vx/vv) I + v x^T/vv - 2 vx v v^T/vv^2]) = G d(M x + 2v)/dv at x = xb.
-            H = G * (2.0 - vx * two_over_vv)
-            np.multiply(Gv, xb * two_over_vv, out=work)
-            H -= work
-            np.multiply(Gv, v * (2.0 * vx * two_over_vv / vv), out=work)
-            H += work
-            mirror_blocks[level] = H
-            np.multiply(Gv, v * two_over_vv, out=work)
-            G -= work  # G M_k
-        GR = np.matmul(R.T, G)  # d z / d Bp, (2, 3, M)
-        cross = np.empty_like(GR)  # rows Bp x (GR row) = rows of -GR [Bp]x
-        for c, (a, b) in enumerate(((1, 2), (2, 0), (0, 1))):
-            np.multiply(B[a], GR[:, b], out=cross[:, c])
-            cross[:, c] -= B[b] * GR[:, a]
+        cross, GR, mirror_blocks = blocks
         if self.robust is not None:
             GR *= sqrt_w
             cross *= sqrt_w
@@ -466,6 +503,33 @@ def batched_evaluator(
         raise ValueError(f"max_points_per_factor must be >= 1 or None, got {max_points_per_factor}")
     if not measurements:
         raise ValueError("batched_factors: no measurements")
+    point_keys, mirror_rows, landmark_rows, base_points, observed = measurement_arrays(dataset, layout, measurements)
+    landmark_of = landmark_rows.tolist()
+    if images_per_factor is None:
+        images_per_factor = auto_images_per_factor(measurements, landmark_of, max_points_per_factor)
+    groups = group_measurements(measurements, landmark_of, images_per_factor, max_points_per_factor)
+    sigma = np.asarray(noise_sigma, dtype=float).reshape(2)
+    evaluator = BatchEvaluator(
+        layout.pose_key, point_keys, mirror_rows, landmark_rows, base_points, observed, groups, sigma, robust, robust_k
+    )
+    noise_by_rows: dict[int, gtsam.noiseModel.Base] = {}
+    for f, group in enumerate(groups):
+        rows = 2 * len(group)
+        noise = noise_by_rows.get(rows)
+        if noise is None:
+            noise = noise_by_rows[rows] = gtsam.noiseModel.Diagonal.Sigmas(np.tile(sigma, len(group)))
+        keys, _ = evaluator.factor_layout(f)
+        evaluator.factors.append(gtsam.CustomFactor(noise, keys, evaluator.error_function(f)))
+    return evaluator
+
+
+def measurement_arrays(
+    dataset: Fiducials, layout: KeyLayout, measurements: Sequence[Observation]
+) -> tuple[list[int], np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The measurements as arrays: ``(point_keys, mirror_rows (M, Nv), landmark_rows (M,), base_points
+    (M, 3), observed (M, 2))``. Row r of the point array is key ``point_keys[r]``: the mirror
+    configurations (sorted) then the landmarks (sorted by name); ``landmark_rows`` is -1 for a fiducial,
+    whose base-frame point (metres) is in ``base_points``."""
     num_mirrors = len(measurements[0].mirror_configs)
     mirror_configs = sorted(layout.mirror_keys)
     row_of_config = {config: r for r, config in enumerate(mirror_configs)}
@@ -495,20 +559,4 @@ def batched_evaluator(
         else:
             raise ValueError(f"image {meas.image_id!r}: point {meas.point!r} is neither a fiducial nor a layout point")
         observed[i] = meas.normalized
-    landmark_of = landmark_rows.tolist()
-    if images_per_factor is None:
-        images_per_factor = auto_images_per_factor(measurements, landmark_of, max_points_per_factor)
-    groups = group_measurements(measurements, landmark_of, images_per_factor, max_points_per_factor)
-    sigma = np.asarray(noise_sigma, dtype=float).reshape(2)
-    evaluator = BatchEvaluator(
-        layout.pose_key, point_keys, mirror_rows, landmark_rows, base_points, observed, groups, sigma, robust, robust_k
-    )
-    noise_by_rows: dict[int, gtsam.noiseModel.Base] = {}
-    for f, group in enumerate(groups):
-        rows = 2 * len(group)
-        noise = noise_by_rows.get(rows)
-        if noise is None:
-            noise = noise_by_rows[rows] = gtsam.noiseModel.Diagonal.Sigmas(np.tile(sigma, len(group)))
-        keys, _ = evaluator.factor_layout(f)
-        evaluator.factors.append(gtsam.CustomFactor(noise, keys, evaluator.error_function(f)))
-    return evaluator
+    return point_keys, mirror_rows, landmark_rows, base_points, observed

@@ -24,7 +24,6 @@ from mirror_fg.factors.batched import ROBUST_K
 if TYPE_CHECKING:
     from mirror_fg.io.dataset import Dataset
     from mirror_fg.io.output import OutputPlan
-    from mirror_fg.solver.calibration import Calibration
 
 EXIT_OK, EXIT_INTERNAL = 0, 1  # bad input and unsolvable data: MirrorFgError.exit_code (2, 3)
 
@@ -156,9 +155,22 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--every", type=_COUNT, default=25, help="with --incremental: progress line every N images (default 25)")
     cal.add_argument("--base-frame", default="base_link", help="base frame name for the ROS outputs (default base_link)")
     cal.add_argument("--camera-frame", default="camera_optical_frame",
-                     help="camera frame name for the ROS outputs (default camera_optical_frame)")
+                     help="the camera's optical frame (OpenCV axes: x right, y down, z forward; default "
+                     "camera_optical_frame); a *_link body-frame name is refused: the .ros.yaml also holds "
+                     "camera_link's pose (x forward, REP 103)")
     cal.add_argument("--no-ros", action="store_true", help="do not write the ROS/URDF outputs beside the result")
     _add_common(cal)
+
+    many = sub.add_parser("calibrate-many", help="calibrate many datasets or captures (a fleet) on Dask",
+                          description="Calibrate every input (dataset@1 or capture@1) into DIR/<stem>.result.json with "
+                          "its ROS files, on a local Dask cluster (or --scheduler ADDRESS); prints a summary table. "
+                          "One failure never stops the others; the exit status is 2 if any input failed.",
+                          epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    many.add_argument("inputs", nargs="+", type=Path, help="dataset@1 or capture@1 files")
+    many.add_argument("-o", "--output", required=True, type=Path, help="output directory")
+    many.add_argument("--scheduler", help="address of a running Dask scheduler (default: a local cluster)")
+    many.add_argument("--workers", type=_COUNT, default=2, help="local worker processes (default 2)")
+    _add_common(many)
 
     det = sub.add_parser("detect", help="detect fiducials in photographs or a video (capture@1 -> dataset@1)",
                          description="Detect the target in the images or video of a mirror-fg/capture@1 file and "
@@ -195,11 +207,13 @@ def build_parser() -> argparse.ArgumentParser:
                          description="Write report.html (self-contained) and report.pdf: summary, residuals, "
                          "3D scene, correlations.", epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     rep.add_argument("result", type=Path, help="result@1 file")
-    rep.add_argument("dataset", type=Path, nargs="?", help="dataset@1 the result came from (enables residual plots)")
+    rep.add_argument("dataset", type=Path, nargs="?",
+                     help="dataset@1 or capture@1 the result came from (enables residual plots; a capture's tracks too)")
     rep.add_argument("-o", "--output", required=True, type=Path, help="output directory")
     rep.add_argument("--base-frame", default="base_link", help="base frame name in the ROS snippets (default base_link)")
     rep.add_argument("--camera-frame", default="camera_optical_frame",
-                     help="camera frame name in the ROS snippets (default camera_optical_frame)")
+                     help="the camera's optical frame in the ROS snippets (default camera_optical_frame; "
+                     "a *_link body-frame name is refused)")
     _add_common(rep)
     return parser
 
@@ -207,58 +221,23 @@ def build_parser() -> argparse.ArgumentParser:
 # --- commands -------------------------------------------------------------------------------------
 
 
-def _print_transform_summary(out: _Printer, calibration: Calibration, result: dict, elapsed: float,
-                             incremental: bool = False) -> None:
-    from mirror_fg.solver.residuals import OUTLIER_SIGMAS
+def _print_transform_summary(out: _Printer, result: dict, elapsed: float, incremental: bool = False) -> None:
+    """Each transform with its own bounds in its own frame, the residuals, the solver (tools.summary)."""
+    from mirror_fg.tools.summary import summary_lines
 
-    T = result["T_base_cam"]
-    out.info("T_base_cam (camera pose in the base frame; camera axes x right, y down, z forward):")
-    for row in T["R"]:
-        out.info("  R  [" + "  ".join(f"{x: .6f}" for x in row) + "]")
-    out.info("  t  [" + "  ".join(f"{x: .5f}" for x in T["t"]) + "] m")
-    out.info("  q_xyzw [" + "  ".join(f"{x: .6f}" for x in T["q_xyzw"]) + "]")
-    sigma = result.get("sigma3_cam_base")
-    if sigma:
-        out.info("3-sigma bounds: rotation [" + ", ".join(f"{x:.3f}" for x in sigma["rotation_deg"]) + "] deg, "
-                 "position [" + ", ".join(f"{x:.2f}" for x in sigma["position_mm"]) + "] mm (camera axes)")
-    res = result["residuals"]
-    unit = "px" if res.get("units", "px") == "px" else "(normalized)"
-    opt = result["optimizer"]
-    solver = "iSAM2 updates" if incremental else "LM iterations"
-    out.info(f"residuals: RMS {res['rms_px']:.3f} {unit}, mean {res.get('mean_px', float('nan')):.3f}, "
-             f"max {res['max_px']:.3f}; {solver} {opt['iterations']}"
-             f"{'' if opt['converged'] else ' (NOT converged)'}; time {elapsed:.2f} s")
-    if not calibration.cost_plausible:
-        out.info(f"warning: final cost {calibration.final_error:.4g} is far above its expected "
-                 f"{calibration.expected_final_error:.4g} at the optimum: a local minimum, outliers (try --robust) or "
-                 "a pixel_sigma that is too small")
-    if res.get("outliers"):
-        out.info(f"{len(res['outliers'])} measurement(s) above {OUTLIER_SIGMAS:g} sigma after the solve:")
-        for o in res["outliers"][:20]:
-            out.info(f"  image '{o['image']}' point '{o['point']}': {o['sigmas']:.1f} sigma")
+    for line in summary_lines(result, verbose=out.verbose, incremental=incremental):
+        out.info(line)
+    out.info(f"time {elapsed:.2f} s")
 
 
-def _load_input(path: Path, out: _Printer, plan: OutputPlan) -> Dataset:
-    """A Dataset from a dataset@1 file, or from a capture@1 file after detection; read once.
+def _load_input(path: Path, out: _Printer, plan: OutputPlan, tracks: dict | None = None) -> Dataset:
+    """A Dataset from a dataset@1 or capture@1 file (detected, with its report printed); read once."""
+    from mirror_fg.vision.detect import load_input
 
-    The files a capture names are added to ``plan``'s inputs before any detection, so an output that
-    would overwrite one of them is refused first.
-    """
-    from mirror_fg.io.capture import CAPTURE_FORMAT, capture_from_dict
-    from mirror_fg.io.dataset import dataset_from_dict
-    from mirror_fg.vision.detect import detect_capture
-    from mirror_fg.io.fileio import load_structured
-
-    source = os.fspath(path)
-    data = load_structured(source)
-    fmt = data.get("format") if isinstance(data, dict) else None
-    if fmt == CAPTURE_FORMAT:
-        capture = capture_from_dict(data, source=source, base_dir=os.path.dirname(os.path.abspath(source)))
-        plan.add_inputs(capture.input_files())
-        dataset, reports = detect_capture(capture, progress=out.progress)
+    dataset, reports = load_input(path, plan, progress=out.progress, tracks=tracks)
+    if reports:
         _print_detection_report(out, reports)
-        return dataset
-    return dataset_from_dict(data, source=source)
+    return dataset
 
 
 def _print_detection_report(out: _Printer, reports) -> None:
@@ -292,61 +271,81 @@ def cmd_simulate(args, out: _Printer) -> int:
 
 
 def cmd_calibrate(args, out: _Printer) -> int:
-    from mirror_fg.io.result import result_text
-    from mirror_fg.io.output import OutputPlan
+    from mirror_fg.io.calibration_files import plan_calibration_outputs
     from mirror_fg.solver.calibrate import calibrate
     from mirror_fg.solver.calibration import require_converged
-    from mirror_fg.io.ros import check_frame_name, ros_output_paths, ros_output_texts
 
     start = time.perf_counter()
-    plan = OutputPlan(inputs=[os.fspath(args.input)])
-    plan.add(args.output, "result")
-    ros = not args.no_ros
-    if ros and plan.is_device(args.output):
-        ros = False
+    outputs = plan_calibration_outputs([args.input], args.output, ros=not args.no_ros,
+                                       base_frame=args.base_frame, camera_frame=args.camera_frame)
+    if not args.no_ros and not outputs.ros:
         out.info(f"note: the result goes to a device ({args.output}): no ROS outputs written beside it")
-    if ros:
-        try:
-            check_frame_name(args.base_frame, "--base-frame")
-            check_frame_name(args.camera_frame, "--camera-frame")
-        except ValueError as error:
-            raise DatasetError(str(error)) from None
-        yaml_path, urdf_path = ros_output_paths(args.output)
-        plan.add(yaml_path, "ROS YAML", marker=b"mirror-fg")  # side files: never replace a stranger's file
-        plan.add(urdf_path, "URDF", marker=b"mirror-fg")
-    dataset = _load_input(args.input, out, plan)
+    dataset = _load_input(args.input, out, outputs.plan)
     if args.incremental:
         calibration = _run_incremental(dataset, args, out)
     else:
-        bar = None
-        if out.progress:
-            from tqdm import tqdm
-
-            bar = tqdm(desc="LM", unit=" it", file=sys.stderr, leave=False)
-
-        def on_iteration(iteration: int, before: float, after: float) -> None:
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(error=f"{after:.4g}")
-
-        try:
-            calibration = calibrate(dataset, robust=args.robust, on_iteration=on_iteration)
-        finally:
-            if bar is not None:
-                bar.close()
+        with _StageBars(out.progress) as bars:
+            calibration = calibrate(dataset, robust=args.robust, progress=bars.update)
         if calibration.restarts:
             out.info(f"LM ended in a local minimum from the analytical solution; restarted from {calibration.restarts} "
                      "runner-up P3P hypothesis(es) and kept the lowest cost")
         require_converged(calibration, dataset.source)
     result = calibration.to_dict()
-    texts = {os.fspath(args.output): result_text(result, args.output)}
-    if ros:
-        texts.update(ros_output_texts(result, args.output, args.base_frame, args.camera_frame))
-    written = plan.commit(texts)
-    _print_transform_summary(out, calibration, result, time.perf_counter() - start, args.incremental)
+    written = outputs.write(result)
+    _print_transform_summary(out, result, time.perf_counter() - start, args.incremental)
     if calibration.timings:
         out.detail("stage timings: " + ", ".join(f"{stage} {seconds:.3f} s" for stage, seconds in calibration.timings.items()))
     out.info("wrote " + ", ".join(str(p) for p in written))
+    return EXIT_OK
+
+
+class _StageBars:
+    """One progress bar per stage of ``calibrate`` (on stderr, when it is a terminal), named after it."""
+
+    def __init__(self, show: bool):
+        self.show, self.stage, self.bar = show, None, None
+
+    def update(self, stage: str, done: int, total: int | None) -> None:
+        if not self.show:
+            return
+        if stage != self.stage:
+            self.close()
+            from tqdm import tqdm
+
+            self.stage = stage
+            self.bar = tqdm(desc=stage, total=total, unit=" step", file=sys.stderr, leave=False)
+        if self.bar is not None:
+            self.bar.update(done - self.bar.n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+    def __enter__(self) -> _StageBars:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def cmd_calibrate_many(args, out: _Printer) -> int:
+    from mirror_fg.tools.many import calibrate_many
+
+    rows = calibrate_many(args.inputs, args.output, scheduler=args.scheduler, workers=args.workers,
+                          progress=out.progress)
+    failed = [row for row in rows if row["status"] != "ok"]
+    out.info(f"{len(rows) - len(failed)} of {len(rows)} calibrated into {args.output}")
+    out.info(f"  {'input':40s} {'status':7s} {'3-sigma position (mm)':24s} {'RMS':>7s}  result or reason")
+    for row in rows:
+        if row["status"] == "ok":
+            sigma = "[" + ", ".join(f"{x:.1f}" for x in row["sigma3_position_mm"]) + "]"
+            out.info(f"  {row['input'][-40:]:40s} {'ok':7s} {sigma:24s} {row['rms']:7.3f}  {row['result']}")
+        else:
+            out.info(f"  {row['input'][-40:]:40s} {'FAILED':7s} {'':24s} {'':>7s}  {_one_line(row['reason'])}")
+    if failed:
+        _error_line(f"mirror-fg: error: {len(failed)} of {len(rows)} input(s) failed (listed above)")
+        return 2
     return EXIT_OK
 
 
@@ -382,9 +381,9 @@ def cmd_detect(args, out: _Printer) -> int:
 
 
 def cmd_report(args, out: _Printer) -> int:
-    from mirror_fg.io.dataset import load_dataset
-    from mirror_fg.io.result import load_result
     from mirror_fg.io.output import OutputPlan
+    from mirror_fg.io.result import load_result
+    from mirror_fg.io.ros import check_camera_frame_name, check_frame_name
     from mirror_fg.tools.report import write_report
 
     plan = OutputPlan(inputs=[os.fspath(p) for p in (args.result, args.dataset) if p is not None])
@@ -392,11 +391,20 @@ def cmd_report(args, out: _Printer) -> int:
         raise DatasetError(f"{args.output}: exists and is not a directory (report -o takes a directory)")
     for name in ("report.html", "report.pdf"):
         plan.add(Path(args.output) / name, "report")
+    try:
+        check_frame_name(args.base_frame, "--base-frame")
+        check_camera_frame_name(args.camera_frame, "--camera-frame")
+    except ValueError as error:
+        raise DatasetError(str(error)) from None
     result = load_result(args.result)
-    dataset = load_dataset(args.dataset) if args.dataset is not None else None
+    dataset, tracks, inputs = None, {}, {"result": os.fspath(args.result)}
+    if args.dataset is not None:  # a dataset, or a capture (detected again: its tracks are drawn too)
+        dataset = _load_input(args.dataset, out, plan, tracks=tracks)
+        inputs["data"] = os.fspath(args.dataset)
     try:
         paths = write_report(result, dataset, args.output, progress=out.progress, source=os.fspath(args.result),
-                             base_frame=args.base_frame, camera_frame=args.camera_frame)
+                             base_frame=args.base_frame, camera_frame=args.camera_frame, tracks=tracks or None,
+                             inputs=inputs)
     except ValueError as error:  # a malformed result file
         if isinstance(error, DatasetError):
             raise
@@ -428,7 +436,8 @@ def cmd_plan(args, out: _Printer) -> int:
     return EXIT_OK
 
 
-COMMANDS = {"plan": cmd_plan, "simulate": cmd_simulate, "calibrate": cmd_calibrate, "detect": cmd_detect, "report": cmd_report}
+COMMANDS = {"plan": cmd_plan, "simulate": cmd_simulate, "calibrate": cmd_calibrate, "calibrate-many": cmd_calibrate_many,
+            "detect": cmd_detect, "report": cmd_report}
 
 
 #: Longest run of user data (a path, a value) quoted in an error line.

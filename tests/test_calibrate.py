@@ -199,7 +199,7 @@ def test_an_implausible_optimum_restarts_from_the_runner_up_hypotheses(monkeypat
     wrong = AnalyticSolution(so3_exp(np.array([0.0, np.radians(150.0), 0.0])) @ right.R_cam_base,
                              right.t_cam_base + np.array([2.0, 0.0, 0.0]), dict(right.mirror_vectors),
                              points=dict(right.points), alternatives=[right])
-    monkeypatch.setattr(calibrate_module, "initial_estimate", lambda ds: wrong)
+    monkeypatch.setattr(calibrate_module, "initial_estimate", lambda ds, **options: wrong)
     optimum = calibrate(dataset, initial=truth, compute_covariance=False)
     alone = calibrate(dataset, initial=wrong, compute_covariance=False)  # no restart with a given start
     assert alone.restarts == 0 and not (alone.converged and alone.cost_plausible)

@@ -223,6 +223,7 @@ def test_calibrate_fast_and_reference_paths_agree(monkeypatch, robust, options):
     dataset, truth = simulate_base_case(num_images=36, num_points=4, seed=5)
     initial = _perturbed(truth, 7, scale=2.0)
     reference = calibrate(dataset, initial=initial, robust=robust, fast=False)
+    monkeypatch.setattr(lm_module, "ELIMINATE", False)  # the stacked factors (tests/test_elimination.py: the default)
     monkeypatch.setattr(lm_module, "build_graph", _fast_build_graph(**options))
     fast = calibrate(dataset, initial=initial, robust=robust)
     assert fast.converged and reference.converged
@@ -264,7 +265,8 @@ def test_factor_of_a_subgraph_with_only_its_own_values():
     _assert_close(factor.unwhitenedError(own), expected, "error on own values")
 
 
-def test_default_calibrate_uses_the_fast_path_and_matches_reference():
+def test_stacked_calibrate_uses_the_fast_path_and_matches_reference(monkeypatch):
+    monkeypatch.setattr(lm_module, "ELIMINATE", False)  # the default eliminates: tests/test_elimination.py
     dataset, truth = simulate_base_case(num_images=60, num_points=3, seed=9)
     graph, *_ = build_graph(dataset, truth)
     assert graph.size() < sum(len(im.observations) for im in dataset.images)  # stacked factors
@@ -279,10 +281,13 @@ def test_calibrations_do_not_leak_their_graphs():
 
     from mirror_fg.factors.batched import BatchEvaluator
 
+    from mirror_fg.factors.eliminated import EliminatedEvaluator
+
     dataset, _ = simulate_base_case(num_images=12, seed=3)
     gc.collect()
-    before = sum(isinstance(o, BatchEvaluator) for o in gc.get_objects())
-    for _ in range(3):
-        calibrate(dataset)
+    kinds = (BatchEvaluator, EliminatedEvaluator)
+    before = sum(isinstance(o, kinds) for o in gc.get_objects())
+    for robust in (None, "huber", None):
+        calibrate(dataset, robust=robust)
     gc.collect()
-    assert sum(isinstance(o, BatchEvaluator) for o in gc.get_objects()) == before
+    assert sum(isinstance(o, kinds) for o in gc.get_objects()) == before

@@ -159,3 +159,23 @@ def test_control_variate_detects_an_inefficient_estimator():
     efficient = fig4.summarize(records(1.0))
     np.testing.assert_allclose(efficient["efficiency_cv"], 1.0, rtol=0.02)
     np.testing.assert_allclose(efficient["consistency_cv"], 1.0, rtol=0.02)
+
+
+def test_a_script_trial_runs_on_a_local_dask_cluster_without_hanging():
+    """A trial function from a script loaded by path is not importable in the Dask workers: before, each
+    worker died unpickling it and was restarted forever (the slow Fig. 4 test hung). Its code now
+    travels by value."""
+    import signal
+
+    def too_long(signum, frame):
+        raise TimeoutError("run_trials on a local Dask cluster did not finish in 120 s")
+
+    fig4 = _script("reproduce_fig4")
+    previous = signal.signal(signal.SIGALRM, too_long)
+    signal.alarm(120)
+    try:
+        records = fig4.run_sweep([("a", 1.0, 0.5)], 2, num_images=30, num_points=0, jobs=2, progress=False)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+    assert len(records) == 2 and all(r["status"] == "ok" and r["converged"] for r in records)

@@ -175,7 +175,7 @@ def _assert_self_contained(text: str) -> list[str]:
 def test_report_html_content(report):
     text = report["html"].read_text(encoding="utf-8")
     sources = _assert_self_contained(text)
-    assert len(sources) == 5  # histogram, per-image, per-point, scene, correlation
+    assert len(sources) == 6  # histogram, per-image, per-point, radial, scene, correlation
     flagged = re.search(r"<ul id='flagged-images'>(.*?)</ul>", text, re.S)
     assert flagged and OUTLIER_IMAGE in flagged.group(1)
     assert "img003" not in flagged.group(1)
@@ -270,8 +270,8 @@ def test_report_renders_in_chromium(report, tmp_path):
     dom = run.stdout
     assert "<html" in dom, f"no DOM dumped; chromium said: {run.stderr[-2000:]}"
     sources = _IMG_SRC.findall(dom)
-    assert len(sources) == 5 and all(s.startswith("data:image/png;base64,") for s in sources)
-    assert re.search(r"images=5 loaded=5", dom), re.findall(r"<p id=\"probe\">.*?</p>", dom)
+    assert len(sources) == 6 and all(s.startswith("data:image/png;base64,") for s in sources)
+    assert re.search(r"images=6 loaded=6", dom), re.findall(r"<p id=\"probe\">.*?</p>", dom)
 
 
 def test_report_pdf_pages_render(report, tmp_path):
@@ -283,15 +283,39 @@ def test_report_pdf_pages_render(report, tmp_path):
     pdf = report["pdf"]
     data = pdf.read_bytes()
     assert data.startswith(b"%PDF")
-    expected_pages = 1 + 5  # summary page + one per figure
+    figure_pages = 6  # one page per figure, after the text pages (summary, inputs, flagged, ...)
     run = subprocess.run([pdftoppm, "-r", "40", "-png", str(pdf), str(tmp_path / "page")],
                          capture_output=True, text=True, timeout=120, check=False)
     assert run.returncode == 0, run.stderr
     pages = sorted(tmp_path.glob("page*.png"))
-    assert len(pages) == expected_pages
+    assert len(pages) >= 1 + figure_pages
+    sizes = set()
     for page in pages:
         pixels = matplotlib.image.imread(page)[..., :3]
+        sizes.add(pixels.shape)
         assert np.ptp(pixels.reshape(-1, 3), axis=0).max() > 0.5, f"{page.name} is blank"
+    assert sizes == {(468, 331, 3)}  # every page A4 portrait (8.27 x 11.69 in at 40 dpi)
+
+
+def test_report_pdf_holds_what_the_html_holds(report, tmp_path):
+    """Flagged measurements, ROS snippets, frames, the input echo: in the PDF as in the HTML (issue 17)."""
+    pdftotext = shutil.which("pdftotext")
+    if pdftotext is None:
+        pytest.skip("pdftotext not installed: apt-get install poppler-utils")
+    import html as html_module
+
+    run = subprocess.run([pdftotext, "-layout", str(report["pdf"]), "-"], capture_output=True, text=True, timeout=120)
+    pdf_text = " ".join(run.stdout.split())
+    page = html_module.unescape(report["html"].read_text(encoding="utf-8"))
+    flagged = re.search(r"<ul id='flagged-images'>(.*?)</ul>", page, re.S).group(1)
+    items = re.findall(r"<li[^>]*>(.*?)</li>", flagged)
+    assert items and OUTLIER_IMAGE in items[0]
+    for expected in [*items, "Frames: {B} base", "static_transform_publisher --x", "<joint name=",
+                     "base_link_to_camera_link", "mirror-fg version", "result file", "camera", "pinhole 1024×768",
+                     "Console summary", "T_base_cam 3σ camera position along",
+                     "Residual vs distance from the image centre"]:
+        assert " ".join(expected.split()) in pdf_text, expected
+        assert expected in page, expected
 
 
 # --------------------------------------------------------------------------------------------------
@@ -310,7 +334,7 @@ def _check_pipeline_report(ds, result, out: Path, render: bool) -> None:
     if render:
         paths = write_report(result, ds, out / "report", progress=False)
         text = paths["html"].read_text(encoding="utf-8")
-        assert len(_assert_self_contained(text)) == 5
+        assert len(_assert_self_contained(text)) == 6
         assert paths["pdf"].read_bytes().startswith(b"%PDF")
 
 

@@ -75,18 +75,19 @@ WRONG = {
 _ANY = r"[^.\[]+"  # one key of a point
 #: What a result may hold instead of the value, by kind of wrong value (full-match patterns of paths).
 ACCEPTED = {
-    "all": [r"optimizer\.expected_final_error", r"residuals\.mean_px"],  # extras no reader uses
+    "all": [],  # optimizer.expected_final_error and residuals.mean_px are read now (summary, report): checked
     "null": [  # optional keys: null means absent
         r"T_base_cam", r"(T_cam_base|T_base_cam|analytic\.T_cam_base)\.q_xyzw", r"analytic(\.T_cam_base)?",
-        r"covariance_cam_base", r"sigma3_cam_base(\.\w+)?", r"mirrors", r"mirrors\[\d+\]\.sigma3_mm",
+        r"covariance_cam_base", r"sigma3_cam_base(\.\w+)?", r"covariance_base_cam(_ros)?", r"sigma3_base_cam(\.\w+)?",
+        r"mirrors", r"mirrors\[\d+\]\.sigma3_mm",
         r"points", rf"points\.{_ANY}\.sigma3_mm", r"optimizer(\.\w+)?", r"residuals(\.\w+)?",
     ],
     "nan": [  # statistics that could not be computed
-        r"sigma3_cam_base\.\w+\[\d\]", r"mirrors\[\d+\]\.sigma3_mm\[\d\]", rf"points\.{_ANY}\.sigma3_mm\[\d\]",
-        r"optimizer\.(initial|final)_error", r"residuals\.(rms|max)_px",
+        r"sigma3_(cam_base|base_cam)\.\w+\[\d\]", r"mirrors\[\d+\]\.sigma3_mm\[\d\]", rf"points\.{_ANY}\.sigma3_mm\[\d\]",
+        r"optimizer\.(initial|final|expected_final)_error", r"residuals\.(rms|max|mean)_px",
     ],
     "string": [r"residuals\.units"],
-    "nested": [r"sigma3_cam_base", r"analytic", r"optimizer", r"residuals"],  # objects of optional keys only
+    "nested": [r"sigma3_(cam_base|base_cam)", r"analytic", r"optimizer", r"residuals"],  # objects of optional keys only
 }
 
 
@@ -298,15 +299,16 @@ def test_full_report_of_a_result_with_every_optional_key_null(calibrated, tmp_pa
     """What the fuzz accepts, rendered: null optional keys, NaN statistics, extras of any type."""
     ds, good = calibrated
     result = copy.deepcopy(good)
-    for key in ("T_base_cam", "covariance_cam_base", "sigma3_cam_base", "analytic"):
+    for key in ("T_base_cam", "covariance_cam_base", "sigma3_cam_base", "covariance_base_cam", "sigma3_base_cam",
+                "covariance_base_cam_ros", "analytic"):
         result[key] = None
     result["T_cam_base"]["q_xyzw"] = None
     for entry in [*result["mirrors"], *result["points"].values()]:
         entry["sigma3_mm"] = None
     result["mirrors"][0]["sigma3_mm"] = [math.nan] * 3
     result["optimizer"] = {"iterations": None, "initial_error": math.nan, "converged": None,
-                           "expected_final_error": "garbage"}
-    result["residuals"] = {"rms_px": math.nan, "max_px": None, "units": "abc", "outliers": None, "mean_px": {}}
+                           "expected_final_error": math.nan}  # read by the summary now: a statistic, NaN allowed
+    result["residuals"] = {"rms_px": math.nan, "max_px": None, "units": "abc", "outliers": None, "mean_px": None}
     paths = write_report(result, ds, tmp_path / "with", progress=False, source=SOURCE)
     assert paths["pdf"].read_bytes().startswith(b"%PDF")
     minimal = {"format": good["format"], "T_cam_base": good["T_cam_base"], "extra": [[{}]]}

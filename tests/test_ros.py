@@ -195,9 +195,12 @@ def test_write_ros_outputs(tmp_path):
     assert np.max(np.abs(R_back - R)) < 1e-9 and np.max(np.abs(xyz - t)) < 1e-9
     assert "\n" not in content["static_transform_publisher"]
     assert _parse_publisher(content["static_transform_publisher"]).frame_id == "base"
-    # The URDF file is a well-formed XML document holding the same joint.
-    joint = ET.parse(paths[1]).getroot()
-    assert joint.tag == "joint" and joint.find("parent").get("link") == "base"
+    # The URDF file is a well-formed URDF robot (two links) holding the same joint.
+    robot = ET.parse(paths[1]).getroot()
+    assert robot.tag == "robot" and [link.get("name") for link in robot.findall("link")] == ["base", "cam_optical"]
+    (joint,) = robot.findall("joint")
+    assert joint.find("parent").get("link") == "base"
+    joint.tail = None
     assert ET.tostring(joint) == ET.tostring(ET.fromstring(content["urdf_joint"]))
 
 

@@ -11,7 +11,9 @@ kept as they are (result@1 allows extras); ``null`` means absent for every optio
 
 Frames and units as in docs/formats.md: ``T_cam_base = (R, t)`` with ``Cp = R @ Bp + t`` (metres),
 ``T_base_cam`` its inverse; mirror vectors in the camera frame, points in the base frame (metres);
-``covariance_cam_base`` 6x6 in ``[dtheta (rad), dt (m)]``; 3-sigma bounds in degrees and millimetres.
+``covariance_cam_base`` 6x6 in ``[dtheta (rad), dt (m)]`` (camera axes), ``covariance_base_cam`` the same for
+``T_base_cam`` (base axes) and ``covariance_base_cam_ros`` that one in ROS ``PoseWithCovariance`` order
+``(x, y, z, rot x, rot y, rot z)``; 3-sigma bounds in degrees and millimetres.
 Over 500 lines for one reason: result@1 has one owner, its writer, reader, validator and accessors.
 """
 from __future__ import annotations
@@ -25,7 +27,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.core.transform import quaternion_xyzw_to_rotation, rotation_to_quaternion_xyzw
+from mirror_fg.core.transform import Transform, quaternion_xyzw_to_rotation, rotation_to_quaternion_xyzw
 from mirror_fg.io.output import atomic_write, is_yaml, json_text
 from mirror_fg.io.fileio import parse_json, parse_yaml, read_text
 from mirror_fg.core.values import check_format, is_int, is_number, short, type_name
@@ -46,6 +48,10 @@ __all__ = [
     "mirror_vectors",
     "points",
     "pose_covariance",
+    "base_cam_pose_covariance",
+    "base_cam_covariance",
+    "ros_pose_covariance",
+    "sigma3_pose",
     "ORTHONORMAL_TOL",
 ]
 
@@ -109,12 +115,6 @@ class CalibrationLike(Protocol):
     def t_base_cam(self) -> np.ndarray: ...
 
     @property
-    def sigma3_rotation_deg(self) -> np.ndarray: ...
-
-    @property
-    def sigma3_position_mm(self) -> np.ndarray: ...
-
-    @property
     def residual_norms(self) -> np.ndarray: ...
 
 
@@ -126,14 +126,17 @@ def result_dict(calibration: CalibrationLike) -> dict:
 
     c = calibration
     norms = c.residual_norms
+    P = None if c.covariance is None else np.asarray(c.covariance, dtype=float)
+    P_bc = None if P is None else base_cam_covariance(c.R_cam_base, c.t_cam_base, P)
     result = {
         "format": RESULT_FORMAT,
         "T_cam_base": transform(c.R_cam_base, c.t_cam_base),
         "T_base_cam": transform(c.R_base_cam, c.t_base_cam),
-        "covariance_cam_base": None if c.covariance is None else c.covariance.tolist(),
-        "sigma3_cam_base": None
-        if c.covariance is None
-        else {"rotation_deg": c.sigma3_rotation_deg.tolist(), "position_mm": c.sigma3_position_mm.tolist()},
+        "covariance_cam_base": None if P is None else P.tolist(),
+        "sigma3_cam_base": sigma3_pose(P),
+        "covariance_base_cam": None if P_bc is None else P_bc.tolist(),
+        "sigma3_base_cam": sigma3_pose(P_bc),
+        "covariance_base_cam_ros": None if P_bc is None else ros_pose_covariance(P_bc).tolist(),
         "analytic": None
         if c.analytic is None
         else {"T_cam_base": transform(c.analytic.R_cam_base, c.analytic.t_cam_base)},
@@ -168,6 +171,27 @@ def result_dict(calibration: CalibrationLike) -> dict:
         },
     }
     return result
+
+
+def base_cam_covariance(R_cam_base: np.ndarray, t_cam_base: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """Covariance (6, 6) of ``T_base_cam`` from that of ``T_cam_base``, both ``[dtheta, dt]`` (docs/formats.md);
+    the inverse's rotation error is about the base axes. First order (:meth:`Transform.inverse_covariance`)."""
+    return Transform(R_cam_base, t_cam_base).inverse_covariance(covariance)
+
+
+def ros_pose_covariance(covariance: np.ndarray) -> np.ndarray:
+    """``[dtheta, dt]`` covariance reordered as ROS ``PoseWithCovariance``: ``(x, y, z, rot x, rot y, rot z)``,
+    rotations about the parent's fixed axes (which ``R_true = Exp(dtheta) R`` is)."""
+    order = [3, 4, 5, 0, 1, 2]
+    return np.asarray(covariance, dtype=float)[np.ix_(order, order)]
+
+
+def sigma3_pose(covariance: np.ndarray | None) -> dict[str, list[float]] | None:
+    """``{"rotation_deg", "position_mm"}``: 3-sigma bounds of a ``[dtheta, dt]`` covariance, or None."""
+    if covariance is None:
+        return None
+    sd3 = 3.0 * np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+    return {"rotation_deg": np.rad2deg(sd3[:3]).tolist(), "position_mm": (1e3 * sd3[3:]).tolist()}
 
 
 def _sigma3_mm(covariance: np.ndarray | None) -> list[float] | None:
@@ -416,6 +440,7 @@ _OPTIMIZER = {
     "iterations": lambda x, p: _integer(x, p, 0),
     "initial_error": _statistic,
     "final_error": _statistic,
+    "expected_final_error": _statistic,
     "converged": _boolean,
 }
 
@@ -447,7 +472,7 @@ def _points(value: Any, path: str) -> dict[str, dict[Any, Any]]:
 def _residuals(value: Any, path: str) -> dict[Any, Any]:
     return _fields(
         value, path, {},
-        {"rms_px": _statistic, "max_px": _statistic, "units": _text,
+        {"rms_px": _statistic, "max_px": _statistic, "mean_px": _statistic, "units": _text,
          "outliers": _list_of(lambda e, p: _fields(e, p, *_OUTLIER))},
     )
 
@@ -457,6 +482,9 @@ _TOP = {
     "T_base_cam": _transform,
     "covariance_cam_base": _covariance,
     "sigma3_cam_base": lambda x, p: _fields(x, p, {}, _SIGMA3),
+    "covariance_base_cam": _covariance,
+    "sigma3_base_cam": lambda x, p: _fields(x, p, {}, _SIGMA3),
+    "covariance_base_cam_ros": _covariance,
     "analytic": lambda x, p: _fields(x, p, {}, {"T_cam_base": _transform}),
     "mirrors": _mirrors,
     "points": _points,
@@ -478,6 +506,7 @@ def validate_result(data: Any, source: str) -> dict[str, Any]:
         out = _fields(data, "", {"T_cam_base": _transform}, _TOP)
         if out.get("T_base_cam") is not None:
             _check_inverse(out["T_cam_base"], out["T_base_cam"])
+        _check_base_cam_covariances(out)
     except _Invalid as error:
         raise DatasetError(f"{source}: {error.path}: {error.problem}") from None
     return out
@@ -489,6 +518,23 @@ def _check_inverse(T_cam_base: Mapping[str, Any], T_base_cam: Mapping[str, Any])
     off = max(float(np.max(np.abs(R_file - R.T))), float(np.max(np.abs(t_file + R.T @ t))))
     if off > INVERSE_TOL:
         raise _Invalid("T_base_cam", f"not the inverse of T_cam_base (off by {off:.3g})")
+
+
+def _check_base_cam_covariances(result: Mapping[str, Any]) -> None:
+    """``covariance_base_cam`` is that of ``covariance_cam_base`` inverted, ``..._ros`` it reordered."""
+    P_bc, P_ros = result.get("covariance_base_cam"), result.get("covariance_base_cam_ros")
+    expected = {
+        "covariance_base_cam": None if result.get("covariance_cam_base") is None
+        else base_cam_covariance(*pose(result["T_cam_base"]), np.array(result["covariance_cam_base"])),
+        "covariance_base_cam_ros": None if P_bc is None else ros_pose_covariance(np.array(P_bc)),
+    }
+    for key, got in (("covariance_base_cam", P_bc), ("covariance_base_cam_ros", P_ros)):
+        want = expected[key]
+        if got is not None and want is not None:
+            off = float(np.max(np.abs(np.array(got) - want)))
+            if off > SYMMETRY_TOL * max(float(np.max(np.abs(want))), 1e-300):
+                source = "covariance_cam_base" if key == "covariance_base_cam" else "covariance_base_cam"
+                raise _Invalid(key, f"does not match {source} (off by {off:.3g})")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -530,3 +576,12 @@ def pose_covariance(result: Mapping[str, Any]) -> np.ndarray | None:
     """The 6x6 ``covariance_cam_base`` (SPEC convention), or None when the result has none."""
     cov = result.get("covariance_cam_base")
     return None if cov is None else np.array(cov, dtype=float)
+
+
+def base_cam_pose_covariance(result: Mapping[str, Any]) -> np.ndarray | None:
+    """The 6x6 ``covariance_base_cam`` (rotation error about the base axes): the file's own, else computed
+    from ``covariance_cam_base`` (results written before it was added); None without a covariance."""
+    if result.get("covariance_base_cam") is not None:
+        return np.array(result["covariance_base_cam"], dtype=float)
+    P = pose_covariance(result)
+    return None if P is None else base_cam_covariance(*pose(result["T_cam_base"]), P)

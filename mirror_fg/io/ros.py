@@ -25,9 +25,10 @@ import numpy as np
 import yaml
 
 from mirror_fg.core import transform
+from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.transform import Transform, _clean, rotation_to_quaternion_xyzw  # _clean: no -0.0 in YAML/URDF
 from mirror_fg.io.output import atomic_write
-from mirror_fg.io.result import nearest_rotation, pose_covariance, transforms, validate_result
+from mirror_fg.io.result import base_cam_pose_covariance, nearest_rotation, sigma3_pose, transforms, validate_result
 
 __all__ = [
     "ros_outputs",
@@ -36,6 +37,11 @@ __all__ = [
     "urdf_joint",
     "static_transform_publisher_args",
     "sigma3_base_cam",
+    "check_frame_name",
+    "check_camera_frame_name",
+    "link_frame_name",
+    "urdf_robot",
+    "R_LINK_OPTICAL",
     "ros_output_paths",
     "ros_output_texts",
     "DEFAULT_BASE_FRAME",
@@ -47,6 +53,12 @@ DEFAULT_CAMERA_FRAME = "camera_optical_frame"
 #: ROS / tf2 frame ids: no whitespace, quotes or XML-special characters (they are pasted into XML and shells).
 _FRAME_ID = re.compile(r"^[A-Za-z0-9_./:-]+$")
 _CAMERA_CONVENTION = "OpenCV / ROS optical (REP 103): x right, y down, z forward"
+_LINK_CONVENTION = "ROS body (REP 103): x forward, y left, z up"
+#: A body frame's name: ``camera_link``, ``front_cam_link``, ``link``.
+_BODY_FRAME = re.compile(r"(^|[_/.:-])link$")
+#: REP 103: the optical frame's axes in the camera's body frame (optical z = body x, x = -y, y = -z);
+#: the URDF joint camera_link -> camera_optical_frame with rpy (-pi/2, 0, -pi/2).
+R_LINK_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
 # --------------------------------------------------------------------------------------------------
@@ -85,24 +97,15 @@ def _num(x: float) -> str:
 
 
 def sigma3_base_cam(result: Mapping[str, Any], source: str = "result") -> dict[str, list[float]] | None:
-    """3-sigma bounds of the camera's pose in the base frame, from ``covariance_cam_base``.
+    """3-sigma bounds of the camera's pose in the base frame (``T_base_cam``), None without a covariance.
 
     ``rotation_deg``: about the base axes (``R_base_cam_true = Exp(dphi) R_base_cam``); ``position_mm``:
-    the camera centre's position in the base frame along the base axes. None without a covariance.
-    First order (:meth:`Transform.inverse_covariance`). ``result`` is validated first (DatasetError
-    starting with ``source``).
+    the camera centre's position in the base frame along the base axes. From the result's
+    ``covariance_base_cam``, or for older results from ``covariance_cam_base`` (first order,
+    :meth:`Transform.inverse_covariance`). ``result`` is validated first (DatasetError starting with
+    ``source``).
     """
-    result = validate_result(result, source)
-    P = pose_covariance(result)
-    if P is None:
-        return None
-    (R, t), _ = transforms(result)
-    P_base_cam = Transform(R, t).inverse_covariance(P)
-    sd = 3.0 * np.sqrt(np.clip(np.diag(P_base_cam), 0.0, None))
-    return {
-        "rotation_deg": [float(x) for x in np.rad2deg(sd[:3])],
-        "position_mm": [float(x) for x in 1e3 * sd[3:]],
-    }
+    return sigma3_pose(base_cam_pose_covariance(validate_result(result, source)))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -116,6 +119,34 @@ def check_frame_name(name: Any, what: str) -> str:
             f"{what} {name!r}: a frame name must be non-empty and use only letters, digits and _ . / : -"
         )
     return name
+
+
+def check_camera_frame_name(name: Any, what: str) -> str:
+    """A frame name (:func:`check_frame_name`) for the *optical* frame the calibration is about.
+
+    A body-frame name (``camera_link``, ``..._link``: x forward, y left, z up in REP 103) is refused
+    with DatasetError: writing the optical pose under it would put the camera's z axis where tf users
+    expect x. The outputs give that frame's pose too (:func:`ros_outputs`' ``camera_link``).
+    """
+    name = check_frame_name(name, what)
+    if _BODY_FRAME.search(name):
+        raise DatasetError(
+            f"{what} {name!r} names a body frame (REP 103: x forward, y left, z up), but the calibrated pose "
+            "is of the optical frame (OpenCV: x right, y down, z forward); give the optical frame's name "
+            f"(e.g. camera_optical_frame): the ROS outputs also hold {link_frame_name(name)}'s pose with "
+            "the REP 103 rotation applied"
+        )
+    return name
+
+
+def link_frame_name(camera_frame: str) -> str:
+    """The body frame paired with an optical frame: ``camera_optical_frame`` -> ``camera_link``."""
+    if _BODY_FRAME.search(camera_frame):
+        return camera_frame
+    for suffix in ("_optical_frame", "_optical"):
+        if camera_frame.endswith(suffix):
+            return camera_frame[: -len(suffix)] + "_link"
+    return camera_frame + "_link"
 
 
 def urdf_joint(
@@ -141,6 +172,12 @@ def urdf_joint(
         f'  <origin xyz="{xyz}" rpy="{rpy}"/>\n'
         "</joint>\n"
     )
+
+
+def urdf_robot(joint: str, base_frame: str, camera_frame: str, name: str = "mirror_fg_calibration") -> str:
+    """A minimal valid URDF ``<robot>``: links ``base_frame`` and ``camera_frame`` and ``joint`` between them."""
+    links = "".join(f"  <link name={quoteattr(check_frame_name(f, 'frame'))}/>\n" for f in (base_frame, camera_frame))
+    return f"<robot name={quoteattr(name)}>\n{links}{joint}</robot>\n"
 
 
 def static_transform_publisher_args(
@@ -190,6 +227,7 @@ def ros_outputs(
     camera_frame: str = DEFAULT_CAMERA_FRAME,
     *,
     source: str = "result",
+    link_frame: str | None = None,
 ) -> dict[str, Any]:
     """The content of ``<stem>.ros.yaml`` for a result@1 dictionary.
 
@@ -199,12 +237,17 @@ def ros_outputs(
     ``T_cam_base`` in docs/formats.md's convention, as in the result); ``sigma3_base_cam`` (the camera's pose
     in the base frame, when the result has a covariance); ``rms_px`` and ``max_px`` (pixels, or
     normalized units for a dataset without a camera); ``urdf_joint`` (XML text);
-    ``static_transform_publisher`` (ROS 2 argument string) and ``static_transform_publisher_command``.
+    ``static_transform_publisher`` (ROS 2 argument string) and ``static_transform_publisher_command``;
+    ``camera_link``: the same pose for a description whose camera link is the body frame ``link_frame``
+    (default :func:`link_frame_name`; REP 103, x forward): ``T_base_link`` = ``T_base_cam`` with the
+    REP 103 rotation applied, the fixed ``T_link_optical``, both URDF joints and both publisher commands.
+    ``camera_frame`` is the optical frame; a body-frame name is refused (:func:`check_camera_frame_name`).
     Raises DatasetError (a ValueError) naming ``source`` and the key on a malformed result
     (:func:`mirror_fg.io.result.validate_result`), ValueError on a bad frame name.
     """
     base_frame = check_frame_name(base_frame, "base frame")
-    camera_frame = check_frame_name(camera_frame, "camera frame")
+    camera_frame = check_camera_frame_name(camera_frame, "camera frame")
+    link_frame = check_frame_name(link_frame or link_frame_name(camera_frame), "camera link frame")
     result = validate_result(result, source)
     (R_cb, t_cb), (R_bc, t_bc) = transforms(result)
     hint_cb = result["T_cam_base"].get("q_xyzw")
@@ -233,8 +276,30 @@ def ros_outputs(
         "urdf_joint": urdf_joint(R_bc, t_bc, base_frame, camera_frame),
         "static_transform_publisher": args,
         "static_transform_publisher_command": f"ros2 run tf2_ros static_transform_publisher {args}",
+        "camera_link": _camera_link(R_bc, t_bc, base_frame, link_frame, camera_frame),
     }
     return out
+
+
+def _camera_link(R_bc: np.ndarray, t_bc: np.ndarray, base_frame: str, link: str, optical: str) -> dict[str, Any]:
+    """``base -> link -> optical``: the calibrated pose split at the body frame (REP 103)."""
+    T_base_link = Transform(R_bc, t_bc) @ Transform(R_LINK_OPTICAL, np.zeros(3)).inverse()
+    commands = [
+        "ros2 run tf2_ros static_transform_publisher " + static_transform_publisher_args(R, t, parent, child)
+        for R, t, parent, child in (
+            (T_base_link.R, T_base_link.t, base_frame, link), (R_LINK_OPTICAL, np.zeros(3), link, optical),
+        )
+    ]
+    return {
+        "frames": {"link": link, "link_convention": _LINK_CONVENTION, "optical": optical},
+        "T_base_link": _transform_entry(
+            T_base_link.R, T_base_link.t, None, f"pose of {link} in {base_frame}: T_base_cam with the REP 103 rotation"
+        ),
+        "T_link_optical": _transform_entry(R_LINK_OPTICAL, np.zeros(3), None, f"{optical} in {link} (REP 103)"),
+        "urdf_joints": urdf_joint(T_base_link.R, T_base_link.t, base_frame, link)
+        + urdf_joint(R_LINK_OPTICAL, np.zeros(3), link, optical),
+        "static_transform_publisher_commands": commands,
+    }
 
 
 #: YAML line width: never fold a long string (the publisher arguments are copied as one line).
@@ -271,13 +336,15 @@ def ros_output_texts(
     result_path: str | os.PathLike[str],
     base_frame: str = DEFAULT_BASE_FRAME,
     camera_frame: str = DEFAULT_CAMERA_FRAME,
+    link_frame: str | None = None,
 ) -> dict[str, str]:
-    """``{path: text}`` of ``<stem>.ros.yaml`` (:func:`ros_outputs`) and ``<stem>.urdf.xml`` (the joint).
+    """``{path: text}`` of ``<stem>.ros.yaml`` (:func:`ros_outputs`) and ``<stem>.urdf.xml`` (a minimal
+    valid URDF robot: the two links and the joint, :func:`urdf_robot`).
 
     Nothing is written (the caller writes all its outputs together). Raises DatasetError naming
     ``result_path`` on a malformed result, ValueError on a bad frame name.
     """
-    content = ros_outputs(result, base_frame, camera_frame, source=os.fspath(result_path))
+    content = ros_outputs(result, base_frame, camera_frame, source=os.fspath(result_path), link_frame=link_frame)
     yaml_path, urdf_path = ros_output_paths(result_path)
     source = " ".join(Path(result_path).name.split())  # one line in a comment
     header = (
@@ -285,11 +352,14 @@ def ros_output_texts(
         f"# Frames: {base_frame} (base), {camera_frame} (camera: {_CAMERA_CONVENTION}).\n"
         "# Metres, radians; quaternions x y z w; URDF rpy fixed-axis: R = Rz(yaw) Ry(pitch) Rx(roll).\n"
     )
+    link = content["camera_link"]["frames"]["link"]
     urdf = (
         '<?xml version="1.0"?>\n'
         f"<!-- mirror-fg calibration from {_xml_comment(source)}: pose of {camera_frame} in {base_frame}.\n"
-        f"     {camera_frame} is the {_CAMERA_CONVENTION} frame.\n"
-        "     Paste the joint into your robot description. -->\n" + content["urdf_joint"]
+        f"     {camera_frame} is the {_CAMERA_CONVENTION} frame. A complete robot (two links, one joint):\n"
+        "     paste the joint into your robot description. Where the camera's link is the body frame\n"
+        f"     {link} (x forward), use the two joints under camera_link.urdf_joints in the .ros.yaml. -->\n"
+        + urdf_robot(content["urdf_joint"], base_frame, camera_frame)
     )
     return {os.fspath(yaml_path): _yaml_text(content, header), os.fspath(urdf_path): urdf}
 
@@ -299,6 +369,7 @@ def write_ros_outputs(
     result_path: str | os.PathLike[str],
     base_frame: str = DEFAULT_BASE_FRAME,
     camera_frame: str = DEFAULT_CAMERA_FRAME,
+    link_frame: str | None = None,
 ) -> list[Path]:
     """Write :func:`ros_output_texts`: ``<stem>.ros.yaml`` and ``<stem>.urdf.xml`` beside ``result_path``.
 
@@ -306,7 +377,7 @@ def write_ros_outputs(
     malformed result, ValueError on a bad frame name (nothing is written then), OSError when a file
     cannot be written.
     """
-    texts = ros_output_texts(result, result_path, base_frame, camera_frame)
+    texts = ros_output_texts(result, result_path, base_frame, camera_frame, link_frame)
     return [atomic_write(path, text) for path, text in texts.items()]
 
 

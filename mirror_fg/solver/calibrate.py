@@ -6,20 +6,28 @@ with its restarts (``lm.py``) -> marginal covariances (``marginals.py``) -> resi
 """
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Mapping
 from typing import Any
 
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.dataset import Dataset, dataset_from_dict
 from mirror_fg.solver.calibration import Calibration
-from mirror_fg.solver.graph import InitialEstimate, extract_values
+from mirror_fg.solver.graph import InitialEstimate
 from mirror_fg.solver.initial import initial_estimate
 from mirror_fg.solver.lm import levenberg_marquardt_with_restarts
-from mirror_fg.solver.marginals import marginal_covariances
 from mirror_fg.solver.residuals import outliers_of, predicted_normalized, residual_statistics
 from mirror_fg.solver.timing import timed
 
-__all__ = ["as_dataset", "calibrate"]
+__all__ = ["as_dataset", "calibrate", "Progress", "STAGES"]
+
+logger = logging.getLogger("mirror_fg")
+
+#: ``progress(stage, done, total)``: called as each stage of ``calibrate`` advances (``total`` None
+#: where it is not known in advance).
+Progress = Callable[[str, int, "int | None"], None]
+#: The stages ``calibrate`` reports, in order.
+STAGES = ("initial estimate", "Levenberg-Marquardt", "marginals")
 
 
 def as_dataset(data: Dataset | Mapping[str, Any], what: str = "calibrate()") -> Dataset:
@@ -47,31 +55,54 @@ def calibrate(
     max_iterations: int = 100,
     on_iteration: Callable[[int, float, float], None] | None = None,
     fast: bool = True,
+    progress: Progress | None = None,
 ) -> Calibration:
     """Analytical solution (Sects. 4-5), then the MLE by Levenberg-Marquardt (eq. 23) and Marginals.
 
     initial: start the MLE from these values instead of the analytical solution (e.g. the ground truth).
     robust: ``None``, ``"huber"`` or ``"cauchy"`` kernel on every measurement. on_iteration: called with
     ``(iteration, error_before, error_after)`` after each LM iteration. fast: stacked vectorised
-    factors (default) or the per-measurement reference factors (same estimates).
+    factors (default) or the per-measurement reference factors (same estimates). progress: called
+    ``progress(stage, done, total)`` per stage (:data:`STAGES`): nodes of the mirror tree scored,
+    LM iterations (of ``max_iterations``), marginals (0 then 1 of 1). Stage times are logged on the
+    ``"mirror_fg"`` logger (INFO).
     """
     dataset = as_dataset(dataset)
     timings: dict[str, float] = {}
+    report = progress if progress is not None else (lambda stage, done, total: None)
+    logger.info("%s: calibrating %d images, %d mirror placements", dataset.source, len(dataset.images),
+                len(dataset.configurations))
     with timed(timings, "analytic"):
-        analytic = initial_estimate(dataset) if initial is None else None
+        analytic = None
+        if initial is None:
+            analytic = initial_estimate(dataset, progress=lambda done: report(STAGES[0], done, None))
+    logger.info("initial estimate: %.3f s", timings["analytic"])
 
+    def iteration(number: int, error_before: float, error_after: float) -> None:
+        report(STAGES[1], number, max_iterations)
+        if on_iteration is not None:
+            on_iteration(number, error_before, error_after)
+
+    report(STAGES[1], 0, max_iterations)
     run, analytic, restarts = levenberg_marquardt_with_restarts(
-        dataset, initial if initial is not None else analytic, analytic, robust, fast, max_iterations, on_iteration,
+        dataset, initial if initial is not None else analytic, analytic, robust, fast, max_iterations, iteration,
         timings,
     )
+    logger.info("Levenberg-Marquardt: %d iterations, %d restart(s), %.3f s (build %.3f s)", run.iterations, restarts,
+                timings.get("optimize", 0.0), timings.get("build", 0.0))
+    if not run.converged:
+        logger.warning("%s: Levenberg-Marquardt did not converge in %d iterations", dataset.source, run.iterations)
 
     with timed(timings, "marginals"):
         covariance, mirror_covs, point_covs = (None, {}, {})
         if compute_covariance:
-            covariance, mirror_covs, point_covs = marginal_covariances(run.graph, run.result, run.layout, dataset.source)
+            report(STAGES[2], 0, 1)
+            covariance, mirror_covs, point_covs = run.covariances(dataset)
+            report(STAGES[2], 1, 1)
+    logger.debug("marginals: %.3f s", timings["marginals"])
 
     with timed(timings, "residuals"):
-        R, t, mirror_vectors, points = extract_values(run.result, run.layout)
+        R, t, mirror_vectors, points = run.estimate()
         predicted = predicted_normalized(dataset, run.measurements, R, t, mirror_vectors, points)
         residuals, whitened = residual_statistics(dataset, run.measurements, predicted)
     return Calibration(

@@ -71,14 +71,49 @@ class Calibration:
         return self.T_cam_base.inverse().t
 
     @property
-    def sigma3_rotation_deg(self) -> np.ndarray:
-        """3-sigma bounds of the rotation about the camera axes, degrees."""
+    def sigma3_rotation_deg(self) -> np.ndarray | None:
+        """3-sigma bounds of the rotation about the camera axes, degrees; None without a covariance
+        (``calibrate(..., compute_covariance=False)``)."""
+        if self.covariance is None:
+            return None
         return np.degrees(3.0 * np.sqrt(np.diag(self.covariance)[:3]))
 
     @property
-    def sigma3_position_mm(self) -> np.ndarray:
-        """3-sigma bounds of ``t_cam_base`` (camera axes), millimetres."""
+    def sigma3_position_mm(self) -> np.ndarray | None:
+        """3-sigma bounds of ``t_cam_base`` (camera axes), millimetres; None without a covariance."""
+        if self.covariance is None:
+            return None
         return 1000.0 * 3.0 * np.sqrt(np.diag(self.covariance)[3:])
+
+    def _summary_rows(self) -> list[tuple[str, str]]:
+        """(label, value) rows of :meth:`__repr__` and :meth:`_repr_html_`."""
+        def vector(values, digits: int) -> str:
+            return "n/a" if values is None else "[" + ", ".join(f"{x:.{digits}f}" for x in values) + "]"
+
+        rms = float(np.sqrt(np.mean(self.residual_norms**2))) if len(self.residuals) else float("nan")
+        return [
+            ("R_cam_base", "; ".join(vector(row, 5) for row in self.R_cam_base)),
+            ("t_cam_base (m)", vector(self.t_cam_base, 5)),
+            ("3-sigma rotation (deg)", vector(self.sigma3_rotation_deg, 3)),
+            ("3-sigma position (mm)", vector(self.sigma3_position_mm, 2)),
+            (f"rms reprojection ({self.residual_units})", f"{rms:.4g}"),
+            ("iterations", f"{self.iterations} ({'converged' if self.converged else 'NOT converged'}, "
+                           f"{self.restarts} restart(s))"),
+            ("counts", f"{len(self.residuals)} measurements, {len(self.mirror_vectors)} mirror placements, "
+                       f"{len(self.points)} points"),
+        ]
+
+    def __repr__(self) -> str:
+        """A few lines: T_cam_base, its 3-sigma bounds, rms, iterations and counts (never every unknown)."""
+        return "Calibration(\n" + "".join(f"  {label}: {value}\n" for label, value in self._summary_rows()) + ")"
+
+    def _repr_html_(self) -> str:
+        """The summary of :meth:`__repr__` as an HTML table (Jupyter)."""
+        from html import escape
+
+        rows = "".join(f"<tr><th style='text-align:left'>{escape(label)}</th><td>{escape(value)}</td></tr>"
+                       for label, value in self._summary_rows())
+        return f"<table><caption>Calibration</caption>{rows}</table>"
 
     @property
     def residual_norms(self) -> np.ndarray:

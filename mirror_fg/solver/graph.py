@@ -14,12 +14,13 @@ import numpy as np
 from gtsam.symbol_shorthand import L, V, X
 
 from mirror_fg.factors.batched import batched_factors
+from mirror_fg.factors.eliminated import EliminatedEvaluator, NotEliminable, eliminated_evaluator
 from mirror_fg.factors.reflection import ReflectionFactor, noise_model
 from mirror_fg.io.dataset import Dataset
 
 __all__ = [
     "InitialEstimate", "GraphLayout", "Measurement", "measurements_of", "measurement_factor", "build_graph",
-    "extract_values",
+    "extract_values", "initial_values", "EliminatedGraph", "build_eliminated_graph",
 ]
 
 
@@ -109,18 +110,63 @@ def build_graph(
         noise = noise_model(dataset.normalized_sigma, robust)
         for meas in measurements:
             graph.add(measurement_factor(dataset, layout, meas, noise))
+    return graph, initial_values(layout, initial), layout, measurements
+
+
+def initial_values(layout: GraphLayout, initial: InitialEstimate, without: frozenset = frozenset()) -> gtsam.Values:
+    """GTSAM values of every unknown of ``layout`` (but the mirror configurations in ``without``)."""
     values = gtsam.Values()
     values.insert(layout.pose_key, gtsam.Pose3(gtsam.Rot3(initial.R_cam_base), np.asarray(initial.t_cam_base, dtype=float)))
     for config, key in layout.mirror_keys.items():
-        values.insert(key, np.asarray(initial.mirror_vectors[config], dtype=float))
+        if config not in without:
+            values.insert(key, np.asarray(initial.mirror_vectors[config], dtype=float))
     for name, key in layout.point_keys.items():
         values.insert(key, np.asarray(initial.points[name], dtype=float))
-    return graph, values, layout, measurements
+    return values
 
 
-def extract_values(values: gtsam.Values, layout: GraphLayout) -> tuple[np.ndarray, np.ndarray, dict, dict]:
-    """``(R_cam_base, t_cam_base, mirror_vectors, points)`` read from GTSAM values."""
+def extract_values(
+    values: gtsam.Values, layout: GraphLayout, evaluator: EliminatedEvaluator | None = None
+) -> tuple[np.ndarray, np.ndarray, dict, dict]:
+    """``(R_cam_base, t_cam_base, mirror_vectors, points)`` read from GTSAM values (and the placements an
+    ``evaluator`` eliminated, at those values)."""
     pose = values.atPose3(layout.pose_key)
-    mirror_vectors = {config: np.array(values.atPoint3(key)) for config, key in layout.mirror_keys.items()}
+    eliminated = evaluator.mirror_vectors(values) if evaluator is not None else {}
+    mirror_vectors = {
+        config: eliminated[config] if config in eliminated else np.array(values.atPoint3(key))
+        for config, key in layout.mirror_keys.items()
+    }
     points = {name: np.array(values.atPoint3(key)) for name, key in layout.point_keys.items()}
     return pose.rotation().matrix(), np.array(pose.translation()), mirror_vectors, points
+
+
+@dataclass
+class EliminatedGraph:
+    """The graph of ``factors/eliminated.py``: the last mirror's placements solved inside the factors.
+
+    ``values`` holds ``T_cam_base``, the placements of mirrors 1..Nv-1 and the points only;
+    ``evaluator`` gives the eliminated placements and every covariance at a solution of ``graph``.
+    """
+
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+    layout: GraphLayout
+    measurements: list[Measurement]
+    evaluator: EliminatedEvaluator
+
+
+def build_eliminated_graph(dataset: Dataset, initial: InitialEstimate) -> EliminatedGraph | None:
+    """The eliminated graph (``factors/eliminated.py``) and initial values, or None where the schedule
+    does not allow it (a last-mirror placement under two parent placements: use :func:`build_graph`)."""
+    layout = GraphLayout.for_dataset(dataset)
+    measurements = measurements_of(dataset)
+    try:
+        evaluator = eliminated_evaluator(dataset, layout, measurements, dataset.normalized_sigma, initial.mirror_vectors)
+    except NotEliminable:
+        return None
+    graph = gtsam.NonlinearFactorGraph()
+    for factor in evaluator.factors:
+        graph.add(factor)
+    evaluator.factors = []  # the factors hold the evaluator: no cycle through C++
+    values = initial_values(layout, initial, frozenset(evaluator.eliminated))
+    return EliminatedGraph(graph, values, layout, measurements, evaluator)

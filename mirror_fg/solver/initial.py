@@ -7,16 +7,22 @@ solver: the analytical solution never calls back into it.
 """
 from __future__ import annotations
 
+import logging
+import time
+from collections.abc import Callable
+
 import gtsam
 import numpy as np
 
 from mirror_fg.core.errors import SolveError
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.analytic import AnalyticSolution, TreeNode, TreeWalk, Hypothesis
-from mirror_fg.solver.graph import build_graph, extract_values
+from mirror_fg.solver.graph import build_eliminated_graph, build_graph, extract_values
 from mirror_fg.solver.lm import cost_scale, lm_params
 
 __all__ = ["initial_estimate", "SUBTREE_MAX_ITERATIONS", "SUBTREE_RELATIVE_TOLERANCE"]
+
+logger = logging.getLogger("mirror_fg")
 
 #: LM iterations allowed when refining one subtree hypothesis of the initial estimate.
 SUBTREE_MAX_ITERATIONS = 50
@@ -27,13 +33,17 @@ SUBTREE_RELATIVE_TOLERANCE = 1e-4
 def _refine_subtree(subtree: Dataset, closed_form: AnalyticSolution) -> tuple[float, AnalyticSolution] | None:
     """The MLE (eq. 23) of one subtree's own images from its closed-form hypothesis: its cost and values."""
     try:
-        graph, values, layout, _ = build_graph(subtree, closed_form, None)
+        eliminated = build_eliminated_graph(subtree, closed_form)  # the subtree's own placements solved inside
+        if eliminated is not None:
+            graph, values, layout, evaluator = eliminated.graph, eliminated.values, eliminated.layout, eliminated.evaluator
+        else:
+            (graph, values, layout, _), evaluator = build_graph(subtree, closed_form, None), None
         params = lm_params(SUBTREE_MAX_ITERATIONS, cost_scale(subtree))
         params.setRelativeErrorTol(SUBTREE_RELATIVE_TOLERANCE)  # a start and a ranking: no need for the last digits
         result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
     except (RuntimeError, SolveError):  # an under-determined subtree: no refinement, no score
         return None
-    R, t, mirror_vectors, _ = extract_values(result, layout)
+    R, t, mirror_vectors, _ = extract_values(result, layout, evaluator)
     return float(graph.error(result)), AnalyticSolution(R, t, mirror_vectors)
 
 
@@ -50,7 +60,9 @@ def _refined_scores(node: TreeNode) -> list[tuple[float, Hypothesis]]:
     return scores
 
 
-def initial_estimate(dataset: Dataset, seed: int = 0) -> AnalyticSolution:
+def initial_estimate(
+    dataset: Dataset, seed: int = 0, progress: Callable[[int], None] | None = None
+) -> AnalyticSolution:
     """The initial guess of ``calibrate``: the analytical solution with every hypothesis below the root
     refined by LM on its own images; the root's combinations are ranked by every fiducial, as in
     ``analytic.solve_analytic``.
@@ -59,9 +71,15 @@ def initial_estimate(dataset: Dataset, seed: int = 0) -> AnalyticSolution:
     away) a mirror placement whose images mostly took the wrong P3P twin can look better than the
     right one and start LM in another minimum; refined, the right hypothesis is the cheaper one.
     Frames and units as :class:`~mirror_fg.solver.analytic.AnalyticSolution`; raises as
-    :class:`~mirror_fg.solver.analytic.TreeWalk`.
+    :class:`~mirror_fg.solver.analytic.TreeWalk`. ``progress(nodes_done)`` is called after each node of
+    the mirror tree is scored.
     """
     walk = TreeWalk(dataset, seed)
-    for node in walk.nodes():
+    for done, node in enumerate(walk.nodes(), start=1):
+        started = time.perf_counter()
         node.scores = _refined_scores(node) if node.level > 1 else node.closed_form_scores()
+        logger.debug("node %s (level %d, %d images, %d hypotheses): %.3f s", node.prefix, node.level, len(node.images),
+                     len(node.proposals), time.perf_counter() - started)
+        if progress is not None:
+            progress(done)
     return walk.solution()

@@ -3,6 +3,7 @@ plausibility of its final cost, and the restarts from the analytical solution's 
 """
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -12,8 +13,11 @@ import numpy as np
 from mirror_fg.core.errors import SolveError
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.analytic import AnalyticSolution, reconstruct_points
-from mirror_fg.solver.graph import GraphLayout, InitialEstimate, Measurement, build_graph
-from mirror_fg.solver.marginals import unconstrained_message
+from mirror_fg.factors.eliminated import EliminatedEvaluator
+from mirror_fg.solver.graph import (
+    GraphLayout, InitialEstimate, Measurement, build_eliminated_graph, build_graph, extract_values,
+)
+from mirror_fg.solver.marginals import eliminated_covariances, marginal_covariances, unconstrained_message
 from mirror_fg.solver.timing import timed
 
 __all__ = [
@@ -21,6 +25,7 @@ __all__ = [
     "levenberg_marquardt", "levenberg_marquardt_with_restarts",
 ]
 
+logger = logging.getLogger("mirror_fg")
 
 #: Normalized measurement noise at which the LM settings below were chosen: 1 px at fx = 800 px
 #: (the paper's base case).
@@ -66,11 +71,40 @@ def _stationary(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, error: 
     return predicted_decrease <= 1e-6 * max(error, scale)
 
 
+#: Gauss-Newton steps after LM on the eliminated graph (each one linearisation of a small system).
+POLISH_STEPS = 5
+
+
+def _polished(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> gtsam.Values:
+    """``values`` moved by Gauss-Newton steps while they lower the error: LM stops when an iteration
+    lowers the cost by less than 1e-10 relative, which leaves the estimate ~1e-7 relative from the
+    optimum; on the eliminated graph a few more steps are cheap and reach it to ~1e-12."""
+    error = graph.error(values)
+    for _ in range(POLISH_STEPS):
+        try:
+            step = graph.linearize(values).optimize()
+        except RuntimeError:
+            break
+        candidate = values.retract(step)
+        candidate_error = graph.error(candidate)
+        if not candidate_error <= error * (1.0 + 1e-12):  # rising beyond the cost's rounding
+            break
+        values, error = candidate, candidate_error
+        if np.max(np.abs(step.vector()), initial=0.0) < 1e-14:
+            break
+    return values
+
+
 def plausible(final_error: float, expected_final_error: float) -> bool:
     """Whether a final cost 0.5 chi^2 is within 10 spreads (sqrt(dof / 2)) above its mean dof / 2."""
     spread = np.sqrt(max(expected_final_error, 1.0))
     return not final_error > expected_final_error + 10.0 * spread
 
+
+#: Solve with the last mirror's placements eliminated inside the factors (``factors/eliminated.py``)
+#: where the data allow it (no robust kernel): linear cost in the number of images. False: the stacked
+#: factors of ``factors/batched.py`` with every placement in the graph (same estimates).
+ELIMINATE = True
 
 #: At most this many restarts of LM from the analytical solution's runner-up hypotheses.
 MAX_RESTARTS = 4
@@ -89,11 +123,23 @@ class LMRun:
     final_error: float
     iterations: int
     converged: bool
+    dimension: int  # number of scalar unknowns (eliminated placements included)
+    evaluator: EliminatedEvaluator | None = None  # the eliminated placements' solver, if any
 
     @property
     def expected_final_error(self) -> float:
         """Mean of the final cost 0.5 chi^2 at the optimum: half the degrees of freedom."""
-        return 0.5 * max(2 * len(self.measurements) - self.values.dim(), 0)
+        return 0.5 * max(2 * len(self.measurements) - self.dimension, 0)
+
+    def estimate(self) -> tuple[np.ndarray, np.ndarray, dict, dict]:
+        """``(R_cam_base, t_cam_base, mirror_vectors, points)`` at the result (``graph.extract_values``)."""
+        return extract_values(self.result, self.layout, self.evaluator)
+
+    def covariances(self, dataset: Dataset) -> tuple[np.ndarray, dict, dict]:
+        """Pose (SPEC convention), mirror and point covariances at the result (``marginals.py``)."""
+        if self.evaluator is not None:
+            return eliminated_covariances(dataset, self.evaluator, self.result, self.layout)
+        return marginal_covariances(self.graph, self.result, self.layout, dataset.source)
 
     @property
     def plausible(self) -> bool:
@@ -107,7 +153,13 @@ def levenberg_marquardt(
 ) -> LMRun:
     """Build the graph from ``initial`` and run LM (eq. 23); times added to ``timings``."""
     with timed(timings, "build"):
-        graph, values, layout, measurements = build_graph(dataset, initial, robust, fast=fast)
+        eliminated = build_eliminated_graph(dataset, initial) if fast and robust is None and ELIMINATE else None
+        if eliminated is not None:
+            graph, values, layout, measurements = eliminated.graph, eliminated.values, eliminated.layout, eliminated.measurements
+            evaluator, dimension = eliminated.evaluator, eliminated.evaluator.dimension
+        else:
+            graph, values, layout, measurements = build_graph(dataset, initial, robust, fast=fast)
+            evaluator, dimension = None, values.dim()
 
     with timed(timings, "optimize"):
         scale = cost_scale(dataset)
@@ -120,14 +172,16 @@ def levenberg_marquardt(
             result = optimizer.optimize()
         except RuntimeError as error:
             raise SolveError(f"{dataset.source}: {unconstrained_message(error, layout)}") from None
-        final_error = graph.error(result)
         iterations = optimizer.iterations()
+        if evaluator is not None:
+            result = _polished(graph, result)
+        final_error = graph.error(result)
         # LM also stops when its damping hits the upper bound: a stall unless a Gauss-Newton step
         # would no longer lower the error (then it is at a stationary point, e.g. noise-free data).
         stalled = optimizer.lambda_() >= params.getlambdaUpperBound() and not _stationary(graph, result, final_error, scale)
         converged = bool(np.isfinite(final_error)) and iterations < max_iterations and not stalled
     return LMRun(graph, values, result, layout, measurements, float(initial_error), float(final_error), iterations,
-                 converged)
+                 converged, dimension, evaluator)
 
 
 def levenberg_marquardt_with_restarts(
@@ -146,6 +200,8 @@ def levenberg_marquardt_with_restarts(
         return run, analytic, restarts
     # A cost far above its chi-square range: LM stopped in another minimum. Start again from the
     # root's runner-up hypotheses; keep the lowest cost.
+    logger.info("%s: final cost %.6g far above its expected %.6g: restarting from the runner-up hypotheses",
+                dataset.source, run.final_error, run.expected_final_error)
     for alternative in analytic.alternatives[:MAX_RESTARTS]:
         if not alternative.points and run.layout.point_keys:
             alternative.points = reconstruct_points(dataset, alternative)

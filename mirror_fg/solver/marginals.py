@@ -6,14 +6,18 @@ points (base frame) 3x3 in m^2.
 """
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import gtsam
 import numpy as np
 
 from mirror_fg.core.errors import SolveError
 from mirror_fg.core.transform import covariance_from_pose3
-from mirror_fg.solver.graph import GraphLayout
+from mirror_fg.factors.eliminated import EliminatedEvaluator
+from mirror_fg.io.dataset import Dataset
+from mirror_fg.solver.graph import GraphLayout, build_graph, extract_values
 
-__all__ = ["marginal_covariances", "unconstrained_message"]
+__all__ = ["marginal_covariances", "eliminated_covariances", "unconstrained_message"]
 
 
 def marginal_covariances(
@@ -82,6 +86,33 @@ def marginal_covariances(
         return rest_covariance[o : o + 3, o : o + 3]
 
     mirrors = {config: block(key) for config, key in layout.mirror_keys.items()}
+    points = {name: block(key) for name, key in layout.point_keys.items()}
+    return covariance, mirrors, points
+
+
+def eliminated_covariances(
+    dataset: Dataset, evaluator: EliminatedEvaluator, values: gtsam.Values, layout: GraphLayout
+) -> tuple[np.ndarray, dict, dict]:
+    """The same marginals from the graph of ``factors/eliminated.py`` at its solution ``values``: the
+    kept unknowns' information is the Schur complement its factors hold; the eliminated placements'
+    covariances follow from it. Where that information is singular the full graph is built and
+    :func:`marginal_covariances` names the unconstrained unknown."""
+    found = evaluator.covariances(values)
+    if found is None:
+        R, t, mirror_vectors, points = extract_values(values, layout, evaluator)
+        estimate = SimpleNamespace(R_cam_base=R, t_cam_base=t, mirror_vectors=mirror_vectors, points=points)
+        graph, full_values, _, _ = build_graph(dataset, estimate)
+        return marginal_covariances(graph, full_values, layout, dataset.source)
+    kept, eliminated = found
+    offsets = evaluator.kept_offsets()
+    pose = values.atPose3(layout.pose_key)
+    covariance = covariance_from_pose3(pose.rotation().matrix(), kept[:6, :6])
+
+    def block(key: int) -> np.ndarray:
+        o = offsets[key]
+        return kept[o : o + 3, o : o + 3]
+
+    mirrors = {config: eliminated[config] if config in eliminated else block(key) for config, key in layout.mirror_keys.items()}
     points = {name: block(key) for name, key in layout.point_keys.items()}
     return covariance, mirrors, points
 

@@ -1,25 +1,23 @@
-"""Calibration report: a self-contained HTML page and a PDF (matplotlib, Agg) of a ``mirror-fg/result@1``.
+"""Calibration report: a self-contained HTML page and an A4 PDF (matplotlib, Agg) of a ``mirror-fg/result@1``.
 
-This module holds the summary (table rows and a one-line verdict) and assembles the page and the PDF;
-the residuals are computed in :mod:`mirror_fg.tools.residuals`, the figures drawn in
-:mod:`mirror_fg.tools.report_figures`.
+This module decides what the report says (summary table, one-line verdict, input echo, flagged
+measurements, figures, ROS snippets) as one list of blocks that :mod:`mirror_fg.tools.report_pages`
+renders twice, HTML and PDF, so both hold the same content; the residuals are computed in
+:mod:`mirror_fg.tools.residuals`, the figures drawn in :mod:`mirror_fg.tools.report_figures` and
+:mod:`mirror_fg.tools.report_diagnostics`, the console summary is :mod:`mirror_fg.tools.summary`'s.
 
 Frames (docs/formats.md): {B} base, {C} camera (OpenCV: x right, y down, z forward); ``T_cam_base = (R, t)``
 with ``Cp = R @ Bp + t``; the 3D scene is drawn in the base frame, metres. Residuals are
 ``predicted - observed`` in pixels when the dataset has a camera, else in normalized image
-coordinates. "RMS" is the root mean square of the measurements' Euclidean residual lengths, as
-``residuals.rms_px`` in result@1 (``sqrt(2) pixel_sigma`` expected under the noise model); the
-histogram shows the x and y coordinates, each expected N(0, pixel_sigma).
+coordinates. There is one "RMS": the root mean square of the measurements' Euclidean residual lengths,
+as ``residuals.rms_px`` in result@1 (``sqrt(2) pixel_sigma`` expected under the noise model); every other
+statistic is named for what it is (mean length, per-coordinate standard deviation, ...).
 """
 from __future__ import annotations
 
-import base64
-import html
-import io
 import math
 import os
 import sys
-import textwrap
 from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -32,31 +30,26 @@ from mirror_fg.core.transform import Transform, rotation_angle
 from mirror_fg.io.output import atomic_write
 from mirror_fg.io.result import mirror_vectors, pose, transforms, validate_result
 from mirror_fg.io.result import points as reconstruction_points
-from mirror_fg.io.ros import (
-    DEFAULT_BASE_FRAME,
-    DEFAULT_CAMERA_FRAME,
-    check_frame_name,
-    sigma3_base_cam,
-    static_transform_publisher_args,
-    urdf_joint,
-)
+from mirror_fg.io.ros import DEFAULT_BASE_FRAME, DEFAULT_CAMERA_FRAME, check_frame_name, ros_outputs, sigma3_base_cam
+from mirror_fg.tools.report_diagnostics import figure_radial, figure_tracks, image_centre, radial_verdict
 from mirror_fg.tools.report_figures import (
     figure_correlation,
     figure_histogram,
     figure_per_image,
     figure_per_point,
     figure_scene,
-    new_figure,
-    png,
 )
+from mirror_fg.tools.report_pages import Block, html_page, pdf_document
 from mirror_fg.tools.residuals import OUTLIER_FACTOR, Residuals, residuals_of_valid_result
+from mirror_fg.tools.summary import RMS_DEFINITION, cost_warning, summary_lines
 
 if TYPE_CHECKING:
-    from matplotlib.figure import Figure
-
     from mirror_fg.io.dataset import Dataset
 
 __all__ = ["write_report"]
+
+#: Fiducial names listed in the input echo (the count is always given).
+MAX_NAMES_ECHOED = 24
 
 
 # --------------------------------------------------------------------------------------------------
@@ -76,7 +69,7 @@ def _fmt(values: Any, digits: int = 4) -> str:
 
 @dataclass
 class _Summary:
-    rows: list[tuple[str, str]]  # (label, value) for the table
+    rows: list[tuple[str, str]]  # (label, value) for the table; a value's lines split on newlines
     verdict: str  # one line: the at-a-glance assessment
     good: bool
     notes: list[str]
@@ -88,39 +81,41 @@ def _summary(
     """Summary table rows, a one-line verdict and notes (``result`` validated)."""
     (R_cb, t_cb), (R_bc, t_bc) = transforms(result)
     T_base_cam = Transform(R_bc, t_bc)
-    rows: list[tuple[str, str]] = []
     notes: list[str] = []
-    rows.append((f"T_base_cam translation (camera centre in {base_frame}), m", _fmt(t_bc, 6)))
-    rows.append(("T_base_cam quaternion (x, y, z, w)", _fmt(T_base_cam.quaternion_xyzw(), 6)))
-    rows.append(("T_base_cam URDF rpy, deg", _fmt(np.rad2deg(T_base_cam.rpy()), 6)))
-    rows.append(("T_cam_base R (rows)", "<br>".join(_fmt(row, 6) for row in R_cb)))
-    rows.append(("T_cam_base t (base origin in camera), m", _fmt(t_cb, 6)))
-    sigma = result.get("sigma3_cam_base") or {}
-    rows.append(("3σ rotation (about camera axes), deg", _fmt(sigma.get("rotation_deg"), 3)))
-    rows.append(("3σ position of T_cam_base, mm", _fmt(sigma.get("position_mm"), 3)))
-    s_bc = sigma3_base_cam(result)
-    if s_bc is not None:
-        rows.append((f"3σ camera position in {base_frame}, mm", _fmt(s_bc["position_mm"], 3)))
+    s_bc = sigma3_base_cam(result) or {}
+    s_cb = result.get("sigma3_cam_base") or {}
+    rows = [
+        (f"T_base_cam translation (camera centre in {base_frame}), m", _fmt(t_bc, 6)),
+        ("T_base_cam quaternion (x, y, z, w)", _fmt(T_base_cam.quaternion_xyzw(), 6)),
+        ("T_base_cam URDF rpy, deg", _fmt(np.rad2deg(T_base_cam.rpy()), 6)),
+        (f"T_base_cam 3σ rotation about {base_frame} x, y, z, deg", _fmt(s_bc.get("rotation_deg"), 3)),
+        (f"T_base_cam 3σ camera position along {base_frame} x, y, z, mm", _fmt(s_bc.get("position_mm"), 3)),
+        ("T_cam_base R (rows)", "\n".join(_fmt(row, 6) for row in R_cb)),
+        ("T_cam_base t (base origin in camera axes), m", _fmt(t_cb, 6)),
+        ("T_cam_base 3σ rotation about camera x, y, z, deg", _fmt(s_cb.get("rotation_deg"), 3)),
+        ("T_cam_base 3σ base origin along camera x, y, z, mm", _fmt(s_cb.get("position_mm"), 3)),
+    ]
     res = result.get("residuals") or {}
+    units = residuals.units if residuals is not None else str(res.get("units") or "px")
+    rms = _fmt(res.get("rms_px"))
+    if residuals is not None and res.get("rms_px") is not None and not math.isclose(
+            residuals.rms, res["rms_px"], rel_tol=1e-6, abs_tol=1e-12):
+        rms += f" (on this dataset: {_fmt(residuals.rms)})"
+    rows.append((f"RMS reprojection error ({RMS_DEFINITION}), {units}", rms))
+    if res.get("mean_px") is not None:
+        rows.append((f"mean reprojection error length, {units}", _fmt(res["mean_px"])))
+    rows.append((f"largest reprojection error, {units}", _fmt(res.get("max_px"))))
     if residuals is not None:
-        units = residuals.units
-    else:
-        units = str(res.get("units") or "px")
-    rows.append((f"RMS residual (result file), {units}", _fmt(res.get("rms_px"))))
-    rows.append((f"largest residual (result file), {units}", _fmt(res.get("max_px"))))
-    if residuals is not None:
-        rows.append(
-            (f"RMS / largest residual (recomputed), {units}", f"{_fmt(residuals.rms)} / {_fmt(residuals.largest)}")
-        )
         rows.append(("measurements", str(int(np.sum(residuals.valid)))))
-    outliers = res.get("outliers")
-    if outliers is not None:
-        rows.append(("measurements flagged by the calibration", str(len(outliers))))
+    if res.get("outliers") is not None:
+        rows.append(("measurements flagged by the calibration", str(len(res["outliers"]))))
     opt = result.get("optimizer") or {}
     rows.append(("iterations", "–" if opt.get("iterations") is None else str(opt["iterations"])))
     rows.append(("converged", {True: "yes", False: "NO"}.get(opt.get("converged"), "–")))
     if "initial_error" in opt or "final_error" in opt:
-        rows.append(("error initial → final", f"{_fmt(opt.get('initial_error'))} → {_fmt(opt.get('final_error'))}"))
+        expected = f" (expected {_fmt(opt['expected_final_error'])})" if opt.get("expected_final_error") else ""
+        rows.append(("cost ½χ² initial → final", f"{_fmt(opt.get('initial_error'))} → {_fmt(opt.get('final_error'))}"
+                     + expected))
     analytic = (result.get("analytic") or {}).get("T_cam_base")
     if analytic is not None:
         R_a, t_a = pose(analytic)
@@ -130,79 +125,69 @@ def _summary(
     else:
         notes.append("The result carries no analytic solution: no analytic vs MLE comparison.")
     if dataset is not None:
-        configs = sorted({(l + 1, m) for im in dataset.images for l, m in enumerate(im.mirror_configs)})
-        rows.append(
-            (
-                "dataset",
-                f"{len(dataset.images)} images, {dataset.num_mirrors} mirror(s), {len(configs)} mirror "
-                f"configurations, {len(dataset.fiducials)} fiducials, {len(result.get('points') or {})} "
-                f"reconstruction points, σ = {_fmt(dataset.pixel_sigma)} {units}",
-            )
-        )
+        configs = {(l + 1, m) for im in dataset.images for l, m in enumerate(im.mirror_configs)}
+        rows.append(("dataset", f"{len(dataset.images)} images, {dataset.num_mirrors} mirror(s), {len(configs)} mirror "
+                     f"configurations, {len(dataset.fiducials)} fiducials, {len(result.get('points') or {})} "
+                     f"reconstruction points, σ = {_fmt(dataset.pixel_sigma)} {units}"))
+    good, parts = _verdict(result, dataset, residuals, opt)
+    verdict = "; ".join(p for p in parts if p) or "no optimizer or residual information in the result"
+    return _Summary(rows=rows, verdict=verdict, good=good, notes=notes)
 
+
+def _verdict(result: Mapping[str, Any], dataset: Dataset | None, residuals: Residuals | None,
+             opt: Mapping[str, Any]) -> tuple[bool, list[str]]:
+    """Whether the result looks right, and why, in short phrases."""
     good = opt.get("converged") is not False
     parts = ["optimizer converged" if opt.get("converged") else ("optimizer did NOT converge" if opt else "")]
-    if residuals is not None and math.isfinite(residuals.rms) and residuals.sigma > 0:
+    warning = cost_warning(opt)
+    if warning:
+        good = False
+        parts.append(warning)
+    if residuals is not None and dataset is not None and math.isfinite(residuals.rms) and residuals.sigma > 0:
         ratio = residuals.rms / residuals.expected_rms
         # At the MLE the residuals lose one degree of freedom per unknown: E[RMS^2] = 2 sigma^2 (1 - p / 2N).
         coordinates = 2 * int(np.sum(residuals.valid))
         unknowns = 6 + 3 * len(mirror_vectors(result)) + 3 * len(reconstruction_points(result))
         expected = math.sqrt(max(1.0 - unknowns / coordinates, 0.0)) if coordinates else 1.0
         flagged = residuals.flagged_images()
-        parts.append(
-            f"RMS residual = {ratio:.2f} × √2·σ ({expected:.2f} expected from {coordinates} coordinates and "
-            f"{unknowns} unknowns when the noise model holds)"
-        )
+        parts.append(f"RMS {residuals.rms:.3g} {residuals.units} = {ratio:.2f} × √2·σ ({expected:.2f} × expected from "
+                     f"{coordinates} coordinates and {unknowns} unknowns when the noise model holds)")
         parts.append(f"{len(flagged)} image(s) above {OUTLIER_FACTOR:g} × the median image RMS")
         good = good and expected > 0.0 and 0.5 < ratio / expected < 2.0 and not flagged
-    verdict = "; ".join(p for p in parts if p) or "no optimizer or residual information in the result"
-    return _Summary(rows=rows, verdict=verdict, good=good, notes=notes)
+        profile = residuals.radial_profile(image_centre(dataset))
+        if profile is not None:
+            parts.append(radial_verdict(profile, residuals.units))
+            good = good and not profile.significant
+    return good, parts
 
 
-def _figure_summary_page(summary: _Summary, title: str) -> Figure:
-    """The summary table as a figure (first PDF page)."""
-    fig = new_figure(8.27, 11.69)  # A4 portrait
-    fig.text(0.05, 0.965, title, fontsize=15, weight="bold", va="top")
-    colour = "darkgreen" if summary.good else "darkred"
-    fig.text(0.05, 0.93, _wrap(summary.verdict, 95), fontsize=9, color=colour, va="top")
-    y = 0.88
-    for label, value in summary.rows:
-        lines = value.replace("<br>", "\n").split("\n")
-        fig.text(0.05, y, label, fontsize=8.5, va="top", weight="bold")
-        for line in lines:
-            for wrapped in _wrap(line, 60).split("\n"):
-                fig.text(0.50, y, wrapped, fontsize=8.5, va="top", family="monospace")
-                y -= 0.018
-        y -= 0.006
-    for note in summary.notes:
-        fig.text(0.05, y, _wrap("Note: " + note, 100), fontsize=8, va="top", style="italic")
-        y -= 0.03
-    return fig
+def _inputs(result: Mapping[str, Any], dataset: Dataset | None, source: str, extra: Mapping[str, str] | None,
+            stamp: str) -> list[tuple[str, str]]:
+    """The echo of what the report was made from: files, camera, target, version, time."""
+    from mirror_fg import __version__
 
-
-def _wrap(text: str, width: int) -> str:
-    return "\n".join(textwrap.wrap(text, width)) or text
+    rows = [("result file", source)]
+    if dataset is not None:
+        rows.append(("dataset", f"{dataset.source} ({len(dataset.images)} images)"))
+        cam = dataset.camera
+        rows.append(("camera", "none: normalized image coordinates" if cam is None else
+                     f"{cam.model} {cam.width}×{cam.height} px, fx {cam.fx:.6g}, fy {cam.fy:.6g}, cx {cam.cx:.6g}, "
+                     f"cy {cam.cy:.6g}, dist {_fmt(cam.dist, 4)}"))
+        names = list(dataset.fiducials)
+        shown = ", ".join(names[:MAX_NAMES_ECHOED]) + (f", … ({len(names) - MAX_NAMES_ECHOED} more)"
+                                                       if len(names) > MAX_NAMES_ECHOED else "")
+        rows.append(("target", f"{len(names)} fiducials in the base frame: {shown}"))
+        rows.append(("pixel sigma", _fmt(dataset.pixel_sigma)))
+    if result.get("camera"):
+        rows.append(("intrinsics estimated", ", ".join(result["camera"].get("estimated") or []) or "–"))
+    rows += [(k, str(v)) for k, v in (extra or {}).items()]
+    rows += [("mirror-fg version", __version__), ("generated", stamp)]
+    return rows
 
 
 # --------------------------------------------------------------------------------------------------
 # Output
 # --------------------------------------------------------------------------------------------------
-
-
-_CSS = """
-body { font-family: 'DejaVu Sans', Arial, sans-serif; margin: 2em auto; max-width: 1100px; color: #222; }
-h1 { font-size: 1.6em; margin-bottom: 0.2em; }
-h2 { font-size: 1.2em; margin-top: 1.6em; border-bottom: 1px solid #ccc; }
-table.summary { border-collapse: collapse; font-size: 0.9em; }
-table.summary td { border: 1px solid #ddd; padding: 3px 8px; vertical-align: top; }
-table.summary td.v { font-family: 'DejaVu Sans Mono', monospace; }
-.verdict { padding: 0.6em 1em; border-radius: 4px; margin: 0.8em 0; }
-.good { background: #e6f4e6; border: 1px solid #8c8; } .bad { background: #fbe9e7; border: 1px solid #d88; }
-figure { margin: 1.2em 0; } figure img { max-width: 100%; border: 1px solid #eee; }
-figcaption { font-size: 0.85em; color: #555; }
-pre { background: #f6f6f6; padding: 0.6em; font-size: 0.8em; white-space: pre-wrap; overflow-wrap: anywhere; }
-.note { font-style: italic; color: #666; } .flagged { color: #b00; }
-"""
 
 
 def write_report(
@@ -215,37 +200,38 @@ def write_report(
     camera_frame: str = DEFAULT_CAMERA_FRAME,
     title: str | None = None,
     source: str = "result",
+    tracks: Mapping[str, Any] | None = None,
+    inputs: Mapping[str, str] | None = None,
 ) -> dict[str, Path]:
-    """Write ``out_dir/report.html`` (self-contained: CSS inline, figures as base64 PNG) and ``out_dir/report.pdf``.
+    """Write ``out_dir/report.html`` (self-contained: CSS inline, figures as base64 PNG) and ``out_dir/report.pdf``
+    (A4, the same content).
 
     ``result``: a result@1 dictionary. ``dataset``: the dataset it was computed from, or None (the
     residual figures are then left out with a note). ``progress``: a progress bar on stderr.
-    ``base_frame``, ``camera_frame``: frame names in the ROS snippets. Returns
-    ``{"html": path, "pdf": path}``. Both files are written atomically. ``source``: the result's
-    file name, for messages. Raises DatasetError (before any work) on a malformed result
-    (:func:`mirror_fg.io.result.validate_result`) and when the dataset does not belong to the result,
-    ValueError on a bad frame name.
+    ``base_frame``, ``camera_frame``: frame names in the ROS snippets. ``tracks``: the
+    :class:`~mirror_fg.vision.tracking.Track` s that ``detect_capture(capture, tracks={})`` filled (each
+    track's path and residuals over time are drawn), or None. ``inputs``: more ``{label: value}`` for
+    the input echo (e.g. the capture file). Returns ``{"html": path, "pdf": path}``, both written
+    atomically. ``source``: the result's file name, for messages. Raises DatasetError (before any work)
+    on a malformed result (:func:`mirror_fg.io.result.validate_result`) and when the dataset does not
+    belong to the result, ValueError on a bad frame name.
     """
     from tqdm import tqdm
 
     result = validate_result(result, source)
     base_frame = check_frame_name(base_frame, "base frame")
-    camera_frame = check_frame_name(camera_frame, "camera frame")
+    ros = ros_outputs(result, base_frame, camera_frame, source=source)  # checks the camera frame name
     title = title or "mirror-fg calibration report"
-    with tqdm(total=8, desc="report", unit="step", disable=not progress, file=sys.stderr, leave=False) as bar:
+    stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    with tqdm(total=9, desc="report", unit="step", disable=not progress, file=sys.stderr, leave=False) as bar:
         residuals = residuals_of_valid_result(result, dataset, source) if dataset is not None else None
         bar.update()
         summary = _summary(result, dataset, residuals, base_frame)
-        (_, _), (R_bc, t_bc) = transforms(result)
-        joint = urdf_joint(R_bc, t_bc, base_frame, camera_frame)
-        publisher = static_transform_publisher_args(R_bc, t_bc, base_frame, camera_frame)
         bar.update()
-        figures, notes = _figures(result, dataset, residuals, bar)
-        notes = summary.notes + notes
-        flagged = residuals.flagged_images() if residuals is not None else {}
-        outliers = (result.get("residuals") or {}).get("outliers") or []
-        page = _html(title, summary, figures, notes, flagged, outliers, joint, publisher, residuals)
-        pdf = _pdf(title, summary, figures)
+        figures, notes = _figures(result, dataset, residuals, tracks, bar)
+        blocks = _blocks(result, summary, summary.notes + notes, figures, residuals, ros,
+                         _inputs(result, dataset, source, inputs, stamp))
+        page, pdf = html_page(title, blocks), pdf_document(title, blocks)
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         paths = {"html": atomic_write(out / "report.html", page), "pdf": atomic_write(out / "report.pdf", pdf)}
@@ -254,17 +240,18 @@ def write_report(
 
 
 def _figures(
-    result: Mapping[str, Any], dataset: Dataset | None, residuals: Residuals | None, bar: Any
-) -> tuple[list[tuple[str, Figure, str]], list[str]]:
+    result: Mapping[str, Any], dataset: Dataset | None, residuals: Residuals | None,
+    tracks: Mapping[str, Any] | None, bar: Any,
+) -> tuple[list[tuple[str, Any, str]], list[str]]:
     """The report's figures as ``(heading, figure, caption)`` and notes on what was left out."""
-    figures: list[tuple[str, Figure, str]] = []
+    figures: list[tuple[str, Any, str]] = []
     notes: list[str] = []
     if residuals is None or dataset is None:
         notes.append("No dataset given: residual histogram, per-image and per-point residuals are left out.")
-        bar.update(3)
+        bar.update(4)
     elif not np.any(residuals.valid):
         notes.append("The dataset has no measurement the result can predict: residual figures are left out.")
-        bar.update(3)
+        bar.update(4)
     else:
         n_behind = int(np.sum(~residuals.valid))
         if n_behind:
@@ -274,16 +261,25 @@ def _figures(
                         f"N(0, σ = {residuals.sigma:.3g}) density."))
         bar.update()
         figures.append(("Per-image residuals", figure_per_image(residuals),
-                        f"RMS residual length of each image; red: above {OUTLIER_FACTOR:g} × the median."))
+                        f"RMS reprojection error of each image; red: above {OUTLIER_FACTOR:g} × the median."))
         bar.update()
         figures.append(("Per-point residuals", figure_per_point(residuals, dataset),
-                        "RMS residual length of each point; all residual vectors with the 3σ circle; residual "
-                        "arrows at the observed positions (magnified)."))
+                        "RMS reprojection error of each point, by name; all residual vectors with the 3σ circle; "
+                        "residual arrows at the observed positions (magnified)."))
+        bar.update()
+        profile = residuals.radial_profile(image_centre(dataset))
+        if profile is not None:
+            figures.append(("Residual vs distance from the image centre", figure_radial(residuals, profile),
+                            "Reprojection error length against the observed point's distance from the principal "
+                            "point, with the RMS of each ring. Growth towards the edge is the signature of a wrong "
+                            "or missing distortion model."))
         bar.update()
     figures.append(("3D scene", figure_scene(result, dataset),
-                    "Base frame {B} (x red, y green, z blue), the camera frustum at T_base_cam, every mirror "
-                    "placement as a translucent square centred on its foot point, fiducials, and reconstruction "
-                    "points with axis-aligned 3σ ellipsoids. Metres."))
+                    "Base frame {B} (x red, y green, z blue), the camera frustum at T_base_cam with its 3σ position "
+                    "ellipsoid and optical-axis cone (magnified by the factors in the title and legend), every "
+                    "mirror placement as a translucent square centred on its foot point (a sample of squares "
+                    "where there are many), fiducials, and reconstruction points with axis-aligned 3σ "
+                    "ellipsoids. Metres."))
     bar.update()
     corr = figure_correlation(result)
     if corr is not None:
@@ -292,80 +288,54 @@ def _figures(
                         "about the camera axes (R_true = Exp(dθ) R), [x, y, z] translation (t_true = t + dt)."))
     else:
         notes.append("The result carries no covariance: no correlation matrix.")
+    if tracks:
+        figures.append(("Tracked points", figure_tracks(tracks, dataset),
+                        "Each track:'s path on the image (refined positions thick, KLT's thin), the refinement's "
+                        "fit residual and the refined − KLT distance over the frames."))
+    elif tracks is not None:
+        notes.append("The capture follows no point (no track: entries): no track figure.")
     bar.update()
     return figures, notes
 
 
-def _pdf(title: str, summary: _Summary, figures: list[tuple[str, Figure, str]]) -> bytes:
-    """PDF bytes: the summary page, then one figure per page."""
-    from matplotlib.backends.backend_pdf import PdfPages
-
-    buf = io.BytesIO()
-    with PdfPages(buf, metadata={"Title": title, "Creator": "mirror-fg"}) as pdf:
-        pdf.savefig(_figure_summary_page(summary, title))
-        for heading, fig, _ in figures:
-            fig.suptitle(heading, fontsize=12, weight="bold")
-            pdf.savefig(fig)
-    return buf.getvalue()
+_FRAMES = ("Frames: {B} base, {C} camera (OpenCV = ROS optical: x right, y down, z forward). T_cam_base maps base "
+           "points into the camera (Cp = R Bp + t); T_base_cam is the camera's pose on the robot. Each transform's "
+           "3σ bounds are in its own frame (docs/formats.md): rotation errors R_true = Exp(dθ) R about the axes "
+           "of its first frame, t_true = t + dt along them — base axes for T_base_cam, camera axes for T_cam_base.")
 
 
-def _html(
-    title: str,
-    summary: _Summary,
-    figures: list[tuple[str, Figure, str]],
-    notes: list[str],
-    flagged: dict[str, float],
-    outliers: list[Any],
-    joint: str,
-    publisher: str,
-    residuals: Residuals | None,
-) -> str:
-    """The self-contained HTML page (no scripts, no external resources)."""
-    e = html.escape
-    stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    rows = "\n".join(
-        f"<tr><td>{e(label)}</td><td class='v'>{'<br>'.join(e(p) for p in value.split('<br>'))}</td></tr>"
-        for label, value in summary.rows
-    )
-    parts = [
-        "<!DOCTYPE html>",
-        "<html lang='en'><head><meta charset='utf-8'>",
-        f"<title>{e(title)}</title><style>{_CSS}</style></head><body>",
-        f"<h1>{e(title)}</h1><p class='note'>Generated {e(stamp)} by mirror-fg.</p>",
-        f"<div class='verdict {'good' if summary.good else 'bad'}'>{e(summary.verdict)}</div>",
-        "<h2>Summary</h2>",
-        f"<table class='summary'>{rows}</table>",
-        "<p class='note'>Frames: {B} base, {C} camera (OpenCV: x right, y down, z forward). T_cam_base maps "
-        "base points into the camera (Cp = R Bp + t); T_base_cam is the camera's pose on the robot. 3σ bounds "
-        "as in docs/formats.md: R_true = Exp(dθ) R (camera axes), t_true = t + dt.</p>",
-    ]
+def _blocks(result: Mapping[str, Any], summary: _Summary, notes: list[str], figures: list[tuple[str, Any, str]],
+            residuals: Residuals | None, ros: Mapping[str, Any], inputs: list[tuple[str, str]]) -> list[Block]:
+    """Everything the report says, in order, for both renderings."""
+    blocks = [Block("verdict", summary.verdict, good=summary.good), Block("h2", "Summary"),
+              Block("table", rows=summary.rows, id="summary"), Block("p", _FRAMES, id="frames"),
+              Block("h2", "Console summary (mirror-fg calibrate)"), Block("pre", "\n".join(summary_lines(result))),
+              Block("h2", "Inputs"), Block("table", rows=inputs, id="inputs")]
     if residuals is not None:
-        parts.append(f"<h2>Flagged images (RMS &gt; {OUTLIER_FACTOR:g} × median)</h2>")
-        if flagged:
-            items = "".join(
-                f"<li class='flagged'>{e(k)}: RMS {v:.3g} {e(residuals.units)}</li>" for k, v in flagged.items()
-            )
-            parts.append(f"<ul id='flagged-images'>{items}</ul>")
-        else:
-            parts.append("<p id='flagged-images'>None.</p>")
+        flagged = residuals.flagged_images()
+        blocks.append(Block("h2", f"Flagged images (RMS > {OUTLIER_FACTOR:g} × median)"))
+        blocks.append(Block("list", items=[f"{k}: RMS {v:.3g} {residuals.units}" for k, v in flagged.items()],
+                            css="flagged", id="flagged-images") if flagged else Block("p", "None.", id="flagged-images"))
+    outliers = (result.get("residuals") or {}).get("outliers") or []
     if outliers:
-        items = "".join(
-            f"<li>image {e(o['image'])}, point {e(o['point'])}: {_fmt(o['sigmas'], 3)} σ</li>" for o in outliers
-        )
-        parts.append(f"<h2>Measurements flagged by the calibration</h2><ul id='outlier-measurements'>{items}</ul>")
+        blocks += [Block("h2", "Measurements flagged by the calibration"),
+                   Block("list", items=[f"image {o['image']}, point {o['point']}: {_fmt(o['sigmas'], 3)} σ"
+                                        for o in outliers], id="outlier-measurements")]
     if notes:
-        parts.append("<h2>Notes</h2><ul>" + "".join(f"<li class='note'>{e(n)}</li>" for n in notes) + "</ul>")
+        blocks += [Block("h2", "Notes"), Block("list", items=notes, css="note")]
     for heading, fig, caption in figures:
-        data = base64.b64encode(png(fig)).decode("ascii")
-        parts.append(
-            f"<h2>{e(heading)}</h2><figure><img alt='{e(heading)}' src='data:image/png;base64,{data}'>"
-            f"<figcaption>{e(caption)}</figcaption></figure>"
-        )
-    parts += [
-        "<h2>ROS</h2><p>URDF joint (xyz in metres, rpy fixed-axis in radians):</p>",
-        f"<pre>{e(joint)}</pre>",
-        "<p>ROS 2 static transform:</p>",
-        f"<pre>ros2 run tf2_ros static_transform_publisher {e(publisher)}</pre>",
-        "</body></html>",
+        blocks += [Block("h2", heading), Block("figure", caption, figure=fig)]
+    link = ros["camera_link"]
+    blocks += [
+        Block("h2", "ROS"),
+        Block("p", f"URDF joint, {ros['frames']['base']} → {ros['frames']['camera']} (xyz in metres, rpy "
+                   "fixed-axis in radians):"),
+        Block("pre", ros["urdf_joint"]),
+        Block("p", "ROS 2 static transform:"),
+        Block("pre", ros["static_transform_publisher_command"]),
+        Block("p", f"Where the camera's link is the body frame {link['frames']['link']} ({link['frames']['link_convention']}): "
+                   f"the two joints {ros['frames']['base']} → {link['frames']['link']} → {link['frames']['optical']} "
+                   "(REP 103 rotation applied) and their static transforms:"),
+        Block("pre", link["urdf_joints"] + "\n" + "\n".join(link["static_transform_publisher_commands"])),
     ]
-    return "\n".join(parts) + "\n"
+    return blocks

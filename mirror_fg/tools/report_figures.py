@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import io
 import math
+import textwrap
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from mirror_fg.core.transform import Transform
-from mirror_fg.io.result import mirror_vectors, pose_covariance, transforms
+from mirror_fg.io.result import base_cam_pose_covariance, mirror_vectors, pose_covariance, transforms
 from mirror_fg.io.result import points as reconstruction_points
 from mirror_fg.tools.residuals import OUTLIER_FACTOR, Residuals
 
@@ -31,6 +32,7 @@ __all__ = [
     "figure_per_point",
     "figure_scene",
     "figure_correlation",
+    "draw_pose_uncertainty",
     "correlation",
     "draw_correlation",
     "png",
@@ -40,6 +42,14 @@ __all__ = [
 
 #: Resolution of the PNG figures embedded in the HTML (dots per inch).
 PNG_DPI = 100
+#: Bars labelled by name up to this many (a smaller font beyond 40); beyond it, the axis says the order.
+MAX_BAR_LABELS = 120
+#: Mirror placements drawn per mirror in the 3D scene (a random sample beyond it, said in the legend).
+MAX_PLACEMENTS_DRAWN = 60
+#: The camera's 3σ position ellipsoid is drawn this fraction of the scene's extent at least (scaled, labelled).
+POSE_UNCERTAINTY_FRACTION = 0.06
+#: The orientation cone's half-angle is drawn at least this wide (degrees; scaled, labelled).
+CONE_MIN_DEG = 6.0
 #: Covariance labels in docs/formats.md's order: rotation about the camera axes, then translation.
 COVARIANCE_LABELS = ("rx", "ry", "rz", "x", "y", "z")
 _MIRROR_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink")
@@ -79,8 +89,9 @@ def figure_histogram(residuals: Residuals) -> Figure:
     ax.set_xlabel(f"residual (predicted − observed), {residuals.units}")
     ax.set_ylabel("density")
     extra = f"; {outside} beyond ±{lim:.3g} in the outer bins" if outside else ""
-    coordinate_rms = float(np.sqrt(np.mean(values**2))) if values.size else float("nan")
-    ax.set_title(f"Residual coordinates: {values.size}, RMS {coordinate_rms:.3g} {residuals.units}{extra}")
+    coordinate_sd = float(np.sqrt(np.mean(values**2))) if values.size else float("nan")
+    ax.set_title(f"Residual coordinates: {values.size}, standard deviation about 0 = {coordinate_sd:.3g} "
+                 f"{residuals.units} (σ = {s:.3g} expected){extra}")
     ax.legend()
     return fig
 
@@ -106,8 +117,10 @@ def figure_per_image(residuals: Residuals) -> Figure:
 def _finish_rms_bars(ax: Any, residuals: Residuals, labels: list[str], order: str, title: str) -> None:
     """The expected-RMS line, bar labels (or ``order`` as the x label beyond 40 bars), title and legend."""
     ax.axhline(residuals.expected_rms, color="tab:green", lw=1, label=f"expected √2·σ = {residuals.expected_rms:.3g}")
-    if len(labels) <= 40:
-        ax.set_xticks(np.arange(len(labels)), labels, rotation=90, fontsize=7)
+    if len(labels) <= MAX_BAR_LABELS:
+        size = min(7.0, 520.0 / len(labels))  # about 10 in of bars: a name per bar stays legible
+        ax.set_xticks(np.arange(len(labels)), labels, rotation=90, fontsize=size)
+        ax.set_xlim(-0.6, len(labels) - 0.4)
     else:
         ax.set_xlabel(order)
     ax.set_ylabel(f"RMS residual, {residuals.units}")
@@ -254,9 +267,11 @@ def figure_scene(result: Mapping[str, Any], dataset: Dataset | None) -> Figure:
     ax.plot(*loop.T, color="k", lw=1)
     _draw_axes(ax, T_base_cam, 0.6 * axis_len, lw=1.5)  # camera frame
     ax.text(*T_base_cam.t, " {C}", fontsize=9)
-    # Mirror placements: translucent squares centred on the foot point v, perpendicular to v.
+    uncertainty = draw_pose_uncertainty(ax, T_base_cam, base_cam_pose_covariance(result), extent, depth)
+    # Mirror placements: translucent squares centred on the foot point v, perpendicular to v; beyond
+    # MAX_PLACEMENTS_DRAWN per mirror a random sample of squares (every foot point is still a dot).
     counts = {l: sum(1 for k in mirrors if k[0] == l) for l, _ in mirrors}
-    for (l, m), v in mirrors.items():
+    for (l, m), v in _sampled(mirrors, counts):
         n = T_base_cam.R @ (v / np.linalg.norm(v))
         a, b = _orthonormal_pair(n)
         f = feet[(l, m)]
@@ -265,16 +280,20 @@ def figure_scene(result: Mapping[str, Any], dataset: Dataset | None) -> Figure:
         alpha = float(np.clip(1.0 / counts[l], 0.02, 0.12))  # many placements must not fill the view
         edge = colour if counts[l] <= 20 else "none"
         ax.add_collection3d(Poly3DCollection([quad], facecolor=colour, edgecolor=edge, alpha=alpha, lw=0.5))
-        ax.scatter(*f, c=colour, s=8, depthshade=False)
     for l in sorted({l for l, _ in mirrors}):
         colour = _MIRROR_COLOURS[(l - 1) % len(_MIRROR_COLOURS)]
-        ax.plot([], [], color=colour, lw=6, alpha=0.4, label=f"mirror {l} ({counts[l]} placements)")
+        xyz = np.array([f for (k, _), f in feet.items() if k == l])
+        ax.scatter(*xyz.T, c=colour, s=8 if len(xyz) <= 200 else 1, depthshade=False)
+        drawn = "" if counts[l] <= MAX_PLACEMENTS_DRAWN else f", {MAX_PLACEMENTS_DRAWN} drawn, all as dots"
+        ax.plot([], [], color=colour, lw=6, alpha=0.4, label=f"mirror {l} ({counts[l]} placements{drawn})")
     _draw_target(ax, fiducials, points)
     _set_equal_3d(ax, np.vstack([everything, corners_b]))
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_zlabel("z (m)")
     ax.set_title("Scene in the base frame {B}")
+    if uncertainty:  # a suptitle: the layout keeps room for it (a long 3D-axes title is clipped)
+        fig.suptitle("\n".join(textwrap.wrap(uncertainty, 110)), fontsize=9)
     if ax.get_legend_handles_labels()[0]:  # a result without mirrors or target has nothing to label
         ax.legend(fontsize=7, loc="upper left")
     if target is not None:
@@ -289,6 +308,68 @@ def figure_scene(result: Mapping[str, Any], dataset: Dataset | None) -> Figure:
         has_ellipsoids = any(s3 is not None for _, s3 in points.values())
         ax2.set_title("Target close-up" + (" (3σ ellipsoids to scale)" if has_ellipsoids else ""))
     return fig
+
+
+def _sampled(mirrors: dict[tuple[int, int], np.ndarray], counts: dict[int, int]) -> list[tuple[tuple[int, int], np.ndarray]]:
+    """The placements to draw as squares: all, or MAX_PLACEMENTS_DRAWN per mirror (seeded, reproducible)."""
+    rng = np.random.default_rng(0)
+    out = []
+    for l in sorted(counts):
+        keys = [k for k in mirrors if k[0] == l]
+        if len(keys) > MAX_PLACEMENTS_DRAWN:
+            keys = [keys[i] for i in sorted(rng.choice(len(keys), MAX_PLACEMENTS_DRAWN, replace=False))]
+        out += [(k, mirrors[k]) for k in keys]
+    return out
+
+
+def _nice_scale(factor: float) -> float:
+    """The smallest of 1, 2, 5 x 10^n at least ``factor`` (1 when ``factor`` <= 1)."""
+    if not factor > 1.0:
+        return 1.0
+    exponent = math.floor(math.log10(factor))
+    return next(m * 10.0**e for e in (exponent, exponent + 1) for m in (1, 2, 5) if m * 10.0**e >= factor)
+
+
+def draw_pose_uncertainty(ax: Any, T_base_cam: Transform, covariance: np.ndarray | None, extent: float,
+                          length: float) -> str:
+    """The camera's 3σ position ellipsoid and optical-axis cone on a 3D ``ax``, magnified to be seen.
+
+    ``covariance``: 6x6 of ``T_base_cam`` (``[dtheta, dt]``, base axes, docs/formats.md) or None. The
+    ellipsoid (semi-axes 3σ) is scaled to at least POSE_UNCERTAINTY_FRACTION of ``extent``; the cone
+    around the optical axis (``length`` metres long, half-angles the 3σ of the axis direction) to at
+    least CONE_MIN_DEG, each by a factor 1, 2, 5 x 10^n. Returns the label naming both factors.
+    """
+    if covariance is None or not np.all(np.isfinite(covariance)):
+        return ""
+    c = T_base_cam.t
+    values, vectors = np.linalg.eigh(covariance[3:, 3:])
+    semi = 3.0 * np.sqrt(np.clip(values, 0.0, None))
+    k_pos = _nice_scale(POSE_UNCERTAINTY_FRACTION * extent / max(float(semi.max()), 1e-12))
+    u, v = np.meshgrid(np.linspace(0, 2 * math.pi, 17), np.linspace(0, math.pi, 9))
+    unit = np.stack([np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)])
+    e = c[:, None, None] + k_pos * np.einsum("ij,jkl->ikl", vectors * semi, unit)
+    ax.plot_wireframe(e[0], e[1], e[2], color="tab:cyan", lw=0.6, alpha=0.9,
+                      label=f"camera position 3σ ellipsoid × {k_pos:g}")
+    # The optical axis a moves by dphi x a: its direction covariance is [a]x S [a]x^T (rank 2).
+    a = T_base_cam.R[:, 2]
+    ax_skew = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    values, vectors = np.linalg.eigh(ax_skew @ covariance[:3, :3] @ ax_skew.T)
+    half = 3.0 * np.sqrt(np.clip(values[1:], 0.0, None))  # the two directions across the axis, radians
+    k_rot = _nice_scale(math.radians(CONE_MIN_DEG) / max(float(half.max()), 1e-12))
+    phi = np.linspace(0.0, 2.0 * math.pi, 37)
+    spread = np.tan(np.clip(k_rot * half, 0.0, math.radians(80.0)))
+    rim = c + length * (a[None] + np.outer(spread[0] * np.cos(phi), vectors[:, 1])
+                        + np.outer(spread[1] * np.sin(phi), vectors[:, 2]))
+    ax.plot(*rim.T, color="tab:red", lw=1, label=f"optical-axis 3σ cone × {k_rot:g}")
+    for point in rim[:-1:9]:
+        ax.plot(*np.column_stack([c, point]), color="tab:red", lw=0.7)
+    ax.plot(*np.column_stack([c, c + length * a]), color="tab:red", lw=0.7, ls=":")
+    return (f"camera position 3σ semi-axes {_fmt_list(1e3 * semi)} mm (ellipsoid drawn × {k_pos:g}); "
+            f"optical axis 3σ {_fmt_list(np.degrees(half))}° (cone drawn × {k_rot:g})")
+
+
+def _fmt_list(values: np.ndarray) -> str:
+    return "[" + ", ".join(f"{float(x):.3g}" for x in values) + "]"
 
 
 def figure_correlation(result: Mapping[str, Any]) -> Figure | None:
@@ -322,7 +403,8 @@ def draw_correlation(ax: Any, rho: np.ndarray, labels: Sequence[str], fontsize: 
     return image
 
 
-def png(fig: Figure) -> bytes:
+def png(fig: Figure, dpi: int = PNG_DPI) -> bytes:
+    """The figure as PNG bytes at ``dpi``."""
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=PNG_DPI)
+    fig.savefig(buf, format="png", dpi=dpi)
     return buf.getvalue()

@@ -2,7 +2,9 @@
 
 Residuals are ``predicted - observed`` in pixels when the dataset has a camera, else in normalized image
 coordinates. "RMS" is the root mean square of the measurements' Euclidean residual lengths, as
-``residuals.rms_px`` in result@1 (``sqrt(2) pixel_sigma`` expected under the noise model).
+``residuals.rms_px`` in result@1 (``sqrt(2) pixel_sigma`` expected under the noise model); every
+other statistic is named for what it is. :meth:`Residuals.radial_profile` is the RMS against the
+distance from the image centre: growth towards the edge is the signature of a wrong distortion model.
 """
 from __future__ import annotations
 
@@ -21,10 +23,44 @@ from mirror_fg.io.result import points as reconstruction_points
 if TYPE_CHECKING:
     from mirror_fg.io.dataset import Dataset
 
-__all__ = ["Residuals", "compute_residuals", "residuals_of_valid_result", "OUTLIER_FACTOR"]
+__all__ = ["Residuals", "RadialProfile", "compute_residuals", "residuals_of_valid_result", "OUTLIER_FACTOR",
+           "RADIAL_P_VALUE", "RADIAL_RATIO"]
 
 #: An image is flagged when its RMS residual exceeds this many times the median image RMS.
 OUTLIER_FACTOR = 3.0
+#: The residual grows with the distance from the image centre (a wrong distortion model) when the
+#: outer third's RMS is this many times the inner third's and an F test gives a p-value below RADIAL_P_VALUE.
+RADIAL_RATIO = 1.3
+RADIAL_P_VALUE = 1e-3
+
+
+@dataclass
+class RadialProfile:
+    """Residual RMS against the distance from the image centre (principal point; normalized: the axis).
+
+    ``edges`` (bins + 1,) radii; ``rms`` and ``counts`` (bins,) per ring (NaN where empty), RMS as
+    result@1's ``rms_px``; ``inner_rms`` / ``outer_rms``: the inner and outer thirds of the measurements
+    by radius; ``p_value``: one-sided F test that the outer third's squared lengths are larger
+    (2 degrees of freedom per measurement under the noise model; log F taken as normal, numpy only).
+    """
+
+    radius: np.ndarray
+    length: np.ndarray
+    edges: np.ndarray
+    rms: np.ndarray
+    counts: np.ndarray
+    inner_rms: float
+    outer_rms: float
+    p_value: float
+
+    @property
+    def ratio(self) -> float:
+        return self.outer_rms / self.inner_rms if self.inner_rms > 0 else float("nan")
+
+    @property
+    def significant(self) -> bool:
+        """The residual grows towards the edge beyond noise (RADIAL_RATIO and RADIAL_P_VALUE)."""
+        return bool(self.ratio > RADIAL_RATIO and self.p_value < RADIAL_P_VALUE)
 
 
 @dataclass
@@ -88,6 +124,29 @@ class Residuals:
     def per_point_rms(self) -> dict[str, float]:
         """RMS residual of each point over the images that saw it (first-seen order)."""
         return self._rms_by(self.names)
+
+    def radial_profile(self, centre: Sequence[float], bins: int = 6) -> RadialProfile | None:
+        """Residual RMS by distance of the observed point from ``centre`` (pixels, or normalized (0, 0));
+        None with fewer than 6 measurements."""
+        ok = self.valid
+        if int(np.sum(ok)) < 6:
+            return None
+        radius = np.linalg.norm(self.observed[ok] - np.asarray(centre, dtype=float), axis=1)
+        squared = np.sum(self.residual[ok] ** 2, axis=1)
+        edges = np.linspace(0.0, float(radius.max()) * (1 + 1e-9), bins + 1)
+        ring = np.clip(np.digitize(radius, edges) - 1, 0, bins - 1)
+        counts = np.bincount(ring, minlength=bins)
+        sums = np.bincount(ring, weights=squared, minlength=bins)
+        rms = np.sqrt(np.divide(sums, counts, out=np.full(bins, np.nan), where=counts > 0))
+        order = np.argsort(radius)
+        third = len(order) // 3
+        inner, outer = squared[order[:third]], squared[order[-third:]]
+        ms_in, ms_out = float(np.mean(inner)), float(np.mean(outer))
+        # One-sided test of ms_out / ms_in ~ F(2n, 2n) through log F ~ N(0, 2/(2n) + 2/(2n)) (n = third).
+        z = math.log(ms_out / ms_in) / math.sqrt(2.0 / third) if ms_in > 0 and ms_out > 0 else float("nan")
+        p = 0.5 * math.erfc(z / math.sqrt(2.0)) if math.isfinite(z) else float("nan")
+        return RadialProfile(radius=radius, length=np.sqrt(squared), edges=edges, rms=rms, counts=counts,
+                             inner_rms=math.sqrt(ms_in), outer_rms=math.sqrt(ms_out), p_value=p)
 
     def flagged_images(self, factor: float = OUTLIER_FACTOR) -> dict[str, float]:
         """Images whose RMS exceeds ``factor`` times the median image RMS."""

@@ -27,9 +27,10 @@ import cv2
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.io.capture import EACH, Capture, ImageEntry, open_video
+from mirror_fg.io.capture import CAPTURE_FORMAT, EACH, Capture, ImageEntry, capture_from_dict, open_video
 from mirror_fg.io.dataset import DATASET_FORMAT, Dataset, dataset_from_dict
-from mirror_fg.io.fileio import MAX_IMAGE_PIXELS, native_stderr
+from mirror_fg.io.fileio import MAX_IMAGE_PIXELS, load_structured, native_stderr
+from mirror_fg.io.output import OutputPlan
 from mirror_fg.io.target import CharucoTarget, ChessboardTarget, PointsTarget, TagTarget
 from mirror_fg.core.values import short_path
 from mirror_fg.vision.detectors import (
@@ -46,6 +47,7 @@ from mirror_fg.vision.detectors import (
 from mirror_fg.vision.tracking import KLTParams, PointTracker, Track
 
 __all__ = [
+    "load_input",
     "ImageReport",
     "detect_capture",
     "format_reports",
@@ -412,3 +414,20 @@ def _detect_video(
                     _report(reports, ImageReport(frame_id, FOUND, "; ".join(notes), len(points)))
     finally:
         vc.release()
+
+
+def load_input(
+    path: str | os.PathLike[str], plan: OutputPlan, progress: bool = False, tracks: dict[str, Track] | None = None
+) -> tuple[Dataset, list]:
+    """A Dataset from a dataset@1 file, or from a capture@1 file after detection (read once), and the
+    detection reports (empty for a dataset). The files a capture names are added to ``plan``'s inputs
+    before any detection, so an output that would overwrite one of them is refused first. ``tracks``:
+    filled with the capture's tracked points (:func:`detect_capture`)."""
+    source = os.fspath(path)
+    data = load_structured(source)
+    fmt = data.get("format") if isinstance(data, dict) else None
+    if fmt == CAPTURE_FORMAT:
+        capture = capture_from_dict(data, source=source, base_dir=os.path.dirname(os.path.abspath(source)))
+        plan.add_inputs(capture.input_files())
+        return detect_capture(capture, progress=progress, tracks=tracks)
+    return dataset_from_dict(data, source=source), []

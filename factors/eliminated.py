@@ -1,0 +1,382 @@
+"""Reflection factors with the last mirror's placements eliminated (Schur complement), the way GTSAM's
+``SmartProjectionFactor`` eliminates its landmark (Hesch et al., eqs. 5, 9, 23).
+
+Why (issue 14): inside GTSAM's optimizers every Python factor call receives a copy of the whole
+``Values``, so a graph with one ``Point3`` per image (the last mirror moves in every image) costs
+(factor calls) x (unknowns) = O(n^2). Here the last mirror's placements never enter the ``Values``:
+
+* the factors' keys are ``T_cam_base``, the placements of mirrors 1..Nv-1 and the landmarks only
+  (bounded by the mirror schedule and the points, not by the number of images); one factor per parent
+  placement ``(c_1, ..., c_{Nv-1})``;
+* evaluated at those values, each last-level placement ``v_j`` is first optimised on its own
+  measurements (Gauss-Newton to machine precision, vectorised over every placement; variable
+  projection), so the factors' cost is ``min_v`` of the cost of eq. (23): the same minimiser;
+* linearised, each placement is eliminated from its measurements' whitened system ``[J_x J_v | e]``
+  (``J_x <- (I - J_v D^-1 J_v^T) J_x`` with ``D = J_v^T J_v``: the Schur complement) and a factor's
+  rows are compressed to ``d + 1`` rows ``[R | r; 0 | rho]`` (:func:`_compressed_normal`): the same ``J^T J``,
+  ``J^T e`` and ``||e||^2`` as its measurements' system, hence the same LM steps as the joint graph with the
+  placements eliminated first.
+
+The placements and their covariances are recovered afterwards (:meth:`EliminatedEvaluator.mirror_vectors`,
+:meth:`EliminatedEvaluator.covariances`): ``Sigma_v = D^-1 + D^-1 B^T Sigma_x B D^-1``. Measurement noise
+is a uniform diagonal sigma (no robust kernel: ``batched.py`` keeps that case). Not thread-safe (GTSAM
+calls Python factors one at a time). ``tests/test_elimination.py`` checks it against the reference
+per-measurement factors.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import gtsam
+import numpy as np
+
+from mirror_fg.factors.batched import measurement_arrays, reflection_model
+from mirror_fg.factors.stacking import Fiducials, KeyLayout, Observation
+
+__all__ = ["EliminatedEvaluator", "NotEliminable", "eliminated_evaluator", "INNER_MAX_ITERATIONS", "INNER_STEP_TOLERANCE"]
+
+#: Gauss-Newton iterations allowed per evaluation for the eliminated placements.
+INNER_MAX_ITERATIONS = 20
+#: A placement is optimal when its Gauss-Newton step is below this (metres); its error then changes
+#: the cost by O(step^2) and the Schur-projected gradient not at all (first order).
+INNER_STEP_TOLERANCE = 1e-12
+
+
+class NotEliminable(ValueError):
+    """The measurements do not have the structure the elimination needs (use ``batched.py``)."""
+
+
+def _segment_sums(values: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """Sums of ``values`` over contiguous segments beginning at ``starts`` (first axis)."""
+    return np.add.reduceat(values, starts, axis=0)
+
+
+def _compressed_normal(information: np.ndarray, gradient: np.ndarray, cost: float) -> np.ndarray:
+    """``[R | r; 0 | rho]`` ((d+1) x (d+1)) with ``R^T R = J^T J``, ``R^T r = J^T e`` and
+    ``|r|^2 + rho^2 = |e|^2``, from those three: a system of d + 1 rows with the same normal equations
+    and cost as ``(J, e)`` (``R = sqrt(L) V^T`` from ``J^T J = V L V^T``, which also holds where ``J``
+    is rank-deficient)."""
+    d = len(gradient)
+    eigenvalues, V = np.linalg.eigh(information)
+    eigenvalues = np.clip(eigenvalues, 0.0, None)
+    root = np.sqrt(eigenvalues)
+    projected = V.T @ gradient
+    r = np.divide(projected, root, out=np.zeros(d), where=root > 1e-12 * max(root.max(initial=0.0), 1e-300))
+    out = np.zeros((d + 1, d + 1))
+    out[:d, :d] = root[:, None] * V.T
+    out[:d, d] = r
+    out[d, d] = np.sqrt(max(cost - float(r @ r), 0.0))
+    return out
+
+
+class EliminatedEvaluator:
+    """The graph's measurements with the last mirror's placements eliminated (module docstring).
+
+    ``factors``: the ``gtsam.CustomFactor`` objects (hand them to a graph, then drop this list or keep
+    the evaluator only through them: see :func:`eliminated_evaluator`). ``kept_keys``: the keys the
+    factors see; ``eliminated``: the configurations ``(Nv, m)`` solved inside.
+    """
+
+    def __init__(
+        self,
+        dataset: Fiducials,
+        layout: KeyLayout,
+        measurements: Sequence[Observation],
+        noise_sigma: np.ndarray,
+        initial_vectors: Mapping[tuple[int, int], np.ndarray],
+    ) -> None:
+        if not measurements:
+            raise ValueError("eliminated_evaluator: no measurements")
+        point_keys, mirror_rows, landmark_rows, base_points, observed = measurement_arrays(dataset, layout, measurements)
+        self.pose_key = int(layout.pose_key)
+        self.point_keys = [int(k) for k in point_keys]
+        configs = sorted(layout.mirror_keys)
+        num_mirrors = mirror_rows.shape[1]
+        self.num_mirrors = num_mirrors
+        self.sigma = np.asarray(noise_sigma, dtype=float).reshape(2)
+        self.eliminated = [c for c in configs if c[0] == num_mirrors]
+        self._elim_rows = np.array([r for r, c in enumerate(configs) if c[0] == num_mirrors], dtype=np.intp)
+        eliminated_rows = set(self._elim_rows.tolist())
+        kept_rows = [r for r in range(len(point_keys)) if r not in eliminated_rows]
+        self._kept_rows = np.array(kept_rows, dtype=np.intp)
+        self.kept_keys = [self.pose_key] + [self.point_keys[r] for r in kept_rows]
+        self._config_of_row = {r: c for r, c in enumerate(configs)}
+        # global columns of the kept unknowns: pose 0..5, then 3 per kept row
+        self._column_of_row = {r: 6 + 3 * q for q, r in enumerate(kept_rows)}
+        self.dimension_kept = 6 + 3 * len(kept_rows)
+        self.dimension = self.dimension_kept + 3 * len(self._elim_rows)
+        self.num_measurements = len(measurements)
+
+        placement_of_row = {r: j for j, r in enumerate(self._elim_rows.tolist())}
+        placement = np.array([placement_of_row[r] for r in mirror_rows[:, -1].tolist()], dtype=np.intp)
+        parents = [tuple(row) for row in mirror_rows[:, :-1].tolist()]
+        group_ids: dict[tuple, int] = {}
+        group = np.array([group_ids.setdefault(p, len(group_ids)) for p in parents], dtype=np.intp)
+        # Measurements sorted by (factor, placement): every placement and every factor is a contiguous segment.
+        self.order = np.lexsort((np.arange(len(placement)), placement, group))
+        self.mirror_rows = np.ascontiguousarray(mirror_rows[self.order].T)  # (Nv, M)
+        landmark_rows = landmark_rows[self.order]
+        self._base_T = np.ascontiguousarray(base_points[self.order].T)
+        self._landmark_index = np.flatnonzero(landmark_rows >= 0)
+        self._landmark_point_rows = landmark_rows[self._landmark_index]
+        self._observed_T = np.ascontiguousarray(observed[self.order].T)
+        placement = placement[self.order]
+        group = group[self.order]
+        starts = np.flatnonzero(np.r_[True, placement[1:] != placement[:-1]])
+        if len(starts) != len(self._elim_rows) or len(np.unique(placement[starts])) != len(starts):
+            raise NotEliminable("a last-mirror placement is seen under two parent placements")
+        self._placement_starts = starts
+        self._placement_of_segment = placement[starts]  # placement index of each segment
+        self._segment_of_measurement = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(placement)]))
+        self._whiten = (1.0 / self.sigma)[:, None]  # (2, 1)
+
+        # Factors: contiguous measurement ranges, their kept keys and local columns.
+        group_starts = np.r_[np.flatnonzero(np.r_[True, group[1:] != group[:-1]]), len(group)]
+        self._factors: list[dict] = []
+        for f in range(len(group_starts) - 1):
+            lo, hi = int(group_starts[f]), int(group_starts[f + 1])
+            rows = [int(r) for r in self.mirror_rows[:-1, lo]]  # parents (Nv - 1)
+            marks = landmark_rows[lo:hi]
+            landmark_unique = list(dict.fromkeys(int(r) for r in marks[marks >= 0]))
+            rows += landmark_unique
+            local_of_row = {r: 6 + 3 * q for q, r in enumerate(rows)}
+            width = 6 + 3 * len(rows)
+            global_columns = np.r_[np.arange(6), np.concatenate([np.arange(3) + self._column_of_row[r] for r in rows])
+                                   if rows else np.zeros(0, dtype=np.intp)].astype(np.intp)
+            local_landmark = np.array([local_of_row[int(r)] for r in marks[marks >= 0]], dtype=np.intp)
+            segments = np.flatnonzero((starts >= lo) & (starts < hi))
+            self._factors.append({
+                "lo": lo, "hi": hi, "keys": [self.pose_key] + [self.point_keys[r] for r in rows], "width": width,
+                "columns": global_columns, "landmarks": np.flatnonzero(marks >= 0), "landmark_columns": local_landmark,
+                "segments": segments, "local_of_row": local_of_row,
+            })
+
+        # State: the full point array (eliminated rows = the placements' current optimum).
+        self._P = np.zeros((len(point_keys), 3))
+        for r in self._elim_rows.tolist():
+            self._P[r] = np.asarray(initial_vectors[self._config_of_row[r]], dtype=float)
+        self._P_start = self._P[self._elim_rows].copy()  # warm start of the next evaluation
+        self._state_key: bytes | None = None
+        self._R = np.eye(3)
+        self._t = np.zeros(3)
+        self._cost = np.zeros(len(self._factors))
+        self._systems: list[tuple[np.ndarray, list[np.ndarray]]] | None = None
+        self._blocks: dict | None = None
+        self.evaluations = 0  # for tests and benchmarks
+        self.inner_iterations = 0
+        self.factors: list[gtsam.CustomFactor] = []
+
+    # --- reading the values ------------------------------------------------------------------------
+
+    def _read(self, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray, bytes]:
+        T = values.atPose3(self.pose_key).matrix()
+        P = self._P
+        for r in self._kept_rows.tolist():
+            P[r] = values.atPoint3(self.point_keys[r])
+        key = T.tobytes() + P[self._kept_rows].tobytes()
+        return np.ascontiguousarray(T[:3, :3]), T[:3, 3].copy(), key
+
+    def _model(self, P: np.ndarray, jacobians: bool, last_only: bool = False):
+        levels = [self.num_mirrors - 1] if last_only else None
+        return reflection_model(
+            self._R, self._t, P, self._base_T, self._landmark_index, self._landmark_point_rows, self.mirror_rows,
+            self._observed_T, jacobians, levels,
+        )
+
+    # --- the placements' optimum (variable projection) -------------------------------------------
+
+    def _solve_placements(self) -> None:
+        """Each last-level placement's Gauss-Newton optimum on its own measurements at the kept values."""
+        P = self._P
+        rows = self._elim_rows[self._placement_of_segment]
+        P[rows] = self._P_start[self._placement_of_segment]
+        starts = self._placement_starts
+        last = self.num_mirrors - 1
+
+        def evaluate(points):
+            residual, _, blocks = self._model(points, True, last_only=True)
+            e = (residual * self._whiten).T  # (M, 2)
+            Jv = blocks[2][last].transpose(2, 0, 1) * self._whiten.reshape(1, 2, 1)  # (M, 2, 3)
+            return e, Jv, _segment_sums(np.einsum("ma,ma->m", e, e), starts)
+
+        e, Jv, cost = evaluate(P)
+        for _ in range(INNER_MAX_ITERATIONS):
+            D = _segment_sums(np.einsum("mai,maj->mij", Jv, Jv), starts)
+            g = _segment_sums(np.einsum("mai,ma->mi", Jv, e), starts)
+            try:
+                step = -np.linalg.solve(D, g[:, :, None])[:, :, 0]
+            except np.linalg.LinAlgError:
+                step = -(np.linalg.pinv(D) @ g[:, :, None])[:, :, 0]
+            step[~np.isfinite(step)] = 0.0
+            active = np.max(np.abs(step), axis=1) > INNER_STEP_TOLERANCE
+            if not active.any():
+                break
+            self.inner_iterations += 1
+            step[~active] = 0.0
+            # trust region: a step moves a mirror by at most half its distance (v -> 0 is the camera centre)
+            length = np.linalg.norm(step, axis=1)
+            limit = 0.5 * np.linalg.norm(P[rows], axis=1)
+            step *= np.minimum(1.0, limit / np.maximum(length, 1e-300))[:, None]
+            base = P[rows].copy()
+            for _halving in range(4):  # keep each placement's cost from rising (damped Gauss-Newton)
+                P[rows] = base + step
+                e_new, Jv_new, cost_new = evaluate(P)
+                worse = cost_new > cost * (1.0 + 1e-12)
+                if not worse.any():
+                    break
+                step[worse] *= 0.5
+            else:
+                P[rows[worse]] = base[worse]
+                e_new, Jv_new, cost_new = evaluate(P)
+            e, Jv, cost = e_new, Jv_new, cost_new
+        self._e = e
+
+    # --- the evaluation shared by every factor -----------------------------------------------------
+
+    def _evaluate(self, values: gtsam.Values, jacobians: bool) -> None:
+        self._R, self._t, key = self._read(values)
+        if key != self._state_key:
+            self.evaluations += 1
+            self._solve_placements()
+            e = self._e
+            total = np.einsum("ma,ma->m", e, e)
+            bounds = np.r_[[f["lo"] for f in self._factors], len(total)]
+            self._cost = np.add.reduceat(total, bounds[:-1])
+            self._state_key = key
+            self._systems = None
+        if jacobians and self._systems is None:
+            self._systems = self._linear_systems()
+            self._P_start = self._P[self._elim_rows].copy()  # linearised at an accepted estimate: start there
+
+    def _linear_systems(self) -> list[tuple[np.ndarray, list[np.ndarray]]]:
+        """Each factor's compressed, eliminated system ``(error (d+1,), Jacobian blocks)``; also the
+        pieces the covariances need (``self._blocks``)."""
+        residual, _, (cross, GR, mirror) = self._model(self._P, True)
+        w = self._whiten.reshape(1, 2, 1)
+        e = self._e  # (M, 2) whitened, at the placements' optimum
+        H_pose = np.concatenate([cross.transpose(2, 0, 1), GR.transpose(2, 0, 1)], axis=2) * w  # (M, 2, 6)
+        Jv = mirror[self.num_mirrors - 1].transpose(2, 0, 1) * w
+        parents = [mirror[level].transpose(2, 0, 1) * w for level in range(self.num_mirrors - 1)]
+        landmark = GR.transpose(2, 0, 1) * w
+        starts = self._placement_starts
+        D = _segment_sums(np.einsum("mai,maj->mij", Jv, Jv), starts)
+        if not (np.all(np.isfinite(D)) and np.all(np.isfinite(e))):
+            raise RuntimeError("a mirror placement of the last mirror has no finite optimum at these values")
+        try:
+            D_inv = np.linalg.inv(D)
+        except np.linalg.LinAlgError:  # a placement its measurements do not constrain (degenerate values)
+            D_inv = np.linalg.pinv(D)
+        systems, couplings, informations = [], [], []
+        for f in self._factors:
+            lo, hi, width = f["lo"], f["hi"], f["width"]
+            J = np.zeros((hi - lo, 2, width))
+            J[:, :, :6] = H_pose[lo:hi]
+            for level, block in enumerate(parents):
+                J[:, :, 6 + 3 * level : 9 + 3 * level] = block[lo:hi]
+            if len(f["landmarks"]):
+                measured = f["landmarks"]
+                for c in range(3):
+                    J[measured, :, f["landmark_columns"] + c] = landmark[lo + measured, :, c]
+            segments = f["segments"]
+            local_starts = starts[segments] - lo
+            C = _segment_sums(np.einsum("mai,mad->mid", Jv[lo:hi], J), local_starts)  # J_v^T J_x per placement
+            g = _segment_sums(np.einsum("mai,ma->mi", Jv[lo:hi], e[lo:hi]), local_starts)
+            K = D_inv[segments] @ C  # (S, 3, d)
+            k = (D_inv[segments] @ g[:, :, None])[:, :, 0]
+            seg = self._segment_of_measurement[lo:hi] - segments[0]
+            J_reduced = J - np.einsum("mai,mid->mad", Jv[lo:hi], K[seg])  # (I - J_v D^-1 J_v^T) J_x
+            e_reduced = e[lo:hi] - np.einsum("mai,mi->ma", Jv[lo:hi], k[seg])
+            J_flat, e_flat = J_reduced.reshape(-1, width), e_reduced.reshape(-1)
+            information = J_flat.T @ J_flat
+            R_aug = _compressed_normal(information, J_flat.T @ e_flat, float(e_flat @ e_flat))
+            informations.append(information)
+            blocks = [np.asfortranarray(R_aug[:, :6])]
+            blocks += [np.asfortranarray(R_aug[:, c : c + 3]) for c in range(6, width, 3)]
+            systems.append((np.ascontiguousarray(R_aug[:, width]), blocks))
+            couplings.append(C)
+        self._blocks = {"D_inv": D_inv, "C": couplings, "information": informations}
+        return systems
+
+    # --- the factors' error function ---------------------------------------------------------------
+
+    def error_function(self, f: int):
+        """``error(this, values, jacobians)`` of factor ``f`` for ``gtsam.CustomFactor``."""
+        width = self._factors[f]["width"]
+
+        def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
+            self._evaluate(values, H is not None)
+            if H is None:
+                out = np.zeros(width + 1)
+                out[-1] = np.sqrt(self._cost[f])
+                return out
+            rhs, blocks = self._systems[f]
+            H.clear()
+            H.extend(blocks)
+            return rhs
+
+        return error
+
+    # --- after the optimisation -------------------------------------------------------------------
+
+    def mirror_vectors(self, values: gtsam.Values) -> dict[tuple[int, int], np.ndarray]:
+        """The eliminated placements' mirror vectors (camera frame, metres) at ``values``' kept unknowns."""
+        self._evaluate(values, False)
+        return {self._config_of_row[int(r)]: self._P[r].copy() for r in self._elim_rows}
+
+    def information(self, values: gtsam.Values) -> np.ndarray:
+        """Information matrix of the kept unknowns (the Schur complement), GTSAM tangents, key order
+        ``kept_keys`` (6 for the pose, 3 for each other)."""
+        self._evaluate(values, True)
+        H = np.zeros((self.dimension_kept, self.dimension_kept))
+        for f, information in zip(self._factors, self._blocks["information"]):
+            cols = f["columns"]
+            H[np.ix_(cols, cols)] += information
+        return H
+
+    def covariances(self, values: gtsam.Values) -> tuple[np.ndarray, dict[tuple[int, int], np.ndarray]] | None:
+        """``(covariance of the kept unknowns (GTSAM tangents, kept_keys order), {eliminated config: 3x3})``
+        at ``values``, or None when the information is singular (the caller names the unknowns)."""
+        H = self.information(values)
+        try:
+            if np.min(np.linalg.eigvalsh(H)) <= 1e-12 * np.max(np.diag(H)):
+                return None
+            covariance = np.linalg.inv(H)
+        except np.linalg.LinAlgError:
+            return None
+        if not np.all(np.isfinite(covariance)):
+            return None
+        D_inv = self._blocks["D_inv"]
+        placements = np.empty((len(D_inv), 3, 3))
+        for f, C in zip(self._factors, self._blocks["C"]):
+            cols = f["columns"]
+            K = D_inv[f["segments"]] @ C  # D^-1 B^T
+            placements[f["segments"]] = D_inv[f["segments"]] + K @ covariance[np.ix_(cols, cols)] @ K.transpose(0, 2, 1)
+        by_config = {}
+        for segment, j in enumerate(self._placement_of_segment.tolist()):
+            by_config[self._config_of_row[int(self._elim_rows[j])]] = placements[segment]
+        return covariance, by_config
+
+    def kept_offsets(self) -> dict[int, int]:
+        """Column of each kept key in :meth:`information` / :meth:`covariances`."""
+        return {self.pose_key: 0, **{self.point_keys[r]: self._column_of_row[r] for r in self._kept_rows.tolist()}}
+
+
+def eliminated_evaluator(
+    dataset: Fiducials,
+    layout: KeyLayout,
+    measurements: Sequence[Observation],
+    noise_sigma: np.ndarray,
+    initial_vectors: Mapping[tuple[int, int], np.ndarray],
+) -> EliminatedEvaluator:
+    """The evaluator and its factors (``evaluator.factors``), one per parent placement.
+
+    dataset: has ``fiducials``; layout: ``pose_key``, ``mirror_keys``, ``point_keys``; measurements:
+    ``graph.Measurement`` objects; noise_sigma: (2,) normalized; initial_vectors: start of every
+    last-level placement ``(Nv, m) -> v`` (camera frame, metres). The factors hold the evaluator;
+    clear ``evaluator.factors`` once they are in a graph (else a reference cycle through C++).
+    """
+    evaluator = EliminatedEvaluator(dataset, layout, measurements, noise_sigma, initial_vectors)
+    for f, spec in enumerate(evaluator._factors):
+        noise = gtsam.noiseModel.Unit.Create(spec["width"] + 1)
+        evaluator.factors.append(gtsam.CustomFactor(noise, spec["keys"], evaluator.error_function(f)))
+    return evaluator

@@ -1,0 +1,70 @@
+"""The files of one calibration: the result@1 file and its ROS side files, planned and written together.
+
+:func:`plan_calibration_outputs` checks every path before any work (io.output.OutputPlan: never over
+an input, side files only over files mirror-fg wrote, no side files beside a device);
+:func:`write_calibration_outputs` writes them all-or-nothing. Used by ``mirror-fg calibrate`` and by
+``tools.many`` (one calibration per input).
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+from mirror_fg.core.errors import DatasetError
+from mirror_fg.io.output import OutputPlan
+from mirror_fg.io.result import result_text
+from mirror_fg.io.ros import (
+    DEFAULT_BASE_FRAME,
+    DEFAULT_CAMERA_FRAME,
+    check_camera_frame_name,
+    check_frame_name,
+    ros_output_paths,
+    ros_output_texts,
+)
+
+__all__ = ["CalibrationOutputs", "plan_calibration_outputs"]
+
+#: What the side files mirror-fg writes carry in their first lines (so a stranger's file is never replaced).
+SIDE_FILE_MARKER = b"mirror-fg"
+
+
+class CalibrationOutputs:
+    """A checked plan for ``result_path`` and (``ros``) its side files; :meth:`write` commits them."""
+
+    def __init__(self, plan: OutputPlan, result_path: str, ros: bool, base_frame: str, camera_frame: str):
+        self.plan, self.result_path, self.ros = plan, result_path, ros
+        self.base_frame, self.camera_frame = base_frame, camera_frame
+
+    def write(self, result: Mapping[str, Any]) -> list[Path]:
+        """Write the result@1 dictionary and its ROS outputs, all-or-nothing; the paths written."""
+        texts = {self.result_path: result_text(result, self.result_path)}
+        if self.ros:
+            texts.update(ros_output_texts(result, self.result_path, self.base_frame, self.camera_frame))
+        return self.plan.commit(texts)
+
+
+def plan_calibration_outputs(
+    inputs: Iterable[str | os.PathLike[str]],
+    result_path: str | os.PathLike[str],
+    *,
+    ros: bool = True,
+    base_frame: str = DEFAULT_BASE_FRAME,
+    camera_frame: str = DEFAULT_CAMERA_FRAME,
+) -> CalibrationOutputs:
+    """Check the outputs of a calibration before any work; DatasetError (one line) if one must not be
+    written. A result that goes to a character device (``/dev/null``) gets no side files."""
+    plan = OutputPlan(inputs=[os.fspath(p) for p in inputs])
+    target = plan.add(result_path, "result")
+    ros = ros and not plan.is_device(target)
+    if ros:
+        try:
+            check_frame_name(base_frame, "--base-frame")
+            check_camera_frame_name(camera_frame, "--camera-frame")
+        except ValueError as error:
+            raise DatasetError(str(error)) from None
+        yaml_path, urdf_path = ros_output_paths(target)
+        plan.add(yaml_path, "ROS YAML", marker=SIDE_FILE_MARKER)
+        plan.add(urdf_path, "URDF", marker=SIDE_FILE_MARKER)
+    return CalibrationOutputs(plan, target, ros, base_frame, camera_frame)

@@ -1,0 +1,75 @@
+"""Calibrating many captures or datasets (a fleet of robots) on the Dask engine of ``tools/montecarlo.py``.
+
+Each input goes through the same path as ``mirror-fg calibrate``: read once (a capture@1 is detected
+first, :func:`mirror_fg.vision.detect.load_input`), ``calibrate``, a converged result written all-or-nothing by
+``io.output.OutputPlan`` as ``OUT_DIR/<input stem>.result.json`` with its ROS files beside it. One
+failure never stops the rest: it becomes a row with its reason.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from mirror_fg.core.errors import DatasetError
+from mirror_fg.tools.montecarlo import run_trials
+
+__all__ = ["calibrate_one", "calibrate_many", "result_path_for"]
+
+
+def result_path_for(path: str | os.PathLike[str], out_dir: str | os.PathLike[str]) -> Path:
+    """``OUT_DIR/<input file name without its extension>.result.json``."""
+    return Path(out_dir) / (Path(path).stem + ".result.json")
+
+
+def calibrate_one(path: str, out_dir: str, ros: bool = True) -> dict:
+    """Calibrate one input and write its result: a row ``{input, status, reason, result, ...}``, never
+    an exception (a failure is ``status: "failed"`` with the reason)."""
+    from mirror_fg.core.errors import MirrorFgError
+    from mirror_fg.io.calibration_files import plan_calibration_outputs
+    from mirror_fg.solver.calibrate import calibrate
+    from mirror_fg.solver.calibration import require_converged
+    from mirror_fg.vision.detect import load_input
+
+    row = {"input": os.fspath(path), "status": "failed", "reason": "", "result": None}
+    try:
+        target = result_path_for(path, out_dir)
+        outputs = plan_calibration_outputs([path], target, ros=ros)
+        dataset, _ = load_input(path, outputs.plan)
+        calibration = require_converged(calibrate(dataset), dataset.source)
+        outputs.write(calibration.to_dict())
+        rms = float((calibration.residual_norms**2).mean() ** 0.5)
+        row.update(status="ok", result=os.fspath(target), images=len(dataset.images),
+                   t_cam_base=[float(x) for x in calibration.t_cam_base],
+                   sigma3_position_mm=[float(x) for x in calibration.sigma3_position_mm],
+                   sigma3_rotation_deg=[float(x) for x in calibration.sigma3_rotation_deg],
+                   rms=rms, iterations=calibration.iterations)
+    except MirrorFgError as error:
+        row["reason"] = str(error)
+    except Exception as error:  # one bad input must not stop the others: report it, go on
+        row["reason"] = f"{type(error).__name__}: {error}"
+    return row
+
+
+def calibrate_many(
+    inputs: list[str | os.PathLike[str]],
+    out_dir: str | os.PathLike[str],
+    *,
+    scheduler: str | None = None,
+    workers: int = 2,
+    progress: bool = True,
+) -> list[dict]:
+    """Calibrate every input (dataset@1 or capture@1 files) into ``out_dir``, on a local Dask cluster of
+    ``workers`` processes or the scheduler at ``scheduler``; rows in the order of ``inputs``
+    (:func:`calibrate_one`: ``input``, ``status`` ok/failed, ``reason``, ``result`` path, key figures)."""
+    targets: dict[Path, str] = {}
+    for path in inputs:  # two inputs must not write one result
+        target = result_path_for(path, out_dir)
+        if target in targets:
+            raise DatasetError(f"{os.fspath(path)} and {targets[target]} would both write {target}: rename one")
+        targets[target] = os.fspath(path)
+    os.makedirs(out_dir, exist_ok=True)
+    todo = [{"path": os.fspath(p), "out_dir": os.fspath(out_dir)} for p in inputs]
+    rows = run_trials(calibrate_one, todo, [], total=len(todo), desc="calibrations", progress=progress,
+                      jobs=workers, scheduler=scheduler)
+    order = {item["path"]: n for n, item in enumerate(todo)}
+    return sorted(rows, key=lambda row: order[row["input"]])

@@ -1,0 +1,138 @@
+"""The human summary of a ``mirror-fg/result@1``: what ``mirror-fg calibrate`` prints and the report echoes.
+
+Each transform is printed with its own bounds in its own frame, and the frame is named, as Kalibr
+prints every transform with its convention: ``T_base_cam`` (the camera's pose on the robot) with
+``sigma3_base_cam`` about and along the *base* axes; ``T_cam_base`` (its inverse) with
+``sigma3_cam_base`` about and along the *camera* axes. Residuals use one RMS, docs/formats.md's
+``rms_px`` (the root mean square of each measurement's Euclidean reprojection error, about
+``sqrt(2) sigma`` when the noise model holds); every other figure is named for what it is.
+Metres, degrees, millimetres; residuals in pixels, or normalized units for a dataset without camera.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from mirror_fg.io.result import transforms, validate_result
+
+__all__ = ["summary_lines", "frame_convention", "cost_warning", "RMS_DEFINITION", "MAX_OUTLIER_LINES"]
+
+#: The one RMS of the project (docs/formats.md ``rms_px``), as printed beside it.
+RMS_DEFINITION = "of each measurement's reprojection-error length, ≈ √2·σ expected"
+#: Outliers listed without ``verbose`` (all with it).
+MAX_OUTLIER_LINES = 20
+
+
+def frame_convention() -> list[str]:
+    """The frame convention printed with the transforms (two lines)."""
+    return [
+        "frames: camera axes are OpenCV = ROS optical (x right, y down, z forward); T_a_b maps points of b",
+        "        into a; its 3-sigma bounds are rotation errors about a's axes (R_true = Exp(dθ) R) and position errors along them",
+    ]
+
+
+def _vector(values: Sequence[float] | None, fmt: str) -> str:
+    if values is None:
+        return "–"
+    return "[" + ", ".join(format(float(x), fmt) for x in values) + "]"
+
+
+def _bounds(sigma: Mapping[str, Any] | None, axes: str, position_of: str) -> str:
+    if not sigma:
+        return "  3-sigma bounds: not computed (the result has no covariance)"
+    return (f"  3-sigma bounds in {axes} axes (x, y, z): rotation ±{_vector(sigma.get('rotation_deg'), '.3f')} deg, "
+            f"{position_of} ±{_vector(sigma.get('position_mm'), '.2f')} mm")
+
+
+def _transform_lines(entry: Mapping[str, Any], R: np.ndarray, t: np.ndarray, full: bool) -> list[str]:
+    lines = [f"  R  {_vector(row, ' .6f')}" for row in R] if full else []
+    lines.append(f"  t  {_vector(t, ' .5f')} m")
+    q = entry.get("q_xyzw") if entry else None
+    if full:
+        from mirror_fg.core.transform import rotation_to_quaternion_xyzw
+
+        lines.append(f"  q_xyzw {_vector(q if q is not None else rotation_to_quaternion_xyzw(R), ' .6f')}")
+    return lines
+
+
+def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, incremental: bool = False,
+                  source: str = "result") -> list[str]:
+    """The summary of a result@1 dictionary as lines of text (no trailing newlines).
+
+    ``verbose``: also the full ``T_cam_base`` rotation, the costs and every outlier (else the first
+    MAX_OUTLIER_LINES). ``incremental``: the iteration count is of iSAM2 updates, not LM iterations.
+    ``result`` is validated first (DatasetError naming ``source``).
+    """
+    result = validate_result(result, source)
+    (R_cb, t_cb), (R_bc, t_bc) = transforms(result)
+    lines = ["T_base_cam  the camera's pose on the robot: p_base = R p_cam + t (tf/URDF parent base, child camera)"]
+    lines += _transform_lines(result.get("T_base_cam") or {}, R_bc, t_bc, full=True)
+    lines.append(_bounds(result.get("sigma3_base_cam") or _sigma3_base_cam(result), "base", "camera position"))
+    lines.append("T_cam_base  its inverse: p_cam = R p_base + t (t: the base origin in camera axes)")
+    lines += _transform_lines(result["T_cam_base"], R_cb, t_cb, full=verbose)
+    lines.append(_bounds(result.get("sigma3_cam_base"), "camera", "base origin"))
+    lines += frame_convention()
+    lines += _residual_lines(result.get("residuals") or {}, verbose)
+    lines += _optimizer_lines(result.get("optimizer") or {}, verbose, incremental)
+    return lines
+
+
+def _sigma3_base_cam(result: Mapping[str, Any]) -> dict[str, list[float]] | None:
+    """Bounds of T_base_cam for results written before ``sigma3_base_cam`` was added."""
+    from mirror_fg.io.result import base_cam_pose_covariance, sigma3_pose
+
+    return sigma3_pose(base_cam_pose_covariance(result))
+
+
+def _residual_lines(res: Mapping[str, Any], verbose: bool) -> list[str]:
+    if not res:
+        return ["residuals: not in the result"]
+    unit = "px" if res.get("units", "px") == "px" else "(normalized)"
+    named = [f"RMS {_num(res.get('rms_px'))} {unit} ({RMS_DEFINITION})"]
+    if res.get("mean_px") is not None:
+        named.append(f"mean length {_num(res['mean_px'])} {unit}")
+    named.append(f"largest {_num(res.get('max_px'))} {unit}")
+    lines = [f"residuals: {', '.join(named)}"]
+    outliers = res.get("outliers") or []
+    if outliers:
+        from mirror_fg.solver.residuals import OUTLIER_SIGMAS
+
+        lines.append(f"{len(outliers)} measurement(s) above {OUTLIER_SIGMAS:g} σ after the solve:")
+        shown = outliers if verbose else outliers[:MAX_OUTLIER_LINES]
+        lines += [f"  image '{o['image']}' point '{o['point']}': {o['sigmas']:.1f} σ" for o in shown]
+        if len(shown) < len(outliers):
+            lines.append(f"  ... and {len(outliers) - len(shown)} more (-v lists all; the report has them)")
+    return lines
+
+
+def _optimizer_lines(opt: Mapping[str, Any], verbose: bool, incremental: bool) -> list[str]:
+    if not opt:
+        return []
+    what = "iSAM2 updates" if incremental else "LM iterations"
+    state = {True: "converged", False: "NOT converged"}.get(opt.get("converged"), "convergence unknown")
+    lines = [f"optimizer: {opt.get('iterations', '–')} {what}, {state}"]
+    if verbose:
+        lines.append(f"  cost (0.5 χ²): initial {_num(opt.get('initial_error'))}, final {_num(opt.get('final_error'))}, "
+                     f"expected at the optimum {_num(opt.get('expected_final_error'))}")
+    warning = cost_warning(opt)
+    return lines + ([f"warning: {warning}"] if warning else [])
+
+
+def cost_warning(opt: Mapping[str, Any]) -> str | None:
+    """Why the optimizer's final cost is implausible (far above its expected value at the optimum), or None."""
+    final, expected = opt.get("final_error"), opt.get("expected_final_error")
+    if final is None or expected is None or not (math.isfinite(final) and math.isfinite(expected)):
+        return None
+    from mirror_fg.solver.lm import plausible
+
+    if plausible(final, expected):
+        return None
+    return (f"final cost {final:.4g} is far above its expected {expected:.4g} at the optimum: a local minimum, "
+            "outliers (try --robust) or a pixel_sigma that is too small")
+
+
+def _num(x: Any) -> str:
+    return "–" if x is None else f"{float(x):.3f}" if abs(float(x)) < 1e4 else f"{float(x):.4g}"
