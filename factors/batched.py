@@ -318,8 +318,8 @@ class BatchEvaluator:
             return False
         layout = self._layouts[f]
         if layout.check_whole_values:
-            return values.equals(self._values_copy, 0.0)
-        if not values.atPose3(self.pose_key).equals(self._pose, 0.0):
+            return self._values_copy is not None and values.equals(self._values_copy, 0.0)
+        if self._pose is None or not values.atPose3(self.pose_key).equals(self._pose, 0.0):
             return False
         cached = self._point_bytes
         keys = self.point_keys
@@ -392,6 +392,8 @@ class BatchEvaluator:
         self._has_jacobians = jacobians
         if not jacobians:
             return
+        if blocks is None:  # reflection_model returns the blocks whenever asked for Jacobians
+            raise RuntimeError("batched factors: reflection model returned no Jacobian blocks")
         cross, GR, mirror_blocks = blocks
         if self.robust is not None:
             GR *= sqrt_w

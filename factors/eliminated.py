@@ -297,6 +297,12 @@ class EliminatedEvaluator:
         self._blocks = {"D_inv": D_inv, "C": couplings, "information": informations}
         return systems
 
+    def _linearized_blocks(self) -> dict:
+        """The pieces the covariances need (``self._blocks``), once an evaluation with Jacobians made them."""
+        if self._blocks is None:
+            raise RuntimeError("eliminated factors: not linearised yet (evaluate with Jacobians first)")
+        return self._blocks
+
     # --- the factors' error function ---------------------------------------------------------------
 
     def error_function(self, f: int):
@@ -309,7 +315,10 @@ class EliminatedEvaluator:
                 out = np.zeros(width + 1)
                 out[-1] = np.sqrt(self._cost[f])
                 return out
-            rhs, blocks = self._systems[f]
+            systems = self._systems
+            if systems is None:  # evaluating with Jacobians always leaves them
+                raise RuntimeError("eliminated factors: no linear systems after evaluating with Jacobians")
+            rhs, blocks = systems[f]
             H.clear()
             H.extend(blocks)
             return rhs
@@ -328,7 +337,7 @@ class EliminatedEvaluator:
         ``kept_keys`` (6 for the pose, 3 for each other)."""
         self._evaluate(values, True)
         H = np.zeros((self.dimension_kept, self.dimension_kept))
-        for f, information in zip(self._factors, self._blocks["information"]):
+        for f, information in zip(self._factors, self._linearized_blocks()["information"]):
             cols = f["columns"]
             H[np.ix_(cols, cols)] += information
         return H
@@ -345,9 +354,10 @@ class EliminatedEvaluator:
             return None
         if not np.all(np.isfinite(covariance)):
             return None
-        D_inv = self._blocks["D_inv"]
+        linearized = self._linearized_blocks()
+        D_inv = linearized["D_inv"]
         placements = np.empty((len(D_inv), 3, 3))
-        for f, C in zip(self._factors, self._blocks["C"]):
+        for f, C in zip(self._factors, linearized["C"]):
             cols = f["columns"]
             K = D_inv[f["segments"]] @ C  # D^-1 B^T
             placements[f["segments"]] = D_inv[f["segments"]] + K @ covariance[np.ix_(cols, cols)] @ K.transpose(0, 2, 1)

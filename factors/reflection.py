@@ -10,6 +10,7 @@ node (base frame, metres). A fiducial's base-frame position is a constant of the
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import partial
 
 import gtsam
@@ -59,10 +60,13 @@ def noise_model(
     base = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigma_normalized, dtype=float))
     if robust is None:
         return base
-    kernels = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy}
+    kernels: dict[str, Callable[[float], gtsam.noiseModel.mEstimator.Base]] = {
+        "huber": gtsam.noiseModel.mEstimator.Huber.Create,
+        "cauchy": gtsam.noiseModel.mEstimator.Cauchy.Create,
+    }
     if robust not in kernels:
         raise ValueError(f"unknown robust kernel {robust!r}: use 'huber' or 'cauchy'")
-    return gtsam.noiseModel.Robust.Create(kernels[robust].Create(robust_k), base)
+    return gtsam.noiseModel.Robust.Create(kernels[robust](robust_k), base)
 
 
 def ReflectionFactor(

@@ -13,7 +13,7 @@ import sys
 import time
 import traceback
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -24,6 +24,7 @@ from mirror_fg.factors.batched import ROBUST_K
 if TYPE_CHECKING:
     from mirror_fg.io.dataset import Dataset
     from mirror_fg.io.output import OutputPlan
+    from mirror_fg.vision.tracking import Track
 
 EXIT_OK, EXIT_INTERNAL = 0, 1  # bad input and unsolvable data: MirrorFgError.exit_code (2, 3)
 
@@ -303,7 +304,9 @@ class _StageBars:
     """One progress bar per stage of ``calibrate`` (on stderr, when it is a terminal), named after it."""
 
     def __init__(self, show: bool):
-        self.show, self.stage, self.bar = show, None, None
+        self.show = show
+        self.stage: str | None = None
+        self.bar: Any = None  # a tqdm bar while a stage runs
 
     def update(self, stage: str, done: int, total: int | None) -> None:
         if not self.show:
@@ -397,7 +400,8 @@ def cmd_report(args, out: _Printer) -> int:
     except ValueError as error:
         raise DatasetError(str(error)) from None
     result = load_result(args.result)
-    dataset, tracks, inputs = None, {}, {"result": os.fspath(args.result)}
+    tracks: dict[str, Track] = {}
+    dataset, inputs = None, {"result": os.fspath(args.result)}
     if args.dataset is not None:  # a dataset, or a capture (detected again: its tracks are drawn too)
         dataset = _load_input(args.dataset, out, plan, tracks=tracks)
         inputs["data"] = os.fspath(args.dataset)

@@ -10,8 +10,11 @@ import logging
 from collections.abc import Callable, Mapping
 from typing import Any
 
+import numpy as np
+
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.dataset import Dataset, dataset_from_dict
+from mirror_fg.solver.analytic import AnalyticSolution
 from mirror_fg.solver.calibration import Calibration
 from mirror_fg.solver.graph import InitialEstimate
 from mirror_fg.solver.initial import initial_estimate
@@ -73,9 +76,10 @@ def calibrate(
     logger.info("%s: calibrating %d images, %d mirror placements", dataset.source, len(dataset.images),
                 len(dataset.configurations))
     with timed(timings, "analytic"):
-        analytic = None
-        if initial is None:
-            analytic = initial_estimate(dataset, progress=lambda done: report(STAGES[0], done, None))
+        analytic: AnalyticSolution | None = None
+        start = initial
+        if start is None:
+            start = analytic = initial_estimate(dataset, progress=lambda done: report(STAGES[0], done, None))
     logger.info("initial estimate: %.3f s", timings["analytic"])
 
     def iteration(number: int, error_before: float, error_after: float) -> None:
@@ -85,7 +89,7 @@ def calibrate(
 
     report(STAGES[1], 0, max_iterations)
     run, analytic, restarts = levenberg_marquardt_with_restarts(
-        dataset, initial if initial is not None else analytic, analytic, robust, fast, max_iterations, iteration,
+        dataset, start, analytic, robust, fast, max_iterations, iteration,
         timings,
     )
     logger.info("Levenberg-Marquardt: %d iterations, %d restart(s), %.3f s (build %.3f s)", run.iterations, restarts,
@@ -94,7 +98,9 @@ def calibrate(
         logger.warning("%s: Levenberg-Marquardt did not converge in %d iterations", dataset.source, run.iterations)
 
     with timed(timings, "marginals"):
-        covariance, mirror_covs, point_covs = (None, {}, {})
+        covariance: np.ndarray | None = None
+        mirror_covs: dict[tuple[int, int], np.ndarray] = {}
+        point_covs: dict[str, np.ndarray] = {}
         if compute_covariance:
             report(STAGES[2], 0, 1)
             covariance, mirror_covs, point_covs = run.covariances(dataset)

@@ -245,14 +245,18 @@ class IncrementalCalibrator(GraphGrowth):
         self._require_started()
         if unknown is None:
             return covariance_from_pose3(self._g.R, self._g.pose_cov)
-        key = self._g.layout.point_keys.get(unknown) if isinstance(unknown, str) else self._g.layout.mirror_keys.get(tuple(unknown))
+        if isinstance(unknown, str):
+            key = self._g.layout.point_keys.get(unknown)
+        else:
+            config = tuple(unknown)  # a list ``[l, m]`` works too
+            key = self._g.layout.mirror_keys.get(config) if len(config) == 2 else None
         if key is None:
             raise KeyError(f"{unknown!r} has no value in the graph yet")
         if self._settled:
-            return self._g.isam.marginalCovariance(key)
+            return self._g.require_isam().marginalCovariance(key)
         # Unsettled, iSAM2 may not hold the reported (LM) estimate: marginals of the whole graph there.
         _, mirrors, points = marginal_covariances(self._g.factors, self._values(), self._g.layout, self._ds.source)
-        return points[unknown] if isinstance(unknown, str) else mirrors[tuple(unknown)]
+        return points[unknown] if isinstance(unknown, str) else mirrors[config]
 
     def calibration(self, full: bool = False) -> Calibration:
         """The current estimate as a ``Calibration`` (same shape as the batch one).
@@ -282,8 +286,8 @@ class IncrementalCalibrator(GraphGrowth):
                 outliers=[],
                 final_error=math.nan,
             )
-        full: dict[str, float] = {}
-        with timed(full, "full"):
+        stage_times: dict[str, float] = {}
+        with timed(stage_times, "full"):
             if not self._settled:
                 # Every image, and the batch's iteration budget, for the Levenberg-Marquardt solution.
                 self._restart(lm_iterations=FINAL_LM_ITERATIONS)
@@ -309,7 +313,7 @@ class IncrementalCalibrator(GraphGrowth):
                 final_error=float(g.factors.error(estimate)),
             )
             calibration.converged = self._settled and g.step_sigmas < POLISH_SIGMAS
-        calibration.timings.update(full)
+        calibration.timings.update(stage_times)
         return calibration
 
     # --- start-up and restarts (Sects. 4-5) ------------------------------------------------------------

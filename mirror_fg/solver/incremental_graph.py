@@ -109,6 +109,12 @@ class GraphState:
             step_sigmas=math.inf,
         )
 
+    def require_isam(self) -> gtsam.ISAM2:
+        """The iSAM2 instance; only a started graph has one (``SolveError`` before start-up)."""
+        if self.isam is None:
+            raise SolveError("no iSAM2 yet: the calibrator has not started")
+        return self.isam
+
 
 @dataclass
 class _Candidate:
@@ -361,16 +367,17 @@ class GraphGrowth:
 
     def _update(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
         """One ``ISAM2.update`` with only the new factors and values; refresh the estimate."""
+        isam = self._g.require_isam()
         with timed(self.timings, "isam2"):
             try:
-                self._g.isam.update(factors, values)
-                pose_cov = self._g.isam.marginalCovariance(self._g.layout.pose_key)
+                isam.update(factors, values)
+                pose_cov = isam.marginalCovariance(self._g.layout.pose_key)
             except RuntimeError as error:  # IndeterminantLinearSystemException
                 raise SolveError(f"{self._ds.source}: {unconstrained_message(error, self._g.layout)}") from None
             self._updates += 1
         with timed(self.timings, "estimate"):
             before = (self._g.R, self._g.t, self._g.pose_cov)
-            self._set_estimate(self._g.isam.calculateEstimate())
+            self._set_estimate(isam.calculateEstimate())
             self._g.pose_cov = pose_cov
             self._g.step_sigmas = self._pose_step_sigmas(*before)
 
@@ -379,7 +386,8 @@ class GraphGrowth:
         (GTSAM's tangent; the current covariance when it is undefined, as at a start-up)."""
         step = gtsam.Pose3(gtsam.Rot3(R), t).localCoordinates(gtsam.Pose3(gtsam.Rot3(self._g.R), self._g.t))
         reference = covariance if np.all(np.isfinite(covariance)) else self._g.pose_cov
-        return float(np.sqrt(max(step @ np.linalg.solve(reference, step), 0.0)))
+        quadratic = float(step @ np.linalg.solve(reference, step))
+        return float(np.sqrt(max(quadratic, 0.0)))
 
     def _new_isam2(self) -> gtsam.ISAM2:
         params = gtsam.ISAM2Params()

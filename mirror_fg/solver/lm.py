@@ -165,7 +165,9 @@ def levenberg_marquardt(
         scale = cost_scale(dataset)
         params = lm_params(max_iterations, scale)
         if on_iteration is not None:
-            params.iterationHook = on_iteration
+            # GTSAM's stub types the hook's arguments as SupportsInt/SupportsFloat (what the binding
+            # accepts); GTSAM calls it with an int and two floats.
+            params.iterationHook = on_iteration  # type: ignore[assignment]
         initial_error = graph.error(values)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         try:

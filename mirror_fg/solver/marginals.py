@@ -47,7 +47,9 @@ def marginal_covariances(
     for f in range(linear.size()):
         factor = linear.at(f)
         J = factor.jacobian()[0]  # whitened, columns in the factor's key order
-        rest_columns, rest_index, diagonal_blocks = [], [], []
+        rest_columns: list[int] = []
+        rest_index: list[int] = []
+        diagonal_blocks: list[tuple[int, np.ndarray]] = []
         column = 0
         for key in factor.keys():
             width = 6 if key == layout.pose_key else 3
@@ -59,11 +61,11 @@ def marginal_covariances(
             column += width
         J_rest = J[:, rest_columns]
         A[np.ix_(rest_index, rest_index)] += J_rest.T @ J_rest
-        for n, (i, block) in enumerate(diagonal_blocks):
-            B[i][rest_index] += J_rest.T @ block
-            D[i] += block.T @ block
+        for n, (i, J_block) in enumerate(diagonal_blocks):
+            B[i][rest_index] += J_rest.T @ J_block
+            D[i] += J_block.T @ J_block
             for _, other in diagonal_blocks[n + 1 :]:
-                if np.any(block.T @ other != 0.0):
+                if np.any(J_block.T @ other != 0.0):
                     return _marginals_from_gtsam(graph, values, layout, source)
     try:
         D_inv = np.linalg.inv(D)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.tools.montecarlo import run_trials
@@ -24,13 +25,13 @@ def result_path_for(path: str | os.PathLike[str], out_dir: str | os.PathLike[str
 def calibrate_one(path: str, out_dir: str, ros: bool = True) -> dict:
     """Calibrate one input and write its result: a row ``{input, status, reason, result, ...}``, never
     an exception (a failure is ``status: "failed"`` with the reason)."""
-    from mirror_fg.core.errors import MirrorFgError
+    from mirror_fg.core.errors import MirrorFgError, SolveError
     from mirror_fg.io.calibration_files import plan_calibration_outputs
     from mirror_fg.solver.calibrate import calibrate
     from mirror_fg.solver.calibration import require_converged
     from mirror_fg.vision.detect import load_input
 
-    row = {"input": os.fspath(path), "status": "failed", "reason": "", "result": None}
+    row: dict[str, Any] = {"input": os.fspath(path), "status": "failed", "reason": "", "result": None}
     try:
         target = result_path_for(path, out_dir)
         outputs = plan_calibration_outputs([path], target, ros=ros)
@@ -38,10 +39,13 @@ def calibrate_one(path: str, out_dir: str, ros: bool = True) -> dict:
         calibration = require_converged(calibrate(dataset), dataset.source)
         outputs.write(calibration.to_dict())
         rms = float((calibration.residual_norms**2).mean() ** 0.5)
+        sigma3_position, sigma3_rotation = calibration.sigma3_position_mm, calibration.sigma3_rotation_deg
+        if sigma3_position is None or sigma3_rotation is None:  # calibrate() computes the covariance
+            raise SolveError(f"{dataset.source}: no covariance in the calibration")
         row.update(status="ok", result=os.fspath(target), images=len(dataset.images),
                    t_cam_base=[float(x) for x in calibration.t_cam_base],
-                   sigma3_position_mm=[float(x) for x in calibration.sigma3_position_mm],
-                   sigma3_rotation_deg=[float(x) for x in calibration.sigma3_rotation_deg],
+                   sigma3_position_mm=[float(x) for x in sigma3_position],
+                   sigma3_rotation_deg=[float(x) for x in sigma3_rotation],
                    rms=rms, iterations=calibration.iterations)
     except MirrorFgError as error:
         row["reason"] = str(error)

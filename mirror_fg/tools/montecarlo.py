@@ -117,9 +117,9 @@ def run_trials(
                 for future in pending:
                     keep(future.result())
                     if not over_budget():
-                        kwargs = next(queue, None)
-                        if kwargs is not None:
-                            pending.add(client.submit(task, pure=False, **kwargs))
+                        following = next(queue, None)
+                        if following is not None:
+                            pending.add(client.submit(task, pure=False, **following))
     finally:
         bar.close()
         if log is not None:

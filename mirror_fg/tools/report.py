@@ -111,7 +111,8 @@ def _summary(
         rows.append(("measurements flagged by the calibration", str(len(res["outliers"]))))
     opt = result.get("optimizer") or {}
     rows.append(("iterations", "–" if opt.get("iterations") is None else str(opt["iterations"])))
-    rows.append(("converged", {True: "yes", False: "NO"}.get(opt.get("converged"), "–")))
+    converged: dict[bool | None, str] = {True: "yes", False: "NO"}
+    rows.append(("converged", converged.get(opt.get("converged"), "–")))
     if "initial_error" in opt or "final_error" in opt:
         expected = f" (expected {_fmt(opt['expected_final_error'])})" if opt.get("expected_final_error") else ""
         rows.append(("cost ½χ² initial → final", f"{_fmt(opt.get('initial_error'))} → {_fmt(opt.get('final_error'))}"

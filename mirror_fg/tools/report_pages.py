@@ -92,14 +92,17 @@ class _Pages:
     TOP, BOTTOM, LEFT, LINE = 0.955, 0.045, 0.06, 0.0135
 
     def __init__(self, pdf: Any, title: str) -> None:
-        self.pdf, self.title, self.fig, self.y = pdf, title, None, 0.0
+        self.pdf, self.title, self.y = pdf, title, 0.0
+        self.fig: Figure | None = None
 
-    def _page(self) -> None:
+    def _page(self) -> Figure:
+        """Close the current page and start a new one (the new ``self.fig``)."""
         self.close()
-        self.fig = new_figure(*A4_INCHES)
-        self.fig.set_layout_engine("none")
-        self.fig.text(self.LEFT, 0.985, self.title, fontsize=7, color="#888", va="top")
+        fig = self.fig = new_figure(*A4_INCHES)
+        fig.set_layout_engine("none")
+        fig.text(self.LEFT, 0.985, self.title, fontsize=7, color="#888", va="top")
         self.y = self.TOP
+        return fig
 
     def close(self) -> None:
         if self.fig is not None:
@@ -107,9 +110,10 @@ class _Pages:
             self.fig = None
 
     def line(self, text: str, *, size: float = 8.0, x: float = 0.0, space: float = 1.0, **style: Any) -> None:
-        if self.fig is None or self.y - self.LINE * space < self.BOTTOM:
-            self._page()
-        self.fig.text(self.LEFT + x, self.y, text, fontsize=size, va="top", **style)
+        fig = self.fig
+        if fig is None or self.y - self.LINE * space < self.BOTTOM:
+            fig = self._page()
+        fig.text(self.LEFT + x, self.y, text, fontsize=size, va="top", **style)
         self.y -= self.LINE * space * size / 8.0
 
     def ensure(self, lines: int) -> None:
@@ -125,13 +129,13 @@ class _Pages:
         import matplotlib.image
 
         image = matplotlib.image.imread(io.BytesIO(png(figure, PDF_FIGURE_DPI)), format="png")
-        self._page()
-        self.line(heading, size=12, weight="bold", space=1.8)
+        fig = self._page()
+        self.line(heading, size=12, weight="bold", space=1.8)  # at the top of that page
         h, w = image.shape[:2]
         width = 1.0 - 2 * self.LEFT
         height = min(width * (h / w) * A4_INCHES[0] / A4_INCHES[1], self.y - 0.2)
         width = height * (w / h) * A4_INCHES[1] / A4_INCHES[0]
-        ax = self.fig.add_axes((self.LEFT, self.y - height, width, height))
+        ax = fig.add_axes((self.LEFT, self.y - height, width, height))
         ax.imshow(image, interpolation="antialiased")
         ax.set_axis_off()
         self.y -= height + 0.015

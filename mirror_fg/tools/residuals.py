@@ -212,7 +212,9 @@ def residuals_of_valid_result(result: Mapping[str, Any], dataset: Dataset, sourc
             transform_index.append(k)
             observed.append(np.asarray(xy, dtype=float))
     A, b = nested_transforms(R, t, [np.array(v).reshape(-1, 3) for v in vectors])  # eqs. (5)-(8)
-    camera_points = predict_camera_points(A, b, transform_index, np.array(base, dtype=float).reshape(-1, 3))
+    camera_points = predict_camera_points(
+        A, b, np.asarray(transform_index, dtype=int), np.array(base, dtype=float).reshape(-1, 3)
+    )
     predicted = project(camera_points)  # eq. (9)
     predicted[camera_points[:, 2] <= 0.0] = np.nan  # behind the camera: no image
     if dataset.camera is not None:

@@ -11,7 +11,7 @@ Metres, degrees, millimetres; residuals in pixels, or normalized units for a dat
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping
 from typing import Any
 
 import numpy as np
@@ -34,7 +34,7 @@ def frame_convention() -> list[str]:
     ]
 
 
-def _vector(values: Sequence[float] | None, fmt: str) -> str:
+def _vector(values: Iterable[float] | None, fmt: str) -> str:
     if values is None:
         return "–"
     return "[" + ", ".join(format(float(x), fmt) for x in values) + "]"
@@ -112,7 +112,8 @@ def _optimizer_lines(opt: Mapping[str, Any], verbose: bool, incremental: bool) -
     if not opt:
         return []
     what = "iSAM2 updates" if incremental else "LM iterations"
-    state = {True: "converged", False: "NOT converged"}.get(opt.get("converged"), "convergence unknown")
+    states: dict[bool | None, str] = {True: "converged", False: "NOT converged"}
+    state = states.get(opt.get("converged"), "convergence unknown")
     lines = [f"optimizer: {opt.get('iterations', '–')} {what}, {state}"]
     if verbose:
         lines.append(f"  cost (0.5 χ²): initial {_num(opt.get('initial_error'))}, final {_num(opt.get('final_error'))}, "
