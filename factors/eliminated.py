@@ -30,7 +30,7 @@ from collections.abc import Mapping, Sequence
 import gtsam
 import numpy as np
 
-from mirror_fg.factors.batched import measurement_arrays, reflection_model
+from mirror_fg.factors.model import measurement_arrays, reflection_model
 from mirror_fg.factors.stacking import Fiducials, KeyLayout, Observation
 
 __all__ = ["EliminatedEvaluator", "NotEliminable", "eliminated_evaluator", "INNER_MAX_ITERATIONS", "INNER_STEP_TOLERANCE"]
