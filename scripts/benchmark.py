@@ -2,6 +2,7 @@
 """Speed and memory of a calibration (issue 6), in one run on this machine.
 
     python scripts/benchmark.py [--repeats 5] [--slow-repeats 3] [--quick] [--profile] [--json out.json]
+    python scripts/benchmark.py --scaling [--scaling-max 10000]   # time per stage and memory, 1k..100k images
 
 Problems (simulator, Sect. 7): two mirrors, 3 fiducials, 1 px; (a) 900 images, mirror 1 in three
 placements of 300, mirror 2 moving every image; (b) 200 images with 60 reconstruction points.
@@ -348,8 +349,60 @@ def native_profile(case: str, repeats: int) -> str:
     return "\n".join(f"{100 * share:5.1f} %  {label}" for label, share in rows)
 
 
+def task_scaling(case: str, repeats: int) -> dict:
+    """One calibrate() of ``case`` images (2 mirrors, 3 fiducials, mirror 1 in 3 placements): stage times
+    and the process's peak memory (each size in a fresh process, so the peak is its own)."""
+    from mirror_fg import calibrate
+    from mirror_fg.tools.simulate import simulate_base_case
+
+    start = time.perf_counter()
+    dataset, _ = simulate_base_case(num_images=int(case), num_points=0, mirror1_placements=3, **COMMON)
+    simulate = time.perf_counter() - start
+    start_wall, start_cpu = time.perf_counter(), time.process_time()
+    cal = calibrate(dataset)
+    wall, cpu = time.perf_counter() - start_wall, time.process_time() - start_cpu
+    return {"images": int(case), "simulate": simulate, "wall": wall, "cpu": cpu, **cal.timings,
+            "iterations": cal.iterations, "converged": bool(cal.converged), "peak_mb": _peak_mb()}
+
+
+#: Image counts of ``--scaling`` (2 mirrors, 3 fiducials).
+SCALING_SIZES = (1_000, 3_000, 10_000, 30_000, 100_000)
+
+
+def scaling_table(max_images: int, timeout_s: float) -> list[dict]:
+    """``--scaling``: calibrate() per size in a fresh process; prints the table and the 10k / 1k ratio."""
+    stages = ("analytic", "build", "optimize", "marginals", "residuals")
+    print(f"scaling: 2 mirrors (mirror 1 in 3 placements, mirror 2 new in every image), 3 fiducials, 1 px; "
+          f"one calibrate() per size, each in its own process; load average {os.getloadavg()[0]:.2f}")
+    header = f"{'images':>8s} " + " ".join(f"{k:>9s}" for k in stages) + f" {'total':>8s} {'cpu':>8s} {'LM it':>5s} {'peak MB':>8s}"
+    print(header)
+    rows = []
+    for size in (n for n in SCALING_SIZES if n <= max_images):
+        command = [sys.executable, os.path.abspath(__file__), "--worker", "scaling", str(size), "1"]
+        try:
+            done = subprocess.run(command, capture_output=True, text=True, timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            print(f"{size:8d}  not finished within {timeout_s:.0f} s: stopped")
+            break
+        lines = [line for line in done.stdout.splitlines() if line.startswith("RESULT ")]
+        if not lines:
+            print(f"{size:8d}  failed (exit {done.returncode}): {done.stderr.strip().splitlines()[-1:] }")
+            break
+        row = json.loads(lines[0][len("RESULT "):])
+        rows.append(row)
+        print(f"{size:8d} " + " ".join(f"{row.get(k, 0.0):9.3f}" for k in stages)
+              + f" {row['wall']:8.3f} {row['cpu']:8.3f} {row['iterations']:5d} {row['peak_mb']:8.0f}", flush=True)
+    by_size = {row["images"]: row for row in rows}
+    if 1_000 in by_size and 10_000 in by_size:
+        ratio = by_size[10_000]["wall"] / by_size[1_000]["wall"]
+        print(f"time(10k) / time(1k) = {ratio:.1f} (goal <= 12; linear would be 10)")
+    print(f"load average at end {os.getloadavg()[0]:.2f} on {os.cpu_count()} cpus")
+    return rows
+
+
 TASKS = {
     "baseline": task_baseline,
+    "scaling": task_scaling,
     "fast": lambda case, repeats: task_calibrate(case, repeats, fast=True),
     "reference": lambda case, repeats: task_calibrate(case, repeats, fast=False),
     "linearize": task_linearize,
@@ -389,11 +442,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--native-profile", action="store_true",
                         help="py-spy profile (native frames) of fast calibrations: where the time goes inside GTSAM")
     parser.add_argument("--json", help="also write every figure to this JSON file")
+    parser.add_argument("--scaling", action="store_true",
+                        help="time per stage and peak memory over 1k, 3k, 10k, 30k, 100k images (fresh process each)")
+    parser.add_argument("--scaling-max", type=int, default=SCALING_SIZES[-1], metavar="N",
+                        help="--scaling: stop after the sizes <= N images")
+    parser.add_argument("--scaling-timeout", type=float, default=300.0, metavar="S",
+                        help="--scaling: give up a size (and the larger ones) after S seconds")
     parser.add_argument("--worker", nargs=3, metavar=("TASK", "CASE", "REPEATS"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
         task, case, repeats = args.worker
         print("RESULT " + json.dumps(TASKS[task](case, int(repeats))))
+        return 0
+    if args.scaling:
+        rows = scaling_table(args.scaling_max, args.scaling_timeout)
+        if args.json:
+            with open(args.json, "w") as f:
+                json.dump({"scaling": rows}, f, indent=1)
         return 0
     repeats, slow = (1, 1) if args.quick else (args.repeats, args.slow_repeats)
 

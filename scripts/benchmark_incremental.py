@@ -46,6 +46,39 @@ def stats_ms(seconds: list[float]) -> str:
             f"(n={len(ms)}, > 100 ms: {int(np.sum(ms > 100))})")
 
 
+def latency_mode(counts: list[int], placements: int, sigma: float, seed: int) -> dict[int, dict[str, float]]:
+    """``--latency``: ``add_image`` p50 / p95 / max over a stream of each length (2 mirrors, 3 fiducials, no
+    points), after the first estimate; each stream simulated at its own length."""
+    figures = {}
+    print(f"add_image latency (ms) after the first estimate; {placements} placements of mirror 1, {sigma} px, "
+          f"seed {seed}; load average {os.getloadavg()[0]:.2f}")
+    print(f"{'images':>8s} {'p50':>8s} {'p95':>8s} {'max':>8s} {'p50 last 10%':>13s} {'p95 last 10%':>13s} {'stream s':>9s}")
+    for count in counts:
+        ds, _ = simulate_base_case(num_images=count, num_points=0, pixel_sigma=sigma, mirror1_placements=placements,
+                                   seed=seed)
+        calibrator = IncrementalCalibrator(ds)
+        latency, first = [], None
+        stream_start = time.perf_counter()
+        for n, image in enumerate(ds.images, start=1):
+            start = time.perf_counter()
+            estimate = calibrator.add_image(image)
+            latency.append(time.perf_counter() - start)
+            if estimate is not None and first is None:
+                first = n
+        total = time.perf_counter() - stream_start
+        if first is None:
+            print(f"{count:8d}  the stream never allowed the analytical solution")
+            continue
+        after = np.array(latency[first:]) * 1e3
+        tail = after[-max(1, len(after) // 10):]
+        row = {"p50": float(np.percentile(after, 50)), "p95": float(np.percentile(after, 95)), "max": float(after.max()),
+               "p50_tail": float(np.percentile(tail, 50)), "p95_tail": float(np.percentile(tail, 95)), "stream_s": total}
+        figures[count] = row
+        print(f"{count:8d} {row['p50']:8.2f} {row['p95']:8.2f} {row['max']:8.1f} {row['p50_tail']:13.2f} "
+              f"{row['p95_tail']:13.2f} {total:9.1f}", flush=True)
+    return figures
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--images", type=int, default=300)
@@ -55,7 +88,12 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--batch-samples", type=int, default=6, help="image counts at which the batch solve is timed")
     parser.add_argument("--batch-every-image", action="store_true", help="time the batch solve at every image count")
+    parser.add_argument("--latency", type=int, nargs="*", metavar="N",
+                        help="only the add_image latency p50/p95 over streams of N images (default 1000 10000)")
     args = parser.parse_args()
+    if args.latency is not None:
+        latency_mode(args.latency or [1000, 10000], args.placements, args.sigma, args.seed)
+        return
 
     ds, _ = simulate_base_case(num_images=args.images, num_points=args.points, pixel_sigma=args.sigma,
                                mirror1_placements=args.placements, seed=args.seed)

@@ -193,3 +193,20 @@ def test_one_mirror_with_many_p3p_images_is_not_enumerated():
     calibration = calibrate(dataset, compute_covariance=False)
     optimum = calibrate(dataset, initial=truth, compute_covariance=False)
     assert np.linalg.norm(calibration.t_cam_base - optimum.t_cam_base) < 1e-6
+
+
+def test_smallest_eigenvectors_match_eigh():
+    """The closed-form smallest eigenvectors of the mirror peeling agree with eigh to rounding (up to sign)."""
+    from mirror_fg.solver.peeling import smallest_eigenvectors
+
+    rng = np.random.default_rng(3)
+    normals = rng.normal(size=(200, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    householder = np.eye(3) - 2.0 * np.einsum("ka,kb->kab", normals, normals)
+    for noise in (0.0, 1e-6, 1e-2, 0.5):
+        S = 4.0 * householder + noise * rng.normal(size=householder.shape)
+        S = 0.5 * (S + S.transpose(0, 2, 1))
+        expected = np.linalg.eigh(S)[1][:, :, 0]
+        got = smallest_eigenvectors(S)
+        off = np.minimum(np.linalg.norm(got - expected, axis=1), np.linalg.norm(got + expected, axis=1))
+        assert off.max() < 1e-12

@@ -35,3 +35,10 @@ def test_native_breakdown_splits_calibrate_samples(benchmark):
         "residual statistics and the rest (Python)": 0.05,
     })
     assert benchmark.native_breakdown("") == []
+
+
+def test_scaling_task_reports_stages_and_memory(benchmark):
+    row = benchmark.task_scaling("60", 1)
+    assert row["images"] == 60 and row["converged"]
+    for key in ("analytic", "optimize", "marginals", "wall", "peak_mb"):
+        assert row[key] > 0

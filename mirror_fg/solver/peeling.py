@@ -39,6 +39,49 @@ class NodeSolution:
     residual: float  # combined residual of eqs. (13) and (16), unitless
 
 
+#: From this many matrices on, :func:`smallest_eigenvectors` is computed in closed form.
+CLOSED_FORM_EIGEN_MIN = 16
+
+
+def smallest_eigenvectors(S: np.ndarray) -> np.ndarray:
+    """Unit eigenvectors (K, 3) of the smallest eigenvalue of symmetric matrices ``S`` (K, 3, 3).
+
+    ``np.linalg.eigh`` on a stack of 3x3 matrices costs ~2 us each and the mirror peeling asks for
+    thousands per node; in closed form instead: the smallest eigenvalue by the trigonometric solution
+    of the characteristic cubic, the eigenvector as the longest cross product of two rows of
+    ``S - lambda I``, then one inverse-free power step on ``||S|| I - S``. Accurate to rounding when the
+    smallest eigenvalue is apart from the others (a mirror's ``-1`` against ``+1, +1``, eq. 13); the sign
+    is arbitrary, as ``eigh``'s.
+    """
+    S = np.asarray(S, dtype=float)
+    if S.ndim != 3 or len(S) < CLOSED_FORM_EIGEN_MIN:  # a few matrices: eigh's fixed cost is lower
+        return np.linalg.eigh(S)[1][..., 0]
+    a00, a11, a22 = S[..., 0, 0], S[..., 1, 1], S[..., 2, 2]
+    a01, a02, a12 = S[..., 0, 1], S[..., 0, 2], S[..., 1, 2]
+    q = (a00 + a11 + a22) / 3.0
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)
+    p = np.sqrt(p2 / 6.0)
+    safe = np.where(p > 0.0, p, 1.0)
+    det = (b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02))
+    r = np.clip(det / (2.0 * safe**3), -1.0, 1.0)
+    smallest = q + 2.0 * p * np.cos(np.arccos(r) / 3.0 + 2.0 * np.pi / 3.0)
+    d0, d1, d2 = a00 - smallest, a11 - smallest, a22 - smallest  # rows of S - lambda I
+    crosses = np.stack([
+        np.stack([a01 * a12 - a02 * d1, a02 * a01 - d0 * a12, d0 * d1 - a01 * a01], axis=-1),  # row 0 x row 1
+        np.stack([a01 * d2 - a02 * a12, a02 * a02 - d0 * d2, d0 * a12 - a01 * a02], axis=-1),  # row 0 x row 2
+        np.stack([d1 * d2 - a12 * a12, a12 * a02 - a01 * d2, a01 * a12 - d1 * a02], axis=-1),  # row 1 x row 2
+    ], axis=-2)
+    lengths = np.einsum("...ka,...ka->...k", crosses, crosses)
+    best = np.argmax(lengths, axis=-1)
+    v = np.where((np.max(lengths, axis=-1) > 0.0)[..., None],
+                 np.take_along_axis(crosses, best[..., None, None], axis=-2)[..., 0, :], np.array([1.0, 0.0, 0.0]))
+    v = v / np.sqrt(np.einsum("...a,...a->...", v, v))[..., None]
+    shift = np.sqrt(np.einsum("...ab,...ab->...", S, S))  # >= |eigenvalues|: ||S|| I - S is positive semi-definite
+    v = shift[..., None] * v - np.einsum("...ab,...b->...a", S, v)
+    return v / np.sqrt(np.einsum("...a,...a->...", v, v))[..., None]
+
+
 def _normals_from_pairwise_axes(child_A: np.ndarray) -> np.ndarray:
     """Unit normals (K, 3) of K mirror placements from the axes of ``A_m A_m'^T`` (eqs. 14-15).
 
@@ -79,7 +122,7 @@ def solve_children(
         A_parent = project_to_orthogonal(np.einsum("iab,ibc->ac", reflections, rotations), parent_det)
         # eq. (13): each child's M_m = A_l(m) A_{l-1}^T; its normal is the -1 eigenvector.
         estimates = child_sums @ A_parent.T
-        new_normals = np.linalg.eigh(0.5 * (estimates + estimates.transpose(0, 2, 1)))[1][:, :, 0]
+        new_normals = smallest_eigenvectors(0.5 * (estimates + estimates.transpose(0, 2, 1)))
         # keep the sign of each normal stable between iterations
         new_normals *= np.where(np.sum(new_normals * normals, axis=1) < 0, -1.0, 1.0)[:, None]
         converged = np.max(np.abs(new_normals - normals)) < 1e-13
@@ -120,7 +163,7 @@ def reflection_fit(
     ``b_l - M b_{l-1}`` must be ``2 v``, parallel to that normal; the misfit is how far both are off.
     """
     M = A @ A_parent.T
-    normals = np.linalg.eigh(0.5 * (M + M.transpose(0, 2, 1)))[1][:, :, 0]
+    normals = smallest_eigenvectors(0.5 * (M + M.transpose(0, 2, 1)))
     H = householders(normals, unit=True)
     offsets = b - H @ b_parent  # must be 2 v, parallel to the normal (eq. 7)
     along = np.einsum("ia,ia->i", normals, offsets)
@@ -147,9 +190,9 @@ def choose_candidates(
     returned best residual first.
     """
     if all(len(c) == 1 for c in image_candidates):
-        choice = [0] * len(image_candidates)
+        only = [0] * len(image_candidates)
         observations = [(k, *candidates[0]) for k, candidates in zip(image_children, image_candidates)]
-        return [(choice, solve_children(observations, num_children, parent_det))]
+        return [(only, solve_children(observations, num_children, parent_det))]
     first_image_of_child: dict[int, int] = {}
     for i, k in enumerate(image_children):
         first_image_of_child.setdefault(k, i)
@@ -169,11 +212,15 @@ def choose_candidates(
             choice, score = _consistent_choice(image_candidates, node)
             hypotheses[choice] = min(score, hypotheses.get(choice, np.inf))
     results: dict[tuple[int, ...], NodeSolution] = {}
-    for choice in sorted(hypotheses, key=hypotheses.get)[:NUM_FULL_HYPOTHESES]:
+    # full solves and re-picks of one choice, computed once: distinct choices often re-pick the same one
+    solved: dict[tuple[int, ...], tuple[NodeSolution, tuple[int, ...]]] = {}
+    for choice in sorted(hypotheses, key=lambda c: hypotheses[c])[:NUM_FULL_HYPOTHESES]:
         for _ in range(2):
-            observations = [(k, *candidates[c]) for k, candidates, c in zip(image_children, image_candidates, choice)]
-            node = solve_children(observations, num_children, parent_det)
-            choice, _ = _consistent_choice(image_candidates, node)
+            if choice not in solved:
+                observations = [(k, *candidates[c]) for k, candidates, c in zip(image_children, image_candidates, choice)]
+                node = solve_children(observations, num_children, parent_det)
+                solved[choice] = (node, _consistent_choice(image_candidates, node)[0])
+            node, choice = solved[choice]
         if choice not in results or node.residual < results[choice].residual:
             results[choice] = node
     return sorted(((list(c), n) for c, n in results.items()), key=lambda item: item[1].residual)

@@ -24,6 +24,22 @@ def _reprojection_rms(R: np.ndarray, t: np.ndarray, base_points: np.ndarray, nor
     return float(np.sqrt(np.mean(np.sum((project(camera_points) - normalized) ** 2, axis=1))))
 
 
+def _reprojection_rms_many(
+    poses: list[tuple[np.ndarray, np.ndarray]], base_points: np.ndarray, normalized: np.ndarray
+) -> np.ndarray:
+    """:func:`_reprojection_rms` of several poses at once (inf for a pose with a point behind the camera)."""
+    if not poses:
+        return np.zeros(0)
+    R = np.array([R for R, _ in poses])
+    t = np.array([t for _, t in poses])
+    camera_points = np.einsum("kab,nb->kna", R, base_points) + t[:, None, :]
+    depth = camera_points[..., 2]
+    behind = np.any(depth <= 0, axis=1)
+    projected = camera_points[..., :2] / np.where(depth > 0, depth, 1.0)[..., None]
+    rms = np.sqrt(np.mean(np.sum((projected - normalized) ** 2, axis=2), axis=1))
+    return np.where(behind, np.inf, rms)
+
+
 def _pose_from_rvec(rvec: np.ndarray, tvec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0], np.asarray(tvec, dtype=np.float64).reshape(3)
 
@@ -43,7 +59,7 @@ def _pnp_rotation_candidates(base_points: np.ndarray, normalized: np.ndarray) ->
                 continue
             for i in range(count):
                 poses.append(_pose_from_rvec(rvecs[i], tvecs[i]))
-        admissible = [(R, t) for R, t in poses if _reprojection_rms(R, t, base_points, normalized) < 1e-3]
+        admissible = [pose for pose, rms in zip(poses, _reprojection_rms_many(poses, base_points, normalized)) if rms < 1e-3]
         unique: list[tuple[np.ndarray, np.ndarray]] = []
         for R, t in admissible:
             if all(np.linalg.norm(R - R2) + np.linalg.norm(t - t2) > 1e-6 for R2, t2 in unique):
