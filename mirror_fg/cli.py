@@ -401,14 +401,12 @@ def cmd_report(args, out: _Printer) -> int:
         raise DatasetError(str(error)) from None
     result = load_result(args.result)
     tracks: dict[str, Track] = {}
-    dataset, inputs = None, {"result": os.fspath(args.result)}
+    dataset = None
     if args.dataset is not None:  # a dataset, or a capture (detected again: its tracks are drawn too)
         dataset = _load_input(args.dataset, out, plan, tracks=tracks)
-        inputs["data"] = os.fspath(args.dataset)
     try:
         paths = write_report(result, dataset, args.output, progress=out.progress, source=os.fspath(args.result),
-                             base_frame=args.base_frame, camera_frame=args.camera_frame, tracks=tracks or None,
-                             inputs=inputs)
+                             base_frame=args.base_frame, camera_frame=args.camera_frame, tracks=tracks or None)
     except ValueError as error:  # a malformed result file
         if isinstance(error, DatasetError):
             raise
