@@ -31,3 +31,13 @@ def test_verbose_prints_stage_timings(tmp_path, capsys):
     line = next(l for l in capsys.readouterr().out.splitlines() if l.startswith("stage timings:"))
     for stage in ("analytic", "optimize", "marginals"):
         assert stage in line
+
+
+def test_report_takes_the_capture_the_result_came_from(tmp_path, capsys):
+    from pathlib import Path
+
+    capture = Path(__file__).parent / "data" / "capture" / "rendered" / "capture.yaml"
+    assert main(["calibrate", str(capture), "-o", str(tmp_path / "r.json"), "-q"]) == 0
+    assert main(["report", str(tmp_path / "r.json"), str(capture), "-o", str(tmp_path / "rep"), "-q"]) == 0
+    html = (tmp_path / "rep" / "report.html").read_text()
+    assert "capture.yaml" in html and (tmp_path / "rep" / "report.pdf").stat().st_size > 0
