@@ -339,10 +339,11 @@ def cmd_calibrate_many(args, out: _Printer) -> int:
                           progress=out.progress)
     failed = [row for row in rows if row["status"] != "ok"]
     out.info(f"{len(rows) - len(failed)} of {len(rows)} calibrated into {args.output}")
-    out.info(f"  {'input':40s} {'status':7s} {'3-sigma position (mm)':24s} {'RMS':>7s}  result or reason")
+    out.info("  camera position: 3-sigma of T_base_cam's translation along the base axes, mm; RMS: rms_px")
+    out.info(f"  {'input':40s} {'status':7s} {'camera position':24s} {'RMS':>7s}  result or reason")
     for row in rows:
         if row["status"] == "ok":
-            sigma = "[" + ", ".join(f"{x:.1f}" for x in row["sigma3_position_mm"]) + "]"
+            sigma = "[" + ", ".join(f"{x:.1f}" for x in row["sigma3_base_cam"]["position_mm"]) + "]"
             out.info(f"  {row['input'][-40:]:40s} {'ok':7s} {sigma:24s} {row['rms']:7.3f}  {row['result']}")
         else:
             out.info(f"  {row['input'][-40:]:40s} {'FAILED':7s} {'':24s} {'':>7s}  {_one_line(row['reason'])}")

@@ -41,3 +41,16 @@ def test_report_takes_the_capture_the_result_came_from(tmp_path, capsys):
     assert main(["report", str(tmp_path / "r.json"), str(capture), "-o", str(tmp_path / "rep"), "-q"]) == 0
     html = (tmp_path / "rep" / "report.html").read_text()
     assert "capture.yaml" in html and (tmp_path / "rep" / "report.pdf").stat().st_size > 0
+
+
+def test_calibrate_many_lists_the_failure_and_calibrates_the_rest(tmp_path, capsys):
+    dataset, _ = simulate_base_case(num_images=30, seed=4)
+    good = tmp_path / "robot1.json"
+    good.write_text(json.dumps(dataset_to_dict(dataset)))
+    bad = tmp_path / "robot2.json"
+    bad.write_text('{"format": "mirror-fg/dataset@1", "num_mirrors": 2}')
+    code = main(["calibrate-many", str(good), str(bad), "-o", str(tmp_path / "out"), "--workers", "2", "-q"])
+    assert code == 2
+    assert "1 of 2 input(s) failed" in capsys.readouterr().err
+    result = json.loads((tmp_path / "out" / "robot1.result.json").read_text())
+    assert result["format"] == "mirror-fg/result@1" and not (tmp_path / "out" / "robot2.result.json").exists()

@@ -37,16 +37,18 @@ def calibrate_one(path: str, out_dir: str, ros: bool = True) -> dict:
         outputs = plan_calibration_outputs([path], target, ros=ros)
         dataset, _ = load_input(path, outputs.plan)
         calibration = require_converged(calibrate(dataset), dataset.source)
-        outputs.write(calibration.to_dict())
-        rms = float((calibration.residual_norms**2).mean() ** 0.5)
-        sigma3_position, sigma3_rotation = calibration.sigma3_position_mm, calibration.sigma3_rotation_deg
-        if sigma3_position is None or sigma3_rotation is None:  # calibrate() computes the covariance
+        result = calibration.to_dict()
+        outputs.write(result)
+        sigma3, sigma3_base = result["sigma3_cam_base"], result["sigma3_base_cam"]
+        if sigma3 is None or sigma3_base is None:  # calibrate() computes the covariance
             raise SolveError(f"{dataset.source}: no covariance in the calibration")
         row.update(status="ok", result=os.fspath(target), images=len(dataset.images),
                    t_cam_base=[float(x) for x in calibration.t_cam_base],
-                   sigma3_position_mm=[float(x) for x in sigma3_position],
-                   sigma3_rotation_deg=[float(x) for x in sigma3_rotation],
-                   rms=rms, iterations=calibration.iterations)
+                   t_base_cam=result["T_base_cam"]["t"],
+                   sigma3_position_mm=sigma3["position_mm"],  # T_cam_base, camera axes
+                   sigma3_rotation_deg=sigma3["rotation_deg"],
+                   sigma3_base_cam=sigma3_base,  # the camera's pose on the robot, base axes
+                   rms=result["residuals"]["rms_px"], iterations=calibration.iterations)
     except MirrorFgError as error:
         row["reason"] = str(error)
     except Exception as error:  # one bad input must not stop the others: report it, go on
