@@ -1,4 +1,6 @@
-"""Command line: ``mirror-fg simulate | calibrate | detect | plan | report``. Parsing and printing only.
+"""Command line: ``mirror-fg simulate | calibrate | calibrate-many | detect | plan | report``. Parsing
+and printing only (the library decides; docs/formats.md says what goes in and out). Just over 500
+lines: the six subcommands' parsers and printers, nothing else.
 
 Exit status: 0 success, 2 bad input, 3 could not solve (degenerate data, no convergence).
 """
