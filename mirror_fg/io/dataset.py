@@ -79,12 +79,6 @@ class Dataset:
     fiducials: dict[str, np.ndarray]
     images: list[Image]
     source: str = "<dataset>"
-    _normalized_cache: dict[str, dict[str, np.ndarray]] = field(default_factory=dict, repr=False)
-    # The pixel observations each cache entry was computed from: an image id alone does not identify
-    # the data (another image with the same id, or an edited one, must not get stale coordinates).
-    _normalized_inputs: dict[str, tuple[list[str], np.ndarray]] = field(
-        default_factory=dict, repr=False, compare=False
-    )
 
     def __repr__(self) -> str:
         """One bounded line (a dataclass repr would print every observation)."""
@@ -133,24 +127,18 @@ class Dataset:
     def normalized(self, image: Image) -> dict[str, np.ndarray]:
         """Observations of ``image`` in normalized image coordinates (undistorted when there is a camera).
 
-        Those computed when the image was validated (``image.normalized``) where they were computed with
-        this dataset's camera from the observations as they are now; else computed here once per image
-        (an image built by hand, or edited since) and kept in a cache keyed by id and observations.
+        Those computed when the image was validated (``image.normalized``), as long as they were computed
+        with this dataset's camera from the observations as they are now; else (an image built by hand, or
+        edited since) they are computed here and stored on the image the same way.
         """
         names = list(image.observations)
         raw = _observation_array(image.observations, names)
-        if image.normalized is not None and image.normalized_from is not None:
-            camera, seen = image.normalized_from
-            if camera == self.camera and list(image.normalized) == names and np.array_equal(seen, raw):
-                return image.normalized
-        cached = self._normalized_cache.get(image.id)
-        seen_inputs = self._normalized_inputs.get(image.id)
-        if cached is not None and seen_inputs is not None and seen_inputs[0] == names and np.array_equal(seen_inputs[1], raw):
-            return cached
-        result = _normalize(self.camera, names, raw)
-        self._normalized_cache[image.id] = result
-        self._normalized_inputs[image.id] = (names, raw)
-        return result
+        stored = image.normalized_from
+        if (image.normalized is None or stored is None or stored[0] != self.camera
+                or list(image.normalized) != names or not np.array_equal(stored[1], raw)):
+            image.normalized = _normalize(self.camera, names, raw)
+            image.normalized_from = (self.camera, raw)
+        return image.normalized
 
     @property
     def reconstruction_point_names(self) -> list[str]:
