@@ -233,11 +233,12 @@ def _print_transform_summary(out: _Printer, result: dict, elapsed: float, increm
     out.info(f"time {elapsed:.2f} s")
 
 
-def _load_input(path: Path, out: _Printer, plan: OutputPlan, tracks: dict | None = None) -> Dataset:
+def _load_input(path: Path, out: _Printer, plan: OutputPlan, tracks: dict | None = None,
+                capture_only: bool = False) -> Dataset:
     """A Dataset from a dataset@1 or capture@1 file (detected, with its report printed); read once."""
     from mirror_fg.vision.detect import load_input
 
-    dataset, reports = load_input(path, plan, progress=out.progress, tracks=tracks)
+    dataset, reports = load_input(path, plan, progress=out.progress, tracks=tracks, capture_only=capture_only)
     if reports:
         _print_detection_report(out, reports)
     return dataset
@@ -254,12 +255,9 @@ def _print_detection_report(out: _Printer, reports) -> None:
 
 
 def cmd_simulate(args, out: _Printer) -> int:
-    from mirror_fg.io.output import OutputPlan
-    from mirror_fg.tools.simulate import simulate_base_case, simulate_tree, truth_path, write_simulation
+    from mirror_fg.tools.simulate import simulate_base_case, simulate_tree, simulation_outputs, write_simulation
 
-    plan = OutputPlan()  # checked before the work; write_simulation writes both all-or-nothing
-    plan.add(args.output, "dataset")
-    plan.add(truth_path(args.output), "ground truth")
+    plan = simulation_outputs(args.output)  # checked before the work
     if args.tree:
         dataset, truth = simulate_tree(args.mirrors, num_fiducials=args.fiducials, num_points=args.points,
                                        pixel_sigma=args.sigma, seed=args.seed, mirror_distance=args.distance)
@@ -267,7 +265,7 @@ def cmd_simulate(args, out: _Printer) -> int:
         dataset, truth = simulate_base_case(num_images=args.images, num_points=args.points, pixel_sigma=args.sigma,
                                             mirror_distance=args.distance, mirror1_placements=args.placements,
                                             seed=args.seed, num_mirrors=args.mirrors, num_fiducials=args.fiducials)
-    write_simulation(args.output, dataset, truth)
+    write_simulation(args.output, dataset, truth, plan)
     out.info(f"wrote {args.output} ({len(dataset.images)} images, {dataset.num_mirrors} mirror(s), "
              f"{len(dataset.fiducials)} fiducials, {len(dataset.reconstruction_point_names)} points) and its ground truth")
     return EXIT_OK
@@ -370,17 +368,12 @@ def _run_incremental(dataset, args, out: _Printer):
 
 
 def cmd_detect(args, out: _Printer) -> int:
-    from mirror_fg.io.capture import CAPTURE_FORMAT
     from mirror_fg.io.dataset import dataset_text
     from mirror_fg.io.output import OutputPlan
-    from mirror_fg.io.fileio import load_structured
 
     plan = OutputPlan(inputs=[os.fspath(args.capture)])
     plan.add(args.output, "dataset")
-    data = load_structured(args.capture)
-    if not isinstance(data, dict) or data.get("format") != CAPTURE_FORMAT:
-        raise DatasetError(f"{args.capture}: not a capture file (expected format {CAPTURE_FORMAT!r})")
-    dataset = _load_input(args.capture, out, plan)
+    dataset = _load_input(args.capture, out, plan, capture_only=True)
     plan.commit({os.fspath(args.output): dataset_text(dataset)})
     out.info(f"wrote {args.output} ({len(dataset.images)} images)")
     return EXIT_OK

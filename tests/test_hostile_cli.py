@@ -175,6 +175,9 @@ def test_yaml_alias_bombs_are_refused_quickly(tmp_path):
     result = tmp_path / "bomb_result.yaml"
     result.write_text("format: mirror-fg/result@1\n" + BOMB)
     one_error_line(run_cli("report", str(result), "-o", str(tmp_path / "rep"), timeout=60), 2, "aliases")
+    layout = tmp_path / "bomb_fiducials.yaml"
+    layout.write_text(BOMB)
+    one_error_line(run_cli("plan", "--fiducials-file", str(layout), timeout=60), 2, "aliases")
 
 
 def test_endless_and_streamed_inputs_are_read_once_and_bounded(data, tmp_path):
@@ -338,3 +341,15 @@ def test_error_lines_quote_little_user_data(tmp_path, capsys):
     assert main(["calibrate", str(path), "-o", str(tmp_path / "r.json")]) == 2
     line = capsys.readouterr().err.strip()
     assert "\n" not in line and len(line) < 300, line
+
+
+def test_detect_reads_its_capture_once(tmp_path):
+    """A capture given on standard input (read once) is detected; a dataset is refused as not a capture."""
+    capture = REPO / "tests" / "data" / "capture" / "rendered" / "capture.yaml"
+    with open(capture) as handle:  # through a pipe, relative image paths are taken from the working directory
+        proc = run_cli("detect", "/dev/stdin", "-o", str(tmp_path / "d.json"), stdin=handle, cwd=capture.parent)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((tmp_path / "d.json").read_text())["format"] == "mirror-fg/dataset@1"
+    data = tmp_path / "data.json"
+    data.write_text((tmp_path / "d.json").read_text())
+    one_error_line(run_cli("detect", str(data), "-o", str(tmp_path / "e.json")), 2, "not a capture")

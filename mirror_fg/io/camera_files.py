@@ -21,7 +21,7 @@ import numpy as np
 
 from mirror_fg.core.camera import check_camera
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.io.fileio import MAX_IMAGE_PIXELS, load_structured, native_stderr
+from mirror_fg.io.fileio import MAX_IMAGE_PIXELS, native_stderr, parse_structured
 from mirror_fg.core.values import check_keys, clip, finite, is_int, short, type_name
 
 __all__ = ["camera_from_file", "MAX_CAMERA_FILE_BYTES"]
@@ -50,9 +50,12 @@ def camera_from_file(path: str, name: str | None, where: str) -> dict[str, Any]:
         raise DatasetError(f"{where}: larger than {MAX_CAMERA_FILE_BYTES} bytes: not a camera calibration file")
     text = head[:4096].decode("utf-8", "replace")
     if text.lstrip().startswith(("%YAML:1", "<?xml")) or "opencv-matrix" in text:
-        data = _filestorage_data(path, where)
+        data = _filestorage_data(path, where)  # OpenCV parses FileStorage from the path itself
     else:
-        data = load_structured(path, where)
+        try:
+            data = parse_structured(head.decode("utf-8-sig"), path, where)
+        except UnicodeDecodeError as exc:
+            raise DatasetError(f"{where}: not UTF-8 text (byte {exc.start})") from None
     if not isinstance(data, Mapping):
         raise DatasetError(f"{where}: expected a mapping, got {type_name(data)}")
     return _camera_from_mapping(data, name, where)

@@ -78,6 +78,7 @@ __all__ = [
     "VideoSpec",
     "TrackStart",
     "load_capture",
+    "capture_from_file_data",
     "capture_from_dict",
     "open_video",
 ]
@@ -212,8 +213,18 @@ def load_capture(path: str | os.PathLike[str]) -> Capture:
     Image, observation and video files must exist; the video must open and hold the listed frames.
     """
     source = os.fspath(path)
-    data = load_structured(source, source)
-    cap = capture_from_dict(data, source=source, base_dir=os.path.dirname(os.path.abspath(source)))
+    return capture_from_file_data(load_structured(source, source), source)
+
+
+def capture_from_file_data(data: Any, source: str) -> Capture:
+    """The capture of file ``source`` whose parsed content is ``data`` (read once by the caller).
+
+    Relative paths are taken from the file's directory, or from the working directory when the capture
+    comes through standard input or a pipe (``-``, ``/dev/stdin``, ``/dev/fd/N``, or not a regular file).
+    """
+    streamed = source == "-" or os.path.abspath(source).startswith(("/dev/", "/proc/")) or not os.path.isfile(source)
+    base_dir = os.getcwd() if streamed else os.path.dirname(os.path.abspath(source))
+    cap = capture_from_dict(data, source=source, base_dir=base_dir)
     cap.file = os.path.abspath(source)
     if cap.images is not None:
         inputs = f"{len(cap.images)} images"

@@ -202,7 +202,7 @@ def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Datase
         num_mirrors=int(num_mirrors),
         camera=camera,
         pixel_sigma=float(pixel_sigma),
-        fiducials=_fiducials_from_dict(d.get("fiducials"), source),
+        fiducials=fiducials_from_dict(d.get("fiducials"), source),
         images=[],
         source=source,
     )
@@ -335,7 +335,7 @@ def _normalize(camera: Camera | None, names: list[str], raw: np.ndarray) -> dict
     return {name: coords[i] for i, name in enumerate(names)}
 
 
-def _fiducials_from_dict(fiducials: Any, source: str) -> dict[str, np.ndarray]:
+def fiducials_from_dict(fiducials: Any, source: str) -> dict[str, np.ndarray]:
     """Fiducials ``{name: (3,) metres in {B}}``: at least three, not all on one line."""
     if fiducials is None:
         raise DatasetError(f"{source}: missing 'fiducials' (at least 3 non-collinear points)")

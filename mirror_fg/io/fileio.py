@@ -30,6 +30,8 @@ from typing import Any
 
 import numpy as np
 
+from mirror_fg.core.errors import DatasetError
+
 from mirror_fg.core.values import clip, short
 
 __all__ = [
@@ -64,8 +66,6 @@ MAX_IMAGE_PIXELS = 100_000_000
 
 
 def _error(message: str) -> Exception:
-    from mirror_fg.core.errors import DatasetError
-
     return DatasetError(message)
 
 
@@ -178,19 +178,17 @@ def parse_yaml(text: str, source: str) -> Any:
     return _bound_integers(data)
 
 
-def parse_structured(text: str, source: str) -> Any:
-    """JSON where ``source`` ends in .json, else YAML (JSON is YAML)."""
-    if source.lower().endswith(".json"):
-        return parse_json(text, source)
-    return parse_yaml(text, source)
+def parse_structured(text: str, path: str | os.PathLike[str], where: str | None = None) -> Any:
+    """The text of file ``path`` parsed as JSON where its name ends in .json, else as YAML (JSON is
+    YAML); messages start with ``where`` (default: the path)."""
+    source = os.fspath(path)
+    where = where or source
+    return parse_json(text, where) if source.lower().endswith(".json") else parse_yaml(text, where)
 
 
 def load_structured(path: str | os.PathLike[str], where: str | None = None) -> Any:
-    """Read a JSON (by suffix) or YAML file once and parse it; messages start with ``where``."""
-    source = os.fspath(path)
-    text = read_text(source)
-    where = where or source
-    return parse_json(text, where) if source.lower().endswith(".json") else parse_yaml(text, where)
+    """Read a JSON or YAML file once (:func:`read_text`) and parse it (:func:`parse_structured`)."""
+    return parse_structured(read_text(path), path, where)
 
 
 def resolve_path(path: str, base_dir: str) -> str:

@@ -13,7 +13,6 @@ in normalized units). Every fiducial and reconstruction point is seen in every i
 """
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,7 +21,8 @@ import numpy as np
 
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.geometry import apply_transform
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.io.dataset import Dataset, Image, fiducials_from_dict
+from mirror_fg.io.fileio import load_structured
 from mirror_fg.tools.crb import CramerRaoBound, WeakestDirection, cramer_rao_bound, weakest_direction
 from mirror_fg.tools.simulate import GroundTruth, default_camera, measure, simulate_base_case, visible
 
@@ -205,40 +205,13 @@ def format_plan(result: PlanResult) -> str:
 
 def load_fiducials(path: str | Path) -> dict[str, np.ndarray]:
     """Fiducial layout from a JSON/YAML file: ``{name: [x, y, z]}`` (metres, base frame), or a
-    dataset@1 / capture@1-like mapping with a ``fiducials`` key. Raises ``DatasetError``."""
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as error:
-        raise DatasetError(f"{path}: cannot read: {error.strerror}") from None
-    if path.suffix.lower() in (".yaml", ".yml"):
-        import yaml
-
-        try:
-            data = yaml.safe_load(text)
-        except yaml.YAMLError as error:
-            raise DatasetError(f"{path}: not valid YAML: {str(error).splitlines()[0]}") from None
-    else:
-        try:
-            data = json.loads(text)
-        except ValueError as error:
-            raise DatasetError(f"{path}: not valid JSON: {error}") from None
+    dataset@1 / capture@1-like mapping with a ``fiducials`` key. Read like every input (bounded, once;
+    :func:`~mirror_fg.io.fileio.load_structured`) and checked like a dataset's fiducials. Raises
+    ``DatasetError``."""
+    source = str(path)
+    data = load_structured(path)
     if isinstance(data, Mapping) and "fiducials" in data:
         data = data["fiducials"]
     if not isinstance(data, Mapping) or not data:
-        raise DatasetError(f"{path}: expected a mapping of fiducial names to [x, y, z] (metres)")
-    layout = {}
-    for name, value in data.items():
-        try:
-            point = np.asarray(value, dtype=float).reshape(3)
-        except (TypeError, ValueError):
-            raise DatasetError(f"{path}: fiducial '{name}': expected [x, y, z] in metres, got {value!r}") from None
-        if not np.all(np.isfinite(point)):
-            raise DatasetError(f"{path}: fiducial '{name}': coordinates must be finite")
-        layout[str(name)] = point
-    if len(layout) < 3:
-        raise DatasetError(f"{path}: {len(layout)} fiducial(s); at least 3 non-collinear are needed")
-    centred = np.array(list(layout.values())) - np.mean(list(layout.values()), axis=0)
-    if np.linalg.svd(centred, compute_uv=False)[1] < 1e-6:
-        raise DatasetError(f"{path}: the fiducials are collinear; at least 3 non-collinear are needed")
-    return layout
+        raise DatasetError(f"{source}: expected a mapping of fiducial names to [x, y, z] (metres)")
+    return fiducials_from_dict({str(name): value for name, value in data.items()}, source)

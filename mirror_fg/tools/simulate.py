@@ -27,6 +27,7 @@ import numpy as np
 from mirror_fg.core.camera import Camera
 from mirror_fg.core.geometry import apply_transform, nested_transform, project, reflect, so3_exp
 from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.io.output import OutputPlan
 
 __all__ = [
     "GroundTruth",
@@ -465,18 +466,24 @@ def truth_path(dataset_path: str | Path) -> Path:
     return path.with_name(path.stem + ".truth.json")
 
 
-def write_simulation(path: str | Path, dataset: Dataset, truth: GroundTruth) -> Path:
-    """Write ``dataset`` (dataset@1 JSON) to ``path`` and its ground truth to ``<stem>.truth.json``.
+def simulation_outputs(path: str | Path) -> OutputPlan:
+    """The checked outputs of :func:`write_simulation` (DatasetError before any work if one cannot be
+    written): the dataset at ``path`` and its ground truth at ``<stem>.truth.json``."""
+    plan = OutputPlan()
+    plan.add(path, "dataset")
+    plan.add(truth_path(path), "ground truth")
+    return plan
+
+
+def write_simulation(path: str | Path, dataset: Dataset, truth: GroundTruth, plan: OutputPlan | None = None) -> Path:
+    """Write ``dataset`` (dataset@1 JSON) to ``path`` and its ground truth to ``<stem>.truth.json``,
+    all-or-nothing (``plan``: from :func:`simulation_outputs`, checked before the simulation).
 
     Returns the path of the ground-truth file.
     """
     from mirror_fg.io.dataset import dataset_text
-    from mirror_fg.io.output import OutputPlan
 
-    path = Path(path)
+    plan = plan if plan is not None else simulation_outputs(path)
     out = truth_path(path)
-    plan = OutputPlan()
-    plan.add(path, "dataset")
-    plan.add(out, "ground truth")
     plan.commit({path: dataset_text(dataset), out: json.dumps(truth.to_dict(), indent=1) + "\n"})
     return out

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.io.capture import CAPTURE_FORMAT, EACH, Capture, ImageEntry, capture_from_dict, open_video
+from mirror_fg.io.capture import CAPTURE_FORMAT, EACH, Capture, ImageEntry, capture_from_file_data, open_video
 from mirror_fg.io.dataset import DATASET_FORMAT, Dataset, dataset_from_dict
 from mirror_fg.io.fileio import MAX_IMAGE_PIXELS, load_structured, native_stderr
 from mirror_fg.io.output import OutputPlan
@@ -417,17 +417,21 @@ def _detect_video(
 
 
 def load_input(
-    path: str | os.PathLike[str], plan: OutputPlan, progress: bool = False, tracks: dict[str, Track] | None = None
+    path: str | os.PathLike[str], plan: OutputPlan, progress: bool = False, tracks: dict[str, Track] | None = None,
+    capture_only: bool = False,
 ) -> tuple[Dataset, list]:
     """A Dataset from a dataset@1 file, or from a capture@1 file after detection (read once), and the
     detection reports (empty for a dataset). The files a capture names are added to ``plan``'s inputs
     before any detection, so an output that would overwrite one of them is refused first. ``tracks``:
-    filled with the capture's tracked points (:func:`detect_capture`)."""
+    filled with the capture's tracked points (:func:`detect_capture`). ``capture_only``: anything but a
+    capture is a DatasetError."""
     source = os.fspath(path)
     data = load_structured(source)
     fmt = data.get("format") if isinstance(data, dict) else None
     if fmt == CAPTURE_FORMAT:
-        capture = capture_from_dict(data, source=source, base_dir=os.path.dirname(os.path.abspath(source)))
+        capture = capture_from_file_data(data, source)
         plan.add_inputs(capture.input_files())
         return detect_capture(capture, progress=progress, tracks=tracks)
+    if capture_only:
+        raise DatasetError(f"{source}: not a capture file (expected format {CAPTURE_FORMAT!r})")
     return dataset_from_dict(data, source=source), []
