@@ -415,3 +415,9 @@ def base_cam_pose_covariance(result: Mapping[str, Any]) -> np.ndarray | None:
         return np.array(result["covariance_base_cam"], dtype=float)
     P = pose_covariance(result)
     return None if P is None else base_cam_covariance(*pose(result["T_cam_base"]), P)
+
+
+def base_cam_sigma3(result: Mapping[str, Any]) -> dict[str, list[float]] | None:
+    """3-sigma bounds of ``T_base_cam`` (base axes) of a validated result, from its covariance (the
+    file's ``covariance_base_cam``, else ``covariance_cam_base``); None without a covariance."""
+    return sigma3_pose(base_cam_pose_covariance(result))

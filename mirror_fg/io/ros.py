@@ -28,7 +28,7 @@ from mirror_fg.core import transform
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.transform import Transform, _clean, rotation_to_quaternion_xyzw  # _clean: no -0.0 in YAML/URDF
 from mirror_fg.io.output import atomic_write
-from mirror_fg.io.result import base_cam_pose_covariance, nearest_rotation, sigma3_pose, transforms, validate_result
+from mirror_fg.io.result import base_cam_sigma3, nearest_rotation, transforms, validate_result
 
 __all__ = [
     "ros_outputs",
@@ -105,7 +105,7 @@ def sigma3_base_cam(result: Mapping[str, Any], source: str = "result") -> dict[s
     :meth:`Transform.inverse_covariance`). ``result`` is validated first (DatasetError starting with
     ``source``).
     """
-    return sigma3_pose(base_cam_pose_covariance(validate_result(result, source)))
+    return base_cam_sigma3(validate_result(result, source))
 
 
 # --------------------------------------------------------------------------------------------------

@@ -28,9 +28,9 @@ import numpy as np
 
 from mirror_fg.core.transform import Transform, rotation_angle
 from mirror_fg.io.output import atomic_write
-from mirror_fg.io.result import mirror_vectors, pose, transforms, validate_result
+from mirror_fg.io.result import base_cam_sigma3, mirror_vectors, pose, transforms, validate_result
 from mirror_fg.io.result import points as reconstruction_points
-from mirror_fg.io.ros import DEFAULT_BASE_FRAME, DEFAULT_CAMERA_FRAME, check_frame_name, ros_outputs, sigma3_base_cam
+from mirror_fg.io.ros import DEFAULT_BASE_FRAME, DEFAULT_CAMERA_FRAME, check_frame_name, ros_outputs
 from mirror_fg.tools.report_diagnostics import figure_radial, figure_tracks, image_centre, radial_verdict
 from mirror_fg.tools.report_figures import (
     figure_correlation,
@@ -82,7 +82,7 @@ def _summary(
     (R_cb, t_cb), (R_bc, t_bc) = transforms(result)
     T_base_cam = Transform(R_bc, t_bc)
     notes: list[str] = []
-    s_bc = sigma3_base_cam(result) or {}
+    s_bc = base_cam_sigma3(result) or {}
     s_cb = result.get("sigma3_cam_base") or {}
     rows = [
         (f"T_base_cam translation (camera centre in {base_frame}), m", _fmt(t_bc, 6)),

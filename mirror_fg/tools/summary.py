@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from mirror_fg.io.result import transforms, validate_result
+from mirror_fg.io.result import base_cam_sigma3, transforms, validate_result
 
 __all__ = ["summary_lines", "frame_convention", "cost_warning", "RMS_DEFINITION", "MAX_OUTLIER_LINES"]
 
@@ -70,7 +70,7 @@ def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, increment
     (R_cb, t_cb), (R_bc, t_bc) = transforms(result)
     lines = ["T_base_cam  the camera's pose on the robot: p_base = R p_cam + t (tf/URDF parent base, child camera)"]
     lines += _transform_lines(result.get("T_base_cam") or {}, R_bc, t_bc, full=True)
-    lines.append(_bounds(result.get("sigma3_base_cam") or _sigma3_base_cam(result), "base", "camera position"))
+    lines.append(_bounds(base_cam_sigma3(result), "base", "camera position"))
     lines.append("T_cam_base  its inverse: p_cam = R p_base + t (t: the base origin in camera axes)")
     lines += _transform_lines(result["T_cam_base"], R_cb, t_cb, full=verbose)
     lines.append(_bounds(result.get("sigma3_cam_base"), "camera", "base origin"))
@@ -78,13 +78,6 @@ def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, increment
     lines += _residual_lines(result.get("residuals") or {}, verbose)
     lines += _optimizer_lines(result.get("optimizer") or {}, verbose, incremental)
     return lines
-
-
-def _sigma3_base_cam(result: Mapping[str, Any]) -> dict[str, list[float]] | None:
-    """Bounds of T_base_cam for results written before ``sigma3_base_cam`` was added."""
-    from mirror_fg.io.result import base_cam_pose_covariance, sigma3_pose
-
-    return sigma3_pose(base_cam_pose_covariance(result))
 
 
 def _residual_lines(res: Mapping[str, Any], verbose: bool) -> list[str]:
