@@ -65,10 +65,6 @@ INT_LIMIT = 2**63
 MAX_IMAGE_PIXELS = 100_000_000
 
 
-def _error(message: str) -> Exception:
-    return DatasetError(message)
-
-
 # --------------------------------------------------------------------------------------------------
 # Reading
 # --------------------------------------------------------------------------------------------------
@@ -83,15 +79,15 @@ def read_input(path: str | os.PathLike[str], limit: int = MAX_INPUT_BYTES) -> by
         with open(source, "rb") as handle:
             return _read_bounded(handle, source, limit)
     except IsADirectoryError:
-        raise _error(f"{source}: cannot read file: is a directory") from None
+        raise DatasetError(f"{source}: cannot read file: is a directory") from None
     except OSError as exc:
-        raise _error(f"{source}: cannot read file: {exc.strerror or exc}") from None
+        raise DatasetError(f"{source}: cannot read file: {exc.strerror or exc}") from None
 
 
 def _read_bounded(handle: Any, source: str, limit: int) -> bytes:
     data = handle.read(limit + 1)
     if len(data) > limit:
-        raise _error(f"{source}: larger than {limit // (1024 * 1024)} MiB, refused (an endless or wrong file?)")
+        raise DatasetError(f"{source}: larger than {limit // (1024 * 1024)} MiB, refused (an endless or wrong file?)")
     return data
 
 
@@ -102,7 +98,7 @@ def read_text(path: str | os.PathLike[str], limit: int = MAX_INPUT_BYTES) -> str
     try:
         return raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
-        raise _error(f"{source}: not UTF-8 text (byte {exc.start})") from None
+        raise DatasetError(f"{source}: not UTF-8 text (byte {exc.start})") from None
 
 
 _JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
@@ -119,13 +115,13 @@ def _json_depth(text: str) -> int:
 def parse_json(text: str, source: str) -> Any:
     """Parse JSON within the bounds above; a key repeated in one object is an error."""
     if _json_depth(text) > MAX_DEPTH:
-        raise _error(f"{source}: nested more than {MAX_DEPTH} levels deep, refused")
+        raise DatasetError(f"{source}: nested more than {MAX_DEPTH} levels deep, refused")
 
     def no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
         out: dict[str, Any] = {}
         for key, value in pairs:
             if key in out:
-                raise _error(f"{source}: key {_quote(key)} appears twice in one JSON object")
+                raise DatasetError(f"{source}: key {_quote(key)} appears twice in one JSON object")
             out[key] = value
         return out
 
@@ -138,9 +134,9 @@ def parse_json(text: str, source: str) -> Any:
     try:
         data = json.loads(text, object_pairs_hook=no_duplicates, parse_int=bounded_int)
     except json.JSONDecodeError as exc:
-        raise _error(f"{source}: not valid JSON: {exc.msg} at line {exc.lineno}, column {exc.colno}") from None
+        raise DatasetError(f"{source}: not valid JSON: {exc.msg} at line {exc.lineno}, column {exc.colno}") from None
     except RecursionError:  # the depth scan above makes this unreachable in practice
-        raise _error(f"{source}: nested too deeply") from None
+        raise DatasetError(f"{source}: nested too deeply") from None
     return data
 
 
@@ -154,7 +150,7 @@ def parse_yaml(text: str, source: str) -> Any:
             if isinstance(event, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
                 depth += 1
                 if depth > MAX_DEPTH:
-                    raise _error(f"{source}: nested more than {MAX_DEPTH} levels deep, refused")
+                    raise DatasetError(f"{source}: nested more than {MAX_DEPTH} levels deep, refused")
             elif isinstance(event, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
                 depth -= 1
         loader = _UniqueKeyLoader(text)
@@ -167,14 +163,14 @@ def parse_yaml(text: str, source: str) -> Any:
         finally:
             loader.dispose()
     except _DuplicateKey as exc:
-        raise _error(f"{source}: {exc}") from None
+        raise DatasetError(f"{source}: {exc}") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
         problem = getattr(exc, "problem", None) or "syntax error"
-        raise _error(f"{source}: not valid YAML: {problem}{at}") from None
+        raise DatasetError(f"{source}: not valid YAML: {problem}{at}") from None
     except RecursionError:
-        raise _error(f"{source}: nested too deeply") from None
+        raise DatasetError(f"{source}: nested too deeply") from None
     return _bound_integers(data)
 
 
@@ -217,7 +213,7 @@ def _check_yaml_size(root: Any, source: str) -> None:
             continue
         total = 1 + sum(sizes.get(id(child), 0) for child in children)
         if total > MAX_NODES:
-            raise _error(f"{source}: more than {MAX_NODES} values once its aliases are expanded, refused")
+            raise DatasetError(f"{source}: more than {MAX_NODES} values once its aliases are expanded, refused")
         sizes[id(node)] = total
 
 

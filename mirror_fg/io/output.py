@@ -24,14 +24,8 @@ from mirror_fg.core.errors import DatasetError, OutputError
 __all__ = ["OutputPlan", "same_file", "atomic_write", "json_text", "is_yaml"]
 
 
-def _error(message: str) -> Exception:
-    return DatasetError(message)
-
-
 def _write_error(target: str, exc: OSError) -> Exception:
     return OutputError(f"{target}: cannot write: {exc.strerror or exc}")
-
-
 
 
 def same_file(a: str | os.PathLike[str], b: str | os.PathLike[str]) -> bool:
@@ -72,20 +66,20 @@ class OutputPlan:
         target = os.fspath(path)
         for other, other_role in self.outputs.items():
             if same_file(other, target):
-                raise _error(f"{target}: the {role} and the {other_role} would be the same file")
+                raise DatasetError(f"{target}: the {role} and the {other_role} would be the same file")
         self._check_not_input(target, role)
         kind = _existing_kind(target)
         if kind == "directory":
-            raise _error(f"{target}: is a directory; give a file name for the {role}")
+            raise DatasetError(f"{target}: is a directory; give a file name for the {role}")
         if kind not in (None, "file", "character device"):
-            raise _error(f"{target}: is a {kind}; the {role} must go to a regular file")
+            raise DatasetError(f"{target}: is a {kind}; the {role} must go to a regular file")
         if kind == "file" and marker is not None and marker not in _head(target):
-            raise _error(f"{target}: exists and was not written by mirror-fg; refusing to replace it with the "
+            raise DatasetError(f"{target}: exists and was not written by mirror-fg; refusing to replace it with the "
                          f"{role} (move it, or choose another output name)")
         if kind is None:
             parent = _nearest_existing_parent(target)
             if parent is not None and not os.path.isdir(parent):
-                raise _error(f"{target}: cannot create the {role}: {parent} is a file, not a directory")
+                raise DatasetError(f"{target}: cannot create the {role}: {parent} is a file, not a directory")
         self.outputs[target] = role
         return target
 
@@ -96,7 +90,7 @@ class OutputPlan:
     def _check_not_input(self, target: str, role: str) -> None:
         for source in self.inputs:
             if same_file(source, target):
-                raise _error(f"{target}: refusing to write the {role} over an input file "
+                raise DatasetError(f"{target}: refusing to write the {role} over an input file "
                              f"({source}); choose another name")
 
     def commit(self, contents: Mapping[str | os.PathLike[str], str | bytes]) -> list[Path]:
