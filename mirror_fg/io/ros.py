@@ -27,7 +27,7 @@ import yaml
 from mirror_fg.core import transform
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.transform import Transform, _clean, rotation_to_quaternion_xyzw  # _clean: no -0.0 in YAML/URDF
-from mirror_fg.io.output import atomic_write
+from mirror_fg.io.output import OutputPlan
 from mirror_fg.io.result import base_cam_sigma3, nearest_rotation, transforms, validate_result
 
 __all__ = [
@@ -373,12 +373,16 @@ def write_ros_outputs(
 ) -> list[Path]:
     """Write :func:`ros_output_texts`: ``<stem>.ros.yaml`` and ``<stem>.urdf.xml`` beside ``result_path``.
 
-    Both writes are atomic. Returns the two paths. Raises DatasetError naming ``result_path`` on a
-    malformed result, ValueError on a bad frame name (nothing is written then), OSError when a file
-    cannot be written.
+    Both are written all-or-nothing (:class:`~mirror_fg.io.output.OutputPlan`). Returns the two paths.
+    Raises DatasetError naming ``result_path`` on a malformed result, ValueError on a bad frame name
+    (nothing is written then), OutputError (a DatasetError and an OSError) when a file cannot be written.
     """
-    texts = ros_output_texts(result, result_path, base_frame, camera_frame, link_frame)
-    return [atomic_write(path, text) for path, text in texts.items()]
+    texts: dict[str | os.PathLike[str], str | bytes] = dict(
+        ros_output_texts(result, result_path, base_frame, camera_frame, link_frame))
+    plan = OutputPlan()
+    for path in texts:
+        plan.add(path, "ROS output")
+    return plan.commit(texts)
 
 
 def _xml_comment(text: str) -> str:
