@@ -39,7 +39,7 @@ class CalibrationOutputs:
 
     def write(self, result: Mapping[str, Any]) -> list[Path]:
         """Write the result@1 dictionary and its ROS outputs, all-or-nothing; the paths written."""
-        texts: dict[str | os.PathLike[str], str | bytes] = {self.result_path: result_text(result, self.result_path)}
+        texts = {self.result_path: result_text(result, self.result_path)}
         if self.ros:
             texts.update(ros_output_texts(result, self.result_path, self.base_frame, self.camera_frame))
         return self.plan.commit(texts)

@@ -93,7 +93,7 @@ class OutputPlan:
                 raise DatasetError(f"{target}: refusing to write the {role} over an input file "
                              f"({source}); choose another name")
 
-    def commit(self, contents: Mapping[str | os.PathLike[str], str | bytes]) -> list[Path]:
+    def commit(self, contents: Mapping[Any, str | bytes]) -> list[Path]:  # keys: str or PathLike paths
         """Write every ``{path: content}`` (text is UTF-8): temporary files first, then renames.
 
         Each path must have been :meth:`add`-ed. Any failure before the renames removes every

@@ -377,8 +377,7 @@ def write_ros_outputs(
     Raises DatasetError naming ``result_path`` on a malformed result, ValueError on a bad frame name
     (nothing is written then), OutputError (a DatasetError and an OSError) when a file cannot be written.
     """
-    texts: dict[str | os.PathLike[str], str | bytes] = dict(
-        ros_output_texts(result, result_path, base_frame, camera_frame, link_frame))
+    texts = ros_output_texts(result, result_path, base_frame, camera_frame, link_frame)
     plan = OutputPlan()
     for path in texts:
         plan.add(path, "ROS output")
