@@ -19,7 +19,9 @@ import pytest
 
 import mirror_fg
 from mirror_fg.cli import main
+from mirror_fg.core.camera import Camera
 from mirror_fg.core.errors import DatasetError
+from mirror_fg.solver.calibration import EstimatedCamera, Exclusion, Inconsistency
 from mirror_fg.io.dataset import dataset_to_dict
 from mirror_fg.tools.report import _summary, write_report
 from mirror_fg.tools.residuals import compute_residuals
@@ -35,9 +37,20 @@ MAX_MESSAGE = 200
 
 @pytest.fixture(scope="module")
 def calibrated() -> tuple[Any, dict[str, Any]]:
-    """The simulated base case (30 images, 2 points) and its result@1, once per module."""
+    """The simulated base case (30 images, 2 points) and its result@1, once per module, with every optional
+    block a result may hold filled in: ``excluded``, ``inconsistency``, ``camera`` (values made up here;
+    the validator checks their shape, not where they came from)."""
     ds, _ = simulate_base_case(num_images=30, num_points=2, seed=1)
-    return ds, mirror_fg.calibrate(ds).to_dict()
+    calibration = mirror_fg.calibrate(ds)
+    ids = [image.id for image in ds.images]
+    calibration.excluded = [Exclusion(ids[3], "PnP reprojection 14.2 px (board order wrong?)"),
+                            Exclusion(ids[5], "above the final check", point="F1", sigmas=9.5)]
+    calibration.inconsistency = Inconsistency((tuple(ids[:4]), tuple(ids[4:])), 3.1, 40.0, "images disagree")
+    camera = Camera(model="pinhole", width=800, height=600, fx=801.0, fy=799.0, cx=401.0, cy=298.0,
+                    dist=(-0.2, 0.05, 0.0, 0.0, 0.0))
+    calibration.camera = EstimatedCamera(camera, ("fx", "fy", "k1"), np.diag([4.0, 4.0, 1e-4]),
+                                         np.full((3, 6), 1e-6))
+    return ds, calibration.to_dict()
 
 
 # --------------------------------------------------------------------------------------------------
@@ -81,12 +94,18 @@ ACCEPTED = {
         r"covariance_cam_base", r"sigma3_cam_base(\.\w+)?", r"covariance_base_cam(_ros)?", r"sigma3_base_cam(\.\w+)?",
         r"mirrors", r"mirrors\[\d+\]\.sigma3_mm",
         r"points", rf"points\.{_ANY}\.sigma3_mm", r"optimizer(\.\w+)?", r"residuals(\.\w+)?",
+        r"excluded", r"excluded\[\d+\]\.(point|sigmas)", r"inconsistency", r"inconsistency\.(rotation_deg|position_mm)",
+        r"camera", r"camera\.(model|width|height|dist|sigma3|covariance|cross_covariance_cam_base)",
+        r"camera\.sigma3\.\w+",
     ],
     "nan": [  # statistics that could not be computed
         r"sigma3_(cam_base|base_cam)\.\w+\[\d\]", r"mirrors\[\d+\]\.sigma3_mm\[\d\]", rf"points\.{_ANY}\.sigma3_mm\[\d\]",
         r"optimizer\.(initial|final|expected_final)_error", r"residuals\.(rms|max|mean)_px",
+        r"excluded\[\d+\]\.sigmas", r"inconsistency\.(rotation_deg|position_mm)", r"camera\.sigma3\.\w+",
     ],
-    "string": [r"residuals\.units"],
+    "wrong_length": [r"excluded", r"inconsistency\.groups(\[\d+\])?", r"camera\.dist"],  # lists of any length
+    "string": [r"residuals\.units", r"excluded\[\d+\]\.(image|point|reason)", r"inconsistency\.groups\[\d+\]\[\d+\]",
+               r"inconsistency\.message", r"camera\.model"],
     "nested": [r"sigma3_(cam_base|base_cam)", r"analytic", r"optimizer", r"residuals"],  # objects of optional keys only
 }
 
@@ -172,11 +191,11 @@ def test_good_result_is_returned_unchanged_and_plain(calibrated):
 def test_extra_keys_are_kept(calibrated):
     _, good = calibrated
     result = copy.deepcopy(good)
-    result["camera"] = {"fx": 800.0, "anything": [1, "x", None]}
+    result["notes"] = {"fx": 800.0, "anything": [1, "x", None]}
     result["mirrors"][0]["note"] = "kept"
     result["T_cam_base"]["rpy"] = "not read"
     checked = validate_result(result, SOURCE)
-    assert checked["camera"] == result["camera"] and checked["mirrors"][0]["note"] == "kept"
+    assert checked["notes"] == result["notes"] and checked["mirrors"][0]["note"] == "kept"
     assert checked["T_cam_base"]["rpy"] == "not read"
 
 

@@ -93,3 +93,34 @@ def test_without_covariance_and_older_results(result):
     normalized = copy.deepcopy(result)
     normalized["residuals"]["units"] = "normalized"
     assert "(normalized)" in "\n".join(summary_lines(normalized))
+
+
+def test_left_out_images_and_a_split_are_printed(result):
+    extra = copy.deepcopy(result)
+    extra["excluded"] = [{"image": "img3", "point": None, "reason": "PnP reprojection 14.2 px", "sigmas": None},
+                         {"image": "img5", "point": "F1", "reason": "above the final check", "sigmas": 9.5}]
+    extra["inconsistency"] = {"groups": [["img0"], ["img1"]], "rotation_deg": 3.1, "position_mm": 40.0,
+                              "message": "images 0-4 and 5-8 disagree by 3.1° / 40 mm: did the camera or the board move?"}
+    lines = summary_lines(extra)
+    assert "left out: 1 image(s), 1 measurement(s):" in lines
+    assert "  image 'img3': PnP reprojection 14.2 px" in lines
+    assert "  image 'img5' point 'F1': above the final check (9.5 σ)" in lines
+    assert "warning: images 0-4 and 5-8 disagree by 3.1° / 40 mm: did the camera or the board move?" in lines
+    assert not any(line.startswith("left out") for line in summary_lines(result))
+
+
+def test_estimated_intrinsics_printed_with_bounds_and_pose_correlation(result):
+    extra = copy.deepcopy(result)
+    P_pose = np.array(result["covariance_cam_base"])
+    cross = np.zeros((2, 6))
+    cross[0, 5] = -0.9 * np.sqrt(4.0 * P_pose[5, 5])  # fx strongly anti-correlated with tz
+    cross[1, 0] = 0.3 * np.sqrt(1e-4 * P_pose[0, 0])
+    extra["camera"] = {"model": "pinhole", "width": 800, "height": 600, "fx": 801.5, "fy": 799.0, "cx": 401.0,
+                       "cy": 298.0, "dist": [-0.21, 0.0, 0.0, 0.0, 0.0], "estimated": ["fx", "k1"],
+                       "sigma3": {"fx": 6.0, "k1": 0.03}, "covariance": [[4.0, 0.0], [0.0, 1e-4]],
+                       "cross_covariance_cam_base": cross.tolist()}
+    block = _block(summary_lines(extra), "camera intrinsics estimated")
+    assert "  fx 801.5 px ± 6 px (3σ)" in block
+    assert "  fy 799 px (kept)" in block
+    assert "  k1 -0.21 ± 0.03 (3σ)" in block
+    assert block[-1] == "  largest correlation with T_cam_base: fx~tz -0.90, k1~θx +0.30"

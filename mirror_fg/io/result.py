@@ -20,7 +20,7 @@ The validator's low-level checkers (numbers, vectors, rotations, objects key by 
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any, Protocol
 
 import numpy as np
@@ -42,10 +42,12 @@ from mirror_fg.io.result_checks import (
     _Invalid,
     _list_of,
     _mapping,
+    _number,
     _sigma3,
     _statistic,
     _text,
     _transform,
+    _vector,
     _vector3,
     nearest_rotation,
 )
@@ -109,6 +111,9 @@ class CalibrationLike(Protocol):
     converged: bool
     residual_units: str
     outliers: list[tuple[str, str, float]]
+    excluded: Sequence[Any]  # Exclusion: image, reason, point, sigmas
+    inconsistency: Any  # Inconsistency or None: groups, rotation_deg, position_mm, message
+    camera: Any  # EstimatedCamera or None: camera, estimated, covariance, pose_cross_covariance, sigma3
 
     @property
     def analytic(self) -> _Pose | None: ...  # read-only: any object with a pose (an AnalyticSolution)
@@ -174,8 +179,35 @@ def result_dict(calibration: CalibrationLike) -> dict:
                 {"image": image, "point": point, "sigmas": sigmas} for image, point, sigmas in c.outliers
             ],
         },
+        "excluded": [
+            {"image": e.image, "point": e.point, "reason": e.reason, "sigmas": e.sigmas} for e in c.excluded
+        ],
     }
+    if c.inconsistency is not None:
+        i = c.inconsistency
+        result["inconsistency"] = {
+            "groups": [list(group) for group in i.groups], "rotation_deg": float(i.rotation_deg),
+            "position_mm": float(i.position_mm), "message": i.message,
+        }
+    if c.camera is not None:
+        result["camera"] = _camera_block(c.camera)
     return result
+
+
+def _camera_block(estimated: Any) -> dict[str, Any]:
+    """result@1's ``camera``: the estimated camera, the names estimated, their 3-sigma bounds, and (extras)
+    their covariance and its cross-covariance with the pose ``[dtheta, dt]`` of ``T_cam_base``."""
+    from mirror_fg.core.camera import camera_to_dict
+
+    block = camera_to_dict(estimated.camera)
+    block.pop("estimate", None)
+    block.pop("prior_sigma", None)
+    block["estimated"] = list(estimated.estimated)
+    block["sigma3"] = estimated.sigma3
+    P, C = estimated.covariance, estimated.pose_cross_covariance
+    block["covariance"] = None if P is None else np.asarray(P, dtype=float).tolist()
+    block["cross_covariance_cam_base"] = None if C is None else np.asarray(C, dtype=float).tolist()
+    return block
 
 
 def base_cam_covariance(R_cam_base: np.ndarray, t_cam_base: np.ndarray, covariance: np.ndarray) -> np.ndarray:
@@ -307,6 +339,52 @@ def _residuals(value: Any, path: str) -> dict[Any, Any]:
     )
 
 
+_EXCLUDED: tuple[dict[str, Checker], dict[str, Checker]] = (
+    {"image": _text, "reason": _text}, {"point": _text, "sigmas": _statistic},
+)
+
+
+def _inconsistency(value: Any, path: str) -> dict[Any, Any]:
+    """``{"groups": [[image ids]] (at least two), "rotation_deg", "position_mm", "message"}``."""
+    out = _fields(value, path, {"groups": _list_of(_list_of(_text)), "message": _text},
+                  {"rotation_deg": _statistic, "position_mm": _statistic})
+    if len(out["groups"]) < 2:
+        raise _Invalid(_child(path, "groups"), f"expected at least two groups, got {len(out['groups'])}")
+    return out
+
+
+def _camera(value: Any, path: str) -> dict[Any, Any]:
+    """The estimated camera: fx, fy > 0, cx, cy, ``dist``, ``estimated`` names with their ``sigma3``."""
+    from mirror_fg.core.camera import INTRINSIC_NAMES
+
+    def name(x: Any, p: str) -> str:
+        if x not in INTRINSIC_NAMES:
+            raise _Invalid(p, f"expected one of {', '.join(INTRINSIC_NAMES)}, got {short(x)}")
+        return x
+
+    def square(x: Any, p: str) -> list[list[float]]:
+        rows = _list_of(lambda row, q: _vector(row, len(x), q))(x, p)
+        return rows
+
+    positive = lambda x, p: _number(x, p, minimum=1e-300)  # noqa: E731
+    out = _fields(value, path, {"fx": positive, "fy": positive, "cx": _number, "cy": _number,
+                                "estimated": _list_of(name)},
+                  {"dist": lambda x, p: _vector(x, len(x) if isinstance(x, (list, tuple)) else 0, p),
+                   "width": lambda x, p: _integer(x, p, 1), "height": lambda x, p: _integer(x, p, 1),
+                   "model": _text, "covariance": square,
+                   "cross_covariance_cam_base": _list_of(lambda row, q: _vector(row, 6, q)),
+                   "sigma3": lambda x, p: {k: _number(v, _child(p, k), nan_ok=True, minimum=0.0)
+                                           for k, v in _mapping(x, p).items()}})
+    k = len(out["estimated"])
+    if out.get("covariance") is not None and len(out["covariance"]) != k:
+        raise _Invalid(_child(path, "covariance"), f"expected {k} x {k} (one row per name in {_child(path, 'estimated')})")
+    if out.get("cross_covariance_cam_base") is not None and len(out["cross_covariance_cam_base"]) != k:
+        raise _Invalid(_child(path, "cross_covariance_cam_base"), f"expected {k} x 6 (one row per name in {_child(path, 'estimated')})")
+    if out.get("sigma3") is not None and set(out["sigma3"]) != set(out["estimated"]):
+        raise _Invalid(_child(path, "sigma3"), f"expected a bound for each name in {_child(path, 'estimated')}")
+    return out
+
+
 #: Top-level keys a reader uses, each optional except ``T_cam_base``.
 _TOP: dict[str, Checker] = {
     "T_base_cam": _transform,
@@ -320,6 +398,9 @@ _TOP: dict[str, Checker] = {
     "points": _points,
     "optimizer": lambda x, p: _fields(x, p, {}, _OPTIMIZER),
     "residuals": _residuals,
+    "excluded": _list_of(lambda e, p: _fields(e, p, *_EXCLUDED)),
+    "inconsistency": _inconsistency,
+    "camera": _camera,
 }
 
 

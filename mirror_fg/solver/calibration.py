@@ -10,12 +10,62 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mirror_fg.core.camera import Camera
 from mirror_fg.core.errors import SolveError
 from mirror_fg.core.transform import Transform
 from mirror_fg.solver.analytic import AnalyticSolution
 from mirror_fg.solver.lm import plausible
 
-__all__ = ["Calibration", "require_converged"]
+__all__ = ["Calibration", "EstimatedCamera", "Exclusion", "Inconsistency", "require_converged"]
+
+
+@dataclass(frozen=True)
+class Exclusion:
+    """An image (``point`` None) or one measurement of it left out of the solve, and why.
+
+    ``reason``: one phrase a user can act on; ``sigmas``: its whitened residual where it was measured.
+    """
+
+    image: str
+    reason: str
+    point: str | None = None
+    sigmas: float | None = None
+
+
+@dataclass(frozen=True)
+class Inconsistency:
+    """The images split into groups each consistent alone but disagreeing with each other.
+
+    ``groups``: image ids per group; ``rotation_deg`` / ``position_mm``: how far apart the groups'
+    ``T_cam_base`` are; ``message``: one line for the user ("images 0-4 and 5-8 disagree by ...").
+    """
+
+    groups: tuple[tuple[str, ...], ...]
+    rotation_deg: float
+    position_mm: float
+    message: str
+
+
+@dataclass
+class EstimatedCamera:
+    """Intrinsics estimated through the mirrors (``camera.estimate``, docs/formats.md).
+
+    ``camera``: every value as estimated (or kept); ``estimated``: the names estimated, in
+    ``INTRINSIC_NAMES`` order; ``covariance`` (k, k) over them (px^2 for fx, fy, cx, cy; unitless for
+    the distortion terms); ``pose_cross_covariance`` (k, 6) with the pose ``[dtheta, dt]``.
+    """
+
+    camera: Camera
+    estimated: tuple[str, ...]
+    covariance: np.ndarray | None
+    pose_cross_covariance: np.ndarray | None
+
+    @property
+    def sigma3(self) -> dict[str, float] | None:
+        """3-sigma bound of each estimated intrinsic, or None without a covariance."""
+        if self.covariance is None:
+            return None
+        return {name: float(3.0 * np.sqrt(max(self.covariance[i, i], 0.0))) for i, name in enumerate(self.estimated)}
 
 
 @dataclass
@@ -48,6 +98,12 @@ class Calibration:
     timings: dict[str, float] = field(default_factory=dict)
     expected_final_error: float = float("nan")
     restarts: int = 0  # LM runs from the analytical solution's runner-up hypotheses (see calibrate)
+    #: Images or measurements left out of the solve, each with its reason (none are silently dropped).
+    excluded: list[Exclusion] = field(default_factory=list)
+    #: Set where the images split into groups that disagree (a camera or board that moved).
+    inconsistency: Inconsistency | None = None
+    #: Set where intrinsics were estimated; ``covariance`` then includes their uncertainty.
+    camera: EstimatedCamera | None = None
 
     @property
     def T_cam_base(self) -> Transform:

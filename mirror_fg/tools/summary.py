@@ -75,8 +75,75 @@ def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, increment
     lines += _transform_lines(result["T_cam_base"], R_cb, t_cb, full=verbose)
     lines.append(_bounds(result.get("sigma3_cam_base"), "camera", "base origin"))
     lines += frame_convention()
+    if result.get("camera") is not None:
+        lines += camera_lines(result["camera"], result.get("covariance_cam_base"))
     lines += _residual_lines(result.get("residuals") or {}, verbose)
+    lines += excluded_lines(result.get("excluded") or [], verbose)
+    if result.get("inconsistency") is not None:
+        lines.append(f"warning: {result['inconsistency']['message']}")
     lines += _optimizer_lines(result.get("optimizer") or {}, verbose, incremental)
+    return lines
+
+
+#: Intrinsics printed in pixels (the others, distortion terms, are unitless).
+_PIXEL_INTRINSICS = ("fx", "fy", "cx", "cy")
+_DIST_INDEX = {"k1": 0, "k2": 1, "p1": 2, "p2": 3, "k3": 4}
+
+
+def camera_lines(camera: Mapping[str, Any], pose_covariance: Any = None) -> list[str]:
+    """The intrinsics estimated through the mirrors with their 3-sigma bounds, and the largest correlation
+    of each with the pose (result@1 ``camera``)."""
+    estimated = list(camera.get("estimated") or [])
+    sigma3 = camera.get("sigma3") or {}
+    dist = list(camera.get("dist") or [])
+    lines = [f"camera intrinsics estimated through the mirrors ({camera.get('model', 'pinhole')} "
+             f"{camera.get('width', '?')}x{camera.get('height', '?')}):"]
+    for name in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"):
+        if name in _PIXEL_INTRINSICS:
+            value, unit = camera.get(name), " px"
+        else:
+            index = _DIST_INDEX[name]
+            value, unit = (dist[index] if index < len(dist) else None), ""
+        if value is None or (name not in estimated and name not in _PIXEL_INTRINSICS and value == 0.0):
+            continue
+        bound = f" ± {sigma3[name]:.4g}{unit} (3σ)" if name in estimated and name in sigma3 else " (kept)"
+        lines.append(f"  {name} {float(value):.6g}{unit}{bound}")
+    correlation = _pose_correlation(camera, pose_covariance)
+    if correlation:
+        lines.append("  largest correlation with T_cam_base: " + ", ".join(correlation))
+    return lines
+
+
+def _pose_correlation(camera: Mapping[str, Any], pose_P: Any) -> list[str]:
+    """``fx~tz +0.83``-style entries: each estimated intrinsic's largest correlation with an axis of the
+    pose ``[dtheta, dt]`` of ``T_cam_base`` (camera axes)."""
+    P, C = camera.get("covariance"), camera.get("cross_covariance_cam_base")
+    if P is None or C is None or pose_P is None:
+        return []
+    axes = ("θx", "θy", "θz", "tx", "ty", "tz")
+    P, C, pose_P = np.asarray(P, dtype=float), np.asarray(C, dtype=float), np.asarray(pose_P, dtype=float)
+    out = []
+    for i, name in enumerate(camera.get("estimated") or []):
+        denominator = np.sqrt(max(P[i, i], 1e-300) * np.maximum(np.diag(pose_P), 1e-300))
+        rho = C[i] / denominator
+        j = int(np.argmax(np.abs(rho)))
+        out.append(f"{name}~{axes[j]} {rho[j]:+.2f}")
+    return out
+
+
+def excluded_lines(excluded: list[Mapping[str, Any]], verbose: bool) -> list[str]:
+    """What was left out of the solve, each with its reason (result@1 ``excluded``)."""
+    if not excluded:
+        return []
+    images = sum(1 for e in excluded if e.get("point") is None)
+    lines = [f"left out: {images} image(s), {len(excluded) - images} measurement(s):"]
+    shown = excluded if verbose else excluded[:MAX_OUTLIER_LINES]
+    for e in shown:
+        what = f"image '{e['image']}'" + (f" point '{e['point']}'" if e.get("point") is not None else "")
+        sigmas = f" ({e['sigmas']:.1f} σ)" if e.get("sigmas") is not None and math.isfinite(e["sigmas"]) else ""
+        lines.append(f"  {what}: {e['reason']}{sigmas}")
+    if len(shown) < len(excluded):
+        lines.append(f"  ... and {len(excluded) - len(shown)} more (-v lists all; the report has them)")
     return lines
 
 
