@@ -20,7 +20,7 @@ The validator's low-level checkers (numbers, vectors, rotations, objects key by 
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any, Protocol
 
 import numpy as np
@@ -111,7 +111,7 @@ class CalibrationLike(Protocol):
     converged: bool
     residual_units: str
     outliers: list[tuple[str, str, float]]
-    excluded: Sequence[Any]  # Exclusion: image, reason, point, sigmas
+    excluded: list[Any]  # Exclusion: image, reason, point, sigmas
     inconsistency: Any  # Inconsistency or None: groups, rotation_deg, position_mm, message
     camera: Any  # EstimatedCamera or None: camera, estimated, covariance, pose_cross_covariance, sigma3
 
