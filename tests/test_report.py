@@ -195,6 +195,25 @@ def test_report_without_dataset(tmp_path):
     assert paths["pdf"].read_bytes().startswith(b"%PDF")
 
 
+def test_report_shows_what_was_left_out_a_split_and_the_estimated_camera(tmp_path):
+    _, result = make_scene()
+    result["excluded"] = [{"image": "img004", "point": None, "reason": "PnP reprojection 14.2 px", "sigmas": None}]
+    result["inconsistency"] = {"groups": [["img000", "img001"], ["img002"]], "rotation_deg": 3.1, "position_mm": 40.0,
+                               "message": "images img000-img001 and img002 disagree by 3.1° / 40 mm: did the camera move?"}
+    result["camera"] = {"model": "pinhole", "width": 800, "height": 600, "fx": 801.5, "fy": 799.0, "cx": 401.0,
+                        "cy": 298.0, "dist": [-0.21, 0.0, 0.0, 0.0, 0.0], "estimated": ["fx", "k1"],
+                        "sigma3": {"fx": 6.0, "k1": 0.03}}
+    text = write_report(result, None, tmp_path / "out", progress=False)["html"].read_text(encoding="utf-8")
+    excluded = re.search(r"<ul id='excluded'[^>]*>(.*?)</ul>", text, re.S)
+    assert excluded and "image img004: PnP reprojection 14.2 px" in excluded.group(1)
+    assert "did the camera move?" in re.search(r"<p id='inconsistency'[^>]*>(.*?)</p>", text, re.S).group(1)
+    assert "group 2: img002" in text
+    camera = re.search(r"<pre id='camera'[^>]*>(.*?)</pre>", text, re.S)
+    assert camera and "fx 801.5 px ± 6 px (3σ)" in camera.group(1) and "k1 -0.21 ± 0.03 (3σ)" in camera.group(1)
+    verdict = re.search(r"class='verdict (\w+)'", text)
+    assert verdict is None or verdict.group(1) != "good"
+
+
 def test_report_figures_normalized_dataset():
     """Without a camera: normalized units, no image size for the frustum or the residual arrows."""
     from mirror_fg.tools.report import _summary

@@ -41,7 +41,7 @@ from mirror_fg.tools.report_figures import (
 )
 from mirror_fg.tools.report_pages import Block, html_page, pdf_document
 from mirror_fg.tools.residuals import OUTLIER_FACTOR, Residuals, residuals_of_valid_result
-from mirror_fg.tools.summary import RMS_DEFINITION, cost_warning, summary_lines
+from mirror_fg.tools.summary import RMS_DEFINITION, camera_lines, cost_warning, summary_lines
 
 if TYPE_CHECKING:
     from mirror_fg.io.dataset import Dataset
@@ -144,11 +144,18 @@ def _verdict(result: Mapping[str, Any], dataset: Dataset | None, residuals: Resi
     if warning:
         good = False
         parts.append(warning)
+    if result.get("inconsistency") is not None:
+        good = False
+        parts.append(result["inconsistency"]["message"])
+    excluded = result.get("excluded") or []
+    if excluded:
+        parts.append(f"{len(excluded)} image(s) or measurement(s) left out of the solve (listed below)")
     if residuals is not None and dataset is not None and math.isfinite(residuals.rms) and residuals.sigma > 0:
         ratio = residuals.rms / residuals.expected_rms
         # At the MLE the residuals lose one degree of freedom per unknown: E[RMS^2] = 2 sigma^2 (1 - p / 2N).
         coordinates = 2 * int(np.sum(residuals.valid))
-        unknowns = 6 + 3 * len(mirror_vectors(result)) + 3 * len(reconstruction_points(result))
+        unknowns = (6 + 3 * len(mirror_vectors(result)) + 3 * len(reconstruction_points(result))
+                    + len((result.get("camera") or {}).get("estimated") or []))
         expected = math.sqrt(max(1.0 - unknowns / coordinates, 0.0)) if coordinates else 1.0
         flagged = residuals.flagged_images()
         parts.append(f"RMS {residuals.rms:.3g} {residuals.units} = {ratio:.2f} × √2·σ ({expected:.2f} × expected from "
@@ -322,6 +329,20 @@ def _blocks(result: Mapping[str, Any], summary: _Summary, notes: list[str], figu
         blocks += [Block("h2", "Measurements flagged by the calibration"),
                    Block("list", items=[f"image {o['image']}, point {o['point']}: {_fmt(o['sigmas'], 3)} σ"
                                         for o in outliers], id="outlier-measurements")]
+    excluded = result.get("excluded") or []
+    if excluded:
+        blocks += [Block("h2", "Left out of the solve"),
+                   Block("list", items=[f"image {e['image']}" + (f", point {e['point']}" if e.get("point") else "")
+                                        + f": {e['reason']}" + (f" ({_fmt(e['sigmas'], 3)} σ)" if e.get("sigmas") is not None else "")
+                                        for e in excluded], css="flagged", id="excluded")]
+    inconsistency = result.get("inconsistency")
+    if inconsistency is not None:
+        blocks += [Block("h2", "Inconsistent capture"), Block("p", inconsistency["message"], id="inconsistency"),
+                   Block("list", items=[f"group {k + 1}: " + ", ".join(group) for k, group in enumerate(inconsistency["groups"])],
+                         css="flagged", id="inconsistency-groups")]
+    if result.get("camera") is not None:
+        blocks += [Block("h2", "Camera intrinsics estimated through the mirrors"),
+                   Block("pre", "\n".join(camera_lines(result["camera"], result.get("covariance_cam_base"))), id="camera")]
     if notes:
         blocks += [Block("h2", "Notes"), Block("list", items=notes, css="note")]
     for heading, fig, caption in figures:
