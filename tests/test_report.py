@@ -369,3 +369,17 @@ def test_report_real_photographs(takahashi_dir, tmp_path):
 
     ds = load_dataset(takahashi_dir / "dataset.json")
     _check_pipeline_report(ds, calibrate(ds).to_dict(), tmp_path, render=True)
+
+
+def test_residuals_use_the_estimated_camera_of_the_result():
+    """Where the result estimated the intrinsics, its residuals are computed with them, not the dataset's."""
+    ds, result = make_scene()
+    true_residuals = compute_residuals(result, ds)
+    c = ds.camera
+    moved = {"model": c.model, "width": c.width, "height": c.height, "fx": c.fx + 40.0, "fy": c.fy, "cx": c.cx,
+             "cy": c.cy, "dist": list(c.dist), "estimated": ["fx"], "sigma3": {"fx": 1.0}}
+    with_camera = compute_residuals({**result, "camera": moved}, ds)
+    shift = np.linalg.norm(with_camera.predicted - true_residuals.predicted, axis=1)
+    assert np.min(shift) > 0.1 and np.median(shift) > 1.0  # fx 40 px off moves every prediction
+    same = compute_residuals({**result, "camera": {**moved, "fx": c.fx}}, ds)
+    np.testing.assert_allclose(same.predicted, true_residuals.predicted, atol=1e-9)

@@ -72,6 +72,7 @@ __all__ = [
     "base_cam_covariance",
     "ros_pose_covariance",
     "sigma3_pose",
+    "estimated_camera",
     "ORTHONORMAL_TOL",
 ]
 
@@ -496,6 +497,24 @@ def base_cam_pose_covariance(result: Mapping[str, Any]) -> np.ndarray | None:
         return np.array(result["covariance_base_cam"], dtype=float)
     P = pose_covariance(result)
     return None if P is None else base_cam_covariance(*pose(result["T_cam_base"]), P)
+
+
+def estimated_camera(result: Mapping[str, Any], source: str = "result", dataset_camera: Any = None) -> Any:
+    """The :class:`~mirror_fg.core.camera.Camera` a validated result estimated (its ``camera`` block), or
+    None where the intrinsics were not estimated (the dataset's camera holds then). Model and image size
+    the block lacks come from ``dataset_camera``. DatasetError naming ``source`` where the block is not a
+    usable camera."""
+    block = result.get("camera")
+    if block is None:
+        return None
+    from mirror_fg.core.camera import CAMERA_KEYS, camera_from_dict
+
+    plain = {key: value for key, value in block.items()
+             if key in CAMERA_KEYS and key not in ("estimate", "prior_sigma") and value is not None}
+    if dataset_camera is not None:
+        for key in ("model", "width", "height"):
+            plain.setdefault(key, getattr(dataset_camera, key))
+    return camera_from_dict(plain, f"{source}: camera")
 
 
 def base_cam_sigma3(result: Mapping[str, Any]) -> dict[str, list[float]] | None:

@@ -17,7 +17,7 @@ import numpy as np
 
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.geometry import nested_transforms, predict_camera_points, project
-from mirror_fg.io.result import mirror_vectors, transforms, validate_result
+from mirror_fg.io.result import estimated_camera, mirror_vectors, transforms, validate_result
 from mirror_fg.io.result import points as reconstruction_points
 
 if TYPE_CHECKING:
@@ -163,6 +163,7 @@ def compute_residuals(result: Mapping[str, Any], dataset: Dataset, *, source: st
     Per image, ``(A, b)`` is the nested transform of ``T_cam_base`` and the image's mirror vectors
     (``geometry.nested_transforms``, all images at once); a point ``Bp`` (a fiducial, or the result's
     reconstruction point) is predicted at ``project(A @ Bp + b)``, distorted to pixels with
+    the result's estimated camera where it has one (intrinsics estimated through the mirrors), else
     ``dataset.camera`` when there is one.
     Raises DatasetError naming ``source`` (the result's file) on a malformed result, and naming it
     and the dataset's file when the dataset is not the result's (other mirrors, or a mirror
@@ -217,11 +218,13 @@ def residuals_of_valid_result(result: Mapping[str, Any], dataset: Dataset, sourc
     )
     predicted = project(camera_points)  # eq. (9)
     predicted[camera_points[:, 2] <= 0.0] = np.nan  # behind the camera: no image
-    if dataset.camera is not None:
+    camera = estimated_camera(result, source, dataset.camera) if dataset.camera is not None else None
+    camera = camera if camera is not None else dataset.camera
+    if camera is not None:
         pixels = np.full_like(predicted, np.nan)
         ok = np.all(np.isfinite(predicted), axis=1)
         if np.any(ok):
-            pixels[ok] = dataset.camera.distort(predicted[ok])
+            pixels[ok] = camera.distort(predicted[ok])
         predicted = pixels
     return Residuals(
         units="px" if dataset.camera is not None else "normalized",
