@@ -236,12 +236,26 @@ def _print_transform_summary(out: _Printer, result: dict, elapsed: float, increm
 def _load_input(path: Path, out: _Printer, plan: OutputPlan, tracks: dict | None = None,
                 capture_only: bool = False) -> Dataset:
     """A Dataset from a dataset@1 or capture@1 file (detected, with its report printed); read once."""
+    return _load_input_with_reports(path, out, plan, tracks, capture_only)[0]
+
+
+def _load_input_with_reports(path: Path, out: _Printer, plan: OutputPlan, tracks: dict | None = None,
+                             capture_only: bool = False) -> tuple[Dataset, list]:
+    """:func:`_load_input` and the per-image detection reports (empty for a dataset@1)."""
     from mirror_fg.vision.detect import load_input
 
     dataset, reports = load_input(path, plan, progress=out.progress, tracks=tracks, capture_only=capture_only)
     if reports:
         _print_detection_report(out, reports)
-    return dataset
+    return dataset, list(reports or [])
+
+
+def _detection_exclusions(reports: list) -> list:
+    """Images of a capture that detection left out, as result@1 ``excluded`` entries (nothing dropped silently)."""
+    from mirror_fg.solver.calibration import Exclusion
+    from mirror_fg.vision.detectors import FOUND
+
+    return [Exclusion(r.id, f"detection: {r.status}: {r.reason}") for r in reports if r.status != FOUND]
 
 
 def _print_detection_report(out: _Printer, reports) -> None:
@@ -281,7 +295,7 @@ def cmd_calibrate(args, out: _Printer) -> int:
                                        base_frame=args.base_frame, camera_frame=args.camera_frame)
     if not args.no_ros and not outputs.ros:
         out.info(f"note: the result goes to a device ({args.output}): no ROS outputs written beside it")
-    dataset = _load_input(args.input, out, outputs.plan)
+    dataset, reports = _load_input_with_reports(args.input, out, outputs.plan)
     if args.incremental:
         calibration = _run_incremental(dataset, args, out)
     else:
@@ -291,6 +305,7 @@ def cmd_calibrate(args, out: _Printer) -> int:
             out.info(f"LM ended in a local minimum from the analytical solution; restarted from {calibration.restarts} "
                      "runner-up P3P hypothesis(es) and kept the lowest cost")
         require_converged(calibration, dataset.source)
+    calibration.excluded = _detection_exclusions(reports) + list(calibration.excluded)
     result = calibration.to_dict()
     written = outputs.write(result)
     _print_transform_summary(out, result, time.perf_counter() - start, args.incremental)
