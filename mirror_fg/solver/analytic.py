@@ -27,8 +27,8 @@ from mirror_fg.solver.peeling import MIN_NORMAL_SPREAD, NodeSolution, choose_can
 from mirror_fg.solver.pnp import pnp_candidates
 
 __all__ = [
-    "AnalyticSolution", "Hypothesis", "TreeNode", "TreeWalk", "reconstruct_points", "solve_analytic", "subtree_dataset",
-    "triangulate_point",
+    "AnalyticSolution", "Hypothesis", "TreeNode", "TreeWalk", "hypothesis_of_subtree", "reconstruct_points",
+    "solve_analytic", "subtree_dataset", "subtree_solution", "triangulate_point",
 ]
 
 #: Best solutions of an inner node handed to the level above (a subtree's P3P "twin" is only told
@@ -173,7 +173,7 @@ def subtree_dataset(dataset: Dataset, images: list[Image], level: int) -> Datase
                    source=dataset.source)
 
 
-def _subtree_solution(hypothesis: Hypothesis, level: int) -> AnalyticSolution:
+def subtree_solution(hypothesis: Hypothesis, level: int) -> AnalyticSolution:
     """A node's hypothesis as the solution of its :func:`subtree_dataset`."""
     flip = (level - 1) % 2 == 1
     return AnalyticSolution(
@@ -183,8 +183,8 @@ def _subtree_solution(hypothesis: Hypothesis, level: int) -> AnalyticSolution:
     )
 
 
-def _hypothesis_of_subtree(solution: AnalyticSolution, hypothesis: Hypothesis, level: int) -> Hypothesis:
-    """Back from :func:`_subtree_solution` (after refinement) to the node's hypothesis."""
+def hypothesis_of_subtree(solution: AnalyticSolution, hypothesis: Hypothesis, level: int) -> Hypothesis:
+    """Back from :func:`subtree_solution` (after refinement) to the node's hypothesis."""
     flip = (level - 1) % 2 == 1
     return Hypothesis(
         A=solution.R_cam_base @ FLIP_Y if flip else solution.R_cam_base,
@@ -192,6 +192,10 @@ def _hypothesis_of_subtree(solution: AnalyticSolution, hypothesis: Hypothesis, l
         mirror_vectors={(l + level - 1, m): [v] for (l, m), v in solution.mirror_vectors.items()},
         image_transforms=hypothesis.image_transforms,
     )
+
+
+_subtree_solution = subtree_solution  # the names tests and older callers use
+_hypothesis_of_subtree = hypothesis_of_subtree
 
 
 @dataclass(eq=False)
@@ -232,11 +236,11 @@ class TreeNode:
 
     def subtree_solution(self, hypothesis: Hypothesis) -> AnalyticSolution:
         """A proposal as the solution of :meth:`subtree`."""
-        return _subtree_solution(hypothesis, self.level)
+        return subtree_solution(hypothesis, self.level)
 
     def hypothesis_of(self, solution: AnalyticSolution, proposal: Hypothesis) -> Hypothesis:
         """A solution of :meth:`subtree` (e.g. a refined :meth:`subtree_solution`) back as a hypothesis."""
-        return _hypothesis_of_subtree(solution, proposal, self.level)
+        return hypothesis_of_subtree(solution, proposal, self.level)
 
     def kept(self) -> list[Hypothesis]:
         """The scored proposals, best first, each optimum once; none when the best is degenerate."""
@@ -273,20 +277,28 @@ class TreeWalk:
     fewer than two images) and ``SolveError`` for degenerate geometry or PnP failure.
     """
 
-    def __init__(self, dataset: Dataset, seed: int = 0) -> None:
+    def __init__(
+        self, dataset: Dataset, seed: int = 0, pnp: dict[str, list[tuple[np.ndarray, np.ndarray]]] | None = None
+    ) -> None:
         self.dataset = dataset
         self._rng = np.random.default_rng(seed)
         self._normalized = {image.id: dataset.normalized(image) for image in dataset.images}
-        self._leaf_candidates = self._pnp_per_image()
+        self._leaf_candidates = self._pnp_per_image(pnp or {})
         self._roots: list[Hypothesis] | None = None
 
-    def _pnp_per_image(self) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
-        """Sect. 4.1: ``(A_Nv, b_Nv)`` candidates per image from its fiducials."""
+    def _pnp_per_image(
+        self, known: dict[str, list[tuple[np.ndarray, np.ndarray]]]
+    ) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
+        """Sect. 4.1: ``(A_Nv, b_Nv)`` candidates per image from its fiducials (``known``: those already
+        computed by ``pnp_candidates`` on the image's fiducials as they are, e.g. by the consensus)."""
         dataset = self.dataset
         leaf_candidates: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
         for image in dataset.images:
             names = [n for n in image.observations if n in dataset.fiducials]
             if len(names) < 3:
+                continue
+            if image.id in known:
+                leaf_candidates[image.id] = known[image.id]
                 continue
             base_points = np.array([dataset.fiducials[n] for n in names])
             observed = np.array([self._normalized[image.id][n] for n in names])

@@ -1,8 +1,11 @@
 """``calibrate``: the batch pipeline, read top to bottom (as Kalibr's ``main()``).
 
-initial estimate (analytical solution, Sects. 4-5, ``initial.py``) -> Levenberg-Marquardt MLE (eq. 23)
-with its restarts (``lm.py``) -> marginal covariances (``marginals.py``) -> residuals (``residuals.py``)
--> :class:`~mirror_fg.solver.calibration.Calibration`.
+consensus (images and corners that disagree with the rest left out, ``consensus.py``) -> initial
+estimate (analytical solution, Sects. 4-5, ``initial.py``) -> Levenberg-Marquardt MLE (eq. 23) with its
+restarts (``lm.py``) -> marginal covariances (``marginals.py``) -> residuals (``residuals.py``) -> final
+check (measurements far off the solution left out, solve again) -> where the cost is implausible, a
+split of the images into consistent groups (``consistency.py``) ->
+:class:`~mirror_fg.solver.calibration.Calibration`, with everything left out in ``excluded``.
 """
 from __future__ import annotations
 
@@ -12,11 +15,13 @@ from typing import Any
 
 import numpy as np
 
-from mirror_fg.core.errors import DatasetError
+from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.io.dataset import Dataset, dataset_from_dict
 from mirror_fg.solver.analytic import AnalyticSolution
-from mirror_fg.solver.calibration import Calibration
-from mirror_fg.solver.graph import InitialEstimate
+from mirror_fg.solver.calibration import Calibration, Exclusion
+from mirror_fg.solver.consensus import PnPCandidates, final_check, screen, without
+from mirror_fg.solver.consistency import diagnose_split
+from mirror_fg.solver.graph import InitialEstimate, Measurement
 from mirror_fg.solver.initial import initial_estimate
 from mirror_fg.solver.lm import levenberg_marquardt_with_restarts
 from mirror_fg.solver.residuals import outliers_of, predicted_normalized, residual_statistics
@@ -31,21 +36,19 @@ logger = logging.getLogger("mirror_fg")
 Progress = Callable[[str, int, "int | None"], None]
 #: The stages ``calibrate`` reports, in order.
 STAGES = ("initial estimate", "Levenberg-Marquardt", "marginals")
+#: Times the final check may leave measurements out and solve again.
+MAX_RECHECKS = 2
 
 
 def as_dataset(data: Dataset | Mapping[str, Any], what: str = "calibrate()") -> Dataset:
     """``data`` as a :class:`Dataset` (a dataset@1 dictionary is validated) that the solver can take.
 
-    Raises DatasetError on anything else, or where the dataset asks for what this version cannot do
-    (intrinsics estimated through the mirrors, ``camera.estimate``).
+    Raises DatasetError on anything else.
     """
     if isinstance(data, Mapping):
         data = dataset_from_dict(data, source="<dataset dict>")
     if not isinstance(data, Dataset):
         raise DatasetError(f"{what}: expected a mirror_fg.Dataset or a dataset@1 dictionary, got {type(data).__name__}")
-    if data.camera is not None and data.camera.estimate:
-        raise DatasetError(f"{data.source}: camera.estimate ({', '.join(data.camera.estimate)}): estimating "
-                           "intrinsics through the mirrors is not supported by this version")
     return data
 
 
@@ -59,6 +62,7 @@ def calibrate(
     on_iteration: Callable[[int, float, float], None] | None = None,
     fast: bool = True,
     progress: Progress | None = None,
+    diagnose: bool = True,
 ) -> Calibration:
     """Analytical solution (Sects. 4-5), then the MLE by Levenberg-Marquardt (eq. 23) and Marginals.
 
@@ -69,9 +73,68 @@ def calibrate(
     ``progress(stage, done, total)`` per stage (:data:`STAGES`): nodes of the mirror tree scored,
     LM iterations (of ``max_iterations``), marginals (0 then 1 of 1). Stage times are logged on the
     ``"mirror_fg"`` logger (INFO).
+
+    Images or fiducials that disagree with the rest (a wrong corner order, a gross corner, an image
+    inconsistent with the other placements of its mirror) are left out before the solve, measurements
+    far off the solution (``consensus.FINAL_SIGMAS``) after it, and the solve repeated: each is in
+    ``Calibration.excluded`` with its reason (``consensus.py``); with nothing left out the answer is
+    exactly that of the solve alone. Where the final cost is implausible, ``Calibration.inconsistency``
+    names a split of the images (in capture order) into groups each consistent alone (``consistency.py``;
+    a few dozen solves of the groups: ``diagnose=False`` skips it, e.g. for a first solve that is
+    expected to fit badly).
     """
     dataset = as_dataset(dataset)
+    if dataset.camera is not None and dataset.camera.estimate:  # intrinsics estimated too (camera.estimate)
+        from mirror_fg.solver.intrinsics import calibrate_with_intrinsics
+
+        return calibrate_with_intrinsics(dataset, initial=initial, robust=robust, compute_covariance=compute_covariance,
+                                         max_iterations=max_iterations, on_iteration=on_iteration, progress=progress)
     timings: dict[str, float] = {}
+    with timed(timings, "consensus"):
+        solved, excluded, pnp = screen(dataset)  # images and corners that disagree with the rest, named
+    for recheck in range(MAX_RECHECKS + 1):
+        try:
+            calibration, measurements, whitened = _solve(solved, initial, robust, compute_covariance, max_iterations,
+                                                         on_iteration, fast, progress, timings, pnp)
+        except (DatasetError, SolveError) as error:
+            if not excluded:
+                raise
+            raise type(error)(f"{error} (after leaving out {_listed(excluded)})") from None
+        dimension = 2 * len(measurements) - round(2 * calibration.expected_final_error)  # unknowns (lm.LMRun)
+        more = final_check(solved, measurements, whitened, dimension) if recheck < MAX_RECHECKS else []
+        if not more:
+            break
+        logger.warning("%s: %d measurement(s) or image(s) far off the solution left out; solving again", dataset.source,
+                       len(more))
+        for exclusion in more:
+            logger.warning("%s: image '%s'%s left out: %s", dataset.source, exclusion.image,
+                           f" point '{exclusion.point}'" if exclusion.point else "", exclusion.reason)
+        excluded = excluded + more
+        solved = without(solved, more)
+        pnp = {image_id: poses for image_id, poses in pnp.items() if image_id not in {e.image for e in more}}
+    calibration.excluded = list(excluded)
+    if diagnose and not calibration.cost_plausible:
+        with timed(timings, "consistency"):
+            calibration.inconsistency = diagnose_split(solved, calibration, pnp)
+        if calibration.inconsistency is not None:
+            logger.warning("%s: %s", dataset.source, calibration.inconsistency.message)
+    return calibration
+
+
+def _listed(excluded: list[Exclusion], limit: int = 5) -> str:
+    """The exclusions in a few words each, for an error message."""
+    words = [f"image '{e.image}'" + (f" point '{e.point}'" if e.point else "") + f": {e.reason}" for e in excluded[:limit]]
+    more = f"; and {len(excluded) - limit} more" if len(excluded) > limit else ""
+    return "; ".join(words) + more
+
+
+def _solve(
+    dataset: Dataset, initial: InitialEstimate | None, robust: str | None, compute_covariance: bool, max_iterations: int,
+    on_iteration: Callable[[int, float, float], None] | None, fast: bool, progress: Progress | None,
+    timings: dict[str, float], pnp: PnPCandidates,
+) -> tuple[Calibration, list[Measurement], np.ndarray]:
+    """One solve of ``dataset`` as it is: the analytical solution, LM with its restarts, marginals; the
+    calibration with its measurements and their whitened residual norms (sigmas)."""
     report = progress if progress is not None else (lambda stage, done, total: None)
     logger.info("%s: calibrating %d images, %d mirror placements", dataset.source, len(dataset.images),
                 len(dataset.configurations))
@@ -79,7 +142,7 @@ def calibrate(
         analytic: AnalyticSolution | None = None
         start = initial
         if start is None:
-            start = analytic = initial_estimate(dataset, progress=lambda done: report(STAGES[0], done, None))
+            start = analytic = initial_estimate(dataset, progress=lambda done: report(STAGES[0], done, None), pnp=pnp)
     logger.info("initial estimate: %.3f s", timings["analytic"])
 
     def iteration(number: int, error_before: float, error_after: float) -> None:
@@ -131,4 +194,4 @@ def calibrate(
         residual_units="px" if dataset.camera is not None else "normalized",
         outliers=outliers_of(run.measurements, whitened),
         timings=timings,
-    )
+    ), run.measurements, whitened

@@ -10,7 +10,11 @@ update's new measurements only.
 Life of an image (``IncrementalCalibrator.add_image``):
 
 1. It is validated (``dataset.validate_image``) and refused with ``DatasetError`` on bad input, leaving
-   the calibrator as it was.
+   the calibrator as it was. Then the batch consensus checks it (``consensus.py``; images with >= 4
+   fiducials): its gross fiducials are dropped, and an image whose corner order is wrong (bad PnP fit,
+   the board seen from behind unlike the images so far) or that misfits the settled estimate of at
+   least ``MIN_IMAGES_TO_JUDGE`` images by more than ``CONSENSUS_MIN_SIGMAS`` is refused; each start-up
+   runs the batch consensus on its images. Each image refused is named in ``excluded`` with its reason.
 2. Until start-up every image waits. Start-up happens at the first image where the images with >= 3
    fiducials contain a complete configuration tree (:func:`complete_tree`: every kept placement of
    mirror l has >= 3 kept placements of mirror l+1 under it, the root >= 3 placements of mirror 1;
@@ -54,11 +58,14 @@ import gtsam
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError, SolveError
+from mirror_fg.core.geometry import nested_transform
 from mirror_fg.core.transform import covariance_from_pose3, covariance_to_pose3
 from mirror_fg.io.dataset import Dataset, Image, validate_image
 from mirror_fg.solver.analytic import AnalyticSolution
 from mirror_fg.solver.calibrate import as_dataset
-from mirror_fg.solver.calibration import Calibration, require_converged
+from mirror_fg.solver.calibration import Calibration, Exclusion, Inconsistency, require_converged
+from mirror_fg.solver.consensus import CONSENSUS_MIN_SIGMAS, board_side, check_image, misfit_sigmas, screen
+from mirror_fg.solver.consistency import describe_split, fit_group, split_in_capture_order
 from mirror_fg.solver.incremental_graph import (
     MIN_PNP_FIDUCIALS,
     POLISH_SIGMAS,
@@ -67,7 +74,7 @@ from mirror_fg.solver.incremental_graph import (
     RelinearizeThresholds,
 )
 from mirror_fg.solver.initial import initial_estimate
-from mirror_fg.solver.lm import cost_scale, lm_params
+from mirror_fg.solver.lm import cost_scale, lm_params, plausible
 from mirror_fg.solver.marginals import marginal_covariances, unconstrained_message
 from mirror_fg.solver.residuals import outliers_of, predicted_normalized, residual_statistics
 from mirror_fg.solver.timing import timed
@@ -83,6 +90,10 @@ FINAL_LM_ITERATIONS = 100
 SETTLED_SIGMAS = 0.5
 #: A settled calibrator restarts when one update moves the pose by more than this (Mahalanobis).
 DIVERGENCE_SIGMAS = 5.0
+#: An image is judged against the estimate (refused when it misfits it by more than
+#: ``consensus.CONSENSUS_MIN_SIGMAS``) only once this many images are in the graph: the estimate of a
+#: first, minimal tree is too rough to judge by (and could itself hold an image no majority refused yet).
+MIN_IMAGES_TO_JUDGE = 8
 #: Unsettled: re-run the start-up on every image for this many tries, then on every 2nd, 4th, ... image.
 UNSETTLED_EVERY_IMAGE = 8
 #: ... but at least every this many images.
@@ -158,6 +169,12 @@ class IncrementalCalibrator(GraphGrowth):
         self._thresholds = thresholds or RelinearizeThresholds()
         self._seed = seed
         self._ids: set[str] = set()
+        #: Images or fiducials refused by the consensus (``consensus.py``), each with its reason.
+        self.excluded: list[Exclusion] = []
+        self._sides: dict[str, float] = {}  # side of the board each accepted image sees
+        #: The images refused as inconsistent with the estimate (``calibrate_incremental`` asks whether
+        #: they are consistent among themselves: a camera or board that moved).
+        self.misfits: list[Image] = []
         self._accepted: list[Image] = []  # every accepted image, in order
         self._pnp: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
         # Start-up / restart bookkeeping.
@@ -224,6 +241,10 @@ class IncrementalCalibrator(GraphGrowth):
             raise DatasetError(f"{self._ds.source}: image {checked.id!r}: duplicate image id (already given)")
         # Accepted: nothing below is input validation.
         self._ids.add(checked.id)
+        screened = self._screen(checked)
+        if screened is None:  # refused as inconsistent: named in ``excluded``, the estimate untouched
+            return self.calibration() if self.started else None
+        checked = screened
         self._accepted.append(checked)
         self._g.waiting.append(checked)
         if not self._settled:
@@ -368,8 +389,25 @@ class IncrementalCalibrator(GraphGrowth):
             ],
             source=self._ds.source,
         )
+        # The batch consensus on the start-up images: an image whose board side or mirror placement
+        # disagrees with the majority is refused before it can poison the estimate.
+        fiducial_only, excluded, pnp = screen(fiducial_only, seed=self._seed)
+        refused = {e.image for e in excluded if e.point is None}
+        if refused:
+            self.excluded.extend(e for e in excluded if e.point is None)
+            self._accepted = [im for im in self._accepted if im.id not in refused]
+            for image_id in refused:
+                self._sides.pop(image_id, None)
+            self._reset_graph()
+            tree = complete_tree([im for im in self._accepted if self._num_fiducials(im) >= MIN_PNP_FIDUCIALS], Nv)
+            if not tree:
+                raise SolveError(f"{self._ds.source}: no complete tree of placements left after refusing "
+                                 f"{', '.join(sorted(refused))}")
+            kept = {im.id for im in tree}
+            fiducial_only.images = [im for im in fiducial_only.images if im.id in kept]
+            placements = frozenset(im.mirror_configs for im in tree)
         try:
-            analytic = initial_estimate(fiducial_only, seed=self._seed)
+            analytic = initial_estimate(fiducial_only, seed=self._seed, pnp=pnp)
         except (SolveError, DatasetError):
             self._failed_tree = placements
             raise
@@ -415,6 +453,40 @@ class IncrementalCalibrator(GraphGrowth):
         self._lm_iterations.append(optimizer.iterations())
 
     # --- adding images ------------------------------------------------------------------------------
+
+    def _screen(self, image: Image) -> Image | None:
+        """The batch consensus on one image (``consensus.py``), against the images and estimate so far:
+        its PnP fit (gross fiducials dropped, a wrong corner order refused), the side of the board it
+        sees against the majority so far, and, once settled, its misfit with the estimate (the parent of
+        its last mirror from the estimate, that mirror's placement fitted where new). Returns the image to
+        use, or None when it is refused; everything left out goes to ``excluded``."""
+        kept, pose, excluded = check_image(self._ds, image)
+        self.excluded.extend(excluded)
+        if kept is None or pose is None:
+            return kept
+        side = board_side(self._ds, pose)
+        if side is not None:
+            majority = sum(self._sides.values())
+            if len(self._sides) >= 3 and abs(majority) == len(self._sides) and side != np.sign(majority):
+                self.excluded.append(Exclusion(
+                    image.id, "board seen from behind, unlike the other images (rows or columns in reverse order?)"))
+                return None
+            self._sides[image.id] = side
+        if self._settled and self.num_images >= MIN_IMAGES_TO_JUDGE:
+            configs = kept.mirror_configs
+            above = [self._g.mirrors.get((level + 1, m)) for level, m in enumerate(configs[:-1])]
+            known = [v for v in above if v is not None]
+            if len(known) == len(above):
+                A_parent, b_parent = nested_transform(self._g.R, self._g.t, known)  # eqs. (6)-(8)
+                last = self._g.mirrors.get((len(configs), configs[-1]))
+                sigmas = misfit_sigmas(self._ds, kept, pose, A_parent, b_parent, last)
+                if sigmas > CONSENSUS_MIN_SIGMAS:
+                    self.excluded.append(Exclusion(
+                        image.id, f"inconsistent with the estimate so far ({sigmas:.3g} sigma RMS)", None, sigmas))
+                    self.misfits.append(kept)
+                    self._sides.pop(image.id, None)
+                    return None
+        return kept
 
     def _process_waiting(self) -> None:
         values = gtsam.Values()
@@ -465,6 +537,7 @@ class IncrementalCalibrator(GraphGrowth):
             residual_units="px" if self._ds.camera is not None else "normalized",
             outliers=outliers,
             timings=dict(self.timings),
+            excluded=list(self.excluded),
         )
 
 
@@ -494,4 +567,33 @@ def calibrate_incremental(
     if not started:
         raise SolveError(f"{dataset.source}: the images never allowed an analytical solution "
                          "(each placement needs >= 3 child placements)")
-    return require_converged(calibrator.calibration(full=True), dataset.source, "iSAM2")
+    calibration = require_converged(calibrator.calibration(full=True), dataset.source, "iSAM2")
+    calibration.inconsistency = _misfits_split(dataset, calibrator)
+    if calibration.inconsistency is None and not _plausible_fit(calibrator, calibration):
+        order = {image.id: i for i, image in enumerate(dataset.images)}
+        in_graph = sorted((image for image in calibrator._ds.images if image.id in order), key=lambda im: order[im.id])
+        calibration.inconsistency = split_in_capture_order(
+            Dataset(dataset.num_mirrors, dataset.camera, dataset.pixel_sigma, dataset.fiducials, in_graph,
+                    source=dataset.source), calibration.final_error)
+    return calibration
+
+
+def _plausible_fit(calibrator: IncrementalCalibrator, calibration: Calibration) -> bool:
+    """Whether the full calibration's cost 0.5 chi^2 is within its range (``lm.plausible``; dof: two per
+    measurement less the unknowns: pose, mirror vectors, points)."""
+    unknowns = 6 + 3 * len(calibration.mirror_vectors) + 3 * len(calibration.points)
+    return plausible(calibration.final_error, 0.5 * max(2 * len(calibration.residuals) - unknowns, 0))
+
+
+def _misfits_split(dataset: Dataset, calibrator: IncrementalCalibrator) -> Inconsistency | None:
+    """Where the images refused as inconsistent with the estimate fit one ``T_cam_base`` of their own (and
+    those in the graph theirs), the two groups named as the batch names a split (``consistency.py``)."""
+    if len(calibrator.misfits) < 3:
+        return None
+    index = {image.id: i for i, image in enumerate(dataset.images)}
+    in_graph = [image for image in calibrator._ds.images if image.id in index]
+    fits = [fit_group(dataset, in_graph), fit_group(dataset, calibrator.misfits)]
+    if fits[0] is None or fits[1] is None or not (fits[0].plausible and fits[1].plausible):
+        return None
+    groups = [sorted(index[image.id] for image in in_graph), sorted(index[image.id] for image in calibrator.misfits)]
+    return describe_split(dataset, groups, [fits[0], fits[1]])

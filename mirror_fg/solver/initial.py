@@ -20,7 +20,7 @@ from mirror_fg.solver.analytic import AnalyticSolution, TreeNode, TreeWalk, Hypo
 from mirror_fg.solver.graph import build_eliminated_graph, build_graph, extract_values
 from mirror_fg.solver.lm import cost_scale, lm_params
 
-__all__ = ["initial_estimate", "SUBTREE_MAX_ITERATIONS", "SUBTREE_RELATIVE_TOLERANCE"]
+__all__ = ["initial_estimate", "refine_subtree", "SUBTREE_MAX_ITERATIONS", "SUBTREE_RELATIVE_TOLERANCE"]
 
 logger = logging.getLogger("mirror_fg")
 
@@ -47,6 +47,11 @@ def _refine_subtree(subtree: Dataset, closed_form: AnalyticSolution) -> tuple[fl
     return float(graph.error(result)), AnalyticSolution(R, t, mirror_vectors)
 
 
+#: Public name (the consensus of ``consensus.py`` refines a node's majority with it); the private name
+#: stays for profiles (scripts/benchmark.py attributes time to it by name).
+refine_subtree = _refine_subtree
+
+
 def _refined_scores(node: TreeNode) -> list[tuple[float, Hypothesis]]:
     """Each proposal of an inner node refined on the node's images: its LM cost and refined hypothesis."""
     subtree = node.subtree()
@@ -61,7 +66,8 @@ def _refined_scores(node: TreeNode) -> list[tuple[float, Hypothesis]]:
 
 
 def initial_estimate(
-    dataset: Dataset, seed: int = 0, progress: Callable[[int], None] | None = None
+    dataset: Dataset, seed: int = 0, progress: Callable[[int], None] | None = None,
+    pnp: dict[str, list[tuple[np.ndarray, np.ndarray]]] | None = None,
 ) -> AnalyticSolution:
     """The initial guess of ``calibrate``: the analytical solution with every hypothesis below the root
     refined by LM on its own images; the root's combinations are ranked by every fiducial, as in
@@ -72,9 +78,10 @@ def initial_estimate(
     right one and start LM in another minimum; refined, the right hypothesis is the cheaper one.
     Frames and units as :class:`~mirror_fg.solver.analytic.AnalyticSolution`; raises as
     :class:`~mirror_fg.solver.analytic.TreeWalk`. ``progress(nodes_done)`` is called after each node of
-    the mirror tree is scored.
+    the mirror tree is scored. ``pnp``: PnP candidates already computed for some images (as
+    :class:`~mirror_fg.solver.analytic.TreeWalk` takes them).
     """
-    walk = TreeWalk(dataset, seed)
+    walk = TreeWalk(dataset, seed, pnp)
     for done, node in enumerate(walk.nodes(), start=1):
         started = time.perf_counter()
         node.scores = _refined_scores(node) if node.level > 1 else node.closed_form_scores()
