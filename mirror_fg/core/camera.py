@@ -30,6 +30,7 @@ __all__ = [
     "INTRINSIC_NAMES",
     "CAMERA_KEYS",
     "PIXEL_MARGIN_FRACTION",
+    "initial_intrinsics",
 ]
 
 #: Lengths of OpenCV distortion vectors ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, tx, ty]]]])``.
@@ -139,7 +140,8 @@ class Camera:
 
 
 def check_camera(
-    camera: Mapping[str, Any], where: str, *, need_size: bool = True, max_pixels: int | None = None
+    camera: Mapping[str, Any], where: str, *, need_size: bool = True, max_pixels: int | None = None,
+    allow_unstarted: bool = False,
 ) -> dict[str, Any]:
     """Check a camera object and return it as plain values; DatasetError (one line starting ``where``).
 
@@ -150,6 +152,8 @@ def check_camera(
     ``estimate`` (list) and ``prior_sigma`` (dict) where given. ``need_size``: False where the image
     size may be missing (a calibration file without it; ``width`` and ``height`` are then None, both
     or neither). ``max_pixels``: refuse an image size above it (images will be decoded).
+    ``allow_unstarted``: fx, fy, cx, cy may be absent where ``estimate`` names them (their value is
+    then None: the caller starts them from the photographs, :func:`initial_intrinsics`).
     """
     if not isinstance(camera, Mapping):
         raise DatasetError(f"{where}: expected an object, got {type_name(camera)}")
@@ -162,10 +166,15 @@ def check_camera(
         raise DatasetError(f"{where}: estimate: p1 and p2 are not terms of the fisheye model (k1..k4)")
     required = ("width", "height", "fx", "fy", "cx", "cy") if need_size else ("fx", "fy", "cx", "cy")
     missing = [k for k in required if k not in camera]
-    unstarted = [k for k in missing if k in estimate]
-    if unstarted:
+    unstarted = [k for k in missing if k in estimate and k in ("fx", "fy", "cx", "cy")]
+    if unstarted and not allow_unstarted:
         raise DatasetError(f"{where}: {', '.join(unstarted)} absent: starting intrinsics from the photographs "
-                           "is not supported by this version; give a starting value")
+                           "is supported for a dataset@1 camera only; give a starting value")
+    without_prior = [k for k in unstarted if k in dict(prior_sigma)]
+    if without_prior:
+        raise DatasetError(f"{where}: prior_sigma {without_prior[0]}: a prior needs a given value, and "
+                           f"{without_prior[0]} is absent")
+    missing = [k for k in missing if k not in unstarted]
     if missing:
         raise DatasetError(f"{where}: missing {', '.join(repr(k) for k in missing)}")
     out: dict[str, Any] = {"model": model}
@@ -185,6 +194,9 @@ def check_camera(
             f"{max_pixels} pixels"
         )
     for key in ("fx", "fy", "cx", "cy"):
+        if key in unstarted:
+            out[key] = None  # started from the photographs by the caller
+            continue
         value = finite(camera[key])
         if value is None:
             raise DatasetError(f"{where}: {key} must be a finite number (pixels), got {short(camera[key])}")
@@ -266,3 +278,85 @@ def _estimated_intrinsics(camera: Mapping[str, Any], where: str) -> tuple[tuple[
         if finite(sigma) is None or sigma <= 0:
             raise DatasetError(f"{where}: prior_sigma {name}: must be a finite number > 0, got {short(sigma)}")
     return tuple(estimate), tuple((str(n), float(s)) for n, s in prior.items())
+
+
+#: Fiducials are coplanar when their third singular value is below this fraction of the first.
+PLANAR_TOL = 1e-6
+#: A photograph gives a plane-to-image homography with this many fiducials or more.
+MIN_BOARD_POINTS = 4
+
+
+def initial_intrinsics(
+    width: int,
+    height: int,
+    fiducials: Mapping[str, np.ndarray],
+    views: list[Mapping[str, np.ndarray]],
+    mirrored: bool,
+    given: Mapping[str, float | None],
+    dist: tuple[float, ...],
+    where: str,
+    free_k1: bool = False,
+) -> dict[str, float]:
+    """Start values of fx, fy, cx, cy (pixels) from the photographs of a planar target (issue 16).
+
+    ``views``: per photograph, pixel observations by name; those of ``fiducials`` (base frame,
+    metres) are a planar board seen in a (virtual) camera: ``cv2.initCameraMatrix2D`` then
+    ``cv2.calibrateCamera`` with the distortion fixed at ``dist`` and the ``given`` values (None:
+    absent) fixed where both of a pair are given. ``mirrored``: the photographs are seen through an odd
+    number of mirrors, so the board is mirror-imaged: its second in-plane axis is negated, which makes
+    the virtual view an ordinary (right-handed) one. (For a planar board this changes no intrinsic: a
+    mirror image of a plane is the plane seen from behind, and Zhang's constraints are unchanged when
+    a homography's second column changes sign; measured on the real photographs, identical starts.
+    It keeps the per-view poses proper.) DatasetError (one line starting ``where``) when
+    the fiducials are not coplanar or fewer than two photographs show 4 or more of them.
+    ``free_k1``: let ``calibrateCamera`` fit k1 too (k1 is estimated later): on the five real
+    photographs of shared/data/takahashi2012 (k1 about -0.24) this puts the start's cx 21 px from the
+    final estimate instead of 445 px, and the joint LM then converges in a fraction of the iterations.
+    Only fx, fy, cx, cy are returned: k1 starts at its given value.
+    """
+    import cv2
+
+    names = list(fiducials)
+    points = np.array([fiducials[n] for n in names], dtype=float).reshape(-1, 3)
+    centre = points.mean(axis=0)
+    _, singular, axes = np.linalg.svd(points - centre)
+    if singular[2] > PLANAR_TOL * singular[0]:
+        raise DatasetError(f"{where}: fx, fy, cx, cy absent: starting them from the photographs needs coplanar "
+                           "fiducials (a board), and these are not coplanar; give starting values")
+    plane = (points - centre) @ axes[:2].T  # (N, 2) in-plane coordinates, metres
+    if mirrored:
+        plane[:, 1] *= -1.0  # eq. (3): a reflection flips the board's handedness
+    board = {n: np.array([plane[i, 0], plane[i, 1], 0.0], dtype=np.float32) for i, n in enumerate(names)}
+    object_points, image_points = [], []
+    for view in views:
+        seen = [n for n in view if n in board]
+        if len(seen) >= MIN_BOARD_POINTS:
+            object_points.append(np.array([board[n] for n in seen], dtype=np.float32).reshape(-1, 1, 3))
+            image_points.append(np.array([view[n] for n in seen], dtype=np.float32).reshape(-1, 1, 2))
+    if len(object_points) < 2:
+        raise DatasetError(f"{where}: fx, fy, cx, cy absent: starting them from the photographs needs at least 2 "
+                           f"images with {MIN_BOARD_POINTS} or more fiducials each, got {len(object_points)}; "
+                           "give starting values")
+    size = (int(width), int(height))
+    K = cv2.initCameraMatrix2D(object_points, image_points, size)
+    for key, (row, col) in {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}.items():
+        if given.get(key) is not None:
+            K[row, col] = float(given[key])  # type: ignore[arg-type]
+    flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_TANGENT_DIST
+             | (0 if free_k1 else cv2.CALIB_FIX_K1))
+    if given.get("fx") is not None and given.get("fy") is not None:
+        flags |= cv2.CALIB_FIX_FOCAL_LENGTH
+    if given.get("cx") is not None and given.get("cy") is not None:
+        flags |= cv2.CALIB_FIX_PRINCIPAL_POINT
+    coefficients = np.zeros((1, 5))
+    coefficients[0, : min(5, len(dist))] = dist[:5]
+    try:
+        _, K, _, _, _ = cv2.calibrateCamera(object_points, image_points, size, K, coefficients, flags=flags)
+    except cv2.error as error:
+        raise DatasetError(f"{where}: fx, fy, cx, cy absent: cv2.calibrateCamera could not start them from the "
+                           f"photographs ({str(error).strip().splitlines()[-1]}); give starting values") from None
+    start = {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2])}
+    if not all(np.isfinite(v) for v in start.values()) or start["fx"] <= 0 or start["fy"] <= 0:
+        raise DatasetError(f"{where}: fx, fy, cx, cy absent: the start from the photographs failed "
+                           f"({', '.join(f'{k}={v:.4g}' for k, v in start.items())}); give starting values")
+    return {k: (float(given[k]) if given.get(k) is not None else v) for k, v in start.items()}  # type: ignore[arg-type]

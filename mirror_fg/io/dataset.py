@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from mirror_fg.core.camera import Camera, camera_from_dict, camera_to_dict
+from mirror_fg.core.camera import Camera, camera_from_dict, camera_to_dict, check_camera, initial_intrinsics
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.output import atomic_write, json_text
 from mirror_fg.core.values import check_format, check_keys, clip, coordinates, is_int, is_number, short, type_name
@@ -190,7 +190,13 @@ def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Datase
     camera = d.get("camera")
     if camera is not None and not isinstance(camera, Mapping):
         raise DatasetError(f"{source}: camera: expected an object or null, got {type_name(camera)}")
-    camera = None if camera is None else camera_from_dict(camera, f"{source}: camera")
+    unstarted: dict[str, Any] | None = None  # the checked camera whose fx, fy, cx or cy is to start from the images
+    if camera is not None:
+        checked = check_camera(camera, f"{source}: camera", allow_unstarted=True)
+        if any(checked[k] is None for k in _STARTED):
+            unstarted, camera = checked, None
+        else:
+            camera = camera_from_dict(camera, f"{source}: camera")
 
     if "pixel_sigma" not in d:
         raise DatasetError(f"{source}: missing 'pixel_sigma' (measurement noise, pixels)")
@@ -222,7 +228,36 @@ def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Datase
             )
         first_index[image.id] = index
         ds.images.append(image)
+    if unstarted is not None:
+        _start_camera(ds, unstarted)
     return ds
+
+
+#: Intrinsics that a dataset@1 camera may leave absent when ``estimate`` names them.
+_STARTED = ("fx", "fy", "cx", "cy")
+
+
+def _start_camera(ds: Dataset, checked: dict[str, Any]) -> None:
+    """Give ``ds`` its camera with fx, fy, cx, cy started from its pixel observations (issue 16), then
+    validate its images again with it (image bounds, normalization).
+
+    Until then the dataset has no camera, so nothing can normalize with an unset focal length.
+    """
+    where = f"{ds.source}: camera"
+    start = initial_intrinsics(
+        checked["width"], checked["height"], ds.fiducials, [image.observations for image in ds.images],
+        mirrored=ds.num_mirrors % 2 == 1, given={k: checked[k] for k in _STARTED}, dist=tuple(checked["dist"]),
+        where=where, free_k1="k1" in checked.get("estimate", ()),
+    )
+    ds.camera = Camera(
+        width=checked["width"], height=checked["height"], fx=start["fx"], fy=start["fy"], cx=start["cx"],
+        cy=start["cy"], dist=tuple(checked["dist"]), estimate=tuple(checked.get("estimate", ())),
+        prior_sigma=tuple(checked.get("prior_sigma", {}).items()), model=checked["model"],
+    )
+    _log.info("%s: %s started from the photographs: %s", where,
+              ", ".join(k for k in _STARTED if checked[k] is None),
+              ", ".join(f"{k}={start[k]:.6g}" for k in _STARTED))
+    ds.images = [validate_image(image, ds, index) for index, image in enumerate(ds.images)]
 
 
 def validate_image(

@@ -25,6 +25,7 @@ import numpy as np
 import yaml
 
 from mirror_fg.core import transform
+from mirror_fg.core.camera import Camera
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.transform import Transform, _clean, rotation_to_quaternion_xyzw  # _clean: no -0.0 in YAML/URDF
 from mirror_fg.io.output import OutputPlan
@@ -46,6 +47,7 @@ __all__ = [
     "ros_output_texts",
     "DEFAULT_BASE_FRAME",
     "DEFAULT_CAMERA_FRAME",
+    "camera_info_text",
 ]
 
 DEFAULT_BASE_FRAME = "base_link"
@@ -331,6 +333,12 @@ def ros_output_paths(result_path: str | os.PathLike[str]) -> tuple[Path, Path]:
     return p.with_name(f"{p.stem}.ros.yaml"), p.with_name(f"{p.stem}.urdf.xml")
 
 
+def camera_info_path(result_path: str | os.PathLike[str]) -> Path:
+    """``<stem>.camera_info.yaml`` beside ``result_path``: the camera estimated through the mirrors."""
+    p = Path(result_path)
+    return p.with_name(f"{p.stem}.camera_info.yaml")
+
+
 def ros_output_texts(
     result: Mapping[str, Any],
     result_path: str | os.PathLike[str],
@@ -387,3 +395,45 @@ def write_ros_outputs(
 def _xml_comment(text: str) -> str:
     """``text`` safe inside an XML comment (no ``--``)."""
     return text.replace("--", "- -")
+
+
+# --------------------------------------------------------------------------------------------------
+# camera_info (intrinsics estimated through the mirrors, issue 16)
+# --------------------------------------------------------------------------------------------------
+
+#: ROS ``distortion_model`` of each OpenCV distortion vector length (pinhole) and of the fisheye model.
+_DISTORTION_MODELS = {4: "plumb_bob", 5: "plumb_bob", 8: "rational_polynomial"}
+
+
+def camera_info_text(camera: Camera, camera_name: str = "camera", sigma3: Mapping[str, float] | None = None) -> str:
+    """A ``camera_info`` YAML (the ``camera_calibration_parsers`` format that ``camera_info_manager``
+    loads) of ``camera``: ``K``, ``D``, identity ``R``, ``P = [K | 0]``; ``plumb_bob`` for OpenCV's
+    ``k1, k2, p1, p2[, k3]``, ``rational_polynomial`` for 8 terms, ``equidistant`` for the fisheye model.
+    ``sigma3``: 3-sigma of the estimated intrinsics, written as a comment. DatasetError for a
+    distortion vector ROS has no model for (12 or 14 terms).
+    """
+    if camera.model == "fisheye":
+        model = "equidistant"
+    elif len(camera.dist) in _DISTORTION_MODELS:
+        model = _DISTORTION_MODELS[len(camera.dist)]
+    else:
+        raise DatasetError(f"camera_info: ROS has no distortion model for {len(camera.dist)} OpenCV terms")
+    check_frame_name(camera_name, "camera_name")
+    dist = [float(x) for x in camera.dist]
+    if model == "plumb_bob":
+        dist = (dist + [0.0])[:5]  # k1, k2, p1, p2, k3
+    fx, fy, cx, cy = (float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy))
+    content = {
+        "image_width": int(camera.width),
+        "image_height": int(camera.height),
+        "camera_name": camera_name,
+        "camera_matrix": {"rows": 3, "cols": 3, "data": [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0]},
+        "distortion_model": model,
+        "distortion_coefficients": {"rows": 1, "cols": len(dist), "data": dist},
+        "rectification_matrix": {"rows": 3, "cols": 3, "data": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]},
+        "projection_matrix": {"rows": 3, "cols": 4, "data": [fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0]},
+    }
+    header = "# camera_info of the camera estimated through the mirrors by mirror-fg (pixels; OpenCV model)\n"
+    if sigma3:
+        header += "# 3-sigma: " + ", ".join(f"{name} {_num(value)}" for name, value in sigma3.items()) + "\n"
+    return _yaml_text(content, header)

@@ -40,6 +40,8 @@ __all__ = [
     "nees_band",
     "chi2_quantile",
     "weakest_direction",
+    "IntrinsicsBound",
+    "intrinsics_cramer_rao_bound",
 ]
 
 POSE_DIM = 6
@@ -392,3 +394,81 @@ def weakest_direction(pose_covariance: np.ndarray, lever_arm_m: float = 1.0) -> 
         text += "; coupled with " + ", ".join(f"{AXIS_NAMES[i]} ({100 * shares[i]:.0f} %)" for i in partners)
     text += f"; rotations weighed at a {lever_arm_m:g} m lever arm)"
     return WeakestDirection(vector=u, shares=shares, sigma_m=sigma, lever_arm_m=lever_arm_m, text=text)
+
+
+# --- with the intrinsics among the unknowns (issue 16) -----------------------------------------------
+
+
+@dataclass
+class IntrinsicsBound:
+    """Cramér-Rao bound with the intrinsics ``names`` (INTRINSIC_NAMES order) estimated too.
+
+    ``covariance``: (k, k) over the intrinsics (px^2 for fx, fy, cx, cy; unitless for k1..).
+    ``pose_covariance``: 6x6 SPEC ``[dtheta (rad), dt (m)]`` of ``T_cam_base`` with the intrinsics'
+    uncertainty included. ``cross``: (k, 6) between the intrinsics and that pose error.
+    """
+
+    names: tuple[str, ...]
+    covariance: np.ndarray
+    pose_covariance: np.ndarray
+    cross: np.ndarray
+
+    @property
+    def sigma3(self) -> dict[str, float]:
+        """3-sigma of each intrinsic (pixels or unitless)."""
+        return {n: float(3.0 * np.sqrt(self.covariance[i, i])) for i, n in enumerate(self.names)}
+
+
+def intrinsics_cramer_rao_bound(
+    dataset: Dataset, truth: Unknowns, estimate: Sequence[str], sigma_px: float | None = None
+) -> IntrinsicsBound:
+    """Cramér-Rao bound of ``T_cam_base`` and of the intrinsics ``estimate`` of ``dataset.camera``.
+
+    The Fisher information of the pixel model (``factors/intrinsics.py``: eqs. 2-9, then OpenCV's lens
+    and ``K``) at ``truth`` and the camera's values, iid noise ``sigma_px`` pixels (default the dataset's
+    ``pixel_sigma``). Raises ``SolveError`` naming an unknown the measurements leave unconstrained.
+    """
+    from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_factors, intrinsics_key
+    from mirror_fg.solver.graph import GraphLayout, initial_values, measurements_of
+    from mirror_fg.solver.intrinsics import camera_intrinsics
+
+    camera = dataset.camera
+    if camera is None:
+        raise SolveError(f"{dataset.source}: intrinsics need pixel data (a camera)")
+    sigma = dataset.pixel_sigma if sigma_px is None else float(sigma_px)
+    model = IntrinsicsModel(camera_intrinsics(camera), estimate)
+    layout = GraphLayout.for_dataset(dataset)
+    measurements = measurements_of(dataset)
+    by_id = {image.id: image for image in dataset.images}
+    pixels = np.array([by_id[m.image_id].observations[m.point] for m in measurements]).reshape(-1, 2)
+    graph = gtsam.NonlinearFactorGraph()
+    for factor in intrinsics_factors(dataset, layout, measurements, pixels, model, sigma):
+        graph.add(factor)
+    values = initial_values(layout, truth)
+    values.insert(intrinsics_key(), model.fixed[model.index].copy())
+    ordering = gtsam.Ordering()
+    for key in [layout.pose_key, intrinsics_key(), *layout.mirror_keys.values(), *layout.point_keys.values()]:
+        ordering.push_back(key)
+    information, _ = graph.linearize(values).hessian(ordering)
+    k = len(model.estimated)
+    index = UnknownIndex.for_dataset(dataset)
+    # Name columns as UnknownIndex does, the intrinsics sitting after the pose.
+    scale = 1.0 / np.sqrt(np.maximum(np.diag(information), np.finfo(float).tiny))
+    eigenvalues, vectors = np.linalg.eigh(information * scale[:, None] * scale[None, :])
+    if not eigenvalues[0] > 1e-13 * eigenvalues[-1]:
+        column = int(np.argmax(np.abs(vectors[:, 0])))
+        name = (model.estimated[column - POSE_DIM] if POSE_DIM <= column < POSE_DIM + k
+                else index.name_of(column if column < POSE_DIM else column - k))
+        raise SolveError(f"{dataset.source}: the measurements do not constrain {name} "
+                         f"(Fisher information singular, smallest scaled eigenvalue {eigenvalues[0]:.1e})")
+    covariance = (vectors / eigenvalues) @ vectors.T * scale[:, None] * scale[None, :]
+    R = np.asarray(truth.R_cam_base, dtype=float)
+    to_spec = np.zeros((6, 6))
+    to_spec[:3, :3] = R
+    to_spec[3:, 3:] = R
+    return IntrinsicsBound(
+        names=model.estimated,
+        covariance=covariance[POSE_DIM : POSE_DIM + k, POSE_DIM : POSE_DIM + k],
+        pose_covariance=covariance_from_pose3(R, covariance[:POSE_DIM, :POSE_DIM]),
+        cross=covariance[POSE_DIM : POSE_DIM + k, :POSE_DIM] @ to_spec.T,
+    )

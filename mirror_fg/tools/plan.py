@@ -23,7 +23,10 @@ from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.geometry import apply_transform
 from mirror_fg.io.dataset import Dataset, Image, fiducials_from_dict
 from mirror_fg.io.fileio import load_structured
-from mirror_fg.tools.crb import CramerRaoBound, WeakestDirection, cramer_rao_bound, weakest_direction
+from mirror_fg.core.camera import INTRINSIC_NAMES
+from mirror_fg.tools.crb import (
+    CramerRaoBound, IntrinsicsBound, WeakestDirection, cramer_rao_bound, intrinsics_cramer_rao_bound, weakest_direction,
+)
 from mirror_fg.tools.simulate import GroundTruth, default_camera, measure, simulate_base_case, visible
 
 __all__ = ["PlanSetup", "PlanResult", "plan", "format_plan", "load_fiducials"]
@@ -41,6 +44,10 @@ class PlanSetup:
     camera-to-mirror distance (+/- 10 %). tilt_deg: largest tilt of a mirror normal from its nominal
     axis (placements are drawn uniformly up to it). pixel_sigma: measurement noise, pixels.
     focal_px: focal length that turns pixels into normalized units (None: the simulator's 800 px).
+    estimate: intrinsics estimated through the mirrors too (``camera.estimate``, a subset of fx, fy,
+    cx, cy, k1, k2, p1, p2, k3): the bounds on ``T_cam_base`` then include their uncertainty and the
+    intrinsics get bounds of their own (fx, fy, cx, cy in pixels of a ``focal_px`` camera whose
+    principal point is at the image centre; the lens is distortion-free).
     """
 
     num_mirrors: int = 2
@@ -53,13 +60,15 @@ class PlanSetup:
     tilt_deg: float = 30.0
     pixel_sigma: float = 1.0
     focal_px: float | None = None
+    estimate: tuple[str, ...] = ()
 
     def describe(self) -> str:
         layout = (f"{len(self.fiducials)} given fiducials" if self.fiducials is not None
                   else f"{self.num_fiducials} fiducials (20 cm right triangle{' + 1 off-plane' if self.num_fiducials == 4 else ''})")
         return (f"{self.num_mirrors} mirror(s), {self.placements} placements per node, {self.num_images} images, "
                 f"{layout}, {self.num_points} reconstruction points, mirrors at {self.mirror_distance_m:g} m "
-                f"tilted up to {self.tilt_deg:g} deg, pixel sigma {self.pixel_sigma:g} px")
+                f"tilted up to {self.tilt_deg:g} deg, pixel sigma {self.pixel_sigma:g} px"
+                + (f", intrinsics estimated: {', '.join(self.estimate)}" if self.estimate else ""))
 
 
 @dataclass
@@ -71,6 +80,9 @@ class PlanResult:
     axis. ``point_sigma3_mm_worst``: 3-sigma of the least-constrained reconstruction point, worst axis,
     mean over draws (None without points). ``visible_fraction``: images whose given fiducials all stay in
     view (1.0 for the default layouts). ``weakest``: least-constrained direction of ``pose_covariance``.
+    With ``setup.estimate``: the pose bounds include the intrinsics' uncertainty, ``intrinsics_sigma3``
+    holds each intrinsic's 3-sigma (quadratic mean over draws; pixels or unitless) and
+    ``sigma3_position_mm_fixed_intrinsics`` the position bound were the intrinsics known exactly.
     """
 
     setup: PlanSetup
@@ -84,6 +96,8 @@ class PlanResult:
     visible_fraction: float
     weakest: WeakestDirection
     bounds: list[CramerRaoBound] = field(default_factory=list, repr=False)
+    intrinsics_sigma3: dict[str, float] | None = None
+    sigma3_position_mm_fixed_intrinsics: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         """Plain data (JSON-able)."""
@@ -99,6 +113,9 @@ class PlanResult:
             "point_sigma3_mm_worst": self.point_sigma3_mm_worst,
             "visible_fraction": self.visible_fraction,
             "weakest_direction": self.weakest.text,
+            **({"sigma3_intrinsics": self.intrinsics_sigma3,
+                "sigma3_position_mm_fixed_intrinsics": self.sigma3_position_mm_fixed_intrinsics.tolist()}
+               if self.intrinsics_sigma3 is not None and self.sigma3_position_mm_fixed_intrinsics is not None else {}),
         }
 
 
@@ -140,9 +157,17 @@ def plan(setup: PlanSetup | None = None, draws: int = 5, seed: int = 0, **kwargs
             f"plan: placements must be >= 3 per node (the analytical solution needs it), got {setup.placements}")
     if setup.focal_px is not None and setup.focal_px <= 0.0:
         raise DatasetError(f"plan: focal_px must be > 0, got {setup.focal_px}")
+    unknown = [n for n in setup.estimate if n not in INTRINSIC_NAMES]
+    if unknown or len(set(setup.estimate)) != len(setup.estimate):
+        raise DatasetError(f"plan: estimate must name distinct intrinsics of {', '.join(INTRINSIC_NAMES)}, "
+                           f"got {', '.join(setup.estimate)}")
     focal = setup.focal_px if setup.focal_px is not None else default_camera().fx
     sigma_normalized = setup.pixel_sigma / focal
-    bounds, visible_fractions = [], []
+    # The simulator's camera (fx = fy = 800 px) with the same normalized noise: its intrinsics' bounds
+    # scale to a focal_px camera by focal / 800 (fx, fy, cx, cy), distortion terms unchanged.
+    sigma_sim_px = sigma_normalized * default_camera().fx
+    to_focal = focal / default_camera().fx
+    bounds, visible_fractions, intrinsic_bounds = [], [], []
     for draw in range(draws):
         try:
             dataset, truth = simulate_base_case(
@@ -158,9 +183,12 @@ def plan(setup: PlanSetup | None = None, draws: int = 5, seed: int = 0, **kwargs
             dataset, fraction = _with_fiducials(dataset, truth, setup.fiducials)
         visible_fractions.append(fraction)
         bounds.append(cramer_rao_bound(dataset, truth, sigma_normalized=sigma_normalized))
-    pose = np.mean([b.pose_covariance for b in bounds], axis=0)
+        if setup.estimate:
+            intrinsic_bounds.append(intrinsics_cramer_rao_bound(dataset, truth, setup.estimate, sigma_px=sigma_sim_px))
+    pose_bounds = intrinsic_bounds if setup.estimate else bounds
+    pose = np.mean([b.pose_covariance for b in pose_bounds], axis=0)
     sigma3 = 3.0 * np.sqrt(np.diag(pose))
-    per_draw = np.array([3.0 * np.sqrt(np.diag(b.pose_covariance)) for b in bounds])
+    per_draw = np.array([3.0 * np.sqrt(np.diag(b.pose_covariance)) for b in pose_bounds])
     rot_range = (np.degrees(per_draw[:, :3].min(axis=0)), np.degrees(per_draw[:, :3].max(axis=0)))
     pos_range = (1000.0 * per_draw[:, 3:].min(axis=0), 1000.0 * per_draw[:, 3:].max(axis=0))
     point_worst = None
@@ -173,7 +201,22 @@ def plan(setup: PlanSetup | None = None, draws: int = 5, seed: int = 0, **kwargs
         sigma3_rotation_deg_range=rot_range, sigma3_position_mm_range=pos_range,
         point_sigma3_mm_worst=point_worst, visible_fraction=float(np.mean(visible_fractions)),
         weakest=weakest_direction(pose), bounds=bounds,
+        **_intrinsics_fields(setup, intrinsic_bounds, bounds, to_focal),
     )
+
+
+def _intrinsics_fields(setup: PlanSetup, intrinsic_bounds: list[IntrinsicsBound], bounds: list[CramerRaoBound],
+                       to_focal: float) -> dict:
+    """``intrinsics_sigma3`` and ``sigma3_position_mm_fixed_intrinsics`` of a PlanResult (none without
+    ``setup.estimate``)."""
+    if not setup.estimate:
+        return {}
+    names = intrinsic_bounds[0].names
+    variance = np.mean([np.diag(b.covariance) for b in intrinsic_bounds], axis=0)
+    pixels = np.array([to_focal if n in ("fx", "fy", "cx", "cy") else 1.0 for n in names])
+    fixed = np.mean([b.pose_covariance for b in bounds], axis=0)
+    return {"intrinsics_sigma3": {n: float(3.0 * np.sqrt(v) * s) for n, v, s in zip(names, variance, pixels)},
+            "sigma3_position_mm_fixed_intrinsics": 3000.0 * np.sqrt(np.diag(fixed)[3:])}
 
 
 def format_plan(result: PlanResult) -> str:
@@ -193,6 +236,15 @@ def format_plan(result: PlanResult) -> str:
         f"(draws: {triple(lo_p, '.2f')} .. {triple(hi_p, '.2f')})",
         f"  weakest direction: {result.weakest.text}",
     ]
+    if result.intrinsics_sigma3 is not None and result.sigma3_position_mm_fixed_intrinsics is not None:
+        lines.append("  intrinsics (3-sigma): " + ", ".join(
+            f"{n} {v:.3g}{' px' if n in ('fx', 'fy', 'cx', 'cy') else ''}" for n, v in result.intrinsics_sigma3.items()))
+        lines.append(f"  (T_cam_base bounds above include the intrinsics' uncertainty; with them known exactly the "
+                     f"position would be {triple(result.sigma3_position_mm_fixed_intrinsics, '.2f')} mm)")
+        count = len(result.setup.fiducials) if result.setup.fiducials is not None else result.setup.num_fiducials
+        if count < 4 and any(n in result.setup.estimate for n in ("fx", "fy", "cx", "cy")):
+            lines.append("  warning: calibrate refuses fx, fy, cx, cy from photographs of fewer than 4 fiducials "
+                         "(any focal length and centre fit 3 points exactly): use a board")
     if result.point_sigma3_mm_worst is not None:
         lines.append(f"  least-constrained reconstruction point: 3-sigma {result.point_sigma3_mm_worst:.2f} mm (worst axis)")
     if result.visible_fraction < 1.0:

@@ -1,0 +1,508 @@
+"""``calibrate_with_intrinsics``: the MLE (eq. 23) with the camera intrinsics among the unknowns (issue 16).
+
+Pipeline: the dataset's camera holds the start intrinsics (the given values; where fx, fy, cx or cy
+was absent, :func:`mirror_fg.core.camera.initial_intrinsics` computed them from the photographs when
+the dataset was loaded) -> ``calibrate()`` with those intrinsics fixed (analytical solution on the
+image normalised with them, LM, restarts, left-out outliers) for the start of pose, mirrors and
+points -> the observability check below at that start; where that start did not converge or fails
+the check, the same again with fx, fy, cx, cy started from the photographs (a given value too far
+off can make the analytical solution degenerate) -> joint Levenberg-Marquardt (Marquardt's diagonal
+damping) over pose, mirrors, points and the intrinsics named in ``camera.estimate`` with pixel factors (``factors/intrinsics.py``) and the optional Gaussian
+prior ``camera.prior_sigma`` -> ``gtsam.Marginals`` (the pose's covariance *including* the intrinsics'
+uncertainty, their own covariance and their cross-covariance with the pose) -> residuals in pixels.
+
+Observability criterion (Fisher information). ``F = J^T J`` of the whitened pixel factors at the start
+values; the intrinsics' marginal information is its Schur complement ``S`` with every other unknown
+(pose, mirrors, points) eliminated; ``C = S^-1`` is the Cramér-Rao bound of the intrinsics. Each
+intrinsic is measured by what it does to the image: ``sigma_corner_i = sqrt(C_ii) * s_i`` with ``s_i``
+the displacement (pixels) at the farthest image corner per unit of it (``fx``: ``x_c``; ``cx``: 1;
+``k1``: ``f x_c r_c^2`` ...; see :func:`corner_sensitivity`).
+
+* **unobservable** (refused, :class:`SolveError`): ``S`` not positive definite (smallest eigenvalue of
+  the scaled ``S`` below ``UNOBSERVABLE_RCOND`` times its largest), or ``3 sigma_corner`` of an intrinsic
+  above ``UNOBSERVABLE_FRACTION`` of the image diagonal: such an "estimate" is no calibration (measured:
+  nine simulated photographs of a 10-point board estimating all nine intrinsics, k2 and k3 at 300-400 px
+  for a 1280 px diagonal, refused; the five real photographs of shared/data/takahashi2012 with six
+  intrinsics reach at most 65 px (cx) for a 2000 px diagonal, accepted with a warning);
+* **weak** (:class:`WeakIntrinsicsWarning`, the result is returned): ``3 sigma_corner`` of an intrinsic at
+  the final estimate above ``WEAK_CORNER_PX`` pixels.
+
+Before any solve, estimating fx, fy, cx or cy is refused (SolveError) unless at least ``MIN_BOARD_VIEWS``
+photographs show 4 or more fiducials: a photograph of 3 points fits *any* focal length and centre
+exactly (P3P has solutions for every ``K``), so those intrinsics would rest on the mirror geometry
+alone. Measured on a simulation (two mirrors at 0.2 m, 12 images of a 3-point triangle): 3-sigma of
+fx ~50 px at the corner (below the Fisher refusal) and LM not converged in 100 iterations.
+
+Both messages name the intrinsics and what to add: more points per image, more tilt of the target
+in the mirror, more mirror placements.
+"""
+from __future__ import annotations
+
+import logging
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from types import SimpleNamespace
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from mirror_fg.core.camera import Camera, initial_intrinsics
+from mirror_fg.core.errors import DatasetError, SolveError
+from mirror_fg.core.transform import covariance_from_pose3
+from mirror_fg.factors.intrinsics import (
+    IntrinsicsModel, intrinsics_factors, intrinsics_key, intrinsics_prior_factor, predict_pixels,
+)
+from mirror_fg.io.dataset import Dataset
+from mirror_fg.solver.calibration import Calibration, EstimatedCamera
+from mirror_fg.solver.graph import GraphLayout, InitialEstimate, Measurement, extract_values, initial_values, measurements_of
+from mirror_fg.solver.lm import cost_scale, lm_params
+from mirror_fg.solver.marginals import unconstrained_message
+from mirror_fg.solver.residuals import outliers_of, predicted_normalized
+from mirror_fg.solver.timing import timed
+
+__all__ = [
+    "calibrate_with_intrinsics", "WeakIntrinsicsWarning", "IntrinsicsObservability", "intrinsics_observability",
+    "corner_sensitivity", "camera_intrinsics", "WEAK_CORNER_PX", "UNOBSERVABLE_RCOND", "UNOBSERVABLE_FRACTION", "MIN_BOARD_VIEWS",
+]
+
+logger = logging.getLogger("mirror_fg")
+
+#: An intrinsic whose 3-sigma moves the farthest image corner by more than this (pixels) is weak.
+WEAK_CORNER_PX = 5.0
+#: An intrinsic whose 3-sigma moves the farthest image corner by more than this fraction of the image
+#: diagonal is unobservable (refused).
+UNOBSERVABLE_FRACTION = 0.1
+#: The scaled marginal information of the intrinsics is singular below this ratio of its eigenvalues.
+UNOBSERVABLE_RCOND = 1e-10
+#: The fixed-intrinsics start is solved with at least this fraction of the image diagonal as its pixel
+#: sigma, so that the start intrinsics' error is not taken for outliers (only gross ones are left out).
+START_SIGMA_FRACTION = 0.003
+#: fx, fy, cx, cy are estimated only with at least this many photographs of 4 or more fiducials.
+MIN_BOARD_VIEWS = 2
+#: What a user can add when intrinsics are weak or unobservable.
+_ADVICE = ("add more points per image (a larger grid of fiducials), more tilt of the target in the "
+           "mirrors, or more mirror placements")
+#: Distortion terms beyond OpenCV's k1, k2, p1, p2, k3 that the pixel factors do not model.
+_MODELLED_DIST = 5
+
+
+class WeakIntrinsicsWarning(UserWarning):
+    """The data constrain an estimated intrinsic only weakly (module docstring: the criterion)."""
+
+
+def camera_intrinsics(camera: Camera) -> np.ndarray:
+    """The nine intrinsics of ``camera`` in INTRINSIC_NAMES order (dist padded with zeros)."""
+    dist = list(camera.dist) + [0.0] * max(0, 5 - len(camera.dist))
+    return np.array([camera.fx, camera.fy, camera.cx, camera.cy, dist[0], dist[1], dist[2], dist[3], dist[4]],
+                    dtype=float)
+
+
+def _camera_of(camera: Camera, theta: np.ndarray) -> Camera:
+    """``camera`` with the nine intrinsics ``theta``, nothing left to estimate."""
+    dist = list(camera.dist)
+    dist[:4] = [float(v) for v in theta[4:8]]
+    if len(dist) >= 5:
+        dist[4] = float(theta[8])
+    return replace(camera, fx=float(theta[0]), fy=float(theta[1]), cx=float(theta[2]), cy=float(theta[3]),
+                   dist=tuple(dist), estimate=(), prior_sigma=())
+
+
+def corner_sensitivity(camera: Camera, names: tuple[str, ...]) -> np.ndarray:
+    """Pixels the farthest image corner moves per unit of each intrinsic of ``names`` (undistorted
+    normalized corner ``(x_c, y_c)``, ``r_c^2 = x_c^2 + y_c^2``, ``f = max(fx, fy)``)."""
+    xc = max(camera.cx, camera.width - 1 - camera.cx) / camera.fx
+    yc = max(camera.cy, camera.height - 1 - camera.cy) / camera.fy
+    r2 = xc * xc + yc * yc
+    f = max(camera.fx, camera.fy)
+    r = np.sqrt(r2)
+    per_unit = {"fx": xc, "fy": yc, "cx": 1.0, "cy": 1.0, "k1": f * r * r2, "k2": f * r * r2**2,
+                "k3": f * r * r2**3, "p1": 3.0 * f * r2, "p2": 3.0 * f * r2}
+    return np.array([per_unit[n] for n in names])
+
+
+class IntrinsicsObservability:
+    """The intrinsics' Cramér-Rao bound from the Fisher information (module docstring)."""
+
+    def __init__(self, names: tuple[str, ...], covariance: np.ndarray | None, sigma3_corner_px: np.ndarray,
+                 singular: bool, diagonal_px: float) -> None:
+        self.names = names
+        self.covariance = covariance  # (k, k), None when singular
+        self.sigma3_corner_px = sigma3_corner_px  # (k,), inf when singular
+        self.singular = singular
+        self.diagonal_px = diagonal_px
+
+    @property
+    def unobservable(self) -> list[str]:
+        """Names whose 3-sigma corner displacement exceeds UNOBSERVABLE_FRACTION of the image diagonal
+        (all when singular)."""
+        if self.singular:
+            return list(self.names)
+        limit = UNOBSERVABLE_FRACTION * self.diagonal_px
+        return [n for n, s in zip(self.names, self.sigma3_corner_px) if not s <= limit]
+
+    @property
+    def weak(self) -> list[str]:
+        """Names whose 3-sigma corner displacement exceeds WEAK_CORNER_PX."""
+        return [n for n, s in zip(self.names, self.sigma3_corner_px) if not s <= WEAK_CORNER_PX]
+
+    def describe(self, names: list[str]) -> str:
+        """``fx (3-sigma 12.3 px at the corner), ...``."""
+        by_name = dict(zip(self.names, self.sigma3_corner_px))
+        return ", ".join(f"{n} (3-sigma {by_name[n]:.3g} px at the image corner)" for n in names)
+
+
+def intrinsics_observability(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, layout: GraphLayout,
+                             camera: Camera, names: tuple[str, ...]) -> IntrinsicsObservability:
+    """Fisher information of ``graph`` at ``values``, the intrinsics' Schur complement and their bound."""
+    key = intrinsics_key()
+    others = [layout.pose_key, *layout.mirror_keys.values(), *layout.point_keys.values()]
+    ordering = gtsam.Ordering()
+    for k in [key, *others]:
+        ordering.push_back(k)
+    information, _ = graph.linearize(values).hessian(ordering)
+    k = len(names)
+    scale = corner_sensitivity(camera, names)
+    diagonal = float(np.hypot(camera.width, camera.height))
+    A, B, D = information[:k, :k], information[:k, k:], information[k:, k:]
+    # Jacobi-scale the rest so that its conditioning does not depend on units (metres, radians).
+    d = np.sqrt(np.maximum(np.diag(D), np.finfo(float).tiny))
+    D_scaled = D / np.outer(d, d)
+    try:
+        rest_eig = np.linalg.eigvalsh(D_scaled)
+        if rest_eig[0] <= UNOBSERVABLE_RCOND * rest_eig[-1]:
+            raise np.linalg.LinAlgError
+        schur = A - (B / d) @ np.linalg.solve(D_scaled, (B / d).T)
+    except np.linalg.LinAlgError:
+        return IntrinsicsObservability(names, None, np.full(k, np.inf), True, diagonal)
+    scaled = schur / np.outer(scale, scale)  # information in "pixels at the corner"
+    eig = np.linalg.eigvalsh(scaled)
+    if not eig[0] > UNOBSERVABLE_RCOND * max(eig[-1], np.finfo(float).tiny):
+        return IntrinsicsObservability(names, None, np.full(k, np.inf), True, diagonal)
+    covariance = np.linalg.inv(schur)
+    return IntrinsicsObservability(names, covariance, 3.0 * np.sqrt(np.diag(covariance)) * scale, False, diagonal)
+
+
+def _check_supported(dataset: Dataset) -> Camera:
+    """The camera, after the refusals that need no solve: a fisheye model, unmodelled distortion terms
+    (DatasetError); fx, fy, cx or cy estimated from fewer than ``MIN_BOARD_VIEWS`` photographs of 4
+    or more fiducials (SolveError, module docstring)."""
+    camera = dataset.camera
+    assert camera is not None and camera.estimate
+    pinhole = [n for n in ("fx", "fy", "cx", "cy") if n in camera.estimate]
+    views = sum(1 for image in dataset.images if sum(n in dataset.fiducials for n in image.observations) >= 4)
+    if pinhole and views < MIN_BOARD_VIEWS:
+        most = max(sum(n in dataset.fiducials for n in image.observations) for image in dataset.images)
+        raise SolveError(f"{dataset.source}: camera.estimate: the photographs do not determine {', '.join(pinhole)}: "
+                         f"{views} image(s) show 4 or more fiducials (at most {most} per image), need {MIN_BOARD_VIEWS} "
+                         f"(any focal length and centre fit 3 points exactly); {_ADVICE}, or give them")
+    if camera.model != "pinhole":
+        raise DatasetError(f"{dataset.source}: camera.estimate: estimating intrinsics is supported for the "
+                           f"pinhole model only, not {camera.model}")
+    if any(float(v) != 0.0 for v in camera.dist[_MODELLED_DIST:]):
+        raise DatasetError(f"{dataset.source}: camera.estimate: dist has terms beyond k1, k2, p1, p2, k3 "
+                           "(rational or thin-prism), which the estimation does not model")
+    return camera
+
+
+@dataclass
+class _JointRun:
+    """One joint LM run over pose, mirrors, points and the intrinsics, with what it was built from."""
+
+    dataset: Dataset
+    graph: gtsam.NonlinearFactorGraph
+    layout: GraphLayout
+    measurements: list[Measurement]
+    pixels: np.ndarray  # (M, 2) observed
+    result: gtsam.Values
+    initial_error: float
+    final_error: float
+    iterations: int
+    converged: bool
+
+
+def _joint_problem(dataset: Dataset, fixed: Dataset, model: IntrinsicsModel, robust: str | None,
+                   ) -> tuple[gtsam.NonlinearFactorGraph, GraphLayout, list[Measurement], np.ndarray]:
+    """The graph of pixel factors (and the prior) of ``dataset``; ``fixed`` the same images with the
+    start camera (its measurements give the structure)."""
+    assert dataset.camera is not None
+    layout = GraphLayout.for_dataset(dataset)
+    measurements = measurements_of(fixed)
+    by_id = {image.id: image for image in dataset.images}
+    pixels = np.array([by_id[m.image_id].observations[m.point] for m in measurements]).reshape(-1, 2)
+    graph = gtsam.NonlinearFactorGraph()
+    for factor in intrinsics_factors(dataset, layout, measurements, pixels, model, dataset.pixel_sigma, robust):
+        graph.add(factor)
+    prior = intrinsics_prior_factor(model, dict(dataset.camera.prior_sigma))
+    if prior is not None:
+        graph.add(prior)
+    return graph, layout, measurements, pixels
+
+
+def _run_lm(dataset: Dataset, fixed: Dataset, graph: gtsam.NonlinearFactorGraph, layout: GraphLayout,
+            measurements: list[Measurement], pixels: np.ndarray, values: gtsam.Values, max_iterations: int,
+            on_iteration: Callable[[int, float, float], None] | None) -> _JointRun:
+    """Levenberg-Marquardt (eq. 23) from ``values`` with the project's settings (``lm.lm_params``)."""
+    params = lm_params(max_iterations, cost_scale(fixed))
+    # Marquardt's damping (lambda diag(J^T J)): the unknowns' units differ by orders of magnitude
+    # (pixels, unitless k1..k3, metres, radians). With lambda I a rough start (fx 130 px off, no
+    # distortion) gave up at once on simulated data; scaled damping descends from it.
+    params.setDiagonalDamping(True)
+    if on_iteration is not None:
+        params.iterationHook = on_iteration  # type: ignore[assignment]
+    initial_error = graph.error(values)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    try:
+        result = optimizer.optimize()
+    except RuntimeError as error:
+        raise SolveError(f"{dataset.source}: {_unconstrained(error, layout)}") from None
+    iterations = optimizer.iterations()
+    final_error = graph.error(result)
+    converged = bool(np.isfinite(final_error)) and iterations < max_iterations
+    return _JointRun(dataset, graph, layout, measurements, pixels, result, float(initial_error), float(final_error),
+                     iterations, converged)
+
+
+def _values_for(layout: GraphLayout, intrinsics: np.ndarray, estimate: Any) -> gtsam.Values:
+    """Start values of ``layout``'s unknowns from an estimate, and of the ``K(0)`` vector."""
+    values = initial_values(layout, estimate)
+    values.insert(intrinsics_key(), np.array(intrinsics, dtype=float))
+    return values
+
+
+def _photograph_start(dataset: Dataset, camera: Camera) -> Camera | None:
+    """``camera`` with the estimated ones of fx, fy, cx, cy started from the photographs
+    (:func:`~mirror_fg.core.camera.initial_intrinsics`), or None where they cannot be (none of them
+    estimated, fiducials not coplanar, too few board views)."""
+    assert dataset.camera is not None
+    estimate = dataset.camera.estimate
+    if not any(n in estimate for n in ("fx", "fy", "cx", "cy")):
+        return None
+    given = {n: (None if n in estimate else float(getattr(camera, n))) for n in ("fx", "fy", "cx", "cy")}
+    try:
+        start = initial_intrinsics(camera.width, camera.height, dataset.fiducials,
+                                   [image.observations for image in dataset.images], dataset.num_mirrors % 2 == 1,
+                                   given, camera.dist, dataset.source, free_k1="k1" in estimate)
+    except DatasetError:
+        return None
+    return replace(camera, fx=start["fx"], fy=start["fy"], cx=start["cx"], cy=start["cy"])
+
+
+@dataclass
+class _Start:
+    """The fixed-intrinsics solve from one start camera and the joint problem built on it."""
+
+    camera: Camera
+    start: Calibration
+    solved: Dataset  # the dataset without what the start left out
+    graph: gtsam.NonlinearFactorGraph
+    layout: GraphLayout
+    measurements: list[Measurement]
+    pixels: np.ndarray
+    values: gtsam.Values
+    refusal: str | None  # why the intrinsics are unobservable from this start, or None
+
+    @property
+    def usable(self) -> bool:
+        return self.start.converged and self.refusal is None
+
+
+def _fixed_start(dataset: Dataset, camera: Camera, sigma: float, model: IntrinsicsModel, robust: str | None,
+                 initial: InitialEstimate | None, max_iterations: int, progress: Callable[[str, int, Any], None] | None,
+                 ) -> _Start:
+    """``calibrate`` with the intrinsics fixed at ``camera`` (pixel sigma ``sigma``), the joint problem
+    at its solution and the observability check there (module docstring)."""
+    from mirror_fg.solver.calibrate import calibrate
+    from mirror_fg.solver.consensus import without
+
+    # diagnose=False: with first-guess intrinsics the fit is often implausible; the split search belongs
+    # to the joint solution, not to this start.
+    start = calibrate(replace(dataset, camera=camera, pixel_sigma=sigma), initial=initial, robust=robust,
+                      compute_covariance=False, max_iterations=max_iterations, progress=progress, diagnose=False)
+    solved = without(dataset, start.excluded) if start.excluded else dataset
+    graph, layout, measurements, pixels = _joint_problem(solved, replace(solved, camera=camera), model, robust)
+    values = _values_for(layout, camera_intrinsics(camera)[model.index], start)
+    refusal = _unobservable(graph, values, layout, camera, model.estimated, dataset.source)
+    return _Start(camera, start, solved, graph, layout, measurements, pixels, values, refusal)
+
+
+def calibrate_with_intrinsics(
+    dataset: Dataset,
+    *,
+    initial: InitialEstimate | None = None,
+    robust: str | None = None,
+    compute_covariance: bool = True,
+    max_iterations: int = 100,
+    on_iteration: Callable[[int, float, float], None] | None = None,
+    progress: Callable[[str, int, Any], None] | None = None,
+) -> Calibration:
+    """The MLE of every unknown and of the intrinsics named in ``dataset.camera.estimate`` (module
+    docstring). Arguments as :func:`mirror_fg.solver.calibrate.calibrate`; ``initial`` starts the
+    fixed-intrinsics stage (pose, mirrors, points), the intrinsics start at the camera's values.
+
+    Measurements or images that ``calibrate`` leaves out at the start (far off even with the start
+    intrinsics' sigma, see ``START_SIGMA_FRACTION``) or that end far off the joint solution
+    (``consensus.final_check``) are left out, as ``calibrate`` does, and listed in ``excluded``.
+
+    Raises DatasetError (a fisheye camera, unmodelled distortion terms) or SolveError (unobservable
+    intrinsics, an indeterminant system); warns :class:`WeakIntrinsicsWarning` on weak ones.
+    """
+    from mirror_fg.solver.calibrate import MAX_RECHECKS, STAGES
+    from mirror_fg.solver.consensus import final_check, without
+
+    camera = _check_supported(dataset)
+    timings: dict[str, float] = {}
+    report = progress if progress is not None else (lambda stage, done, total: None)
+    model = IntrinsicsModel(camera_intrinsics(camera), camera.estimate)
+    names = model.estimated
+    # The start intrinsics may be off by many pixels: with the file's sigma the fixed-intrinsics solve
+    # would leave out sound measurements as outliers. Its estimate does not depend on a uniform sigma.
+    start_sigma = max(dataset.pixel_sigma, START_SIGMA_FRACTION * float(np.hypot(camera.width, camera.height)))
+    given_camera = replace(camera, estimate=(), prior_sigma=())
+    attempts: list[_Start] = []
+    failure: SolveError | None = None  # the given start's own failure, raised if no start works
+    with timed(timings, "fixed intrinsics"):
+        for start_camera in (given_camera, None):
+            if start_camera is None:
+                # The given values were too far off for the analytical solution (measured: fx 16 % off
+                # and no distortion gave mirror vectors near zero on a simulation): start from the photographs.
+                start_camera = _photograph_start(dataset, given_camera)
+                if start_camera is None:
+                    break
+                logger.info("%s: no usable start with the given intrinsics; starting them from the photographs: %s",
+                            dataset.source, ", ".join(f"{k}={getattr(start_camera, k):.6g}" for k in ("fx", "fy", "cx", "cy")))
+            try:
+                attempts.append(_fixed_start(dataset, start_camera, start_sigma, model, robust, initial, max_iterations,
+                                             progress))
+            except SolveError as error:  # e.g. LM from a degenerate analytical solution
+                failure = failure or error
+                continue
+            if attempts[-1].usable:
+                break
+    chosen = next((a for a in attempts if a.usable), next((a for a in attempts if a.refusal is None), None))
+    if chosen is None:
+        if failure is not None and (not attempts or attempts[0].camera is not given_camera):
+            raise failure
+        raise SolveError(attempts[0].refusal)
+    start, start_camera, solved, excluded = chosen.start, chosen.camera, chosen.solved, list(chosen.start.excluded)
+    logger.info("%s: start of the joint estimate (intrinsics fixed): %d iterations, %.3f s", dataset.source,
+                start.iterations, timings["fixed intrinsics"])
+
+    graph, layout, measurements, pixels, values = chosen.graph, chosen.layout, chosen.measurements, chosen.pixels, chosen.values
+    with timed(timings, "optimize"):
+        report(STAGES[1], 0, max_iterations)
+        for recheck in range(MAX_RECHECKS + 1):
+            fixed = replace(solved, camera=start_camera)
+            run = _run_lm(solved, fixed, graph, layout, measurements, pixels, values, max_iterations, on_iteration)
+            R, t, mirror_vectors, points = extract_values(run.result, layout)
+            theta = model.theta(np.asarray(run.result.atVector(intrinsics_key()), dtype=float))
+            predicted = predicted_normalized(solved, measurements, R, t, mirror_vectors, points)
+            residuals = predict_pixels(theta, predicted) - pixels
+            whitened = np.linalg.norm(residuals, axis=1) / dataset.pixel_sigma
+            more = final_check(solved, measurements, whitened, run.result.dim()) if recheck < MAX_RECHECKS else []
+            if not more:
+                break
+            logger.warning("%s: %d measurement(s) or image(s) far off the solution left out; solving again",
+                           dataset.source, len(more))
+            excluded += more
+            solved = without(solved, more)
+            estimate = SimpleNamespace(R_cam_base=R, t_cam_base=t, mirror_vectors=mirror_vectors, points=points)
+            graph, layout, measurements, pixels = _joint_problem(solved, replace(solved, camera=start_camera), model,
+                                                                 robust)
+            values = _values_for(layout, run.result.atVector(intrinsics_key()), estimate)
+    logger.info("joint Levenberg-Marquardt with intrinsics: %d iterations, %.3f s", run.iterations, timings["optimize"])
+    if not run.converged:
+        logger.warning("%s: Levenberg-Marquardt with intrinsics did not converge in %d iterations",
+                       dataset.source, run.iterations)
+    estimated_camera = _camera_of(camera, theta)
+
+    covariance = None
+    mirror_covs: dict[tuple[int, int], np.ndarray] = {}
+    point_covs: dict[str, np.ndarray] = {}
+    intrinsics_cov: np.ndarray | None = None
+    cross: np.ndarray | None = None
+    with timed(timings, "marginals"):
+        if compute_covariance:
+            report(STAGES[2], 0, 1)
+            covariance, intrinsics_cov, cross, mirror_covs, point_covs = _covariances(
+                run.graph, run.result, layout, R, dataset.source)
+            report(STAGES[2], 1, 1)
+            _warn_weak(intrinsics_cov, estimated_camera, names, dataset.source)
+
+    return Calibration(
+        R_cam_base=R,
+        t_cam_base=t,
+        covariance=covariance,
+        mirror_vectors=mirror_vectors,
+        mirror_covariances=mirror_covs,
+        points=points,
+        point_covariances=point_covs,
+        analytic=start.analytic,
+        iterations=run.iterations,
+        initial_error=run.initial_error,
+        final_error=run.final_error,
+        converged=run.converged,
+        residuals=residuals,
+        residual_labels=[(m.image_id, m.point) for m in measurements],
+        residual_units="px",
+        outliers=outliers_of(measurements, whitened),
+        timings={**{f'start: {k}': v for k, v in start.timings.items()}, **timings},
+        expected_final_error=0.5 * max(2 * len(measurements) - run.result.dim(), 0),
+        restarts=start.restarts,
+        excluded=excluded,
+        camera=EstimatedCamera(camera=estimated_camera, estimated=names, covariance=intrinsics_cov,
+                               pose_cross_covariance=cross),
+    )
+
+
+def _unobservable(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, layout: GraphLayout,
+                  camera: Camera, names: tuple[str, ...], source: str) -> str | None:
+    """The one-line refusal when the Fisher information at ``values`` leaves an intrinsic unobservable."""
+    observability = intrinsics_observability(graph, values, layout, camera, names)
+    unobservable = observability.unobservable
+    if not unobservable:
+        return None
+    what = (", ".join(unobservable) + " (their Fisher information is singular)"
+            if observability.singular else observability.describe(unobservable))
+    return f"{source}: camera.estimate: the photographs do not determine {what}; {_ADVICE}, or estimate fewer intrinsics"
+
+
+def _warn_weak(covariance: np.ndarray, camera: Camera, names: tuple[str, ...], source: str) -> None:
+    """WeakIntrinsicsWarning (and a logged warning) naming the weakly determined intrinsics."""
+    final = IntrinsicsObservability(names, covariance,
+                                    3.0 * np.sqrt(np.diag(covariance)) * corner_sensitivity(camera, names), False,
+                                    float(np.hypot(camera.width, camera.height)))
+    weak = final.weak
+    if weak:
+        message = f"{source}: camera.estimate: weakly determined intrinsics: {final.describe(weak)}; {_ADVICE}"
+        logger.warning(message)
+        warnings.warn(message, WeakIntrinsicsWarning, stacklevel=3)
+
+
+def _covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, layout: GraphLayout, R: np.ndarray,
+                 source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, dict]:
+    """Pose (SPEC convention, intrinsics marginalised), intrinsics (k, k), their cross-covariance with
+    the pose (k, 6, SPEC convention), mirror and point covariances, from ``gtsam.Marginals``."""
+    try:
+        marginals = gtsam.Marginals(graph, values)
+        joint = marginals.jointMarginalCovariance([layout.pose_key, intrinsics_key()]).fullMatrix()
+    except RuntimeError as error:
+        raise SolveError(f"{source}: {_unconstrained(error, layout)}") from None
+    to_spec = np.zeros((6, 6))
+    to_spec[:3, :3] = R  # dtheta = R w, dt = R nu (SPEC's uncertainty convention)
+    to_spec[3:, 3:] = R
+    pose = covariance_from_pose3(R, joint[:6, :6])
+    intrinsics = joint[6:, 6:]
+    cross = joint[6:, :6] @ to_spec.T
+    mirrors = {config: marginals.marginalCovariance(key) for config, key in layout.mirror_keys.items()}
+    points = {name: marginals.marginalCovariance(key) for name, key in layout.point_keys.items()}
+    return pose, intrinsics, cross, mirrors, points
+
+
+def _unconstrained(error: Exception, layout: GraphLayout) -> str:
+    """:func:`unconstrained_message`, naming the intrinsics vector too."""
+    if gtsam.DefaultKeyFormatter(intrinsics_key()) in str(error):
+        return "the data do not constrain the estimated intrinsics (indeterminant system near them)"
+    return unconstrained_message(error, layout)
+
