@@ -188,7 +188,7 @@ def test_camera_from_kalibr_and_ros(tmp_path):
         ({"pixel_sigma": -1}, "pixel_sigma"),
         ({"camera": {"fx": 1}}, "missing"),
         ({"camera": "nowhere.yaml"}, "not found"),
-        ({"target": {"kind": "chessboard", "cols": 4, "rows": 4, "square": 0.03}}, "half a turn"),
+        ({"target": {"kind": "chessboard", "cols": 2, "rows": 4, "square": 0.03}}, "cols must be an integer >= 3"),
         ({"target": {"kind": "chessboard", "cols": 4, "rows": 3, "square": 0}}, "square"),
         ({"target": {"kind": "circles"}}, "kind"),
         ({"target": {"kind": "apriltag", "dictionary": "tag99h1", "tag_size": 0.1, "tags": {0: {"R": np.eye(3).tolist(), "t": [0, 0, 0]}}}}, "unknown dictionary"),

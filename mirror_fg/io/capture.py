@@ -20,7 +20,8 @@ A capture file is YAML or JSON. Paths in it are relative to the capture file. To
     ``rows``, ``square``, ``marker``, ``dictionary``), ``kind: apriltag`` / ``aruco``
     (``dictionary``, ``tag_size``, ``tags`` or ``grid``, optional ``corner_refinement`` and
     ``image_gamma``) or ``kind: points`` (``fiducials``); :mod:`mirror_fg.io.target` says what each
-    means, which corner is which fiducial, and how the order is made the same in every image.
+    means, which corner is which fiducial, and how the order is made the same in every image (for a
+    symmetric chessboard, ``cols + rows`` even, by consistency across the images).
 ``T_base_target``
     Optional ``{R: 3x3, t: [3]}`` (or ``{q_xyzw: [4], t: [3]}``): the target frame in the base frame,
     ``Bp = R @ p_target + t``, for chessboard, ChArUco, tag grid and points targets; identity when absent. Tag

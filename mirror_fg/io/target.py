@@ -4,13 +4,24 @@
 
 * ``kind: chessboard`` with ``cols``, ``rows`` (inner corners) and ``square`` (metres). Inner corner
   (col, row) is fiducial ``C{row*cols+col:02d}`` at ``(col*square, row*square, 0)`` in the board
-  frame. ``cols + rows`` must be odd (one count odd, the other even): only then do the square
-  colours tell the board's two half-turn orientations apart. Corner C00: look at the printed face
-  with the rows (``cols + 1`` squares each) horizontal and turn the board so that its top-left
-  corner square is black; C00 is the inner corner of that square, C01, C02, ... run to the right
-  along the top row, row 1 is the next row down. The board frame has x to the right, y down and z
-  into the board. The detector enforces this order in every image (handedness from the number of
-  mirrors, the half turn from the colour of the squares) or refuses the image with the reason.
+  frame. Corner C00: look at the printed face with the rows (``cols + 1`` squares each) horizontal
+  and turn the board so that its top-left corner square is black; C00 is the inner corner of that
+  square, C01, C02, ... run to the right along the top row, row 1 is the next row down. The board
+  frame has x to the right, y down and z into the board. When ``cols + rows`` is odd (one count
+  odd, the other even) the square colours tell the board's two half-turn orientations apart, and
+  the detector enforces this order in every image (handedness from the number of mirrors, the half
+  turn from the colour of the squares) or refuses the image with the reason.
+
+  A *symmetric* board (``cols + rows`` even) looks the same turned half a turn, and a square one
+  (``cols == rows``, even) also a quarter turn (an odd square board's colours still tell the quarter
+  turns apart): no single image can tell which corner is C00. Each image is then labelled by
+  consistency across the images (:mod:`mirror_fg.solver.labelling`): the labelling, among the
+  board's symmetric ones (:meth:`ChessboardTarget.symmetries`), under which every image fits one
+  ``T_cam_base``. An image no labelling clearly fits better than another is left out with that
+  reason. The images cannot tell the whole capture apart from its twin turned with the board (the
+  same board, seen the same way), so one convention settles that: C00's row is the board's top row
+  as it appears in most images (upright: the rows from C00's to the last run down the image), and
+  ``T_base_target`` must put C00 at that physical corner. Hold or show a symmetric board upright.
 * ``kind: apriltag`` (or ``aruco``) with ``dictionary`` (``tag36h11``, ``tag25h9``, ``tag16h5``,
   ``tag36h10`` or an OpenCV ArUco name such as ``DICT_4X4_50``), ``tag_size`` (metres, edge of the
   black square) and either ``tags: {id: {R, t}}``, each tag's frame in the base frame
@@ -59,6 +70,8 @@ from mirror_fg.core.values import check_keys, finite, is_int, named_vectors, sho
 
 __all__ = [
     "ChessboardTarget",
+    "Symmetry",
+    "target_symmetries",
     "CharucoTarget",
     "TagTarget",
     "PointsTarget",
@@ -104,6 +117,53 @@ class ChessboardTarget:
             for r in range(self.rows)
             for c in range(self.cols)
         }
+
+    @property
+    def symmetric(self) -> bool:
+        """True when the board looks the same turned half a turn (``cols + rows`` even)."""
+        return (self.cols + self.rows) % 2 == 0
+
+    def symmetries(self) -> list[Symmetry]:
+        """The turns of the board in its plane that its colours do not tell apart, identity first.
+
+        ``cols + rows`` odd: the identity only. Even: the half turn; a square board with an even count
+        also the quarter turns (with an odd count a quarter turn swaps the colours of the squares
+        next to the corners, which the detector sees).
+        """
+        identity = {n: n for n in self.target_points()}
+        if not self.symmetric:
+            return [Symmetry("identity", identity)]
+        last_c, last_r = self.cols - 1, self.rows - 1
+        half = {self.name(c, r): self.name(last_c - c, last_r - r) for r in range(self.rows) for c in range(self.cols)}
+        if self.cols != self.rows or self.cols % 2 == 1:
+            return [Symmetry("identity", identity), Symmetry("half turn", half)]
+        # (col, row) -> (n-1-row, col): a quarter turn about the board's centre, x towards y
+        quarter = {self.name(c, r): self.name(last_r - r, c) for r in range(self.rows) for c in range(self.cols)}
+        three_quarters = {n: half[quarter[n]] for n in quarter}
+        return [Symmetry("identity", identity), Symmetry("quarter turn", quarter), Symmetry("half turn", half),
+                Symmetry("three-quarter turn", three_quarters)]
+
+    def top_and_bottom_rows(self) -> tuple[list[str], list[str]]:
+        """Names of the first and last row: their direction in an image says whether it shows the board upright."""
+        return ([self.name(c, 0) for c in range(self.cols)], [self.name(c, self.rows - 1) for c in range(self.cols)])
+
+
+@dataclass(frozen=True)
+class Symmetry:
+    """A turn of a target in its plane that maps its fiducials onto one another (metres stay exact).
+
+    ``permutation[n]`` is the fiducial at the position fiducial ``n`` moves to. A detection in one
+    labelling, ``points``, is in this one ``{n: points[permutation[n]]}`` (:meth:`relabel`).
+    """
+
+    name: str
+    permutation: dict[str, str]
+
+    def relabel(self, points: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """``points`` (name -> pixel) in the labelling turned by this symmetry; other names unchanged."""
+        out = {n: p for n, p in points.items() if n not in self.permutation}
+        out.update({n: points[m] for n, m in self.permutation.items() if m in points})
+        return out
 
 
 @dataclass(frozen=True)
@@ -197,6 +257,14 @@ class PointsTarget:
 Target = ChessboardTarget | CharucoTarget | TagTarget | PointsTarget
 
 
+def target_symmetries(target: Target) -> list[Symmetry]:
+    """The target's symmetries that detection cannot tell apart (identity first; only the identity
+    for every target but a symmetric chessboard: tag and ChArUco ids name every corner)."""
+    if isinstance(target, ChessboardTarget):
+        return target.symmetries()
+    return [Symmetry("identity", {n: n for n in target.target_points()})]
+
+
 def tag_dictionary(name: Any, where: str = "dictionary") -> tuple[str, int]:
     """``(canonical name, cv2.aruco.DICT_* value)`` of an AprilTag family or ArUco dictionary name."""
     import cv2
@@ -227,11 +295,6 @@ def target_from_dict(t: Any, source: str) -> Target:
         check_keys(t, ("kind", "cols", "rows", "square"), where)
         cols, rows = (_count(t, key, 3, where, " (inner corners)") for key in ("cols", "rows"))
         square = _length(t, "square", where)
-        if (cols + rows) % 2 == 0:
-            raise DatasetError(
-                f"{where}: a {cols} x {rows}-corner board looks the same turned half a turn (cols + rows is even), "
-                "so its corner order cannot be told from an image; use a board with one count odd and the other even"
-            )
         return ChessboardTarget(cols, rows, square)
     if kind == "charuco":
         return _charuco(t, where)

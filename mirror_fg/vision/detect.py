@@ -9,6 +9,12 @@ that detection misses are carried as corners. ``track:`` points are followed thr
 each refined by its ``feature`` kind; a cut track is named, with the reason, in the next kept image's
 report.
 
+A symmetric chessboard (``cols + rows`` even) gives each image's corners only up to a half (or
+quarter) turn: after every image is detected, :func:`mirror_fg.solver.labelling.choose_labellings`
+labels each by consistency across the images; its report names the labelling (``labelling half
+turn (...)``: turned from the detector's), and an image no labelling clearly fits is ``refused`` with
+the reason. Every refused or not-found image is an :class:`ImageReport` with its ``id`` and ``reason``.
+
 Noise of tracked points: dataset@1 has one ``pixel_sigma``. Each track has its own sigma (the
 ``track:`` entry's ``sigma``, else :meth:`~mirror_fg.vision.tracking.PointTracker.sigma`, never below
 0.5 px, the default ``pixel_sigma``); ``detect_capture(..., tracks=...)`` hands back every track's
@@ -159,11 +165,11 @@ def detect_capture(
         _detect_images(capture, camera, outputs, reports, show, tracker)
     else:
         _detect_video(capture, camera, outputs, reports, show, tracker)
-    _log.info("%s: %s", capture.source, _count_line(reports))
     if tracks is not None:
         tracks.update({name: t for name, t in tracker.tracks.items() if name in capture.track})
 
     if not outputs:
+        _log.info("%s: %s", capture.source, _count_line(reports))
         reasons = "; ".join(r.line() for r in reports[:3]) + ("; ..." if len(reports) > 3 else "")
         raise DatasetError(f"{capture.source}: the target was found in none of the {len(reports)} images ({reasons})")
     if camera.get("width") is None or camera.get("height") is None:
@@ -185,7 +191,36 @@ def detect_capture(
             for out, configs in zip(outputs, _expand_each(capture, outputs))
         ],
     }
-    return dataset_from_dict(data, source=capture.source), reports
+    dataset = dataset_from_dict(data, source=capture.source)
+    if isinstance(capture.target, ChessboardTarget) and capture.target.symmetric:
+        dataset = _label_symmetric(dataset, capture, reports)
+    _log.info("%s: %s", capture.source, _count_line(reports))
+    return dataset, reports
+
+
+def _label_symmetric(dataset: Dataset, capture: Capture, reports: list[ImageReport]) -> Dataset:
+    """Each image of a symmetric board labelled by consistency across the images
+    (:func:`mirror_fg.solver.labelling.choose_labellings`); the labelling, or why the image was left
+    out (status ``refused``), is added to its report."""
+    from mirror_fg.solver.labelling import choose_labellings
+
+    board = capture.target
+    assert isinstance(board, ChessboardTarget)
+    labelled, labels = choose_labellings(dataset, board.symmetries(), upright=board.top_and_bottom_rows())
+    by_id = {r.id: r for r in reports}
+    for label in labels:
+        report = by_id[label.image]
+        if label.excluded:
+            report.status, report.reason, report.num_points = REFUSED, label.reason, 0
+            _log.info("%s", report.line())
+        else:
+            report.reason = "; ".join([label.line()] + ([report.reason] if report.reason else []))
+    if not labelled.images:
+        reasons = "; ".join(r.line() for r in reports[:3]) + ("; ..." if len(reports) > 3 else "")
+        raise DatasetError(
+            f"{capture.source}: no image of the symmetric {board.cols} x {board.rows} board could be labelled ({reasons})"
+        )
+    return labelled
 
 
 def _expand_each(capture: Capture, outputs: list[_Output]) -> list[list[int]]:

@@ -10,7 +10,10 @@ window 5 px, smaller on small squares), falling back to ``cv2.findChessboardCorn
 then made the one of capture@1 (:mod:`mirror_fg.io.target`) in every image: the rows run left to right
 with the columns top to bottom in the un-mirrored view (handedness), and the square inside C00 is the
 black one (the half turn, from the colours of all inner squares); an image whose square colours do not
-tell is refused. Tags: ``cv2.aruco.ArucoDetector`` finds and decodes the markers; by default
+tell is refused. A symmetric board (``cols + rows`` even) has no such colour cue: its squares must
+still alternate, and of its symmetric labellings the detector returns the one showing the board most
+upright (C00's row nearest the top of the image); :mod:`mirror_fg.solver.labelling` then chooses
+each image's labelling by consistency across the images. Tags: ``cv2.aruco.ArucoDetector`` finds and decodes the markers; by default
 (``subpix``) each corner is then refined by ``cv2.cornerSubPix`` on the linearized image (inverse
 sRGB, float) with a half window of half a tag cell (2 to 5 px): on gamma-encoded images OpenCV's own
 ``CORNER_REFINE_SUBPIX`` sits ~0.5 px inside the black square on each axis (measured on the rendered
@@ -104,18 +107,39 @@ def detect_chessboard(
         grid = grid[:, ::-1]
     first_dark, why = _first_square_dark(img, grid)
     if first_dark is None:
-        return Detection(status=REFUSED, reason=f"cannot tell the board's orientation: {why}")
-    if not first_dark:
+        what = "orientation" if not board.symmetric else "squares"
+        return Detection(status=REFUSED, reason=f"cannot tell the board's {what}: {why}")
+    if not board.symmetric and not first_dark:
         grid = grid[::-1, ::-1]  # the half turn: C00 is at the black corner square
+    elif board.cols == board.rows and board.cols % 2 == 1 and not first_dark:
+        grid = np.rot90(grid)  # odd square board: a quarter turn brings a dark square to C00 (handedness kept)
     pts = grid.reshape(-1, 2)
     if mirrored:
         pts = _unflip(pts, gray.shape[1])
     names = [board.name(c, r) for r in range(board.rows) for c in range(board.cols)]
+    if board.symmetric:
+        pts = _upright(pts, names, board)
     model = board.target_points()
     misfit = _plane_misfit(pts, np.array([model[n][:2] for n in names]), _min_spacing(grid), camera)
     if misfit:
         return Detection(status=REFUSED, reason=misfit)
     return Detection(points={n: p.astype(np.float64) for n, p in zip(names, pts)})
+
+
+def _upright(pts: np.ndarray, names: list[str], board: ChessboardTarget) -> np.ndarray:
+    """Corners (N, 2) of a symmetric board in the labelling, among its symmetric ones, that shows it most
+    upright: the rows from C00's to the last run down the image (where that is the capture's one
+    labelling is chosen across the images, :mod:`mirror_fg.solver.labelling`)."""
+    points = dict(zip(names, pts))
+    top, bottom = board.top_and_bottom_rows()
+    best, best_down = points, -np.inf
+    for symmetry in board.symmetries():
+        turned = symmetry.relabel(points)
+        down = np.mean([turned[n] for n in bottom], axis=0) - np.mean([turned[n] for n in top], axis=0)
+        downward = float(down[1]) / max(float(np.linalg.norm(down)), 1e-12)  # cosine with the image's down
+        if downward > best_down:
+            best, best_down = turned, downward
+    return np.array([best[n] for n in names])
 
 
 def _min_spacing(grid: np.ndarray) -> float:
