@@ -14,6 +14,7 @@ import re
 import sys
 import time
 import traceback
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -111,6 +112,19 @@ def _number(kind: type, low: float, high: float = math.inf, low_open: bool = Fal
 _COUNT, _COUNT0, _POSITIVE = _number(int, 1), _number(int, 0), _number(float, 0.0, low_open=True)
 
 
+def _intrinsic_names(text: str) -> tuple[str, ...]:
+    """An argparse type: comma-separated distinct intrinsic names (``camera.estimate``)."""
+    from mirror_fg.core.camera import INTRINSIC_NAMES
+
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    for name in names:
+        if name not in INTRINSIC_NAMES:
+            raise argparse.ArgumentTypeError(f"unknown intrinsic {name[:20]!r} (one of {', '.join(INTRINSIC_NAMES)})")
+    if not names or len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(f"expected distinct names from {', '.join(INTRINSIC_NAMES)}, got {text[:60]!r}")
+    return names
+
+
 def _add_common(parser: argparse.ArgumentParser) -> None:
     group = parser.add_mutually_exclusive_group()
     group.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
@@ -201,6 +215,9 @@ def build_parser() -> argparse.ArgumentParser:
     pln.add_argument("--tilt", type=_number(float, 0.0, 89.0, low_open=True), default=30.0, help="largest mirror tilt, degrees (default 30)")
     pln.add_argument("--sigma", type=_POSITIVE, default=1.0, help="pixel noise standard deviation, pixels (default 1)")
     pln.add_argument("--focal", type=_POSITIVE, help="focal length, pixels (default: the simulator's 800)")
+    pln.add_argument("--estimate", type=_intrinsic_names, default=(),
+                     help="intrinsics estimated through the mirrors too, e.g. fx,fy,cx,cy,k1,k2: their bounds, and "
+                          "the pose's with their uncertainty")
     pln.add_argument("--draws", type=_COUNT, default=5, help="random scenes averaged (default 5)")
     pln.add_argument("--seed", type=_COUNT0, default=0, help="random seed (default 0)")
     pln.add_argument("--json", type=Path, help="also write the bounds to this JSON file")
@@ -296,6 +313,11 @@ def cmd_calibrate(args, out: _Printer) -> int:
     if not args.no_ros and not outputs.ros:
         out.info(f"note: the result goes to a device ({args.output}): no ROS outputs written beside it")
     dataset, reports = _load_input_with_reports(args.input, out, outputs.plan)
+    if dataset.camera is not None and dataset.camera.estimate:
+        if args.incremental:
+            raise DatasetError(f"{dataset.source}: camera.estimate ({', '.join(dataset.camera.estimate)}): estimating "
+                               "intrinsics needs the batch solver; drop --incremental")
+        outputs.expect_camera()
     if args.incremental:
         calibration = _run_incremental(dataset, args, out)
     else:
@@ -437,7 +459,7 @@ def cmd_plan(args, out: _Printer) -> int:
     setup = PlanSetup(num_mirrors=args.mirrors, placements=args.placements, num_images=args.images,
                       num_fiducials=args.fiducials, fiducials=fiducials, num_points=args.points,
                       mirror_distance_m=args.distance, tilt_deg=args.tilt, pixel_sigma=args.sigma,
-                      focal_px=args.focal)
+                      focal_px=args.focal, estimate=args.estimate)
     result = plan(setup, draws=args.draws, seed=args.seed)
     if args.json is not None:
         import json
@@ -492,9 +514,16 @@ def main(argv: list[str] | None = None) -> int:
     return status
 
 
+def _warning_line(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
+    """A library warning (e.g. intrinsics weakly determined) as one line on stderr, without source lines."""
+    _error_line(f"mirror-fg: warning: {_one_line(str(message))}")
+
+
 def _run(args, out: _Printer) -> int:
     try:
-        return COMMANDS[args.command](args, out)
+        with warnings.catch_warnings():
+            warnings.showwarning = _warning_line
+            return COMMANDS[args.command](args, out)
     except MirrorFgError as error:  # bad input (2) or cannot solve (3): one line
         _error_line(f"mirror-fg: {error.label}: {_one_line(str(error))}")
         return error.exit_code

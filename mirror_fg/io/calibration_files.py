@@ -14,12 +14,14 @@ from typing import Any
 
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.output import OutputPlan
-from mirror_fg.io.result import result_text
+from mirror_fg.io.result import estimated_camera, result_text
 from mirror_fg.io.ros import (
     DEFAULT_BASE_FRAME,
     DEFAULT_CAMERA_FRAME,
     check_camera_frame_name,
     check_frame_name,
+    camera_info_path,
+    camera_info_text,
     ros_output_paths,
     ros_output_texts,
 )
@@ -36,12 +38,24 @@ class CalibrationOutputs:
     def __init__(self, plan: OutputPlan, result_path: str, ros: bool, base_frame: str, camera_frame: str):
         self.plan, self.result_path, self.ros = plan, result_path, ros
         self.base_frame, self.camera_frame = base_frame, camera_frame
+        self.camera_info: Path | None = None
+
+    def expect_camera(self) -> None:
+        """The intrinsics will be estimated: plan (check now, before the solve) ``<stem>.camera_info.yaml``,
+        the estimated camera as a ROS ``camera_info`` file, written beside the ROS outputs."""
+        if self.ros and self.camera_info is None:
+            self.camera_info = Path(self.plan.add(camera_info_path(self.result_path), "camera_info YAML",
+                                                  marker=SIDE_FILE_MARKER))
 
     def write(self, result: Mapping[str, Any]) -> list[Path]:
         """Write the result@1 dictionary and its ROS outputs, all-or-nothing; the paths written."""
         texts = {self.result_path: result_text(result, self.result_path)}
         if self.ros:
             texts.update(ros_output_texts(result, self.result_path, self.base_frame, self.camera_frame))
+            camera = result.get("camera")
+            if camera is not None and self.camera_info is not None:
+                texts[os.fspath(self.camera_info)] = camera_info_text(
+                    estimated_camera(result, os.fspath(self.result_path)), self.camera_frame, camera.get("sigma3"))
         return self.plan.commit(texts)
 
 
