@@ -145,6 +145,7 @@ class IncrementalCalibrator(GraphGrowth):
             fiducials={name: np.array(p, dtype=float) for name, p in dataset.fiducials.items()},
             images=[],
             source=dataset.source,
+            point_sigma=dict(dataset.point_sigma),
         )
         if points is not None:
             self._known_points: set[str] | None = set(points)
