@@ -331,8 +331,9 @@ def test_cramer_rao_bound_uses_the_point_sigmas():
 
 def test_nees_of_a_noisier_point_is_in_its_band_only_with_point_sigma():
     """The point's observations have 3x the fiducials' noise (a tracked point). With ``point_sigma`` its
-    NEES is in the 95 % band of its chi-square mean; without (today: one pixel_sigma for all) the
-    covariance is about 3x too tight per axis and the NEES about 9x its mean (fails on today's code)."""
+    NEES is in the 95 % band of its chi-square mean (measured 2.85 in [2.29, 3.81]); without (today: one
+    pixel_sigma for all) the covariance is too tight and the NEES 12.9, above twice the band (fails on
+    today's code)."""
     trials, pixel_sigma, track_sigma = 40, 0.5, 1.5
     with_sigma, without, pose = [], [], []
     for seed in range(trials):
@@ -346,6 +347,6 @@ def test_nees_of_a_noisier_point_is_in_its_band_only_with_point_sigma():
                 pose.append(float(dx @ np.linalg.solve(cal.covariance, dx)))
     low, high = chi2.ppf([0.025, 0.975], 3 * trials) / trials
     assert low <= np.mean(with_sigma) <= high, (np.mean(with_sigma), low, high)
-    assert np.mean(without) > 3 * high, (np.mean(without), high)
+    assert np.mean(without) > 2 * high, (np.mean(without), high)
     low6, high6 = chi2.ppf([0.025, 0.975], 6 * trials) / trials
     assert low6 <= np.mean(pose) <= high6, (np.mean(pose), low6, high6)
