@@ -388,3 +388,23 @@ def test_rendered_loops_reconstructed_points_within_3_sigma_with_point_sigma():
         worst_after = max(worst_after, *(d for d, _, _ in r["after"].values()))
     assert worst_after <= 3.0, "\n".join(lines)
     assert worst_before > 3.0, "\n".join(lines)
+
+
+def test_tracked_point_sigma_is_the_users_else_the_trackers_never_below_pixel_sigma():
+    from mirror_fg.io.capture import TrackStart
+    from mirror_fg.vision.track_sigma import tracked_point_sigma
+    from mirror_fg.vision.tracking import TRACK_SIGMA_FLOOR_PX, Track, TrackSample
+
+    def track(name, kind, residuals):
+        return Track(name, kind, np.zeros(2), history=[TrackSample(k, np.zeros(2), np.zeros(2), r) for k, r in enumerate(residuals)])
+
+    starts = {name: TrackStart(name, 0, np.zeros(2), feature, sigma) for name, feature, sigma in [
+        ("P0", "corner", None), ("P1", "blob", 2.0), ("P2", "template", None), ("P3", "corner", None), ("P4", "dot", None)]}
+    capture = SimpleNamespace(track=starts, pixel_sigma=0.6)
+    tracks = {"P0": track("P0", "corner", [0.3, 0.4]), "P1": track("P1", "blob", [0.1]), "P2": track("P2", "template", [0.01])}
+    sigmas = tracked_point_sigma(capture, tracks, ["F0", "P0", "P1", "P2", "P4"])  # P3: observed by no kept image
+    assert list(sigmas) == ["P0", "P1", "P2", "P4"]
+    assert sigmas["P0"] == pytest.approx(np.sqrt(TRACK_SIGMA_FLOOR_PX["corner"] ** 2 + (0.3**2 + 0.4**2) / 2))  # 0.62
+    assert sigmas["P1"] == 2.0  # the user's
+    assert sigmas["P2"] == 0.6  # the tracker's 0.5 is below pixel_sigma
+    assert sigmas["P4"] == 0.6  # track lost to a gap in the frames: the kind's floor 0.5, below pixel_sigma
