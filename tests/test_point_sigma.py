@@ -61,6 +61,10 @@ def test_point_sigma_is_read_written_and_read_back(tmp_path):
     path = tmp_path / "ds.json"
     path.write_text(json.dumps(d))
     assert load_dataset(path).point_sigma == ds.point_sigma
+    ds.images = ds.images[:1]
+    ds.images[0].observations.pop("P0")  # P0 observed by no image any more: left out, so the file reads back
+    assert dataset_to_dict(ds)["point_sigma"] == {"F1": 0.75}
+    assert dataset_from_dict(dataset_to_dict(ds)).point_sigma == {"F1": 0.75}
     ds.point_sigma = {}
     assert "point_sigma" not in dataset_to_dict(ds)  # a dataset without it is written as before
 

@@ -381,13 +381,14 @@ def _collinear(points: np.ndarray, tol: float = COLLINEAR_TOL) -> bool:
 
 def dataset_to_dict(ds: Dataset) -> dict[str, Any]:
     """The dataset@1 dictionary of ``ds`` (plain lists and floats; ``camera`` is null without one;
-    ``point_sigma`` only when some point has one)."""
+    ``point_sigma`` only when some observed point has one)."""
+    point_sigma = point_sigma_to_dict(ds.point_sigma, (n for image in ds.images for n in image.observations))
     return {
         "format": DATASET_FORMAT,
         "num_mirrors": int(ds.num_mirrors),
         "camera": None if ds.camera is None else camera_to_dict(ds.camera),
         "pixel_sigma": float(ds.pixel_sigma),
-        **({"point_sigma": point_sigma_to_dict(ds.point_sigma)} if ds.point_sigma else {}),
+        **({"point_sigma": point_sigma} if point_sigma else {}),
         "fiducials": {name: [float(x) for x in p] for name, p in ds.fiducials.items()},
         "images": [
             {

@@ -47,9 +47,12 @@ def point_sigma_from_dict(value: Any, observed: Iterable[str], source: str) -> d
     return result
 
 
-def point_sigma_to_dict(point_sigma: Mapping[str, float]) -> dict[str, float]:
-    """The JSON shape of ``point_sigma`` (plain floats, file order kept)."""
-    return {name: float(sigma) for name, sigma in point_sigma.items()}
+def point_sigma_to_dict(point_sigma: Mapping[str, float], observed: Iterable[str]) -> dict[str, float]:
+    """The JSON shape of ``point_sigma`` (plain floats, file order kept) for the ``observed`` names only:
+    a dataset whose images lost a point's observations (left out as outliers, ...) is still written as a
+    file :func:`point_sigma_from_dict` accepts."""
+    seen = set(observed)
+    return {name: float(sigma) for name, sigma in point_sigma.items() if name in seen}
 
 
 def normalized_sigmas(
