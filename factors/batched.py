@@ -11,8 +11,8 @@ per iteration. Hence this module
    ``TARGET_MEASUREMENTS_PER_FACTOR`` measurements, at most ``MAX_IMAGES_PER_FACTOR`` images) with at
    most ``MAX_POINTS_PER_FACTOR`` landmarks per factor -- bigger factors cut calls, but their
    zero-padded dense Jacobians slow elimination and ``Marginals``; error ``[h_1 - z_1; h_2 - z_2; ...]``
-   (2 rows per measurement, unwhitened, normalized coordinates), ``Diagonal`` noise with the
-   per-measurement sigmas repeated;
+   (2 rows per measurement, unwhitened, normalized coordinates), ``Diagonal`` noise with each
+   measurement's sigmas (one sigma (2,) for all, or one row per measurement: ``point_sigma``);
 2. **vectorises** the model over *all* measurements of the graph at once (numpy structure of arrays;
    the Jacobians of ``geometry.measurement_jacobians`` written out in closed form);
 3. **caches** that batch: the first factor evaluated at new values computes every factor's error (and
@@ -54,6 +54,7 @@ from mirror_fg.factors.stacking import (
     Observation,
     auto_images_per_factor,
     group_measurements,
+    sigma_rows,
 )
 
 __all__ = [
@@ -103,7 +104,9 @@ class BatchEvaluator:
     """Vectorised model of every measurement of a graph, shared by its stacked factors.
 
     Built by :func:`batched_factors`; ``factors`` holds the ``gtsam.CustomFactor`` objects.
-    ``order[i]`` is the index (in the ``measurements`` argument) of batch measurement ``i``.
+    ``order[i]`` is the index (in the ``measurements`` argument) of batch measurement ``i``; ``sigma``
+    (M, 2) its noise in normalized coordinates (the constructor's ``sigma``: (2,), or (M, 2) in the
+    ``measurements`` order).
     """
 
     def __init__(
@@ -123,7 +126,6 @@ class BatchEvaluator:
         self.point_keys = [int(k) for k in point_keys]  # row r of the point array <-> key
         num_mirrors = mirror_rows.shape[1]
         self.num_mirrors = num_mirrors
-        self.sigma = np.asarray(sigma, dtype=float).reshape(2)
         self.robust = robust
         self.robust_k = float(robust_k)
         if robust is not None:
@@ -131,6 +133,7 @@ class BatchEvaluator:
 
         # Batch order: the factors' measurements, contiguous.
         self.order = np.array([i for group in groups for i in group], dtype=np.intp)
+        self.sigma = sigma_rows(sigma, len(observed))[self.order]  # (M, 2) normalized, batch order
         self.mirror_rows = np.ascontiguousarray(mirror_rows[self.order].T)  # (Nv, M)
         self.landmark_rows = landmark_rows[self.order]  # (M,), -1 for fiducials
         self.base_points = base_points[self.order].copy()  # (M, 3); fiducials filled, landmarks 0
@@ -140,7 +143,7 @@ class BatchEvaluator:
         self._landmark_point_rows = self.landmark_rows[self.landmark_index]
         self._base_T = np.ascontiguousarray(self.base_points.T)  # (3, M)
         self._observed_T = np.ascontiguousarray(self.observed.T)  # (2, M)
-        self._inv_sigma2 = (1.0 / self.sigma**2)[:, None]
+        self._inv_sigma2 = np.ascontiguousarray((1.0 / self.sigma**2).T)  # (2, M)
         M = len(self.order)
         self.num_measurements = M
 
@@ -382,7 +385,8 @@ def batched_factors(
     dataset: has ``fiducials`` ``{name: (3,) metres, base frame}``. layout: ``graph.GraphLayout``
     (``pose_key``, ``mirror_keys[(l, m)]``, ``point_keys[name]``). measurements: ``graph.Measurement``
     objects (``image_id``, ``point``, ``normalized`` (2,), ``mirror_configs``). noise_sigma: (2,)
-    standard deviation in normalized coordinates. robust: ``None``, ``"huber"`` or ``"cauchy"`` per
+    standard deviation in normalized coordinates, or (N, 2), one row per measurement in the order of
+    ``measurements`` (``graph.measurement_sigmas``). robust: ``None``, ``"huber"`` or ``"cauchy"`` per
     measurement, threshold ``robust_k`` sigmas (module docstring). images_per_factor: consecutive
     images sharing their parent placements stacked in one factor (``None``: about 72 measurements per
     factor, at most 12 images). max_points_per_factor: at most this many landmarks per factor (an
@@ -427,16 +431,16 @@ def batched_evaluator(
     if images_per_factor is None:
         images_per_factor = auto_images_per_factor(measurements, landmark_of, max_points_per_factor)
     groups = group_measurements(measurements, landmark_of, images_per_factor, max_points_per_factor)
-    sigma = np.asarray(noise_sigma, dtype=float).reshape(2)
+    sigma = sigma_rows(noise_sigma, len(measurements))
     evaluator = BatchEvaluator(
         layout.pose_key, point_keys, mirror_rows, landmark_rows, base_points, observed, groups, sigma, robust, robust_k
     )
-    noise_by_rows: dict[int, gtsam.noiseModel.Base] = {}
+    noise_by_sigmas: dict[bytes, gtsam.noiseModel.Base] = {}
     for f, group in enumerate(groups):
-        rows = 2 * len(group)
-        noise = noise_by_rows.get(rows)
+        keys, indices = evaluator.factor_layout(f)
+        sigmas = sigma[indices].reshape(-1)  # each measurement's (x, y), the factor's row order
+        noise = noise_by_sigmas.get(sigmas.tobytes())
         if noise is None:
-            noise = noise_by_rows[rows] = gtsam.noiseModel.Diagonal.Sigmas(np.tile(sigma, len(group)))
-        keys, _ = evaluator.factor_layout(f)
+            noise = noise_by_sigmas[sigmas.tobytes()] = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
         evaluator.factors.append(gtsam.CustomFactor(noise, keys, evaluator.error_function(f)))
     return evaluator

@@ -19,7 +19,8 @@ Why (issue 14): inside GTSAM's optimizers every Python factor call receives a co
 
 The placements and their covariances are recovered afterwards (:meth:`EliminatedEvaluator.mirror_vectors`,
 :meth:`EliminatedEvaluator.covariances`): ``Sigma_v = D^-1 + D^-1 B^T Sigma_x B D^-1``. Measurement noise
-is a uniform diagonal sigma (no robust kernel: ``batched.py`` keeps that case). Not thread-safe (GTSAM
+is diagonal, one sigma (x, y) per measurement or one for all (no robust kernel: ``batched.py`` keeps
+that case). Not thread-safe (GTSAM
 calls Python factors one at a time). ``tests/test_elimination.py`` checks it against the reference
 per-measurement factors.
 """
@@ -31,7 +32,7 @@ import gtsam
 import numpy as np
 
 from mirror_fg.factors.model import measurement_arrays, reflection_model
-from mirror_fg.factors.stacking import Fiducials, KeyLayout, Observation
+from mirror_fg.factors.stacking import Fiducials, KeyLayout, Observation, sigma_rows
 
 __all__ = ["EliminatedEvaluator", "NotEliminable", "eliminated_evaluator", "INNER_MAX_ITERATIONS", "INNER_STEP_TOLERANCE"]
 
@@ -93,7 +94,6 @@ class EliminatedEvaluator:
         configs = sorted(layout.mirror_keys)
         num_mirrors = mirror_rows.shape[1]
         self.num_mirrors = num_mirrors
-        self.sigma = np.asarray(noise_sigma, dtype=float).reshape(2)
         self.eliminated = [c for c in configs if c[0] == num_mirrors]
         self._elim_rows = np.array([r for r, c in enumerate(configs) if c[0] == num_mirrors], dtype=np.intp)
         eliminated_rows = set(self._elim_rows.tolist())
@@ -114,6 +114,7 @@ class EliminatedEvaluator:
         group = np.array([group_ids.setdefault(p, len(group_ids)) for p in parents], dtype=np.intp)
         # Measurements sorted by (factor, placement): every placement and every factor is a contiguous segment.
         self.order = np.lexsort((np.arange(len(placement)), placement, group))
+        self.sigma = sigma_rows(noise_sigma, len(measurements))[self.order]  # (M, 2) normalized, sorted order
         self.mirror_rows = np.ascontiguousarray(mirror_rows[self.order].T)  # (Nv, M)
         landmark_rows = landmark_rows[self.order]
         self._base_T = np.ascontiguousarray(base_points[self.order].T)
@@ -128,7 +129,7 @@ class EliminatedEvaluator:
         self._placement_starts = starts
         self._placement_of_segment = placement[starts]  # placement index of each segment
         self._segment_of_measurement = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(placement)]))
-        self._whiten = (1.0 / self.sigma)[:, None]  # (2, 1)
+        self._whiten = np.ascontiguousarray((1.0 / self.sigma).T)  # (2, M)
 
         # Factors: contiguous measurement ranges, their kept keys and local columns.
         group_starts = np.r_[np.flatnonzero(np.r_[True, group[1:] != group[:-1]]), len(group)]
@@ -196,7 +197,7 @@ class EliminatedEvaluator:
         def evaluate(points):
             residual, _, blocks = self._model(points, True, last_only=True)
             e = (residual * self._whiten).T  # (M, 2)
-            Jv = blocks[2][last].transpose(2, 0, 1) * self._whiten.reshape(1, 2, 1)  # (M, 2, 3)
+            Jv = blocks[2][last].transpose(2, 0, 1) * self._whiten.T[:, :, None]  # (M, 2, 3)
             return e, Jv, _segment_sums(np.einsum("ma,ma->m", e, e), starts)
 
         e, Jv, cost = evaluate(P)
@@ -252,7 +253,7 @@ class EliminatedEvaluator:
         """Each factor's compressed, eliminated system ``(error (d+1,), Jacobian blocks)``; also the
         pieces the covariances need (``self._blocks``)."""
         residual, _, (cross, GR, mirror) = self._model(self._P, True)
-        w = self._whiten.reshape(1, 2, 1)
+        w = self._whiten.T[:, :, None]  # (M, 2, 1)
         e = self._e  # (M, 2) whitened, at the placements' optimum
         H_pose = np.concatenate([cross.transpose(2, 0, 1), GR.transpose(2, 0, 1)], axis=2) * w  # (M, 2, 6)
         Jv = mirror[self.num_mirrors - 1].transpose(2, 0, 1) * w
@@ -381,7 +382,8 @@ def eliminated_evaluator(
     """The evaluator and its factors (``evaluator.factors``), one per parent placement.
 
     dataset: has ``fiducials``; layout: ``pose_key``, ``mirror_keys``, ``point_keys``; measurements:
-    ``graph.Measurement`` objects; noise_sigma: (2,) normalized; initial_vectors: start of every
+    ``graph.Measurement`` objects; noise_sigma: (2,) normalized, or (N, 2), one row per measurement in
+    the order of ``measurements``; initial_vectors: start of every
     last-level placement ``(Nv, m) -> v`` (camera frame, metres). The factors hold the evaluator;
     clear ``evaluator.factors`` once they are in a graph (else a reference cycle through C++).
     """

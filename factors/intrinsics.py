@@ -112,12 +112,13 @@ class IntrinsicsModel:
 
 class _Group:
     """One stacked factor's measurements as arrays, its points renumbered locally; its robust kernel
-    (None, ``"huber"``, ``"cauchy"``) with threshold ``robust_k`` sigmas, ``sigma_px`` the noise."""
+    (None, ``"huber"``, ``"cauchy"``) with threshold ``robust_k`` sigmas, ``sigma_px`` the noise of each
+    measurement (n,), pixels."""
 
     def __init__(self, point_keys: list[int], mirror_rows: np.ndarray, landmark_rows: np.ndarray,
-                 base_points: np.ndarray, pixels: np.ndarray, sigma_px: float = 1.0, robust: str | None = None,
+                 base_points: np.ndarray, pixels: np.ndarray, sigma_px: np.ndarray, robust: str | None = None,
                  robust_k: float = ROBUST_K) -> None:
-        self.sigma_px = float(sigma_px)
+        self.sigma_px = np.asarray(sigma_px, dtype=float).reshape(-1)
         self.robust = robust
         self.robust_k = float(robust_k)
         rows = np.concatenate([mirror_rows.ravel(), landmark_rows[landmark_rows >= 0]])
@@ -185,24 +186,25 @@ def _group_error(model: IntrinsicsModel, group: _Group, this: gtsam.CustomFactor
 
 def intrinsics_factors(
     dataset: Fiducials, layout: KeyLayout, measurements: Sequence[Observation], pixels: np.ndarray,
-    model: IntrinsicsModel, sigma_px: float, robust: str | None = None, robust_k: float = ROBUST_K,
+    model: IntrinsicsModel, sigma_px: float | np.ndarray, robust: str | None = None, robust_k: float = ROBUST_K,
 ) -> list[gtsam.CustomFactor]:
     """Pixel factors of ``measurements`` (their observed ``pixels`` (M, 2)), keys ``[X(0), K(0),
-    mirrors and landmarks of the group]``; isotropic noise ``sigma_px``, stacked by image groups;
+    mirrors and landmarks of the group]``; noise ``sigma_px`` (pixels: one for all, or one per
+    measurement (M,), e.g. a tracked point's ``point_sigma``), stacked by image groups;
     ``robust`` (``"huber"`` / ``"cauchy"``) weights each measurement inside its factor."""
     if robust is not None:
         robust_weight_and_loss(robust, np.zeros(1), robust_k)  # validates the name
     point_keys, mirror_rows, landmark_rows, base_points, _ = measurement_arrays(dataset, layout, measurements)
     pixels = np.asarray(pixels, dtype=float).reshape(-1, 2)
+    sigmas = np.broadcast_to(np.asarray(sigma_px, dtype=float), (len(pixels),))
     per_image = auto_images_per_factor(measurements, landmark_rows.tolist(), MAX_POINTS_PER_FACTOR)
     groups = group_measurements(measurements, landmark_rows.tolist(), per_image, MAX_POINTS_PER_FACTOR)
     factors = []
     for members in groups:
         index = np.array(members, dtype=np.intp)
         group = _Group(point_keys, mirror_rows[index], landmark_rows[index], base_points[index], pixels[index],
-                       sigma_px, robust, robust_k)
-        n = len(index)
-        noise = gtsam.noiseModel.Isotropic.Sigma(2 * n, float(sigma_px))
+                       sigmas[index], robust, robust_k)
+        noise = gtsam.noiseModel.Diagonal.Sigmas(np.repeat(sigmas[index], 2))
         keys = [layout.pose_key, intrinsics_key(), *group.keys]
         factors.append(gtsam.CustomFactor(noise, keys, partial(_group_error, model, group)))
     return factors

@@ -10,7 +10,7 @@ import numpy as np
 
 __all__ = [
     "Fiducials", "KeyLayout", "Observation", "MAX_POINTS_PER_FACTOR", "TARGET_MEASUREMENTS_PER_FACTOR",
-    "MAX_IMAGES_PER_FACTOR", "auto_images_per_factor", "group_measurements",
+    "MAX_IMAGES_PER_FACTOR", "auto_images_per_factor", "group_measurements", "sigma_rows",
 ]
 
 #: Default grouping (measured, see :func:`auto_images_per_factor`): landmarks per factor, about how many
@@ -102,3 +102,17 @@ def group_measurements(
             rows = [i for i in indices if landmark_of[i] in members]
             groups.append((fiducial if c == 0 else []) + rows)
     return [g for g in groups if g]
+
+
+def sigma_rows(noise_sigma: np.ndarray, count: int) -> np.ndarray:
+    """Measurement noise as one row (x, y) per measurement, (count, 2), normalized coordinates: a
+    (2,) sigma shared by all (repeated) or already (count, 2) (copied). Refuses other shapes and sigmas
+    that are not finite and > 0."""
+    sigma = np.asarray(noise_sigma, dtype=float)
+    if sigma.shape == (2,):
+        sigma = np.broadcast_to(sigma, (count, 2))
+    elif sigma.shape != (count, 2):
+        raise ValueError(f"noise sigma: expected shape (2,) or ({count}, 2), got {sigma.shape}")
+    if not (np.all(np.isfinite(sigma)) and np.all(sigma > 0.0)):
+        raise ValueError("noise sigma: every sigma must be finite and > 0")
+    return np.array(sigma)

@@ -2,7 +2,6 @@
 the observability refusal, and the real photographs of shared/data/takahashi2012."""
 import copy
 import json
-import time
 import warnings
 
 import cv2
@@ -333,23 +332,40 @@ def test_weak_intrinsics_warn():
         calibrate(dataset_from_dict(data))
 
 
-def test_speed_of_many_images():
-    data, _ = simulate_pixels(num_images=240)
+def test_per_measurement_sigma_whitens_each_row():
+    """point_sigma (issue 18) reaches the pixel factors: each measurement is whitened by its own sigma."""
+    data, truth = simulate_pixels(num_images=8)
     dataset = dataset_from_dict(data)
     layout = GraphLayout.for_dataset(dataset)
     measurements = measurements_of(dataset)
     by_id = {image.id: image for image in dataset.images}
     pixels = np.array([by_id[m.image_id].observations[m.point] for m in measurements])
     theta = np.array([830.0, 790.0, 531.0, 371.0, -0.12, 0.05, 0, 0, 0])
-    _, truth = simulate_base_case(num_images=240, num_mirrors=2, pixel_sigma=0.0, seed=0)
-    graph = gtsam.NonlinearFactorGraph()
-    for factor in intrinsics_factors(dataset, layout, measurements, pixels, IntrinsicsModel(theta, ESTIMATE), 0.5):
-        graph.add(factor)
+    model = IntrinsicsModel(theta, ESTIMATE)
     values = initial_values(layout, truth)
-    values.insert(intrinsics_key(), theta[:6])
-    start = time.perf_counter()
-    graph.linearize(values)
-    assert time.perf_counter() - start < 0.5  # one LM iteration's linearisation, 2400 measurements
+    values.insert(intrinsics_key(), theta[:6] + np.array([4.0, -3.0, 2.0, 1.0, 0.01, 0.0]))
+    sigmas = np.where(np.array([m.point == "B1" for m in measurements]), 2.0, 0.5)
+    graph = gtsam.NonlinearFactorGraph()
+    for factor in intrinsics_factors(dataset, layout, measurements, pixels, model, sigmas):
+        graph.add(factor)
+    unit = gtsam.NonlinearFactorGraph()
+    for factor in intrinsics_factors(dataset, layout, measurements, pixels, model, 1.0):
+        unit.add(factor)
+    errors = np.concatenate([unit.at(i).unwhitenedError(values) for i in range(unit.size())]).reshape(-1, 2)
+    order = np.concatenate([np.array(group) for group in _groups_of(dataset, layout, measurements)])
+    expected = 0.5 * np.sum((errors / sigmas[order][:, None]) ** 2)
+    assert np.isclose(graph.error(values), expected, rtol=1e-12)
+    assert not np.isclose(graph.error(values), 0.5 * np.sum((errors / 0.5) ** 2), rtol=1e-3)
+
+
+def _groups_of(dataset, layout, measurements):
+    """The measurement indices of each stacked pixel factor, in factor order (as intrinsics_factors groups)."""
+    from mirror_fg.factors.model import measurement_arrays
+    from mirror_fg.factors.stacking import MAX_POINTS_PER_FACTOR, auto_images_per_factor, group_measurements
+
+    _, _, landmark_rows, _, _ = measurement_arrays(dataset, layout, measurements)
+    per_image = auto_images_per_factor(measurements, landmark_rows.tolist(), MAX_POINTS_PER_FACTOR)
+    return group_measurements(measurements, landmark_rows.tolist(), per_image, MAX_POINTS_PER_FACTOR)
 
 
 # --- Monte Carlo -----------------------------------------------------------------------------------------
@@ -489,7 +505,7 @@ def test_robust_kernel_inside_stacked_factors_equals_per_measurement_robust_fact
         stacked.add(factor)
     point_keys, mirror_rows, landmark_rows, base_points, _ = measurement_arrays(dataset, layout, measurements)
     for i in range(len(measurements)):
-        group = _Group(point_keys, mirror_rows[[i]], landmark_rows[[i]], base_points[[i]], pixels[[i]])
+        group = _Group(point_keys, mirror_rows[[i]], landmark_rows[[i]], base_points[[i]], pixels[[i]], np.array([0.3]))
         single.add(gtsam.CustomFactor(noise_model(np.array([0.3, 0.3]), kernel), [layout.pose_key, intrinsics_key(),
                                       *group.keys], partial(_group_error, model, group)))
     assert len(stacked.keys()) == len(single.keys()) and stacked.size() < single.size()

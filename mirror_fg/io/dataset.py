@@ -20,6 +20,7 @@ import numpy as np
 from mirror_fg.core.camera import Camera, camera_from_dict, camera_to_dict, check_camera, initial_intrinsics
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.output import atomic_write, json_text
+from mirror_fg.io.point_sigma import point_sigma_from_dict, point_sigma_to_dict
 from mirror_fg.core.values import check_format, check_keys, clip, coordinates, is_int, is_number, short, type_name
 
 DATASET_FORMAT = "mirror-fg/dataset@1"
@@ -40,7 +41,7 @@ __all__ = [
 
 #: Fiducials all within this fraction of their extent from one line are collinear.
 COLLINEAR_TOL = 1e-6
-_DATASET_KEYS = ("format", "num_mirrors", "camera", "pixel_sigma", "fiducials", "images")
+_DATASET_KEYS = ("format", "num_mirrors", "camera", "pixel_sigma", "point_sigma", "fiducials", "images")
 _IMAGE_KEYS = ("id", "mirror_configs", "observations")
 
 
@@ -70,7 +71,9 @@ class Dataset:
     """A validated ``mirror-fg/dataset@1``.
 
     ``fiducials``: known base-frame points, metres. ``pixel_sigma``: measurement noise (pixels with a
-    camera, else normalized units). ``source``: the file it came from, for messages.
+    camera, else normalized units). ``source``: the file it came from, for messages. ``point_sigma``:
+    ``{name: sigma}`` noise of every observation of that point instead of ``pixel_sigma``
+    (:mod:`mirror_fg.io.point_sigma`).
     """
 
     num_mirrors: int
@@ -79,6 +82,7 @@ class Dataset:
     fiducials: dict[str, np.ndarray]
     images: list[Image]
     source: str = "<dataset>"
+    point_sigma: dict[str, float] = field(default_factory=dict)
 
     def __repr__(self) -> str:
         """One bounded line (a dataclass repr would print every observation)."""
@@ -230,6 +234,7 @@ def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Datase
         ds.images.append(image)
     if unstarted is not None:
         _start_camera(ds, unstarted)
+    ds.point_sigma = point_sigma_from_dict(d.get("point_sigma"), (n for im in ds.images for n in im.observations), source)
     return ds
 
 
@@ -410,12 +415,15 @@ def _collinear(points: np.ndarray, tol: float = COLLINEAR_TOL) -> bool:
 
 
 def dataset_to_dict(ds: Dataset) -> dict[str, Any]:
-    """The dataset@1 dictionary of ``ds`` (plain lists and floats; ``camera`` is null without one)."""
+    """The dataset@1 dictionary of ``ds`` (plain lists and floats; ``camera`` is null without one;
+    ``point_sigma`` only when some observed point has one)."""
+    point_sigma = point_sigma_to_dict(ds.point_sigma, (n for image in ds.images for n in image.observations))
     return {
         "format": DATASET_FORMAT,
         "num_mirrors": int(ds.num_mirrors),
         "camera": None if ds.camera is None else camera_to_dict(ds.camera),
         "pixel_sigma": float(ds.pixel_sigma),
+        **({"point_sigma": point_sigma} if point_sigma else {}),
         "fiducials": {name: [float(x) for x in p] for name, p in ds.fiducials.items()},
         "images": [
             {

@@ -170,7 +170,7 @@ def subtree_dataset(dataset: Dataset, images: list[Image], level: int) -> Datase
         for im in images
     ]
     return Dataset(dataset.num_mirrors - level + 1, dataset.camera, dataset.pixel_sigma, fiducials, sub_images,
-                   source=dataset.source)
+                   source=dataset.source, point_sigma=dataset.point_sigma)
 
 
 def subtree_solution(hypothesis: Hypothesis, level: int) -> AnalyticSolution:

@@ -23,6 +23,8 @@ Nothing left out is dropped silently: every image or measurement is an
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import logging
 from collections import defaultdict
 from itertools import combinations
@@ -351,8 +353,7 @@ def without(dataset: Dataset, excluded: list[Exclusion]) -> Dataset:
             image = Image(image.id, image.mirror_configs,
                           {n: z for n, z in image.observations.items() if n not in points_out[image.id]})
         images.append(image)
-    return Dataset(dataset.num_mirrors, dataset.camera, dataset.pixel_sigma, dataset.fiducials, images,
-                   source=dataset.source)
+    return replace(dataset, images=images)
 
 
 def final_check(
@@ -407,8 +408,7 @@ def check_image(
     if image_out is not None:
         return None, None, [image_out]
     if points_out:
-        image = without(Dataset(dataset.num_mirrors, dataset.camera, dataset.pixel_sigma, dataset.fiducials, [image],
-                                source=dataset.source), points_out).images[0]
+        image = without(replace(dataset, images=[image]), points_out).images[0]
     return image, pose, points_out
 
 

@@ -8,6 +8,8 @@ split is named when both groups are plausible alone (their final cost within its
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import logging
 
 import numpy as np
@@ -44,8 +46,7 @@ class GroupFit:
 def fit_group(dataset: Dataset, images: list[Image], pnp: PnPCandidates | None = None) -> GroupFit | None:
     """``images`` of ``dataset`` solved alone, or None where they cannot be (too few placements, ...).
     ``pnp``: PnP candidates already computed for some of the images (``consensus.screen``)."""
-    group = Dataset(dataset.num_mirrors, dataset.camera, dataset.pixel_sigma, dataset.fiducials, images,
-                    source=dataset.source)
+    group = replace(dataset, images=images)
     try:
         start = initial_estimate(group, pnp=pnp)
         run = levenberg_marquardt(group, start, None, True, 100, None, {})

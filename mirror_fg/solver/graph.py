@@ -6,6 +6,7 @@ per reconstruction point (base frame, metres). The pipeline that solves it is ``
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -17,9 +18,11 @@ from mirror_fg.factors.batched import batched_factors
 from mirror_fg.factors.eliminated import EliminatedEvaluator, NotEliminable, eliminated_evaluator
 from mirror_fg.factors.reflection import ReflectionFactor, noise_model
 from mirror_fg.io.dataset import Dataset
+from mirror_fg.io.point_sigma import normalized_sigmas
 
 __all__ = [
-    "InitialEstimate", "GraphLayout", "Measurement", "measurements_of", "measurement_factor", "build_graph",
+    "InitialEstimate", "GraphLayout", "Measurement", "measurements_of", "measurement_sigmas", "measurement_factor",
+    "build_graph",
     "extract_values", "initial_values", "EliminatedGraph", "build_eliminated_graph",
 ]
 
@@ -82,6 +85,14 @@ def measurements_of(dataset: Dataset) -> list[Measurement]:
     return result
 
 
+def measurement_sigmas(dataset: Dataset, measurements: Sequence[Measurement]) -> np.ndarray:
+    """Each measurement's standard deviation (N, 2) in normalized coordinates (x, y), in the order of
+    ``measurements``: its point's ``point_sigma`` where the dataset gives one, else ``pixel_sigma``, over
+    the focal lengths (``io/point_sigma.py``). The one noise model of every factor, the outlier test and
+    the incremental graph."""
+    return normalized_sigmas(dataset.camera, dataset.pixel_sigma, dataset.point_sigma, [m.point for m in measurements])
+
+
 def measurement_factor(
     dataset: Dataset, layout: GraphLayout, meas: Measurement, noise: gtsam.noiseModel.Base
 ) -> gtsam.CustomFactor:
@@ -98,17 +109,22 @@ def build_graph(
     """Factor graph of every measurement and the initial values of every unknown.
 
     fast: stacked, vectorised factors (``factors/batched.py``, same model and Jacobians, per-measurement
-    robust weights); otherwise one reference ``ReflectionFactor`` per measurement.
+    robust weights); otherwise one reference ``ReflectionFactor`` per measurement. Each measurement is
+    whitened with its own sigma (:func:`measurement_sigmas`).
     """
     layout = GraphLayout.for_dataset(dataset)
     graph = gtsam.NonlinearFactorGraph()
     measurements = measurements_of(dataset)
+    sigmas = measurement_sigmas(dataset, measurements)
     if fast:
-        for factor in batched_factors(dataset, layout, measurements, dataset.normalized_sigma, robust):
+        for factor in batched_factors(dataset, layout, measurements, sigmas, robust):
             graph.add(factor)
     else:
-        noise = noise_model(dataset.normalized_sigma, robust)
-        for meas in measurements:
+        noises: dict[bytes, gtsam.noiseModel.Base] = {}
+        for meas, sigma in zip(measurements, sigmas):
+            noise = noises.get(sigma.tobytes())
+            if noise is None:
+                noise = noises[sigma.tobytes()] = noise_model(sigma, robust)
             graph.add(measurement_factor(dataset, layout, meas, noise))
     return graph, initial_values(layout, initial), layout, measurements
 
@@ -161,7 +177,9 @@ def build_eliminated_graph(dataset: Dataset, initial: InitialEstimate) -> Elimin
     layout = GraphLayout.for_dataset(dataset)
     measurements = measurements_of(dataset)
     try:
-        evaluator = eliminated_evaluator(dataset, layout, measurements, dataset.normalized_sigma, initial.mirror_vectors)
+        evaluator = eliminated_evaluator(
+            dataset, layout, measurements, measurement_sigmas(dataset, measurements), initial.mirror_vectors
+        )
     except NotEliminable:
         return None
     graph = gtsam.NonlinearFactorGraph()

@@ -49,6 +49,8 @@ how images join it (iSAM2 updates).
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import math
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Mapping
@@ -156,6 +158,7 @@ class IncrementalCalibrator(GraphGrowth):
             fiducials={name: np.array(p, dtype=float) for name, p in dataset.fiducials.items()},
             images=[],
             source=dataset.source,
+            point_sigma=dict(dataset.point_sigma),
         )
         if points is not None:
             self._known_points: set[str] | None = set(points)
@@ -573,8 +576,7 @@ def calibrate_incremental(
         order = {image.id: i for i, image in enumerate(dataset.images)}
         in_graph = sorted((image for image in calibrator._ds.images if image.id in order), key=lambda im: order[im.id])
         calibration.inconsistency = split_in_capture_order(
-            Dataset(dataset.num_mirrors, dataset.camera, dataset.pixel_sigma, dataset.fiducials, in_graph,
-                    source=dataset.source), calibration.final_error)
+            replace(dataset, images=in_graph), calibration.final_error)
     return calibration
 
 

@@ -23,7 +23,7 @@ from mirror_fg.factors.batched import batched_factors
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.pnp import pnp_candidates
 from mirror_fg.solver.analytic import triangulate_point
-from mirror_fg.solver.graph import GraphLayout, Measurement, extract_values
+from mirror_fg.solver.graph import GraphLayout, Measurement, extract_values, measurement_sigmas
 from mirror_fg.solver.marginals import unconstrained_message
 from mirror_fg.solver.peeling import MIN_NORMAL_SPREAD, reflection_fit, solve_node
 from mirror_fg.solver.timing import timed
@@ -189,7 +189,8 @@ class GraphGrowth:
             mirror_keys={config: self._g.layout.mirror_keys[config] for config in configs},
             point_keys={name: self._g.layout.point_keys[name] for name in names},
         )
-        for factor in batched_factors(self._ds, layout, measurements, self._ds.normalized_sigma, self._robust):
+        sigmas = measurement_sigmas(self._ds, measurements)  # point_sigma where given
+        for factor in batched_factors(self._ds, layout, measurements, sigmas, self._robust):
             factors.add(factor)
         self._g.measurements.extend(measurements)
 

@@ -222,6 +222,11 @@ class _JointRun:
     converged: bool
 
 
+def pixel_sigmas(dataset: Dataset, measurements: list[Measurement]) -> np.ndarray:
+    """Each measurement's noise (M,), pixels: its point's ``point_sigma``, else ``pixel_sigma``."""
+    return np.array([dataset.point_sigma.get(m.point, dataset.pixel_sigma) for m in measurements], dtype=float)
+
+
 def _joint_problem(dataset: Dataset, fixed: Dataset, model: IntrinsicsModel, robust: str | None,
                    ) -> tuple[gtsam.NonlinearFactorGraph, GraphLayout, list[Measurement], np.ndarray]:
     """The graph of pixel factors (and the prior) of ``dataset``; ``fixed`` the same images with the
@@ -232,7 +237,8 @@ def _joint_problem(dataset: Dataset, fixed: Dataset, model: IntrinsicsModel, rob
     by_id = {image.id: image for image in dataset.images}
     pixels = np.array([by_id[m.image_id].observations[m.point] for m in measurements]).reshape(-1, 2)
     graph = gtsam.NonlinearFactorGraph()
-    for factor in intrinsics_factors(dataset, layout, measurements, pixels, model, dataset.pixel_sigma, robust):
+    for factor in intrinsics_factors(dataset, layout, measurements, pixels, model, pixel_sigmas(dataset, measurements),
+                                     robust):
         graph.add(factor)
     prior = intrinsics_prior_factor(model, dict(dataset.camera.prior_sigma))
     if prior is not None:
@@ -318,7 +324,8 @@ def _fixed_start(dataset: Dataset, camera: Camera, sigma: float, model: Intrinsi
 
     # diagnose=False: with first-guess intrinsics the fit is often implausible; the split search belongs
     # to the joint solution, not to this start.
-    start = calibrate(replace(dataset, camera=camera, pixel_sigma=sigma), initial=initial, robust=robust,
+    inflated = {name: max(value, sigma) for name, value in dataset.point_sigma.items()}
+    start = calibrate(replace(dataset, camera=camera, pixel_sigma=sigma, point_sigma=inflated), initial=initial, robust=robust,
                       compute_covariance=False, max_iterations=max_iterations, progress=progress, diagnose=False)
     solved = without(dataset, start.excluded) if start.excluded else dataset
     graph, layout, measurements, pixels = _joint_problem(solved, replace(solved, camera=camera), model, robust)
@@ -399,7 +406,7 @@ def calibrate_with_intrinsics(
             theta = model.theta(np.asarray(run.result.atVector(intrinsics_key()), dtype=float))
             predicted = predicted_normalized(solved, measurements, R, t, mirror_vectors, points)
             residuals = predict_pixels(theta, predicted) - pixels
-            whitened = np.linalg.norm(residuals, axis=1) / dataset.pixel_sigma
+            whitened = np.linalg.norm(residuals, axis=1) / pixel_sigmas(dataset, measurements)
             more = final_check(solved, measurements, whitened, run.result.dim()) if recheck < MAX_RECHECKS else []
             if not more:
                 break

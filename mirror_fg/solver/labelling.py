@@ -27,7 +27,7 @@ from __future__ import annotations
 
 from collections import defaultdict
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from itertools import combinations, product
 
 import numpy as np
@@ -345,8 +345,7 @@ def choose_labellings(
             reports[image.id] = report
         elif image.id not in reports:
             reports[image.id] = LabelReport(image.id, None, reason="labelling undecided")
-    relabelled = Dataset(dataset.num_mirrors, dataset.camera, dataset.pixel_sigma, dict(dataset.fiducials),
-                         out_images, source=dataset.source)
+    relabelled = replace(dataset, fiducials=dict(dataset.fiducials), images=out_images)
     return relabelled, [reports[image.id] for image in dataset.images]
 
 

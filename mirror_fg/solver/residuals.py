@@ -10,7 +10,7 @@ import numpy as np
 
 from mirror_fg.core.geometry import nested_transforms, predict_camera_points, project
 from mirror_fg.io.dataset import Dataset
-from mirror_fg.solver.graph import Measurement
+from mirror_fg.solver.graph import Measurement, measurement_sigmas
 
 __all__ = ["OUTLIER_SIGMAS", "predicted_normalized", "residual_statistics", "outliers_of"]
 
@@ -43,9 +43,10 @@ def residual_statistics(
     dataset: Dataset, measurements: list[Measurement], predicted: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Residuals (N, 2) predicted minus observed, in pixels (through the distortion) where the dataset
-    has a camera, else normalized; and each measurement's whitened residual norm in sigmas."""
+    has a camera, else normalized; and each measurement's whitened residual norm in its own sigmas
+    (``graph.measurement_sigmas``: ``point_sigma`` where given)."""
     observed_normalized = np.array([m.normalized for m in measurements]).reshape(-1, 2)
-    whitened = np.linalg.norm((predicted - observed_normalized) / dataset.normalized_sigma, axis=1)
+    whitened = np.linalg.norm((predicted - observed_normalized) / measurement_sigmas(dataset, measurements), axis=1)
     if dataset.camera is None:
         return predicted - observed_normalized, whitened
     by_id = {image.id: image for image in dataset.images}

@@ -25,6 +25,7 @@ from mirror_fg.core.errors import SolveError
 from mirror_fg.core.geometry import measurement_jacobians
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.io.dataset import Dataset
+from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.graph import InitialEstimate as Unknowns  # any values of every unknown (truth, analytic, MLE)
 
 __all__ = [
@@ -134,8 +135,12 @@ def _observation_blocks(dataset: Dataset, values: Unknowns, with_residuals: bool
 
 
 def _sigma(dataset: Dataset, sigma_normalized: float | Sequence[float] | None) -> np.ndarray:
-    sigma = dataset.normalized_sigma if sigma_normalized is None else sigma_normalized
-    return np.broadcast_to(np.asarray(sigma, dtype=float), (2,)).copy()
+    """Each observation's sigma (N, 2), in :func:`_observation_blocks`' row order: the given one for all,
+    else the dataset's (``point_sigma`` where given, else ``pixel_sigma``, over the focal lengths)."""
+    names = [name for image in dataset.images for name in image.observations]
+    if sigma_normalized is None:
+        return normalized_sigmas(dataset.camera, dataset.pixel_sigma, dataset.point_sigma, names)
+    return np.broadcast_to(np.asarray(sigma_normalized, dtype=float), (len(names), 2)).copy()
 
 
 def linearize(
@@ -147,19 +152,20 @@ def linearize(
     """Fisher information ``J^T Sigma^-1 J`` of every observation of ``dataset`` at ``values``.
 
     sigma_normalized: noise standard deviation per image coordinate in normalized units (scalar or
-    (x, y)); default the dataset's (``pixel_sigma / f``), the same noise model as ``mirror_fg.calibrate``.
+    (x, y)); default the dataset's (``pixel_sigma / f``, ``point_sigma / f`` for the points that have
+    one), the same noise model as ``mirror_fg.calibrate``.
     with_score: also form ``J^T Sigma^-1 (z - h(values))`` from the dataset's observations.
     """
     sigma = _sigma(dataset, sigma_normalized)
     index, H, columns, residuals = _observation_blocks(dataset, values, with_score)
-    H = H / sigma[None, :, None]  # whiten each image coordinate
+    H = H / sigma[:, :, None]  # whiten each image coordinate
     n = index.size + 1
     local = np.einsum("kri,krj->kij", H, H)
     flat = (columns[:, :, None] * n + columns[:, None, :]).ravel()
     information = np.bincount(flat, weights=local.ravel(), minlength=n * n).reshape(n, n)[:-1, :-1]
     score = None
     if with_score:
-        local_score = np.einsum("kri,kr->ki", H, residuals / sigma[None, :])
+        local_score = np.einsum("kri,kr->ki", H, residuals / sigma)
         score = np.bincount(columns.ravel(), weights=local_score.ravel(), minlength=n)[:-1]
     return Linearization(information=information, index=index, num_measurements=len(H), score=score)
 

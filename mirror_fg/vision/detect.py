@@ -15,10 +15,10 @@ labels each by consistency across the images; its report names the labelling (``
 turn (...)``: turned from the detector's), and an image no labelling clearly fits is ``refused`` with
 the reason. Every refused or not-found image is an :class:`ImageReport` with its ``id`` and ``reason``.
 
-Noise of tracked points: dataset@1 has one ``pixel_sigma``. Each track has its own sigma (the
-``track:`` entry's ``sigma``, else :meth:`~mirror_fg.vision.tracking.PointTracker.sigma`, never below
-0.5 px, the default ``pixel_sigma``); ``detect_capture(..., tracks=...)`` hands back every track's
-path, residuals and sigma for the report.
+Noise of tracked points: each track's sigma goes into the dataset's ``point_sigma``
+(:func:`~mirror_fg.vision.track_sigma.tracked_point_sigma`: the ``track:`` entry's ``sigma``, else the
+tracker's, never below ``pixel_sigma``), so the solver weighs a tracked point by what the tracker does;
+``detect_capture(..., tracks=...)`` hands back every track's path, residuals and sigma for the report.
 """
 from __future__ import annotations
 
@@ -50,6 +50,7 @@ from mirror_fg.vision.detectors import (
     detect_chessboard,
     detect_tags,
 )
+from mirror_fg.vision.track_sigma import tracked_point_sigma
 from mirror_fg.vision.tracking import KLTParams, PointTracker, Track
 
 __all__ = [
@@ -176,11 +177,13 @@ def detect_capture(
         raise DatasetError(f"{capture.source}: camera: no image size (give width and height)")
 
     fiducials = capture.fiducials()
+    point_sigma = tracked_point_sigma(capture, tracker.tracks, (n for out in outputs for n in out.points))
     data = {
         "format": DATASET_FORMAT,
         "num_mirrors": capture.num_mirrors,
         "camera": camera,
         "pixel_sigma": capture.pixel_sigma,
+        **({"point_sigma": point_sigma} if point_sigma else {}),
         "fiducials": {name: [float(x) for x in p] for name, p in fiducials.items()},
         "images": [
             {
