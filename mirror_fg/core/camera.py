@@ -165,11 +165,11 @@ def check_camera(
     if model == "fisheye" and {"p1", "p2"} & set(estimate):
         raise DatasetError(f"{where}: estimate: p1 and p2 are not terms of the fisheye model (k1..k4)")
     required = ("width", "height", "fx", "fy", "cx", "cy") if need_size else ("fx", "fy", "cx", "cy")
-    missing = [k for k in required if k not in camera]
+    missing = [k for k in required if camera.get(k) is None]  # absent or null (a checked camera's unstarted)
     unstarted = [k for k in missing if k in estimate and k in ("fx", "fy", "cx", "cy")]
     if unstarted and not allow_unstarted:
         raise DatasetError(f"{where}: {', '.join(unstarted)} absent: starting intrinsics from the photographs "
-                           "is supported for a dataset@1 camera only; give a starting value")
+                           "is not possible here; give a starting value")
     without_prior = [k for k in unstarted if k in dict(prior_sigma)]
     if without_prior:
         raise DatasetError(f"{where}: prior_sigma {without_prior[0]}: a prior needs a given value, and "

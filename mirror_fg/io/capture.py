@@ -324,7 +324,7 @@ def _camera(value: Any, source: str, base_dir: str) -> tuple[dict[str, Any], str
         return camera_from_file(path, name, f"{where} ({short_path(value)})"), path
     if not isinstance(value, Mapping):
         raise DatasetError(f"{where}: expected intrinsics or a path to a calibration file, got {type_name(value)}")
-    return check_camera(value, where, max_pixels=MAX_IMAGE_PIXELS), None
+    return check_camera(value, where, max_pixels=MAX_IMAGE_PIXELS, allow_unstarted=True), None
 
 
 # --- images, video, tracks --------------------------------------------------------------------------
