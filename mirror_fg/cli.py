@@ -411,9 +411,24 @@ def cmd_detect(args, out: _Printer) -> int:
     plan = OutputPlan(inputs=[os.fspath(args.capture)])
     plan.add(args.output, "dataset")
     dataset = _load_input(args.capture, out, plan, capture_only=True)
+    _print_consensus(out, dataset)
     plan.commit({os.fspath(args.output): dataset_text(dataset)})
     out.info(f"wrote {args.output} ({len(dataset.images)} images)")
     return EXIT_OK
+
+
+def _print_consensus(out: _Printer, dataset: Dataset) -> None:
+    """What ``calibrate`` will leave out of a detected dataset, and why (``solver.consensus.screen``: each
+    image's own PnP fit, the side of the board, agreement with the other placements of its mirror); the
+    dataset itself keeps every detection."""
+    from mirror_fg.solver.consensus import screen
+
+    _, excluded, _ = screen(dataset)
+    if excluded:
+        out.info(f"check: calibrate will leave out {len(excluded)} image(s) or corner(s) that disagree with the rest:")
+    for e in excluded:
+        sigmas = f" ({e.sigmas:.1f} σ)" if e.sigmas is not None else ""
+        out.info(f"  image '{e.image}'" + (f" point '{e.point}'" if e.point else "") + f": {e.reason}{sigmas}")
 
 
 def cmd_report(args, out: _Printer) -> int:

@@ -227,3 +227,30 @@ def test_incremental_refuses_the_bad_images_and_lands_on_the_batch_answer():
     assert _excluded_images(calibration) == bad_ids
     assert _excluded_points(calibration) == moved
     _assert_same_answer(calibration, _reference(clean, bad_ids, moved))
+
+
+def test_detect_says_what_calibrate_will_leave_out(tmp_path, capsys):
+    """``mirror-fg detect`` keeps every detection but names the images that disagree with the rest."""
+    import yaml
+
+    from mirror_fg.cli import main
+
+    clean, _ = board_scene(1, num_images=12)
+    bad = _corrupted(clean, {3: reversed_rows}, BOARD_COLS, BOARD_ROWS)
+    c = bad.camera
+    capture = {
+        "format": "mirror-fg/capture@1", "num_mirrors": 1,
+        "camera": {"model": "pinhole", "width": c.width, "height": c.height, "fx": c.fx, "fy": c.fy, "cx": c.cx,
+                   "cy": c.cy, "dist": list(c.dist)},
+        "pixel_sigma": bad.pixel_sigma,
+        "target": {"kind": "points", "fiducials": {n: p.tolist() for n, p in bad.fiducials.items()}},
+        "images": [{"id": im.id, "mirror_configs": list(im.mirror_configs),
+                    "observations": {n: np.asarray(xy).tolist() for n, xy in im.observations.items()}} for im in bad.images],
+    }
+    path = tmp_path / "capture.yaml"
+    path.write_text(yaml.safe_dump(capture))
+    assert main(["detect", str(path), "-o", str(tmp_path / "data.json")]) == 0
+    printed = capsys.readouterr().out
+    assert "check: calibrate will leave out 1 image(s)" in printed
+    assert f"  image '{bad.images[3].id}': " in printed
+    assert "wrote" in printed and "(12 images)" in printed  # the dataset keeps every detection
