@@ -23,8 +23,8 @@ import numpy as np
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.geometry import FLIP_Y, nested_transform, nested_transforms, predict_camera_points, project, project_to_orthogonal
 from mirror_fg.io.dataset import Dataset, Image
-from mirror_fg.solver.peeling import MIN_NORMAL_SPREAD, NodeSolution, choose_candidates, solve_children
-from mirror_fg.solver.pnp import pnp_candidates
+from mirror_fg.solver.peeling import MIN_NORMAL_SPREAD, NodeSolution, choose_candidates, solve_children_many
+from mirror_fg.solver.pnp import pnp_candidates_many
 
 __all__ = [
     "AnalyticSolution", "Hypothesis", "TreeNode", "TreeWalk", "hypothesis_of_subtree", "reconstruct_points",
@@ -85,16 +85,20 @@ def _node_proposals(
     candidates = [[(h.A, h.b) for h in hyps] for _, hyps in entries]
     parent_det = (-1.0) ** (level - 1)
     if exhaustive and math.prod(len(c) for c in candidates) <= MAX_ROOT_COMBINATIONS:  # no int64 overflow
-        ranked: list[tuple[list[int], NodeSolution]] = []
-        for combo in product(*(range(len(c)) for c in candidates)):
-            observations = [(k, *cands[c]) for k, cands, c in zip(children, candidates, combo)]
-            ranked.append((list(combo), solve_children(observations, len(child_ids), parent_det)))
+        combos = list(product(*(range(len(c)) for c in candidates)))
+        picked = [[cands[c] for cands, c in zip(candidates, combo)] for combo in combos]
+        solutions = solve_children_many(  # every combination at once
+            np.array(children), np.array([[A for A, _ in p] for p in picked]), np.array([[b for _, b in p] for p in picked]),
+            len(child_ids), parent_det,
+        )
+        ranked: list[tuple[list[int], NodeSolution]] = [(list(combo), node) for combo, node in zip(combos, solutions)]
         ranked.sort(key=lambda item: item[1].residual)
     else:
         ranked = choose_candidates(children, candidates, len(child_ids), parent_det, rng)
     proposals, degenerate = [], []
     for picks, node in ranked:
-        normals = np.stack([v / np.linalg.norm(v) for v in node.mirror_vectors])
+        stacked = np.array(node.mirror_vectors)
+        normals = stacked / np.linalg.norm(stacked, axis=1, keepdims=True)
         degenerate.append(bool(np.linalg.svd(normals, compute_uv=False)[2] < MIN_NORMAL_SPREAD))
         hypothesis = Hypothesis(node.A_parent, node.b_parent, defaultdict(list), {})
         for (_, hyps), p in zip(entries, picks):
@@ -105,6 +109,11 @@ def _node_proposals(
             hypothesis.mirror_vectors[(level, m)].append(v)
         proposals.append(hypothesis)
     return proposals, degenerate
+
+
+def _mean_vector(vectors: list[np.ndarray]) -> np.ndarray:
+    """The mean of a placement's mirror vectors (most have one: no ``np.mean`` call, the same value)."""
+    return np.array(vectors[0], dtype=float) if len(vectors) == 1 else np.mean(vectors, axis=0)
 
 
 def _same_transform(first: Hypothesis, second: Hypothesis, tolerance: float = 1e-3) -> bool:
@@ -179,7 +188,7 @@ def subtree_solution(hypothesis: Hypothesis, level: int) -> AnalyticSolution:
     return AnalyticSolution(
         R_cam_base=hypothesis.A @ FLIP_Y if flip else hypothesis.A.copy(),
         t_cam_base=hypothesis.b.copy(),
-        mirror_vectors={(l - level + 1, m): np.mean(vs, axis=0) for (l, m), vs in hypothesis.mirror_vectors.items()},
+        mirror_vectors={(l - level + 1, m): _mean_vector(vs) for (l, m), vs in hypothesis.mirror_vectors.items()},
     )
 
 
@@ -226,7 +235,7 @@ class TreeNode:
         """Each proposal's half whitened squared reprojection error of the node's fiducials."""
         scores = []
         for hypothesis in self.proposals:
-            vectors = {key: np.mean(vs, axis=0) for key, vs in hypothesis.mirror_vectors.items()}
+            vectors = {key: _mean_vector(vs) for key, vs in hypothesis.mirror_vectors.items()}
             scores.append((0.5 * self._fiducials.cost(hypothesis.A, hypothesis.b, vectors, self.level), hypothesis))
         return scores
 
@@ -293,16 +302,22 @@ class TreeWalk:
         computed by ``pnp_candidates`` on the image's fiducials as they are, e.g. by the consensus)."""
         dataset = self.dataset
         leaf_candidates: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
+        todo: list[tuple[Image, tuple[np.ndarray, np.ndarray]]] = []
         for image in dataset.images:
             names = [n for n in image.observations if n in dataset.fiducials]
-            if len(names) < 3:
+            if len(names) < 3 or image.id in known:
+                continue
+            base_points = np.array([dataset.fiducials[n] for n in names])
+            todo.append((image, (base_points, np.array([self._normalized[image.id][n] for n in names]))))
+        solved = dict(zip((image.id for image, _ in todo),
+                          pnp_candidates_many([problem for _, problem in todo], dataset.num_mirrors)))
+        for image in dataset.images:
+            if sum(n in dataset.fiducials for n in image.observations) < 3:
                 continue
             if image.id in known:
                 leaf_candidates[image.id] = known[image.id]
                 continue
-            base_points = np.array([dataset.fiducials[n] for n in names])
-            observed = np.array([self._normalized[image.id][n] for n in names])
-            candidates = pnp_candidates(base_points, observed, dataset.num_mirrors)
+            candidates = solved[image.id]
             if not candidates:
                 raise SolveError(
                     f"{dataset.source}: image '{image.id}': PnP found no pose with every fiducial in front of the camera"
@@ -364,7 +379,7 @@ class TreeWalk:
             AnalyticSolution(
                 R_cam_base=project_to_orthogonal(root.A, 1.0),
                 t_cam_base=root.b,
-                mirror_vectors={key: np.mean(vs, axis=0) for key, vs in root.mirror_vectors.items()},
+                mirror_vectors={key: _mean_vector(vs) for key, vs in root.mirror_vectors.items()},
                 image_transforms=root.image_transforms,
             )
             for root in self._roots

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import gtsam
 import numpy as np
@@ -17,10 +17,16 @@ import numpy as np
 from mirror_fg.core.errors import SolveError
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.analytic import AnalyticSolution, TreeNode, TreeWalk, Hypothesis
-from mirror_fg.solver.graph import build_eliminated_graph, build_graph, extract_values
+from mirror_fg.factors.eliminated import NotEliminable, eliminated_evaluator
+from mirror_fg.solver.graph import (
+    EliminatedGraph, GraphLayout, Measurement, build_eliminated_graph, build_graph, extract_values, initial_values,
+    measurement_sigmas, measurements_of,
+)
 from mirror_fg.solver.lm import cost_scale, lm_params
 
-__all__ = ["initial_estimate", "refine_subtree", "SUBTREE_MAX_ITERATIONS", "SUBTREE_RELATIVE_TOLERANCE"]
+__all__ = [
+    "initial_estimate", "refine_subtree", "SAME_OPTIMUM_TOLERANCE", "SUBTREE_MAX_ITERATIONS", "SUBTREE_RELATIVE_TOLERANCE",
+]
 
 logger = logging.getLogger("mirror_fg")
 
@@ -30,21 +36,93 @@ SUBTREE_MAX_ITERATIONS = 50
 SUBTREE_RELATIVE_TOLERANCE = 1e-4
 
 
-def _refine_subtree(subtree: Dataset, closed_form: AnalyticSolution) -> tuple[float, AnalyticSolution] | None:
-    """The MLE (eq. 23) of one subtree's own images from its closed-form hypothesis: its cost and values."""
+#: A subtree refinement ends as soon as its pose comes this close (``analytic._same_transform``: unitless,
+#: and relative for the translation) to an optimum another hypothesis of the node already reached: the
+#: node keeps that optimum once anyway, and P3P twins are centimetres and degrees apart.
+SAME_OPTIMUM_TOLERANCE = 1e-3
+
+
+def _near(R: np.ndarray, t: np.ndarray, optima: Sequence[tuple[float, AnalyticSolution]]) -> tuple[float, AnalyticSolution] | None:
+    """The first of ``optima`` whose pose is within ``SAME_OPTIMUM_TOLERANCE`` of ``(R, t)``, if any."""
+    for optimum in optima:
+        solution = optimum[1]
+        scale = max(1.0, float(np.linalg.norm(solution.t_cam_base)))
+        if (np.max(np.abs(R - solution.R_cam_base)) < SAME_OPTIMUM_TOLERANCE
+                and np.linalg.norm(t - solution.t_cam_base) < SAME_OPTIMUM_TOLERANCE * scale):
+            return optimum
+    return None
+
+
+def _optimize(
+    optimizer: gtsam.LevenbergMarquardtOptimizer, params: gtsam.LevenbergMarquardtParams, pose_key: int,
+    optima: Sequence[tuple[float, AnalyticSolution]],
+) -> gtsam.Values | tuple[float, AnalyticSolution]:
+    """``optimizer.optimize()`` (GTSAM's loop: iterate until ``checkConvergence`` or the iteration limit),
+    or the optimum of ``optima`` the iterate came near (:func:`_near`). The optimizer's ``error()`` is
+    then the cost at its ``values()``."""
+    new_error = optimizer.error()
+    if new_error <= params.getErrorTol() or optimizer.iterations() >= params.getMaxIterations():
+        return optimizer.values()
+    while True:
+        current_error = new_error
+        optimizer.iterate()
+        new_error = optimizer.error()
+        if optima:
+            pose = optimizer.values().atPose3(pose_key)
+            reached = _near(pose.rotation().matrix(), np.asarray(pose.translation()), optima)
+            if reached is not None:
+                return reached
+        if (optimizer.iterations() >= params.getMaxIterations() or not np.isfinite(current_error)
+                or gtsam.checkConvergence(params, current_error, new_error)):
+            return optimizer.values()
+
+
+def _eliminated_graph(subtree: Dataset, closed_form: AnalyticSolution, measurements: list[Measurement] | None,
+                      sigmas: np.ndarray | None) -> EliminatedGraph | None:
+    """``graph.build_eliminated_graph``, with the subtree's measurements and their sigmas when at hand
+    (the same for every hypothesis of a node)."""
+    if measurements is None or sigmas is None:
+        return build_eliminated_graph(subtree, closed_form)
+    layout = GraphLayout.for_dataset(subtree)
     try:
-        eliminated = build_eliminated_graph(subtree, closed_form)  # the subtree's own placements solved inside
+        evaluator = eliminated_evaluator(subtree, layout, measurements, sigmas, closed_form.mirror_vectors)
+    except NotEliminable:
+        return None
+    graph = gtsam.NonlinearFactorGraph()
+    for factor in evaluator.factors:
+        graph.add(factor)
+    evaluator.factors = []  # the factors hold the evaluator: no cycle through C++
+    values = initial_values(layout, closed_form, frozenset(evaluator.eliminated))
+    return EliminatedGraph(graph, values, layout, measurements, evaluator)
+
+
+def _refine_subtree(
+    subtree: Dataset, closed_form: AnalyticSolution, optima: Sequence[tuple[float, AnalyticSolution]] = (),
+    measurements: list[Measurement] | None = None, sigmas: np.ndarray | None = None,
+) -> tuple[float, AnalyticSolution] | None:
+    """The MLE (eq. 23) of one subtree's own images from its closed-form hypothesis: its cost and values.
+
+    ``optima``: ``(cost, solution)`` of this subtree already refined from other hypotheses; when the
+    refinement comes near one of them (:data:`SAME_OPTIMUM_TOLERANCE`) it stops and returns that one.
+    ``measurements``, ``sigmas``: ``graph.measurements_of(subtree)`` and their ``measurement_sigmas``,
+    when already computed.
+    """
+    try:
+        eliminated = _eliminated_graph(subtree, closed_form, measurements, sigmas)  # its placements solved inside
         if eliminated is not None:
             graph, values, layout, evaluator = eliminated.graph, eliminated.values, eliminated.layout, eliminated.evaluator
         else:
             (graph, values, layout, _), evaluator = build_graph(subtree, closed_form, None), None
         params = lm_params(SUBTREE_MAX_ITERATIONS, cost_scale(subtree))
         params.setRelativeErrorTol(SUBTREE_RELATIVE_TOLERANCE)  # a start and a ranking: no need for the last digits
-        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        result = _optimize(optimizer, params, layout.pose_key, optima)
     except (RuntimeError, SolveError):  # an under-determined subtree: no refinement, no score
         return None
+    if isinstance(result, tuple):
+        return result
     R, t, mirror_vectors, _ = extract_values(result, layout, evaluator)
-    return float(graph.error(result)), AnalyticSolution(R, t, mirror_vectors)
+    return float(optimizer.error()), AnalyticSolution(R, t, mirror_vectors)
 
 
 #: Public name (the consensus of ``consensus.py`` refines a node's majority with it); the private name
@@ -55,13 +133,19 @@ refine_subtree = _refine_subtree
 def _refined_scores(node: TreeNode) -> list[tuple[float, Hypothesis]]:
     """Each proposal of an inner node refined on the node's images: its LM cost and refined hypothesis."""
     subtree = node.subtree()
+    measurements = measurements_of(subtree)  # the same for every proposal
+    sigmas = measurement_sigmas(subtree, measurements)
     scores = []
-    for proposal in node.proposals:
-        refined = _refine_subtree(subtree, node.subtree_solution(proposal))
+    optima: list[tuple[float, AnalyticSolution]] = []  # reached by earlier proposals (not degenerate ones)
+    for proposal, degenerate in zip(node.proposals, node.degenerate):
+        refined = _refine_subtree(subtree, node.subtree_solution(proposal), () if degenerate else optima,
+                                  measurements, sigmas)
         if refined is None or not np.isfinite(refined[0]):
             scores.append((np.inf, proposal))
         else:
             scores.append((refined[0], node.hypothesis_of(refined[1], proposal)))
+            if not degenerate and not any(refined is optimum for optimum in optima):
+                optima.append(refined)
     return scores
 
 

@@ -13,7 +13,8 @@ import numpy as np
 
 from mirror_fg.core.geometry import householders, project_to_orthogonal
 
-__all__ = ["MIN_NORMAL_SPREAD", "NodeSolution", "choose_candidates", "reflection_fit", "solve_children", "solve_node"]
+__all__ = ["MIN_NORMAL_SPREAD", "NodeSolution", "choose_candidates", "reflection_fit", "solve_children", "solve_node",
+           "solve_children_many", "solve_triples"]
 
 #: Smallest out-of-plane spread (third singular value of the unit normals, ~radians) of a node's mirrors.
 MIN_NORMAL_SPREAD = np.sin(np.deg2rad(0.5))
@@ -56,48 +57,62 @@ def smallest_eigenvectors(S: np.ndarray) -> np.ndarray:
     S = np.asarray(S, dtype=float)
     if S.ndim != 3 or len(S) < CLOSED_FORM_EIGEN_MIN:  # a few matrices: eigh's fixed cost is lower
         return np.linalg.eigh(S)[1][..., 0]
-    a00, a11, a22 = S[..., 0, 0], S[..., 1, 1], S[..., 2, 2]
-    a01, a02, a12 = S[..., 0, 1], S[..., 0, 2], S[..., 1, 2]
+    # the six entries as contiguous rows: every step below is a handful of 1-D operations
+    a00, a01, a02, _, a11, a12, _, _, a22 = np.ascontiguousarray(S.reshape(-1, 9).T)
     q = (a00 + a11 + a22) / 3.0
     b00, b11, b22 = a00 - q, a11 - q, a22 - q
-    p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)
+    off = a01 * a01 + a02 * a02 + a12 * a12
+    p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * off
     p = np.sqrt(p2 / 6.0)
     safe = np.where(p > 0.0, p, 1.0)
     det = (b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02))
     r = np.clip(det / (2.0 * safe**3), -1.0, 1.0)
     smallest = q + 2.0 * p * np.cos(np.arccos(r) / 3.0 + 2.0 * np.pi / 3.0)
     d0, d1, d2 = a00 - smallest, a11 - smallest, a22 - smallest  # rows of S - lambda I
-    crosses = np.stack([
-        np.stack([a01 * a12 - a02 * d1, a02 * a01 - d0 * a12, d0 * d1 - a01 * a01], axis=-1),  # row 0 x row 1
-        np.stack([a01 * d2 - a02 * a12, a02 * a02 - d0 * d2, d0 * a12 - a01 * a02], axis=-1),  # row 0 x row 2
-        np.stack([d1 * d2 - a12 * a12, a12 * a02 - a01 * d2, a01 * a12 - d1 * a02], axis=-1),  # row 1 x row 2
-    ], axis=-2)
-    lengths = np.einsum("...ka,...ka->...k", crosses, crosses)
-    best = np.argmax(lengths, axis=-1)
-    v = np.where((np.max(lengths, axis=-1) > 0.0)[..., None],
-                 np.take_along_axis(crosses, best[..., None, None], axis=-2)[..., 0, :], np.array([1.0, 0.0, 0.0]))
-    v = v / np.sqrt(np.einsum("...a,...a->...", v, v))[..., None]
-    shift = np.sqrt(np.einsum("...ab,...ab->...", S, S))  # >= |eigenvalues|: ||S|| I - S is positive semi-definite
-    v = shift[..., None] * v - np.einsum("...ab,...b->...a", S, v)
-    return v / np.sqrt(np.einsum("...a,...a->...", v, v))[..., None]
+    c0 = (a01 * a12 - a02 * d1, a02 * a01 - d0 * a12, d0 * d1 - a01 * a01)  # row 0 x row 1
+    c1 = (a01 * d2 - a02 * a12, a02 * a02 - d0 * d2, d0 * a12 - a01 * a02)  # row 0 x row 2
+    c2 = (d1 * d2 - a12 * a12, a12 * a02 - a01 * d2, a01 * a12 - d1 * a02)  # row 1 x row 2
+    l0, l1, l2 = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2] for c in (c0, c1, c2))
+    first, second = (l0 >= l1) & (l0 >= l2), l1 >= l2  # the longest (the first of equals, as argmax)
+    longest = np.maximum(np.maximum(l0, l1), l2)
+    x, y, z = (np.where(first, c0[i], np.where(second, c1[i], c2[i])) for i in range(3))
+    zero = longest <= 0.0
+    if np.any(zero):
+        x, y, z = np.where(zero, 1.0, x), np.where(zero, 0.0, y), np.where(zero, 0.0, z)
+    norm = np.sqrt(x * x + y * y + z * z)
+    x, y, z = x / norm, y / norm, z / norm
+    shift = np.sqrt(a00 * a00 + a11 * a11 + a22 * a22 + 2.0 * off)  # >= |eigenvalues|: ||S|| I - S is PSD
+    x, y, z = (shift * x - (a00 * x + a01 * y + a02 * z), shift * y - (a01 * x + a11 * y + a12 * z),
+               shift * z - (a02 * x + a12 * y + a22 * z))
+    v = np.stack([x, y, z], axis=-1)
+    return v / np.sqrt(x * x + y * y + z * z)[:, None]
 
 
 def _normals_from_pairwise_axes(child_A: np.ndarray) -> np.ndarray:
-    """Unit normals (K, 3) of K mirror placements from the axes of ``A_m A_m'^T`` (eqs. 14-15).
+    """Unit normals (..., K, 3) of K mirror placements (``child_A`` (..., K, 3, 3)) from the axes of
+    ``A_m A_m'^T`` (eqs. 14-15).
 
     Eq. (15) crosses two axes; with more children each normal is the direction most perpendicular
     to all of its axes (least squares, weighted by how well each axis is defined).
     """
     A = np.asarray(child_A)
     # Only a start for the alternation in solve_children: a few partners spread over the children will do.
-    partners = np.unique(np.linspace(0, len(A) - 1, min(len(A), MAX_AXIS_PARTNERS)).round().astype(int))
-    Q = np.matmul(A[:, None], np.swapaxes(A[partners], 1, 2)[None])  # A_m A_m'^T, eq. (14)
+    count = A.shape[-3]
+    partners = np.unique(np.linspace(0, count - 1, min(count, MAX_AXIS_PARTNERS)).round().astype(int))
+    Q = np.matmul(A[..., :, None, :, :], np.swapaxes(A[..., partners, :, :], -1, -2)[..., None, :, :, :])  # eq. (14)
     axes = np.stack(
         [Q[..., 2, 1] - Q[..., 1, 2], Q[..., 0, 2] - Q[..., 2, 0], Q[..., 1, 0] - Q[..., 0, 1]], axis=-1
     )
     # the smallest right singular vector of each child's stacked axes (its own axis is zero)
-    scatter = np.matmul(np.swapaxes(axes, 1, 2), axes)
-    return np.linalg.eigh(scatter)[1][:, :, 0]
+    scatter = np.matmul(np.swapaxes(axes, -1, -2), axes)
+    return np.linalg.eigh(scatter)[1][..., 0]
+
+
+def _solve_or_lstsq(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    try:
+        return np.linalg.solve(matrix, rhs)
+    except np.linalg.LinAlgError:  # parallel normals: the caller's spread check names the degenerate motion
+        return np.linalg.lstsq(matrix, rhs, rcond=None)[0]
 
 
 def solve_children(
@@ -111,46 +126,115 @@ def solve_children(
     """
     children = np.array([k for k, _, _ in observations])
     rotations = np.array([A for _, A, _ in observations])
-    child_sums = np.zeros((num_children, 3, 3))
-    np.add.at(child_sums, children, rotations)
+    offsets = np.array([b for _, _, b in observations])
+    return solve_children_many(children, rotations[None], offsets[None], num_children, parent_det)[0]
+
+
+def solve_children_many(
+    children: np.ndarray, rotations: np.ndarray, offsets: np.ndarray, num_children: int, parent_det: float
+) -> list[NodeSolution]:
+    """:func:`solve_children` of C choices of one node's candidates at once (the same observations,
+    another ``(A_l, b_l)`` picked for some): children (N,) child index of each observation, rotations
+    (C, N, 3, 3) and offsets (C, N, 3) each choice's ``A_l`` and ``b_l``. Each choice's alternation
+    stops when its own normals settle, as it would alone."""
+    num = len(rotations)
+    child_sums = np.zeros((num_children, num, 3, 3))  # children first: np.add.at over the first axis
+    np.add.at(child_sums, children, np.swapaxes(rotations, 0, 1))
+    child_sums = np.ascontiguousarray(np.swapaxes(child_sums, 0, 1))
     child_A = project_to_orthogonal(child_sums, -parent_det)
     normals = _normals_from_pairwise_axes(child_A)  # eqs. (14)-(15)
-    A_parent = np.eye(3)
+    A_parent = np.broadcast_to(np.eye(3), (num, 3, 3)).copy()
+    rotation_sum = child_sums.sum(axis=1)
+    active = np.ones(num, dtype=bool)
     for _ in range(NODE_ALTERNATIONS):
-        # eq. (17): A_{l-1} = M_m^{-1} A_l(m), averaged over all children on O(3).
-        reflections = householders(normals[children], unit=True)
-        A_parent = project_to_orthogonal(np.einsum("iab,ibc->ac", reflections, rotations), parent_det)
+        # eq. (17): A_{l-1} = M_m^{-1} A_l(m), averaged over all children on O(3). Summed per child, as
+        # sum_m (I - 2 n_m n_m^T) S_m = sum_m S_m - 2 sum_m n_m (n_m^T S_m): K products, not K 3x3 ones.
+        weighted = np.einsum("cka,ckab->ckb", normals, child_sums)
+        new_parent = project_to_orthogonal(rotation_sum - 2.0 * np.swapaxes(normals, 1, 2) @ weighted, parent_det)
+        A_parent[active] = new_parent[active]
         # eq. (13): each child's M_m = A_l(m) A_{l-1}^T; its normal is the -1 eigenvector.
-        estimates = child_sums @ A_parent.T
-        new_normals = smallest_eigenvectors(0.5 * (estimates + estimates.transpose(0, 2, 1)))
+        estimates = (child_sums.reshape(num, -1, 3) @ np.swapaxes(A_parent, 1, 2)).reshape(child_sums.shape)
+        symmetric = 0.5 * (estimates + np.swapaxes(estimates, -1, -2))
+        if num_children < CLOSED_FORM_EIGEN_MIN:  # as smallest_eigenvectors does for one node
+            new_normals = np.linalg.eigh(symmetric)[1][..., 0]
+        else:
+            new_normals = smallest_eigenvectors(symmetric.reshape(-1, 3, 3)).reshape(normals.shape)
         # keep the sign of each normal stable between iterations
-        new_normals *= np.where(np.sum(new_normals * normals, axis=1) < 0, -1.0, 1.0)[:, None]
-        converged = np.max(np.abs(new_normals - normals)) < 1e-13
-        normals = new_normals
-        if converged:
+        new_normals *= np.where(np.sum(new_normals * normals, axis=-1) < 0, -1.0, 1.0)[..., None]
+        converged = np.max(np.abs(new_normals - normals), axis=(1, 2)) < 1e-13
+        normals[active] = new_normals[active]
+        active &= ~converged
+        if not active.any():
             break
     # eq. (16): [M_m, 2 n_m] [b_{l-1}; d_m] = b_l(m), stacked over every observation, solved with the
     # offsets d_m eliminated (exactly): across n_m it reads P_m (b_{l-1} - b_l) = 0 with P_m = I - n n^T
     # (P_m M_m = P_m), along n_m it gives d_m = (n_m . b_l + n_m . b_{l-1}) / 2, averaged per child.
-    offsets = np.array([b for _, _, b in observations])
-    obs_normals = normals[children]
-    projectors = np.eye(3) - np.einsum("ia,ib->iab", obs_normals, obs_normals)
-    normal_matrix, rhs = projectors.sum(axis=0), np.einsum("iab,ib->a", projectors, offsets)
-    try:
-        b_parent = np.linalg.solve(normal_matrix, rhs)
-    except np.linalg.LinAlgError:  # parallel normals: the caller's spread check names the degenerate motion
-        b_parent = np.linalg.lstsq(normal_matrix, rhs, rcond=None)[0]
-    along = np.einsum("ia,ia->i", obs_normals, offsets) + obs_normals @ b_parent
+    obs_normals = normals[:, children]
+    projectors = np.eye(3) - np.einsum("cia,cib->ciab", obs_normals, obs_normals)
+    normal_matrix, rhs = projectors.sum(axis=1), np.einsum("ciab,cib->ca", projectors, offsets)
     counts = np.bincount(children, minlength=num_children)
-    distances = np.bincount(children, weights=along, minlength=num_children) / (2.0 * np.maximum(counts, 1))
-    mirror_vectors = [distances[k] * normals[k] for k in range(num_children)]
-    across = np.einsum("iab,ib->ia", projectors, b_parent - offsets)
-    along_residual = along - 2.0 * distances[children]
-    scale = max(float(np.mean(np.linalg.norm(offsets, axis=1))), 1e-9)
-    translation_residual = float(np.sum(across**2) + np.sum(along_residual**2)) / scale**2
-    reflections = householders(normals[children], unit=True)
-    rotation_residual = float(np.sum((rotations - reflections @ A_parent) ** 2))  # eq. (13)
-    return NodeSolution(A_parent, b_parent, mirror_vectors, rotation_residual + translation_residual)
+    reflections = householders(obs_normals.reshape(-1, 3), unit=True).reshape(rotations.shape)
+    rotation_residuals = np.sum((rotations - reflections @ A_parent[:, None]) ** 2, axis=(1, 2, 3))  # eq. (13)
+    solutions = []
+    for c in range(num):
+        b_parent = _solve_or_lstsq(normal_matrix[c], rhs[c])
+        along = np.einsum("ia,ia->i", obs_normals[c], offsets[c]) + obs_normals[c] @ b_parent
+        distances = np.bincount(children, weights=along, minlength=num_children) / (2.0 * np.maximum(counts, 1))
+        mirror_vectors = [distances[k] * normals[c, k] for k in range(num_children)]
+        across = np.einsum("iab,ib->ia", projectors[c], b_parent - offsets[c])
+        along_residual = along - 2.0 * distances[children]
+        scale = max(float(np.mean(np.linalg.norm(offsets[c], axis=1))), 1e-9)
+        translation_residual = float(np.sum(across**2) + np.sum(along_residual**2)) / scale**2
+        solutions.append(NodeSolution(A_parent[c], b_parent, mirror_vectors, float(rotation_residuals[c]) + translation_residual))
+    return solutions
+
+
+def solve_triples(
+    rotations: np.ndarray, offsets: np.ndarray, parent_det: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`solve_children` of P minimal nodes at once, each with three children seen once.
+
+    rotations (P, 3, 3, 3): the children's ``A_l``; offsets (P, 3, 3): their ``b_l``. Returns each
+    node's ``A_{l-1}`` (P, 3, 3), ``b_{l-1}`` (P, 3) and residual of eqs. (13) and (16) (P,), the
+    same steps as :func:`solve_children` (eigenvectors by ``eigh``, each node's alternation stopped
+    when its own normals settle).
+    """
+    num = len(rotations)
+    if num == 0:
+        return np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0)
+    child_A = project_to_orthogonal(rotations, -parent_det)
+    Q = np.matmul(child_A[:, :, None], np.swapaxes(child_A, -1, -2)[:, None])  # A_m A_m'^T, eq. (14)
+    axes = np.stack([Q[..., 2, 1] - Q[..., 1, 2], Q[..., 0, 2] - Q[..., 2, 0], Q[..., 1, 0] - Q[..., 0, 1]], axis=-1)
+    normals = np.linalg.eigh(np.matmul(np.swapaxes(axes, -1, -2), axes))[1][..., 0]  # eq. (15)
+    A_parent = np.broadcast_to(np.eye(3), (num, 3, 3)).copy()
+    rotation_sum = rotations.sum(axis=1)
+    active = np.ones(num, dtype=bool)
+    for _ in range(NODE_ALTERNATIONS):
+        weighted = np.einsum("pka,pkab->pkb", normals, rotations)  # eq. (17), as in solve_children
+        new_parent = project_to_orthogonal(rotation_sum - 2.0 * np.swapaxes(normals, 1, 2) @ weighted, parent_det)
+        A_parent[active] = new_parent[active]
+        estimates = rotations @ np.swapaxes(A_parent, 1, 2)[:, None]  # eq. (13)
+        new_normals = np.linalg.eigh(0.5 * (estimates + np.swapaxes(estimates, -1, -2)))[1][..., 0]
+        new_normals *= np.where(np.sum(new_normals * normals, axis=-1) < 0, -1.0, 1.0)[..., None]
+        converged = np.max(np.abs(new_normals - normals), axis=(1, 2)) < 1e-13
+        normals[active] = new_normals[active]
+        active &= ~converged
+        if not active.any():
+            break
+    projectors = np.eye(3) - np.einsum("pia,pib->piab", normals, normals)  # eq. (16), as in solve_children
+    normal_matrix, rhs = projectors.sum(axis=1), np.einsum("piab,pib->pa", projectors, offsets)
+    try:
+        b_parent = np.linalg.solve(normal_matrix, rhs[..., None])[..., 0]
+    except np.linalg.LinAlgError:  # parallel normals somewhere: each node as solve_children does it
+        b_parent = np.array([_solve_or_lstsq(m, r) for m, r in zip(normal_matrix, rhs)])
+    along = np.einsum("pia,pia->pi", normals, offsets) + np.einsum("pia,pa->pi", normals, b_parent)
+    across = np.einsum("piab,pib->pia", projectors, b_parent[:, None] - offsets)
+    along_residual = along - 2.0 * (along / 2.0)
+    scale = np.maximum(np.mean(np.linalg.norm(offsets, axis=-1), axis=-1), 1e-9)
+    translation_residual = (np.sum(across**2, axis=(1, 2)) + np.sum(along_residual**2, axis=1)) / scale**2
+    reflections = householders(normals.reshape(-1, 3), unit=True).reshape(num, 3, 3, 3)
+    rotation_residual = np.sum((rotations - reflections @ A_parent[:, None]) ** 2, axis=(1, 2, 3))
+    return A_parent, b_parent, rotation_residual + translation_residual
 
 
 def reflection_fit(
@@ -201,42 +285,72 @@ def choose_candidates(
         triples = list(combinations(children, 3))
     else:
         triples = [tuple(sorted(rng.choice(children, size=3, replace=False))) for _ in range(NUM_TRIPLE_HYPOTHESES)]
-    hypotheses: dict[tuple[int, ...], float] = {}
+    # every candidate combination of every triple solved at once (solve_children of each, vectorised)
+    stacked = _StackedCandidates(image_candidates)
+    combos_of = []
     for triple in triples:
         images = [first_image_of_child[k] for k in triple]
-        ranked = []
-        for combo in product(*(range(len(image_candidates[i])) for i in images)):
-            observations = [(j, *image_candidates[i][c]) for j, (i, c) in enumerate(zip(images, combo))]
-            ranked.append(solve_children(observations, 3, parent_det))
-        for node in sorted(ranked, key=lambda n: n.residual)[:2]:
-            choice, score = _consistent_choice(image_candidates, node)
+        combos_of.append([[image_candidates[i][c] for i, c in zip(images, combo)]
+                          for combo in product(*(range(len(image_candidates[i])) for i in images))])
+    flat = [combo for combos in combos_of for combo in combos]
+    A_parents, b_parents, residuals = solve_triples(
+        np.array([[A for A, _ in combo] for combo in flat]), np.array([[b for _, b in combo] for combo in flat]), parent_det
+    )
+    hypotheses: dict[tuple[int, ...], float] = {}
+    start = 0
+    for combos in combos_of:
+        indices = start + np.argsort(residuals[start : start + len(combos)], kind="stable")[:2]
+        start += len(combos)
+        for k in indices:
+            choice, score = _consistent_choice(stacked, A_parents[k], b_parents[k])
             hypotheses[choice] = min(score, hypotheses.get(choice, np.inf))
-    results: dict[tuple[int, ...], NodeSolution] = {}
-    # full solves and re-picks of one choice, computed once: distinct choices often re-pick the same one
+    # full solves and re-picks of one choice, computed once (distinct choices often re-pick the same
+    # one), all choices of a round at once: each best choice solved, re-picked, its re-pick solved
     solved: dict[tuple[int, ...], tuple[NodeSolution, tuple[int, ...]]] = {}
-    for choice in sorted(hypotheses, key=lambda c: hypotheses[c])[:NUM_FULL_HYPOTHESES]:
-        for _ in range(2):
-            if choice not in solved:
-                observations = [(k, *candidates[c]) for k, candidates, c in zip(image_children, image_candidates, choice)]
-                node = solve_children(observations, num_children, parent_det)
-                solved[choice] = (node, _consistent_choice(image_candidates, node)[0])
-            node, choice = solved[choice]
+    children_index = np.asarray(image_children)
+
+    def solve(choices: list[tuple[int, ...]]) -> None:
+        todo = [choice for choice in dict.fromkeys(choices) if choice not in solved]
+        if not todo:
+            return
+        picked = [[candidates[c] for candidates, c in zip(image_candidates, choice)] for choice in todo]
+        nodes = solve_children_many(
+            children_index, np.array([[A for A, _ in p] for p in picked]), np.array([[b for _, b in p] for p in picked]),
+            num_children, parent_det,
+        )
+        for choice, node in zip(todo, nodes):
+            solved[choice] = (node, _consistent_choice(stacked, node.A_parent, node.b_parent)[0])
+
+    firsts = sorted(hypotheses, key=lambda c: hypotheses[c])[:NUM_FULL_HYPOTHESES]
+    solve(firsts)
+    seconds = [solved[choice][1] for choice in firsts]
+    solve(seconds)
+    results: dict[tuple[int, ...], NodeSolution] = {}
+    for second in seconds:
+        node, choice = solved[second]
         if choice not in results or node.residual < results[choice].residual:
             results[choice] = node
     return sorted(((list(c), n) for c, n in results.items()), key=lambda item: item[1].residual)
 
 
+class _StackedCandidates:
+    """Every observation's candidates ``(A_l, b_l)`` of a node stacked once for :func:`_consistent_choice`."""
+
+    def __init__(self, image_candidates: list[list[tuple[np.ndarray, np.ndarray]]]):
+        counts = np.array([len(candidates) for candidates in image_candidates])
+        self.A = np.array([A for candidates in image_candidates for A, _ in candidates])
+        self.b = np.array([b for candidates in image_candidates for _, b in candidates])
+        self.shape = (len(counts), int(counts.max()))
+        self.image_of = np.repeat(np.arange(len(counts)), counts)
+        self.slot = np.arange(len(self.A)) - np.repeat(np.cumsum(counts) - counts, counts)
+
+
 def _consistent_choice(
-    image_candidates: list[list[tuple[np.ndarray, np.ndarray]]], node: NodeSolution
+    stacked: _StackedCandidates, A_parent: np.ndarray, b_parent: np.ndarray
 ) -> tuple[tuple[int, ...], float]:
     """Each image's candidate most consistent with a node's parent, and the capped total inconsistency."""
-    counts = np.array([len(candidates) for candidates in image_candidates])
-    A = np.array([A for candidates in image_candidates for A, _ in candidates])
-    b = np.array([b for candidates in image_candidates for _, b in candidates])
-    costs = np.full((len(counts), counts.max()), np.inf)
-    image_of = np.repeat(np.arange(len(counts)), counts)
-    slot = np.arange(len(A)) - np.repeat(np.cumsum(counts) - counts, counts)
-    costs[image_of, slot] = reflection_fit(A, b, node.A_parent, node.b_parent)[0]
+    costs = np.full(stacked.shape, np.inf)
+    costs[stacked.image_of, stacked.slot] = reflection_fit(stacked.A, stacked.b, A_parent, b_parent)[0]
     choice = tuple(np.argmin(costs, axis=1).tolist())
     score = float(np.sum(np.minimum(costs.min(axis=1), CONSISTENCY_CAP)))
     return choice, score

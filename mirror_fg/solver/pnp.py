@@ -12,7 +12,7 @@ import numpy as np
 
 from mirror_fg.core.geometry import FLIP_Y, apply_transform, project
 
-__all__ = ["pnp_candidates"]
+__all__ = ["pnp_candidates", "pnp_candidates_many"]
 
 _PNP_CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
 
@@ -60,11 +60,18 @@ def _pnp_rotation_candidates(base_points: np.ndarray, normalized: np.ndarray) ->
             for i in range(count):
                 poses.append(_pose_from_rvec(rvecs[i], tvecs[i]))
         admissible = [pose for pose, rms in zip(poses, _reprojection_rms_many(poses, base_points, normalized)) if rms < 1e-3]
-        unique: list[tuple[np.ndarray, np.ndarray]] = []
-        for R, t in admissible:
-            if all(np.linalg.norm(R - R2) + np.linalg.norm(t - t2) > 1e-6 for R2, t2 in unique):
-                unique.append((R, t))
-        return unique
+        if not admissible:
+            return []
+        # the same pose from both solvers once: Frobenius distances of every pair at once
+        R_all = np.array([R for R, _ in admissible])
+        t_all = np.array([t for _, t in admissible])
+        distance = (np.sqrt(np.sum((R_all[:, None] - R_all[None]) ** 2, axis=(2, 3)))
+                    + np.sqrt(np.sum((t_all[:, None] - t_all[None]) ** 2, axis=2)))
+        unique: list[int] = []
+        for i in range(len(admissible)):
+            if all(distance[i, j] > 1e-6 for j in unique):
+                unique.append(i)
+        return [admissible[i] for i in unique]
     # >= 4 points: one pose. SQPnP alone can be wrong (STYLE.md), so refine the candidates of several
     # solvers with LM and keep the one with the lowest reprojection error.
     flags = [cv2.SOLVEPNP_SQPNP, cv2.SOLVEPNP_EPNP, cv2.SOLVEPNP_ITERATIVE]
@@ -114,3 +121,75 @@ def pnp_candidates(base_points: np.ndarray, normalized: np.ndarray, num_mirrors:
     if flip:
         candidates = [(FLIP_Y @ R, FLIP_Y @ t) for R, t in candidates]  # eq. (12)
     return candidates
+
+
+def _p3p_poses(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Every solution of OpenCV's P3P and AP3P (Fischler & Bolles) for three points, unchecked."""
+    obj = np.ascontiguousarray(base_points, dtype=np.float64).reshape(-1, 1, 3)
+    img = np.ascontiguousarray(normalized, dtype=np.float64).reshape(-1, 1, 2)
+    poses: list[tuple[np.ndarray, np.ndarray]] = []
+    for flag in (cv2.SOLVEPNP_P3P, cv2.SOLVEPNP_AP3P):
+        try:
+            count, rvecs, tvecs = cv2.solveP3P(obj, img, np.eye(3), None, flags=flag)
+        except cv2.error:
+            continue
+        poses.extend(_pose_from_rvec(rvecs[i], tvecs[i]) for i in range(count))
+    return poses
+
+
+def pnp_candidates_many(
+    problems: list[tuple[np.ndarray, np.ndarray]], num_mirrors: int
+) -> list[list[tuple[np.ndarray, np.ndarray]]]:
+    """:func:`pnp_candidates` of many images: ``(base_points, normalized)`` each, candidates each.
+
+    Images with three fiducials are checked together (every P3P pose's reprojection and the
+    duplicates of the two solvers at once); the others go one by one through :func:`pnp_candidates`.
+    """
+    flip = num_mirrors % 2 == 1
+    results: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in problems]
+    three, poses, owner = [], [], []
+    for i, (base_points, normalized) in enumerate(problems):
+        if len(base_points) != 3:
+            results[i] = pnp_candidates(base_points, normalized, num_mirrors)
+            continue
+        observed = np.array(normalized, dtype=float)
+        if flip:
+            observed[:, 1] *= -1.0  # eq. (11)
+        three.append((i, np.asarray(base_points, dtype=float), observed))
+        found = _p3p_poses(three[-1][1], observed)
+        poses.extend(found)
+        owner.extend([len(three) - 1] * len(found))
+    if not poses:
+        return results
+    owner_index = np.array(owner)
+    R = np.array([R for R, _ in poses])
+    t = np.array([t for _, t in poses])
+    points = np.array([base for _, base, _ in three])[owner_index]
+    observed_all = np.array([obs for _, _, obs in three])[owner_index]
+    camera_points = np.einsum("kab,knb->kna", R, points) + t[:, None, :]  # as _reprojection_rms_many
+    depth = camera_points[..., 2]
+    behind = np.any(depth <= 0, axis=1)
+    projected = camera_points[..., :2] / np.where(depth > 0, depth, 1.0)[..., None]
+    rms = np.where(behind, np.inf, np.sqrt(np.mean(np.sum((projected - observed_all) ** 2, axis=2), axis=1)))
+    admissible = np.flatnonzero(rms < 1e-3)
+    # the same pose from both solvers once: distances to the image's previous poses (at most 7 back:
+    # P3P and AP3P give up to four each), one offset at a time
+    R_ok, t_ok, owner_ok = R[admissible], t[admissible], owner_index[admissible]
+    back = np.full((len(admissible), 8), np.inf)
+    for d in range(1, min(8, len(admissible))):
+        same_image = owner_ok[d:] == owner_ok[:-d]
+        distance = (np.sqrt(np.sum((R_ok[d:] - R_ok[:-d]) ** 2, axis=(1, 2)))
+                    + np.sqrt(np.sum((t_ok[d:] - t_ok[:-d]) ** 2, axis=1)))
+        back[d:, d] = np.where(same_image, distance, np.inf)
+    back_rows = back.tolist()
+    unique: dict[int, list[int]] = {}
+    for row, k in enumerate(admissible.tolist()):
+        kept = unique.setdefault(owner[k], [])
+        if all(back_rows[row][row - j] > 1e-6 for j in kept):
+            kept.append(row)
+    for j, (i, _, _) in enumerate(three):
+        candidates = [poses[admissible[row]] for row in unique.get(j, [])]
+        if flip:
+            candidates = [(FLIP_Y @ R_k, FLIP_Y @ t_k) for R_k, t_k in candidates]  # eq. (12)
+        results[i] = candidates
+    return results
