@@ -31,7 +31,7 @@ from collections.abc import Mapping, Sequence
 import gtsam
 import numpy as np
 
-from mirror_fg.factors.model import measurement_arrays, reflection_model
+from mirror_fg.factors.model import last_mirror_moments, measurement_arrays, mirror_input, reflection_model
 from mirror_fg.factors.stacking import Fiducials, KeyLayout, Observation, sigma_rows
 
 __all__ = ["EliminatedEvaluator", "NotEliminable", "eliminated_evaluator", "INNER_MAX_ITERATIONS", "INNER_STEP_TOLERANCE"]
@@ -68,6 +68,56 @@ def _compressed_normal(information: np.ndarray, gradient: np.ndarray, cost: floa
     out[:d, d] = r
     out[d, d] = np.sqrt(max(cost - float(r @ r), 0.0))
     return out
+
+
+def _gauss_newton_steps(moments: np.ndarray) -> np.ndarray:
+    """Gauss-Newton steps ``-D^-1 g`` (3, S) from the moments of :func:`last_mirror_moments` (rows 0-5
+    the symmetric ``D``, 6-8 ``g``), by the adjugate of each 3x3 ``D``; when some ``D`` is singular or
+    not positive, by ``np.linalg.solve`` (``pinv`` when that fails) on them all."""
+    d = moments[:6]
+    cofactors = np.take(d, _COFACTOR_A, axis=0)
+    cofactors *= np.take(d, _COFACTOR_B, axis=0)
+    cofactors -= np.take(d, _COFACTOR_C, axis=0) * np.take(d, _COFACTOR_D, axis=0)
+    det = np.einsum("is,is->s", d[:3], cofactors[:3])
+    if np.all(det > 0.0) and np.all(np.isfinite(det)):
+        adjugate = np.take(cofactors, _SYMMETRIC, axis=0).reshape(3, 3, -1)
+        step = np.einsum("ijs,js->is", adjugate, moments[6:9])
+        step /= det
+        step *= -1.0
+        return step
+    D = np.take(d, _SYMMETRIC, axis=0).reshape(3, 3, -1).transpose(2, 0, 1)
+    g = moments[6:9].T
+    try:
+        return -np.linalg.solve(D, g[:, :, None])[:, :, 0].T
+    except np.linalg.LinAlgError:
+        return -(np.linalg.pinv(D) @ g[:, :, None])[:, :, 0].T
+
+
+def _inverses(d: np.ndarray) -> np.ndarray:
+    """Inverses (S, 3, 3) of the symmetric 3x3 matrices stored as rows (00, 01, 02, 11, 12, 22) of ``d``
+    (6, S), by their adjugates; when some is singular or not positive, ``np.linalg.inv`` (``pinv`` when
+    that fails) of them all."""
+    cofactors = np.take(d, _COFACTOR_A, axis=0)
+    cofactors *= np.take(d, _COFACTOR_B, axis=0)
+    cofactors -= np.take(d, _COFACTOR_C, axis=0) * np.take(d, _COFACTOR_D, axis=0)
+    det = np.einsum("is,is->s", d[:3], cofactors[:3])
+    if np.all(det > 0.0) and np.all(np.isfinite(det)):
+        cofactors /= det
+        return np.ascontiguousarray(np.take(cofactors, _SYMMETRIC, axis=0).T).reshape(-1, 3, 3)
+    D = np.ascontiguousarray(np.take(d, _SYMMETRIC, axis=0).T).reshape(-1, 3, 3)
+    try:
+        return np.linalg.inv(D)
+    except np.linalg.LinAlgError:  # a placement its measurements do not constrain (degenerate values)
+        return np.linalg.pinv(D)
+
+
+#: Cofactors of a symmetric 3x3 stored as (00, 01, 02, 11, 12, 22): ``C_k = d[A] d[B] - d[C] d[D]``,
+#: in the same order; ``_SYMMETRIC`` spreads the 6 back to the 9 entries (row-major).
+_COFACTOR_A = np.array([3, 2, 1, 0, 1, 0], dtype=np.intp)
+_COFACTOR_B = np.array([5, 4, 4, 5, 2, 3], dtype=np.intp)
+_COFACTOR_C = np.array([4, 1, 2, 2, 0, 1], dtype=np.intp)
+_COFACTOR_D = np.array([4, 5, 3, 2, 4, 1], dtype=np.intp)
+_SYMMETRIC = np.array([0, 1, 2, 1, 3, 4, 2, 4, 5], dtype=np.intp)
 
 
 class EliminatedEvaluator:
@@ -107,11 +157,19 @@ class EliminatedEvaluator:
         self.dimension = self.dimension_kept + 3 * len(self._elim_rows)
         self.num_measurements = len(measurements)
 
-        placement_of_row = {r: j for j, r in enumerate(self._elim_rows.tolist())}
-        placement = np.array([placement_of_row[r] for r in mirror_rows[:, -1].tolist()], dtype=np.intp)
-        parents = [tuple(row) for row in mirror_rows[:, :-1].tolist()]
-        group_ids: dict[tuple, int] = {}
-        group = np.array([group_ids.setdefault(p, len(group_ids)) for p in parents], dtype=np.intp)
+        placement_of_row = np.full(len(point_keys), -1, dtype=np.intp)
+        placement_of_row[self._elim_rows] = np.arange(len(self._elim_rows))
+        placement = placement_of_row[mirror_rows[:, -1]]
+        if np.any(placement < 0):
+            raise KeyError("a measurement's last mirror placement is not a last-level configuration")
+        # factor of each measurement: its parent placements, numbered in order of first appearance
+        if num_mirrors > 1:
+            _, first, inverse = np.unique(mirror_rows[:, :-1], axis=0, return_index=True, return_inverse=True)
+            rank = np.empty(len(first), dtype=np.intp)
+            rank[np.argsort(first, kind="stable")] = np.arange(len(first))
+            group = rank[inverse.reshape(-1)]
+        else:
+            group = np.zeros(len(placement), dtype=np.intp)
         # Measurements sorted by (factor, placement): every placement and every factor is a contiguous segment.
         self.order = np.lexsort((np.arange(len(placement)), placement, group))
         self.sigma = sigma_rows(noise_sigma, len(measurements))[self.order]  # (M, 2) normalized, sorted order
@@ -187,50 +245,52 @@ class EliminatedEvaluator:
     # --- the placements' optimum (variable projection) -------------------------------------------
 
     def _solve_placements(self) -> None:
-        """Each last-level placement's Gauss-Newton optimum on its own measurements at the kept values."""
+        """Each last-level placement's Gauss-Newton optimum on its own measurements at the kept values.
+
+        The points as they reach the last mirror depend on the kept values only: computed once
+        (:func:`mirror_input`); each iteration then evaluates the last reflection and sums the moments of
+        ``[J_v | e]`` per placement in one pass (:func:`last_mirror_moments`)."""
         P = self._P
         rows = self._elim_rows[self._placement_of_segment]
-        P[rows] = self._P_start[self._placement_of_segment]
         starts = self._placement_starts
         last = self.num_mirrors - 1
+        P[rows] = self._P_start[self._placement_of_segment]
+        xb = mirror_input(self._R, self._t, P, self._base_T, self._landmark_index, self._landmark_point_rows,
+                          self.mirror_rows, last)
+        V = np.ascontiguousarray(P[rows].T)  # (3, S) placements, segment order
+        segment_of = self._segment_of_measurement
 
-        def evaluate(points):
-            residual, _, blocks = self._model(points, True, last_only=True)
-            e = (residual * self._whiten).T  # (M, 2)
-            Jv = blocks[2][last].transpose(2, 0, 1) * self._whiten.T[:, :, None]  # (M, 2, 3)
-            return e, Jv, _segment_sums(np.einsum("ma,ma->m", e, e), starts)
+        def evaluate() -> tuple[np.ndarray, np.ndarray]:
+            return last_mirror_moments(xb, np.take(V, segment_of, axis=1), self._observed_T, self._whiten, starts)
 
-        e, Jv, cost = evaluate(P)
+        e, moments = evaluate()
         for _ in range(INNER_MAX_ITERATIONS):
-            D = _segment_sums(np.einsum("mai,maj->mij", Jv, Jv), starts)
-            g = _segment_sums(np.einsum("mai,ma->mi", Jv, e), starts)
-            try:
-                step = -np.linalg.solve(D, g[:, :, None])[:, :, 0]
-            except np.linalg.LinAlgError:
-                step = -(np.linalg.pinv(D) @ g[:, :, None])[:, :, 0]
+            step = _gauss_newton_steps(moments)  # (3, S)
             step[~np.isfinite(step)] = 0.0
-            active = np.max(np.abs(step), axis=1) > INNER_STEP_TOLERANCE
+            active = np.max(np.abs(step), axis=0) > INNER_STEP_TOLERANCE
             if not active.any():
                 break
             self.inner_iterations += 1
-            step[~active] = 0.0
+            step[:, ~active] = 0.0
             # trust region: a step moves a mirror by at most half its distance (v -> 0 is the camera centre)
-            length = np.linalg.norm(step, axis=1)
-            limit = 0.5 * np.linalg.norm(P[rows], axis=1)
-            step *= np.minimum(1.0, limit / np.maximum(length, 1e-300))[:, None]
-            base = P[rows].copy()
+            length = np.sqrt(np.einsum("is,is->s", step, step))
+            limit = 0.5 * np.sqrt(np.einsum("is,is->s", V, V))
+            step *= np.minimum(1.0, limit / np.maximum(length, 1e-300))
+            base = V.copy()
+            cost = moments[9].copy()
             for _halving in range(4):  # keep each placement's cost from rising (damped Gauss-Newton)
-                P[rows] = base + step
-                e_new, Jv_new, cost_new = evaluate(P)
-                worse = cost_new > cost * (1.0 + 1e-12)
+                np.add(base, step, out=V)
+                e, moments = evaluate()
+                worse = moments[9] > cost * (1.0 + 1e-12)
                 if not worse.any():
                     break
-                step[worse] *= 0.5
+                step[:, worse] *= 0.5
             else:
-                P[rows[worse]] = base[worse]
-                e_new, Jv_new, cost_new = evaluate(P)
-            e, Jv, cost = e_new, Jv_new, cost_new
-        self._e = e
+                V[:, worse] = base[:, worse]
+                e, moments = evaluate()
+        P[rows] = V.T
+        self._e = np.ascontiguousarray(e.T)  # (M, 2)
+        self._moments = moments
 
     # --- the evaluation shared by every factor -----------------------------------------------------
 
@@ -260,36 +320,35 @@ class EliminatedEvaluator:
         parents = [mirror[level].transpose(2, 0, 1) * w for level in range(self.num_mirrors - 1)]
         landmark = GR.transpose(2, 0, 1) * w
         starts = self._placement_starts
-        D = _segment_sums(np.einsum("mai,maj->mij", Jv, Jv), starts)
-        if not (np.all(np.isfinite(D)) and np.all(np.isfinite(e))):
+        moments = self._moments  # D = J_v^T J_v and J_v^T e per placement, at the placements' optimum
+        if not (np.all(np.isfinite(moments)) and np.all(np.isfinite(e))):
             raise RuntimeError("a mirror placement of the last mirror has no finite optimum at these values")
-        try:
-            D_inv = np.linalg.inv(D)
-        except np.linalg.LinAlgError:  # a placement its measurements do not constrain (degenerate values)
-            D_inv = np.linalg.pinv(D)
+        D_inv = _inverses(moments[:6])
         systems, couplings, informations = [], [], []
+        Jv_T = Jv.transpose(0, 2, 1)  # (M, 3, 2)
         for f in self._factors:
             lo, hi, width = f["lo"], f["hi"], f["width"]
-            J = np.zeros((hi - lo, 2, width))
+            J = np.empty((hi - lo, 2, width + 1))  # [J_x | e]: the error is eliminated with the Jacobian
             J[:, :, :6] = H_pose[lo:hi]
+            J[:, :, 6:width] = 0.0
             for level, block in enumerate(parents):
                 J[:, :, 6 + 3 * level : 9 + 3 * level] = block[lo:hi]
             if len(f["landmarks"]):
                 measured = f["landmarks"]
                 for c in range(3):
                     J[measured, :, f["landmark_columns"] + c] = landmark[lo + measured, :, c]
+            J[:, :, width] = e[lo:hi]
             segments = f["segments"]
             local_starts = starts[segments] - lo
-            C = _segment_sums(np.einsum("mai,mad->mid", Jv[lo:hi], J), local_starts)  # J_v^T J_x per placement
-            g = _segment_sums(np.einsum("mai,ma->mi", Jv[lo:hi], e[lo:hi]), local_starts)
-            K = D_inv[segments] @ C  # (S, 3, d)
-            k = (D_inv[segments] @ g[:, :, None])[:, :, 0]
+            C = _segment_sums(Jv_T[lo:hi] @ J, local_starts)  # [J_v^T J_x | J_v^T e] per placement
+            K = D_inv[segments] @ C  # (S, 3, d + 1)
             seg = self._segment_of_measurement[lo:hi] - segments[0]
-            J_reduced = J - np.einsum("mai,mid->mad", Jv[lo:hi], K[seg])  # (I - J_v D^-1 J_v^T) J_x
-            e_reduced = e[lo:hi] - np.einsum("mai,mi->ma", Jv[lo:hi], k[seg])
-            J_flat, e_flat = J_reduced.reshape(-1, width), e_reduced.reshape(-1)
-            information = J_flat.T @ J_flat
-            R_aug = _compressed_normal(information, J_flat.T @ e_flat, float(e_flat @ e_flat))
+            J -= Jv[lo:hi] @ K[seg]  # (I - J_v D^-1 J_v^T) [J_x | e]
+            J_flat = J.reshape(-1, width + 1)
+            normal = J_flat.T @ J_flat
+            information = np.ascontiguousarray(normal[:width, :width])
+            R_aug = _compressed_normal(information, normal[:width, width], float(normal[width, width]))
+            C = np.ascontiguousarray(C[:, :, :width])
             informations.append(information)
             blocks = [np.asfortranarray(R_aug[:, :6])]
             blocks += [np.asfortranarray(R_aug[:, c : c + 3]) for c in range(6, width, 3)]

@@ -12,7 +12,7 @@ import numpy as np
 
 from mirror_fg.factors.stacking import Fiducials, KeyLayout, Observation
 
-__all__ = ["reflection_model", "measurement_arrays"]
+__all__ = ["reflection_model", "measurement_arrays", "mirror_input", "last_mirror_moments"]
 
 
 def reflection_model(
@@ -96,6 +96,84 @@ def reflection_model(
         np.multiply(B[a], GR[:, b], out=cross[:, c])
         cross[:, c] -= B[b] * GR[:, a]
     return residual, B, (cross, GR, mirror_blocks)
+
+
+def mirror_input(
+    R: np.ndarray,
+    t: np.ndarray,
+    P: np.ndarray,
+    base_T: np.ndarray,
+    landmark_index: np.ndarray,
+    landmark_point_rows: np.ndarray,
+    mirror_rows: np.ndarray,
+    level: int,
+) -> np.ndarray:
+    """The points (3, M) as they reach mirror ``level`` (mirror 1 = level 0): eq. (2), then eq. (3) for
+    the mirrors below ``level``, with the same operations as :func:`reflection_model`. Arguments as there."""
+    PT = np.ascontiguousarray(P.T)
+    B = base_T
+    if len(landmark_index):
+        B = B.copy()
+        B[:, landmark_index] = np.take(PT, landmark_point_rows, axis=1)
+    x = R @ B
+    x += t[:, None]
+    for below in range(level):
+        v = np.take(PT, mirror_rows[below], axis=1)
+        vv = np.einsum("im,im->m", v, v)
+        scale = np.einsum("im,im->m", v, x) - vv
+        scale *= 2.0
+        scale /= vv
+        x = x - v * scale
+    return x
+
+
+#: Pairs (i, j) of the 4 columns ``[J_v | e]`` whose products :func:`last_mirror_moments` sums: the
+#: 6 entries of ``J_v^T J_v`` (upper triangle, row-major), the 3 of ``J_v^T e`` and ``e^T e``.
+_MOMENT_LEFT = np.array([0, 0, 0, 1, 1, 2, 0, 1, 2, 3], dtype=np.intp)
+_MOMENT_RIGHT = np.array([0, 1, 2, 1, 2, 2, 3, 3, 3, 3], dtype=np.intp)
+
+
+def last_mirror_moments(
+    xb: np.ndarray, v: np.ndarray, observed_T: np.ndarray, whiten_T: np.ndarray, starts: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The last mirror's reflection (eq. 3) and projection (eq. 9) of ``xb`` (3, M), the points as they
+    reach it, in mirrors ``v`` (3, M), whitened by ``whiten_T`` (2, M): returns the whitened residuals
+    (2, M) and, summed over the segments beginning at ``starts``, the moments (10, S) of ``[J_v | e]``
+    (``J_v`` the whitened Jacobian of the residual in ``v``): rows 0-5 ``J_v^T J_v`` (00, 01, 02, 11,
+    12, 22), rows 6-8 ``J_v^T e``, row 9 ``e^T e``. The same model as :func:`reflection_model`'s last
+    level, with the Jacobian's zeros left out."""
+    vv = np.einsum("im,im->m", v, v)
+    vx = np.einsum("im,im->m", v, xb)
+    scale = vx - vv
+    scale *= 2.0
+    scale /= vv
+    x = xb - v * scale
+    inv_depth = 1.0 / x[2]
+    A = np.empty((2, 4, xb.shape[1]))  # [J_v | e] per residual row, whitened
+    e = A[:, 3]
+    np.multiply(x[:2], inv_depth, out=e)
+    e -= observed_T
+    # G = d z / d x (2, 3): [[d, 0, -x0 d^2], [0, d, -x1 d^2]], d = 1 / depth
+    g2 = x[:2] * (inv_depth * inv_depth)
+    g2 *= -1.0
+    Gv = v[:2] * inv_depth
+    Gv += g2 * v[2]  # (2, M): G v
+    two_over_vv = 2.0 / vv
+    a = 2.0 - vx * two_over_vv
+    # H = G a - Gv (xb 2/vv)^T + Gv (v 4 vx / vv^2)^T = G a + Gv q^T
+    q = v * (2.0 * vx * two_over_vv / vv)
+    q -= xb * two_over_vv
+    H = A[:, :3]
+    np.multiply(Gv[:, None, :], q[None, :, :], out=H)
+    diagonal = inv_depth * a
+    H[0, 0] += diagonal
+    H[1, 1] += diagonal
+    H[:, 2] += g2 * a
+    A *= whiten_T[:, None, :]
+    products = np.take(A, _MOMENT_LEFT, axis=1)
+    products *= np.take(A, _MOMENT_RIGHT, axis=1)
+    moments = np.add.reduceat(products[0] + products[1], starts, axis=1)
+    return e, moments
 
 
 def measurement_arrays(
