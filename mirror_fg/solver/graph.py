@@ -171,15 +171,21 @@ class EliminatedGraph:
     evaluator: EliminatedEvaluator
 
 
-def build_eliminated_graph(dataset: Dataset, initial: InitialEstimate) -> EliminatedGraph | None:
+def build_eliminated_graph(
+    dataset: Dataset, initial: InitialEstimate, measurements: list[Measurement] | None = None,
+    sigmas: np.ndarray | None = None,
+) -> EliminatedGraph | None:
     """The eliminated graph (``factors/eliminated.py``) and initial values, or None where the schedule
-    does not allow it (a last-mirror placement under two parent placements: use :func:`build_graph`)."""
+    does not allow it (a last-mirror placement under two parent placements: use :func:`build_graph`).
+    ``measurements`` / ``sigmas``: the dataset's (``measurements_of``, ``measurement_sigmas``) where the
+    caller already has them (e.g. one subtree solved from several hypotheses)."""
     layout = GraphLayout.for_dataset(dataset)
-    measurements = measurements_of(dataset)
+    if measurements is None:
+        measurements = measurements_of(dataset)
+    if sigmas is None:
+        sigmas = measurement_sigmas(dataset, measurements)
     try:
-        evaluator = eliminated_evaluator(
-            dataset, layout, measurements, measurement_sigmas(dataset, measurements), initial.mirror_vectors
-        )
+        evaluator = eliminated_evaluator(dataset, layout, measurements, sigmas, initial.mirror_vectors)
     except NotEliminable:
         return None
     graph = gtsam.NonlinearFactorGraph()

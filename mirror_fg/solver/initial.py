@@ -17,10 +17,8 @@ import numpy as np
 from mirror_fg.core.errors import SolveError
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.analytic import AnalyticSolution, TreeNode, TreeWalk, Hypothesis
-from mirror_fg.factors.eliminated import NotEliminable, eliminated_evaluator
 from mirror_fg.solver.graph import (
-    EliminatedGraph, GraphLayout, Measurement, build_eliminated_graph, build_graph, extract_values, initial_values,
-    measurement_sigmas, measurements_of,
+    Measurement, build_eliminated_graph, build_graph, extract_values, measurement_sigmas, measurements_of,
 )
 from mirror_fg.solver.lm import cost_scale, lm_params
 
@@ -77,25 +75,6 @@ def _optimize(
             return optimizer.values()
 
 
-def _eliminated_graph(subtree: Dataset, closed_form: AnalyticSolution, measurements: list[Measurement] | None,
-                      sigmas: np.ndarray | None) -> EliminatedGraph | None:
-    """``graph.build_eliminated_graph``, with the subtree's measurements and their sigmas when at hand
-    (the same for every hypothesis of a node)."""
-    if measurements is None or sigmas is None:
-        return build_eliminated_graph(subtree, closed_form)
-    layout = GraphLayout.for_dataset(subtree)
-    try:
-        evaluator = eliminated_evaluator(subtree, layout, measurements, sigmas, closed_form.mirror_vectors)
-    except NotEliminable:
-        return None
-    graph = gtsam.NonlinearFactorGraph()
-    for factor in evaluator.factors:
-        graph.add(factor)
-    evaluator.factors = []  # the factors hold the evaluator: no cycle through C++
-    values = initial_values(layout, closed_form, frozenset(evaluator.eliminated))
-    return EliminatedGraph(graph, values, layout, measurements, evaluator)
-
-
 def _refine_subtree(
     subtree: Dataset, closed_form: AnalyticSolution, optima: Sequence[tuple[float, AnalyticSolution]] = (),
     measurements: list[Measurement] | None = None, sigmas: np.ndarray | None = None,
@@ -108,7 +87,7 @@ def _refine_subtree(
     when already computed.
     """
     try:
-        eliminated = _eliminated_graph(subtree, closed_form, measurements, sigmas)  # its placements solved inside
+        eliminated = build_eliminated_graph(subtree, closed_form, measurements, sigmas)  # its placements solved inside
         if eliminated is not None:
             graph, values, layout, evaluator = eliminated.graph, eliminated.values, eliminated.layout, eliminated.evaluator
         else:
