@@ -130,6 +130,17 @@ def solve_children(
     return solve_children_many(children, rotations[None], offsets[None], num_children, parent_det)[0]
 
 
+def _update_normals(normals: np.ndarray, new_normals: np.ndarray, active: np.ndarray) -> bool:
+    """One alternation's normals (nodes, children, 3) taken in place for the ``active`` nodes, each sign
+    kept as before (so convergence is measured); nodes whose normals moved < 1e-13 leave ``active``.
+    Whether any node is still active."""
+    new_normals *= np.where(np.sum(new_normals * normals, axis=-1) < 0, -1.0, 1.0)[..., None]
+    converged = np.max(np.abs(new_normals - normals), axis=(1, 2)) < 1e-13
+    normals[active] = new_normals[active]
+    active &= ~converged
+    return bool(active.any())
+
+
 def solve_children_many(
     children: np.ndarray, rotations: np.ndarray, offsets: np.ndarray, num_children: int, parent_det: float
 ) -> list[NodeSolution]:
@@ -159,12 +170,7 @@ def solve_children_many(
             new_normals = np.linalg.eigh(symmetric)[1][..., 0]
         else:
             new_normals = smallest_eigenvectors(symmetric.reshape(-1, 3, 3)).reshape(normals.shape)
-        # keep the sign of each normal stable between iterations
-        new_normals *= np.where(np.sum(new_normals * normals, axis=-1) < 0, -1.0, 1.0)[..., None]
-        converged = np.max(np.abs(new_normals - normals), axis=(1, 2)) < 1e-13
-        normals[active] = new_normals[active]
-        active &= ~converged
-        if not active.any():
+        if not _update_normals(normals, new_normals, active):
             break
     # eq. (16): [M_m, 2 n_m] [b_{l-1}; d_m] = b_l(m), stacked over every observation, solved with the
     # offsets d_m eliminated (exactly): across n_m it reads P_m (b_{l-1} - b_l) = 0 with P_m = I - n n^T
@@ -215,11 +221,7 @@ def solve_triples(
         A_parent[active] = new_parent[active]
         estimates = rotations @ np.swapaxes(A_parent, 1, 2)[:, None]  # eq. (13)
         new_normals = np.linalg.eigh(0.5 * (estimates + np.swapaxes(estimates, -1, -2)))[1][..., 0]
-        new_normals *= np.where(np.sum(new_normals * normals, axis=-1) < 0, -1.0, 1.0)[..., None]
-        converged = np.max(np.abs(new_normals - normals), axis=(1, 2)) < 1e-13
-        normals[active] = new_normals[active]
-        active &= ~converged
-        if not active.any():
+        if not _update_normals(normals, new_normals, active):
             break
     projectors = np.eye(3) - np.einsum("pia,pib->piab", normals, normals)  # eq. (16), as in solve_children
     normal_matrix, rhs = projectors.sum(axis=1), np.einsum("piab,pib->pa", projectors, offsets)
