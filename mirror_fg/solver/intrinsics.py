@@ -57,7 +57,7 @@ from mirror_fg.factors.intrinsics import (
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.calibration import Calibration, EstimatedCamera
 from mirror_fg.solver.graph import GraphLayout, InitialEstimate, Measurement, extract_values, initial_values, measurements_of
-from mirror_fg.solver.lm import cost_scale, lm_params
+from mirror_fg.solver.lm import cost_scale, lm_params, run_optimizer
 from mirror_fg.solver.marginals import unconstrained_message
 from mirror_fg.solver.residuals import outliers_of, predicted_normalized
 from mirror_fg.solver.timing import timed
@@ -255,14 +255,8 @@ def _run_lm(dataset: Dataset, fixed: Dataset, graph: gtsam.NonlinearFactorGraph,
     # (pixels, unitless k1..k3, metres, radians). With lambda I a rough start (fx 130 px off, no
     # distortion) gave up at once on simulated data; scaled damping descends from it.
     params.setDiagonalDamping(True)
-    if on_iteration is not None:
-        params.iterationHook = on_iteration  # type: ignore[assignment]
-    initial_error = graph.error(values)
-    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    try:
-        result = optimizer.optimize()
-    except RuntimeError as error:
-        raise SolveError(f"{dataset.source}: {_unconstrained(error, layout)}") from None
+    optimizer, result, initial_error = run_optimizer(
+        graph, values, params, dataset.source, lambda error: _unconstrained(error, layout), on_iteration)
     iterations = optimizer.iterations()
     final_error = graph.error(result)
     converged = bool(np.isfinite(final_error)) and iterations < max_iterations

@@ -58,6 +58,28 @@ def lm_params(max_iterations: int, scale: float = 1.0) -> gtsam.LevenbergMarquar
     return params
 
 
+def run_optimizer(
+    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, params: gtsam.LevenbergMarquardtParams, source: str,
+    unconstrained: Callable[[Exception], str], on_iteration: Callable[[int, float, float], None] | None = None,
+) -> tuple[gtsam.LevenbergMarquardtOptimizer, gtsam.Values, float]:
+    """GTSAM's Levenberg-Marquardt on ``graph`` from ``values``: ``(optimizer, result, initial error)``.
+
+    ``on_iteration`` becomes the iteration hook; an indeterminant linear system becomes a SolveError
+    naming ``source`` and, through ``unconstrained(error)``, the unknown GTSAM found unconstrained.
+    """
+    if on_iteration is not None:
+        # GTSAM's stub types the hook's arguments as SupportsInt/SupportsFloat (what the binding
+        # accepts); GTSAM calls it with an int and two floats.
+        params.iterationHook = on_iteration  # type: ignore[assignment]
+    initial_error = graph.error(values)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    try:
+        result = optimizer.optimize()
+    except RuntimeError as error:
+        raise SolveError(f"{source}: {unconstrained(error)}") from None
+    return optimizer, result, float(initial_error)
+
+
 def _stationary(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, error: float, scale: float) -> bool:
     """Whether the Gauss-Newton step at ``values`` promises (almost) no decrease of the error
     (relative to the error, or to ``scale`` (:func:`cost_scale`) near a zero error)."""
@@ -164,16 +186,8 @@ def levenberg_marquardt(
     with timed(timings, "optimize"):
         scale = cost_scale(dataset)
         params = lm_params(max_iterations, scale)
-        if on_iteration is not None:
-            # GTSAM's stub types the hook's arguments as SupportsInt/SupportsFloat (what the binding
-            # accepts); GTSAM calls it with an int and two floats.
-            params.iterationHook = on_iteration  # type: ignore[assignment]
-        initial_error = graph.error(values)
-        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-        try:
-            result = optimizer.optimize()
-        except RuntimeError as error:
-            raise SolveError(f"{dataset.source}: {unconstrained_message(error, layout)}") from None
+        optimizer, result, initial_error = run_optimizer(
+            graph, values, params, dataset.source, lambda error: unconstrained_message(error, layout), on_iteration)
         iterations = optimizer.iterations()
         if evaluator is not None:
             result = _polished(graph, result)
