@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 import mirror_fg.solver.initial as initial
+import mirror_fg.solver.peeling as peeling
+from mirror_fg import calibrate
 from mirror_fg.core.geometry import householders
 from mirror_fg.solver.analytic import TreeWalk
 from mirror_fg.solver.graph import build_eliminated_graph
@@ -99,13 +101,7 @@ def test_pnp_candidates_many_is_pnp_candidates_of_each_image(scene):
 
 def _level2_nodes(dataset):
     """Every level-2 node of the walk, scored as ``initial_estimate`` scores it."""
-    walk = TreeWalk(dataset)
-    nodes = []
-    for node in walk.nodes():
-        node.scores = initial._refined_scores(node) if node.level > 1 else node.closed_form_scores()
-        if node.level > 1:
-            nodes.append(node)
-    return nodes
+    return [node for node in initial.scored_nodes(TreeWalk(dataset)) if node.level > 1]
 
 
 def test_replayed_lm_loop_is_gtsams():
@@ -135,13 +131,72 @@ def test_replayed_lm_loop_is_gtsams():
 def test_stopping_at_a_known_optimum_keeps_the_same_hypotheses(scene, monkeypatch):
     """Each node hands up the same optima (P3P twins included) whether or not a refinement that nears an
     optimum already found stops there."""
+    tolerance = initial.SAME_OPTIMUM_TOLERANCE
     dataset, _ = simulate_base_case(**scene)
     stopped = [node.kept() for node in _level2_nodes(dataset)]
     monkeypatch.setattr(initial, "SAME_OPTIMUM_TOLERANCE", 0.0)  # never near: every proposal refined in full
     full = [node.kept() for node in _level2_nodes(dataset)]
     assert sum(len(kept) for kept in full) > len(full)  # nodes with more than one optimum
+    # "the same optimum" as the module defines it: two LM runs into one optimum end a little apart (its
+    # relative cost tolerance; ~1e-4 m in a flat valley), P3P twins are centimetres apart
     for ours, reference in zip(stopped, full):
         assert len(ours) == len(reference)
         for hypothesis, expected in zip(ours, reference):
-            np.testing.assert_allclose(hypothesis.A, expected.A, atol=1e-4)
-            np.testing.assert_allclose(hypothesis.b, expected.b, atol=1e-4 * max(1.0, np.linalg.norm(expected.b)))
+            np.testing.assert_allclose(hypothesis.A, expected.A, atol=tolerance)
+            np.testing.assert_allclose(hypothesis.b, expected.b, atol=tolerance * max(1.0, np.linalg.norm(expected.b)))
+
+
+def _unbounded(monkeypatch):
+    """Every node searched and ranked on all of its placements (the bounds of issue 14 lifted)."""
+    monkeypatch.setattr(peeling, "MAX_SEARCH_CHILDREN", 10**9)
+    monkeypatch.setattr(initial, "MAX_RANKING_PLACEMENTS", 10**9)
+
+
+@pytest.mark.parametrize("scene", [
+    {"num_images": 600, "num_points": 0, "mirror1_placements": 3, "seed": 0},
+    {"num_images": 450, "num_points": 4, "mirror1_placements": 3, "seed": 2, "pixel_sigma": 2.0},
+    {"num_images": 400, "num_points": 0, "mirror1_placements": 4, "seed": 5, "mirror_distance": 0.25},
+])
+def test_bounded_search_and_ranking_reach_the_same_mle(scene, monkeypatch):
+    """Nodes with hundreds of placements search (peeling) and rank (LM) on a spread subset of them; the
+    MLE and its covariance are those of the search over every placement."""
+    dataset, _ = simulate_base_case(**scene)
+    assert len(dataset.images) // scene["mirror1_placements"] > max(peeling.MAX_SEARCH_CHILDREN, initial.MAX_RANKING_PLACEMENTS)
+    bounded = calibrate(dataset)
+    _unbounded(monkeypatch)
+    reference = calibrate(dataset)
+    assert bounded.final_error == pytest.approx(reference.final_error, rel=1e-9)
+    np.testing.assert_allclose(bounded.R_cam_base, reference.R_cam_base, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(bounded.t_cam_base, reference.t_cam_base, rtol=0, atol=1e-9 * max(1.0, np.linalg.norm(reference.t_cam_base)))
+    np.testing.assert_allclose(bounded.covariance, reference.covariance, rtol=1e-6, atol=0)
+    for config, vector in reference.mirror_vectors.items():
+        np.testing.assert_allclose(bounded.mirror_vectors[config], vector, rtol=0, atol=1e-9)
+
+
+def test_bounded_search_fills_in_every_child_from_its_parent():
+    """A node with more children than ``MAX_SEARCH_CHILDREN``: the children searched keep the joint
+    solve's vectors, every other child's vector is its chosen candidate's reflection from the parent
+    (eqs. 6-7), and every observation's candidate is the one most consistent with that parent."""
+    dataset, _ = simulate_base_case(num_images=200, num_points=0, mirror1_placements=2, seed=1, mirror_distance=0.25)
+    walk = TreeWalk(dataset)
+    images = [im for im in dataset.images if im.mirror_configs[0] == 0]
+    children = [im.mirror_configs[1] for im in images]
+    ids = sorted(set(children))
+    index = [ids.index(m) for m in children]
+    candidates = [walk._leaf_candidates[im.id] for im in images]
+    assert len(ids) > peeling.MAX_SEARCH_CHILDREN and any(len(c) > 1 for c in candidates)
+    ranked = peeling.choose_candidates(index, candidates, len(ids), -1.0, np.random.default_rng(0))  # A_1 reflects
+    searched = set(peeling.spread_subset(len(ids), peeling.MAX_SEARCH_CHILDREN).tolist())
+    for choice, node in ranked:
+        misfits = [peeling.reflection_fit(np.array([A for A, _ in c]), np.array([b for _, b in c]), node.A_parent, node.b_parent)[0]
+                   for c in candidates]
+        assert choice == [int(np.argmin(m)) for m in misfits]
+        for k, (c, pick) in enumerate(zip(candidates, choice)):
+            if index[k] in searched:
+                continue
+            A, b = c[pick]
+            expected = peeling.reflection_fit(A[None], b[None], node.A_parent, node.b_parent)[1][0]
+            np.testing.assert_allclose(node.mirror_vectors[index[k]], expected, rtol=0, atol=1e-12)
+    # the best choice is the one the search over every child finds
+    full = peeling._search(index, candidates, len(ids), -1.0, np.random.default_rng(0))
+    assert ranked[0][0] == full[0][0]

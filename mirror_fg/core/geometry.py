@@ -23,6 +23,7 @@ __all__ = [
     "project",
     "project_jacobian",
     "so3_exp",
+    "so3_exp_many",
     "project_to_orthogonal",
     "measurement",
     "measurement_jacobians",
@@ -50,6 +51,20 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
     if angle < 1e-12:
         return np.eye(3) + K
     return np.eye(3) + np.sin(angle) / angle * K + (1.0 - np.cos(angle)) / angle**2 * (K @ K)
+
+
+def so3_exp_many(w: np.ndarray) -> np.ndarray:
+    """:func:`so3_exp` of each row of ``w`` (n, 3) at once: rotation matrices (n, 3, 3)."""
+    w = np.asarray(w, dtype=float).reshape(-1, 3)
+    angle = np.linalg.norm(w, axis=1)
+    small = angle < 1e-12
+    safe = np.where(small, 1.0, angle)
+    K = np.zeros((len(w), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+    first = np.where(small, 1.0, np.sin(angle) / safe)
+    second = np.where(small, 0.0, (1.0 - np.cos(angle)) / safe**2)
+    return np.eye(3) + first[:, None, None] * K + second[:, None, None] * (K @ K)
 
 
 def householder(mirror_vector: np.ndarray) -> np.ndarray:

@@ -11,7 +11,7 @@ import html
 import logging
 import math
 import os
-from collections.abc import Iterable, Mapping
+from collections.abc import Container, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -64,6 +64,18 @@ class Image:
     normalized_from: tuple[Camera | None, np.ndarray] | None = field(
         default=None, init=False, repr=False, compare=False
     )
+
+    def restricted(self, mirror_configs: tuple[int, ...], names: Container[str]) -> Image:
+        """This image with ``mirror_configs`` and only its observations of ``names`` (in its order), e.g.
+        as a subtree of the mirror tree sees it; its normalized observations come along with the raw
+        ones they were computed from (so :meth:`Dataset.normalized` still checks them)."""
+        kept = [n for n in self.observations if n in names]
+        image = Image(self.id, mirror_configs, {n: self.observations[n] for n in kept})
+        if self.normalized is not None and self.normalized_from is not None and list(self.normalized) == list(self.observations):
+            rows = [k for k, n in enumerate(self.normalized) if n in names]
+            image.normalized = {n: self.normalized[n] for n in kept}
+            image.normalized_from = (self.normalized_from[0], self.normalized_from[1][rows])
+        return image
 
 
 @dataclass

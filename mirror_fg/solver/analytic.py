@@ -23,11 +23,11 @@ import numpy as np
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.geometry import FLIP_Y, nested_transform, nested_transforms, predict_camera_points, project, project_to_orthogonal
 from mirror_fg.io.dataset import Dataset, Image
-from mirror_fg.solver.peeling import MIN_NORMAL_SPREAD, NodeSolution, choose_candidates, solve_children_many
+from mirror_fg.solver.peeling import MIN_NORMAL_SPREAD, NodeSolution, choose_candidates, reflection_fit, solve_children_many
 from mirror_fg.solver.pnp import pnp_candidates_many
 
 __all__ = [
-    "AnalyticSolution", "Hypothesis", "TreeNode", "TreeWalk", "hypothesis_of_subtree", "reconstruct_points",
+    "AnalyticSolution", "Hypothesis", "TreeNode", "TreeWalk", "complete_last_mirror", "hypothesis_of_subtree", "reconstruct_points",
     "solve_analytic", "subtree_dataset", "subtree_solution", "triangulate_point",
 ]
 
@@ -174,10 +174,7 @@ def subtree_dataset(dataset: Dataset, images: list[Image], level: int) -> Datase
     """
     flip = (level - 1) % 2 == 1
     fiducials = {name: FLIP_Y @ p if flip else p.copy() for name, p in dataset.fiducials.items()}
-    sub_images = [
-        Image(im.id, im.mirror_configs[level - 1 :], {n: z for n, z in im.observations.items() if n in fiducials})
-        for im in images
-    ]
+    sub_images = [im.restricted(im.mirror_configs[level - 1 :], fiducials) for im in images]
     return Dataset(dataset.num_mirrors - level + 1, dataset.camera, dataset.pixel_sigma, fiducials, sub_images,
                    source=dataset.source, point_sigma=dataset.point_sigma)
 
@@ -203,6 +200,35 @@ def hypothesis_of_subtree(solution: AnalyticSolution, hypothesis: Hypothesis, le
     )
 
 
+def complete_last_mirror(
+    hypothesis: Hypothesis, images: list[Image], level: int, candidates: dict[str, list[tuple[np.ndarray, np.ndarray]]]
+) -> Hypothesis:
+    """``hypothesis`` of a node of the last mirror (``level`` = Nv) with the mirror vectors it lacks for
+    the placements of ``images``: each image's PnP candidate ``(A_Nv, b_Nv)`` (``candidates``) most
+    consistent with the node's ``(A, b)`` and the reflection between them (eqs. 6-7,
+    :func:`peeling.reflection_fit`), averaged over a placement's images; the candidates taken replace
+    the images' ``image_transforms``."""
+    known = hypothesis.mirror_vectors
+    missing = [image for image in images if (level, image.mirror_configs[-1]) not in known and image.id in candidates]
+    if not missing:
+        return hypothesis
+    counts = np.array([len(candidates[image.id]) for image in missing])
+    stacked = [pose for image in missing for pose in candidates[image.id]]
+    misfits, vectors = reflection_fit(np.array([A for A, _ in stacked]), np.array([b for _, b in stacked]),
+                                      hypothesis.A, hypothesis.b)  # eqs. (6)-(7)
+    first = np.cumsum(counts) - counts
+    best = first + np.array([int(np.argmin(misfits[f : f + c])) for f, c in zip(first.tolist(), counts.tolist())])
+    placements, index = np.unique([image.mirror_configs[-1] for image in missing], return_inverse=True)
+    sums = np.zeros((len(placements), 3))
+    np.add.at(sums, index, vectors[best])
+    means = sums / np.bincount(index, minlength=len(placements))[:, None]
+    mirror_vectors = dict(known)
+    mirror_vectors.update({(level, int(m)): [v] for m, v in zip(placements, means)})
+    image_transforms = dict(hypothesis.image_transforms)
+    image_transforms.update({image.id: stacked[k] for image, k in zip(missing, best.tolist())})
+    return Hypothesis(hypothesis.A, hypothesis.b, mirror_vectors, image_transforms)
+
+
 _subtree_solution = subtree_solution  # the names tests and older callers use
 _hypothesis_of_subtree = hypothesis_of_subtree
 
@@ -226,22 +252,26 @@ class TreeNode:
     dataset: Dataset = field(repr=False)
     normalized: dict[str, dict[str, np.ndarray]] = field(repr=False)
     scores: list[tuple[float, Hypothesis]] | None = None
+    #: every image's PnP candidates ``(A_Nv, b_Nv)`` (Sect. 4.1)
+    leaf_candidates: dict[str, list[tuple[np.ndarray, np.ndarray]]] = field(default_factory=dict, repr=False)
 
     @cached_property
     def _fiducials(self) -> _FiducialObservations:
         return _FiducialObservations(self.dataset, self.images, self.normalized)
 
-    def closed_form_scores(self) -> list[tuple[float, Hypothesis]]:
-        """Each proposal's half whitened squared reprojection error of the node's fiducials."""
+    def closed_form_scores(self, images: list[Image] | None = None) -> list[tuple[float, Hypothesis]]:
+        """Each proposal's half whitened squared reprojection error of the fiducials of the node's images
+        (or of ``images``, some of them)."""
+        fiducials = self._fiducials if images is None else _FiducialObservations(self.dataset, images, self.normalized)
         scores = []
         for hypothesis in self.proposals:
             vectors = {key: _mean_vector(vs) for key, vs in hypothesis.mirror_vectors.items()}
-            scores.append((0.5 * self._fiducials.cost(hypothesis.A, hypothesis.b, vectors, self.level), hypothesis))
+            scores.append((0.5 * fiducials.cost(hypothesis.A, hypothesis.b, vectors, self.level), hypothesis))
         return scores
 
-    def subtree(self) -> Dataset:
-        """The node's images as a dataset of their own (:func:`subtree_dataset`)."""
-        return subtree_dataset(self.dataset, self.images, self.level)
+    def subtree(self, images: list[Image] | None = None) -> Dataset:
+        """The node's images (or some of them) as a dataset of their own (:func:`subtree_dataset`)."""
+        return subtree_dataset(self.dataset, self.images if images is None else images, self.level)
 
     def subtree_solution(self, hypothesis: Hypothesis) -> AnalyticSolution:
         """A proposal as the solution of :meth:`subtree`."""
@@ -354,7 +384,8 @@ class TreeWalk:
                         f"under it ({', '.join(str(m) for m in child_ids)}); the analytical solution needs >= 3"
                     )
                 proposals, degenerate = _node_proposals(entries, level, child_ids, self._rng, exhaustive=level == 1)
-                node = TreeNode(level, prefix, images_under[prefix], proposals, degenerate, dataset, self._normalized)
+                node = TreeNode(level, prefix, images_under[prefix], proposals, degenerate, dataset, self._normalized,
+                                leaf_candidates=self._leaf_candidates)
                 yield node
                 solutions = node.kept()
                 # the root's solutions are ranked by every fiducial: the best one is the answer

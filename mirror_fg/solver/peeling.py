@@ -28,6 +28,11 @@ NUM_FULL_HYPOTHESES = 4
 NODE_ALTERNATIONS = 30
 #: Partners per child when its normal is started from pairwise axes (eqs. 14-15); more add nothing.
 MAX_AXIS_PARTNERS = 24
+#: :func:`choose_candidates` searches on the observations of at most this many children, spread over the
+#: node's children in their order (capture order); every other observation's candidate and mirror vector
+#: then follow from each solution's parent (eqs. 6-7). Bounds the cost of a node with hundreds of
+#: placements (a video): the search needs the residual gap between P3P twins, not every child.
+MAX_SEARCH_CHILDREN = 48
 
 
 @dataclass
@@ -259,6 +264,13 @@ def reflection_fit(
     return misfits, 0.5 * along[:, None] * normals
 
 
+def spread_subset(count: int, limit: int) -> np.ndarray:
+    """Indices of at most ``limit`` of ``count`` items, evenly spread (first and last included)."""
+    if count <= limit:
+        return np.arange(count)
+    return np.unique(np.linspace(0, count - 1, limit).round().astype(int))
+
+
 def choose_candidates(
     image_children: list[int],
     image_candidates: list[list[tuple[np.ndarray, np.ndarray]]],
@@ -274,7 +286,43 @@ def choose_candidates(
     "twin" can be consistent across many images on its own, so the best few of these choices are
     re-solved over every child (candidates re-picked by consistency with that full solution) and
     returned best residual first.
+
+    With more than ``MAX_SEARCH_CHILDREN`` children the search runs on the observations of that many,
+    spread over them; each solution's residual is theirs, and every observation's candidate is then
+    re-picked by consistency with its parent, the other children's mirror vectors following from it
+    (eqs. 6-7, :func:`reflection_fit`).
     """
+    children_index = np.asarray(image_children)
+    searched = spread_subset(num_children, MAX_SEARCH_CHILDREN)
+    if len(searched) == num_children:
+        return _search(image_children, image_candidates, num_children, parent_det, rng)
+    observations = np.flatnonzero(np.isin(children_index, searched))
+    ranked = _search(
+        np.searchsorted(searched, children_index[observations]).tolist(), [image_candidates[i] for i in observations],
+        len(searched), parent_det, rng,
+    )
+    stacked = _StackedCandidates(image_candidates)
+    counts = np.maximum(np.bincount(children_index, minlength=num_children), 1)[:, None]
+    results: dict[tuple[int, ...], NodeSolution] = {}
+    for _, node in ranked:
+        choice, vectors = _consistent_vectors(stacked, node.A_parent, node.b_parent)  # eqs. (6)-(7)
+        mirror_vectors = list(np.stack([np.bincount(children_index, weights=vectors[:, k], minlength=num_children)
+                                        for k in range(3)], axis=1) / counts)  # a child's mean over its observations
+        for k, vector in zip(searched.tolist(), node.mirror_vectors):
+            mirror_vectors[k] = vector
+        if choice not in results or node.residual < results[choice].residual:
+            results[choice] = NodeSolution(node.A_parent, node.b_parent, mirror_vectors, node.residual)
+    return sorted(((list(c), n) for c, n in results.items()), key=lambda item: item[1].residual)
+
+
+def _search(
+    image_children: list[int],
+    image_candidates: list[list[tuple[np.ndarray, np.ndarray]]],
+    num_children: int,
+    parent_det: float,
+    rng: np.random.Generator,
+) -> list[tuple[list[int], NodeSolution]]:
+    """:func:`choose_candidates` on every observation given."""
     if all(len(c) == 1 for c in image_candidates):
         only = [0] * len(image_candidates)
         observations = [(k, *candidates[0]) for k, candidates in zip(image_children, image_candidates)]
@@ -356,6 +404,19 @@ def _consistent_choice(
     choice = tuple(np.argmin(costs, axis=1).tolist())
     score = float(np.sum(np.minimum(costs.min(axis=1), CONSISTENCY_CAP)))
     return choice, score
+
+
+def _consistent_vectors(
+    stacked: _StackedCandidates, A_parent: np.ndarray, b_parent: np.ndarray
+) -> tuple[tuple[int, ...], np.ndarray]:
+    """:func:`_consistent_choice`'s choice with each observation's mirror vector (n, 3) from it (eqs. 6-7)."""
+    misfits, vectors = reflection_fit(stacked.A, stacked.b, A_parent, b_parent)
+    costs = np.full(stacked.shape, np.inf)
+    costs[stacked.image_of, stacked.slot] = misfits
+    chosen = np.argmin(costs, axis=1)
+    row = np.full(stacked.shape, -1, dtype=np.intp)
+    row[stacked.image_of, stacked.slot] = np.arange(len(misfits))
+    return tuple(chosen.tolist()), vectors[row[np.arange(len(chosen)), chosen]]
 
 
 def solve_node(

@@ -10,7 +10,7 @@ from itertools import combinations
 import cv2
 import numpy as np
 
-from mirror_fg.core.geometry import FLIP_Y, apply_transform, project
+from mirror_fg.core.geometry import FLIP_Y, apply_transform, project, so3_exp_many
 
 __all__ = ["pnp_candidates", "pnp_candidates_many"]
 
@@ -41,7 +41,9 @@ def _reprojection_rms_many(
 
 
 def _pose_from_rvec(rvec: np.ndarray, tvec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0], np.asarray(tvec, dtype=np.float64).reshape(3)
+    """``(R, t)`` of OpenCV's ``(rvec, tvec)`` (``so3_exp_many``: the rotations of many poses at once
+    are the same numbers as one's)."""
+    return so3_exp_many(rvec)[0], np.asarray(tvec, dtype=np.float64).reshape(3)
 
 
 def _pnp_rotation_candidates(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -124,17 +126,21 @@ def pnp_candidates(base_points: np.ndarray, normalized: np.ndarray, num_mirrors:
 
 
 def _p3p_poses(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Every solution of OpenCV's P3P and AP3P (Fischler & Bolles) for three points, unchecked."""
+    """Every solution ``(rvec, tvec)`` of OpenCV's P3P and AP3P (Fischler & Bolles) for three points,
+    unchecked (rotation vectors: :func:`so3_exp_many` turns many into matrices at once)."""
     obj = np.ascontiguousarray(base_points, dtype=np.float64).reshape(-1, 1, 3)
     img = np.ascontiguousarray(normalized, dtype=np.float64).reshape(-1, 1, 2)
     poses: list[tuple[np.ndarray, np.ndarray]] = []
     for flag in (cv2.SOLVEPNP_P3P, cv2.SOLVEPNP_AP3P):
         try:
-            count, rvecs, tvecs = cv2.solveP3P(obj, img, np.eye(3), None, flags=flag)
+            count, rvecs, tvecs = cv2.solveP3P(obj, img, _IDENTITY, None, flags=flag)
         except cv2.error:
             continue
-        poses.extend(_pose_from_rvec(rvecs[i], tvecs[i]) for i in range(count))
+        poses.extend(zip(rvecs[:count], tvecs[:count]))
     return poses
+
+
+_IDENTITY = np.eye(3)
 
 
 def pnp_candidates_many(
@@ -162,8 +168,8 @@ def pnp_candidates_many(
     if not poses:
         return results
     owner_index = np.array(owner)
-    R = np.array([R for R, _ in poses])
-    t = np.array([t for _, t in poses])
+    R = so3_exp_many(np.array([rvec for rvec, _ in poses]))  # as cv2.Rodrigues, all at once
+    t = np.array([tvec for _, tvec in poses], dtype=float).reshape(-1, 3)
     points = np.array([base for _, base, _ in three])[owner_index]
     observed_all = np.array([obs for _, _, obs in three])[owner_index]
     camera_points = np.einsum("kab,knb->kna", R, points) + t[:, None, :]  # as _reprojection_rms_many
@@ -188,7 +194,7 @@ def pnp_candidates_many(
         if all(back_rows[row][row - j] > 1e-6 for j in kept):
             kept.append(row)
     for j, (i, _, _) in enumerate(three):
-        candidates = [poses[admissible[row]] for row in unique.get(j, [])]
+        candidates = [(R_ok[row], t_ok[row]) for row in unique.get(j, [])]
         if flip:
             candidates = [(FLIP_Y @ R_k, FLIP_Y @ t_k) for R_k, t_k in candidates]  # eq. (12)
         results[i] = candidates
