@@ -4,6 +4,7 @@ Data loss, hangs and runaway memory, silent wrong answers, internal errors that 
 one line. Each test fails on the code before the fix (noted per test).
 """
 import copy
+import dataclasses
 import json
 import os
 import resource
@@ -224,12 +225,12 @@ def test_huge_integers_in_a_dataset_are_named(tmp_path, dataset_dict, capsys):
 
 
 def test_the_answer_does_not_depend_on_a_uniform_pixel_sigma(dataset_dict):
-    """Before: pixel_sigma 1e6 stopped LM 20 mm away, 1e12 after one iteration 60 mm away, exit 0."""
+    """Before: pixel_sigma 1e6 stopped LM 20 mm away, 1e12 after one iteration 60 mm away, exit 0.
+    (A file now refuses a sigma beyond the image diagonal; the solver itself stays scale-free.)"""
     answers = []
+    dataset = dataset_from_dict(copy.deepcopy(dataset_dict))
     for sigma in (0.5, 1e6, 1e12, 1e-6):
-        d = copy.deepcopy(dataset_dict)
-        d["pixel_sigma"] = sigma
-        cal = mirror_fg.calibrate(dataset_from_dict(d))
+        cal = mirror_fg.calibrate(dataclasses.replace(dataset, pixel_sigma=sigma))
         assert cal.converged
         answers.append((cal.t_cam_base, cal.R_cam_base, cal.sigma3_position_mm / sigma))
     for t, R, s3 in answers[1:]:
@@ -353,3 +354,24 @@ def test_detect_reads_its_capture_once(tmp_path):
     data = tmp_path / "data.json"
     data.write_text((tmp_path / "d.json").read_text())
     one_error_line(run_cli("detect", str(data), "-o", str(tmp_path / "e.json")), 2, "not a capture")
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("pixel_sigma", 1e300, "pixel_sigma must be between 1e-06 and"),
+    ("pixel_sigma", 1e-300, "pixel_sigma must be between 1e-06 and"),
+    ("pixel_sigma", 1e4, "px (the image diagonal), got 10000"),
+    ("point_sigma", 1e300, "point_sigma: point 'F0': sigma must be between 1e-06 and"),
+])
+def test_a_sigma_no_measurement_can_have_is_refused_in_one_line(dataset_dict, tmp_path, capsys, key, value, message):
+    """Before: pixel_sigma or point_sigma 1e300 printed numpy overflow warnings, then 'cannot solve' (exit 3)."""
+    d = copy.deepcopy(dataset_dict)
+    if key == "point_sigma":
+        d["point_sigma"] = {"F0": value}
+    else:
+        d[key] = value
+    path = tmp_path / "sigma.json"
+    path.write_text(json.dumps(d))
+    assert main(["calibrate", str(path), "-o", str(tmp_path / "out.json")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and message in err and "sigma.json" in err, err
+    assert not (tmp_path / "out.json").exists()

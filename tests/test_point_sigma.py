@@ -87,6 +87,8 @@ def test_measurement_sigmas_are_each_points_sigma_over_the_focal_lengths():
     ({"P0": True}, "point_sigma: point 'P0': sigma must be a finite number > 0, got True"),
     ({"P0": None}, "point_sigma: point 'P0': sigma must be a finite number > 0, got None"),
     ({"P0": 1e400}, "point_sigma: point 'P0': sigma must be a finite number > 0"),
+    ({"P0": 1e300}, "point_sigma: point 'P0': sigma must be between 1e-06 and 1280 px (the image diagonal), got 1e+300"),
+    ({"P0": 1e-12}, "point_sigma: point 'P0': sigma must be between 1e-06 and 1280 px (the image diagonal)"),
     ([1.0, 2.0], "point_sigma: expected an object {point name: sigma}, got a list"),
 ])
 def test_malformed_point_sigma_is_refused_in_one_line(value, message):

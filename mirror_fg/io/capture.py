@@ -68,6 +68,7 @@ from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.camera_files import camera_from_file
 from mirror_fg.io.fileio import MAX_IMAGE_PIXELS, load_structured, native_stderr, resolve_path
 from mirror_fg.io.target import PointsTarget, TagTarget, Target, observations_from, pose_from_dict, target_from_dict
+from mirror_fg.io.point_sigma import measurement_sigma
 from mirror_fg.core.values import check_format, check_keys, finite, is_int, short, short_path, type_name, vector
 
 __all__ = [
@@ -253,9 +254,8 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".") ->
         raise DatasetError(f"{source}: missing 'camera' (intrinsics, or a path to a calibration file)")
     camera, camera_file = _camera(d["camera"], source, base_dir)
 
-    pixel_sigma = d.get("pixel_sigma", DEFAULT_PIXEL_SIGMA)
-    if finite(pixel_sigma) is None or pixel_sigma <= 0:
-        raise DatasetError(f"{source}: pixel_sigma must be a finite number > 0 (pixels), got {short(pixel_sigma)}")
+    pixel_sigma = measurement_sigma(d.get("pixel_sigma", DEFAULT_PIXEL_SIGMA), (camera["width"], camera["height"]),
+                                    f"{source}: pixel_sigma")
 
     if "target" not in d:
         raise DatasetError(f"{source}: missing 'target' (chessboard, charuco, apriltag or points)")

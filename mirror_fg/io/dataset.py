@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import html
 import logging
-import math
 import os
 from collections.abc import Container, Iterable, Mapping
 from dataclasses import dataclass, field
@@ -20,8 +19,8 @@ import numpy as np
 from mirror_fg.core.camera import Camera, camera_from_dict, camera_to_dict, check_camera, initial_intrinsics
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.output import atomic_write, json_text
-from mirror_fg.io.point_sigma import point_sigma_from_dict, point_sigma_to_dict
-from mirror_fg.core.values import check_format, check_keys, clip, coordinates, is_int, is_number, short, type_name
+from mirror_fg.io.point_sigma import measurement_sigma, point_sigma_from_dict, point_sigma_to_dict
+from mirror_fg.core.values import check_format, check_keys, clip, coordinates, is_int, short, type_name
 
 DATASET_FORMAT = "mirror-fg/dataset@1"
 #: Library messages (a dataset loaded, at INFO); a child of the ``mirror_fg`` logger.
@@ -216,9 +215,8 @@ def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Datase
 
     if "pixel_sigma" not in d:
         raise DatasetError(f"{source}: missing 'pixel_sigma' (measurement noise, pixels)")
-    pixel_sigma = d["pixel_sigma"]
-    if not is_number(pixel_sigma) or not math.isfinite(pixel_sigma) or pixel_sigma <= 0:
-        raise DatasetError(f"{source}: pixel_sigma must be a finite number > 0, got {short(pixel_sigma)}")
+    image_size = None if camera is None else (camera.width, camera.height)
+    pixel_sigma = measurement_sigma(d["pixel_sigma"], image_size, f"{source}: pixel_sigma")
 
     ds = Dataset(
         num_mirrors=int(num_mirrors),
@@ -246,7 +244,8 @@ def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Datase
         ds.images.append(image)
     if unstarted is not None:
         _start_camera(ds, unstarted)
-    ds.point_sigma = point_sigma_from_dict(d.get("point_sigma"), (n for im in ds.images for n in im.observations), source)
+    ds.point_sigma = point_sigma_from_dict(d.get("point_sigma"), (n for im in ds.images for n in im.observations), source,
+                                           image_size)
     return ds
 
 

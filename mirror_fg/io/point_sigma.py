@@ -18,15 +18,41 @@ from mirror_fg.core.camera import Camera
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.values import finite, short, type_name
 
-__all__ = ["point_sigma_from_dict", "point_sigma_to_dict", "normalized_sigmas"]
+__all__ = ["measurement_sigma", "point_sigma_from_dict", "point_sigma_to_dict", "normalized_sigmas"]
+
+#: A measurement standard deviation (``pixel_sigma``, ``point_sigma``) lies in [``SIGMA_MIN_PX``, the
+#: image diagonal] pixels with a camera, [``SIGMA_MIN_NORMALIZED``, ``SIGMA_MAX_NORMALIZED``] normalized
+#: units without one: a point known to a millionth of a pixel, or known less well than the image is
+#: wide, is no measurement (and whitened errors overflow or vanish in floating point).
+SIGMA_MIN_PX = 1e-6
+SIGMA_MIN_NORMALIZED = 1e-9
+SIGMA_MAX_NORMALIZED = 10.0
 
 
-def point_sigma_from_dict(value: Any, observed: Iterable[str], source: str) -> dict[str, float]:
+def measurement_sigma(value: Any, image_size: tuple[int, int] | None, where: str) -> float:
+    """``value`` as a measurement standard deviation (pixels when ``image_size`` = (width, height) of
+    the camera is given, else normalized units), or DatasetError naming ``where`` and the range."""
+    number = finite(value)
+    if number is None or number <= 0.0:
+        raise DatasetError(f"{where} must be a finite number > 0, got {short(value)}")
+    if image_size is not None:
+        smallest, largest, unit = SIGMA_MIN_PX, float(np.hypot(*image_size)), " px (the image diagonal)"
+    else:
+        smallest, largest, unit = SIGMA_MIN_NORMALIZED, SIGMA_MAX_NORMALIZED, " (normalized units)"
+    if not smallest <= number <= largest:
+        raise DatasetError(f"{where} must be between {smallest:g} and {largest:g}{unit}, got {short(value)}")
+    return number
+
+
+def point_sigma_from_dict(
+    value: Any, observed: Iterable[str], source: str, image_size: tuple[int, int] | None = None
+) -> dict[str, float]:
     """Validate dataset@1's ``point_sigma`` (``None``: absent) against the ``observed`` point names.
 
-    Returns ``{name: sigma}`` (floats > 0, finite). Raises DatasetError (one line naming ``source`` and
-    the point) on anything but an object of finite numbers > 0 keyed by names some image observes (a
-    name no image observes is refused with the name probably meant).
+    Returns ``{name: sigma}`` (floats > 0, finite, in the range of :func:`measurement_sigma` for the
+    camera's ``image_size``, or normalized units without one). Raises DatasetError (one line naming
+    ``source`` and the point) on anything but an object of such numbers keyed by names some image
+    observes (a name no image observes is refused with the name probably meant).
     """
     if value is None:
         return {}
@@ -40,10 +66,7 @@ def point_sigma_from_dict(value: Any, observed: Iterable[str], source: str) -> d
             close = difflib.get_close_matches(name, names, n=1, cutoff=0.5) if isinstance(name, str) else []
             hint = f" (did you mean {close[0]!r}?)" if close else ""
             raise DatasetError(f"{where}: point {short(name)} is observed by no image{hint}")
-        number = finite(sigma)
-        if number is None or number <= 0.0:
-            raise DatasetError(f"{where}: point {short(name)}: sigma must be a finite number > 0, got {short(sigma)}")
-        result[name] = number
+        result[name] = measurement_sigma(sigma, image_size, f"{where}: point {short(name)}: sigma")
     return result
 
 

@@ -140,6 +140,10 @@ class _FiducialObservations:
         self.observed = np.array(observed, dtype=float).reshape(-1, 2)
         self.sigma = dataset.normalized_sigma
 
+    def placements(self, first_mirror: int = 1) -> set[tuple[int, int]]:
+        """The configurations ``(l, m)`` of mirrors ``first_mirror..Nv`` these observations were made in."""
+        return {(level + 1, configs[level]) for configs in set(self.configs) for level in range(first_mirror - 1, len(configs))}
+
     def cost(
         self, A_start: np.ndarray, b_start: np.ndarray, mirror_vectors: dict[tuple[int, int], np.ndarray],
         first_mirror: int = 1,
@@ -263,9 +267,10 @@ class TreeNode:
         """Each proposal's half whitened squared reprojection error of the fiducials of the node's images
         (or of ``images``, some of them)."""
         fiducials = self._fiducials if images is None else _FiducialObservations(self.dataset, images, self.normalized)
+        needed = fiducials.placements(self.level)
         scores = []
         for hypothesis in self.proposals:
-            vectors = {key: _mean_vector(vs) for key, vs in hypothesis.mirror_vectors.items()}
+            vectors = {key: _mean_vector(vs) for key, vs in hypothesis.mirror_vectors.items() if key in needed}
             scores.append((0.5 * fiducials.cost(hypothesis.A, hypothesis.b, vectors, self.level), hypothesis))
         return scores
 
