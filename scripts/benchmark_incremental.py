@@ -48,34 +48,44 @@ def stats_ms(seconds: list[float]) -> str:
 
 def latency_mode(counts: list[int], placements: int, sigma: float, seed: int) -> dict[int, dict[str, float]]:
     """``--latency``: ``add_image`` p50 / p95 / max over a stream of each length (2 mirrors, 3 fiducials, no
-    points), after the first estimate; each stream simulated at its own length."""
+    points), after the first estimate; each stream simulated at its own length. Also: restarts after the
+    first estimate, the time of ``calibration(full=True)`` at the end and how far the last per-image
+    estimate is from it (largest pose axis, in its standard deviations): what the relinearisation
+    thresholds cost in accuracy."""
     figures = {}
     print(f"add_image latency (ms) after the first estimate; {placements} placements of mirror 1, {sigma} px, "
           f"seed {seed}; load average {os.getloadavg()[0]:.2f}")
-    print(f"{'images':>8s} {'p50':>8s} {'p95':>8s} {'max':>8s} {'p50 last 10%':>13s} {'p95 last 10%':>13s} {'stream s':>9s}")
+    print(f"{'images':>8s} {'p50':>8s} {'p95':>8s} {'max':>8s} {'p50 last 10%':>13s} {'p95 last 10%':>13s} {'stream s':>9s} "
+          f"{'restarts':>8s} {'full s':>7s} {'last vs full':>12s}")
     for count in counts:
         ds, _ = simulate_base_case(num_images=count, num_points=0, pixel_sigma=sigma, mirror1_placements=placements,
                                    seed=seed)
         calibrator = IncrementalCalibrator(ds)
-        latency, first = [], None
+        latency, first, estimate, restarts_at_first = [], None, None, 0
         stream_start = time.perf_counter()
         for n, image in enumerate(ds.images, start=1):
             start = time.perf_counter()
             estimate = calibrator.add_image(image)
             latency.append(time.perf_counter() - start)
             if estimate is not None and first is None:
-                first = n
+                first, restarts_at_first = n, calibrator.restarts
         total = time.perf_counter() - stream_start
         if first is None:
             print(f"{count:8d}  the stream never allowed the analytical solution")
             continue
         after = np.array(latency[first:]) * 1e3
         tail = after[-max(1, len(after) // 10):]
+        start = time.perf_counter()
+        full = calibrator.calibration(full=True)
+        full_s = time.perf_counter() - start
         row = {"p50": float(np.percentile(after, 50)), "p95": float(np.percentile(after, 95)), "max": float(after.max()),
-               "p50_tail": float(np.percentile(tail, 50)), "p95_tail": float(np.percentile(tail, 95)), "stream_s": total}
+               "p50_tail": float(np.percentile(tail, 50)), "p95_tail": float(np.percentile(tail, 95)), "stream_s": total,
+               "restarts": calibrator.restarts - restarts_at_first, "full_s": full_s,
+               "last_vs_full_sigmas": float(pose_sigmas(full, estimate).max())}
         figures[count] = row
         print(f"{count:8d} {row['p50']:8.2f} {row['p95']:8.2f} {row['max']:8.1f} {row['p50_tail']:13.2f} "
-              f"{row['p95_tail']:13.2f} {total:9.1f}", flush=True)
+              f"{row['p95_tail']:13.2f} {total:9.1f} {row['restarts']:8d} {full_s:7.2f} "
+              f"{row['last_vs_full_sigmas']:9.3f} sd", flush=True)
     return figures
 
 

@@ -3,9 +3,13 @@
 Same unknowns, measurement model and noise as the batch pipeline (``calibrate.py``): ``X(0)`` is
 ``T_cam_base`` (camera <- base, ``Cp = R Bp + t``, metres), ``V(i)`` one mirror vector per configuration
 ``(l, m)`` (camera frame, metres), ``L(j)`` one reconstruction point (base frame, metres); keys are
-numbered in the order the unknowns get a value. The factors are the batch fast path's stacked ones
-(``factors.batched``: one Python call per image instead of one per measurement), built for each
-update's new measurements only.
+numbered in the order the unknowns get a value. As in the batch, the last mirror's placements (one per
+image, typically) are eliminated inside their factors (``factors.eliminated``, a Schur complement) and
+are not iSAM2 unknowns: iSAM2 holds ``X(0)``, the placements of mirrors 1..Nv-1 and the points, so an
+update costs about the same at the 10,000th image as at the 1,000th (``incremental_graph.py`` explains the
+blocks of placements and their merging). With a robust kernel (or for a placement seen under two
+parents) the placements stay iSAM2 unknowns with the batch's stacked factors (``factors.batched``).
+Each update is built from its new measurements only.
 
 Life of an image (``IncrementalCalibrator.add_image``):
 
@@ -22,16 +26,20 @@ Life of an image (``IncrementalCalibrator.add_image``):
    it determines goes into one graph, Levenberg-Marquardt refines it (as the batch does) and a fresh
    iSAM2 gets that whole graph at the refined values.
 3. Afterwards an image whose placements all have values only adds its factors (one ``ISAM2.update``
-   with the new factors and values, nothing re-added). A new placement gets its value from the image's
+   with the new factors and values, nothing re-added): its last-mirror placement goes into a new block
+   of its own, and every ``MERGE_FANOUT`` blocks of one size under one parent are merged into one (their
+   factors replaced in the same update). A new placement gets its value from the image's
    PnP ``(A, b)`` (eqs. 10-12) and the current estimate: the known mirrors after it are peeled off
    ``(A, b)`` and those before it applied to ``T_cam_base``, which leaves one reflection (eqs. 6-7): its
    normal is the -1 eigenvector of ``A_l A_{l-1}^T``, its offset the part of ``b_l - M_l b_{l-1}`` along
    it. Several new placements in one image (a new placement of mirror 1 with a new one of mirror 2)
    wait until their subtree can be solved like a node of the analytical solution (eqs. 13-18) under
    the known parent. A reconstruction point gets its value by eq. (20) from the current estimate once
-   two images in the graph see it; until then its observations wait. Each new unknown is then moved
-   to its optimum with everything else held (a few Gauss-Newton steps on its own factors) so that
-   iSAM2 does not keep it linearised at a rough initial value.
+   two images in the graph see it; until then its observations wait (once it has one, the blocks of the
+   images that saw it are re-made with them). Each new unknown is then moved to its optimum with
+   everything else held (a few Gauss-Newton steps on its own factors) so that iSAM2 does not keep it
+   linearised at a rough initial value; an eliminated placement is at its optimum in every evaluation
+   of its factor anyway.
 
 Settling. On the smallest tree (a placement seen with only three children) the analytical solution
 can be far off: on the issue's 300-image stream (seed 0) it is 1.5 m off at image 203, where the
@@ -264,7 +272,9 @@ class IncrementalCalibrator(GraphGrowth):
 
         ``None``: ``T_cam_base``, 6x6 in SPEC's convention ``[dtheta (rad), dt (m)]`` with ``R_true =
         Exp(dtheta) R_est``, ``t_true = t_est + dt``. ``(l, m)``: the mirror vector of that configuration,
-        3x3, m^2, camera frame. A point name: that reconstruction point, 3x3, m^2, base frame.
+        3x3, m^2, camera frame. A point name: that reconstruction point, 3x3, m^2, base frame. An
+        eliminated placement (not an iSAM2 unknown) gets the whole graph's marginal at the estimate, a
+        pass over every measurement.
         """
         self._require_started()
         if unknown is None:
@@ -276,17 +286,20 @@ class IncrementalCalibrator(GraphGrowth):
             key = self._g.layout.mirror_keys.get(config) if len(config) == 2 else None
         if key is None:
             raise KeyError(f"{unknown!r} has no value in the graph yet")
-        if self._settled:
+        if self._settled and (isinstance(unknown, str) or config in self._g.kept):
             return self._g.require_isam().marginalCovariance(key)
-        # Unsettled, iSAM2 may not hold the reported (LM) estimate: marginals of the whole graph there.
-        _, mirrors, points = marginal_covariances(self._g.factors, self._values(), self._g.layout, self._ds.source)
+        # Unsettled, iSAM2 may not hold the reported (LM) estimate; an eliminated placement is not in
+        # iSAM2: marginals of the whole graph at the estimate.
+        factors, values = self._explicit_graph()
+        _, mirrors, points = marginal_covariances(factors, values, self._g.layout, self._ds.source)
         return points[unknown] if isinstance(unknown, str) else mirrors[config]
 
     def calibration(self, full: bool = False) -> Calibration:
         """The current estimate as a ``Calibration`` (same shape as the batch one).
 
         ``full=False`` (what ``add_image`` returns, about a millisecond): pose and its covariance from
-        iSAM2; mirror vectors and points without covariances; no residuals (empty, so ``to_dict()``
+        iSAM2; mirror vectors and points without covariances (an eliminated placement as its block gave
+        it at the update that made or last merged the block); no residuals (empty, so ``to_dict()``
         reports 0) and NaN ``initial_error``/``final_error`` (each would cost a pass over every factor).
         ``full=True`` (about a second for 300 images): first every factor is relinearised at the current
         estimate until the pose moves less than 1e-3 of its standard deviation (an unsettled calibrator
@@ -323,8 +336,8 @@ class IncrementalCalibrator(GraphGrowth):
                     self._restart(lm_iterations=FINAL_LM_ITERATIONS)
             # Unsettled, the estimate is the start-up's Levenberg-Marquardt solution: no Gauss-Newton step.
             g = self._g
-            estimate = self._values()
-            covariance, mirror_covs, point_covs = marginal_covariances(g.factors, estimate, g.layout, self._ds.source)
+            factors, estimate = self._explicit_graph()  # every placement an unknown, at the estimate
+            covariance, mirror_covs, point_covs = marginal_covariances(factors, estimate, g.layout, self._ds.source)
             predicted = predicted_normalized(self._ds, g.measurements, g.R, g.t, g.mirrors, g.points)
             residuals, whitened = residual_statistics(self._ds, g.measurements, predicted)
             calibration = self._make_calibration(
@@ -334,7 +347,7 @@ class IncrementalCalibrator(GraphGrowth):
                 residuals=residuals,
                 labels=[(m.image_id, m.point) for m in g.measurements],
                 outliers=outliers_of(g.measurements, whitened),
-                final_error=float(g.factors.error(estimate)),
+                final_error=float(factors.error(estimate)),
             )
             calibration.converged = self._settled and g.step_sigmas < POLISH_SIGMAS
         calibration.timings.update(stage_times)
@@ -427,14 +440,16 @@ class IncrementalCalibrator(GraphGrowth):
         analytic.points = dict(self._g.points)  # eq. (20) at the analytical solution
         initial_error = float(factors.error(values))
         with timed(self.timings, "startup_lm"):
-            optimizer = gtsam.LevenbergMarquardtOptimizer(factors, values, lm_params(lm_iterations, cost_scale(self._ds)))
+            params = lm_params(lm_iterations, cost_scale(self._ds))
+            optimizer = gtsam.LevenbergMarquardtOptimizer(factors, values, params)
             try:
                 optimized = optimizer.optimize()
             except RuntimeError as error:  # IndeterminantLinearSystemException
                 raise SolveError(f"{self._ds.source}: {unconstrained_message(error, self._g.layout)}") from None
-        self._g.factors = factors
+            if self._collapsed(optimized):  # a placement run into the camera centre (factors.eliminated.COLLAPSED_FRACTION)
+                optimizer, factors, optimized = self._solve_with_every_placement(params)
         self._g.isam = self._new_isam2()
-        self._set_estimate(optimized)
+        self._set_estimate(optimized)  # the pose the update's step is measured from; placements below
         try:
             self._update(factors, optimized)
             # Settled when iSAM2's own Gauss-Newton step from the LM solution is small: the linear
@@ -443,11 +458,12 @@ class IncrementalCalibrator(GraphGrowth):
             self._settled = self._g.step_sigmas < SETTLED_SIGMAS
         except SolveError:  # iSAM2's Cholesky gave up near the LM solution (nearly indeterminant)
             self._settled = False
-            self._set_estimate(optimized)
-            covariance, _, _ = marginal_covariances(factors, optimized, self._g.layout, self._ds.source)
+            self._set_estimate(optimized)  # and every eliminated placement there, by _explicit_graph
+            covariance, _, _ = marginal_covariances(*self._explicit_graph(), self._g.layout, self._ds.source)
             self._g.pose_cov = covariance_to_pose3(self._g.R, covariance)  # GTSAM's [w, nu]
-        if not self._settled:
-            self._set_estimate(optimized)
+        else:
+            if not self._settled:
+                self._set_estimate(optimized, self._g.blocks)
         self._unsettled_tries = 0 if self._settled else self._unsettled_tries + 1
         self._analytic = analytic
         self._g.initial_error = initial_error
@@ -499,7 +515,6 @@ class IncrementalCalibrator(GraphGrowth):
             return
         before = (self._g.R, self._g.t, self._g.pose_cov)
         self._refine_new(factors, values)
-        self._g.factors.push_back(factors)
         try:
             self._update(factors, values)
             diverged = self._pose_step_sigmas(*before) > DIVERGENCE_SIGMAS

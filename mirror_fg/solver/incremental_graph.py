@@ -5,6 +5,23 @@ Frames, keys and units as ``incremental.py``. :class:`GraphState` is everything 
 back; :class:`GraphGrowth` is the part of the calibrator that grows that graph (a mixin: it works on
 the calibrator's ``_g`` state, ``_ds`` images dataset, ``_robust`` kernel, ``_thresholds``, ``_pnp``
 cache and ``timings``).
+
+Eliminated placements (issue 14; without a robust kernel). The last mirror moves in (nearly) every image,
+so one ``Point3`` per placement in iSAM2 makes each update cost O(images): every Python factor call gets
+a copy of iSAM2's whole ``Values``, and reading the estimate back touches every unknown. Instead each
+last-mirror placement is eliminated inside its factor (``factors/eliminated.py``: a Schur complement, as
+GTSAM's ``SmartProjectionFactor`` eliminates its landmark; the factor's cost is the minimum over the
+placement, eq. 23, and its linearisation has the same normal equations as the placement's measurements
+with the placement eliminated first). iSAM2 then holds only ``T_cam_base``, the placements of mirrors
+1..Nv-1 and the points. The placements are grouped in :class:`PlacementBlock` s, one factor each, all
+under one parent placement: a new image's placement starts a block of its own, and ``MERGE_FANOUT``
+blocks of one level are merged into one (the old factors removed from iSAM2 in the same update): O(log n)
+factors for n images, so neither the root clique's re-elimination nor a relinearisation of the pose
+grows with the number of Python factors. A merged factor, linearised at iSAM2's linearisation point,
+is the sum of the factors it replaces: the same linear system. The placements' values come from their
+block (at the estimate when it was made, and for every placement in ``calibration(full=True)``); a
+placement seen under two parents (or with a robust kernel, every placement) stays a ``Point3`` in iSAM2
+with the batch's stacked factors (``factors/batched.py``).
 """
 from __future__ import annotations
 
@@ -20,15 +37,19 @@ from gtsam.symbol_shorthand import L, V, X
 from mirror_fg.core.geometry import householder, nested_transform
 from mirror_fg.core.errors import SolveError
 from mirror_fg.factors.batched import batched_factors
+from mirror_fg.factors.eliminated import EliminatedEvaluator, collapsed, eliminated_evaluator
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.pnp import pnp_candidates
 from mirror_fg.solver.analytic import triangulate_point
-from mirror_fg.solver.graph import GraphLayout, Measurement, extract_values, measurement_sigmas
+from mirror_fg.solver.graph import GraphLayout, Measurement, measurement_sigmas
 from mirror_fg.solver.marginals import unconstrained_message
 from mirror_fg.solver.peeling import MIN_NORMAL_SPREAD, reflection_fit, solve_node
 from mirror_fg.solver.timing import timed
 
-__all__ = ["GraphState", "GraphGrowth", "RelinearizeThresholds", "MIN_PNP_FIDUCIALS", "REFINE_ITERATIONS", "POLISH_UPDATES", "POLISH_SIGMAS"]
+__all__ = [
+    "GraphState", "GraphGrowth", "RelinearizeThresholds", "PlacementBlock", "MIN_PNP_FIDUCIALS", "REFINE_ITERATIONS",
+    "POLISH_UPDATES", "POLISH_SIGMAS", "MERGE_FANOUT",
+]
 
 #: Minimum number of fiducials in an image for its own PnP (eq. 10; 3 gives up to four candidates).
 MIN_PNP_FIDUCIALS = 3
@@ -38,6 +59,10 @@ REFINE_ITERATIONS = 3
 POLISH_UPDATES = 5
 #: ... until a relinearisation moves the pose by less than this (Mahalanobis).
 POLISH_SIGMAS = 1e-3
+#: Blocks of eliminated placements under one parent are merged this many at a time (a block of level k
+#: holds >= MERGE_FANOUT**k placements): at most ``MERGE_FANOUT - 1`` blocks per level and parent, so
+#: O(log n) factors in iSAM2 for n images, and each placement is re-blocked O(log n) times in all.
+MERGE_FANOUT = 8
 
 
 @dataclass(frozen=True)
@@ -49,6 +74,11 @@ class RelinearizeThresholds:
     Pose3 tangent of ``T_cam_base``; ``mirror`` and ``point``: metres. Every factor touches the pose, so
     its threshold sets how often an update costs a pass over the whole graph; what a linearisation
     point that far from the estimate costs in accuracy is second order (one Gauss-Newton step).
+
+    Measured on a 10,000-image stream (``scripts/benchmark_incremental.py --latency``): the pose is not
+    relinearised at all in the last 1,200 images, and the last per-image estimate is 0.03 of a standard
+    deviation from the fully relinearised one (``calibration(full=True)``). A threshold tied to the pose's
+    shrinking standard deviation would add a pass over every image every ~n/4 images for no gain there.
     """
 
     pose: tuple[float, float, float, float, float, float] = (0.005, 0.005, 0.005, 0.01, 0.01, 0.01)
@@ -64,16 +94,34 @@ class RelinearizeThresholds:
 
 
 @dataclass
+class PlacementBlock:
+    """Last-mirror placements eliminated inside one factor (``factors/eliminated.py``), all under ``parent``
+    (the placements of mirrors 1..Nv-1). ``index``: the factor's index in iSAM2 (``None`` until an update
+    gave it one); ``level``: merges so far in the sense of ``MERGE_FANOUT``."""
+
+    parent: tuple[int, ...]
+    level: int
+    measurements: list[Measurement]
+    placements: list[tuple[int, int]]
+    evaluator: EliminatedEvaluator
+    factor: gtsam.CustomFactor
+    index: int | None = None
+
+
+@dataclass
 class GraphState:
     """What a failed start-up rolls back: the graph, the estimate, and the images in and waiting for it.
 
     ``R``, ``t``: ``T_cam_base`` (metres); ``mirrors`` (camera frame) and ``points`` (base frame), metres;
     ``pose_cov``: 6x6 in GTSAM's Pose3 tangent ``[w, nu]``; ``step_sigmas``: Mahalanobis size of the
     last pose step; ``initial_error``: the latest start-up graph's cost at its analytical solution.
+    ``factors`` holds the stacked factors of the placements iSAM2 has as unknowns; ``blocks`` the factors
+    with eliminated placements (``block_of`` finds a placement's); ``kept``: the mirror placements that
+    are iSAM2 unknowns (every placement of ``layout`` that is not eliminated).
     """
 
     isam: gtsam.ISAM2 | None
-    factors: gtsam.NonlinearFactorGraph  # every factor in the graph (iSAM2 holds the same)
+    factors: gtsam.NonlinearFactorGraph  # the stacked factors (iSAM2 holds them too)
     layout: GraphLayout
     images: list[Image]  # in the graph, in the order added (the calibrator's dataset holds this list)
     waiting: list[Image]  # accepted, not in the graph
@@ -87,6 +135,11 @@ class GraphState:
     pose_cov: np.ndarray
     initial_error: float
     step_sigmas: float
+    kept: dict[tuple[int, int], int] = field(default_factory=dict)
+    blocks: list[PlacementBlock] = field(default_factory=list)
+    block_of: dict[tuple[int, int], PlacementBlock] = field(default_factory=dict)
+    removals: list[int] = field(default_factory=list)  # iSAM2 factors the next update removes
+    pending: list[tuple[PlacementBlock, int]] = field(default_factory=list)  # new blocks, position in the update
 
     @classmethod
     def empty(cls, waiting: Iterable[Image], seed: int) -> GraphState:
@@ -159,7 +212,7 @@ class GraphGrowth:
                     self._new_mirror(config, found[config], values)
                     progress = True
         ready.extend(self._initialise_points(values))
-        self._add_factors(ready, factors)
+        self._add_factors(ready, factors, values)
 
     def _add_to_graph(self, image: Image, ready: list[Measurement]) -> None:
         """Put an image in the graph: its measurements go to ``ready``, or wait for their point's value."""
@@ -172,16 +225,23 @@ class GraphGrowth:
             else:
                 self._g.point_waiting[name].append(meas)
 
-    def _add_factors(self, measurements: list[Measurement], factors: gtsam.NonlinearFactorGraph) -> None:
-        """The batch pipeline's fast factors (``factors.batched``) for ``measurements``, into ``factors``.
+    def _add_factors(
+        self, measurements: list[Measurement], factors: gtsam.NonlinearFactorGraph, values: gtsam.Values
+    ) -> None:
+        """The factors of ``measurements`` into ``factors`` (the next update's), and into the graph state.
 
-        One stacked, vectorised factor per image or group of images (a start-up passes every image at
-        once) instead of one Python factor per measurement: iSAM2's relinearisation of the pose, a pass
-        over every factor, is what dominates an update, and a Python call costs the same for one
-        measurement as for many. The layout handed over holds only the keys these measurements use.
+        Without a robust kernel, measurements whose last placement is eliminated go to placement blocks
+        (module docstring, :meth:`_place_in_blocks`); the others get the batch pipeline's stacked factors
+        (``factors.batched``: one vectorised factor per image or group of images instead of one Python
+        factor per measurement; the layout handed over holds only the keys these measurements use).
         """
         if not measurements:
             return
+        self._g.measurements.extend(measurements)
+        if self._robust is None:
+            measurements = self._place_in_blocks(measurements, factors, values)
+            if not measurements:
+                return
         configs = {(l + 1, m) for meas in measurements for l, m in enumerate(meas.mirror_configs)}
         names = {meas.point for meas in measurements if meas.point not in self._ds.fiducials}
         layout = GraphLayout(
@@ -192,13 +252,105 @@ class GraphGrowth:
         sigmas = measurement_sigmas(self._ds, measurements)  # point_sigma where given
         for factor in batched_factors(self._ds, layout, measurements, sigmas, self._robust):
             factors.add(factor)
-        self._g.measurements.extend(measurements)
+            self._g.factors.add(factor)
+
+    def _place_in_blocks(
+        self, measurements: list[Measurement], factors: gtsam.NonlinearFactorGraph, values: gtsam.Values
+    ) -> list[Measurement]:
+        """Put measurements whose last placement is eliminated into placement blocks; return the others.
+
+        A block holding a placement that gets new measurements (a point's value came, the placement is
+        seen again) is dissolved and re-made with them. A placement seen under a second parent becomes an
+        iSAM2 unknown (inserted into ``values``; its measurements are returned). Then ``MERGE_FANOUT``
+        blocks of one level and parent are merged, until none are. Removed blocks' iSAM2 indices go to
+        ``removals``, new blocks' factors into ``factors`` (``pending`` until the update numbers them).
+        """
+        g = self._g
+        Nv = self._ds.num_mirrors
+        explicit = [m for m in measurements if (Nv, m.mirror_configs[-1]) in g.kept]
+        pool = [m for m in measurements if (Nv, m.mirror_configs[-1]) not in g.kept]
+        parents: dict[tuple[int, int], set[tuple[int, ...]]] = defaultdict(set)
+        for meas in pool:
+            parents[(Nv, meas.mirror_configs[-1])].add(tuple(meas.mirror_configs[:-1]))
+        dissolved: dict[int, PlacementBlock] = {}
+        for config, seen in parents.items():
+            block = g.block_of.get(config)
+            if block is not None:
+                seen.add(block.parent)
+                dissolved[id(block)] = block
+        for block in dissolved.values():
+            self._drop_block(block)
+            pool.extend(block.measurements)
+        for config, seen in parents.items():
+            if len(seen) > 1:  # one placement under two parents: an iSAM2 unknown of its own
+                g.kept[config] = g.layout.mirror_keys[config]
+                values.insert(g.layout.mirror_keys[config], g.mirrors[config])
+        explicit += [m for m in pool if (Nv, m.mirror_configs[-1]) in g.kept]
+        pool = [m for m in pool if (Nv, m.mirror_configs[-1]) not in g.kept]
+        by_parent: dict[tuple[int, ...], list[Measurement]] = defaultdict(list)
+        for meas in pool:
+            by_parent[tuple(meas.mirror_configs[:-1])].append(meas)
+        for parent, block_measurements in by_parent.items():
+            placements = list(dict.fromkeys((Nv, m.mirror_configs[-1]) for m in block_measurements))
+            level = 0
+            while MERGE_FANOUT ** (level + 1) <= len(placements):
+                level += 1
+            while True:  # merge MERGE_FANOUT blocks of the new one's level into it, as long as there are
+                same = [b for b in g.blocks if b.parent == parent and b.level == level]
+                if len(same) + 1 < MERGE_FANOUT:
+                    break
+                for block in same:
+                    self._drop_block(block)
+                    block_measurements = block.measurements + block_measurements
+                    placements = block.placements + placements
+                level += 1
+            self._make_block(parent, level, block_measurements, placements, factors)
+        return explicit
+
+    def _make_block(
+        self, parent: tuple[int, ...], level: int, measurements: list[Measurement], placements: list[tuple[int, int]],
+        factors: gtsam.NonlinearFactorGraph,
+    ) -> None:
+        """One factor with ``placements`` (all under ``parent``) eliminated, into the state and ``factors``."""
+        g = self._g
+        configs = {(l + 1, m) for meas in measurements for l, m in enumerate(meas.mirror_configs)}
+        names = {meas.point for meas in measurements if meas.point not in self._ds.fiducials}
+        layout = GraphLayout(
+            pose_key=g.layout.pose_key,
+            mirror_keys={config: g.layout.mirror_keys[config] for config in configs},
+            point_keys={name: g.layout.point_keys[name] for name in names},
+        )
+        sigmas = measurement_sigmas(self._ds, measurements)
+        evaluator = eliminated_evaluator(self._ds, layout, measurements, sigmas, {c: g.mirrors[c] for c in placements})
+        (factor,) = evaluator.factors  # one parent: one factor
+        evaluator.factors = []  # the block holds the factor, the factor the evaluator: no cycle
+        block = PlacementBlock(parent, level, measurements, placements, evaluator, factor)
+        g.blocks.append(block)
+        for config in placements:
+            g.block_of[config] = block
+        g.pending.append((block, factors.size()))
+        factors.add(factor)
+
+    def _drop_block(self, block: PlacementBlock) -> None:
+        """Take a block out of the state; its factor leaves iSAM2 with the next update."""
+        g = self._g
+        g.blocks.remove(block)
+        for config in block.placements:
+            if g.block_of.get(config) is block:
+                del g.block_of[config]
+        if block.index is not None:
+            g.removals.append(block.index)
+        else:  # made earlier in this same update: not in iSAM2 yet
+            g.pending = [(b, position) for b, position in g.pending if b is not block]
 
     def _new_mirror(self, config: tuple[int, int], v: np.ndarray, values: gtsam.Values) -> None:
+        """A key and a value for a new placement; into ``values`` (iSAM2's) unless it is eliminated."""
         key = V(len(self._g.layout.mirror_keys))
         self._g.layout.mirror_keys[config] = key
         self._g.mirrors[config] = np.asarray(v, dtype=float)
-        values.insert(key, self._g.mirrors[config])
+        if self._robust is not None or config[0] < self._ds.num_mirrors:
+            self._g.kept[config] = key
+            values.insert(key, self._g.mirrors[config])
 
     def _initialise_points(self, values: gtsam.Values) -> list[Measurement]:
         """Eq. (20) for every point seen in two images of the graph, from the current estimate.
@@ -367,20 +519,27 @@ class GraphGrowth:
     # --- iSAM2 ----------------------------------------------------------------------------------------
 
     def _update(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
-        """One ``ISAM2.update`` with only the new factors and values; refresh the estimate."""
-        isam = self._g.require_isam()
+        """One ``ISAM2.update`` with only the new factors and values (and the removal of the blocks merged
+        or re-made); refresh the estimate."""
+        g = self._g
+        isam = g.require_isam()
         with timed(self.timings, "isam2"):
+            pending, g.pending, removals, g.removals = g.pending, [], g.removals, []
             try:
-                isam.update(factors, values)
-                pose_cov = isam.marginalCovariance(self._g.layout.pose_key)
+                result = isam.update(factors, values, removals)
+                pose_cov = isam.marginalCovariance(g.layout.pose_key)
             except RuntimeError as error:  # IndeterminantLinearSystemException
-                raise SolveError(f"{self._ds.source}: {unconstrained_message(error, self._g.layout)}") from None
+                raise SolveError(f"{self._ds.source}: {unconstrained_message(error, g.layout)}") from None
+            indices = result.getNewFactorsIndices()
+            for block, position in pending:
+                block.index = int(indices[position])
             self._updates += 1
         with timed(self.timings, "estimate"):
-            before = (self._g.R, self._g.t, self._g.pose_cov)
-            self._set_estimate(isam.calculateEstimate())
-            self._g.pose_cov = pose_cov
-            self._g.step_sigmas = self._pose_step_sigmas(*before)
+            before = (g.R, g.t, g.pose_cov)
+            estimate = isam.calculateEstimate()
+            self._set_estimate(estimate, [block for block, _ in pending])
+            g.pose_cov = pose_cov
+            g.step_sigmas = self._pose_step_sigmas(*before)
 
     def _pose_step_sigmas(self, R: np.ndarray, t: np.ndarray, covariance: np.ndarray) -> float:
         """Mahalanobis size of the pose step from ``(R, t)`` to the estimate, against ``covariance``
@@ -399,6 +558,17 @@ class GraphGrowth:
         params.setOptimizationParams(gtsam.ISAM2GaussNewtonParams(0.0))
         return gtsam.ISAM2(params)
 
+    def _all_factors(self) -> gtsam.NonlinearFactorGraph:
+        """Every factor of the graph (stacked ones, then the blocks'); the blocks pending as new."""
+        g = self._g
+        factors = gtsam.NonlinearFactorGraph()
+        factors.push_back(g.factors)
+        g.pending = []
+        for block in g.blocks:
+            g.pending.append((block, factors.size()))
+            factors.add(block.factor)
+        return factors
+
     def _polish(self) -> None:
         """Relinearise every factor at the current estimate until the pose stops moving.
 
@@ -409,23 +579,83 @@ class GraphGrowth:
         for _ in range(POLISH_UPDATES):
             values = self._values()
             self._g.isam = self._new_isam2()
-            self._update(self._g.factors, values)
+            self._g.removals = []  # a fresh iSAM2 holds nothing to remove
+            self._update(self._all_factors(), values)
             if self._g.step_sigmas < POLISH_SIGMAS:
                 break
 
-    def _set_estimate(self, values: gtsam.Values) -> None:
-        self._g.R, self._g.t, self._g.mirrors, self._g.points = extract_values(values, self._g.layout)
+    def _set_estimate(self, values: gtsam.Values, blocks: Iterable[PlacementBlock] = ()) -> None:
+        """Read the estimate of iSAM2's unknowns from ``values``, and the placements of ``blocks`` at it
+        (every other eliminated placement keeps the value its block last gave)."""
+        g = self._g
+        pose = values.atPose3(g.layout.pose_key)
+        g.R, g.t = pose.rotation().matrix(), np.array(pose.translation())
+        for config, key in g.kept.items():
+            g.mirrors[config] = np.array(values.atPoint3(key))
+        for name, key in g.layout.point_keys.items():
+            g.points[name] = np.array(values.atPoint3(key))
+        for block in blocks:
+            g.mirrors.update(block.evaluator.mirror_vectors(values))
 
     def _values(self, keys: Iterable[int] | None = None) -> gtsam.Values:
-        """The current estimate as GTSAM values: every unknown, or those of ``keys``."""
+        """The current estimate of iSAM2's unknowns (not the eliminated placements) as GTSAM values: every
+        one, or those of ``keys``."""
+        g = self._g
         values = gtsam.Values()
         wanted = None if keys is None else set(keys)
-        if wanted is None or self._g.layout.pose_key in wanted:
-            values.insert(self._g.layout.pose_key, gtsam.Pose3(gtsam.Rot3(self._g.R), self._g.t))
-        for config, key in self._g.layout.mirror_keys.items():
+        if wanted is None or g.layout.pose_key in wanted:
+            values.insert(g.layout.pose_key, gtsam.Pose3(gtsam.Rot3(g.R), g.t))
+        for config, key in g.kept.items():
             if wanted is None or key in wanted:
-                values.insert(key, self._g.mirrors[config])
-        for name, key in self._g.layout.point_keys.items():
+                values.insert(key, g.mirrors[config])
+        for name, key in g.layout.point_keys.items():
             if wanted is None or key in wanted:
-                values.insert(key, self._g.points[name])
+                values.insert(key, g.points[name])
         return values
+
+    def _explicit_graph(self, refresh: bool = True) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+        """The graph with every placement an unknown (the batch's stacked factors) and its values at the
+        estimate, every eliminated placement at its optimum there (``refresh``; else at the value it has):
+        what ``calibration(full=True)`` takes covariances and residuals of (O(images), once)."""
+        g = self._g
+        values = self._values()
+        for block in g.blocks if refresh else []:
+            g.mirrors.update(block.evaluator.mirror_vectors(values))
+        if not g.blocks:
+            return g.factors, values
+        for config, key in g.layout.mirror_keys.items():
+            if config not in g.kept:
+                values.insert(key, g.mirrors[config])
+        factors = gtsam.NonlinearFactorGraph()
+        sigmas = measurement_sigmas(self._ds, g.measurements)
+        for factor in batched_factors(self._ds, g.layout, g.measurements, sigmas, self._robust):
+            factors.add(factor)
+        return factors, values
+
+    def _collapsed(self, values: gtsam.Values) -> bool:
+        """Whether an eliminated placement at ``values`` has run into the camera centre
+        (``factors.eliminated.collapsed``)."""
+        return collapsed([v for block in self._g.blocks for v in block.evaluator.mirror_vectors(values).values()])
+
+    def _solve_with_every_placement(
+        self, params: gtsam.LevenbergMarquardtParams
+    ) -> tuple[gtsam.LevenbergMarquardtOptimizer, gtsam.NonlinearFactorGraph, gtsam.Values]:
+        """Levenberg-Marquardt on the graph with every placement an unknown, from the current values (a
+        start-up's, before its solve), as the batch does without elimination; then the blocks made anew
+        from its solution. Returns the optimizer, every factor (for a fresh iSAM2) and iSAM2's values."""
+        g = self._g
+        factors, values = self._explicit_graph(refresh=False)
+        optimizer = gtsam.LevenbergMarquardtOptimizer(factors, values, params)
+        try:
+            optimized = optimizer.optimize()
+        except RuntimeError as error:  # IndeterminantLinearSystemException
+            raise SolveError(f"{self._ds.source}: {unconstrained_message(error, g.layout)}") from None
+        self._set_estimate(optimized)
+        for config, key in g.layout.mirror_keys.items():
+            g.mirrors[config] = np.array(optimized.atPoint3(key))
+        old, g.blocks, g.block_of, g.pending = g.blocks, [], {}, []
+        factors = gtsam.NonlinearFactorGraph()
+        factors.push_back(g.factors)
+        for block in old:  # their placements start from the solution
+            self._make_block(block.parent, block.level, block.measurements, block.placements, factors)
+        return optimizer, factors, self._values()
