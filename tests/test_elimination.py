@@ -132,3 +132,23 @@ def test_calibration_without_covariance_repr_and_progress(caplog):
     with_covariance = calibrate(dataset, progress=lambda *call: calls.append(call))
     assert len(repr(with_covariance)) < 2000 and with_covariance.sigma3_position_mm.shape == (3,)
     assert calls[-1] == ("marginals", 1, 1)
+
+
+def test_a_placement_collapsed_into_the_camera_centre_is_solved_again_with_every_placement(monkeypatch):
+    """Before: on this 21-image scene LM on the eliminated graph drove six placements to |v| ~ 1e-8 m and
+    reported convergence at cost 129.6 and 200 mm from the MLE (77.28) that every placement as an
+    unknown reaches."""
+    import dataclasses
+
+    from mirror_fg.factors.eliminated import collapsed
+    from test_point_sigma import noisy_dataset
+
+    dataset, _ = noisy_dataset(2, 27, {"P0": 3.0, "P1": 0.4}, 1.0, seed=1, num_points=3)
+    dataset = dataclasses.replace(dataset, images=dataset.images[:21])
+    ours = calibrate(dataset)
+    monkeypatch.setattr(lm_module, "ELIMINATE", False)
+    reference = calibrate(dataset)
+    assert ours.final_error == pytest.approx(reference.final_error, rel=1e-9)
+    np.testing.assert_allclose(ours.t_cam_base, reference.t_cam_base, atol=1e-9)
+    assert not collapsed(list(ours.mirror_vectors.values()))
+    assert collapsed([np.array([0.0, 0.0, 1e-8])] + [np.array([0.0, 0.0, 0.4])] * 5)

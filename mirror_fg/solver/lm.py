@@ -13,7 +13,7 @@ import numpy as np
 from mirror_fg.core.errors import SolveError
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.analytic import AnalyticSolution, reconstruct_points
-from mirror_fg.factors.eliminated import EliminatedEvaluator
+from mirror_fg.factors.eliminated import EliminatedEvaluator, collapsed
 from mirror_fg.solver.graph import (
     GraphLayout, InitialEstimate, Measurement, build_eliminated_graph, build_graph, extract_values,
 )
@@ -174,8 +174,24 @@ def levenberg_marquardt(
     on_iteration: Callable[[int, float, float], None] | None, timings: dict[str, float],
 ) -> LMRun:
     """Build the graph from ``initial`` and run LM (eq. 23); times added to ``timings``."""
+    run = _levenberg_marquardt(dataset, initial, robust, fast and robust is None and ELIMINATE, fast, max_iterations,
+                               on_iteration, timings)
+    if run.evaluator is not None and collapsed(list(run.evaluator.mirror_vectors(run.result).values())):
+        # a placement ran into the camera centre inside its factor (factors.eliminated.COLLAPSED_FRACTION)
+        logger.info("%s: an eliminated mirror placement collapsed into the camera centre: solving again with every "
+                    "placement an unknown", dataset.source)
+        run = _levenberg_marquardt(dataset, initial, robust, False, fast, max_iterations, on_iteration, timings)
+    return run
+
+
+def _levenberg_marquardt(
+    dataset: Dataset, initial: InitialEstimate, robust: str | None, eliminate: bool, fast: bool, max_iterations: int,
+    on_iteration: Callable[[int, float, float], None] | None, timings: dict[str, float],
+) -> LMRun:
+    """:func:`levenberg_marquardt` on the eliminated graph (``eliminate``, where the schedule allows it) or
+    on the graph with every placement an unknown."""
     with timed(timings, "build"):
-        eliminated = build_eliminated_graph(dataset, initial) if fast and robust is None and ELIMINATE else None
+        eliminated = build_eliminated_graph(dataset, initial) if eliminate else None
         if eliminated is not None:
             graph, values, layout, measurements = eliminated.graph, eliminated.values, eliminated.layout, eliminated.measurements
             evaluator, dimension = eliminated.evaluator, eliminated.evaluator.dimension
