@@ -49,10 +49,11 @@ INNER_STEP_TOLERANCE = 1e-12
 #: An eliminated placement nearer the camera centre than this fraction of the median placement's distance
 #: has collapsed (:func:`collapsed`). Each placement's solve keeps it on its side of the camera centre (a
 #: step moves it by at most half its distance), so from poor values of the rest it can run towards the
-#: centre (a mirror seen edge-on), and once it is there its later solves start there and crawl back at
-#: most 1.5x per step: Levenberg-Marquardt then settles around it. Measured on test_point_sigma's
-#: 27-image scene cut to 21 images: six placements at |v| ~ 1e-8 m, cost 130 against 77 with every
-#: placement an unknown. Callers solve again with every placement an unknown (``factors/batched.py``).
+#: centre (a mirror seen edge-on); if its later solves started there they would crawl back at most 1.5x
+#: per step and Levenberg-Marquardt would settle around it. Measured on test_point_sigma's 27-image scene
+#: cut to 21 images: six placements at |v| ~ 1e-8 m, cost 130 against 77 with every placement an
+#: unknown. So a collapsed warm start starts again from the placement's initial vector, and callers that
+#: still find a collapsed solution solve again with every placement an unknown (``factors/batched.py``).
 COLLAPSED_FRACTION = 0.1
 
 
@@ -235,6 +236,7 @@ class EliminatedEvaluator:
         for r in self._elim_rows.tolist():
             self._P[r] = np.asarray(initial_vectors[self._config_of_row[r]], dtype=float)
         self._P_start = self._P[self._elim_rows].copy()  # warm start of the next evaluation
+        self._P_initial = self._P_start.copy()  # where a collapsed warm start starts again
         self._state_key: bytes | None = None
         self._R = np.eye(3)
         self._t = np.zeros(3)
@@ -274,7 +276,7 @@ class EliminatedEvaluator:
         rows = self._elim_rows[self._placement_of_segment]
         starts = self._placement_starts
         last = self.num_mirrors - 1
-        P[rows] = self._P_start[self._placement_of_segment]
+        P[rows] = self._warm_start()[self._placement_of_segment]
         xb = mirror_input(self._R, self._t, P, self._base_T, self._landmark_index, self._landmark_point_rows,
                           self.mirror_rows, last)
         V = np.ascontiguousarray(P[rows].T)  # (3, S) placements, segment order
@@ -311,6 +313,19 @@ class EliminatedEvaluator:
         P[rows] = V.T
         self._e = np.ascontiguousarray(e.T)  # (M, 2)
         self._moments = moments
+
+    def _warm_start(self) -> np.ndarray:
+        """Where each placement's solve starts: its optimum at the last linearisation, or its initial vector
+        where that optimum has collapsed into the camera centre (:data:`COLLAPSED_FRACTION`): from there
+        the solve, which keeps a placement on its side of the centre, could not come back."""
+        start = self._P_start
+        distance = np.linalg.norm(start, axis=1)
+        low = distance < COLLAPSED_FRACTION * np.median(distance)
+        if not low.any():
+            return start
+        start = start.copy()
+        start[low] = self._P_initial[low]
+        return start
 
     # --- the evaluation shared by every factor -----------------------------------------------------
 

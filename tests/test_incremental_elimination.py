@@ -137,9 +137,10 @@ def test_placement_under_a_second_parent_becomes_an_unknown():
 
 
 def test_start_up_whose_placements_collapse_is_solved_with_every_placement():
-    """test_point_sigma's scene: at its 21-image start-up, LM on the eliminated graph runs six placements
-    into the camera centre (|v| ~ 1e-8 m, cost 130 against 77); the start-up is solved again with every
-    placement an unknown, and the stream ends at the batch MLE."""
+    """test_point_sigma's scene: at its 21-image start-up, LM on the eliminated graph ran six placements
+    into the camera centre (|v| ~ 1e-8 m, cost 130 against 77). Now a collapsed warm start starts again
+    from its initial vector (factors.eliminated), a start-up still collapsed is solved again with every
+    placement an unknown, and no placement is ever reported collapsed; the stream ends at the batch MLE."""
     from test_point_sigma import noisy_dataset
 
     ds, truth = noisy_dataset(2, 27, {"P0": 3.0, "P1": 0.4}, 1.0, seed=1, num_points=3)
