@@ -23,7 +23,9 @@ import numpy as np
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.geometry import FLIP_Y, nested_transform, nested_transforms, predict_camera_points, project, project_to_orthogonal
 from mirror_fg.io.dataset import Dataset, Image
-from mirror_fg.solver.peeling import MIN_NORMAL_SPREAD, NodeSolution, choose_candidates, reflection_fit, solve_children_many
+from mirror_fg.solver.peeling import (
+    MIN_NORMAL_SPREAD, NodeSolution, StackedCandidates, choose_candidates, consistent_mirror_vectors, solve_children_many,
+)
 from mirror_fg.solver.pnp import pnp_candidates_many
 
 __all__ = [
@@ -210,26 +212,20 @@ def complete_last_mirror(
     """``hypothesis`` of a node of the last mirror (``level`` = Nv) with the mirror vectors it lacks for
     the placements of ``images``: each image's PnP candidate ``(A_Nv, b_Nv)`` (``candidates``) most
     consistent with the node's ``(A, b)`` and the reflection between them (eqs. 6-7,
-    :func:`peeling.reflection_fit`), averaged over a placement's images; the candidates taken replace
-    the images' ``image_transforms``."""
+    :func:`peeling.consistent_mirror_vectors`), averaged over a placement's images; the candidates taken
+    replace the images' ``image_transforms``."""
     known = hypothesis.mirror_vectors
     missing = [image for image in images if (level, image.mirror_configs[-1]) not in known and image.id in candidates]
     if not missing:
         return hypothesis
-    counts = np.array([len(candidates[image.id]) for image in missing])
-    stacked = [pose for image in missing for pose in candidates[image.id]]
-    misfits, vectors = reflection_fit(np.array([A for A, _ in stacked]), np.array([b for _, b in stacked]),
-                                      hypothesis.A, hypothesis.b)  # eqs. (6)-(7)
-    first = np.cumsum(counts) - counts
-    best = first + np.array([int(np.argmin(misfits[f : f + c])) for f, c in zip(first.tolist(), counts.tolist())])
     placements, index = np.unique([image.mirror_configs[-1] for image in missing], return_inverse=True)
-    sums = np.zeros((len(placements), 3))
-    np.add.at(sums, index, vectors[best])
-    means = sums / np.bincount(index, minlength=len(placements))[:, None]
+    image_candidates = [candidates[image.id] for image in missing]
+    choice, means = consistent_mirror_vectors(StackedCandidates(image_candidates), index, len(placements),
+                                              hypothesis.A, hypothesis.b)
     mirror_vectors = dict(known)
     mirror_vectors.update({(level, int(m)): [v] for m, v in zip(placements, means)})
     image_transforms = dict(hypothesis.image_transforms)
-    image_transforms.update({image.id: stacked[k] for image, k in zip(missing, best.tolist())})
+    image_transforms.update({image.id: poses[c] for image, poses, c in zip(missing, image_candidates, choice)})
     return Hypothesis(hypothesis.A, hypothesis.b, mirror_vectors, image_transforms)
 
 

@@ -22,8 +22,7 @@ import gtsam
 import numpy as np
 
 from mirror_fg.core.errors import SolveError
-from mirror_fg.io.dataset import Dataset
-from mirror_fg.io.dataset import Image
+from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.analytic import AnalyticSolution, TreeNode, TreeWalk, Hypothesis, complete_last_mirror
 from mirror_fg.solver.graph import (
     Measurement, build_eliminated_graph, build_graph, extract_values, measurement_sigmas, measurements_of,

@@ -13,8 +13,8 @@ import numpy as np
 
 from mirror_fg.core.geometry import householders, project_to_orthogonal
 
-__all__ = ["MIN_NORMAL_SPREAD", "NodeSolution", "choose_candidates", "reflection_fit", "solve_children", "solve_node",
-           "solve_children_many", "solve_triples"]
+__all__ = ["MIN_NORMAL_SPREAD", "NodeSolution", "StackedCandidates", "choose_candidates", "consistent_mirror_vectors",
+           "reflection_fit", "solve_children", "solve_node", "solve_children_many", "solve_triples"]
 
 #: Smallest out-of-plane spread (third singular value of the unit normals, ~radians) of a node's mirrors.
 MIN_NORMAL_SPREAD = np.sin(np.deg2rad(0.5))
@@ -238,11 +238,10 @@ def solve_triples(
         b_parent = np.linalg.solve(normal_matrix, rhs[..., None])[..., 0]
     except np.linalg.LinAlgError:  # parallel normals somewhere: each node as solve_children does it
         b_parent = np.array([_solve_or_lstsq(m, r) for m, r in zip(normal_matrix, rhs)])
-    along = np.einsum("pia,pia->pi", normals, offsets) + np.einsum("pia,pa->pi", normals, b_parent)
     across = np.einsum("piab,pib->pia", projectors, b_parent[:, None] - offsets)
-    along_residual = along - 2.0 * (along / 2.0)
+    # along n_m each child's own offset d_m fits exactly (one observation each): no residual there
     scale = np.maximum(np.mean(np.linalg.norm(offsets, axis=-1), axis=-1), 1e-9)
-    translation_residual = (np.sum(across**2, axis=(1, 2)) + np.sum(along_residual**2, axis=1)) / scale**2
+    translation_residual = np.sum(across**2, axis=(1, 2)) / scale**2
     reflections = householders(normals.reshape(-1, 3), unit=True).reshape(num, 3, 3, 3)
     rotation_residual = np.sum((rotations - reflections @ A_parent[:, None]) ** 2, axis=(1, 2, 3))
     return A_parent, b_parent, rotation_residual + translation_residual
@@ -305,13 +304,11 @@ def choose_candidates(
         np.searchsorted(searched, children_index[observations]).tolist(), [image_candidates[i] for i in observations],
         len(searched), parent_det, rng,
     )
-    stacked = _StackedCandidates(image_candidates)
-    counts = np.maximum(np.bincount(children_index, minlength=num_children), 1)[:, None]
+    stacked = StackedCandidates(image_candidates)
     results: dict[tuple[int, ...], NodeSolution] = {}
     for _, node in ranked:
-        choice, vectors = _consistent_vectors(stacked, node.A_parent, node.b_parent)  # eqs. (6)-(7)
-        mirror_vectors = list(np.stack([np.bincount(children_index, weights=vectors[:, k], minlength=num_children)
-                                        for k in range(3)], axis=1) / counts)  # a child's mean over its observations
+        choice, means = consistent_mirror_vectors(stacked, children_index, num_children, node.A_parent, node.b_parent)
+        mirror_vectors = list(means)
         for k, vector in zip(searched.tolist(), node.mirror_vectors):
             mirror_vectors[k] = vector
         if choice not in results or node.residual < results[choice].residual:
@@ -340,7 +337,7 @@ def _search(
     else:
         triples = [tuple(sorted(rng.choice(children, size=3, replace=False))) for _ in range(NUM_TRIPLE_HYPOTHESES)]
     # every candidate combination of every triple solved at once (solve_children of each, vectorised)
-    stacked = _StackedCandidates(image_candidates)
+    stacked = StackedCandidates(image_candidates)
     combos_of = []
     for triple in triples:
         images = [first_image_of_child[k] for k in triple]
@@ -387,40 +384,50 @@ def _search(
     return sorted(((list(c), n) for c, n in results.items()), key=lambda item: item[1].residual)
 
 
-class _StackedCandidates:
-    """Every observation's candidates ``(A_l, b_l)`` of a node stacked once for :func:`_consistent_choice`."""
+class StackedCandidates:
+    """Every observation's candidates ``(A_l, b_l)`` of a node stacked once (for :func:`_consistent_choice`
+    and :func:`consistent_mirror_vectors`)."""
 
     def __init__(self, image_candidates: list[list[tuple[np.ndarray, np.ndarray]]]):
         counts = np.array([len(candidates) for candidates in image_candidates])
         self.A = np.array([A for candidates in image_candidates for A, _ in candidates])
         self.b = np.array([b for candidates in image_candidates for _, b in candidates])
         self.shape = (len(counts), int(counts.max()))
+        self.first = np.cumsum(counts) - counts  # row of each observation's first candidate
         self.image_of = np.repeat(np.arange(len(counts)), counts)
-        self.slot = np.arange(len(self.A)) - np.repeat(np.cumsum(counts) - counts, counts)
+        self.slot = np.arange(len(self.A)) - np.repeat(self.first, counts)
+
+    def fit(self, A_parent: np.ndarray, b_parent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every candidate's misfit to a parent (observations x slots, inf where an observation has fewer
+        candidates) and the mirror vector of its nearest reflection (row of :attr:`A`), by
+        :func:`reflection_fit` (eqs. 6-7)."""
+        misfits, vectors = reflection_fit(self.A, self.b, A_parent, b_parent)
+        costs = np.full(self.shape, np.inf)
+        costs[self.image_of, self.slot] = misfits
+        return costs, vectors
 
 
 def _consistent_choice(
-    stacked: _StackedCandidates, A_parent: np.ndarray, b_parent: np.ndarray
+    stacked: StackedCandidates, A_parent: np.ndarray, b_parent: np.ndarray
 ) -> tuple[tuple[int, ...], float]:
     """Each image's candidate most consistent with a node's parent, and the capped total inconsistency."""
-    costs = np.full(stacked.shape, np.inf)
-    costs[stacked.image_of, stacked.slot] = reflection_fit(stacked.A, stacked.b, A_parent, b_parent)[0]
+    costs, _ = stacked.fit(A_parent, b_parent)
     choice = tuple(np.argmin(costs, axis=1).tolist())
     score = float(np.sum(np.minimum(costs.min(axis=1), CONSISTENCY_CAP)))
     return choice, score
 
 
-def _consistent_vectors(
-    stacked: _StackedCandidates, A_parent: np.ndarray, b_parent: np.ndarray
+def consistent_mirror_vectors(
+    stacked: StackedCandidates, children: np.ndarray, num_children: int, A_parent: np.ndarray, b_parent: np.ndarray
 ) -> tuple[tuple[int, ...], np.ndarray]:
-    """:func:`_consistent_choice`'s choice with each observation's mirror vector (n, 3) from it (eqs. 6-7)."""
-    misfits, vectors = reflection_fit(stacked.A, stacked.b, A_parent, b_parent)
-    costs = np.full(stacked.shape, np.inf)
-    costs[stacked.image_of, stacked.slot] = misfits
+    """Each observation's candidate most consistent with a parent (as :func:`_consistent_choice`) and each
+    child's mirror vector (num_children, 3): the reflection from the parent to its observations' chosen
+    candidates (eqs. 6-7), averaged over them (``children``: each observation's child index)."""
+    costs, vectors = stacked.fit(A_parent, b_parent)
     chosen = np.argmin(costs, axis=1)
-    row = np.full(stacked.shape, -1, dtype=np.intp)
-    row[stacked.image_of, stacked.slot] = np.arange(len(misfits))
-    return tuple(chosen.tolist()), vectors[row[np.arange(len(chosen)), chosen]]
+    sums = np.zeros((num_children, 3))
+    np.add.at(sums, children, vectors[stacked.first + chosen])
+    return tuple(chosen.tolist()), sums / np.maximum(np.bincount(children, minlength=num_children), 1)[:, None]
 
 
 def solve_node(
