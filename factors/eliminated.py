@@ -93,25 +93,8 @@ def _compressed_normal(information: np.ndarray, gradient: np.ndarray, cost: floa
 
 def _gauss_newton_steps(moments: np.ndarray) -> np.ndarray:
     """Gauss-Newton steps ``-D^-1 g`` (3, S) from the moments of :func:`last_mirror_moments` (rows 0-5
-    the symmetric ``D``, 6-8 ``g``), by the adjugate of each 3x3 ``D``; when some ``D`` is singular or
-    not positive, by ``np.linalg.solve`` (``pinv`` when that fails) on them all."""
-    d = moments[:6]
-    cofactors = np.take(d, _COFACTOR_A, axis=0)
-    cofactors *= np.take(d, _COFACTOR_B, axis=0)
-    cofactors -= np.take(d, _COFACTOR_C, axis=0) * np.take(d, _COFACTOR_D, axis=0)
-    det = np.einsum("is,is->s", d[:3], cofactors[:3])
-    if np.all(det > 0.0) and np.all(np.isfinite(det)):
-        adjugate = np.take(cofactors, _SYMMETRIC, axis=0).reshape(3, 3, -1)
-        step = np.einsum("ijs,js->is", adjugate, moments[6:9])
-        step /= det
-        step *= -1.0
-        return step
-    D = np.take(d, _SYMMETRIC, axis=0).reshape(3, 3, -1).transpose(2, 0, 1)
-    g = moments[6:9].T
-    try:
-        return -np.linalg.solve(D, g[:, :, None])[:, :, 0].T
-    except np.linalg.LinAlgError:
-        return -(np.linalg.pinv(D) @ g[:, :, None])[:, :, 0].T
+    the symmetric ``D``, 6-8 ``g``), with ``D^-1`` of :func:`_inverses`."""
+    return -np.einsum("sij,js->is", _inverses(moments[:6]), moments[6:9])
 
 
 def _inverses(d: np.ndarray) -> np.ndarray:
