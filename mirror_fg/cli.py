@@ -112,6 +112,18 @@ def _number(kind: type, low: float, high: float = math.inf, low_open: bool = Fal
 _COUNT, _COUNT0, _POSITIVE = _number(int, 1), _number(int, 0), _number(float, 0.0, low_open=True)
 
 
+def _distance_range(text: str) -> tuple[float, ...]:
+    """``D`` or ``MIN,MAX`` (metres, positive, finite)."""
+    parts = text.split(",")
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) not in (1, 2) or not all(math.isfinite(v) and v > 0 for v in values) or values[0] > values[-1]:
+        raise argparse.ArgumentTypeError(f"expected a distance in metres or MIN,MAX with 0 < MIN <= MAX, got {text!r}")
+    return values
+
+
 def _intrinsic_names(text: str) -> tuple[str, ...]:
     """An argparse type: comma-separated distinct intrinsic names (``camera.estimate``)."""
     from mirror_fg.core.camera import INTRINSIC_NAMES
@@ -211,7 +223,9 @@ def build_parser() -> argparse.ArgumentParser:
     pln.add_argument("--fiducials-file", type=Path,
                      help="JSON {name: [x, y, z]} base-frame fiducial layout, metres (overrides --fiducials)")
     pln.add_argument("--points", type=_COUNT0, default=0, help="reconstruction points within 10 cm of the fiducials")
-    pln.add_argument("--distance", type=_POSITIVE, default=0.5, help="camera-to-mirror distance, metres (default 0.5)")
+    pln.add_argument("--distance", type=_distance_range, default=None,
+                     help="camera-to-mirror distance, metres (default 0.5); with --next the reachable range MIN,MAX "
+                          "(default: the distances used so far, widened by 10 %%)")
     pln.add_argument("--tilt", type=_number(float, 0.0, 89.0, low_open=True), default=30.0, help="largest mirror tilt, degrees (default 30)")
     pln.add_argument("--sigma", type=_POSITIVE, default=1.0, help="pixel noise standard deviation, pixels (default 1)")
     pln.add_argument("--focal", type=_POSITIVE, help="focal length, pixels (default: the simulator's 800)")
@@ -221,6 +235,14 @@ def build_parser() -> argparse.ArgumentParser:
     pln.add_argument("--draws", type=_COUNT, default=5, help="random scenes averaged (default 5)")
     pln.add_argument("--seed", type=_COUNT0, default=0, help="random seed (default 0)")
     pln.add_argument("--json", type=Path, help="also write the bounds to this JSON file")
+    pln.add_argument("--next", dest="next_data", type=Path, metavar="DATA|CAPTURE",
+                     help="guided capture: calibrate these data and rank the mirror placements to try next by the "
+                          "camera position's predicted 3-sigma")
+    pln.add_argument("--count", type=_COUNT, default=3, help="with --next: suggestions to print (default 3)")
+    pln.add_argument("--max-tilt", type=_number(float, 0.0, 89.0, low_open=True),
+                     help="with --next: largest reachable tilt of the mirror from the optical axis, degrees "
+                          "(default: the largest used so far + 10, at most 60)")
+    pln.add_argument("-o", "--output", type=Path, help="with --next: write the suggestions (suggestions@1 JSON) here")
     _add_common(pln)
 
     rep = sub.add_parser("report", help="HTML + PDF report of a result",
@@ -467,13 +489,18 @@ def cmd_plan(args, out: _Printer) -> int:
     from mirror_fg.io.output import OutputPlan
     from mirror_fg.tools.plan import PlanSetup, format_plan, load_fiducials, plan
 
+    if args.next_data is not None:
+        return _plan_next(args, out)
+    if args.output is not None or args.max_tilt is not None or (args.distance is not None and len(args.distance) > 1):
+        raise DatasetError("plan: -o, --max-tilt and --distance MIN,MAX go with --next DATA (the bounds of a "
+                           "described setup are written with --json)")
     outputs = OutputPlan(inputs=[os.fspath(args.fiducials_file)] if args.fiducials_file is not None else [])
     if args.json is not None:
         outputs.add(args.json, "plan JSON")
     fiducials = load_fiducials(args.fiducials_file) if args.fiducials_file is not None else None
     setup = PlanSetup(num_mirrors=args.mirrors, placements=args.placements, num_images=args.images,
                       num_fiducials=args.fiducials, fiducials=fiducials, num_points=args.points,
-                      mirror_distance_m=args.distance, tilt_deg=args.tilt, pixel_sigma=args.sigma,
+                      mirror_distance_m=0.5 if args.distance is None else args.distance[0], tilt_deg=args.tilt, pixel_sigma=args.sigma,
                       focal_px=args.focal, estimate=args.estimate)
     result = plan(setup, draws=args.draws, seed=args.seed)
     if args.json is not None:
@@ -483,6 +510,38 @@ def cmd_plan(args, out: _Printer) -> int:
     out.info(format_plan(result))
     if args.json is not None:
         out.info(f"wrote {args.json}")
+    return EXIT_OK
+
+
+def _plan_next(args, out: _Printer) -> int:
+    """``plan --next``: calibrate the data so far, then rank the reachable placements (tools/suggest.py)."""
+    import json
+    from dataclasses import replace
+
+    from mirror_fg.io.output import OutputPlan
+    from mirror_fg.solver.calibrate import calibrate
+    from mirror_fg.solver.calibration import require_converged
+    from mirror_fg.solver.consensus import without
+    from mirror_fg.tools.suggest import Reach, default_reach, require_suggestions, suggest_next
+
+    outputs = OutputPlan(inputs=[os.fspath(args.next_data)])
+    if args.output is not None:
+        outputs.add(args.output, "suggestions")
+    dataset = _load_input(args.next_data, out, outputs)
+    calibration = require_converged(calibrate(dataset), dataset.source)
+    used = without(dataset, calibration.excluded) if calibration.excluded else dataset
+    reach = default_reach(used, calibration)
+    if args.distance is not None:
+        low, high = (args.distance[0] * 0.9, args.distance[0] * 1.1) if len(args.distance) == 1 else args.distance
+        reach = Reach((low, high), reach.max_tilt_deg)
+    if args.max_tilt is not None:
+        reach = replace(reach, max_tilt_deg=args.max_tilt)
+    suggestions = require_suggestions(suggest_next(used, calibration, count=args.count, reach=reach), dataset.source)
+    if args.output is not None:
+        outputs.commit({os.fspath(args.output): json.dumps(suggestions.to_dict(), indent=2)})
+    out.info(suggestions.text())
+    if args.output is not None:
+        out.info(f"wrote {args.output}")
     return EXIT_OK
 
 

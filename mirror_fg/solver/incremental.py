@@ -62,7 +62,7 @@ from dataclasses import replace
 import math
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gtsam
 import numpy as np
@@ -88,6 +88,9 @@ from mirror_fg.solver.lm import cost_scale, lm_params, plausible
 from mirror_fg.solver.marginals import marginal_covariances, unconstrained_message
 from mirror_fg.solver.residuals import outliers_of, predicted_normalized, residual_statistics
 from mirror_fg.solver.timing import timed
+
+if TYPE_CHECKING:
+    from mirror_fg.tools.suggest import Reach, Suggestions
 
 __all__ = ["IncrementalCalibrator", "calibrate_incremental", "complete_tree"]
 
@@ -266,6 +269,15 @@ class IncrementalCalibrator(GraphGrowth):
         else:
             self._process_waiting()
         return self.calibration()
+
+    def suggest_next(self, count: int = 3, reach: Reach | None = None) -> Suggestions:
+        """The mirror placements to try next for the images so far, best first (``mirror-fg plan --next``;
+        :func:`mirror_fg.tools.suggest.suggest_next` at the current estimate). Raises SolveError before
+        the analytical solution exists."""
+        from mirror_fg.tools.suggest import suggest_next
+
+        self._require_started()
+        return suggest_next(self._ds, self.calibration(), count=count, reach=reach)
 
     def marginal_covariance(self, unknown: tuple[int, int] | str | None = None) -> np.ndarray:
         """Marginal covariance from iSAM2's Bayes tree, on demand (at the linearisation point).
