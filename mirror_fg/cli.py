@@ -245,6 +245,29 @@ def build_parser() -> argparse.ArgumentParser:
     pln.add_argument("-o", "--output", type=Path, help="with --next: write the suggestions (suggestions@1 JSON) here")
     _add_common(pln)
 
+    liv = sub.add_parser("live", help="calibrate while the mirror is moved: camera, video or folder, with suggestions",
+                         description="A session at the bench: each frame from --source is detected; a still frame showing a "
+                         "new mirror placement is added to the incremental estimate, and the bounds and the next placement "
+                         "to try are updated until every bound is below its target.", epilog=EPILOG,
+                         formatter_class=argparse.RawDescriptionHelpFormatter)
+    liv.add_argument("capture", type=Path, help="capture@1 giving the camera, target, num_mirrors (1) and pixel_sigma")
+    liv.add_argument("--source", required=True,
+                     help="a camera index (0, 1, ...), a video file (read as fast as it is processed) or a folder "
+                          "another program fills with images")
+    liv.add_argument("-o", "--output", type=Path, help="result file written at the end (as calibrate writes it)")
+    liv.add_argument("--json-lines", type=Path, help="one JSON object per frame (SPEC's fields); - for standard output")
+    liv.add_argument("--serve", type=_number(int, 0, 65535), metavar="PORT",
+                     help="a local web page on 127.0.0.1:PORT with the picture, the bounds and the suggestion (0: any free port)")
+    liv.add_argument("--target-mm", type=_POSITIVE, help="done when every 3-sigma of the camera's position is below this")
+    liv.add_argument("--target-deg", type=_POSITIVE, help="done when every 3-sigma of the camera's rotation is below this")
+    liv.add_argument("--stop-when-done", action="store_true", help="stop as soon as the targets are met")
+    liv.add_argument("--save", type=Path, metavar="DIR", help="write the frames used and a capture@1 that repeats the session")
+    liv.add_argument("--idle", type=_POSITIVE, default=30.0,
+                     help="a folder source ends after this many seconds without a new image (default 30)")
+    liv.add_argument("--hold", action="store_true", help="with --serve: keep the page up after the source ends, until Ctrl-C")
+    liv.add_argument("--no-ros", action="store_true", help="do not write the ROS files beside the result")
+    _add_common(liv)
+
     rep = sub.add_parser("report", help="HTML + PDF report of a result",
                          description="Write report.html (self-contained) and report.pdf: summary, residuals, "
                          "3D scene, correlations.", epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -545,7 +568,94 @@ def _plan_next(args, out: _Printer) -> int:
     return EXIT_OK
 
 
-COMMANDS = {"plan": cmd_plan, "simulate": cmd_simulate, "calibrate": cmd_calibrate, "calibrate-many": cmd_calibrate_many,
+def cmd_live(args, out: _Printer) -> int:
+    """``live``: the session loop of tools/live.py between a frame source, the outputs and the page."""
+    import json
+    import signal
+
+    from mirror_fg.io.calibration_files import plan_calibration_outputs
+    from mirror_fg.io.capture import capture_from_file_data
+    from mirror_fg.io.fileio import load_structured
+    from mirror_fg.io.output import OutputPlan
+    from mirror_fg.solver.calibration import require_converged
+    from mirror_fg.tools.live import LiveSession, run
+    from mirror_fg.tools.live_sources import open_source
+
+    source_path = os.fspath(args.capture)
+    outputs = (plan_calibration_outputs([source_path], args.output, ros=not args.no_ros)
+               if args.output is not None else None)
+    streams = OutputPlan(inputs=[source_path])  # the JSON lines are checked like any output, then streamed
+    if args.json_lines is not None and os.fspath(args.json_lines) != "-":
+        streams.add(args.json_lines, "JSON lines")
+    if args.save is not None and args.save.exists() and any(args.save.iterdir()):
+        raise DatasetError(f"--save {args.save}: the folder exists and is not empty (nothing is written over)")
+    data = load_structured(source_path, source_path)
+    capture = capture_from_file_data(data, source_path, live=True)
+    session = LiveSession(capture, target_mm=args.target_mm, target_deg=args.target_deg,
+                          keep_frames=args.save is not None, picture=args.serve is not None)
+    source = open_source(args.source, idle_s=args.idle)
+    server = None
+    if args.serve is not None:
+        from mirror_fg.tools.live_server import LiveServer
+
+        server = LiveServer(args.serve, lambda: session.state)
+        server.start()
+        out.info(f"serving the live page on {server.url}")
+    lines = None
+    if args.json_lines is not None:
+        lines = sys.stdout if os.fspath(args.json_lines) == "-" else open(args.json_lines, "w")
+
+    def on_record(record) -> None:
+        if lines is not None:
+            lines.write(record.to_json() + "\n")
+            lines.flush()
+        elif record.status == "added":
+            bounds = ("" if record.sigma3_base_cam is None else " 3-sigma pos ["
+                      + ", ".join(f"{x:.1f}" for x in record.sigma3_base_cam["position_mm"]) + "] mm")
+            out.info(f"[frame {record.frame}] placement {record.placements} added{bounds}"
+                     + (f"; {record.reason}" if record.reason else ""))
+
+    interrupted = []
+
+    def stop(signum, frame) -> None:  # noqa: ANN001 - a signal handler
+        interrupted.append(signum)
+        source.stop()
+
+    previous = signal.signal(signal.SIGINT, stop)
+    try:
+        figures = run(session, source, on_record=on_record, stop_when_done=args.stop_when_done)
+        out.info(f"{session.summary()}; {figures['fps']:.1f} frames/s, {figures['dropped']} dropped, "
+                 f"{figures['unreadable']} unreadable")
+        if server is not None and args.hold and not interrupted:
+            out.info(f"source ended; the page stays up on {server.url} until Ctrl-C")
+            import threading
+
+            held = threading.Event()
+            signal.signal(signal.SIGINT, lambda *a: held.set())
+            while not held.wait(0.2):
+                pass
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if server is not None:
+            server.stop()
+        if lines is not None and lines is not sys.stdout:
+            lines.close()
+    if session.done:
+        out.info("done: every bound is below its target")
+    written = []
+    if args.save is not None:
+        written += session.save(os.fspath(args.save), data)
+    calibration = require_converged(session.result(), capture.source)
+    result = calibration.to_dict()
+    if outputs is not None:
+        written += [os.fspath(p) for p in outputs.write(result)]
+    _print_transform_summary(out, result, figures["seconds"], incremental=True)
+    if written:
+        out.info(f"wrote {len(written)} file(s): " + ", ".join(written[-3:]) + (" ..." if len(written) > 3 else ""))
+    return EXIT_OK
+
+
+COMMANDS = {"live": cmd_live, "plan": cmd_plan, "simulate": cmd_simulate, "calibrate": cmd_calibrate, "calibrate-many": cmd_calibrate_many,
             "detect": cmd_detect, "report": cmd_report}
 
 
