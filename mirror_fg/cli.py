@@ -570,7 +570,6 @@ def _plan_next(args, out: _Printer) -> int:
 
 def cmd_live(args, out: _Printer) -> int:
     """``live``: the session loop of tools/live.py between a frame source, the outputs and the page."""
-    import json
     import signal
 
     from mirror_fg.io.calibration_files import plan_calibration_outputs

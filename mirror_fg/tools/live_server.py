@@ -16,7 +16,7 @@ import json
 import socket
 import threading
 from importlib import resources
-from typing import Callable
+from typing import Any, Callable
 
 from mirror_fg.core.errors import DatasetError
 
@@ -36,7 +36,7 @@ class LiveServer:
         self.requested_port = port
         self.port: int | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._server = None
+        self._server: Any = None
         self._thread: threading.Thread | None = None
         self._started = threading.Event()
         self._error: BaseException | None = None
