@@ -1,0 +1,51 @@
+"""The examples a new user runs work from a clone: the real photographs ship in examples/takahashi2012
+(with their BSD-3 licence), and no README, docs or test capture points outside the repository."""
+import re
+from pathlib import Path
+
+import pytest
+
+from conftest import REPO
+from mirror_fg.cli import main
+from mirror_fg.io.capture import load_capture
+from mirror_fg.io.dataset import load_dataset
+
+REAL = REPO / "examples" / "takahashi2012"
+DOCUMENTS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md")), *sorted((REPO / "tests" / "data" / "capture").rglob("*.yaml"))]
+
+
+def test_real_photographs_ship_with_their_licence():
+    for n in range(1, 6):
+        assert (REAL / f"input{n}.jpg").stat().st_size > 10_000
+        assert (REAL / f"input{n}.txt").exists()
+    assert "Redistribution and use in source and binary forms" in (REAL / "LICENSE.txt").read_text()
+    assert (REAL / "model.txt").exists() and (REAL / "camera.txt").exists()
+
+
+@pytest.mark.parametrize("document", DOCUMENTS, ids=lambda p: str(p.relative_to(REPO)))
+def test_no_example_points_outside_the_repository(document):
+    assert "shared/data" not in document.read_text()
+
+
+@pytest.mark.parametrize("document", DOCUMENTS[:1] + [d for d in DOCUMENTS if d.suffix == ".md"][1:],
+                         ids=lambda p: str(p.relative_to(REPO)))
+def test_every_example_path_in_the_docs_exists(document):
+    """Each ``examples/...`` path in a shell or YAML block is a file of the repository."""
+    text = document.read_text()
+    for block in re.findall(r"```(?:bash|yaml)\n(.*?)```", text, flags=re.S):
+        for path in re.findall(r"(?:\.\./)*examples/[\w./-]+\.\w+", block):
+            base = REPO if not path.startswith("..") else REPO / "tests" / "data" / "capture"
+            assert (base / path).resolve().exists(), f"{document.name}: {path}"
+
+
+def test_the_real_capture_finds_its_photographs():
+    capture = load_capture(REPO / "tests" / "data" / "capture" / "takahashi.yaml")
+    files = [Path(image.file) for image in capture.images]
+    assert len(files) == 5 and all(f.exists() and f.resolve().parent == REAL.resolve() for f in files)
+
+
+@pytest.mark.parametrize("name, fiducials", [("dataset.json", 70), ("dataset_3p.json", 3)])
+def test_the_shipped_datasets_calibrate_from_the_clone(name, fiducials, tmp_path, monkeypatch):
+    monkeypatch.chdir(REPO)  # the README's commands run from the repository's root
+    assert len(load_dataset(Path("examples/takahashi2012") / name).fiducials) == fiducials
+    assert main(["calibrate", f"examples/takahashi2012/{name}", "-o", str(tmp_path / "r.json")]) == 0
