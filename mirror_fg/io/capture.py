@@ -443,6 +443,12 @@ def _video(v: Any, cap: Capture, base_dir: str) -> VideoSpec:
     return VideoSpec(path, ordered, frame_count)
 
 
+# FFmpeg's decoder threads log damaged frames ("[mpeg4 @ 0x...] header damaged") to fd 2 at any moment,
+# also outside native_stderr; OpenCV reads this level once, when it first loads FFmpeg: quiet (-8) unless
+# the user set one. A frame that cannot be decoded is reported per frame instead (vision/detect.py).
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+
+
 def open_video(path: str, where: str) -> Any:
     """An opened ``cv2.VideoCapture`` whose frames are within MAX_IMAGE_PIXELS (from the container's
     header, before any frame is decoded); DatasetError otherwise. The caller releases it."""

@@ -398,11 +398,9 @@ def _detect_video(
     try:
         with _progress(total, "frame", show) as bar:
             for seg in video.segments:
-                while position < seg.first:
+                while position < seg.first:  # a failed grab (a damaged frame) still passes that frame
                     with native_stderr():
-                        grabbed = vc.grab()
-                    if not grabbed:
-                        break
+                        vc.grab()
                     position += 1
                 if seg.first != last_read + 1:
                     tracker.reset()  # a gap in the frames: tracks cannot carry over
@@ -411,15 +409,16 @@ def _detect_video(
                     frame_id = f"{video.stem}:{frame}"
                     with native_stderr() as native:
                         ok, image = vc.read() if position == frame else (False, None)
-                    if not ok or image is None:
-                        why = f"frame could not be read from the video{native.detail}"
-                        for f in range(frame, seg.last + 1):
-                            if f in outputs_of_seg:
-                                _report(reports, ImageReport(f"{video.stem}:{f}", NOT_FOUND, why))
-                        bar.update(seg.last + 1 - frame)
-                        tracker.reset()
-                        break
+                    # A failed read consumes its frame too: OpenCV goes on with the next one, so the
+                    # frames after a damaged stretch keep their indices (issue 28).
                     position += 1
+                    if not ok or image is None:
+                        if frame in outputs_of_seg:
+                            why = f"frame could not be read from the video (damaged or cut short){native.detail}"
+                            _report(reports, ImageReport(frame_id, NOT_FOUND, why))
+                        bar.update(1)
+                        tracker.reset()  # tracks cannot cross a lost frame
+                        continue
                     last_read = frame
                     gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
                     mismatch = _check_size(gray, camera)
