@@ -39,7 +39,7 @@ def radial_verdict(profile: RadialProfile, units: str) -> str:
     if profile.significant:
         return (text + f" (× {profile.ratio:.2f}, one-sided F test p = {profile.p_value:.1e}): the residual grows towards "
                 "the edge — the signature of a wrong or missing distortion model (recalibrate the intrinsics, "
-                "or estimate k1, k2 with the mirrors)")
+                "or estimate the distortion with the mirrors: camera.estimate: [k1, k2] in the dataset or capture)")
     return text + f" (× {profile.ratio:.2f}): no significant growth towards the edge"
 
 
