@@ -218,15 +218,16 @@ def load_capture(path: str | os.PathLike[str]) -> Capture:
     return capture_from_file_data(load_structured(source, source), source)
 
 
-def capture_from_file_data(data: Any, source: str) -> Capture:
+def capture_from_file_data(data: Any, source: str, media: bool = True) -> Capture:
     """The capture of file ``source`` whose parsed content is ``data`` (read once by the caller).
 
     Relative paths are taken from the file's directory, or from the working directory when the capture
     comes through standard input or a pipe (``-``, ``/dev/stdin``, ``/dev/fd/N``, or not a regular file).
+    ``media``: as in :func:`capture_from_dict`.
     """
     streamed = source == "-" or os.path.abspath(source).startswith(("/dev/", "/proc/")) or not os.path.isfile(source)
     base_dir = os.getcwd() if streamed else os.path.dirname(os.path.abspath(source))
-    cap = capture_from_dict(data, source=source, base_dir=base_dir)
+    cap = capture_from_dict(data, source=source, base_dir=base_dir, media=media)
     cap.file = os.path.abspath(source)
     if cap.images is not None:
         inputs = f"{len(cap.images)} images"
@@ -240,8 +241,10 @@ def capture_from_file_data(data: Any, source: str) -> Capture:
     return cap
 
 
-def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".") -> Capture:
-    """Validate a capture@1 dictionary; relative paths are taken from ``base_dir``."""
+def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".", media: bool = True) -> Capture:
+    """Validate a capture@1 dictionary; relative paths are taken from ``base_dir``. ``media=False``: the
+    camera, pixel_sigma, target and T_base_target only; images, video and track are not read (planning
+    before the photographs exist)."""
     check_format(d, CAPTURE_FORMAT, source)
     check_keys(d, ("format", "num_mirrors", "camera", "pixel_sigma", "target", "T_base_target", "images", "video",
                    "track"), source)
@@ -282,6 +285,8 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".") ->
         camera_file=camera_file,
     )
 
+    if not media:
+        return cap
     has_images, has_video = d.get("images") is not None, d.get("video") is not None
     if has_images == has_video:
         raise DatasetError(f"{source}: give exactly one of 'images' and 'video'")
