@@ -86,3 +86,15 @@ def test_real_photographs_headline_names_the_distortion_and_the_key_to_set(takah
     (radial,) = [r for r in summary.reasons if "grows towards the edge" in r]
     assert "camera.estimate: [k1, k2]" in radial
     assert summary.reasons.index(radial) < next(i for i, r in enumerate(summary.reasons) if "converged" in r)
+
+
+def test_distortion_advice_names_the_terms_not_yet_estimated(takahashi_dir):
+    import json
+
+    data = json.loads((takahashi_dir / "dataset.json").read_text())
+    data["camera"]["estimate"] = ["k1", "k2"]
+    ds = mirror_fg.io.dataset.dataset_from_dict(data)
+    result = mirror_fg.calibrate(ds).to_dict()
+    summary = _summary(result, ds, compute_residuals(result, ds), "base_link")
+    (radial,) = [r for r in summary.reasons if "towards the edge" in r]
+    assert "camera.estimate: [k1, k2, k3, p1, p2]" in radial, radial

@@ -190,7 +190,9 @@ def _verdict(result: Mapping[str, Any], dataset: Dataset | None, residuals: Resi
             facts.append(images)
         profile = residuals.radial_profile(image_centre(dataset))
         if profile is not None and profile.significant:
-            problems.append(("residuals grow towards the image edge (distortion)", radial_verdict(profile, residuals.units)))
+            estimated = (result.get("camera") or {}).get("estimated") or ()
+            problems.append(("residuals grow towards the image edge (distortion)",
+                             radial_verdict(profile, residuals.units, estimated)))
         elif profile is not None:
             facts.append(radial_verdict(profile, residuals.units))
     return problems, facts
