@@ -49,3 +49,21 @@ def test_the_shipped_datasets_calibrate_from_the_clone(name, fiducials, tmp_path
     monkeypatch.chdir(REPO)  # the README's commands run from the repository's root
     assert len(load_dataset(Path("examples/takahashi2012") / name).fiducials) == fiducials
     assert main(["calibrate", f"examples/takahashi2012/{name}", "-o", str(tmp_path / "r.json")]) == 0
+
+
+def test_the_tag_grid_template_is_a_valid_capture_and_plans(capsys):
+    """examples/capture_tag_grid.yaml validates (before its photographs exist), its T_base_target is the
+    stated one (rows along base +y, up +z, out +x), and ``plan --capture`` takes it."""
+    import numpy as np
+
+    from mirror_fg.io.capture import capture_from_file_data
+    from mirror_fg.io.fileio import load_structured
+
+    template = REPO / "examples" / "capture_tag_grid.yaml"
+    capture = capture_from_file_data(load_structured(template), str(template), media=False)
+    assert np.allclose(capture.R_base_target.T, [[0, 1, 0], [0, 0, 1], [1, 0, 0]])  # rows: the grid's axes in base
+    grid = capture.target.target_points()
+    spacing = np.linalg.norm(grid["T1_0"] - grid["T0_0"])
+    assert spacing == pytest.approx(0.060 * (1 + 0.3))  # Kalibr tagSpacing 0.3 as the comment says
+    assert main(["plan", "--capture", str(template), "--placements", "3", "--images", "12", "--draws", "1"]) == 0
+    assert "48 target points (apriltag)" in capsys.readouterr().out
