@@ -67,3 +67,27 @@ def test_the_tag_grid_template_is_a_valid_capture_and_plans(capsys):
     assert spacing == pytest.approx(0.060 * (1 + 0.3))  # Kalibr tagSpacing 0.3 as the comment says
     assert main(["plan", "--capture", str(template), "--placements", "3", "--images", "12", "--draws", "1"]) == 0
     assert "48 target points (apriltag)" in capsys.readouterr().out
+
+
+def test_capture_guide_quotes_the_real_example_as_it_calibrates():
+    """docs/capture_guide.md's figures for the shipped photographs are what calibrating them gives, and
+    it does not call their analytic vs MLE distance (a good result) a bad sign."""
+    import math
+
+    import numpy as np
+
+    import mirror_fg
+    from mirror_fg.core.transform import rotation_angle
+
+    guide = " ".join((REPO / "docs" / "capture_guide.md").read_text().split())
+    result = mirror_fg.calibrate(load_dataset(REAL / "dataset.json")).to_dict()
+    rms = result["residuals"]["rms_px"]
+    assert f"RMS {rms:.3f} px = {rms / (math.sqrt(2) * 0.5):.2f} × √2·σ" in guide
+    sigma3 = result["sigma3_cam_base"]
+    assert "±[" + ", ".join(f"{x:.3f}" for x in sigma3["rotation_deg"]) + "] deg" in guide
+    assert "±[" + ", ".join(f"{x:.2f}" for x in sigma3["position_mm"]) + "] mm" in guide
+    R, t = np.array(result["T_cam_base"]["R"]), np.array(result["T_cam_base"]["t"])
+    Ra, ta = np.array(result["analytic"]["T_cam_base"]["R"]), np.array(result["analytic"]["T_cam_base"]["t"])
+    apart = f"{1000 * np.linalg.norm(ta - t):.1f} mm and {math.degrees(rotation_angle(Ra, R)):.2f}° apart"
+    assert apart in guide
+    assert "Analytic and optimised poses far apart" not in guide
