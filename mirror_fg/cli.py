@@ -248,11 +248,12 @@ def build_parser() -> argparse.ArgumentParser:
 # --- commands -------------------------------------------------------------------------------------
 
 
-def _print_transform_summary(out: _Printer, result: dict, elapsed: float, incremental: bool = False) -> None:
+def _print_transform_summary(out: _Printer, result: dict, elapsed: float, incremental: bool = False,
+                             pixel_sigma: float | None = None) -> None:
     """Each transform with its own bounds in its own frame, the residuals, the solver (tools.summary)."""
     from mirror_fg.tools.summary import summary_lines
 
-    for line in summary_lines(result, verbose=out.verbose, incremental=incremental):
+    for line in summary_lines(result, verbose=out.verbose, incremental=incremental, pixel_sigma=pixel_sigma):
         out.info(line)
     out.info(f"time {elapsed:.2f} s")
 
@@ -337,7 +338,8 @@ def cmd_calibrate(args, out: _Printer) -> int:
     calibration.excluded = _detection_exclusions(reports) + list(calibration.excluded)
     result = calibration.to_dict()
     written = outputs.write(result)
-    _print_transform_summary(out, result, time.perf_counter() - start, args.incremental)
+    _print_transform_summary(out, result, time.perf_counter() - start, args.incremental,
+                             pixel_sigma=None if dataset.point_sigma else dataset.pixel_sigma)
     if calibration.timings:
         out.detail("stage timings: " + ", ".join(f"{stage} {seconds:.3f} s" for stage, seconds in calibration.timings.items()))
     out.info("wrote " + ", ".join(str(p) for p in written))

@@ -49,3 +49,21 @@ def test_too_small_a_sigma_is_named(simulated):
     line = _verdict(simulated, NOISE_PX / 3)
     assert line.startswith("verdict: CHECK") and "what pixel_sigma 0.167 px predicts" in line, line
     assert _fitted_sigma(line) == pytest.approx(NOISE_PX, rel=0.1)
+
+
+def test_a_robust_solve_is_judged_by_the_datasets_sigma(takahashi_dir, tmp_path, capsys):
+    """A robust kernel's cost is below the plain one: the CLI's verdict judges the plain RMS against the
+    dataset's pixel_sigma (0.5 px), not a sigma read from that cost."""
+    import json
+    import math
+
+    from mirror_fg.cli import main
+
+    assert main(["calibrate", str(takahashi_dir / "dataset.json"), "--robust", "cauchy", "-o", str(tmp_path / "r.json")]) == 0
+    (line,) = [l for l in capsys.readouterr().out.splitlines() if l.startswith("verdict:")]
+    assert "under pixel_sigma 0.5 px" in line, line
+    result = json.loads((tmp_path / "r.json").read_text())
+    expected, rms = result["optimizer"]["expected_final_error"], result["residuals"]["rms_px"]
+    measurements = sum(len(im["observations"]) for im in json.loads((takahashi_dir / "dataset.json").read_text())["images"])
+    predicted = 0.5 * math.sqrt(2 * expected / measurements)  # sqrt(2) sigma, one degree of freedom less per unknown
+    assert f"residuals {rms / predicted:.2f} ×" in line

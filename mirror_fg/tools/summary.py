@@ -65,11 +65,12 @@ def _transform_lines(entry: Mapping[str, Any], R: np.ndarray, t: np.ndarray, ful
 
 
 def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, incremental: bool = False,
-                  source: str = "result") -> list[str]:
+                  source: str = "result", pixel_sigma: float | None = None) -> list[str]:
     """The summary of a result@1 dictionary as lines of text (no trailing newlines).
 
     ``verbose``: also the full ``T_cam_base`` rotation, the costs and every outlier (else the first
     MAX_OUTLIER_LINES). ``incremental``: the iteration count is of iSAM2 updates, not LM iterations.
+    ``pixel_sigma``: the dataset's, for the verdict (:func:`verdict_line`).
     ``result`` is validated first (DatasetError naming ``source``).
     """
     result = validate_result(result, source)
@@ -88,7 +89,7 @@ def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, increment
     if result.get("inconsistency") is not None:
         lines.append(f"warning: {result['inconsistency']['message']}")
     lines += _optimizer_lines(result.get("optimizer") or {}, verbose, incremental)
-    lines.append(verdict_line(result))
+    lines.append(verdict_line(result, pixel_sigma))
     return lines
 
 
@@ -114,29 +115,36 @@ def noise_note(ratio: float, sigma: float, units: str) -> str:
     return ""
 
 
-def _noise_fit(result: Mapping[str, Any]) -> tuple[float, float] | None:
-    """(residuals over their predicted size, the pixel_sigma used) from the result alone, or None.
+def _noise_fit(result: Mapping[str, Any], pixel_sigma: float | None = None) -> tuple[float, float] | None:
+    """(residuals over their predicted size, the pixel_sigma used), or None.
 
-    ratio = sqrt(final / expected cost); with N measurements, final = N RMS^2 / (2 sigma^2) and
-    expected = (2N - p) / 2, so N = expected + p / 2 and sigma = RMS sqrt(N / (2 final)).
+    With N measurements and p unknowns the expected cost is (2N - p) / 2, so N = expected + p / 2 and
+    the predicted RMS is sigma sqrt(2 expected / N) (sqrt(2) sigma less one degree of freedom per
+    unknown). Without ``pixel_sigma`` it is read from the plain final cost, final = N RMS^2 / (2 sigma^2),
+    i.e. ratio = sqrt(final / expected): not after a robust kernel, whose cost is smaller.
     """
     opt, res = result.get("optimizer") or {}, result.get("residuals") or {}
     final, expected, rms = opt.get("final_error"), opt.get("expected_final_error"), res.get("rms_px")
-    if not all(isinstance(x, (int, float)) and math.isfinite(x) and x > 0 for x in (final, expected, rms)):
+    if not all(isinstance(x, (int, float)) and math.isfinite(x) and x > 0 for x in (expected, rms)):
         return None
     measurements = expected + unknown_count(result) / 2
+    if pixel_sigma is not None and pixel_sigma > 0:
+        return rms / (pixel_sigma * math.sqrt(2 * expected / measurements)), float(pixel_sigma)
+    if not (isinstance(final, (int, float)) and math.isfinite(final) and final > 0):
+        return None
     return math.sqrt(final / expected), rms * math.sqrt(measurements / (2 * final))
 
 
-def verdict_line(result: Mapping[str, Any]) -> str:
-    """One line: does the result look right from what it holds (convergence, cost against the noise
-    model, consistency), and if not, what to do. The report's verdict also judges the residuals' pattern."""
+def verdict_line(result: Mapping[str, Any], pixel_sigma: float | None = None) -> str:
+    """One line: does the result look right from what it holds (convergence, residuals against the noise
+    model of ``pixel_sigma``, else of the sigma its costs imply; consistency), and if not, what to do. The
+    report's verdict also judges the residuals' pattern."""
     opt = result.get("optimizer") or {}
     units = "px" if (result.get("residuals") or {}).get("units", "px") == "px" else "(normalized)"
     problems = []
     if opt.get("converged") is False:
         problems.append("the optimizer did not converge")
-    fit = _noise_fit(result)
+    fit = _noise_fit(result, pixel_sigma)
     note = noise_note(*fit, units) if fit is not None else ""
     if note:
         problems.append(note)
