@@ -214,7 +214,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "inverse Fisher information at simulated truths) for a described setup, so you can choose "
                          "how many images and which mirror tilts to use before recording.", epilog=EPILOG,
                          formatter_class=argparse.RawDescriptionHelpFormatter)
-    pln.add_argument("--mirrors", type=_COUNT, default=2, help="number of mirrors Nv (default 2)")
+    pln.add_argument("--mirrors", type=_COUNT, help="number of mirrors Nv (default 2, or the capture's)")
     pln.add_argument("--placements", type=_number(int, 3), default=3,
                      help="placements of each mirror but the last per node (>= 3; default 3)")
     pln.add_argument("--images", type=_COUNT, default=200, help="number of images (default 200)")
@@ -227,8 +227,15 @@ def build_parser() -> argparse.ArgumentParser:
                      help="camera-to-mirror distance, metres (default 0.5); with --next the reachable range MIN,MAX "
                           "(default: the distances used so far, widened by 10 %%)")
     pln.add_argument("--tilt", type=_number(float, 0.0, 89.0, low_open=True), default=30.0, help="largest mirror tilt, degrees (default 30)")
-    pln.add_argument("--sigma", type=_POSITIVE, default=1.0, help="pixel noise standard deviation, pixels (default 1)")
-    pln.add_argument("--focal", type=_POSITIVE, help="focal length, pixels (default: the simulator's 800)")
+    pln.add_argument("--sigma", type=_POSITIVE, help="pixel noise standard deviation, pixels (default 1, or the capture's "
+                                                     "pixel_sigma)")
+    pln.add_argument("--focal", type=_POSITIVE, help="focal length, pixels (default: the camera's, else the simulator's 800)")
+    given = pln.add_mutually_exclusive_group()
+    given.add_argument("--camera", type=Path, metavar="FILE",
+                       help="camera calibration file (OpenCV, ROS camera_info, Kalibr): its focal length")
+    given.add_argument("--capture", type=Path, metavar="FILE",
+                       help="capture@1 file: its camera (focal length, estimate), target (the fiducials, base frame), "
+                            "pixel_sigma and num_mirrors; its images need not exist yet. Options given here win")
     pln.add_argument("--estimate", type=_intrinsic_names, default=(),
                      help="intrinsics estimated through the mirrors too, e.g. fx,fy,cx,cy,k1,k2: their bounds, and "
                           "the pose's with their uncertainty")
@@ -286,11 +293,12 @@ def build_parser() -> argparse.ArgumentParser:
 # --- commands -------------------------------------------------------------------------------------
 
 
-def _print_transform_summary(out: _Printer, result: dict, elapsed: float, incremental: bool = False) -> None:
+def _print_transform_summary(out: _Printer, result: dict, elapsed: float, incremental: bool = False,
+                             pixel_sigma: float | None = None) -> None:
     """Each transform with its own bounds in its own frame, the residuals, the solver (tools.summary)."""
     from mirror_fg.tools.summary import summary_lines
 
-    for line in summary_lines(result, verbose=out.verbose, incremental=incremental):
+    for line in summary_lines(result, verbose=out.verbose, incremental=incremental, pixel_sigma=pixel_sigma):
         out.info(line)
     out.info(f"time {elapsed:.2f} s")
 
@@ -375,7 +383,8 @@ def cmd_calibrate(args, out: _Printer) -> int:
     calibration.excluded = _detection_exclusions(reports) + list(calibration.excluded)
     result = calibration.to_dict()
     written = outputs.write(result)
-    _print_transform_summary(out, result, time.perf_counter() - start, args.incremental)
+    _print_transform_summary(out, result, time.perf_counter() - start, args.incremental,
+                             pixel_sigma=None if dataset.point_sigma else dataset.pixel_sigma)
     if calibration.timings:
         out.detail("stage timings: " + ", ".join(f"{stage} {seconds:.3f} s" for stage, seconds in calibration.timings.items()))
     out.info("wrote " + ", ".join(str(p) for p in written))
@@ -510,21 +519,25 @@ def cmd_report(args, out: _Printer) -> int:
 
 def cmd_plan(args, out: _Printer) -> int:
     from mirror_fg.io.output import OutputPlan
-    from mirror_fg.tools.plan import PlanSetup, format_plan, load_fiducials, plan
+    from mirror_fg.tools.plan import PlanSetup, format_plan, load_fiducials, plan, setup_from_files
 
     if args.next_data is not None:
         return _plan_next(args, out)
     if args.output is not None or args.max_tilt is not None or (args.distance is not None and len(args.distance) > 1):
         raise DatasetError("plan: -o, --max-tilt and --distance MIN,MAX go with --next DATA (the bounds of a "
                            "described setup are written with --json)")
-    outputs = OutputPlan(inputs=[os.fspath(args.fiducials_file)] if args.fiducials_file is not None else [])
+    outputs = OutputPlan(inputs=[os.fspath(p) for p in (args.fiducials_file, args.camera, args.capture) if p is not None])
     if args.json is not None:
         outputs.add(args.json, "plan JSON")
-    fiducials = load_fiducials(args.fiducials_file) if args.fiducials_file is not None else None
-    setup = PlanSetup(num_mirrors=args.mirrors, placements=args.placements, num_images=args.images,
-                      num_fiducials=args.fiducials, fiducials=fiducials, num_points=args.points,
-                      mirror_distance_m=0.5 if args.distance is None else args.distance[0], tilt_deg=args.tilt, pixel_sigma=args.sigma,
-                      focal_px=args.focal, estimate=args.estimate)
+    given, taken = setup_from_files(camera=args.camera, capture=args.capture)
+    fiducials = load_fiducials(args.fiducials_file) if args.fiducials_file is not None else given.get("fiducials")
+    setup = PlanSetup(num_mirrors=args.mirrors or given.get("num_mirrors", 2), placements=args.placements,
+                      num_images=args.images, num_fiducials=args.fiducials, fiducials=fiducials, num_points=args.points,
+                      mirror_distance_m=0.5 if args.distance is None else args.distance[0], tilt_deg=args.tilt,
+                      pixel_sigma=args.sigma or given.get("pixel_sigma", 1.0),
+                      focal_px=args.focal or given.get("focal_px"), estimate=args.estimate or given.get("estimate", ()))
+    if taken:
+        out.info(taken)
     result = plan(setup, draws=args.draws, seed=args.seed)
     if args.json is not None:
         import json
@@ -589,7 +602,7 @@ def cmd_live(args, out: _Printer) -> int:
     if args.save is not None and args.save.exists() and any(args.save.iterdir()):
         raise DatasetError(f"--save {args.save}: the folder exists and is not empty (nothing is written over)")
     data = load_structured(source_path, source_path)
-    capture = capture_from_file_data(data, source_path, live=True)
+    capture = capture_from_file_data(data, source_path, media=False)
     session = LiveSession(capture, target_mm=args.target_mm, target_deg=args.target_deg,
                           keep_frames=args.save is not None, picture=args.serve is not None)
     source = open_source(args.source, idle_s=args.idle)

@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as folder:
         for (width, height), goal in GOALS.items():
             path, capture_data = session_files(folder, width, height, args)
-            capture = capture_from_dict(yaml.safe_load(yaml.safe_dump(capture_data)), "bench", folder, live=True)
+            capture = capture_from_dict(yaml.safe_load(yaml.safe_dump(capture_data)), "bench", folder, media=False)
             session = LiveSession(capture, picture=True)
             figures = run(session, VideoFileSource(path))
             met = figures["fps"] >= goal

@@ -1,4 +1,4 @@
-"""Shared fixtures: paths to the real data shipped beside the repository; loading a script as a module."""
+"""Shared fixtures: paths to the real data shipped in the repository (examples/takahashi2012); loading a script as a module."""
 import importlib.util
 import sys
 from pathlib import Path
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-TAKAHASHI = REPO.parent / "shared" / "data" / "takahashi2012"
+TAKAHASHI = REPO / "examples" / "takahashi2012"
 
 
 def load_script(name: str):

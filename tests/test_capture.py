@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 import yaml
 
+from conftest import TAKAHASHI
 from mirror_fg.io.capture import EACH, load_capture
 from mirror_fg.io.target import ChessboardTarget, PointsTarget, TagTarget
 from mirror_fg.core.errors import DatasetError
 
 DATA = Path(__file__).parent / "data" / "capture"
-TAKAHASHI = DATA.parent.parent.parent.parent / "shared" / "data" / "takahashi2012"
 CAMERA = {"model": "pinhole", "width": 64, "height": 48, "fx": 50.0, "fy": 50.0, "cx": 31.5, "cy": 23.5}
 
-needs_takahashi = pytest.mark.skipif(not TAKAHASHI.is_dir(), reason="shared/data/takahashi2012 not beside the repository")
+needs_takahashi = pytest.mark.skipif(not TAKAHASHI.is_dir(), reason="examples/takahashi2012 missing")
 
 
 def write(tmp_path: Path, capture: dict, name: str = "capture.yaml") -> Path:
@@ -117,7 +117,7 @@ def test_apriltag_tags_and_grid(tmp_path):
 
 def test_points_capture_with_text_files_matches_published_dataset(tmp_path):
     if not TAKAHASHI.is_dir():
-        pytest.skip("shared/data/takahashi2012 not beside the repository")
+        pytest.skip("examples/takahashi2012 missing")
     model = np.loadtxt(TAKAHASHI / "model.txt") / 1000.0
     capture = {
         "format": "mirror-fg/capture@1", "num_mirrors": 1,

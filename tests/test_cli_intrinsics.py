@@ -72,7 +72,7 @@ def test_capture_without_intrinsics_calibrates_the_camera_from_the_photographs(t
     start, end = text.index("camera: {"), text.index("}", text.index("camera: {")) + 1
     capture = tmp_path / "capture.yaml"
     capture.write_text(text[:start] + "camera: {model: pinhole, width: 1600, height: 1200, estimate: [fx, fy, cx, cy, k1, k2]}"
-                       + text[end:].replace("../../../../shared/data/takahashi2012/", f"{takahashi_dir}/"))
+                       + text[end:].replace("../../../examples/takahashi2012/", f"{takahashi_dir}/"))
     assert main(["calibrate", str(capture), "-o", str(tmp_path / "r.json")]) == 0
     camera = json.loads((tmp_path / "r.json").read_text())["camera"]
     # The same estimate from the authors' own corner file, started from their intrinsics: our detection of

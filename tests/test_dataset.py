@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import yaml
 
+from conftest import TAKAHASHI
 from mirror_fg.io.dataset import (
     DATASET_FORMAT,
     Dataset,
@@ -28,7 +29,7 @@ from mirror_fg.io.result import RESULT_FORMAT, load_result, write_result
 from mirror_fg.core.camera import Camera
 from mirror_fg.core.errors import DatasetError
 
-SHARED = Path("/work/shared/data/takahashi2012")
+SHARED = TAKAHASHI
 DIST = [-0.28, 0.09, 0.0012, -0.0008, -0.015]  # a wide-angle lens, OpenCV (k1, k2, p1, p2, k3)
 
 

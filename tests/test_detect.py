@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
+from conftest import TAKAHASHI
 from mirror_fg.io.capture import load_capture
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.dataset import dataset_from_dict, dataset_to_dict
@@ -17,8 +18,7 @@ from mirror_fg.vision.detect import detect_capture, format_reports
 from mirror_fg.vision.detectors import _first_square_dark, detect_chessboard, detect_tags
 
 DATA = Path(__file__).parent / "data" / "capture"
-TAKAHASHI = DATA.parent.parent.parent.parent / "shared" / "data" / "takahashi2012"
-needs_takahashi = pytest.mark.skipif(not TAKAHASHI.is_dir(), reason="shared/data/takahashi2012 not beside the repository")
+needs_takahashi = pytest.mark.skipif(not TAKAHASHI.is_dir(), reason="examples/takahashi2012 missing")
 
 SQUARE_PX = 24
 MARGIN_PX = 24

@@ -81,7 +81,7 @@ def test_video_session_one_line_per_frame_result_within_3_sigma_and_saved_captur
 
 def live_session(capture_file: Path, **options) -> LiveSession:
     data = yaml.safe_load(capture_file.read_text())
-    return LiveSession(capture_from_dict(data, str(capture_file), str(capture_file.parent), live=True), **options)
+    return LiveSession(capture_from_dict(data, str(capture_file), str(capture_file.parent), media=False), **options)
 
 
 def test_degenerate_sessions_are_said_live(tmp_path):

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import pose_difference
+from conftest import TAKAHASHI, pose_difference
 from mirror_fg.io.capture import load_capture
 from mirror_fg.io.dataset import dataset_from_dict, dataset_to_dict
 from mirror_fg.vision.detectors import FOUND
@@ -19,7 +19,6 @@ from mirror_fg.vision.detect import detect_capture
 
 DATA = Path(__file__).parent / "data" / "capture"
 RENDERED = DATA / "rendered"
-TAKAHASHI = DATA.parent.parent.parent.parent / "shared" / "data" / "takahashi2012"
 
 from mirror_fg import calibrate
 
@@ -58,7 +57,7 @@ def test_rendered_detect_calibrate_recovers_the_camera_within_3_sigma(rendered):
     assert np.all(bound[:3] < np.radians(10)) and np.all(bound[3:] < 0.2)  # the scene constrains it
 
 
-@pytest.mark.skipif(not TAKAHASHI.is_dir(), reason="shared/data/takahashi2012 not beside the repository")
+@pytest.mark.skipif(not TAKAHASHI.is_dir(), reason="examples/takahashi2012 missing")
 def test_takahashi_photographs_detect_calibrate_land_on_published_optimum():
     ds, _ = detect_capture(load_capture(DATA / "takahashi.yaml"), progress=False)
     cal = calibrate(dataset_from_dict(dataset_to_dict(ds), source="takahashi.yaml"))

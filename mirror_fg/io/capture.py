@@ -218,15 +218,16 @@ def load_capture(path: str | os.PathLike[str]) -> Capture:
     return capture_from_file_data(load_structured(source, source), source)
 
 
-def capture_from_file_data(data: Any, source: str, live: bool = False) -> Capture:
+def capture_from_file_data(data: Any, source: str, media: bool = True) -> Capture:
     """The capture of file ``source`` whose parsed content is ``data`` (read once by the caller).
 
     Relative paths are taken from the file's directory, or from the working directory when the capture
     comes through standard input or a pipe (``-``, ``/dev/stdin``, ``/dev/fd/N``, or not a regular file).
+    ``media``: as in :func:`capture_from_dict`.
     """
     streamed = source == "-" or os.path.abspath(source).startswith(("/dev/", "/proc/")) or not os.path.isfile(source)
     base_dir = os.getcwd() if streamed else os.path.dirname(os.path.abspath(source))
-    cap = capture_from_dict(data, source=source, base_dir=base_dir, live=live)
+    cap = capture_from_dict(data, source=source, base_dir=base_dir, media=media)
     cap.file = os.path.abspath(source)
     if cap.images is not None:
         inputs = f"{len(cap.images)} images"
@@ -240,9 +241,10 @@ def capture_from_file_data(data: Any, source: str, live: bool = False) -> Captur
     return cap
 
 
-def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".", live: bool = False) -> Capture:
-    """Validate a capture@1 dictionary; relative paths are taken from ``base_dir``. ``live``: for
-    ``mirror-fg live``, whose frames come from its source: ``images``, ``video`` and ``track`` are not used."""
+def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".", media: bool = True) -> Capture:
+    """Validate a capture@1 dictionary; relative paths are taken from ``base_dir``. ``media=False``: the
+    camera, pixel_sigma, target and T_base_target only; images, video and track are not read (planning
+    before the photographs exist)."""
     check_format(d, CAPTURE_FORMAT, source)
     check_keys(d, ("format", "num_mirrors", "camera", "pixel_sigma", "target", "T_base_target", "images", "video",
                    "track"), source)
@@ -283,7 +285,7 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".", li
         camera_file=camera_file,
     )
 
-    if live:
+    if not media:
         return cap
     has_images, has_video = d.get("images") is not None, d.get("video") is not None
     if has_images == has_video:
@@ -444,6 +446,12 @@ def _video(v: Any, cap: Capture, base_dir: str) -> VideoSpec:
         if b.first <= a.last:
             raise DatasetError(f"{where}: segments frames [{a.first}, {a.last}] and [{b.first}, {b.last}] overlap")
     return VideoSpec(path, ordered, frame_count)
+
+
+# FFmpeg's decoder threads log damaged frames ("[mpeg4 @ 0x...] header damaged") to fd 2 at any moment,
+# also outside native_stderr; OpenCV reads this level once, when it first loads FFmpeg: quiet (-8) unless
+# the user set one. A frame that cannot be decoded is reported per frame instead (vision/detect.py).
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
 
 
 def open_video(path: str, where: str) -> Any:

@@ -29,7 +29,7 @@ from mirror_fg.tools.crb import (
 )
 from mirror_fg.tools.simulate import GroundTruth, default_camera, measure, simulate_base_case, visible
 
-__all__ = ["PlanSetup", "PlanResult", "plan", "format_plan", "load_fiducials"]
+__all__ = ["PlanSetup", "PlanResult", "plan", "format_plan", "load_fiducials", "setup_from_files"]
 
 
 @dataclass
@@ -267,3 +267,37 @@ def load_fiducials(path: str | Path) -> dict[str, np.ndarray]:
     if not isinstance(data, Mapping) or not data:
         raise DatasetError(f"{source}: expected a mapping of fiducial names to [x, y, z] (metres)")
     return fiducials_from_dict({str(name): value for name, value in data.items()}, source)
+
+
+def setup_from_files(camera: str | Path | None = None, capture: str | Path | None = None) -> tuple[dict, str]:
+    """PlanSetup fields taken from a camera calibration file (OpenCV, ROS camera_info, Kalibr: ``focal_px``,
+    the mean of fx and fy) or from a capture@1 file (its camera's focal length and ``estimate``, its
+    target's points in the base frame as ``fiducials``, its ``pixel_sigma`` and ``num_mirrors``; the
+    images or video it lists need not exist yet), and one line saying what was taken. DatasetError."""
+    if camera is not None and capture is not None:
+        raise DatasetError("plan: give --camera or --capture, not both (a capture names its camera)")
+    fields: dict = {}
+    if camera is not None:
+        from mirror_fg.io.camera_files import camera_from_file
+
+        intrinsics, where = camera_from_file(str(camera), None, str(camera)), str(camera)
+    elif capture is not None:
+        from mirror_fg.io.capture import capture_from_file_data
+
+        cap = capture_from_file_data(load_structured(capture), str(capture), media=False)
+        intrinsics, where = cap.camera, str(capture)
+        fields.update(fiducials=cap.fiducials(), pixel_sigma=cap.pixel_sigma, num_mirrors=cap.num_mirrors,
+                      estimate=tuple(intrinsics.get("estimate") or ()))
+    else:
+        return {}, ""
+    taken = []
+    if intrinsics.get("fx") is not None and intrinsics.get("fy") is not None:
+        fields["focal_px"] = 0.5 * (float(intrinsics["fx"]) + float(intrinsics["fy"]))
+        taken.append(f"focal length {fields['focal_px']:.1f} px")
+    if "fiducials" in fields:
+        taken.append(f"{len(fields['fiducials'])} target points ({cap.target.kind}) in the base frame, "
+                     f"pixel_sigma {fields['pixel_sigma']:g} px, {fields['num_mirrors']} mirror(s)")
+    if fields.get("estimate"):
+        taken.append(f"estimate {', '.join(fields['estimate'])}")
+    return fields, f"from {where}: {', '.join(taken) or 'nothing the plan uses'}"
+

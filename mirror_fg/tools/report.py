@@ -19,7 +19,7 @@ import math
 import os
 import sys
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -28,8 +28,7 @@ import numpy as np
 
 from mirror_fg.core.transform import Transform, rotation_angle
 from mirror_fg.io.output import atomic_write
-from mirror_fg.io.result import base_cam_sigma3, mirror_vectors, pose, transforms, validate_result
-from mirror_fg.io.result import points as reconstruction_points
+from mirror_fg.io.result import base_cam_sigma3, pose, pose_covariance, transforms, validate_result
 from mirror_fg.io.ros import DEFAULT_BASE_FRAME, DEFAULT_CAMERA_FRAME, check_frame_name, ros_outputs
 from mirror_fg.tools.report_diagnostics import figure_radial, figure_tracks, image_centre, radial_verdict
 from mirror_fg.tools.report_figures import (
@@ -39,9 +38,16 @@ from mirror_fg.tools.report_figures import (
     figure_per_point,
     figure_scene,
 )
-from mirror_fg.tools.report_pages import Block, html_page, pdf_document
+from mirror_fg.tools.report_pages import Block, RenderedFigure, html_page, pdf_document
 from mirror_fg.tools.residuals import OUTLIER_FACTOR, Residuals, residuals_of_valid_result
-from mirror_fg.tools.summary import RMS_DEFINITION, camera_lines, cost_warning, summary_lines
+from mirror_fg.tools.summary import (
+    RMS_DEFINITION,
+    camera_lines,
+    cost_warning,
+    noise_note,
+    summary_lines,
+    unknown_count,
+)
 
 if TYPE_CHECKING:
     from mirror_fg.io.dataset import Dataset
@@ -70,9 +76,11 @@ def _fmt(values: Any, digits: int = 4) -> str:
 @dataclass
 class _Summary:
     rows: list[tuple[str, str]]  # (label, value) for the table; a value's lines split on newlines
-    verdict: str  # one line: the at-a-glance assessment
+    verdict: str  # the headline and its reasons in one line (what the bullets say)
     good: bool
     notes: list[str]
+    headline: str = ""  # the at-a-glance assessment
+    reasons: list[str] = field(default_factory=list)  # one bullet each, problems first
 
 
 def _summary(
@@ -130,43 +138,64 @@ def _summary(
         rows.append(("dataset", f"{len(dataset.images)} images, {dataset.num_mirrors} mirror(s), {len(configs)} mirror "
                      f"configurations, {len(dataset.fiducials)} fiducials, {len(result.get('points') or {})} "
                      f"reconstruction points, σ = {_fmt(dataset.pixel_sigma)} {units}"))
-    good, parts = _verdict(result, dataset, residuals, opt)
-    verdict = "; ".join(p for p in parts if p) or "no optimizer or residual information in the result"
-    return _Summary(rows=rows, verdict=verdict, good=good, notes=notes)
+    problems, facts = _verdict(result, dataset, residuals, opt)
+    good = not problems
+    reasons = [text for _, text in problems] + facts
+    if problems:
+        headline = "Check before use: " + "; ".join(title for title, _ in problems)
+    else:
+        headline = "Looks right: converged, and the residuals are what the noise model predicts" if facts else \
+            "No optimizer or residual information in the result"
+    verdict = "; ".join([headline, *reasons])
+    return _Summary(rows=rows, verdict=verdict, good=good, notes=notes, headline=headline, reasons=reasons)
 
 
 def _verdict(result: Mapping[str, Any], dataset: Dataset | None, residuals: Residuals | None,
-             opt: Mapping[str, Any]) -> tuple[bool, list[str]]:
-    """Whether the result looks right, and why, in short phrases."""
-    good = opt.get("converged") is not False
-    parts = ["optimizer converged" if opt.get("converged") else ("optimizer did NOT converge" if opt else "")]
+             opt: Mapping[str, Any]) -> tuple[list[tuple[str, str]], list[str]]:
+    """What is wrong, as ``(short title, what it is and what to do)``, and the facts that were checked;
+    the result looks right when nothing is wrong."""
+    problems: list[tuple[str, str]] = []
+    facts: list[str] = []
+    if opt.get("converged") is False:
+        problems.append(("not converged", "the optimizer did NOT converge"))
+    elif opt.get("converged"):
+        facts.append("optimizer converged")
     warning = cost_warning(opt)
     if warning:
-        good = False
-        parts.append(warning)
+        problems.append(("final cost implausible", warning))
     if result.get("inconsistency") is not None:
-        good = False
-        parts.append(result["inconsistency"]["message"])
+        problems.append(("parts of the capture disagree", result["inconsistency"]["message"]))
     excluded = result.get("excluded") or []
     if excluded:
-        parts.append(f"{len(excluded)} image(s) or measurement(s) left out of the solve (listed below)")
+        facts.append(f"{len(excluded)} image(s) or measurement(s) left out of the solve (listed below)")
     if residuals is not None and dataset is not None and math.isfinite(residuals.rms) and residuals.sigma > 0:
         ratio = residuals.rms / residuals.expected_rms
         # At the MLE the residuals lose one degree of freedom per unknown: E[RMS^2] = 2 sigma^2 (1 - p / 2N).
         coordinates = 2 * int(np.sum(residuals.valid))
-        unknowns = (6 + 3 * len(mirror_vectors(result)) + 3 * len(reconstruction_points(result))
-                    + len((result.get("camera") or {}).get("estimated") or []))
+        unknowns = unknown_count(result)
         expected = math.sqrt(max(1.0 - unknowns / coordinates, 0.0)) if coordinates else 1.0
         flagged = residuals.flagged_images()
-        parts.append(f"RMS {residuals.rms:.3g} {residuals.units} = {ratio:.2f} × √2·σ ({expected:.2f} × expected from "
-                     f"{coordinates} coordinates and {unknowns} unknowns when the noise model holds)")
-        parts.append(f"{len(flagged)} image(s) above {OUTLIER_FACTOR:g} × the median image RMS")
-        good = good and expected > 0.0 and 0.5 < ratio / expected < 2.0 and not flagged
+        rms = (f"RMS {residuals.rms:.3g} {residuals.units} = {ratio:.2f} × √2·σ ({expected:.2f} × expected from "
+               f"{coordinates} coordinates and {unknowns} unknowns when the noise model holds)")
+        note = noise_note(ratio / expected, residuals.sigma, residuals.units) if expected > 0.0 else \
+            "more unknowns than measured coordinates"
+        if note:
+            problems.append(("pixel_sigma does not fit the residuals", f"{rms}: {note}"))
+        else:
+            facts.append(rms)
+        images = f"{len(flagged)} image(s) above {OUTLIER_FACTOR:g} × the median image RMS"
+        if flagged:
+            problems.append((f"{len(flagged)} image(s) much worse than the others", images + " (listed below)"))
+        else:
+            facts.append(images)
         profile = residuals.radial_profile(image_centre(dataset))
-        if profile is not None:
-            parts.append(radial_verdict(profile, residuals.units))
-            good = good and not profile.significant
-    return good, parts
+        if profile is not None and profile.significant:
+            estimated = (result.get("camera") or {}).get("estimated") or ()
+            problems.append(("residuals grow towards the image edge (distortion)",
+                             radial_verdict(profile, residuals.units, estimated)))
+        elif profile is not None:
+            facts.append(radial_verdict(profile, residuals.units))
+    return problems, facts
 
 
 def _inputs(result: Mapping[str, Any], dataset: Dataset | None, source: str, extra: Mapping[str, str] | None,
@@ -251,9 +280,14 @@ def _figures(
     result: Mapping[str, Any], dataset: Dataset | None, residuals: Residuals | None,
     tracks: Mapping[str, Any] | None, bar: Any,
 ) -> tuple[list[tuple[str, Any, str]], list[str]]:
-    """The report's figures as ``(heading, figure, caption)`` and notes on what was left out."""
+    """The report's figures as ``(heading, figure rendered to PNG, caption)`` and notes on what was left
+    out; ``bar`` names each figure as it is drawn and rendered (most of the report's time)."""
     figures: list[tuple[str, Any, str]] = []
     notes: list[str] = []
+
+    def add(heading: str, draw: Any, *args: Any, caption: str) -> None:
+        bar.set_postfix_str(heading.lower())
+        figures.append((heading, RenderedFigure(draw(*args)), caption))
     if residuals is None or dataset is None:
         notes.append("No dataset given: residual histogram, per-image and per-point residuals are left out.")
         bar.update(4)
@@ -264,42 +298,41 @@ def _figures(
         n_behind = int(np.sum(~residuals.valid))
         if n_behind:
             notes.append(f"{n_behind} measurement(s) are predicted behind the camera and left out of the residuals.")
-        figures.append(("Residual distribution", figure_histogram(residuals),
-                        f"Residual coordinates (predicted − observed, {residuals.units}) with the expected "
-                        f"N(0, σ = {residuals.sigma:.3g}) density."))
+        add("Residual distribution", figure_histogram, residuals,
+            caption=f"Residual coordinates (predicted − observed, {residuals.units}) with the expected "
+                        f"N(0, σ = {residuals.sigma:.3g}) density.")
         bar.update()
-        figures.append(("Per-image residuals", figure_per_image(residuals),
-                        f"RMS reprojection error of each image; red: above {OUTLIER_FACTOR:g} × the median."))
+        add("Per-image residuals", figure_per_image, residuals,
+            caption=f"RMS reprojection error of each image; red: above {OUTLIER_FACTOR:g} × the median.")
         bar.update()
-        figures.append(("Per-point residuals", figure_per_point(residuals, dataset),
-                        "RMS reprojection error of each point, by name; all residual vectors with the 3σ circle; "
-                        "residual arrows at the observed positions (magnified)."))
+        add("Per-point residuals", figure_per_point, residuals, dataset,
+            caption="RMS reprojection error of each point, by name; all residual vectors with the 3σ circle; "
+                    "residual arrows at the observed positions (magnified).")
         bar.update()
         profile = residuals.radial_profile(image_centre(dataset))
         if profile is not None:
-            figures.append(("Residual vs distance from the image centre", figure_radial(residuals, profile),
-                            "Reprojection error length against the observed point's distance from the principal "
+            add("Residual vs distance from the image centre", figure_radial, residuals, profile,
+                caption="Reprojection error length against the observed point's distance from the principal "
                             "point, with the RMS of each ring. Growth towards the edge is the signature of a wrong "
-                            "or missing distortion model."))
+                            "or missing distortion model.")
         bar.update()
-    figures.append(("3D scene", figure_scene(result, dataset),
-                    "Base frame {B} (x red, y green, z blue), the camera frustum at T_base_cam with its 3σ position "
+    add("3D scene", figure_scene, result, dataset,
+        caption="Base frame {B} (x red, y green, z blue), the camera frustum at T_base_cam with its 3σ position "
                     "ellipsoid and optical-axis cone (magnified by the factors in the title and legend), every "
                     "mirror placement as a translucent square centred on its foot point (a sample of squares "
                     "where there are many), fiducials, and reconstruction points with axis-aligned 3σ "
-                    "ellipsoids. Metres."))
+                    "ellipsoids. Metres.")
     bar.update()
-    corr = figure_correlation(result)
-    if corr is not None:
-        figures.append(("Covariance correlation", corr,
-                        "Correlation matrix of the 6×6 covariance of T_cam_base: [rx, ry, rz] rotation "
-                        "about the camera axes (R_true = Exp(dθ) R), [x, y, z] translation (t_true = t + dt)."))
+    if pose_covariance(result) is not None:
+        add("Covariance correlation", figure_correlation, result,
+            caption="Correlation matrix of the 6×6 covariance of T_cam_base: [rx, ry, rz] rotation "
+                        "about the camera axes (R_true = Exp(dθ) R), [x, y, z] translation (t_true = t + dt).")
     else:
         notes.append("The result carries no covariance: no correlation matrix.")
     if tracks:
-        figures.append(("Tracked points", figure_tracks(tracks, dataset),
-                        "Each track:'s path on the image (refined positions thick, KLT's thin), the refinement's "
-                        "fit residual and the refined − KLT distance over the frames."))
+        add("Tracked points", figure_tracks, tracks, dataset,
+            caption="Each track:'s path on the image (refined positions thick, KLT's thin), the refinement's "
+                        "fit residual and the refined − KLT distance over the frames.")
     elif tracks is not None:
         notes.append("The capture follows no point (no track: entries): no track figure.")
     bar.update()
@@ -315,7 +348,7 @@ _FRAMES = ("Frames: {B} base, {C} camera (OpenCV = ROS optical: x right, y down,
 def _blocks(result: Mapping[str, Any], summary: _Summary, notes: list[str], figures: list[tuple[str, Any, str]],
             residuals: Residuals | None, ros: Mapping[str, Any], inputs: list[tuple[str, str]]) -> list[Block]:
     """Everything the report says, in order, for both renderings."""
-    blocks = [Block("verdict", summary.verdict, good=summary.good), Block("h2", "Summary"),
+    blocks = [Block("verdict", summary.headline, items=summary.reasons, good=summary.good), Block("h2", "Summary"),
               Block("table", rows=summary.rows, id="summary"), Block("p", _FRAMES, id="frames"),
               Block("h2", "Console summary (mirror-fg calibrate)"), Block("pre", "\n".join(summary_lines(result))),
               Block("h2", "Inputs"), Block("table", rows=inputs, id="inputs")]

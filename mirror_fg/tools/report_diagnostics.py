@@ -8,7 +8,7 @@ as ``mirror_fg.vision.detect.detect_capture(capture, tracks={})`` fills them.
 """
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -32,14 +32,18 @@ def image_centre(dataset: Dataset) -> tuple[float, float]:
     return (dataset.camera.cx, dataset.camera.cy) if dataset.camera is not None else (0.0, 0.0)
 
 
-def radial_verdict(profile: RadialProfile, units: str) -> str:
-    """One sentence for the report's verdict: does the residual grow towards the image edge?"""
+def radial_verdict(profile: RadialProfile, units: str, estimated: Sequence[str] = ()) -> str:
+    """One sentence for the report's verdict: does the residual grow towards the image edge? ``estimated``:
+    the intrinsics the result estimated (the advice names the ``camera.estimate`` terms still to add)."""
     text = (f"residual RMS {profile.inner_rms:.3g} {units} in the inner third of the measurements by distance "
             f"from the image centre, {profile.outer_rms:.3g} {units} in the outer third")
     if profile.significant:
+        more = [n for n in ("k1", "k2") if n not in estimated] or [n for n in ("k3", "p1", "p2") if n not in estimated]
+        terms = ", ".join([*estimated, *more])
+        advice = (f"or estimate the distortion with the mirrors: camera.estimate: [{terms}] in the dataset or capture"
+                  if more else "the estimated distortion terms do not suffice: check the lens model")
         return (text + f" (× {profile.ratio:.2f}, one-sided F test p = {profile.p_value:.1e}): the residual grows towards "
-                "the edge — the signature of a wrong or missing distortion model (recalibrate the intrinsics, "
-                "or estimate k1, k2 with the mirrors)")
+                f"the edge — the signature of a wrong or missing distortion model (recalibrate the intrinsics, {advice})")
     return text + f" (× {profile.ratio:.2f}): no significant growth towards the edge"
 
 

@@ -3,7 +3,7 @@
 The report (:mod:`mirror_fg.tools.report`) says what it has to say once, as :class:`Block` s (headings,
 paragraphs, tables, lists, preformatted text, figures); :func:`html_page` and :func:`pdf_document` render
 the same blocks, so the PDF holds everything the HTML does (flagged measurements, ROS snippets, frames,
-the input echo), every PDF page A4 portrait.
+the input echo), every PDF page A4 portrait. A figure is rendered once (:class:`RenderedFigure`) for both.
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from mirror_fg.tools.report_figures import new_figure, png
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-__all__ = ["Block", "html_page", "pdf_document", "A4_INCHES"]
+__all__ = ["Block", "RenderedFigure", "html_page", "pdf_document", "A4_INCHES"]
 
 A4_INCHES = (8.27, 11.69)
 #: Resolution of a figure placed on a PDF page (dots per inch).
@@ -47,7 +47,7 @@ class Block:
     (``figure``, ``text`` its caption). ``id``: an HTML id (lists, for tests and links)."""
 
     kind: str
-    text: str = ""
+    text: str = ""  # a verdict's headline (its reasons in ``items``)
     rows: list[tuple[str, str]] = field(default_factory=list)
     items: list[str] = field(default_factory=list)
     figure: Any = None
@@ -68,7 +68,9 @@ def html_page(title: str, blocks: list[Block]) -> str:
         elif b.kind in ("p", "note"):
             parts.append(f"<p{ident} class='{'note' if b.kind == 'note' else b.css}'>{e(b.text)}</p>")
         elif b.kind == "verdict":
-            parts.append(f"<div class='verdict {'good' if b.good else 'bad'}'>{e(b.text)}</div>")
+            reasons = "".join(f"<li>{e(x)}</li>" for x in b.items)
+            parts.append(f"<div class='verdict {'good' if b.good else 'bad'}'><strong>{e(b.text)}</strong>"
+                         + (f"<ul>{reasons}</ul>" if reasons else "") + "</div>")
         elif b.kind == "pre":
             parts.append(f"<pre{ident}>{e(b.text)}</pre>")
         elif b.kind == "table":
@@ -79,11 +81,23 @@ def html_page(title: str, blocks: list[Block]) -> str:
             items = "".join(f"<li class='{b.css}'>{e(x)}</li>" if b.css else f"<li>{e(x)}</li>" for x in b.items)
             parts.append(f"<ul{ident}>{items}</ul>")
         elif b.kind == "figure":
-            data = base64.b64encode(png(b.figure)).decode("ascii")
+            data = base64.b64encode(figure_png(b.figure)).decode("ascii")
             parts.append(f"<figure><img alt='{e(b.text[:80])}' src='data:image/png;base64,{data}'>"
                          f"<figcaption>{e(b.text)}</figcaption></figure>")
     parts.append("</body></html>")
     return "\n".join(parts) + "\n"
+
+
+class RenderedFigure:
+    """A figure rendered once, as PNG at PDF_FIGURE_DPI: the HTML and the PDF embed the same bytes."""
+
+    def __init__(self, figure: Figure) -> None:
+        self.png = png(figure, PDF_FIGURE_DPI)
+
+
+def figure_png(figure: Figure | RenderedFigure) -> bytes:
+    """The PNG of a figure, rendered now unless it already was (:class:`RenderedFigure`)."""
+    return figure.png if isinstance(figure, RenderedFigure) else png(figure, PDF_FIGURE_DPI)
 
 
 class _Pages:
@@ -124,22 +138,32 @@ class _Pages:
     def gap(self, lines: float = 0.6) -> None:
         self.y -= self.LINE * lines
 
-    def figure(self, heading: str, figure: Figure, caption: str) -> None:
-        """A figure on a page of its own (scaled to the page width, aspect kept), heading above, caption below."""
+    #: A figure takes at most this fraction of the page's height, so that two or three share a page.
+    FIGURE_HEIGHT = 0.40
+
+    def figure(self, heading: str, figure: Figure | RenderedFigure, caption: str) -> None:
+        """A figure scaled to the page width (aspect kept, at most FIGURE_HEIGHT of the page), heading
+        above, caption below; on this page when it fits, else at the top of the next."""
         import matplotlib.image
 
-        image = matplotlib.image.imread(io.BytesIO(png(figure, PDF_FIGURE_DPI)), format="png")
-        fig = self._page()
-        self.line(heading, size=12, weight="bold", space=1.8)  # at the top of that page
+        image = matplotlib.image.imread(io.BytesIO(figure_png(figure)), format="png")
+        captions = _wrap(caption, 110)
         h, w = image.shape[:2]
         width = 1.0 - 2 * self.LEFT
-        height = min(width * (h / w) * A4_INCHES[0] / A4_INCHES[1], self.y - 0.2)
+        height = min(width * (h / w) * A4_INCHES[0] / A4_INCHES[1], self.FIGURE_HEIGHT)
         width = height * (w / h) * A4_INCHES[1] / A4_INCHES[0]
-        ax = fig.add_axes((self.LEFT, self.y - height, width, height))
-        ax.imshow(image, interpolation="antialiased")
+        needed = self.LINE * (2.0 + 1.8 * 12 / 8) + height + 0.015 + self.LINE * len(captions)
+        if self.fig is None or self.y - needed < self.BOTTOM:
+            self._page()
+        else:
+            self.gap(1.5)
+        self.line(heading, size=12, weight="bold", space=1.8)
+        assert self.fig is not None
+        ax = self.fig.add_axes((self.LEFT, self.y - height, width, height))
+        ax.imshow(image, interpolation="none")  # embedded as it is: no resampling in the PDF backend
         ax.set_axis_off()
         self.y -= height + 0.015
-        for line in _wrap(caption, 110):
+        for line in captions:
             self.line(line, size=8, style="italic")
 
 
@@ -148,7 +172,7 @@ def _wrap(text: str, width: int) -> list[str]:
 
 
 def pdf_document(title: str, blocks: list[Block]) -> bytes:
-    """The same blocks as an A4 PDF: text flowed over pages, each figure on a page of its own."""
+    """The same blocks as an A4 PDF: text flowed over pages, the figures after it, several to a page."""
     from matplotlib.backends.backend_pdf import PdfPages
 
     buf = io.BytesIO()
@@ -160,14 +184,18 @@ def pdf_document(title: str, blocks: list[Block]) -> bytes:
             if b.kind == "h2":
                 heading = b.text
                 if k + 1 < len(blocks) and blocks[k + 1].kind == "figure":
-                    continue  # the figure's page carries its heading
+                    continue  # the figure carries its heading
                 pages.ensure(6)  # no heading alone at the foot of a page
                 pages.gap()
                 pages.line(b.text, size=11, weight="bold", space=1.6)
             elif b.kind in ("p", "note", "verdict"):
                 colour = {"verdict": "darkgreen" if b.good else "darkred"}.get(b.kind, "#222")
-                for line in _wrap(b.text, 118):
-                    pages.line(line, color=colour, style="italic" if b.kind == "note" else "normal")
+                for line in _wrap(b.text, 100 if b.kind == "verdict" else 118):
+                    pages.line(line, color=colour, style="italic" if b.kind == "note" else "normal",
+                               **({"size": 11, "weight": "bold", "space": 1.5} if b.kind == "verdict" else {}))
+                for item in b.items:  # a verdict's reasons
+                    for k, line in enumerate(_wrap(item, 112)):
+                        pages.line(("• " if k == 0 else "  ") + line, color=colour)
                 pages.gap(0.4)
             elif b.kind == "pre":
                 for line in b.text.split("\n"):

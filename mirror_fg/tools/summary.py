@@ -18,12 +18,18 @@ import numpy as np
 
 from mirror_fg.io.result import base_cam_sigma3, transforms, validate_result
 
-__all__ = ["summary_lines", "frame_convention", "cost_warning", "RMS_DEFINITION", "MAX_OUTLIER_LINES"]
+__all__ = ["summary_lines", "frame_convention", "cost_warning", "verdict_line", "noise_note", "unknown_count",
+           "NOISE_BAND", "RMS_DEFINITION", "MAX_OUTLIER_LINES"]
 
 #: The one RMS of the project (docs/formats.md ``rms_px``), as printed beside it.
 RMS_DEFINITION = "of each measurement's reprojection-error length, ≈ √2·σ expected"
 #: Outliers listed without ``verbose`` (all with it).
 MAX_OUTLIER_LINES = 20
+#: The noise model holds when the residuals are within this factor band of the size it predicts
+#: (sqrt(final cost / expected cost), i.e. RMS / (sqrt(2) sigma sqrt(1 - p / 2N))): outside it the
+#: 3-sigma bounds are too wide (below) or too narrow (above) by about that factor. The console's verdict
+#: and the report's use the same band.
+NOISE_BAND = (0.5, 2.0)
 
 
 def frame_convention() -> list[str]:
@@ -59,11 +65,12 @@ def _transform_lines(entry: Mapping[str, Any], R: np.ndarray, t: np.ndarray, ful
 
 
 def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, incremental: bool = False,
-                  source: str = "result") -> list[str]:
+                  source: str = "result", pixel_sigma: float | None = None) -> list[str]:
     """The summary of a result@1 dictionary as lines of text (no trailing newlines).
 
     ``verbose``: also the full ``T_cam_base`` rotation, the costs and every outlier (else the first
     MAX_OUTLIER_LINES). ``incremental``: the iteration count is of iSAM2 updates, not LM iterations.
+    ``pixel_sigma``: the dataset's, for the verdict (:func:`verdict_line`).
     ``result`` is validated first (DatasetError naming ``source``).
     """
     result = validate_result(result, source)
@@ -82,7 +89,75 @@ def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, increment
     if result.get("inconsistency") is not None:
         lines.append(f"warning: {result['inconsistency']['message']}")
     lines += _optimizer_lines(result.get("optimizer") or {}, verbose, incremental)
+    lines.append(verdict_line(result, pixel_sigma))
     return lines
+
+
+def unknown_count(result: Mapping[str, Any]) -> int:
+    """The solve's unknowns p: the pose (6), each mirror placement and reconstruction point (3 each), each
+    estimated intrinsic (the degrees of freedom the residuals lose at the optimum)."""
+    from mirror_fg.io.result import mirror_vectors, points
+
+    return (6 + 3 * len(mirror_vectors(result)) + 3 * len(points(result))
+            + len((result.get("camera") or {}).get("estimated") or []))
+
+
+def noise_note(ratio: float, sigma: float, units: str) -> str:
+    """'' when ``ratio`` (the residuals' size over what ``sigma`` predicts) is inside NOISE_BAND; else
+    what it means for ``pixel_sigma`` and the bounds."""
+    fits = f"the residuals fit σ ≈ {sigma * ratio:.2g} {units}"
+    if ratio < NOISE_BAND[0]:
+        return (f"pixel_sigma {sigma:.3g} {units} is too large: {fits}, so the 3-sigma bounds are about "
+                f"{1 / ratio:.1f} × too wide (set pixel_sigma to your detector's accuracy)")
+    if ratio > NOISE_BAND[1]:
+        return (f"the residuals are {ratio:.1f} × what pixel_sigma {sigma:.3g} {units} predicts ({fits}): outliers, "
+                "a wrong camera model or too small a pixel_sigma; the 3-sigma bounds are too narrow")
+    return ""
+
+
+def _noise_fit(result: Mapping[str, Any], pixel_sigma: float | None = None) -> tuple[float, float] | None:
+    """(residuals over their predicted size, the pixel_sigma used), or None.
+
+    With N measurements and p unknowns the expected cost is (2N - p) / 2, so N = expected + p / 2 and
+    the predicted RMS is sigma sqrt(2 expected / N) (sqrt(2) sigma less one degree of freedom per
+    unknown). Without ``pixel_sigma`` it is read from the plain final cost, final = N RMS^2 / (2 sigma^2),
+    i.e. ratio = sqrt(final / expected): not after a robust kernel, whose cost is smaller.
+    """
+    opt, res = result.get("optimizer") or {}, result.get("residuals") or {}
+    final, expected, rms = opt.get("final_error"), opt.get("expected_final_error"), res.get("rms_px")
+    if not all(isinstance(x, (int, float)) and math.isfinite(x) and x > 0 for x in (expected, rms)):
+        return None
+    measurements = expected + unknown_count(result) / 2
+    if pixel_sigma is not None and pixel_sigma > 0:
+        return rms / (pixel_sigma * math.sqrt(2 * expected / measurements)), float(pixel_sigma)
+    if not (isinstance(final, (int, float)) and math.isfinite(final) and final > 0):
+        return None
+    return math.sqrt(final / expected), rms * math.sqrt(measurements / (2 * final))
+
+
+def verdict_line(result: Mapping[str, Any], pixel_sigma: float | None = None) -> str:
+    """One line: does the result look right from what it holds (convergence, residuals against the noise
+    model of ``pixel_sigma``, else of the sigma its costs imply; consistency), and if not, what to do. The
+    report's verdict also judges the residuals' pattern."""
+    opt = result.get("optimizer") or {}
+    units = "px" if (result.get("residuals") or {}).get("units", "px") == "px" else "(normalized)"
+    problems = []
+    if opt.get("converged") is False:
+        problems.append("the optimizer did not converge")
+    fit = _noise_fit(result, pixel_sigma)
+    note = noise_note(*fit, units) if fit is not None else ""
+    if note:
+        problems.append(note)
+    elif cost_warning(opt):
+        problems.append("the final cost is implausible (the warning above)")
+    if result.get("inconsistency") is not None:
+        problems.append("parts of the capture disagree (the warning above)")
+    if problems:
+        return "verdict: CHECK: " + "; ".join(problems)
+    if fit is None:
+        return "verdict: no cost to judge the noise model by (the report has the residuals)"
+    return (f"verdict: looks right: residuals {fit[0]:.2f} × their predicted size under pixel_sigma {fit[1]:.3g} {units}"
+            " (the report also checks their pattern)")
 
 
 #: Intrinsics printed in pixels (the others, distortion terms, are unitless).

@@ -46,6 +46,7 @@ from mirror_fg.vision.detectors import (
     Detection,
     aruco_detector,
     charuco_detector,
+    chessboard_size_hint,
     detect_charuco,
     detect_chessboard,
     detect_tags,
@@ -172,7 +173,8 @@ def detect_capture(
     if not outputs:
         _log.info("%s: %s", capture.source, _count_line(reports))
         reasons = "; ".join(r.line() for r in reports[:3]) + ("; ..." if len(reports) > 3 else "")
-        raise DatasetError(f"{capture.source}: the target was found in none of the {len(reports)} images ({reasons})")
+        raise DatasetError(f"{capture.source}: the target was found in none of the {len(reports)} images ({reasons})"
+                           + _size_hint(capture, reports))
     if camera.get("width") is None or camera.get("height") is None:
         raise DatasetError(f"{capture.source}: camera: no image size (give width and height)")
 
@@ -278,6 +280,17 @@ def _track_starts(capture: Capture) -> dict[int, list[Any]]:
 
 def _cut_notes(tracker: PointTracker, dropped: list[str], capture: Capture) -> list[str]:
     return [f"track {name} cut at {tracker.cut[name]}" for name in dropped if name in capture.track]
+
+
+def _size_hint(capture: Capture, reports: list[ImageReport]) -> str:
+    """``"; <hint>"`` for a chessboard found in no image (the first one not found is looked at again
+    for a board of one corner fewer each way), else ''."""
+    if not isinstance(capture.target, ChessboardTarget) or not capture.images:
+        return ""
+    missed = {r.id for r in reports if r.status == NOT_FOUND}
+    entry = next((e for e in capture.images if e.id in missed and e.file is not None), None)
+    gray = _read_gray(entry)[0] if entry is not None else None
+    return "" if gray is None else f"; {chessboard_size_hint(gray, capture.target, capture.mirrored, entry.id)}"
 
 
 def _detect_images(
@@ -398,11 +411,9 @@ def _detect_video(
     try:
         with _progress(total, "frame", show) as bar:
             for seg in video.segments:
-                while position < seg.first:
+                while position < seg.first:  # a failed grab (a damaged frame) still passes that frame
                     with native_stderr():
-                        grabbed = vc.grab()
-                    if not grabbed:
-                        break
+                        vc.grab()
                     position += 1
                 if seg.first != last_read + 1:
                     tracker.reset()  # a gap in the frames: tracks cannot carry over
@@ -411,15 +422,16 @@ def _detect_video(
                     frame_id = f"{video.stem}:{frame}"
                     with native_stderr() as native:
                         ok, image = vc.read() if position == frame else (False, None)
-                    if not ok or image is None:
-                        why = f"frame could not be read from the video{native.detail}"
-                        for f in range(frame, seg.last + 1):
-                            if f in outputs_of_seg:
-                                _report(reports, ImageReport(f"{video.stem}:{f}", NOT_FOUND, why))
-                        bar.update(seg.last + 1 - frame)
-                        tracker.reset()
-                        break
+                    # A failed read consumes its frame too: OpenCV goes on with the next one, so the
+                    # frames after a damaged stretch keep their indices (issue 28).
                     position += 1
+                    if not ok or image is None:
+                        if frame in outputs_of_seg:
+                            why = f"frame could not be read from the video (damaged or cut short){native.detail}"
+                            _report(reports, ImageReport(frame_id, NOT_FOUND, why))
+                        bar.update(1)
+                        tracker.reset()  # tracks cannot cross a lost frame
+                        continue
                     last_read = frame
                     gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
                     mismatch = _check_size(gray, camera)

@@ -43,6 +43,7 @@ __all__ = [
     "aruco_detector",
     "FOUND",
     "NOT_FOUND",
+    "chessboard_size_hint",
     "REFUSED",
 ]
 
@@ -99,7 +100,7 @@ def detect_chessboard(
     img = cv2.flip(gray, 1) if mirrored else gray
     corners = _find_chessboard(img, board.cols, board.rows)
     if corners is None:
-        return Detection(status=NOT_FOUND, reason=f"chessboard {board.cols} x {board.rows} not found")
+        return Detection(status=NOT_FOUND, reason=f"chessboard of {board.cols} x {board.rows} inner corners not found")
     grid = corners.reshape(board.rows, board.cols, 2)
     # Handedness: in the un-mirrored view the columns run right and the rows down (x cross y > 0).
     a, b = grid[0, -1] - grid[0, 0], grid[-1, 0] - grid[0, 0]
@@ -183,6 +184,20 @@ def _misfit_px(pixels: np.ndarray, board_xy: np.ndarray, camera: dict[str, Any])
         return float("inf")
     fitted = cv2.perspectiveTransform(model[None], H)[0]
     return float(np.sqrt(np.mean(np.sum((fitted - normalized) ** 2, axis=1)))) * cam.fx
+
+
+def chessboard_size_hint(gray: np.ndarray, board: ChessboardTarget, mirrored: bool, image: str = "this image") -> str:
+    """When ``board`` is not in ``gray``: a sentence for a board given by its squares instead of its inner
+    corners (``cols: 11, rows: 8`` for a 10 x 7-corner board), found by looking for cols - 1 x rows - 1
+    corners; else one that says what cols and rows count."""
+    counts = "cols and rows count inner corners (where four squares meet), one fewer than the squares along each side"
+    if min(board.cols, board.rows) < 3:
+        return counts
+    img = cv2.flip(gray, 1) if mirrored else gray
+    if _find_chessboard(img, board.cols - 1, board.rows - 1) is None:
+        return counts
+    return (f"{counts}: a board of {board.cols - 1} x {board.rows - 1} inner corners is in {image}; "
+            f"did you count squares? (cols: {board.cols - 1}, rows: {board.rows - 1})")
 
 
 def _find_chessboard(img: np.ndarray, cols: int, rows: int) -> np.ndarray | None:
