@@ -1,4 +1,4 @@
-"""Command line: ``mirror-fg simulate | calibrate | calibrate-many | detect | plan | report``. Parsing
+"""Command line: ``mirror-fg simulate | calibrate | calibrate-many | detect | plan | report | pattern``. Parsing
 and printing only (the library decides; docs/formats.md says what goes in and out). Just over 500
 lines: the six subcommands' parsers and printers, nothing else.
 
@@ -235,7 +235,43 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the camera's optical frame in the ROS snippets (default camera_optical_frame; "
                      "a *_link body-frame name is refused)")
     _add_common(rep)
+
+    pat = sub.add_parser("pattern", help="draw a full-screen pattern to calibrate a webcam to its monitor (gaze)",
+                         description="Draw a pattern of exactly the screen's pixels (ChArUco by default) to show full "
+                         "screen and photograph in a hand-held mirror with the webcam; writes beside it "
+                         "<name>.target.yaml (the capture@1 target, kind screen) and <name>.html (shows it at one image "
+                         "pixel per device pixel, whatever the OS display scaling). docs/gaze_guide.md.",
+                         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    pat.add_argument("--screen", required=True, type=_size(int), metavar="WxH",
+                     help="the screen's native resolution, pixels (e.g. 1920x1080)")
+    size = pat.add_mutually_exclusive_group(required=True)
+    size.add_argument("--screen-mm", type=_size(float), metavar="WxH",
+                      help="the active area (the lit pixels), millimetres (e.g. 527x296.5)")
+    size.add_argument("--diagonal", type=_POSITIVE, metavar="INCHES",
+                      help="the diagonal, inches; with the aspect ratio of --screen (square pixels) it gives the size")
+    pat.add_argument("--kind", choices=["charuco", "chessboard", "apriltag"], default="charuco",
+                     help="charuco (default: survives partial views), chessboard (must be seen whole) or apriltag")
+    pat.add_argument("--square-mm", type=_POSITIVE, help="square (tag spacing) on the screen, mm (default 40)")
+    pat.add_argument("-o", "--output", required=True, type=Path, help="pattern PNG to write")
+    _add_common(pat)
     return parser
+
+
+def _size(kind: type):
+    """An argparse type: ``WxH`` with two finite ``kind`` values >= 0 (0 is refused by the command, in words)."""
+    def parse(text: str):
+        parts = text.lower().replace("×", "x").split("x")
+        try:
+            values = tuple(kind(p) for p in parts)
+        except ValueError:
+            values = ()
+        if len(values) != 2 or not all(math.isfinite(v) and v >= 0 for v in values):
+            raise argparse.ArgumentTypeError(f"expected WxH ({'integers' if kind is int else 'numbers'} >= 0), "
+                                             f"got {text[:40]!r}")
+        return values
+
+    parse.__name__ = "size"
+    return parse
 
 
 # --- commands -------------------------------------------------------------------------------------
@@ -486,7 +522,39 @@ def cmd_plan(args, out: _Printer) -> int:
     return EXIT_OK
 
 
-COMMANDS = {"plan": cmd_plan, "simulate": cmd_simulate, "calibrate": cmd_calibrate, "calibrate-many": cmd_calibrate_many,
+def cmd_pattern(args, out: _Printer) -> int:
+    from mirror_fg.io.output import OutputPlan
+    from mirror_fg.tools.pattern import MARKER_LINE, design_pattern, pattern_files, pattern_texts, screen_mm_from_diagonal
+
+    width_px, height_px = args.screen
+    if args.screen_mm is not None:
+        width_mm, height_mm = args.screen_mm
+    else:
+        if width_px < 1 or height_px < 1:
+            raise DatasetError(f"--screen {width_px}x{height_px}: the screen must have at least 1 x 1 pixels")
+        width_mm, height_mm = screen_mm_from_diagonal(width_px, height_px, args.diagonal)
+    files = pattern_files(args.output)
+    plan = OutputPlan()
+    plan.add(files.png, "pattern PNG")
+    plan.add(files.target_yaml, "target YAML", marker=MARKER_LINE.encode())
+    plan.add(files.html, "HTML page", marker=MARKER_LINE.encode())
+    screen = design_pattern(width_px, height_px, width_mm, height_mm, args.kind, args.square_mm)
+    plan.commit(pattern_texts(screen, files))
+    p = screen.pattern
+    mm = screen.metres_per_px * 1000.0
+    grid = f"{p['cols']} x {p['rows']} {'tags' if p['kind'] == 'apriltag' else 'squares' if p['kind'] == 'charuco' else 'inner corners'}"
+    square = p.get("square_px", p.get("spacing_px"))
+    out.info(f"{p['kind']} pattern {screen.width_px} x {screen.height_px} px on {width_mm:.1f} x {height_mm:.1f} mm "
+             f"({mm[0]:.4f} x {mm[1]:.4f} mm per pixel): {grid}, {square:g} px = {square * mm[0]:.1f} mm, "
+             f"{len(screen.target_points())} corners")
+    out.info(f"wrote {files.png}, {files.target_yaml}, {files.html}")
+    out.info(f"show it full screen without scaling: open {os.path.basename(files.html)} in a browser and press F11 "
+             f"(it undoes OS display scaling), or `feh -F --zoom 100 {os.path.basename(files.png)}`; "
+             "pass --screen the native resolution")
+    return EXIT_OK
+
+
+COMMANDS = {"plan": cmd_plan, "pattern": cmd_pattern, "simulate": cmd_simulate, "calibrate": cmd_calibrate, "calibrate-many": cmd_calibrate_many,
             "detect": cmd_detect, "report": cmd_report}
 
 

@@ -114,7 +114,8 @@ class _Detector:
     def __init__(self, capture: Capture, camera: dict[str, Any]):
         self.capture = capture
         self.camera = camera
-        self.target = capture.target
+        # a screen target is detected as the pattern it shows (same names; fiducials from the capture)
+        self.target = getattr(capture.target, "pattern_target", capture.target)
         self.aruco = aruco_detector(self.target) if isinstance(self.target, TagTarget) else None
         self.charuco = charuco_detector(self.target) if isinstance(self.target, CharucoTarget) else None
 
