@@ -112,16 +112,18 @@ def render(pattern_png: np.ndarray, mm: tuple[float, float], R: np.ndarray, t: n
     to_texel = metres_to_texel @ np.linalg.inv(H) @ fine_to_pixel
     fine = cv2.warpPerspective(luminance, to_texel, (w * s, h * s), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                                borderMode=cv2.BORDER_CONSTANT, borderValue=BEZEL)
-    # rays that miss the mirror see the room
-    ys, xs = np.mgrid[0:h * s, 0:w * s].astype(np.float64)
-    u, v = (xs + 0.5) / s - 0.5, (ys + 0.5) / s - 0.5
-    rays = np.stack([(u - camera["cx"]) / camera["fx"], (v - camera["cy"]) / camera["fy"], np.ones_like(u)], -1)
-    n, c = mirror.normal, mirror.centre
-    hit = rays * ((n @ c) / (rays @ n))[..., None] - c
-    e1 = unit(np.cross([0.0, 1.0, 0.0], n))
-    e2 = np.cross(n, e1)
-    on_mirror = (np.abs(hit @ e1) <= mirror.size_m[0] / 2) & (np.abs(hit @ e2) <= mirror.size_m[1] / 2)
-    fine = np.where(on_mirror, fine, ROOM).astype(np.float32)
+    # rays that miss the mirror see the room: the mirror's outline is the image of its four corners
+    e1 = unit(np.cross([0.0, 1.0, 0.0], mirror.normal))
+    e2 = np.cross(mirror.normal, e1)
+    half_w, half_h = mirror.size_m[0] / 2, mirror.size_m[1] / 2
+    corners = np.array([mirror.centre + a * half_w * e1 + b * half_h * e2 for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
+    uv = np.c_[camera["fx"] * corners[:, 0] / corners[:, 2] + camera["cx"],
+               camera["fy"] * corners[:, 1] / corners[:, 2] + camera["cy"]]
+    shift = 8  # sub-pixel polygon vertices
+    fine_uv = np.round(((uv + 0.5) * s - 0.5) * (1 << shift)).astype(np.int32)
+    on_mirror = np.zeros((h * s, w * s), np.uint8)
+    cv2.fillConvexPoly(on_mirror, fine_uv, 1, lineType=cv2.LINE_8, shift=shift)
+    fine = np.where(on_mirror > 0, fine, np.float32(ROOM)).astype(np.float32)
     linear = cv2.GaussianBlur(cv2.resize(fine, (w, h), interpolation=cv2.INTER_AREA), (0, 0), BLUR_PX)
     encoded = srgb_encode(linear) + rng.normal(0.0, NOISE_GREY, linear.shape)
     return np.clip(np.round(encoded), 0, 255).astype(np.uint8)
