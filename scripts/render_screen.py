@@ -21,11 +21,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from render_scene import srgb_encode  # noqa: E402 - the webcam's encoding, as the other renderers'
 
 WEBCAM = {"model": "pinhole", "width": 640, "height": 480, "fx": 520.0, "fy": 520.0, "cx": 319.5, "cy": 239.5,
           "dist": [0.0, 0.0, 0.0, 0.0, 0.0]}
@@ -40,12 +44,6 @@ NOISE_GREY = 1.0  # sensor noise, grey levels (of 255)
 def unit(v) -> np.ndarray:
     v = np.asarray(v, dtype=float)
     return v / np.linalg.norm(v)
-
-
-def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """Linear 0..1 -> sRGB-encoded float 0..255 (the webcam's encoding)."""
-    x = np.clip(linear, 0.0, 1.0)
-    return 255.0 * np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
 def webcam_above(width_m: float, gap_m: float = 0.012, tilt_deg: float = 6.0) -> tuple[np.ndarray, np.ndarray]:

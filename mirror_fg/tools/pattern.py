@@ -149,11 +149,11 @@ def draw_pattern(screen: ScreenTarget) -> np.ndarray:
                     image[v0 + r * square:v0 + (r + 1) * square, u0 + c * square:u0 + (c + 1) * square] = 0
     else:
         dictionary = cv2.aruco.getPredefinedDictionary(screen.pattern_target.dictionary_id)  # type: ignore[union-attr]
-        size, spacing = int(p["tag_px"]), int(p["spacing_px"])
+        tag_px, spacing = int(p["tag_px"]), int(p["spacing_px"])
         for r in range(p["rows"]):
             for c in range(p["cols"]):
-                tag = cv2.aruco.generateImageMarker(dictionary, p["first_id"] + r * p["cols"] + c, size, borderBits=1)
-                image[v0 + r * spacing:v0 + r * spacing + size, u0 + c * spacing:u0 + c * spacing + size] = tag
+                tag = cv2.aruco.generateImageMarker(dictionary, p["first_id"] + r * p["cols"] + c, tag_px, borderBits=1)
+                image[v0 + r * spacing:v0 + r * spacing + tag_px, u0 + c * spacing:u0 + c * spacing + tag_px] = tag
     return image
 
 
