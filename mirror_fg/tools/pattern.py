@@ -9,7 +9,8 @@
 Design (docs/gaze_guide.md): the webcam sees the screen through a mirror held 0.2-0.6 m in front of
 it, so along a path of 0.4-1.2 m; only a part of the screen is in the mirror, and the view is
 mirror-imaged. Hence by default a ChArUco board (every corner named by its marker, any subset of
-them usable, decoded on the flipped image), squares of about :data:`SQUARE_MM` (at 1.2 m a 640-pixel
+them usable, decoded on the flipped image), squares of about :data:`SQUARE_MM` (at most a sixth of the
+screen's height, :data:`FILL_SQUARES`, so that a laptop's corners still span it; at 1.2 m a 640-pixel
 webcam with a 60 degree field of view, fx ~ 550 px, sees 40 mm as 18 px: ~3 px per bit of a 4x4
 marker, which decodes), markers of 4x4 bits (the largest bits for a given square), and a white quiet
 border of at least half a square between the board and the monitor's dark bezel.
@@ -32,6 +33,9 @@ __all__ = ["SQUARE_MM", "PatternFiles", "design_pattern", "draw_pattern", "scree
 
 #: Edge of a square (ChArUco, chessboard) or the tag spacing, millimetres on the screen (see the module).
 SQUARE_MM = 40.0
+#: The default square is at most 1/FILL_SQUARES of the screen's height (corners that span the screen
+#: constrain its pose: on a 15.6-inch laptop 32 mm squares give 3x smaller Cramer-Rao bounds than 40 mm).
+FILL_SQUARES = 6
 #: White margin around the board, at least this fraction of a square (the bezel is dark).
 QUIET_FRACTION = 0.5
 #: Marker (ChArUco) or tag (AprilTag) edge as a fraction of the square / tag spacing, at most.
@@ -64,7 +68,8 @@ def design_pattern(width_px: int, height_px: int, width_mm: float, height_mm: fl
     for what, mm in (("width", width_mm), ("height", height_mm)):
         if not (math.isfinite(mm) and mm > 0):
             raise DatasetError(f"pattern: the screen's {what} must be more than 0 mm, got {mm:g} mm")
-    want_mm = SQUARE_MM if square_mm is None else square_mm
+    # default: SQUARE_MM, smaller on a small screen so that the corners still span it (a laptop's)
+    want_mm = min(SQUARE_MM, min(width_mm, height_mm) / FILL_SQUARES) if square_mm is None else square_mm
     if not (math.isfinite(want_mm) and want_mm > 0):
         raise DatasetError(f"pattern: the square must be more than 0 mm, got {want_mm:g} mm")
     px_per_mm = min(width_px / width_mm, height_px / height_mm)
