@@ -304,3 +304,12 @@ def test_uncertainties_are_the_first_order_propagation_of_the_pose_covariance(ca
     pixels = np.array([perturbed(xi).pixel_of_ray(eye, direction, inside=False).pixel for xi in samples])
     np.testing.assert_allclose(np.cov(pixels.T), hit.covariance_px, rtol=0.1)
     assert hit.sigma3_px is not None and np.all(hit.sigma3_px > 0)
+
+
+def test_a_screen_capture_refuses_T_base_target(scene):
+    from mirror_fg.io.capture import capture_from_dict
+
+    capture = yaml.safe_load((scene["folder"] / "capture.yaml").read_text())
+    capture["T_base_target"] = {"R": np.eye(3).tolist(), "t": [0.1, 0.0, 0.0]}
+    with pytest.raises(DatasetError, match="T_base_target: with a screen target the base frame is the screen's"):
+        capture_from_dict(capture, "cap.yaml", base_dir=str(scene["folder"]))
