@@ -523,34 +523,11 @@ def cmd_plan(args, out: _Printer) -> int:
 
 
 def cmd_pattern(args, out: _Printer) -> int:
-    from mirror_fg.io.output import OutputPlan
-    from mirror_fg.tools.pattern import MARKER_LINE, design_pattern, pattern_files, pattern_texts, screen_mm_from_diagonal
+    from mirror_fg.tools.pattern import pattern_summary, write_pattern
 
-    width_px, height_px = args.screen
-    if args.screen_mm is not None:
-        width_mm, height_mm = args.screen_mm
-    else:
-        if width_px < 1 or height_px < 1:
-            raise DatasetError(f"--screen {width_px}x{height_px}: the screen must have at least 1 x 1 pixels")
-        width_mm, height_mm = screen_mm_from_diagonal(width_px, height_px, args.diagonal)
-    files = pattern_files(args.output)
-    plan = OutputPlan()
-    plan.add(files.png, "pattern PNG")
-    plan.add(files.target_yaml, "target YAML", marker=MARKER_LINE.encode())
-    plan.add(files.html, "HTML page", marker=MARKER_LINE.encode())
-    screen = design_pattern(width_px, height_px, width_mm, height_mm, args.kind, args.square_mm)
-    plan.commit(pattern_texts(screen, files))
-    p = screen.pattern
-    mm = screen.metres_per_px * 1000.0
-    grid = f"{p['cols']} x {p['rows']} {'tags' if p['kind'] == 'apriltag' else 'squares' if p['kind'] == 'charuco' else 'inner corners'}"
-    square = p.get("square_px", p.get("spacing_px"))
-    out.info(f"{p['kind']} pattern {screen.width_px} x {screen.height_px} px on {width_mm:.1f} x {height_mm:.1f} mm "
-             f"({mm[0]:.4f} x {mm[1]:.4f} mm per pixel): {grid}, {square:g} px = {square * mm[0]:.1f} mm, "
-             f"{len(screen.target_points())} corners")
-    out.info(f"wrote {files.png}, {files.target_yaml}, {files.html}")
-    out.info(f"show it full screen without scaling: open {os.path.basename(files.html)} in a browser and press F11 "
-             f"(it undoes OS display scaling), or `feh -F --zoom 100 {os.path.basename(files.png)}`; "
-             "pass --screen the native resolution")
+    screen, files = write_pattern(args.output, args.screen, args.screen_mm, args.diagonal, args.kind, args.square_mm)
+    for line in pattern_summary(screen, files):
+        out.info(line)
     return EXIT_OK
 
 

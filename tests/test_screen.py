@@ -313,3 +313,28 @@ def test_a_screen_capture_refuses_T_base_target(scene):
     capture["T_base_target"] = {"R": np.eye(3).tolist(), "t": [0.1, 0.0, 0.0]}
     with pytest.raises(DatasetError, match="T_base_target: with a screen target the base frame is the screen's"):
         capture_from_dict(capture, "cap.yaml", base_dir=str(scene["folder"]))
+
+
+def test_pattern_replaces_its_own_side_files_but_not_a_strangers(tmp_path, capsys):
+    args = ("pattern", "--screen", "1280x800", "--screen-mm", "261x163", "-o", "p.png")
+    assert run_cli(*args, cwd=tmp_path) == 0
+    assert run_cli(*args, cwd=tmp_path) == 0  # again: its own files
+    (tmp_path / "p.html").write_text("<html>my page</html>")
+    capsys.readouterr()
+    assert run_cli(*args, cwd=tmp_path) == 2
+    assert "p.html: exists and was not written by mirror-fg" in capsys.readouterr().err
+    assert (tmp_path / "p.html").read_text() == "<html>my page</html>"
+
+
+def test_the_api_gives_the_same_screen_block_as_the_command(scene, calibrated):
+    from mirror_fg import calibrate
+    from mirror_fg.io.capture import load_capture
+    from mirror_fg.io.screen_result import screen_block
+    from mirror_fg.vision.detect import detect_capture
+
+    capture = load_capture(scene["folder"] / "capture.yaml")
+    dataset, _ = detect_capture(capture, progress=False)
+    result = calibrate(dataset).to_dict()
+    block = screen_block(capture.target, result)
+    np.testing.assert_allclose(block["corners_cam"], calibrated["screen"]["corners_cam"], atol=1e-9)
+    np.testing.assert_allclose(block["normal_cam"], calibrated["screen"]["normal_cam"], atol=1e-12)

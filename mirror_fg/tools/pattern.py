@@ -29,7 +29,7 @@ from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.screen_target import PATTERN_KINDS, ScreenTarget, screen_target_from_dict
 
 __all__ = ["SQUARE_MM", "PatternFiles", "design_pattern", "draw_pattern", "screen_mm_from_diagonal",
-           "pattern_files", "pattern_texts", "html_page"]
+           "pattern_files", "pattern_texts", "html_page", "write_pattern", "pattern_summary"]
 
 #: Edge of a square (ChArUco, chessboard) or the tag spacing, millimetres on the screen (see the module).
 SQUARE_MM = 40.0
@@ -199,6 +199,49 @@ def pattern_texts(screen: ScreenTarget, files: PatternFiles) -> dict[str, bytes 
     body = yaml.safe_dump(screen.to_dict(), default_flow_style=None, sort_keys=False)
     return {files.png: png.tobytes(), files.target_yaml: header + body,
             files.html: html_page(screen, os.path.basename(files.png))}
+
+
+def write_pattern(png_path: str | os.PathLike[str], screen_px: tuple[int, int], screen_mm: tuple[float, float] | None,
+                  diagonal_in: float | None, kind: str = "charuco", square_mm: float | None = None,
+                  ) -> tuple[ScreenTarget, PatternFiles]:
+    """Design and write the pattern of a screen of ``screen_px`` pixels whose active area is ``screen_mm``
+    (or, from ``diagonal_in`` inches and the aspect ratio, :func:`screen_mm_from_diagonal`): the PNG, its
+    ``.target.yaml`` and ``.html`` (checked before any work, written all-or-nothing; the side files only
+    over files this command wrote). DatasetError (one line) on impossible sizes."""
+    from mirror_fg.io.output import OutputPlan
+
+    width_px, height_px = screen_px
+    if width_px < 1 or height_px < 1:
+        raise DatasetError(f"pattern: the screen must have at least 1 x 1 pixels, got {width_px} x {height_px}")
+    if screen_mm is None:
+        if diagonal_in is None:
+            raise DatasetError("pattern: give the screen's size in mm or its diagonal in inches")
+        screen_mm = screen_mm_from_diagonal(width_px, height_px, diagonal_in)
+    files = pattern_files(png_path)
+    plan = OutputPlan()
+    plan.add(files.png, "pattern PNG")
+    plan.add(files.target_yaml, "target YAML", marker=MARKER_LINE.encode())
+    plan.add(files.html, "HTML page", marker=MARKER_LINE.encode())
+    screen = design_pattern(width_px, height_px, screen_mm[0], screen_mm[1], kind, square_mm)
+    plan.commit(pattern_texts(screen, files))
+    return screen, files
+
+
+def pattern_summary(screen: ScreenTarget, files: PatternFiles) -> list[str]:
+    """What ``mirror-fg pattern`` prints: the layout, the files, how to show it unscaled."""
+    p = screen.pattern
+    mm = screen.metres_per_px * 1000.0
+    grid = f"{p['cols']} x {p['rows']} " + {"apriltag": "tags", "charuco": "squares", "chessboard": "inner corners"}[p["kind"]]
+    square = p.get("square_px", p.get("spacing_px"))
+    return [
+        f"{p['kind']} pattern {screen.width_px} x {screen.height_px} px on {screen.width_mm:.1f} x {screen.height_mm:.1f} "
+        f"mm ({mm[0]:.4f} x {mm[1]:.4f} mm per pixel): {grid}, {square:g} px = {square * mm[0]:.1f} mm, "
+        f"{len(screen.target_points())} corners",
+        f"wrote {files.png}, {files.target_yaml}, {files.html}",
+        f"show it full screen without scaling: open {os.path.basename(files.html)} in a browser and press F11 (it "
+        f"undoes OS display scaling), or `feh -F --zoom 100 {os.path.basename(files.png)}`; --screen must be the "
+        "native resolution",
+    ]
 
 
 def html_page(screen: ScreenTarget, png_name: str) -> str:
