@@ -293,11 +293,12 @@ def _load_input(path: Path, out: _Printer, plan: OutputPlan, tracks: dict | None
 
 
 def _load_input_with_reports(path: Path, out: _Printer, plan: OutputPlan, tracks: dict | None = None,
-                             capture_only: bool = False) -> tuple[Dataset, list]:
+                             capture_only: bool = False, on_capture: Any = None) -> tuple[Dataset, list]:
     """:func:`_load_input` and the per-image detection reports (empty for a dataset@1)."""
     from mirror_fg.vision.detect import load_input
 
-    dataset, reports = load_input(path, plan, progress=out.progress, tracks=tracks, capture_only=capture_only)
+    dataset, reports = load_input(path, plan, progress=out.progress, tracks=tracks, capture_only=capture_only,
+                                  on_capture=on_capture)
     if reports:
         _print_detection_report(out, reports)
     return dataset, list(reports or [])
@@ -348,7 +349,7 @@ def cmd_calibrate(args, out: _Printer) -> int:
                                        base_frame=args.base_frame, camera_frame=args.camera_frame)
     if not args.no_ros and not outputs.ros:
         out.info(f"note: the result goes to a device ({args.output}): no ROS outputs written beside it")
-    dataset, reports = _load_input_with_reports(args.input, out, outputs.plan)
+    dataset, reports = _load_input_with_reports(args.input, out, outputs.plan, on_capture=outputs.use_capture)
     if dataset.camera is not None and dataset.camera.estimate:
         if args.incremental:
             raise DatasetError(f"{dataset.source}: camera.estimate ({', '.join(dataset.camera.estimate)}): estimating "

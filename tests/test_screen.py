@@ -338,3 +338,27 @@ def test_the_api_gives_the_same_screen_block_as_the_command(scene, calibrated):
     block = screen_block(capture.target, result)
     np.testing.assert_allclose(block["corners_cam"], calibrated["screen"]["corners_cam"], atol=1e-9)
     np.testing.assert_allclose(block["normal_cam"], calibrated["screen"]["normal_cam"], atol=1e-12)
+
+
+def test_a_screen_capture_on_standard_input_is_read_once_and_keeps_its_screen(scene, tmp_path):
+    """The screen target comes from the one reading of the capture (a pipe cannot be read twice)."""
+    import subprocess
+    import sys
+
+    from conftest import REPO
+
+    with open(scene["folder"] / "capture.yaml") as handle:
+        done = subprocess.run([sys.executable, "-m", "mirror_fg", "calibrate", "/dev/stdin", "-o",
+                               str(tmp_path / "piped.json"), "-q"], stdin=handle, cwd=scene["folder"],
+                              env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"}, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert load_result(tmp_path / "piped.json")["screen"]["width_px"] == SCREEN_PX[0]
+    assert (tmp_path / "piped.screen.xml").exists()
+
+
+def test_calibrate_many_writes_the_screen_too(scene, tmp_path):
+    from mirror_fg.tools.many import calibrate_one
+
+    row = calibrate_one(str(scene["folder"] / "capture.yaml"), str(tmp_path), ros=False)
+    assert row["status"] == "ok", row["reason"]
+    assert "screen" in load_result(row["result"]) and (tmp_path / "capture.result.screen.xml").exists()

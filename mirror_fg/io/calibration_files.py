@@ -15,7 +15,7 @@ from typing import Any
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.output import OutputPlan
 from mirror_fg.io.result import estimated_camera, result_text
-from mirror_fg.io.screen_result import screen_block, screen_target_of_input, screen_xml_path, screen_xml_text
+from mirror_fg.io.screen_result import screen_block, screen_xml_path, screen_xml_text
 from mirror_fg.io.ros import (
     DEFAULT_BASE_FRAME,
     DEFAULT_CAMERA_FRAME,
@@ -49,6 +49,15 @@ class CalibrationOutputs:
         if self.ros and self.camera_info is None:
             self.camera_info = Path(self.plan.add(camera_info_path(self.result_path), "camera_info YAML",
                                                   marker=SIDE_FILE_MARKER))
+
+    def use_capture(self, capture: Any) -> None:
+        """The input is this capture@1: a screen target's result gets its ``screen`` block, and (planned
+        now, before detection) ``<stem>.screen.xml`` beside it (:mod:`mirror_fg.io.screen_result`)."""
+        if capture.target.kind != "screen":
+            return
+        self.screen = capture.target
+        if self.screen_xml is None and not self.plan.is_device(self.result_path):
+            self.screen_xml = self.plan.add(screen_xml_path(self.result_path), "screen XML", marker=SIDE_FILE_MARKER)
 
     def write(self, result: Mapping[str, Any]) -> list[Path]:
         """Write the result@1 dictionary and its ROS outputs, all-or-nothing; the paths written. The result
@@ -90,9 +99,4 @@ def plan_calibration_outputs(
         yaml_path, urdf_path = ros_output_paths(target)
         plan.add(yaml_path, "ROS YAML", marker=SIDE_FILE_MARKER)
         plan.add(urdf_path, "URDF", marker=SIDE_FILE_MARKER)
-    outputs = CalibrationOutputs(plan, target, ros, base_frame, camera_frame)
-    first = next(iter(plan.inputs), None)
-    outputs.screen = None if first is None else screen_target_of_input(first)
-    if outputs.screen is not None and not plan.is_device(target):
-        outputs.screen_xml = plan.add(screen_xml_path(target), "screen XML", marker=SIDE_FILE_MARKER)
-    return outputs
+    return CalibrationOutputs(plan, target, ros, base_frame, camera_frame)

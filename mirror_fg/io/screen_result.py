@@ -23,15 +23,13 @@ from typing import Any
 
 import numpy as np
 
-from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.screen import Screen
 from mirror_fg.core.transform import Transform
-from mirror_fg.core.values import check_format
 from mirror_fg.io.result_checks import _child, _fields, _integer, _Invalid, _number, _vector, _vector3
 from mirror_fg.io.screen_target import ScreenTarget
 
-__all__ = ["screen_of", "screen_block", "check_screen_block", "check_screen_pose", "screen_target_of_input",
-           "screen_xml_path", "screen_xml_text", "SCREEN_TOL_M"]
+__all__ = ["screen_of", "screen_block", "check_screen_block", "check_screen_pose", "screen_xml_path", "screen_xml_text",
+           "SCREEN_TOL_M"]
 
 #: The ``screen`` block's corners must be those of ``T_cam_base`` to this (metres).
 SCREEN_TOL_M = 1e-6
@@ -85,26 +83,6 @@ def check_screen_pose(result: Mapping[str, Any]) -> None:
     off = float(np.max(np.abs(screen.normal_cam - np.array(block["normal_cam"]))))
     if off > SCREEN_TOL_M:
         raise _Invalid("screen.normal_cam", f"not -z of T_cam_base's screen frame (off by {off:.3g})")
-
-
-def screen_target_of_input(path: str | os.PathLike[str]) -> ScreenTarget | None:
-    """The screen target of a capture@1 file, or None (a dataset, or another target). The file is read
-    again (small); a capture that does not validate is left to the detection that follows."""
-    from mirror_fg.io.capture import CAPTURE_FORMAT
-    from mirror_fg.io.fileio import load_structured
-
-    source = os.fspath(path)
-    try:
-        data = load_structured(source, source)
-        check_format(data, CAPTURE_FORMAT, source)
-    except DatasetError:
-        return None
-    target = data.get("target")
-    if not isinstance(target, Mapping) or target.get("kind") != "screen":
-        return None
-    from mirror_fg.io.screen_target import screen_target_from_dict
-
-    return screen_target_from_dict(target, f"{source}: target")
 
 
 def screen_xml_path(result_path: str | os.PathLike[str]) -> str:

@@ -27,6 +27,7 @@ import os
 import sys
 import warnings
 from dataclasses import dataclass
+from collections.abc import Callable
 from typing import Any
 
 import cv2
@@ -457,19 +458,22 @@ def _detect_video(
 
 def load_input(
     path: str | os.PathLike[str], plan: OutputPlan, progress: bool = False, tracks: dict[str, Track] | None = None,
-    capture_only: bool = False,
+    capture_only: bool = False, on_capture: Callable[[Capture], None] | None = None,
 ) -> tuple[Dataset, list]:
     """A Dataset from a dataset@1 file, or from a capture@1 file after detection (read once), and the
     detection reports (empty for a dataset). The files a capture names are added to ``plan``'s inputs
     before any detection, so an output that would overwrite one of them is refused first. ``tracks``:
     filled with the capture's tracked points (:func:`detect_capture`). ``capture_only``: anything but a
-    capture is a DatasetError."""
+    capture is a DatasetError. ``on_capture``: called with the capture once read, before detection (e.g.
+    to plan the outputs its target needs: a screen's)."""
     source = os.fspath(path)
     data = load_structured(source)
     fmt = data.get("format") if isinstance(data, dict) else None
     if fmt == CAPTURE_FORMAT:
         capture = capture_from_file_data(data, source)
         plan.add_inputs(capture.input_files())
+        if on_capture is not None:
+            on_capture(capture)
         return detect_capture(capture, progress=progress, tracks=tracks)
     if capture_only:
         raise DatasetError(f"{source}: not a capture file (expected format {CAPTURE_FORMAT!r})")
