@@ -151,6 +151,7 @@ def test_other_pattern_kinds_are_found_where_their_target_says(tmp_path, kind):
         (["--screen", "48x32", "--screen-mm", "10x7"], "does not fit on the 48 x 32 screen"),
         (["--screen", "1920x1080", "--screen-mm", "527x296.5", "--square-mm", "200"], "does not fit"),
         (["--screen", "1920x1080", "--diagonal", "0"], "--diagonal"),
+        (["--screen", "3840x2160", "--diagonal", "32", "--square-mm", "3"], "more than DICT_4X4_1000 has (1000)"),
         (["--screen", "1920x1080", "--screen-mm", "527x296.5", "-o", "p.jpg"], "ending in .png"),
     ],
 )

@@ -124,7 +124,7 @@ def screen_target_from_dict(t: Mapping[str, Any], where: str) -> ScreenTarget:
         if marker is None or not 0 < marker < square:
             raise DatasetError(f"{pw}: marker_px must be a number > 0 and below square_px, got {short(p.get('marker_px'))}")
         name, dict_id = tag_dictionary(p.get("dictionary"), f"{pw}: dictionary")
-        _enough_ids(dict_id, cols * rows // 2, name, f"{pw}: a {cols} x {rows} board has {cols * rows // 2} markers;")
+        _enough_ids(dict_id, cols * rows // 2, name, pw, f"a {cols} x {rows} board ({cols * rows // 2} markers)")
         inner = CharucoTarget(cols, rows, square, marker, name, dict_id)
         pattern.update(cols=cols, rows=rows, square_px=square, marker_px=marker, dictionary=name)
         offset, y_sign = origin, 1.0
@@ -147,7 +147,7 @@ def screen_target_from_dict(t: Mapping[str, Any], where: str) -> ScreenTarget:
         first = p.get("first_id", 0)
         if not isinstance(first, int) or isinstance(first, bool) or first < 0:
             raise DatasetError(f"{pw}: first_id must be a non-negative integer, got {short(first)}")
-        _enough_ids(dict_id, first + cols * rows, name, f"{pw}: tag ids {first}-{first + cols * rows - 1} need")
+        _enough_ids(dict_id, first + cols * rows, name, pw, f"tags {first}-{first + cols * rows - 1}")
         tags = {first + r * cols + c: (np.eye(3), np.array([c * spacing, -r * spacing, 0.0]))
                 for r in range(rows) for c in range(cols)}
         inner = TagTarget(name, dict_id, size, tags, frame="target")
@@ -166,12 +166,12 @@ def _origin(value: Any, where: str) -> np.ndarray:
     return np.array([float(x) for x in value])
 
 
-def _enough_ids(dict_id: int, needed: int, name: str, what: str) -> None:
+def _enough_ids(dict_id: int, needed: int, name: str, where: str, what: str) -> None:
     import cv2
 
     available = int(cv2.aruco.getPredefinedDictionary(dict_id).bytesList.shape[0])
     if needed > available:
-        raise DatasetError(f"{what} {needed} ids; dictionary {name} has only {available}")
+        raise DatasetError(f"{where}: {what} needs {needed} ids; dictionary {name} has only {available}")
 
 
 def _check_fits(screen: ScreenTarget, where: str) -> None:

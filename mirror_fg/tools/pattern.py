@@ -46,6 +46,8 @@ MIN_BIT_PX = 2
 MIN_COUNT = {"charuco": (4, 3), "chessboard": (4, 4), "apriltag": (2, 2)}
 #: Dictionaries: 4x4-bit ArUco markers for ChArUco (largest bits; 250 ids), tag36h11 for AprilTag grids.
 CHARUCO_DICTIONARY, APRILTAG_DICTIONARY = "DICT_4X4_250", "tag36h11"
+#: A board with more markers than this takes its ids from the larger 4x4 dictionary (less error correction).
+LARGE_BOARD_MARKERS, LARGE_CHARUCO_DICTIONARY = 250, "DICT_4X4_1000"
 #: First line of the side files, so that a later run may replace them (io.output's marker check).
 MARKER_LINE = "written by mirror-fg pattern"
 
@@ -97,6 +99,13 @@ def design_pattern(width_px: int, height_px: int, width_mm: float, height_mm: fl
                else f"(squares of {_describe(square, px_per_mm)} give {max(cols, 0)} x {max(rows, 0)}; choose smaller squares)")
         )
     origin = [float((width_px - extent[0]) // 2), float((height_px - extent[1]) // 2)]
+    if kind == "charuco" and cols * rows // 2 > LARGE_BOARD_MARKERS:  # small squares on a large screen
+        name, dict_id = tag_dictionary(LARGE_CHARUCO_DICTIONARY)
+    ids = cols * rows // 2 if kind == "charuco" else cols * rows if kind == "apriltag" else 0
+    available = int(cv2.aruco.getPredefinedDictionary(dict_id).bytesList.shape[0])
+    if ids > available:
+        raise DatasetError(f"pattern: {cols} x {rows} {what} of {_describe(square, px_per_mm)} need {ids} marker ids, more "
+                           f"than {name} has ({available}); choose larger squares")
     if kind == "charuco":
         pattern: dict[str, Any] = {"kind": kind, "cols": cols, "rows": rows, "square_px": square, "marker_px": marker,
                                    "dictionary": name, "origin_px": origin}
