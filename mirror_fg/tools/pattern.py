@@ -43,7 +43,7 @@ MARKER_FRACTION = 0.75
 #: Fewest screen pixels per bit of a marker: below it the pattern itself cannot be drawn sharply.
 MIN_BIT_PX = 2
 #: Fewest squares (ChArUco: squares; chessboard: squares, i.e. inner corners + 1; AprilTag: tags) per axis.
-MIN_COUNT = {"charuco": (4, 3), "chessboard": (4, 4), "apriltag": (2, 2)}
+MIN_COUNT = {"charuco": (4, 3), "chessboard": (5, 4), "apriltag": (2, 2)}
 #: Dictionaries: 4x4-bit ArUco markers for ChArUco (largest bits; 250 ids), tag36h11 for AprilTag grids.
 CHARUCO_DICTIONARY, APRILTAG_DICTIONARY = "DICT_4X4_250", "tag36h11"
 #: A board with more markers than this takes its ids from the larger 4x4 dictionary (less error correction).
