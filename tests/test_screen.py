@@ -363,3 +363,30 @@ def test_calibrate_many_writes_the_screen_too(scene, tmp_path):
     row = calibrate_one(str(scene["folder"] / "capture.yaml"), str(tmp_path), ros=False)
     assert row["status"] == "ok", row["reason"]
     assert "screen" in load_result(row["result"]) and (tmp_path / "capture.result.screen.xml").exists()
+
+
+@pytest.mark.parametrize("scale", [1.5, 2.0])
+def test_pattern_page_shows_every_pattern_pixel_on_one_device_pixel_under_display_scaling(tmp_path, scale):
+    """Headless Chromium at an OS display scaling of 150 % / 200 % (``--force-device-scale-factor``): the
+    screenshot, in device pixels, is the PNG pixel for pixel (outside the page's centred note, shown
+    because the headless screen is not 600 x 360)."""
+    import shutil
+    import subprocess
+
+    browser = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+    if browser is None:
+        pytest.skip("no Chromium to render the page")
+    assert run_cli("pattern", "--screen", "600x360", "--screen-mm", "160x96", "-o", "p.png", cwd=tmp_path) == 0
+    shot = tmp_path / "shot.png"
+    size = f"{round(600 / scale)},{round(360 / scale)}"  # CSS pixels of a 600 x 360 device-pixel window
+    subprocess.run([browser, "--headless=new", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
+                    f"--force-device-scale-factor={scale}", f"--window-size={size}", f"--screenshot={shot}",
+                    (tmp_path / "p.html").as_uri()], capture_output=True, timeout=120)
+    if not shot.exists():
+        pytest.skip("Chromium could not take a screenshot here")
+    pattern = cv2.imread(str(tmp_path / "p.png"), cv2.IMREAD_GRAYSCALE)
+    seen = cv2.imread(str(shot), cv2.IMREAD_GRAYSCALE)
+    assert seen.shape == pattern.shape
+    outside_note = np.ones(pattern.shape, bool)
+    outside_note[:, 140:460] = False
+    assert np.array_equal(seen[outside_note], pattern[outside_note])
