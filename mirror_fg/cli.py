@@ -1,6 +1,6 @@
 """Command line: ``mirror-fg simulate | calibrate | calibrate-many | detect | plan | report | pattern``. Parsing
 and printing only (the library decides; docs/formats.md says what goes in and out). Just over 500
-lines: the six subcommands' parsers and printers, nothing else.
+lines: the seven subcommands' parsers and printers, nothing else.
 
 Exit status: 0 success, 2 bad input, 3 could not solve (degenerate data, no convergence).
 """
@@ -532,8 +532,8 @@ def cmd_pattern(args, out: _Printer) -> int:
     return EXIT_OK
 
 
-COMMANDS = {"plan": cmd_plan, "pattern": cmd_pattern, "simulate": cmd_simulate, "calibrate": cmd_calibrate, "calibrate-many": cmd_calibrate_many,
-            "detect": cmd_detect, "report": cmd_report}
+COMMANDS = {"plan": cmd_plan, "simulate": cmd_simulate, "calibrate": cmd_calibrate, "calibrate-many": cmd_calibrate_many,
+            "detect": cmd_detect, "report": cmd_report, "pattern": cmd_pattern}
 
 
 #: Longest run of user data (a path, a value) quoted in an error line.
