@@ -390,3 +390,38 @@ def test_pattern_page_shows_every_pattern_pixel_on_one_device_pixel_under_displa
     outside_note = np.ones(pattern.shape, bool)
     outside_note[:, 140:460] = False
     assert np.array_equal(seen[outside_note], pattern[outside_note])
+
+
+#: Pixel noise per kind: ChArUco and chessboard saddles as above; AprilTag corners (cornerSubPix on the
+#: linearized image) sit ~0.2 px off per axis on rendered tags (STYLE.md, OpenCV pitfalls), so 0.3 px.
+KIND_PIXEL_SIGMA = {"chessboard": PIXEL_SIGMA, "apriltag": 0.3}
+
+
+@pytest.mark.parametrize("kind", ["chessboard", "apriltag"])
+def test_other_pattern_kinds_calibrate_through_the_mirror_too(tmp_path, kind):
+    """The chessboard must be seen whole: a photograph in which the mirror cuts it is left out, named."""
+    from mirror_fg import calibrate
+    from mirror_fg.io.capture import capture_from_dict
+    from mirror_fg.tools.pattern import design_pattern, draw_pattern, screen_mm_from_diagonal
+    from mirror_fg.vision.detect import detect_capture
+
+    render = load_script("render_screen")
+    mm = screen_mm_from_diagonal(*SCREEN_PX, DIAGONAL_IN)
+    screen = design_pattern(*SCREEN_PX, *mm, kind)
+    png = draw_pattern(screen)
+    R, t = render.webcam_above(mm[0] / 1000)
+    rng = np.random.default_rng(7)
+    images = []
+    for k, mirror in enumerate(render.placements(R, t, mm[0] / 1000, mm[1] / 1000)):
+        cv2.imwrite(str(tmp_path / f"m{k}.png"), render.render(png, mm, R, t, mirror, rng))
+        images.append({"file": f"m{k}.png", "mirror_configs": [k]})
+    capture = capture_from_dict({"format": "mirror-fg/capture@1", "num_mirrors": 1, "camera": render.WEBCAM,
+                                 "pixel_sigma": KIND_PIXEL_SIGMA[kind], "target": screen.to_dict(), "images": images},
+                                base_dir=str(tmp_path))
+    dataset, reports = detect_capture(capture, progress=False)
+    assert sum(r.status == FOUND for r in reports) >= 5, [r.line() for r in reports]
+    assert all(r.reason for r in reports if r.status != FOUND)
+    cal = calibrate(dataset)
+    error = pose_difference(R, t, cal.R_cam_base, cal.t_cam_base)
+    bound = 3 * np.sqrt(np.diag(cal.covariance))
+    assert np.all(np.abs(error) <= bound), (error, bound)
