@@ -6,8 +6,8 @@ A calibration from a capture whose target is a screen (:mod:`mirror_fg.io.screen
 towards the viewer, camera frame, metres. :func:`check_screen_block` is the validator's schema of it and
 :func:`check_screen_pose` checks that its corners are those of ``T_cam_base``.
 
-:func:`screen_xml_text` writes ``<result stem>.screen.xml``, an OpenCV FileStorage file in the form gaze
-pipelines (ETH-XGaze, few_shot_gaze) use: ``screen_rotation`` (3 x 3, ``R`` of the screen in the camera
+:func:`screen_xml_text` writes ``<result stem>.screen.xml``, an OpenCV FileStorage file with what gaze
+pipelines use, under the key names of ETH-XGaze's ``mirror_position.xml`` (in these conventions): ``screen_rotation`` (3 x 3, ``R`` of the screen in the camera
 frame: ``p_cam = R p_screen + t``), ``screen_rotation_vector`` (the same as a Rodrigues vector),
 ``screen_translation`` (``t``, **millimetres**: the screen's top-left corner in the camera frame),
 ``pix2mm`` (mm per pixel along x and y), ``screen_size_px``, ``screen_size_mm`` and
