@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.core.values import check_keys, finite, short, type_name
+from mirror_fg.core.values import check_keys, finite, is_int, short, type_name
 from mirror_fg.io.target import (
     CharucoTarget,
     ChessboardTarget,
@@ -145,13 +145,13 @@ def screen_target_from_dict(t: Mapping[str, Any], where: str) -> ScreenTarget:
         if spacing < size:
             raise DatasetError(f"{pw}: spacing_px ({spacing:g}) is below tag_px ({size:g}): the tags would overlap")
         first = p.get("first_id", 0)
-        if not isinstance(first, int) or isinstance(first, bool) or first < 0:
+        if not is_int(first) or first < 0:
             raise DatasetError(f"{pw}: first_id must be a non-negative integer, got {short(first)}")
         _enough_ids(dict_id, first + cols * rows, name, pw, f"tags {first}-{first + cols * rows - 1}")
         tags = {first + r * cols + c: (np.eye(3), np.array([c * spacing, -r * spacing, 0.0]))
                 for r in range(rows) for c in range(cols)}
         inner = TagTarget(name, dict_id, size, tags, frame="target")
-        pattern.update(dictionary=name, tag_px=size, spacing_px=spacing, cols=cols, rows=rows, first_id=first)
+        pattern.update(dictionary=name, tag_px=size, spacing_px=spacing, cols=cols, rows=rows, first_id=int(first))
         offset, y_sign = origin + size / 2.0, -1.0  # the tag frame's y is up on the screen
     pattern["origin_px"] = [float(origin[0]), float(origin[1])]
     screen = ScreenTarget(width_px, height_px, width_mm, height_mm, pattern, inner,
