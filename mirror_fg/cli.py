@@ -1,6 +1,6 @@
-"""Command line: ``mirror-fg simulate | calibrate | calibrate-many | detect | plan | report``. Parsing
+"""Command line: ``mirror-fg simulate | calibrate | calibrate-many | detect | plan | report | pattern``. Parsing
 and printing only (the library decides; docs/formats.md says what goes in and out). Just over 500
-lines: the six subcommands' parsers and printers, nothing else.
+lines: the seven subcommands' parsers and printers, nothing else.
 
 Exit status: 0 success, 2 bad input, 3 could not solve (degenerate data, no convergence).
 """
@@ -287,7 +287,43 @@ def build_parser() -> argparse.ArgumentParser:
                      help="the camera's optical frame in the ROS snippets (default camera_optical_frame; "
                      "a *_link body-frame name is refused)")
     _add_common(rep)
+
+    pat = sub.add_parser("pattern", help="draw a full-screen pattern to calibrate a webcam to its monitor (gaze)",
+                         description="Draw a pattern of exactly the screen's pixels (ChArUco by default) to show full "
+                         "screen and photograph in a hand-held mirror with the webcam; writes beside it "
+                         "<name>.target.yaml (the capture@1 target, kind screen) and <name>.html (shows it at one image "
+                         "pixel per device pixel, whatever the OS display scaling). docs/gaze_guide.md.",
+                         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    pat.add_argument("--screen", required=True, type=_size(int), metavar="WxH",
+                     help="the screen's native resolution, pixels (e.g. 1920x1080)")
+    size = pat.add_mutually_exclusive_group(required=True)
+    size.add_argument("--screen-mm", type=_size(float), metavar="WxH",
+                      help="the active area (the lit pixels), millimetres (e.g. 527x296.5)")
+    size.add_argument("--diagonal", type=_POSITIVE, metavar="INCHES",
+                      help="the diagonal, inches; with the aspect ratio of --screen (square pixels) it gives the size")
+    pat.add_argument("--kind", choices=["charuco", "chessboard", "apriltag"], default="charuco",
+                     help="charuco (default: survives partial views), chessboard (must be seen whole) or apriltag")
+    pat.add_argument("--square-mm", type=_POSITIVE, help="square (tag spacing) on the screen, mm (default 40)")
+    pat.add_argument("-o", "--output", required=True, type=Path, help="pattern PNG to write")
+    _add_common(pat)
     return parser
+
+
+def _size(kind: type):
+    """An argparse type: ``WxH`` with two finite ``kind`` values >= 0 (0 is refused by the command, in words)."""
+    def parse(text: str):
+        parts = text.lower().replace("×", "x").split("x")
+        try:
+            values = tuple(kind(p) for p in parts)
+        except ValueError:
+            values = ()
+        if len(values) != 2 or not all(math.isfinite(v) and v >= 0 for v in values):
+            raise argparse.ArgumentTypeError(f"expected WxH ({'integers' if kind is int else 'numbers'} >= 0), "
+                                             f"got {text[:40]!r}")
+        return values
+
+    parse.__name__ = "size"
+    return parse
 
 
 # --- commands -------------------------------------------------------------------------------------
@@ -310,11 +346,12 @@ def _load_input(path: Path, out: _Printer, plan: OutputPlan, tracks: dict | None
 
 
 def _load_input_with_reports(path: Path, out: _Printer, plan: OutputPlan, tracks: dict | None = None,
-                             capture_only: bool = False) -> tuple[Dataset, list]:
+                             capture_only: bool = False, on_capture: Any = None) -> tuple[Dataset, list]:
     """:func:`_load_input` and the per-image detection reports (empty for a dataset@1)."""
     from mirror_fg.vision.detect import load_input
 
-    dataset, reports = load_input(path, plan, progress=out.progress, tracks=tracks, capture_only=capture_only)
+    dataset, reports = load_input(path, plan, progress=out.progress, tracks=tracks, capture_only=capture_only,
+                                  on_capture=on_capture)
     if reports:
         _print_detection_report(out, reports)
     return dataset, list(reports or [])
@@ -365,7 +402,7 @@ def cmd_calibrate(args, out: _Printer) -> int:
                                        base_frame=args.base_frame, camera_frame=args.camera_frame)
     if not args.no_ros and not outputs.ros:
         out.info(f"note: the result goes to a device ({args.output}): no ROS outputs written beside it")
-    dataset, reports = _load_input_with_reports(args.input, out, outputs.plan)
+    dataset, reports = _load_input_with_reports(args.input, out, outputs.plan, on_capture=outputs.use_capture)
     if dataset.camera is not None and dataset.camera.estimate:
         if args.incremental:
             raise DatasetError(f"{dataset.source}: camera.estimate ({', '.join(dataset.camera.estimate)}): estimating "
@@ -667,8 +704,17 @@ def cmd_live(args, out: _Printer) -> int:
     return EXIT_OK
 
 
-COMMANDS = {"live": cmd_live, "plan": cmd_plan, "simulate": cmd_simulate, "calibrate": cmd_calibrate, "calibrate-many": cmd_calibrate_many,
-            "detect": cmd_detect, "report": cmd_report}
+def cmd_pattern(args, out: _Printer) -> int:
+    from mirror_fg.tools.pattern import pattern_summary, write_pattern
+
+    screen, files = write_pattern(args.output, args.screen, args.screen_mm, args.diagonal, args.kind, args.square_mm)
+    for line in pattern_summary(screen, files):
+        out.info(line)
+    return EXIT_OK
+
+
+COMMANDS = {"live": cmd_live, "pattern": cmd_pattern, "plan": cmd_plan, "simulate": cmd_simulate,
+            "calibrate": cmd_calibrate, "calibrate-many": cmd_calibrate_many, "detect": cmd_detect, "report": cmd_report}
 
 
 #: Longest run of user data (a path, a value) quoted in an error line.

@@ -15,6 +15,7 @@ from typing import Any
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.output import OutputPlan
 from mirror_fg.io.result import estimated_camera, result_text
+from mirror_fg.io.screen_result import screen_block, screen_xml_path, screen_xml_text
 from mirror_fg.io.ros import (
     DEFAULT_BASE_FRAME,
     DEFAULT_CAMERA_FRAME,
@@ -39,6 +40,8 @@ class CalibrationOutputs:
         self.plan, self.result_path, self.ros = plan, result_path, ros
         self.base_frame, self.camera_frame = base_frame, camera_frame
         self.camera_info: Path | None = None
+        self.screen: Any = None  # the ScreenTarget of a screen capture: the result gets its screen block
+        self.screen_xml: str | None = None
 
     def expect_camera(self) -> None:
         """The intrinsics will be estimated: plan (check now, before the solve) ``<stem>.camera_info.yaml``,
@@ -47,9 +50,24 @@ class CalibrationOutputs:
             self.camera_info = Path(self.plan.add(camera_info_path(self.result_path), "camera_info YAML",
                                                   marker=SIDE_FILE_MARKER))
 
+    def use_capture(self, capture: Any) -> None:
+        """The input is this capture@1: a screen target's result gets its ``screen`` block, and (planned
+        now, before detection) ``<stem>.screen.xml`` beside it (:mod:`mirror_fg.io.screen_result`)."""
+        if capture.target.kind != "screen":
+            return
+        self.screen = capture.target
+        if self.screen_xml is None and not self.plan.is_device(self.result_path):
+            self.screen_xml = self.plan.add(screen_xml_path(self.result_path), "screen XML", marker=SIDE_FILE_MARKER)
+
     def write(self, result: Mapping[str, Any]) -> list[Path]:
-        """Write the result@1 dictionary and its ROS outputs, all-or-nothing; the paths written."""
-        texts = {self.result_path: result_text(result, self.result_path)}
+        """Write the result@1 dictionary and its ROS outputs, all-or-nothing; the paths written. The result
+        of a screen capture is written with its ``screen`` block, and ``<stem>.screen.xml`` beside it."""
+        texts = {}
+        if self.screen is not None:
+            result = {**result, "screen": screen_block(self.screen, result)}
+            if self.screen_xml is not None:
+                texts[self.screen_xml] = screen_xml_text(result)
+        texts = {self.result_path: result_text(result, self.result_path), **texts}
         if self.ros:
             texts.update(ros_output_texts(result, self.result_path, self.base_frame, self.camera_frame))
             camera = result.get("camera")

@@ -270,6 +270,9 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".", me
                 f"{source}: T_base_target: tag poses under target.tags are already in the base frame; "
                 "give T_base_target with a chessboard, a ChArUco board, a tag grid or points"
             )
+        if target.kind == "screen":
+            raise DatasetError(f"{source}: T_base_target: with a screen target the base frame is the screen's "
+                               "(origin at the top-left corner of the active area); drop T_base_target")
         R, t = pose_from_dict(d["T_base_target"], f"{source}: T_base_target")
     else:
         R, t = np.eye(3), np.zeros(3)

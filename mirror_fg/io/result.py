@@ -51,6 +51,7 @@ from mirror_fg.io.result_checks import (
     _vector3,
     nearest_rotation,
 )
+from mirror_fg.io.screen_result import check_screen_block, check_screen_pose
 
 RESULT_FORMAT = "mirror-fg/result@1"
 
@@ -402,6 +403,7 @@ _TOP: dict[str, Checker] = {
     "excluded": _list_of(lambda e, p: _fields(e, p, *_EXCLUDED)),
     "inconsistency": _inconsistency,
     "camera": _camera,
+    "screen": check_screen_block,  # a screen capture's screen (io.screen_result)
 }
 
 
@@ -419,6 +421,8 @@ def validate_result(data: Any, source: str) -> dict[str, Any]:
         if out.get("T_base_cam") is not None:
             _check_inverse(out["T_cam_base"], out["T_base_cam"])
         _check_base_cam_covariances(out)
+        if out.get("screen") is not None:
+            check_screen_pose(out)
     except _Invalid as error:
         raise DatasetError(f"{source}: {error.path}: {error.problem}") from None
     return out

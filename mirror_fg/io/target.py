@@ -48,6 +48,8 @@
   in every image, whatever the view; an image shows any subset of them.
 * ``kind: points`` with ``fiducials: {name: [x, y, z]}`` (metres, target frame); each image then
   gives its pixels under ``observations`` instead of detection.
+* ``kind: screen``: a pattern shown full screen on a monitor (``mirror-fg pattern``); the base frame is
+  the screen's (:mod:`mirror_fg.io.screen_target`).
 
 A pose (a tag's, or ``T_base_target``) is ``{R: 3x3, t: [3]}`` or ``{q_xyzw: [4], t: [3]}``:
 ``Bp = R @ p + t``, metres. Pixels measured by hand (an image's ``observations``, required with a points
@@ -337,7 +339,11 @@ def target_from_dict(t: Any, source: str) -> Target:
         if len(out) < 3:
             raise DatasetError(f"{where}: needs at least 3 fiducials, got {len(out)}")
         return PointsTarget(out)
-    raise DatasetError(f"{where}: kind must be 'chessboard', 'charuco', 'apriltag' or 'points', got {short(kind)}")
+    if kind == "screen":  # a pattern shown on a monitor: its own module
+        from mirror_fg.io.screen_target import screen_target_from_dict
+
+        return screen_target_from_dict(t, where)  # type: ignore[return-value]
+    raise DatasetError(f"{where}: kind must be 'chessboard', 'charuco', 'apriltag', 'points' or 'screen', got {short(kind)}")
 
 
 def _charuco(t: Mapping[str, Any], where: str) -> CharucoTarget:

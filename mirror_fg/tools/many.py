@@ -35,7 +35,7 @@ def calibrate_one(path: str, out_dir: str, ros: bool = True) -> dict:
     try:
         target = result_path_for(path, out_dir)
         outputs = plan_calibration_outputs([path], target, ros=ros)
-        dataset, _ = load_input(path, outputs.plan)
+        dataset, _ = load_input(path, outputs.plan, on_capture=outputs.use_capture)
         if dataset.camera is not None and dataset.camera.estimate:
             outputs.expect_camera()
         calibration = require_converged(calibrate(dataset), dataset.source)

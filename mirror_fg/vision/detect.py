@@ -26,6 +26,7 @@ import logging
 import os
 import sys
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -115,7 +116,8 @@ class _Detector:
     def __init__(self, capture: Capture, camera: dict[str, Any]):
         self.capture = capture
         self.camera = camera
-        self.target = capture.target
+        # a screen target is detected as the pattern it shows (same names; fiducials from the capture)
+        self.target = getattr(capture.target, "pattern_target", capture.target)
         self.aruco = aruco_detector(self.target) if isinstance(self.target, TagTarget) else None
         self.charuco = charuco_detector(self.target) if isinstance(self.target, CharucoTarget) else None
 
@@ -468,19 +470,22 @@ def _detect_video(
 
 def load_input(
     path: str | os.PathLike[str], plan: OutputPlan, progress: bool = False, tracks: dict[str, Track] | None = None,
-    capture_only: bool = False,
+    capture_only: bool = False, on_capture: Callable[[Capture], None] | None = None,
 ) -> tuple[Dataset, list]:
     """A Dataset from a dataset@1 file, or from a capture@1 file after detection (read once), and the
     detection reports (empty for a dataset). The files a capture names are added to ``plan``'s inputs
     before any detection, so an output that would overwrite one of them is refused first. ``tracks``:
     filled with the capture's tracked points (:func:`detect_capture`). ``capture_only``: anything but a
-    capture is a DatasetError."""
+    capture is a DatasetError. ``on_capture``: called with the capture once read, before detection (e.g.
+    to plan the outputs its target needs: a screen's)."""
     source = os.fspath(path)
     data = load_structured(source)
     fmt = data.get("format") if isinstance(data, dict) else None
     if fmt == CAPTURE_FORMAT:
         capture = capture_from_file_data(data, source)
         plan.add_inputs(capture.input_files())
+        if on_capture is not None:
+            on_capture(capture)
         return detect_capture(capture, progress=progress, tracks=tracks)
     if capture_only:
         raise DatasetError(f"{source}: not a capture file (expected format {CAPTURE_FORMAT!r})")
