@@ -49,6 +49,8 @@ __all__ = [
     "MAX_IMAGE_PIXELS",
     "NativeOutput",
     "native_stderr",
+    "open_video",
+    "video_frame_count",
 ]
 
 #: Largest input file read (bytes); a larger file (or an endless one such as /dev/zero) is refused.
@@ -101,15 +103,29 @@ def read_text(path: str | os.PathLike[str], limit: int = MAX_INPUT_BYTES) -> str
         raise DatasetError(f"{source}: not UTF-8 text (byte {exc.start})") from None
 
 
-_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
+# A JSON string, written so that matching it needs no memory per character: the old form
+# '"(?:[^"\\]|\\.)*"' kept one backtracking entry per character, 6.5 GB (MemoryError) for one 50 MB
+# string value. Possessive (*+) repeats give nothing back, which here changes no match: the character
+# classes exclude what may follow them.
+_JSON_STRING = re.compile(r'"[^"\\]*+(?:\\.[^"\\]*+)*+"')
+#: Bytes scanned at a time by :func:`_json_depth` (its extra memory is a few times this).
+_DEPTH_BLOCK = 4 * 1024 * 1024
 
 
 def _json_depth(text: str) -> int:
-    """Deepest nesting of ``[``/``{`` in JSON text, strings skipped (no recursion)."""
+    """Deepest nesting of ``[``/``{`` in JSON text, strings skipped (no recursion, bounded memory)."""
     bare = _JSON_STRING.sub('""', text).encode("utf-8", "surrogatepass")
-    raw = np.frombuffer(bare, dtype=np.uint8)
-    step = np.isin(raw, (ord("["), ord("{"))).astype(np.int64) - np.isin(raw, (ord("]"), ord("}")))
-    return int(np.cumsum(step).max(initial=0))
+    depth = deepest = 0
+    for start in range(0, len(bare), _DEPTH_BLOCK):
+        raw = np.frombuffer(bare, dtype=np.uint8, count=min(_DEPTH_BLOCK, len(bare) - start), offset=start)
+        opens = (raw == ord("[")) | (raw == ord("{"))
+        closes = (raw == ord("]")) | (raw == ord("}"))
+        step = opens.astype(np.int32) - closes
+        if step.size:
+            levels = np.cumsum(step, dtype=np.int64) + depth
+            deepest = max(deepest, int(levels.max()))
+            depth = int(levels[-1])
+    return deepest
 
 
 def parse_json(text: str, source: str) -> Any:
@@ -277,6 +293,47 @@ _UniqueKeyLoader = _make_loader()
 
 def _quote(value: Any, limit: int = 60) -> str:
     return short(value, limit)
+
+
+# --------------------------------------------------------------------------------------------------
+# Videos
+# --------------------------------------------------------------------------------------------------
+
+
+def open_video(path: str, where: str) -> Any:
+    """An opened ``cv2.VideoCapture`` whose frames are within MAX_IMAGE_PIXELS (from the container's
+    header, before any frame is decoded); DatasetError otherwise. The caller releases it."""
+    import cv2
+
+    with native_stderr() as native:
+        vc = cv2.VideoCapture(path)
+    if not vc.isOpened():
+        vc.release()
+        raise DatasetError(f"{where}: cannot open the video (unknown or broken format){native.detail}")
+    w, h = vc.get(cv2.CAP_PROP_FRAME_WIDTH), vc.get(cv2.CAP_PROP_FRAME_HEIGHT)
+    if not (math.isfinite(w) and math.isfinite(h)) or w * h > MAX_IMAGE_PIXELS:
+        vc.release()
+        raise DatasetError(f"{where}: frames of {w:.0f} x {h:.0f} pixels are above the limit of {MAX_IMAGE_PIXELS} pixels")
+    return vc
+
+
+def video_frame_count(path: str, where: str) -> int:
+    """The frame count a video's container reports, once a first frame was read (DatasetError otherwise)."""
+    import cv2
+
+    vc = open_video(path, where)
+    try:
+        with native_stderr() as native:
+            ok, _ = vc.read()
+        if not ok:
+            raise DatasetError(f"{where}: cannot read a frame from the video{native.detail}")
+        reported = vc.get(cv2.CAP_PROP_FRAME_COUNT)
+        count = int(reported) if math.isfinite(reported) else 0
+    finally:
+        vc.release()
+    if count <= 0:
+        raise DatasetError(f"{where}: the video reports no frame count")
+    return count
 
 
 # --------------------------------------------------------------------------------------------------
