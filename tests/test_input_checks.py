@@ -219,7 +219,7 @@ def test_swapped_mirror_order_is_hinted(dataset_dict, tmp_path, capsys):
     path = tmp_path / "swapped.json"
     path.write_text(json.dumps(d))
     line = cli_error(capsys, "calibrate", str(path), "-o", str(tmp_path / "r.json"))
-    assert "under placement 0 of mirror 1, mirror 2 needs at least three placements" in line, line
+    assert "under placement (1, 0) (mirror 1 at placement 0), mirror 2 needs at least three placements" in line, line
     assert "other order" in line and "mirror_configs" in line, line
 
 

@@ -43,7 +43,9 @@ def too_few_placements(source: str, configs: Sequence[tuple[int, ...]], prefix: 
     listed = ", ".join(str(m) for m in placed[:8]) + (", ..." if count > 8 else "")
     under = ""
     if prefix:
-        under = "under " + " and ".join(f"placement {m} of mirror {l + 1}" for l, m in enumerate(prefix)) + ", "
+        pairs = ", ".join(f"({l + 1}, {m})" for l, m in enumerate(prefix))  # SPEC: placement m of mirror l is (l, m)
+        words = " and ".join(f"mirror {l + 1} at placement {m}" for l, m in enumerate(prefix))
+        under = f"under placement {pairs} ({words}), "
     line = (f"{source}: {under}mirror {level} needs at least {_WORDS[MIN_PLACEMENTS]} placements, you gave {gave}"
             + (f" ({listed})" if count else ""))
     num_mirrors = len(configs[0]) if configs else 0
