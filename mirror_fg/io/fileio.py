@@ -6,9 +6,12 @@ Every file the user gives goes through here:
   :data:`MAX_INPUT_BYTES`, so a named pipe, ``/dev/stdin`` or ``/dev/zero`` is read once and bounded.
 - :func:`parse_json` / :func:`parse_yaml` / :func:`parse_structured` parse that text into plain Python
   values within :data:`MAX_DEPTH` levels of nesting, :data:`MAX_NODES` values (YAML aliases counted
-  as often as they are expanded, so an alias bomb is refused before it is built) and integers of at
-  smaller than :data:`INT_LIMIT` (larger ones become infinities, which every validator refuses by
-  name); a key repeated in one object is an error.
+  as often as they are expanded, so an alias bomb is refused before it is built; a YAML file also at
+  most :data:`MAX_YAML_NODES` nodes as written, counted before any is kept) and integers smaller than
+  :data:`INT_LIMIT` (larger ones become infinities, which every validator refuses by name); a key
+  repeated in one object is an error. Extra memory is a few copies of the text, never a cost per
+  character (the string pattern of the JSON depth scan keeps no backtracking state).
+- :func:`open_video` / :func:`video_frame_count` open a video within :data:`MAX_IMAGE_PIXELS` per frame.
 - :func:`native_stderr` keeps what native decoders (libpng, libjpeg, FFmpeg, OpenCV's FileStorage)
   write to file descriptor 2 while they read a user's file, so that the problem is reported in our one
   line; :data:`MAX_IMAGE_PIXELS` bounds what an image or video frame may decode to.
@@ -38,6 +41,7 @@ __all__ = [
     "MAX_INPUT_BYTES",
     "MAX_DEPTH",
     "MAX_NODES",
+    "MAX_YAML_NODES",
     "INT_LIMIT",
     "read_input",
     "read_text",
@@ -59,6 +63,10 @@ MAX_INPUT_BYTES = 256 * 1024 * 1024
 MAX_DEPTH = 64
 #: Most values (scalars, lists, objects) in one JSON or YAML input, YAML aliases counted expanded.
 MAX_NODES = 20_000_000
+#: Most nodes (scalars, lists, mappings, aliases unexpanded) in one YAML input: PyYAML's composer keeps
+#: every node (about 450 bytes each with libyaml, measured) before any is checked, so 1 million is ~0.5 GB
+#: and 15 s; the 256 MiB limit alone would allow 100 million (45 GB). JSON has no such limit.
+MAX_YAML_NODES = 1_000_000
 #: Integers at least this large in magnitude are read as +-inf (they fit no int64 or float64 field;
 #: the validators then refuse them as not finite, naming the field).
 INT_LIMIT = 2**63
@@ -160,15 +168,20 @@ def parse_yaml(text: str, source: str) -> Any:
     """Parse YAML (safe tags only) within the bounds above; aliases are counted as expanded."""
     import yaml
 
-    depth = 0
+    depth = nodes = 0
     try:
-        for event in yaml.parse(text, Loader=yaml.SafeLoader):  # events: iterative, no recursion
+        for event in yaml.parse(text, Loader=_LOADER_BASE):  # events: iterative, no recursion, one at a time
             if isinstance(event, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
                 depth += 1
                 if depth > MAX_DEPTH:
                     raise DatasetError(f"{source}: nested more than {MAX_DEPTH} levels deep, refused")
             elif isinstance(event, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
                 depth -= 1
+                continue
+            nodes += isinstance(event, yaml.NodeEvent)
+            if nodes > MAX_YAML_NODES:
+                raise DatasetError(f"{source}: more than {MAX_YAML_NODES} values in a YAML file, refused "
+                                   "(write data this large as JSON)")
         loader = _UniqueKeyLoader(text)
         try:
             node = loader.get_single_node()
@@ -263,10 +276,20 @@ class _DuplicateKey(Exception):
     pass
 
 
+def _loader_base() -> Any:
+    """libyaml's safe loader where PyYAML was built with it (30x faster than the pure-Python one), else that."""
+    import yaml
+
+    return getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
+_LOADER_BASE = _loader_base()
+
+
 def _make_loader() -> Any:
     import yaml
 
-    class Loader(yaml.SafeLoader):
+    class Loader(_LOADER_BASE):  # type: ignore[misc,valid-type]
         pass
 
     def construct_mapping(loader: Any, node: Any, deep: bool = False) -> dict[Any, Any]:
