@@ -477,7 +477,8 @@ def _refuse_input_as_result(args) -> None:
         data = load_structured(args.result)
     except DatasetError:
         return
-    kind = {DATASET_FORMAT: "a dataset", CAPTURE_FORMAT: "a capture"}.get(data.get("format") if isinstance(data, dict) else None)
+    kinds = {DATASET_FORMAT: "a dataset", CAPTURE_FORMAT: "a capture"}
+    kind = kinds.get(str(data.get("format"))) if isinstance(data, dict) else None
     if kind is not None:
         then = ("the result comes first: mirror-fg report RESULT DATASET -o DIR" if args.dataset is not None else
                 f"calibrate it first (mirror-fg calibrate {args.result} -o result.json), then mirror-fg report "

@@ -204,6 +204,24 @@ def test_a_50_mb_string_is_read_within_bounded_memory(dataset_dict, tmp_path, ki
         assert out == "loaded", out[:400]
 
 
+def test_a_json_file_of_more_values_than_the_limit_is_refused_before_parsing(tmp_path):
+    """Before: MAX_NODES held for YAML only; 21 million empty objects (63 MB of "{},") became 1.7 GB of
+    dicts (MemoryError under this cap). The count is exact (against the parsed data's)."""
+    from mirror_fg.io.fileio import MAX_NODES, _json_shape
+
+    path = tmp_path / "many.json"
+    path.write_text("[" + "{}," * (MAX_NODES + 1_000_000) + "{}]")
+    proc = _load_in_capped_child(path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.startswith("refused:") and f"more than {MAX_NODES} values" in proc.stdout, proc.stdout[:400]
+    def count(value) -> int:  # the reference: values of the parsed data
+        items = value.values() if isinstance(value, dict) else value if isinstance(value, list) else []
+        return 1 + sum(count(item) for item in items)
+
+    for text in ('[1, [ ], {"a": [2, 3], "b": {}}, "x,[y"]', '{"k": [[], [[ ]], [1]]}', " 7 ", '"a,{"'):
+        assert _json_shape(text)[1] == count(json.loads(text)), text
+
+
 def test_a_yaml_file_of_millions_of_values_is_refused_before_they_are_kept(tmp_path):
     """Before: PyYAML composed every node first (~650 bytes each, pure Python): 2 million values in a
     4 MB capture took minutes and over a gigabyte before any check; now one line, in seconds."""

@@ -70,7 +70,7 @@ def is_int(x: Any) -> TypeIs[int | np.integer[Any]]:
 
 def is_index(x: Any, minimum: int = 0) -> bool:
     """An integer (not a bool) from ``minimum`` to :data:`MAX_INDEX`."""
-    return is_int(x) and minimum <= x <= MAX_INDEX
+    return bool(is_int(x) and minimum <= x <= MAX_INDEX)
 
 
 def is_number(x: Any) -> bool:

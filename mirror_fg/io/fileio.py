@@ -116,30 +116,39 @@ def read_text(path: str | os.PathLike[str], limit: int = MAX_INPUT_BYTES) -> str
 # string value. Possessive (*+) repeats give nothing back, which here changes no match: the character
 # classes exclude what may follow them.
 _JSON_STRING = re.compile(r'"[^"\\]*+(?:\\.[^"\\]*+)*+"')
-#: Bytes scanned at a time by :func:`_json_depth` (its extra memory is a few times this).
-_DEPTH_BLOCK = 4 * 1024 * 1024
+#: Bytes scanned at a time by :func:`_json_shape` (its extra memory is a few times this).
+_SCAN_BLOCK = 4 * 1024 * 1024
 
 
-def _json_depth(text: str) -> int:
-    """Deepest nesting of ``[``/``{`` in JSON text, strings skipped (no recursion, bounded memory)."""
+def _json_shape(text: str) -> tuple[int, int]:
+    """``(deepest nesting of [/{, how many values)`` of JSON text, strings skipped (no recursion, bounded
+    memory). Each list or object with k >= 1 items holds k - 1 commas, so the values are the commas
+    plus the non-empty lists and objects plus one (the top-level value); exact for valid JSON."""
     bare = _JSON_STRING.sub('""', text).encode("utf-8", "surrogatepass")
-    depth = deepest = 0
-    for start in range(0, len(bare), _DEPTH_BLOCK):
-        raw = np.frombuffer(bare, dtype=np.uint8, count=min(_DEPTH_BLOCK, len(bare) - start), offset=start)
+    depth = deepest = values = 0
+    last = 0  # the previous block's last byte that is not white space
+    for start in range(0, len(bare), _SCAN_BLOCK):
+        raw = np.frombuffer(bare, dtype=np.uint8, count=min(_SCAN_BLOCK, len(bare) - start), offset=start)
+        raw = raw[~np.isin(raw, np.frombuffer(b" \t\r\n", dtype=np.uint8))]
+        if not raw.size:
+            continue
         opens = (raw == ord("[")) | (raw == ord("{"))
         closes = (raw == ord("]")) | (raw == ord("}"))
-        step = opens.astype(np.int32) - closes
-        if step.size:
-            levels = np.cumsum(step, dtype=np.int64) + depth
-            deepest = max(deepest, int(levels.max()))
-            depth = int(levels[-1])
-    return deepest
+        levels = np.cumsum(opens.astype(np.int32) - closes, dtype=np.int64) + depth
+        deepest, depth = max(deepest, int(levels.max())), int(levels[-1])
+        empty = int(np.count_nonzero(opens[:-1] & closes[1:])) + (last in b"[{" and bool(closes[0]))
+        values += int(np.count_nonzero(raw == ord(","))) + int(np.count_nonzero(opens)) - empty
+        last = int(raw[-1])
+    return deepest, values + 1
 
 
 def parse_json(text: str, source: str) -> Any:
     """Parse JSON within the bounds above; a key repeated in one object is an error."""
-    if _json_depth(text) > MAX_DEPTH:
+    depth, values = _json_shape(text)
+    if depth > MAX_DEPTH:
         raise DatasetError(f"{source}: nested more than {MAX_DEPTH} levels deep, refused")
+    if values > MAX_NODES:  # 20 million empty objects ("{},", 3 bytes each) are 1.3 GB in Python
+        raise DatasetError(f"{source}: more than {MAX_NODES} values, refused")
 
     def no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
         out: dict[str, Any] = {}
