@@ -538,7 +538,11 @@ def cmd_report(args, out: _Printer) -> int:
         check_camera_frame_name(args.camera_frame, "--camera-frame")
     except ValueError as error:
         raise DatasetError(str(error)) from None
-    result = load_result(args.result)
+    try:
+        result = load_result(args.result)
+    except DatasetError:
+        _refuse_input_as_result(args)
+        raise
     tracks: dict[str, Track] = {}
     dataset = None
     if args.dataset is not None:  # a dataset, or a capture (detected again: its tracks are drawn too)
@@ -552,6 +556,25 @@ def cmd_report(args, out: _Printer) -> int:
         raise DatasetError(f"{args.result}: {error}") from None
     out.info("wrote " + ", ".join(str(p) for p in paths.values()))
     return EXIT_OK
+
+
+def _refuse_input_as_result(args) -> None:
+    """A dataset or capture given where ``report`` wants a result: say so, with the commands in their order."""
+    from mirror_fg.io.capture import CAPTURE_FORMAT
+    from mirror_fg.io.dataset import DATASET_FORMAT
+    from mirror_fg.io.fileio import load_structured
+
+    try:
+        data = load_structured(args.result)
+    except DatasetError:
+        return
+    kinds = {DATASET_FORMAT: "a dataset", CAPTURE_FORMAT: "a capture"}
+    kind = kinds.get(str(data.get("format"))) if isinstance(data, dict) else None
+    if kind is not None:
+        then = ("the result comes first: mirror-fg report RESULT DATASET -o DIR" if args.dataset is not None else
+                f"calibrate it first (mirror-fg calibrate {args.result} -o result.json), then mirror-fg report "
+                f"result.json {args.result} -o {args.output}")
+        raise DatasetError(f"{args.result}: is {kind}, not a result (mirror-fg/result@1); {then}")
 
 
 def cmd_plan(args, out: _Printer) -> int:
@@ -731,6 +754,18 @@ def _one_line(message: str) -> str:
     return re.sub(r"\S{%d,}" % (_MAX_QUOTE + 1), elide, " ".join(str(message).split()))
 
 
+class _Notes(logging.Handler):
+    """Library INFO lines the user sees without ``-v`` (on stdout, like the other notes; -v shows them on stderr)."""
+
+    def __init__(self, out: _Printer) -> None:
+        super().__init__(logging.INFO)
+        self.out = out
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if not self.out.verbose:
+            self.out.info("note: " + _one_line(record.getMessage()))
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``mirror-fg`` console script."""
     args = build_parser().parse_args(argv)
@@ -743,9 +778,16 @@ def main(argv: list[str] | None = None) -> int:
         handler.setFormatter(logging.Formatter("%(message)s"))
         logger.addHandler(handler)
         logger.setLevel(logging.INFO)
+    notes = _Notes(out)  # the camera a camchain gave: printed without -v too (issue 27)
+    notes_logger = logging.getLogger("mirror_fg.io.camera_files")
+    notes_logger.addHandler(notes)
+    notes_level = notes_logger.level
+    notes_logger.setLevel(logging.INFO)
     try:
         status = _run(args, out)
     finally:
+        notes_logger.removeHandler(notes)
+        notes_logger.setLevel(notes_level)
         if handler is not None:
             logger.removeHandler(handler)
             logger.setLevel(level)

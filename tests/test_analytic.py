@@ -78,14 +78,14 @@ def test_placement_with_two_children_is_refused_with_its_name():
     # remove mirror 2's third placement under mirror 1 placement 1
     victim = [im for im in dataset.images if im.mirror_configs[0] == 1][-1]
     reduced = _drop_images(dataset, lambda im: im is not victim)
-    with pytest.raises(DatasetError, match=r"test.json: placement \(1, 1\) has 2 placement\(s\) of mirror 2"):
+    with pytest.raises(DatasetError, match=r"test.json: under placement \(1, 1\).*mirror 2 needs at least three placements, you gave two"):
         solve_analytic(reduced)
 
 
 def test_root_with_two_placements_of_mirror_one_is_refused():
     dataset, _ = simulate_tree(1, pixel_sigma=0.0, seed=1)
     reduced = _drop_images(dataset, lambda im: im.mirror_configs[0] != 2)
-    with pytest.raises(DatasetError, match="root.*2 placement"):
+    with pytest.raises(DatasetError, match="mirror 1 needs at least three placements, you gave two"):
         solve_analytic(reduced)
 
 

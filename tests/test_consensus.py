@@ -145,7 +145,7 @@ def test_real_photographs_two_bad_images_and_gross_corners(takahashi):
 
 def test_real_photographs_majority_bad_refused_naming_what_was_left_out(takahashi):
     bad = _corrupted(takahashi, {0: shuffled_row, 1: shuffled_row, 2: shuffled_row}, TAKAHASHI_COLS, TAKAHASHI_ROWS)
-    with pytest.raises(DatasetError, match=r"has 2 placement\(s\) of mirror 1.*after leaving out image 'input1': PnP"):
+    with pytest.raises(DatasetError, match=r"mirror 1 needs at least three placements, you gave two.*after leaving out image 'input1': PnP"):
         calibrate(bad)
 
 

@@ -23,6 +23,8 @@ from mirror_fg.core.errors import DatasetError
 
 __all__ = [
     "is_int",
+    "is_index",
+    "MAX_INDEX",
     "is_number",
     "finite",
     "type_name",
@@ -35,11 +37,25 @@ __all__ = [
     "coordinates",
     "vector",
     "named_vectors",
+    "check_size",
+    "check_extent",
+    "MAX_TARGET_EXTENT_M",
+    "MAX_FEATURE_SIZE_M",
     "NAME_LIMIT",
 ]
 
 #: User-given names (files, keys) are quoted in messages up to this many characters.
 NAME_LIMIT = 80
+#: Largest index or count of mirrors, placements (configurations) and iterations, in every file read or
+#: written (dataset@1, capture@1, result@1): they stay machine integers (int32), so that what is accepted
+#: on input is also a valid result.
+MAX_INDEX = 2**31 - 1
+#: Largest extent (metres, the diagonal of the bounding box) of a calibration target or fiducial layout
+#: accepted: a size typed in millimetres into a metres field is 1000 times too large, and a target
+#: wider than a room cannot be photographed whole through a mirror anyway.
+MAX_TARGET_EXTENT_M = 5.0
+#: Largest chessboard square, marker or tag edge (metres) accepted, for the same reason.
+MAX_FEATURE_SIZE_M = 1.0
 
 
 # --------------------------------------------------------------------------------------------------
@@ -50,6 +66,11 @@ NAME_LIMIT = 80
 def is_int(x: Any) -> TypeIs[int | np.integer[Any]]:
     """An integer that is not a bool (JSON ``true`` is not a count)."""
     return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
+
+
+def is_index(x: Any, minimum: int = 0) -> bool:
+    """An integer (not a bool) from ``minimum`` to :data:`MAX_INDEX`."""
+    return bool(is_int(x) and minimum <= x <= MAX_INDEX)
 
 
 def is_number(x: Any) -> bool:
@@ -114,6 +135,22 @@ def named_vectors(value: Mapping[Any, Any], n: int, where: str, what: str) -> di
     return out
 
 
+def check_size(size_m: float, limit_m: float, where: str, quantity: str, noun: str) -> None:
+    """Refuse a size (metres) above ``limit_m`` with one line naming the unit: most often millimetres
+    typed into a metres field (``square: 27.5``)."""
+    if size_m > limit_m:
+        raise DatasetError(f"{where}: {quantity} {size_m:g} m is not a plausible {noun} (at most {limit_m:g} m); "
+                           f"sizes are in metres ({size_m:g} mm = {size_m / 1000:g})")
+
+
+def check_extent(points: Iterable[np.ndarray], where: str, noun: str) -> None:
+    """Refuse points (metres) whose bounding box is more than :data:`MAX_TARGET_EXTENT_M` across."""
+    xyz = np.array(list(points), dtype=float).reshape(-1, 3)
+    if len(xyz):
+        extent = float(np.linalg.norm(xyz.max(axis=0) - xyz.min(axis=0)))
+        check_size(extent, MAX_TARGET_EXTENT_M, where, "extent", noun)
+
+
 # --------------------------------------------------------------------------------------------------
 # Keys
 # --------------------------------------------------------------------------------------------------
@@ -141,9 +178,12 @@ def check_name(name: Any, allowed: tuple[str, ...], where: str, what: str) -> No
     """Refuse ``name`` outside ``allowed`` (``what``: "key", "intrinsic"), with the name probably meant."""
     if name in allowed:
         return
-    close = difflib.get_close_matches(str(name), allowed, n=1, cutoff=0.5) if isinstance(name, str) else []
-    if not close and isinstance(name, str):  # "distortion" -> "dist": a known name that starts it
-        close = [a for a in allowed if len(a) >= 3 and str(name).lower().startswith(a)][:1]
+    # Matched on its first NAME_LIMIT characters: difflib's work and memory grow with the product of
+    # the lengths (a 50 MB key ended in MemoryError), and a longer name is close to none of ours.
+    head = name[:NAME_LIMIT] if isinstance(name, str) else None
+    close = difflib.get_close_matches(head, allowed, n=1, cutoff=0.5) if head is not None else []
+    if not close and head is not None:  # "distortion" -> "dist": a known name that starts it
+        close = [a for a in allowed if len(a) >= 3 and head.lower().startswith(a)][:1]
     hint = f" (did you mean {close[0]!r}?)" if close else f" (expected one of {', '.join(allowed)})"
     raise DatasetError(f"{where}: unknown {what} {short(name)}{hint}")
 

@@ -13,6 +13,7 @@ with 4 coefficients); Kalibr ``cam0``... with ``camera_model: pinhole`` and ``di
 """
 from __future__ import annotations
 
+import logging
 import re
 from collections.abc import Mapping
 from typing import Any
@@ -26,6 +27,8 @@ from mirror_fg.core.values import check_keys, clip, finite, is_int, short, type_
 
 __all__ = ["camera_from_file", "MAX_CAMERA_FILE_BYTES"]
 
+#: Which camera of a camchain was used, at INFO (the CLI prints it); a child of the ``mirror_fg`` logger.
+_log = logging.getLogger(__name__)
 #: Largest camera calibration file read (bytes); real ones are a few hundred bytes.
 MAX_CAMERA_FILE_BYTES = 1 << 20
 #: Deepest nesting read from an OpenCV FileStorage file (a camera file needs 2 levels).
@@ -64,9 +67,13 @@ def camera_from_file(path: str, name: str | None, where: str) -> dict[str, Any]:
 def _camera_from_mapping(data: Mapping[Any, Any], name: str | None, where: str) -> dict[str, Any]:
     cams = sorted(k for k in data if isinstance(k, str) and k.startswith("cam") and isinstance(data[k], Mapping))
     if name is not None or (cams and "camera_model" in data[cams[0]]):
+        if name is None and len(cams) > 1:  # a rig: cam0 is no better a guess than the others
+            raise DatasetError(f"{where}: the camchain holds {len(cams)} cameras ({clip(', '.join(cams))}); say which "
+                               f"one took the photographs: camera: {{file: ..., name: {cams[1]}}}")
         key = name if name is not None else cams[0]
         if key not in data or not isinstance(data[key], Mapping):
             raise DatasetError(f"{where}: no camera {short(key)} (has {short(', '.join(cams) or 'none')})")
+        _log.info("%s: using camera %s of the camchain", where, clip(key))
         return _camera_from_kalibr(data[key], f"{where}: {short(key)}")
     if "intrinsics" in data and "camera_model" in data:
         return _camera_from_kalibr(data, where)

@@ -54,7 +54,6 @@ with one line naming the file, the entry and the problem.
 from __future__ import annotations
 
 import logging
-import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -66,10 +65,12 @@ import numpy as np
 from mirror_fg.core.camera import check_camera
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.camera_files import camera_from_file
-from mirror_fg.io.fileio import MAX_IMAGE_PIXELS, load_structured, native_stderr, resolve_path
+from mirror_fg.io.fileio import MAX_IMAGE_PIXELS, load_structured, open_video, resolve_path, video_frame_count
 from mirror_fg.io.target import PointsTarget, TagTarget, Target, observations_from, pose_from_dict, target_from_dict
 from mirror_fg.io.point_sigma import measurement_sigma
-from mirror_fg.core.values import check_format, check_keys, finite, is_int, short, short_path, type_name, vector
+from mirror_fg.core.values import (
+    MAX_INDEX, check_format, check_keys, finite, is_index, is_int, short, short_path, type_name, vector,
+)
 
 __all__ = [
     "CAPTURE_FORMAT",
@@ -261,7 +262,7 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".", me
                                     f"{source}: pixel_sigma")
 
     if "target" not in d:
-        raise DatasetError(f"{source}: missing 'target' (chessboard, charuco, apriltag or points)")
+        raise DatasetError(f"{source}: missing 'target' (chessboard, charuco, apriltag, aruco or points)")
     target = target_from_dict(d["target"], source)
 
     if d.get("T_base_target") is not None:
@@ -347,12 +348,11 @@ def _configs(value: Any, num_mirrors: int, where: str) -> tuple[Config, ...]:
     for l, m in enumerate(value):
         if m == EACH:
             out.append(EACH)
-        elif is_int(m) and m >= 0:
+        elif is_index(m):
             out.append(int(m))
         else:
-            raise DatasetError(
-                f"{where}: mirror_configs[{l}] (mirror {l + 1}) must be a non-negative integer or 'each', got {short(m)}"
-            )
+            raise DatasetError(f"{where}: mirror_configs[{l}] (mirror {l + 1}) must be a non-negative integer "
+                               f"(at most {MAX_INDEX}) or 'each', got {short(m)}")
     return tuple(out)
 
 
@@ -363,6 +363,7 @@ def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
     points_target = isinstance(cap.target, PointsTarget)
     entries: list[ImageEntry] = []
     seen: dict[str, str] = {}
+    missing: list[str] = []  # every image file not found, named together after the loop
     for index, e in enumerate(value):
         where = f"{source}: images[{index}]"
         if not isinstance(e, Mapping):
@@ -376,7 +377,7 @@ def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
             where = f"{source}: images[{index}] ({short_path(file)})"
             path = resolve_path(file, base_dir)
             if not os.path.isfile(path):
-                raise DatasetError(f"{where}: image file not found")
+                missing.append(where)
         elif not points_target:
             raise DatasetError(f"{where}: missing 'file' (the image)")
         if "mirror_configs" not in e:
@@ -406,6 +407,12 @@ def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
         label = where.removeprefix(f"{source}: ")
         obs_path = resolve_path(obs_file, base_dir) if obs_file is not None else None
         entries.append(ImageEntry(image_id, path, configs, observations, where, label, obs_path))
+    if len(missing) == 1:
+        raise DatasetError(f"{missing[0]}: image file not found")
+    if missing:
+        more = f" and {len(missing) - 4} more" if len(missing) > 4 else ""
+        named = ", ".join(m.removeprefix(f"{source}: ") for m in missing[:4])
+        raise DatasetError(f"{source}: {len(missing)} image files not found: {named}{more}")
     return entries
 
 
@@ -422,7 +429,7 @@ def _video(v: Any, cap: Capture, base_dir: str) -> VideoSpec:
     where = f"{source}: video ({short_path(file)})"
     if not os.path.isfile(path):
         raise DatasetError(f"{where}: video file not found")
-    frame_count = _video_frame_count(path, where)
+    frame_count = video_frame_count(path, where)
     segs = v.get("segments")
     if not isinstance(segs, list) or not segs:
         raise DatasetError(f"{where}: segments must be a non-empty list of {{frames: [first, last], mirror_configs}}")
@@ -449,47 +456,6 @@ def _video(v: Any, cap: Capture, base_dir: str) -> VideoSpec:
         if b.first <= a.last:
             raise DatasetError(f"{where}: segments frames [{a.first}, {a.last}] and [{b.first}, {b.last}] overlap")
     return VideoSpec(path, ordered, frame_count)
-
-
-# FFmpeg's decoder threads log damaged frames ("[mpeg4 @ 0x...] header damaged") to fd 2 at any moment,
-# also outside native_stderr; OpenCV reads this level once, when it first loads FFmpeg: quiet (-8) unless
-# the user set one. A frame that cannot be decoded is reported per frame instead (vision/detect.py).
-os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
-
-
-def open_video(path: str, where: str) -> Any:
-    """An opened ``cv2.VideoCapture`` whose frames are within MAX_IMAGE_PIXELS (from the container's
-    header, before any frame is decoded); DatasetError otherwise. The caller releases it."""
-    import cv2
-
-    with native_stderr() as native:
-        vc = cv2.VideoCapture(path)
-    if not vc.isOpened():
-        vc.release()
-        raise DatasetError(f"{where}: cannot open the video (unknown or broken format){native.detail}")
-    w, h = vc.get(cv2.CAP_PROP_FRAME_WIDTH), vc.get(cv2.CAP_PROP_FRAME_HEIGHT)
-    if not (math.isfinite(w) and math.isfinite(h)) or w * h > MAX_IMAGE_PIXELS:
-        vc.release()
-        raise DatasetError(f"{where}: frames of {w:.0f} x {h:.0f} pixels are above the limit of {MAX_IMAGE_PIXELS} pixels")
-    return vc
-
-
-def _video_frame_count(path: str, where: str) -> int:
-    import cv2
-
-    vc = open_video(path, where)
-    try:
-        with native_stderr() as native:
-            ok, _ = vc.read()
-        if not ok:
-            raise DatasetError(f"{where}: cannot read a frame from the video{native.detail}")
-        reported = vc.get(cv2.CAP_PROP_FRAME_COUNT)
-        count = int(reported) if math.isfinite(reported) else 0
-    finally:
-        vc.release()
-    if count <= 0:
-        raise DatasetError(f"{where}: the video reports no frame count")
-    return count
 
 
 def _track(t: Any, cap: Capture) -> dict[str, TrackStart]:

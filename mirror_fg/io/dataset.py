@@ -20,7 +20,9 @@ from mirror_fg.core.camera import Camera, camera_from_dict, camera_to_dict, chec
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.output import atomic_write, json_text
 from mirror_fg.io.point_sigma import measurement_sigma, point_sigma_from_dict, point_sigma_to_dict
-from mirror_fg.core.values import check_format, check_keys, clip, coordinates, is_int, short, type_name
+from mirror_fg.core.values import (
+    MAX_INDEX, check_extent, check_format, check_keys, clip, coordinates, is_index, is_int, short, type_name,
+)
 
 DATASET_FORMAT = "mirror-fg/dataset@1"
 #: Library messages (a dataset loaded, at INFO); a child of the ``mirror_fg`` logger.
@@ -203,6 +205,9 @@ def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Datase
         raise DatasetError(f"{source}: num_mirrors must be an integer >= 1, got {short(num_mirrors)}")
 
     camera = d.get("camera")
+    if isinstance(camera, str) or (isinstance(camera, Mapping) and "file" in camera):  # SPEC: capture@1 only
+        raise DatasetError(f"{source}: camera: a dataset@1 holds the camera inline ({{model, width, height, fx, fy, "
+                           f"cx, cy, dist}}); a calibration file such as {short(camera)} can be named in a capture@1")
     if camera is not None and not isinstance(camera, Mapping):
         raise DatasetError(f"{source}: camera: expected an object or null, got {type_name(camera)}")
     unstarted: dict[str, Any] | None = None  # the checked camera whose fx, fy, cx or cy is to start from the images
@@ -324,10 +329,10 @@ def validate_image(
             f"{prefix}: mirror_configs has {len(configs)} entries, expected {ds.num_mirrors} (num_mirrors)"
         )
     for l, m in enumerate(configs):
-        if not is_int(m) or m < 0:
+        if not is_index(m):
             raise DatasetError(
-                f"{prefix}: mirror_configs[{l}] (mirror {l + 1}) must be a non-negative integer, "
-                f"got {short(m)}"
+                f"{prefix}: mirror_configs[{l}] (mirror {l + 1}) must be a non-negative integer "
+                f"(at most {MAX_INDEX}), got {short(m)}"
             )
 
     if observations is None:
@@ -387,7 +392,7 @@ def _normalize(camera: Camera | None, names: list[str], raw: np.ndarray) -> dict
 
 
 def fiducials_from_dict(fiducials: Any, source: str) -> dict[str, np.ndarray]:
-    """Fiducials ``{name: (3,) metres in {B}}``: at least three, not all on one line."""
+    """Fiducials ``{name: (3,) metres in {B}}``: at least three, not all on one line, at most 5 m across."""
     if fiducials is None:
         raise DatasetError(f"{source}: missing 'fiducials' (at least 3 non-collinear points)")
     if not isinstance(fiducials, Mapping):
@@ -401,6 +406,7 @@ def fiducials_from_dict(fiducials: Any, source: str) -> dict[str, np.ndarray]:
         result[name] = coordinates(value, 3, "[x, y, z]", f"{source}: fiducial {name!r}")
     if len(result) < 3:
         raise DatasetError(f"{source}: {len(result)} fiducials, need at least 3 (non-collinear)")
+    check_extent(result.values(), f"{source}: fiducials", "fiducial layout")  # millimetres typed as metres
     if _collinear(np.array(list(result.values()))):
         raise DatasetError(
             f"{source}: the {len(result)} fiducials are collinear (all on one line); "

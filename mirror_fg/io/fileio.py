@@ -6,9 +6,12 @@ Every file the user gives goes through here:
   :data:`MAX_INPUT_BYTES`, so a named pipe, ``/dev/stdin`` or ``/dev/zero`` is read once and bounded.
 - :func:`parse_json` / :func:`parse_yaml` / :func:`parse_structured` parse that text into plain Python
   values within :data:`MAX_DEPTH` levels of nesting, :data:`MAX_NODES` values (YAML aliases counted
-  as often as they are expanded, so an alias bomb is refused before it is built) and integers of at
-  smaller than :data:`INT_LIMIT` (larger ones become infinities, which every validator refuses by
-  name); a key repeated in one object is an error.
+  as often as they are expanded, so an alias bomb is refused before it is built; a YAML file also at
+  most :data:`MAX_YAML_NODES` nodes as written, counted before any is kept) and integers smaller than
+  :data:`INT_LIMIT` (larger ones become infinities, which every validator refuses by name); a key
+  repeated in one object is an error. Extra memory is a few copies of the text, never a cost per
+  character (the string pattern of the JSON depth scan keeps no backtracking state).
+- :func:`open_video` / :func:`video_frame_count` open a video within :data:`MAX_IMAGE_PIXELS` per frame.
 - :func:`native_stderr` keeps what native decoders (libpng, libjpeg, FFmpeg, OpenCV's FileStorage)
   write to file descriptor 2 while they read a user's file, so that the problem is reported in our one
   line; :data:`MAX_IMAGE_PIXELS` bounds what an image or video frame may decode to.
@@ -38,6 +41,7 @@ __all__ = [
     "MAX_INPUT_BYTES",
     "MAX_DEPTH",
     "MAX_NODES",
+    "MAX_YAML_NODES",
     "INT_LIMIT",
     "read_input",
     "read_text",
@@ -49,6 +53,8 @@ __all__ = [
     "MAX_IMAGE_PIXELS",
     "NativeOutput",
     "native_stderr",
+    "open_video",
+    "video_frame_count",
 ]
 
 #: Largest input file read (bytes); a larger file (or an endless one such as /dev/zero) is refused.
@@ -57,6 +63,10 @@ MAX_INPUT_BYTES = 256 * 1024 * 1024
 MAX_DEPTH = 64
 #: Most values (scalars, lists, objects) in one JSON or YAML input, YAML aliases counted expanded.
 MAX_NODES = 20_000_000
+#: Most nodes (scalars, lists, mappings, aliases unexpanded) in one YAML input: PyYAML's composer keeps
+#: every node (about 450 bytes each with libyaml, measured) before any is checked, so 1 million is ~0.5 GB
+#: and 15 s; the 256 MiB limit alone would allow 100 million (45 GB). JSON has no such limit.
+MAX_YAML_NODES = 1_000_000
 #: Integers at least this large in magnitude are read as +-inf (they fit no int64 or float64 field;
 #: the validators then refuse them as not finite, naming the field).
 INT_LIMIT = 2**63
@@ -101,21 +111,44 @@ def read_text(path: str | os.PathLike[str], limit: int = MAX_INPUT_BYTES) -> str
         raise DatasetError(f"{source}: not UTF-8 text (byte {exc.start})") from None
 
 
-_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
+# A JSON string, written so that matching it needs no memory per character: the old form
+# '"(?:[^"\\]|\\.)*"' kept one backtracking entry per character, 6.5 GB (MemoryError) for one 50 MB
+# string value. Possessive (*+) repeats give nothing back, which here changes no match: the character
+# classes exclude what may follow them.
+_JSON_STRING = re.compile(r'"[^"\\]*+(?:\\.[^"\\]*+)*+"')
+#: Bytes scanned at a time by :func:`_json_shape` (its extra memory is a few times this).
+_SCAN_BLOCK = 4 * 1024 * 1024
 
 
-def _json_depth(text: str) -> int:
-    """Deepest nesting of ``[``/``{`` in JSON text, strings skipped (no recursion)."""
+def _json_shape(text: str) -> tuple[int, int]:
+    """``(deepest nesting of [/{, how many values)`` of JSON text, strings skipped (no recursion, bounded
+    memory). Each list or object with k >= 1 items holds k - 1 commas, so the values are the commas
+    plus the non-empty lists and objects plus one (the top-level value); exact for valid JSON."""
     bare = _JSON_STRING.sub('""', text).encode("utf-8", "surrogatepass")
-    raw = np.frombuffer(bare, dtype=np.uint8)
-    step = np.isin(raw, (ord("["), ord("{"))).astype(np.int64) - np.isin(raw, (ord("]"), ord("}")))
-    return int(np.cumsum(step).max(initial=0))
+    depth = deepest = values = 0
+    last = 0  # the previous block's last byte that is not white space
+    for start in range(0, len(bare), _SCAN_BLOCK):
+        raw = np.frombuffer(bare, dtype=np.uint8, count=min(_SCAN_BLOCK, len(bare) - start), offset=start)
+        raw = raw[~np.isin(raw, np.frombuffer(b" \t\r\n", dtype=np.uint8))]
+        if not raw.size:
+            continue
+        opens = (raw == ord("[")) | (raw == ord("{"))
+        closes = (raw == ord("]")) | (raw == ord("}"))
+        levels = np.cumsum(opens.astype(np.int32) - closes, dtype=np.int64) + depth
+        deepest, depth = max(deepest, int(levels.max())), int(levels[-1])
+        empty = int(np.count_nonzero(opens[:-1] & closes[1:])) + (last in b"[{" and bool(closes[0]))
+        values += int(np.count_nonzero(raw == ord(","))) + int(np.count_nonzero(opens)) - empty
+        last = int(raw[-1])
+    return deepest, values + 1
 
 
 def parse_json(text: str, source: str) -> Any:
     """Parse JSON within the bounds above; a key repeated in one object is an error."""
-    if _json_depth(text) > MAX_DEPTH:
+    depth, values = _json_shape(text)
+    if depth > MAX_DEPTH:
         raise DatasetError(f"{source}: nested more than {MAX_DEPTH} levels deep, refused")
+    if values > MAX_NODES:  # 20 million empty objects ("{},", 3 bytes each) are 1.3 GB in Python
+        raise DatasetError(f"{source}: more than {MAX_NODES} values, refused")
 
     def no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
         out: dict[str, Any] = {}
@@ -144,15 +177,20 @@ def parse_yaml(text: str, source: str) -> Any:
     """Parse YAML (safe tags only) within the bounds above; aliases are counted as expanded."""
     import yaml
 
-    depth = 0
+    depth = nodes = 0
     try:
-        for event in yaml.parse(text, Loader=yaml.SafeLoader):  # events: iterative, no recursion
+        for event in yaml.parse(text, Loader=_LOADER_BASE):  # events: iterative, no recursion, one at a time
             if isinstance(event, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
                 depth += 1
                 if depth > MAX_DEPTH:
                     raise DatasetError(f"{source}: nested more than {MAX_DEPTH} levels deep, refused")
             elif isinstance(event, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
                 depth -= 1
+                continue
+            nodes += isinstance(event, yaml.NodeEvent)
+            if nodes > MAX_YAML_NODES:
+                raise DatasetError(f"{source}: more than {MAX_YAML_NODES} values in a YAML file, refused "
+                                   "(write data this large as JSON)")
         loader = _UniqueKeyLoader(text)
         try:
             node = loader.get_single_node()
@@ -247,10 +285,20 @@ class _DuplicateKey(Exception):
     pass
 
 
+def _loader_base() -> Any:
+    """libyaml's safe loader where PyYAML was built with it (30x faster than the pure-Python one), else that."""
+    import yaml
+
+    return getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
+_LOADER_BASE = _loader_base()
+
+
 def _make_loader() -> Any:
     import yaml
 
-    class Loader(yaml.SafeLoader):
+    class Loader(_LOADER_BASE):  # type: ignore[misc,valid-type]
         pass
 
     def construct_mapping(loader: Any, node: Any, deep: bool = False) -> dict[Any, Any]:
@@ -277,6 +325,53 @@ _UniqueKeyLoader = _make_loader()
 
 def _quote(value: Any, limit: int = 60) -> str:
     return short(value, limit)
+
+
+# --------------------------------------------------------------------------------------------------
+# Videos
+# --------------------------------------------------------------------------------------------------
+
+
+# FFmpeg's decoder threads log damaged frames ("[mpeg4 @ 0x...] header damaged") to fd 2 at any moment,
+# also outside native_stderr; OpenCV reads this level once, when it first loads FFmpeg: quiet (-8) unless
+# the user set one. A frame that cannot be decoded is reported per frame instead (vision/detect.py).
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+
+
+def open_video(path: str, where: str) -> Any:
+    """An opened ``cv2.VideoCapture`` whose frames are within MAX_IMAGE_PIXELS (from the container's
+    header, before any frame is decoded); DatasetError otherwise. The caller releases it."""
+    import cv2
+
+    with native_stderr() as native:
+        vc = cv2.VideoCapture(path)
+    if not vc.isOpened():
+        vc.release()
+        raise DatasetError(f"{where}: cannot open the video (unknown or broken format){native.detail}")
+    w, h = vc.get(cv2.CAP_PROP_FRAME_WIDTH), vc.get(cv2.CAP_PROP_FRAME_HEIGHT)
+    if not (math.isfinite(w) and math.isfinite(h)) or w * h > MAX_IMAGE_PIXELS:
+        vc.release()
+        raise DatasetError(f"{where}: frames of {w:.0f} x {h:.0f} pixels are above the limit of {MAX_IMAGE_PIXELS} pixels")
+    return vc
+
+
+def video_frame_count(path: str, where: str) -> int:
+    """The frame count a video's container reports, once a first frame was read (DatasetError otherwise)."""
+    import cv2
+
+    vc = open_video(path, where)
+    try:
+        with native_stderr() as native:
+            ok, _ = vc.read()
+        if not ok:
+            raise DatasetError(f"{where}: cannot read a frame from the video{native.detail}")
+        reported = vc.get(cv2.CAP_PROP_FRAME_COUNT)
+        count = int(reported) if math.isfinite(reported) else 0
+    finally:
+        vc.release()
+    if count <= 0:
+        raise DatasetError(f"{where}: the video reports no frame count")
+    return count
 
 
 # --------------------------------------------------------------------------------------------------

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from mirror_fg.core.transform import quaternion_xyzw_to_rotation
-from mirror_fg.core.values import is_int, is_number, short, type_name
+from mirror_fg.core.values import MAX_INDEX, is_index, is_int, is_number, short, type_name
 
 #: A checker: ``(value, key path) -> plain value``, raising :class:`_Invalid`.
 Checker = Callable[[Any, str], Any]
@@ -24,8 +24,6 @@ Checker = Callable[[Any, str], Any]
 ORTHONORMAL_TOL = 1e-6
 #: Covariance symmetry, relative to its largest entry.
 SYMMETRY_TOL = 1e-6
-#: Largest mirror, configuration or iteration count accepted (keeps indices machine integers).
-MAX_INDEX = 2**31 - 1
 _IDENTIFIER = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
@@ -113,7 +111,7 @@ def _integer(value: Any, path: str, minimum: int) -> int:
         value = value.item()
     if not is_int(value):
         raise _Invalid(path, f"expected an integer, got {type_name(value)} {short(value)}")
-    if not minimum <= value <= MAX_INDEX:
+    if not is_index(value, minimum):
         raise _Invalid(path, f"expected an integer from {minimum} to {MAX_INDEX}, got {short(value)}")
     return int(value)
 

@@ -68,7 +68,8 @@ import numpy as np
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.transform import quaternion_xyzw_to_rotation
 from mirror_fg.io.fileio import load_structured, resolve_path
-from mirror_fg.core.values import check_keys, finite, is_int, named_vectors, short, short_path, type_name, vector
+from mirror_fg.core.values import MAX_FEATURE_SIZE_M, check_extent, check_keys, check_size, finite, is_int, named_vectors
+from mirror_fg.core.values import short, short_path, type_name, vector
 
 __all__ = [
     "ChessboardTarget",
@@ -288,7 +289,16 @@ def tag_dictionary(name: Any, where: str = "dictionary") -> tuple[str, int]:
 
 
 def target_from_dict(t: Any, source: str) -> Target:
-    """The ``target`` of a capture@1 (``source`` starts every message); DatasetError on any problem."""
+    """The ``target`` of a capture@1; DatasetError naming ``source`` on any problem, also on sizes in mm."""
+    target, where = _target_from_dict(t, source), f"{source}: target"
+    for key, noun in (("square", "square"), ("marker", "marker"), ("tag_size", "tag")):  # over 1 m, or 5 m across
+        if hasattr(target, key):
+            check_size(getattr(target, key), MAX_FEATURE_SIZE_M, where, key, f"{target.kind} {noun}")
+    check_extent(target.target_points().values(), where, f"{target.kind} target")
+    return target
+
+
+def _target_from_dict(t: Any, source: str) -> Target:
     where = f"{source}: target"
     if not isinstance(t, Mapping):
         raise DatasetError(f"{where}: expected a mapping with 'kind', got {type_name(t)}")
@@ -343,7 +353,7 @@ def target_from_dict(t: Any, source: str) -> Target:
         from mirror_fg.io.screen_target import screen_target_from_dict
 
         return screen_target_from_dict(t, where)  # type: ignore[return-value]
-    raise DatasetError(f"{where}: kind must be 'chessboard', 'charuco', 'apriltag', 'points' or 'screen', got {short(kind)}")
+    raise DatasetError(f"{where}: kind must be one of chessboard, charuco, apriltag, aruco, points, screen, got {short(kind)}")
 
 
 def _charuco(t: Mapping[str, Any], where: str) -> CharucoTarget:

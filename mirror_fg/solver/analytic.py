@@ -27,6 +27,7 @@ from mirror_fg.solver.peeling import (
     MIN_NORMAL_SPREAD, NodeSolution, StackedCandidates, choose_candidates, consistent_mirror_vectors, solve_children_many,
 )
 from mirror_fg.solver.pnp import pnp_candidates_many
+from mirror_fg.solver.placement_rule import too_few_placements
 
 __all__ = [
     "AnalyticSolution", "Hypothesis", "TreeNode", "TreeWalk", "complete_last_mirror", "hypothesis_of_subtree", "reconstruct_points",
@@ -380,10 +381,8 @@ class TreeWalk:
                 entries = level_obs[prefix]
                 child_ids = sorted({m for m, _ in entries})
                 if len(child_ids) < 3:
-                    raise DatasetError(
-                        f"{dataset.source}: {_describe(prefix)} has {len(child_ids)} placement(s) of mirror {level} "
-                        f"under it ({', '.join(str(m) for m in child_ids)}); the analytical solution needs >= 3"
-                    )
+                    raise DatasetError(too_few_placements(dataset.source, [im.mirror_configs for im in images], prefix,
+                                                          level, child_ids))
                 proposals, degenerate = _node_proposals(entries, level, child_ids, self._rng, exhaustive=level == 1)
                 node = TreeNode(level, prefix, images_under[prefix], proposals, degenerate, dataset, self._normalized,
                                 leaf_candidates=self._leaf_candidates)
