@@ -287,3 +287,24 @@ def test_a_missing_lock_directory_is_reported_as_the_output_it_is(tmp_path, monk
     with pytest.raises(OutputError, match="r.json: cannot write: Permission denied"):
         plan.commit(contents)
     assert names(tmp_path) == []
+
+
+def test_the_lock_never_writes_through_a_symlink_and_works_where_flock_does_not(tmp_path, monkeypatch):
+    """Guards for the lock itself (main had none): a planted ``.r.json.lock`` symlink is not followed
+    (its target is untouched, one line naming the lock); a file system without flock is written unlocked."""
+    victim = tmp_path / "precious.txt"
+    victim.write_text("keep me")
+    (tmp_path / ".r.json.lock").symlink_to(victim)
+    plan, contents = three_files(tmp_path, "x")
+    with pytest.raises(OutputError, match=r"r.json: cannot write: .*\(taking the lock .r.json.lock\)"):
+        plan.commit(contents)
+    assert victim.read_text() == "keep me"
+    os.unlink(tmp_path / ".r.json.lock")
+
+    def no_flock(fd: int, operation: int) -> None:
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_flock)
+    plan.commit(contents)
+    assert outputs(tmp_path) == {name: f"x {name}\n" for name in OLD}
+    assert names(tmp_path) == sorted([*OLD, "precious.txt"])

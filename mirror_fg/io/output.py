@@ -141,12 +141,7 @@ def _replace_all(files: list[tuple[str, bytes, str]], signals: DeferredSignals) 
     try:
         for real, _, target in files:
             created += _make_directories(os.path.dirname(real), target)
-        try:
-            lock = OutputLock.acquire(files[0][0], files[0][2], [real for real, _, _ in files], signals)
-        except OSError as exc:
-            if isinstance(exc, OutputError):
-                raise
-            raise _write_error(files[0][2], exc) from None
+        lock = OutputLock.acquire(files[0][0], files[0][2], [real for real, _, _ in files], signals)
         for real, raw, target in files:
             staged.append((_stage(real, raw, target), real))
             signals.check()  # a signal now stops the commit: nothing is replaced yet

@@ -17,6 +17,7 @@ the signal acts as it would have (SIGTERM ends the process, SIGINT raises Keyboa
 """
 from __future__ import annotations
 
+import errno
 import fcntl
 import json
 import os
@@ -37,6 +38,7 @@ LOCK_WAIT_S = 10.0
 _LOCK_POLL_S = 0.05
 _pause = time.sleep  # between two tries of a busy lock
 
+_NO_LOCKS = (errno.ENOLCK, errno.EOPNOTSUPP, errno.EINVAL)
 _DEFERRED = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGINT", "SIGHUP") if hasattr(signal, name))
 _TEMPORARY = re.compile(r"\.(?P<name>.+)\.mirror-fg\.(?P<pid>[0-9]+)\.[a-z0-9_]+\.tmp")
 
@@ -108,10 +110,18 @@ class OutputLock:
         path = lock_path(real)
         deadline = time.monotonic() + LOCK_WAIT_S
         while True:
-            lock, holder = cls._try(path)
-            if lock is not None:
-                lock.note("writing", targets=targets)
-                return lock
+            try:
+                lock, holder = cls._try(path)
+                if lock is not None:
+                    try:
+                        lock.note("writing", targets=targets)
+                    except BaseException:
+                        lock.release()
+                        raise
+                    return lock
+            except OSError as exc:
+                raise OutputError(f"{target}: cannot write: {exc.strerror or exc} (taking the lock "
+                                  f"{os.path.basename(path)})") from None
             if time.monotonic() >= deadline:
                 pid = holder.get("pid", "unknown")
                 raise OutputError(f"{target}: another mirror-fg run (pid {pid}) is writing it; waited "
@@ -123,13 +133,18 @@ class OutputLock:
     def _try(cls, path: str) -> tuple[OutputLock | None, dict]:
         """The lock if it is free, else None and the holder's record."""
         while True:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC | os.O_NOFOLLOW, 0o666)
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 holder = _read_record(fd)
                 os.close(fd)
                 return None, holder
+            except OSError as exc:
+                if exc.errno in _NO_LOCKS:  # a file system without flock: write unlocked, as before
+                    return cls(path, fd), {}
+                os.close(fd)
+                raise
             except BaseException:
                 os.close(fd)
                 raise
