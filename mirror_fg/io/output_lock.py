@@ -159,8 +159,8 @@ class OutputLock:
     def note(self, state: str, pid: int | None = None, **record: Any) -> None:
         """Replace the commit record: ``state``, the writer's pid (ours by default) and more fields."""
         text = json.dumps({"pid": os.getpid() if pid is None else pid, "state": state, **record}).encode("utf-8")
-        os.ftruncate(self.fd, 0)
-        os.pwrite(self.fd, text, 0)
+        size = os.fstat(self.fd).st_size  # blanks over a longer old record: ext4 flushes a truncated file on close
+        os.pwrite(self.fd, text + b" " * max(0, size - len(text)), 0)
 
     def release(self, mixed: tuple[list[str], list[str]] | None = None, pid: int | None = None) -> None:
         """Let go: the lock file is removed, or kept with state ``mixed`` when ``mixed`` = (the targets
