@@ -114,6 +114,7 @@ class OutputLock:
                 lock, holder = cls._try(path)
                 if lock is not None:
                     try:
+                        _remove_dead_temporaries(_targets(lock.previous))  # a killed run's, not seen by recover()
                         lock.note("writing", targets=targets)
                     except BaseException:
                         lock.release()
@@ -190,8 +191,8 @@ def recover(real: str) -> None:
         return  # a live run is committing this set now
     record = lock.previous
     mixed = None
+    targets = _targets(record)
     try:
-        targets = [os.fspath(t) for t in record.get("targets", [])]
         if record.get("state") == "committing":
             renames = [(os.fspath(tmp), os.fspath(t)) for tmp, t in record.get("renames", [])]
             new = [t for tmp, t in renames if not os.path.lexists(tmp)]
@@ -200,7 +201,9 @@ def recover(real: str) -> None:
         elif record.get("state") == "mixed":
             mixed = ([os.fspath(t) for t in record["new"]], [os.fspath(t) for t in record["old"]])
     except (AttributeError, KeyError, TypeError, ValueError):  # not a record we wrote: nothing to say
-        targets = []
+        mixed = None
+    if mixed is not None and not (mixed[0] and mixed[1]):
+        mixed = None
     _remove_dead_temporaries(targets)
     pid = record.get("pid")
     lock.release(mixed, pid if isinstance(pid, int) else None)
@@ -210,6 +213,14 @@ def recover(real: str) -> None:
         warnings.warn(f"{names}: written by a mirror-fg run (pid {pid}) that was killed or failed before it "
                       f"replaced {', '.join(os.path.basename(t) for t in old)}: these files do not belong "
                       "together until a run writes them again", MixedOutputWarning, stacklevel=2)
+
+
+def _targets(record: dict) -> list[str]:
+    """The real paths a commit record names (none if it is not one we wrote)."""
+    try:
+        return [os.fspath(t) for t in record.get("targets", [])]
+    except TypeError:
+        return []
 
 
 def _remove_dead_temporaries(targets: list[str]) -> None:
