@@ -51,7 +51,7 @@ sys.exit(main(sys.argv[5:]))
 
 
 @pytest.fixture
-def data(tmp_path, dataset_dict) -> Path:
+def data(tmp_path, dataset_dict) -> Path:  # noqa: F811 - the imported fixture
     path = tmp_path / "d.json"
     path.write_text(json.dumps(dataset_dict))
     for name, text in OLD.items():

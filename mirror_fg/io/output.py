@@ -177,7 +177,7 @@ def _make_directories(directory: str, target: str) -> list[str]:
     while directory and not os.path.lexists(directory):
         missing.append(directory)
         directory = os.path.dirname(directory)
-    made = []
+    made: list[str] = []
     for path in reversed(missing):
         try:
             os.mkdir(path)

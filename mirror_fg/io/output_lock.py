@@ -30,7 +30,7 @@ from typing import Any
 
 from mirror_fg.core.errors import OutputError
 
-__all__ = ["LOCK_WAIT_S", "MixedOutputWarning", "DeferredSignals", "Interrupted", "OutputLock", "recover",
+__all__ = ["LOCK_WAIT_S", "DeferredSignals", "Interrupted", "MixedOutputWarning", "OutputLock", "lock_path", "recover",
            "temporary_prefix"]
 
 #: How long a second writer of one output set waits for the first one's commit, seconds.
