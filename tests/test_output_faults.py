@@ -261,6 +261,24 @@ def test_a_failed_write_removes_the_directories_it_made(data, monkeypatch, capsy
     assert names(tmp) == before
 
 
+def test_a_directory_that_cannot_be_made_takes_its_new_parents_with_it(tmp_path, monkeypatch):
+    """Before: a/ was left when a/b/ could not be made (a full disk)."""
+    plan = OutputPlan()
+    plan.add(tmp_path / "a" / "b" / "r.json")
+    real, calls = os.mkdir, []
+
+    def mkdir(path, *args, **kwargs):
+        calls.append(path)
+        if len(calls) == 2:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "mkdir", mkdir)
+    with pytest.raises(OutputError, match="r.json: cannot write: No space left"):
+        plan.commit({os.fspath(tmp_path / "a" / "b" / "r.json"): "x"})
+    assert names(tmp_path) == []
+
+
 def test_a_report_is_written_whole_or_not_at_all(data, monkeypatch, capsys):
     """Before: report.html was replaced, then report.pdf failed: a new page beside an old PDF."""
     tmp = data.parent

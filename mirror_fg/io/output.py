@@ -162,11 +162,7 @@ def _replace_all(files: list[tuple[str, bytes, str]], signals: DeferredSignals) 
         if lock is not None:
             half = 0 < renamed < len(staged)
             lock.release(([t for _, t in staged[:renamed]], [t for _, t in staged[renamed:]]) if half else None)
-        for directory in reversed(created):
-            try:
-                os.rmdir(directory)
-            except OSError:
-                break
+        _remove_directories(created)
         raise
     lock.release()
 
@@ -184,14 +180,19 @@ def _make_directories(directory: str, target: str) -> list[str]:
         except FileExistsError:
             continue  # made by another run meanwhile: not ours to remove
         except OSError as exc:
-            for done in reversed(made):
-                try:
-                    os.rmdir(done)
-                except OSError:
-                    break
+            _remove_directories(made)
             raise _write_error(target, exc) from None
         made.append(path)
     return made
+
+
+def _remove_directories(made: list[str]) -> None:
+    """Remove the directories a failed commit made (outermost first in ``made``), while they are empty."""
+    for directory in reversed(made):
+        try:
+            os.rmdir(directory)
+        except OSError:
+            break
 
 
 def _existing_kind(path: str) -> str | None:
