@@ -19,7 +19,7 @@ from mirror_fg.cli import main
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.values import MAX_INDEX
 from mirror_fg.io.capture import load_capture
-from mirror_fg.io.dataset import dataset_from_dict, dataset_to_dict, load_dataset
+from mirror_fg.io.dataset import dataset_from_dict, dataset_to_dict
 from mirror_fg.io.result import validate_result
 from mirror_fg.tools.simulate import simulate_base_case
 

@@ -3,7 +3,9 @@
 :class:`OutputPlan` checks every output path before any work (never an input, never a directory,
 never under a regular file, never a FIFO or block device) and :meth:`OutputPlan.commit` writes all
 outputs to temporary files first and renames them over their targets only when every one was
-written, so a failed run leaves every existing file as it was. A character device (``/dev/null``) is
+written, so a failed run leaves every existing file as it was (and removes the directories it made);
+a second writer of the same set waits, SIGTERM never leaves part of a set replaced, and the next run
+notices what a SIGKILL left (:mod:`mirror_fg.io.output_lock`). A character device (``/dev/null``) is
 written into, never replaced; :func:`atomic_write` does that for one file, and :func:`json_text` lays
 out the JSON it writes. Problems are one-line DatasetError / OutputError naming the file.
 """
@@ -20,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from mirror_fg.core.errors import DatasetError, OutputError
+from mirror_fg.io.output_lock import DeferredSignals, Interrupted, OutputLock, recover, temporary_prefix
 
 __all__ = ["OutputPlan", "same_file", "atomic_write", "json_text", "is_yaml"]
 
@@ -81,6 +84,8 @@ class OutputPlan:
             if parent is not None and not os.path.isdir(parent):
                 raise DatasetError(f"{target}: cannot create the {role}: {parent} is a file, not a directory")
         self.outputs[target] = role
+        if kind != "character device":
+            recover(os.path.realpath(target))  # a run killed while replacing it: clean up, say so
         return target
 
     def is_device(self, path: str | os.PathLike[str]) -> bool:
@@ -97,33 +102,27 @@ class OutputPlan:
         """Write every ``{path: content}`` (text is UTF-8): temporary files first, then renames.
 
         Each path must have been :meth:`add`-ed. Any failure before the renames removes every
-        temporary file and leaves every existing file untouched (DatasetError naming the file).
+        temporary file and the directories this commit made, and leaves every existing file untouched
+        (DatasetError naming the file). The set is locked against a second writer and held against
+        SIGTERM/SIGINT/SIGHUP while it is replaced (:mod:`mirror_fg.io.output_lock`).
         """
-        staged: list[tuple[str, str]] = []  # (temporary, target)
+        files: list[tuple[str, bytes, str]] = []  # (real path, content, the path as given)
         devices: list[tuple[str, bytes]] = []
-        try:
-            for path, data in contents.items():
-                target = os.fspath(path)
-                if target not in self.outputs:
-                    raise ValueError(f"{target}: not an output of this plan")
-                raw = data.encode("utf-8") if isinstance(data, str) else data
-                if self.is_device(target):
-                    devices.append((target, raw))
-                else:
-                    staged.append((_stage(target, raw), os.path.realpath(target)))
-        except BaseException:
-            for tmp, _ in staged:
-                _unlink(tmp)
-            raise
-        renamed = 0
-        try:
-            for tmp, target in staged:
-                os.replace(tmp, target)
-                renamed += 1
-        except BaseException:
-            for tmp, _ in staged[renamed:]:
-                _unlink(tmp)
-            raise
+        for path, data in contents.items():
+            target = os.fspath(path)
+            if target not in self.outputs:
+                raise ValueError(f"{target}: not an output of this plan")
+            raw = data.encode("utf-8") if isinstance(data, str) else data
+            if self.is_device(target):
+                devices.append((target, raw))
+            else:
+                files.append((os.path.realpath(target), raw, target))  # a symlink stays one: replace what it names
+        if files:
+            try:
+                with DeferredSignals() as signals:
+                    _replace_all(files, signals)
+            except Interrupted as stop:  # the signal's own handler let the process go on
+                raise OutputError(f"{files[0][2]}: not written: interrupted by {stop}") from None
         for target, raw in devices:
             try:
                 with open(target, "wb") as handle:
@@ -131,6 +130,69 @@ class OutputPlan:
             except OSError as exc:
                 raise _write_error(target, exc) from None
         return [Path(p) for p in contents]
+
+
+def _replace_all(files: list[tuple[str, bytes, str]], signals: DeferredSignals) -> None:
+    """Under the set's lock: every file to a temporary file, then each renamed over its target. A
+    failure or a signal before the first rename leaves the old set and nothing of ours."""
+    created: list[str] = []  # directories made for the outputs, outermost first
+    staged: list[tuple[str, str]] = []  # (temporary, real target)
+    renamed, lock = 0, None
+    try:
+        for real, _, target in files:
+            created += _make_directories(os.path.dirname(real), target)
+        lock = OutputLock.acquire(files[0][0], files[0][2], [real for real, _, _ in files], signals)
+        for real, raw, target in files:
+            staged.append((_stage(real, raw, target), real))
+            signals.check()  # a signal now stops the commit: nothing is replaced yet
+        try:
+            lock.note("committing", targets=[real for real, _, _ in files], renames=staged)
+        except OSError as exc:
+            raise _write_error(files[0][2], exc) from None
+        for (tmp, real), (_, _, target) in zip(staged, files):
+            try:
+                os.replace(tmp, real)
+            except OSError as exc:
+                done = "" if not renamed else f" ({', '.join(t for _, t in staged[:renamed])} already replaced)"
+                raise OutputError(f"{target}: cannot write: {exc.strerror or exc}{done}") from None
+            renamed += 1
+    except BaseException:
+        for tmp, _ in staged[renamed:]:
+            _unlink(tmp)
+        if lock is not None:
+            half = 0 < renamed < len(staged)
+            lock.release(([t for _, t in staged[:renamed]], [t for _, t in staged[renamed:]]) if half else None)
+        _remove_directories(created)
+        raise
+    lock.release()
+
+
+def _make_directories(directory: str, target: str) -> list[str]:
+    """Make ``directory`` and its missing parents ("-o out/result.json" creates out/); the ones made."""
+    missing = []
+    while directory and not os.path.lexists(directory):
+        missing.append(directory)
+        directory = os.path.dirname(directory)
+    made: list[str] = []
+    for path in reversed(missing):
+        try:
+            os.mkdir(path)
+        except FileExistsError:
+            continue  # made by another run meanwhile: not ours to remove
+        except OSError as exc:
+            _remove_directories(made)
+            raise _write_error(target, exc) from None
+        made.append(path)
+    return made
+
+
+def _remove_directories(made: list[str]) -> None:
+    """Remove the directories a failed commit made (outermost first in ``made``), while they are empty."""
+    for directory in reversed(made):
+        try:
+            os.rmdir(directory)
+        except OSError:
+            break
 
 
 def _existing_kind(path: str) -> str | None:
@@ -165,13 +227,11 @@ def _nearest_existing_parent(path: str) -> str | None:
     return parent or None
 
 
-def _stage(target: str, raw: bytes) -> str:
-    """Write ``raw`` to a temporary file beside ``target`` (through symlinks); return its path."""
-    real = os.path.realpath(target)  # keep a symlink a symlink: replace what it points to
+def _stage(real: str, raw: bytes, target: str) -> str:
+    """Write ``raw`` to a temporary file beside ``real``, named as ours with our pid; return its path."""
     directory = os.path.dirname(real)
     try:
-        os.makedirs(directory, exist_ok=True)  # "-o out/result.json" creates out/
-        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(real)}.", suffix=".tmp", dir=directory)
+        fd, tmp = tempfile.mkstemp(prefix=temporary_prefix(real), suffix=".tmp", dir=directory)
     except OSError as exc:
         raise _write_error(target, exc) from None
     try:

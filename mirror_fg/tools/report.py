@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from mirror_fg.core.transform import Transform, rotation_angle
-from mirror_fg.io.output import atomic_write
+from mirror_fg.io.output import OutputPlan
 from mirror_fg.io.result import base_cam_sigma3, pose, pose_covariance, transforms, validate_result
 from mirror_fg.io.ros import DEFAULT_BASE_FRAME, DEFAULT_CAMERA_FRAME, check_frame_name, ros_outputs
 from mirror_fg.tools.report_diagnostics import figure_radial, figure_tracks, image_centre, radial_verdict
@@ -256,6 +256,10 @@ def write_report(
     from tqdm import tqdm
 
     result = validate_result(result, source)
+    paths = {kind: Path(out_dir) / f"report.{kind}" for kind in ("html", "pdf")}
+    plan = OutputPlan()  # checked now; both written or neither, and a directory it made is removed on failure
+    for path in paths.values():
+        plan.add(path, "report")
     base_frame = check_frame_name(base_frame, "base frame")
     ros = ros_outputs(result, base_frame, camera_frame, source=source)  # checks the camera frame name
     title = title or "mirror-fg calibration report"
@@ -269,9 +273,7 @@ def write_report(
         blocks = _blocks(result, summary, summary.notes + notes, figures, residuals, ros,
                          _inputs(result, dataset, source, inputs, stamp))
         page, pdf = html_page(title, blocks), pdf_document(title, blocks)
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        paths = {"html": atomic_write(out / "report.html", page), "pdf": atomic_write(out / "report.pdf", pdf)}
+        plan.commit({paths["html"]: page, paths["pdf"]: pdf})
         bar.update()
     return paths
 
