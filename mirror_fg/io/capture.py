@@ -66,7 +66,8 @@ from mirror_fg.core.camera import check_camera
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.camera_files import camera_from_file
 from mirror_fg.io.fileio import MAX_IMAGE_PIXELS, load_structured, open_video, resolve_path, video_frame_count
-from mirror_fg.io.target import PointsTarget, TagTarget, Target, observations_from, pose_from_dict, target_from_dict
+from mirror_fg.io.observations import observations_from
+from mirror_fg.io.target import PointsTarget, TagTarget, Target, pose_from_dict, target_from_dict
 from mirror_fg.io.point_sigma import measurement_sigma
 from mirror_fg.core.values import (
     MAX_INDEX, check_format, check_keys, finite, is_index, is_int, short, short_path, type_name, vector,

@@ -58,7 +58,6 @@ or ``u v`` per line, the latter in the order of the target's fiducials (:func:`o
 """
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -67,9 +66,8 @@ import numpy as np
 
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.transform import quaternion_xyzw_to_rotation
-from mirror_fg.io.fileio import load_structured, resolve_path
 from mirror_fg.core.values import MAX_FEATURE_SIZE_M, check_extent, check_keys, check_size, finite, is_int, named_vectors
-from mirror_fg.core.values import short, short_path, type_name, vector
+from mirror_fg.core.values import short, type_name, vector
 
 __all__ = [
     "ChessboardTarget",
@@ -82,7 +80,6 @@ __all__ = [
     "target_from_dict",
     "tag_dictionary",
     "pose_from_dict",
-    "observations_from",
     "ROTATION_TOL",
 ]
 
@@ -450,57 +447,3 @@ def pose_from_dict(value: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
         raise DatasetError(f"{where}: R is not a rotation matrix (|R^T R - I| = {err:.2g}, det = {np.linalg.det(R):.4g})")
     u, _, vt = np.linalg.svd(R)
     return u @ vt, t
-
-
-def observations_from(value: Any, target: Target, base_dir: str, where: str) -> dict[str, np.ndarray]:
-    """Pixels ``{name: [u, v]}`` inline or from a file (JSON/YAML mapping, or ``name u v`` / ``u v`` lines,
-    the latter in the order of ``target``'s fiducials); a relative path is taken from ``base_dir``."""
-    if isinstance(value, str):
-        path = resolve_path(value, base_dir)
-        fwhere = f"{where}: observations file {short_path(value)!r}"
-        if not os.path.isfile(path):
-            raise DatasetError(f"{fwhere} not found")
-        if path.lower().endswith((".json", ".yaml", ".yml")):
-            value = load_structured(path, fwhere)
-            where = fwhere
-        else:
-            return _observations_text(path, target, fwhere)
-    if not isinstance(value, Mapping) or not value:
-        raise DatasetError(f"{where}: observations must be a non-empty mapping {{name: [u, v]}} or a file, got {short(value)}")
-    return named_vectors(value, 2, where, "point")
-
-
-def _observations_text(path: str, target: Target, where: str) -> dict[str, np.ndarray]:
-    try:
-        with open(path, encoding="utf-8") as f:
-            lines = [(n + 1, ln.split()) for n, ln in enumerate(f) if ln.strip() and not ln.lstrip().startswith("#")]
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{where}: cannot read: {exc}") from None
-    names = list(target.target_points())
-    out: dict[str, np.ndarray] = {}
-    unnamed = [ln for ln in lines if len(ln[1]) == 2]
-    if unnamed and len(unnamed) != len(lines):
-        raise DatasetError(f"{where}: mixes 'u v' and 'name u v' lines")
-    if unnamed and len(lines) != len(names):
-        raise DatasetError(
-            f"{where}: has {len(lines)} 'u v' lines but the target has {len(names)} fiducials (one line each, in order)"
-        )
-    for k, (lineno, parts) in enumerate(lines):
-        if len(parts) == 2:
-            name, nums = names[k], parts
-        elif len(parts) == 3:
-            name, nums = parts[0], parts[1:]
-        else:
-            raise DatasetError(f"{where}: line {lineno}: expected 'u v' or 'name u v'")
-        try:
-            uv = np.array([float(x) for x in nums])
-        except ValueError:
-            raise DatasetError(f"{where}: line {lineno}: not numbers: {short(' '.join(nums))}") from None
-        if not np.all(np.isfinite(uv)):
-            raise DatasetError(f"{where}: line {lineno}: not finite")
-        if name in out:
-            raise DatasetError(f"{where}: line {lineno}: point {short(name)} given twice")
-        out[name] = uv
-    if not out:
-        raise DatasetError(f"{where}: no observations in the file")
-    return out
