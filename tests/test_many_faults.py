@@ -118,6 +118,7 @@ def test_a_refusing_scheduler_port_is_one_line_at_once(inputs, tmp_path, capsys)
     assert _cli("calibrate-many", inputs["robot1"], "-o", tmp_path / "out", "--scheduler", address) == 2
     err = capsys.readouterr().err.strip()
     assert err == f"mirror-fg: error: scheduler {address}: cannot connect (Connection refused)"
+    assert not (tmp_path / "out").exists()  # nothing left behind
 
 
 def test_a_port_answering_with_an_http_error_is_not_a_scheduler(inputs, tmp_path, capsys):

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.tools.montecarlo import CONNECT_TIMEOUT_S, lost_reason, run_trials
+from mirror_fg.tools.montecarlo import CONNECT_TIMEOUT_S, lost_reason, run_trials, scheduler_address
 
 __all__ = ["calibrate_one", "calibrate_many", "result_path_for", "runs_in_process"]
 
@@ -114,13 +114,21 @@ def calibrate_many(
         if target in targets:
             raise DatasetError(f"{os.fspath(path)} and {targets[target]} would both write {target}: rename one")
         targets[target] = os.fspath(path)
+    if scheduler is not None:
+        scheduler_address(scheduler)  # a malformed address before anything is made
+    created = not os.path.isdir(out_dir)
     os.makedirs(out_dir, exist_ok=True)
     todo = [{"path": os.fspath(p), "out_dir": os.fspath(out_dir)} for p in inputs]
     if in_process is None:
         in_process = runs_in_process(inputs, workers)
     jobs = 1 if in_process else workers
-    rows = run_trials(calibrate_one, todo, [], total=len(todo), desc="calibrations", progress=progress,
-                      jobs=jobs, scheduler=scheduler, connect_timeout=connect_timeout, on_lost=_lost_row)
+    try:
+        rows = run_trials(calibrate_one, todo, [], total=len(todo), desc="calibrations", progress=progress,
+                          jobs=jobs, scheduler=scheduler, connect_timeout=connect_timeout, on_lost=_lost_row)
+    except BaseException:
+        if created and not os.listdir(out_dir):  # no scheduler, say: leave no empty directory behind
+            os.rmdir(out_dir)
+        raise
     order = {item["path"]: n for n, item in enumerate(todo)}
     return sorted(rows, key=lambda row: order[row["input"]])
 
