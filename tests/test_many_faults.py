@@ -75,21 +75,16 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
     return paths
 
 
-#: Worker deaths a task survives on the shared cluster (Dask's default is 3; fewer restarts keep the test fast).
+#: Worker deaths a task survives (Dask's default is 3; fewer restarts keep the test fast).
 ALLOWED_FAILURES = 1
 
 
 @pytest.fixture(scope="module")
-def scheduler(tmp_path_factory):
-    """One local cluster shared by the tests that need Dask, its workers killed by any ``crash*`` input."""
+def scheduler():
+    """One local cluster shared by the tests that compare with Dask."""
     from dask.distributed import LocalCluster
 
-    preload = tmp_path_factory.mktemp("preload") / "crash_on_input.py"
-    preload.write_text(CRASH_ON_INPUT)
-    with dask.config.set({"distributed.worker.preload": [os.fspath(preload)],
-                          "distributed.scheduler.allowed-failures": ALLOWED_FAILURES}):
-        cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
-    with cluster:
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         yield cluster.scheduler_address
 
 
@@ -155,17 +150,23 @@ def test_an_http_server_port_times_out_with_one_line(inputs, tmp_path):
 
 # --- workers that die ---------------------------------------------------------------------------------------
 
-def test_an_input_whose_worker_keeps_dying_is_a_failed_row(scheduler, inputs, tmp_path, capsys):
+def test_an_input_whose_worker_keeps_dying_is_a_failed_row(inputs, tmp_path):
+    """The command as a user runs it (a subprocess: distributed's own log lines would reach its stderr), on a
+    local cluster whose workers die on the ``crash`` input until Dask gives that input up."""
+    preload = tmp_path / "crash_on_input.py"
+    preload.write_text(CRASH_ON_INPUT)
     out = tmp_path / "out"
-    status = _cli("calibrate-many", inputs["robot1"], inputs["crash"], inputs["robot2"], "-o", out,
-                  "--scheduler", scheduler)
-    captured = capsys.readouterr()
-    assert status == 2, captured.err
+    env = {**os.environ, "PYTHONPATH": str(REPO), "DASK_DISTRIBUTED__WORKER__PRELOAD": json.dumps([str(preload)]),
+           "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": str(ALLOWED_FAILURES)}
+    done = subprocess.run([sys.executable, "-m", "mirror_fg", "calibrate-many", *map(str, (
+        inputs["robot1"], inputs["crash"], inputs["robot2"])), "-o", str(out), "--dask"], env=env,
+        capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2, done.stderr
     deaths = ALLOWED_FAILURES + 1  # then Dask gives the task up
-    assert "2 of 3 calibrated" in captured.out
-    crash_row = next(line for line in captured.out.splitlines() if "crash.json" in line)
+    assert "2 of 3 calibrated" in done.stdout
+    crash_row = next(line for line in done.stdout.splitlines() if "crash.json" in line)
     assert "FAILED" in crash_row and f"its worker died {deaths} times (out of memory?)" in crash_row
-    assert captured.err.strip() == "mirror-fg: error: 1 of 3 input(s) failed (listed above)"
+    assert done.stderr.strip() == "mirror-fg: error: 1 of 3 input(s) failed (listed above)"
     assert sorted(p.name for p in out.glob("*.result.json")) == ["robot1.result.json", "robot2.result.json"]
 
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import functools
 import logging
-import re
 import socket
 import struct
 import sys
@@ -37,6 +36,8 @@ CONNECT_TIMEOUT_S = 10.0
 _SCHEDULER_PORT = 8786
 #: A Dask handshake is a small message (a few hundred bytes); a first frame longer than this is not Dask's.
 _MAX_HANDSHAKE_BYTES = 1 << 20
+#: A log level above every message.
+_SILENT = logging.CRITICAL + 1
 #: Starts of the local cluster before the trials run in this process instead.
 _CLUSTER_STARTS = 2
 
@@ -88,15 +89,22 @@ def _probe_scheduler(address: str, host: str, port: int, timeout_s: float) -> No
 
 @contextmanager
 def _quiet_distributed() -> Iterator[None]:
-    """distributed's own log lines (a nanny that failed to start, a worker that died) off the console: what
-    they mean is reported once, as a warning or a failed record."""
-    logger = logging.getLogger("distributed")
-    level = logger.level
-    logger.setLevel(logging.CRITICAL)
+    """distributed's own log lines (a nanny that failed to start, a worker that died and was restarted, a
+    client that reconnects) off the console: what they mean is reported once, as a warning or a failed record.
+    Its loggers set their own levels, so the handlers distributed installs are the switch (a local cluster
+    sets them again: ``silence_logs``)."""
+    import distributed  # noqa: F401 - installs its handlers
+
+    handlers = list({id(h): h for name in ("distributed", "distributed.client", "distributed.gc")
+                     for h in logging.getLogger(name).handlers}.values())
+    levels = [handler.level for handler in handlers]
+    for handler in handlers:
+        handler.setLevel(_SILENT)
     try:
         yield
     finally:
-        logger.setLevel(level)
+        for handler, level in zip(handlers, levels):
+            handler.setLevel(level)
 
 
 @contextmanager
@@ -150,7 +158,7 @@ def _local_cluster(workers: int):
             with warnings.catch_warnings():  # a nanny's HTTP port taken by another cluster: it takes another one
                 warnings.filterwarnings("ignore", message="Port .* is already in use", category=UserWarning)
                 cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                       dashboard_address=None)
+                                       dashboard_address=None, silence_logs=_SILENT)
         except (RuntimeError, OSError, TimeoutError) as error:  # "Nanny failed to start." (a worker died)
             reason = f"{type(error).__name__}: {str(error).rstrip('.')}"
             continue
