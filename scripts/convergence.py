@@ -19,7 +19,7 @@ counts success over non-singular runs. The paper reports about 4 vs 18 iteration
 from its analytical guess.
 
 Usage: ``python scripts/convergence.py --runs 100 --jobs 2 --out out/convergence``; writes
-``runs.jsonl`` (resumable) and ``summary.json`` and prints the table.
+``runs.jsonl`` (resumable, ``tools/trial_log.py``) and ``summary.json`` and prints the table.
 """
 from __future__ import annotations
 

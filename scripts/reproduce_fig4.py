@@ -26,8 +26,8 @@ Sigma^-1 (z - h(x_true))`` of each run has the Cramér-Rao covariance exactly, s
 variate: ``MSE_cv = mean(CRB variance) + mean(mle_error^2 - first_order_error^2)`` estimates the MLE's
 mean squared error without bias and with the noise of the estimate mostly cancelled (``*_cv`` columns).
 
-Writes ``runs.jsonl`` (one line per run; a re-run resumes from it), ``fig4.csv`` and ``fig4.png`` in
-``--out``. Usage: ``python scripts/reproduce_fig4.py --runs 100 --jobs 2 --out out/fig4``.
+Writes ``runs.jsonl`` (one line per run; a re-run resumes from it: ``tools/trial_log.py`` says what a killed
+run, a full disk or a second run on the same ``--out`` leave), ``fig4.csv`` and ``fig4.png`` in ``--out``. Usage: ``python scripts/reproduce_fig4.py --runs 100 --jobs 2 --out out/fig4``.
 
 Over 500 lines: the whole experiment (trials, summary, CSV, figure) as one runnable, resumable script.
 """
