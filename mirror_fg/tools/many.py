@@ -22,9 +22,10 @@ from mirror_fg.tools.montecarlo import CONNECT_TIMEOUT_S, lost_reason, run_trial
 __all__ = ["calibrate_one", "calibrate_many", "result_path_for", "runs_in_process"]
 
 #: Below this estimated work (seconds of calibration in one process) a job runs in this process. A local cluster
-#: of 2 workers cost 1.5 s on a quiet 2-core machine (start, each worker importing GTSAM, close: three 200-image
-#: datasets took 2.7 s through it against 1.2 s in one process) and saves at most half the work: it pays from about
-#: 2 x 1.5 s of work. Under load the start-up grows (13.9 s against ~3 s alone was measured on a busy machine).
+#: of 2 workers cost about 1.5 s on a quiet 2-core machine (start, each worker importing GTSAM, close: three
+#: 200-image datasets took 2.7 s through it against 1.3 s in one process, both as commands) and saves at most half
+#: the work: it pays from about 2 x 1.5 s of work. Under a load of 8 the start-up grows (the same three: 9.5 s
+#: through it, 2.8 s in one process, 2.5 s for one alone).
 IN_PROCESS_BELOW_S = 3.0
 #: Estimated calibration seconds per input and per byte of its data (a dataset@1 file, or the photographs and
 #: videos a capture@1 names), measured in one process on a quiet machine: simulated datasets of 200, 1,000 and
