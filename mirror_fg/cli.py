@@ -180,12 +180,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     many = sub.add_parser("calibrate-many", help="calibrate many datasets or captures (a fleet) on Dask",
                           description="Calibrate every input (dataset@1 or capture@1) into DIR/<stem>.result.json with "
-                          "its ROS files, on a local Dask cluster (or --scheduler ADDRESS); prints a summary table. "
+                          "its ROS files, on a local Dask cluster (or --scheduler ADDRESS; a small job in this "
+                          "process); prints a summary table. "
                           "One failure never stops the others; the exit status is 2 if any input failed.",
                           epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     many.add_argument("inputs", nargs="+", type=Path, help="dataset@1 or capture@1 files")
     many.add_argument("-o", "--output", required=True, type=Path, help="output directory")
-    many.add_argument("--scheduler", help="address of a running Dask scheduler (default: a local cluster)")
+    many.add_argument("--scheduler", metavar="ADDRESS",
+                      help="a running Dask scheduler, tcp://HOST:PORT (default: a local cluster)")
     many.add_argument("--workers", type=_COUNT, default=2, help="local worker processes (default 2)")
     many.add_argument("--connect-timeout", type=_POSITIVE, default=10.0, metavar="SECONDS",
                       help="with --scheduler: give up if no Dask scheduler answers within SECONDS (default 10)")

@@ -17,9 +17,14 @@ from pathlib import Path
 from typing import Any
 
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.tools.montecarlo import CONNECT_TIMEOUT_S, lost_reason, run_trials, scheduler_address
+from mirror_fg.tools.montecarlo import (
+    CONNECT_TIMEOUT_S,
+    lost_reason,
+    run_trials,
+    scheduler_address,
+)
 
-__all__ = ["calibrate_one", "calibrate_many", "result_path_for", "runs_in_process"]
+__all__ = ["calibrate_many", "calibrate_one", "result_path_for", "runs_in_process"]
 
 #: Below this estimated work (seconds of calibration in one process) a job runs in this process. A local cluster
 #: of 2 workers cost about 1.5 s on a quiet 2-core machine (start, each worker importing GTSAM, close: three
@@ -42,7 +47,7 @@ def _estimated_seconds(path: str | os.PathLike[str]) -> float:
             from mirror_fg.io.capture import load_capture
 
             size = sum(os.path.getsize(name) for name in load_capture(path).input_files())
-    except Exception:  # noqa: BLE001 - an estimate only; calibrate_one reports the input's problem
+    except Exception:  # an estimate only; calibrate_one reports the input's problem
         return _SECONDS_PER_INPUT
     return _SECONDS_PER_INPUT + _SECONDS_PER_BYTE * size
 

@@ -20,7 +20,7 @@ import sys
 import time
 import warnings
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from pathlib import Path
 
 from tqdm import tqdm
@@ -28,7 +28,7 @@ from tqdm import tqdm
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.tools.trial_log import TrialLog
 
-__all__ = ["run_trials", "dask_client", "scheduler_address", "lost_reason", "run_script"]
+__all__ = ["dask_client", "lost_reason", "run_script", "run_trials", "scheduler_address"]
 
 #: Seconds to wait for a Dask scheduler to answer (``--connect-timeout``).
 CONNECT_TIMEOUT_S = 10.0
@@ -258,6 +258,7 @@ def run_trials(
             in_process(todo)
         else:
             with _quiet_distributed():
+                context: AbstractContextManager | None
                 if scheduler is not None:
                     context = _scheduler_client(scheduler, connect_timeout)
                 else:
@@ -295,7 +296,7 @@ def _on_dask(client, run_trial, todo, jobs, keep, over_budget, on_lost) -> None:
     for future in pending:
         try:
             record = future.result()
-        except Exception as error:  # noqa: BLE001 - the trial's worker died (KilledWorker): its record says so
+        except Exception as error:  # the trial's worker died (KilledWorker): its record says so
             if on_lost is None:
                 raise
             record = on_lost(submitted[future.key], error)
