@@ -192,13 +192,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     many = sub.add_parser("calibrate-many", help="calibrate many datasets or captures (a fleet) on Dask",
                           description="Calibrate every input (dataset@1 or capture@1) into DIR/<stem>.result.json with "
-                          "its ROS files, on a local Dask cluster (or --scheduler ADDRESS); prints a summary table. "
+                          "its ROS files, on a local Dask cluster (or --scheduler ADDRESS; a small job in this "
+                          "process); prints a summary table. "
                           "One failure never stops the others; the exit status is 2 if any input failed.",
                           epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     many.add_argument("inputs", nargs="+", type=Path, help="dataset@1 or capture@1 files")
     many.add_argument("-o", "--output", required=True, type=Path, help="output directory")
-    many.add_argument("--scheduler", help="address of a running Dask scheduler (default: a local cluster)")
+    many.add_argument("--scheduler", metavar="ADDRESS",
+                      help="a running Dask scheduler, tcp://HOST:PORT (default: a local cluster)")
     many.add_argument("--workers", type=_COUNT, default=2, help="local worker processes (default 2)")
+    many.add_argument("--connect-timeout", type=_POSITIVE, default=10.0, metavar="SECONDS",
+                      help="with --scheduler: give up if no Dask scheduler answers within SECONDS (default 10)")
+    many.add_argument("--dask", action="store_true",
+                      help="use a local Dask cluster even for a small job (default: a job of less than about "
+                      "3 s of work runs in this process, which is faster than starting a cluster)")
     _add_common(many)
 
     det = sub.add_parser("detect", help="detect fiducials in photographs or a video (capture@1 -> dataset@1)",
@@ -464,7 +471,8 @@ def cmd_calibrate_many(args, out: _Printer) -> int:
     from mirror_fg.tools.many import calibrate_many
 
     rows = calibrate_many(args.inputs, args.output, scheduler=args.scheduler, workers=args.workers,
-                          progress=out.progress)
+                          progress=out.progress, connect_timeout=args.connect_timeout,
+                          in_process=False if args.dask else None)
     failed = [row for row in rows if row["status"] != "ok"]
     out.info(f"{len(rows) - len(failed)} of {len(rows)} calibrated into {args.output}")
     out.info("  camera position: 3-sigma of T_base_cam's translation along the base axes, mm; RMS: rms_px")

@@ -19,7 +19,7 @@ counts success over non-singular runs. The paper reports about 4 vs 18 iteration
 from its analytical guess.
 
 Usage: ``python scripts/convergence.py --runs 100 --jobs 2 --out out/convergence``; writes
-``runs.jsonl`` (resumable) and ``summary.json`` and prints the table.
+``runs.jsonl`` (resumable, ``tools/trial_log.py``) and ``summary.json`` and prints the table.
 """
 from __future__ import annotations
 
@@ -42,8 +42,9 @@ from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.transform import rotation_angle
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.analytic import solve_analytic
-from mirror_fg.tools.montecarlo import run_trials
+from mirror_fg.tools.montecarlo import run_script, run_trials
 from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.tools.trial_log import TrialLog
 
 #: A start reached the global optimum when within these of the MLE started from the truth.
 POSE_TOL_RAD = 1e-4
@@ -195,22 +196,21 @@ def format_summary(s: dict) -> str:
     return "\n".join(lines)
 
 
+#: The fields that name one run in the log (a run is kept once per key).
+TRIAL_KEY = ("seed", "sigma_px", "distance_m", "num_images", "num_points")
+
+
 def run_all(runs: int, jobs: int, trial_kwargs: dict, log_path: Path | None, time_budget_s: float | None,
-            progress: bool = True) -> list[dict]:
-    """Every run (resumed from and appended to ``log_path``), in parallel over ``jobs`` processes."""
-
-    def same_setup(r: dict) -> bool:
-        return all(r.get(k) == v for k, v in trial_kwargs.items() if k in ("sigma_px", "distance_m", "num_images",
-                                                                             "num_points"))
-
-    records = []
-    if log_path is not None and log_path.exists():
-        records = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
-        records = [r for r in records if same_setup(r) and r["seed"] < runs]
-    have = {r["seed"] for r in records}
-    todo = [seed for seed in range(runs) if seed not in have]
-    run_trials(run_trial, [dict(seed=seed, **trial_kwargs) for seed in todo], records, total=runs,
-               log_path=log_path, desc="convergence runs", progress=progress, jobs=jobs, time_budget_s=time_budget_s)
+            progress: bool = True, fresh: bool = False) -> list[dict]:
+    """Every run (resumed from and appended to ``log_path``, a ``TrialLog`` locked while this runs; ``fresh``:
+    emptied first), in parallel over ``jobs`` processes."""
+    setup = {k: v for k, v in trial_kwargs.items() if k in TRIAL_KEY}
+    with TrialLog(log_path, TRIAL_KEY, fresh=fresh) as log:
+        records = [r for r in log.records if all(r.get(k) == v for k, v in setup.items()) and r["seed"] < runs]
+        have = {r["seed"] for r in records}
+        todo = [seed for seed in range(runs) if seed not in have]
+        run_trials(run_trial, [dict(seed=seed, **trial_kwargs) for seed in todo], records, total=runs,
+                   log=log, desc="convergence runs", progress=progress, jobs=jobs, time_budget_s=time_budget_s)
     return sorted(records, key=lambda r: r["seed"])
 
 
@@ -233,13 +233,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     log_path = args.out / "runs.jsonl"
-    if args.fresh and log_path.exists():
-        log_path.unlink()
     trial_kwargs = dict(sigma_px=args.sigma, distance_m=args.distance, num_images=args.images,
                         num_points=args.points, naive_distance_m=args.naive_distance,
                         max_iterations=args.max_iterations)
     records = run_all(args.runs, args.jobs, trial_kwargs, log_path,
-                      None if args.time_budget is None else 60.0 * args.time_budget, not args.no_progress)
+                      None if args.time_budget is None else 60.0 * args.time_budget, not args.no_progress,
+                      fresh=args.fresh)
     summary = summarize(records)
     summary["setup"] = trial_kwargs
     (args.out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
@@ -249,4 +248,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main))

@@ -26,8 +26,8 @@ Sigma^-1 (z - h(x_true))`` of each run has the Cramér-Rao covariance exactly, s
 variate: ``MSE_cv = mean(CRB variance) + mean(mle_error^2 - first_order_error^2)`` estimates the MLE's
 mean squared error without bias and with the noise of the estimate mostly cancelled (``*_cv`` columns).
 
-Writes ``runs.jsonl`` (one line per run; a re-run resumes from it), ``fig4.csv`` and ``fig4.png`` in
-``--out``. Usage: ``python scripts/reproduce_fig4.py --runs 100 --jobs 2 --out out/fig4``.
+Writes ``runs.jsonl`` (one line per run; a re-run resumes from it: ``tools/trial_log.py`` says what a killed
+run, a full disk or a second run on the same ``--out`` leave), ``fig4.csv`` and ``fig4.png`` in ``--out``. Usage: ``python scripts/reproduce_fig4.py --runs 100 --jobs 2 --out out/fig4``.
 
 Over 500 lines: the whole experiment (trials, summary, CSV, figure) as one runnable, resumable script.
 """
@@ -40,7 +40,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse
 import csv
-import json
 import sys
 import time
 from collections import defaultdict
@@ -52,8 +51,9 @@ from mirror_fg import calibrate
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.solver.analytic import solve_analytic
 from mirror_fg.tools.crb import cramer_rao_bound, nees, nees_band, pose_error
-from mirror_fg.tools.montecarlo import run_trials
+from mirror_fg.tools.montecarlo import run_script, run_trials
 from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.tools.trial_log import TrialLog
 
 SIGMAS_PX = (0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 1.75, 2.0)
 DISTANCES_M = (0.25, 0.5, 0.75, 1.0, 1.25, 1.5)
@@ -380,21 +380,12 @@ def _scale(ax, log_scale: bool) -> None:
 # --- driver -----------------------------------------------------------------------------------------
 
 
-def _load_records(path: Path) -> list[dict]:
-    if not path.exists():
-        return []
-    records = []
-    with open(path, encoding="utf-8") as handle:
-        for line in handle:
-            line = line.strip()
-            if line:
-                records.append(json.loads(line))
-    return records
+#: The fields that name one run in the log (a run is kept once per key).
+TRIAL_KEY = ("sigma_px", "distance_m", "seed", "num_images", "num_points")
 
 
 def _key(record_or_task: dict) -> tuple:
-    r = record_or_task
-    return (r["sigma_px"], r["distance_m"], r["seed"], r["num_images"], r["num_points"])
+    return tuple(record_or_task[field] for field in TRIAL_KEY)
 
 
 def run_sweep(
@@ -406,15 +397,21 @@ def run_sweep(
     log_path: Path | None = None,
     time_budget_s: float | None = None,
     progress: bool = True,
+    fresh: bool = False,
 ) -> list[dict]:
-    """Every run of every sweep point (shared points run once), resumed from and appended to ``log_path``.
+    """Every run of every sweep point (shared points run once), resumed from and appended to ``log_path``
+    (a ``TrialLog``: locked while this runs; ``fresh``: emptied first).
 
     Runs go seed-major (run 0 of every point, then run 1, ...), so a ``time_budget_s`` that stops
     submitting early leaves every point with about the same number of runs.
     """
 
-    done = _load_records(log_path) if log_path is not None else []
-    done = [r for r in done if r["num_images"] == num_images and r["num_points"] == num_points]
+    with TrialLog(log_path, TRIAL_KEY, fresh=fresh) as log:
+        return _run_sweep(log, points, runs, num_images, num_points, jobs, time_budget_s, progress)
+
+
+def _run_sweep(log: TrialLog, points, runs, num_images, num_points, jobs, time_budget_s, progress) -> list[dict]:
+    done = [r for r in log.records if r["num_images"] == num_images and r["num_points"] == num_points]
     have = {_key(r) for r in done}
     unique = list(dict.fromkeys((s, d) for _, s, d in points))
     tasks = [
@@ -425,7 +422,7 @@ def run_sweep(
     todo = [t for t in tasks if _key(t) not in have]
     wanted = {_key(t) for t in tasks}
     records = [r for r in done if _key(r) in wanted]
-    run_trials(run_trial, todo, records, total=len(tasks), log_path=log_path, desc="Monte Carlo runs",
+    run_trials(run_trial, todo, records, total=len(tasks), log=log, desc="Monte Carlo runs",
                progress=progress, jobs=jobs, time_budget_s=time_budget_s)
     return records
 
@@ -507,13 +504,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     log_path = args.out / "runs.jsonl"
-    if args.fresh and log_path.exists():
-        log_path.unlink()
     points = sweep_points(args.sigmas, args.distances)
     start = time.perf_counter()
     records = run_sweep(
         points, args.runs, args.images, args.points, args.jobs, log_path,
         None if args.time_budget is None else 60.0 * args.time_budget, progress=not args.no_progress,
+        fresh=args.fresh,
     )
     rows = csv_rows(records, points)
     write_csv(args.out / "fig4.csv", rows)
@@ -526,4 +522,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_script(main))
