@@ -40,7 +40,7 @@ from mirror_fg.solver.placement_tree import complete_tree
 
 __all__ = [
     "MAX_SPLITS_TRIED", "MAX_MOVE_SPLITS", "MOVE_SIGNIFICANCE", "LABEL_SIGNIFICANCE", "GroupFit", "fit_group",
-    "diagnose_inconsistency", "diagnose_split", "describe_split", "split_in_capture_order", "moved_camera_split", "placement_disagreement",
+    "diagnose_inconsistency", "diagnose_split", "describe_split", "split_in_capture_order", "moved_camera_split", "placement_disagreement", "misfits_split",
 ]
 
 logger = logging.getLogger("mirror_fg")
@@ -182,6 +182,20 @@ def split_in_capture_order(
     if not (fits[0].plausible and fits[1].plausible):
         return None
     return describe_split(dataset, [list(range(best)), list(range(best, n))], fits)
+
+
+def misfits_split(dataset: Dataset, in_graph: list[Image], misfits: list[Image]) -> Inconsistency | None:
+    """Where the images an incremental calibration refused as inconsistent with its estimate (``misfits``,
+    at least three) fit one ``T_cam_base`` of their own, and those in its graph (``in_graph``) theirs, the
+    two groups named as the batch names a split."""
+    if len(misfits) < 3:
+        return None
+    index = {image.id: i for i, image in enumerate(dataset.images)}
+    fits = [fit_group(dataset, in_graph), fit_group(dataset, misfits)]
+    if fits[0] is None or fits[1] is None or not (fits[0].plausible and fits[1].plausible):
+        return None
+    groups = [sorted(index[image.id] for image in in_graph), sorted(index[image.id] for image in misfits)]
+    return describe_split(dataset, groups, [fits[0], fits[1]])
 
 
 def _pose_mahalanobis(fits: list[GroupFit], R_reference: np.ndarray) -> float:

@@ -73,9 +73,9 @@ from mirror_fg.core.transform import covariance_from_pose3, covariance_to_pose3
 from mirror_fg.io.dataset import Dataset, Image, validate_image
 from mirror_fg.solver.analytic import AnalyticSolution
 from mirror_fg.solver.calibrate import as_dataset
-from mirror_fg.solver.calibration import Calibration, Exclusion, Inconsistency, require_converged
+from mirror_fg.solver.calibration import Calibration, Exclusion, require_converged
 from mirror_fg.solver.consensus import CONSENSUS_MIN_SIGMAS, board_side, check_image, misfit_sigmas, screen
-from mirror_fg.solver.consistency import describe_split, diagnose_inconsistency, fit_group
+from mirror_fg.solver.consistency import diagnose_inconsistency, misfits_split
 from mirror_fg.solver.incremental_graph import (
     MIN_PNP_FIDUCIALS,
     POLISH_SIGMAS,
@@ -603,23 +603,8 @@ def calibrate_incremental(
                          f"({calibrator.status})")
     calibration = calibrator.calibration(full=True)
     if calibration.converged:
-        calibration.inconsistency = _misfits_split(dataset, calibrator)
-        if calibration.inconsistency is None:
-            order = {image.id: i for i, image in enumerate(dataset.images)}
-            in_graph = sorted((im for im in calibrator._ds.images if im.id in order), key=lambda im: order[im.id])
-            calibration.inconsistency = diagnose_inconsistency(replace(dataset, images=in_graph), calibration)
+        order = {image.id: i for i, image in enumerate(dataset.images)}
+        in_graph = sorted((im for im in calibrator._ds.images if im.id in order), key=lambda im: order[im.id])
+        calibration.inconsistency = (misfits_split(dataset, in_graph, calibrator.misfits)
+                                     or diagnose_inconsistency(replace(dataset, images=in_graph), calibration))
     return require_converged(calibration, dataset.source, "iSAM2", accept_poor_fit=accept_poor_fit)
-
-
-def _misfits_split(dataset: Dataset, calibrator: IncrementalCalibrator) -> Inconsistency | None:
-    """Where the images refused as inconsistent with the estimate fit one ``T_cam_base`` of their own (and
-    those in the graph theirs), the two groups named as the batch names a split (``consistency.py``)."""
-    if len(calibrator.misfits) < 3:
-        return None
-    index = {image.id: i for i, image in enumerate(dataset.images)}
-    in_graph = [image for image in calibrator._ds.images if image.id in index]
-    fits = [fit_group(dataset, in_graph), fit_group(dataset, calibrator.misfits)]
-    if fits[0] is None or fits[1] is None or not (fits[0].plausible and fits[1].plausible):
-        return None
-    groups = [sorted(index[image.id] for image in in_graph), sorted(index[image.id] for image in calibrator.misfits)]
-    return describe_split(dataset, groups, [fits[0], fits[1]])
