@@ -96,3 +96,19 @@ def test_the_split_test_is_bounded(monkeypatch):
     calibration = calibrate(dataset, compute_covariance=False)
     assert calibration.cost_plausible and calibration.inconsistency is None
     assert 0 < len(calls) <= 2 * MAX_MOVE_SPLITS
+
+
+def test_solvable_boundaries_are_those_a_test_per_boundary_finds():
+    """The bisections of ``_solvable_boundaries`` against the plain definition, boundary by boundary."""
+    from test_consensus import board_scene
+
+    from mirror_fg.solver.placement_tree import complete_tree
+
+    def every_boundary(dataset: Dataset) -> list[int]:
+        images, Nv = dataset.images, dataset.num_mirrors
+        return [k for k in range(1, len(images)) if images[k].mirror_configs[0] != images[k - 1].mirror_configs[0]
+                and complete_tree(images[:k], Nv) and complete_tree(images[k:], Nv)]
+
+    for dataset in (moved_scene(120, 0.0, 0.0)[0], board_scene(1, num_images=24, seed=2)[0],
+                    board_scene(2, num_images=28, seed=2)[0], board_scene(1, num_images=5, seed=2)[0]):
+        assert consistency._solvable_boundaries(dataset) == every_boundary(dataset)

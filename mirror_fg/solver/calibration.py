@@ -50,7 +50,9 @@ class Inconsistency:
     """The images split into groups each consistent alone but disagreeing with each other.
 
     ``groups``: image ids per group; ``rotation_deg`` / ``position_mm``: how far apart the groups'
-    ``T_cam_base`` are; ``message``: one line for the user ("images 0-4 and 5-8 disagree by ...").
+    ``T_cam_base`` are (for two images labelled as one placement, ``consistency.placement_disagreement``:
+    the angle between their mirrors' normals and the difference of their distances from the camera);
+    ``message``: one line for the user ("images 0-4 and 5-8 disagree by ...").
     """
 
     groups: tuple[tuple[str, ...], ...]
