@@ -132,15 +132,6 @@ class Calibration:
         return plausible(self.final_error, self.expected_final_error)
 
     @property
-    def fit_ratio(self) -> float:
-        """RMS whitened residual over what the noise model allows, ``sqrt(final cost / expected cost)``
-        (about 1 at the optimum; NaN where the expected cost is unknown). Above :data:`POOR_FIT_RATIO`
-        the fit is poor (:func:`require_converged`)."""
-        if not (self.expected_final_error > 0.0 and np.isfinite(self.final_error)):
-            return float("nan")
-        return float(np.sqrt(self.final_error / self.expected_final_error))
-
-    @property
     def R_base_cam(self) -> np.ndarray:
         """Rotation of the camera frame in the base frame (``T_base_cam``)."""
         return self.T_cam_base.inverse().R
@@ -202,6 +193,15 @@ class Calibration:
     def residual_norms(self) -> np.ndarray:
         """Euclidean reprojection error of each measurement (pixels or normalized units)."""
         return np.linalg.norm(self.residuals, axis=1)
+
+    @property
+    def fit_ratio(self) -> float:
+        """RMS whitened residual over what the noise model allows, ``sqrt(final cost / expected cost)``
+        (about 1 at the optimum; NaN where the expected cost is unknown). Above :data:`POOR_FIT_RATIO`
+        the fit is poor (:func:`require_converged`)."""
+        if not (self.expected_final_error > 0.0 and np.isfinite(self.final_error)):
+            return float("nan")
+        return float(np.sqrt(self.final_error / self.expected_final_error))
 
     def to_dict(self) -> dict:
         """The ``mirror-fg/result@1`` dictionary (docs/formats.md), written by ``io.result``."""
