@@ -539,8 +539,7 @@ class IncrementalCalibrator(GraphGrowth):
 
     def _require_started(self) -> None:
         if not self.started:
-            reason = self.startup_error or "each placement needs >= 3 child placements seen with >= 3 fiducials"
-            raise SolveError(f"{self._ds.source}: no estimate yet: {reason}")
+            raise SolveError(f"{self._ds.source}: no estimate yet: {self.status}")
 
     def _make_calibration(
         self, *, covariance, mirror_covs, point_covs, residuals, labels, outliers, final_error
