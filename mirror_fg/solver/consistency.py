@@ -207,9 +207,12 @@ def _pose_mahalanobis(fits: list[GroupFit], R_reference: np.ndarray) -> float:
     determined axes into the well determined one (its second-order term, degrees where that axis is
     known to a fraction of one).
     """
+    covariances = [fit.covariance for fit in fits]
+    if covariances[0] is None or covariances[1] is None:
+        raise ValueError("_pose_mahalanobis: fits without a covariance")
     dtheta = [gtsam.Rot3.Logmap(gtsam.Rot3(fit.R @ R_reference.T)) for fit in fits]
     difference = np.r_[dtheta[1] - dtheta[0], fits[1].t - fits[0].t]
-    return float(difference @ np.linalg.solve(fits[0].covariance + fits[1].covariance, difference))
+    return float(difference @ np.linalg.solve(covariances[0] + covariances[1], difference))
 
 
 def _solvable_boundaries(dataset: Dataset) -> list[int]:
@@ -253,17 +256,18 @@ def moved_camera_split(
     worst: tuple[float, int, list[GroupFit]] | None = None
     for k in tested:
         sides = [complete_tree(dataset.images[:k], dataset.num_mirrors), complete_tree(dataset.images[k:], dataset.num_mirrors)]
-        fits = [fit_group(dataset, side, pnp, covariance=True) for side in sides]
-        if any(fit is None or fit.covariance is None for fit in fits):
+        fits = [fit for fit in (fit_group(dataset, side, pnp, covariance=True) for side in sides)
+                if fit is not None and fit.covariance is not None]
+        if len(fits) < 2:
             continue
         try:
-            distance = _pose_mahalanobis(fits, R_reference)  # type: ignore[arg-type]
+            distance = _pose_mahalanobis(fits, R_reference)
         except np.linalg.LinAlgError:
             continue
         logger.info("%s: split before image %d: Mahalanobis distance %.3g of the two sides' T_cam_base",
                     dataset.source, k, np.sqrt(distance))
         if worst is None or distance > worst[0]:
-            worst = (distance, k, fits)  # type: ignore[assignment]
+            worst = (distance, k, fits)
     if worst is None or not worst[0] > threshold:
         return None
     distance, k, fits = worst
@@ -289,9 +293,10 @@ def placement_disagreement(dataset: Dataset, calibration: Calibration) -> Incons
             continue
         fitted = []
         for image in images[:MAX_IMAGES_PER_PLACEMENT]:
-            above = [calibration.mirror_vectors.get((level + 1, m)) for level, m in enumerate(image.mirror_configs[:-1])]
-            if any(v is None for v in above):
+            keys = [(level + 1, m) for level, m in enumerate(image.mirror_configs[:-1])]
+            if any(key not in calibration.mirror_vectors for key in keys):
                 continue
+            above = [calibration.mirror_vectors[key] for key in keys]
             A_parent, b_parent = nested_transform(calibration.R_cam_base, calibration.t_cam_base, above)  # eqs. (6)-(8)
             fit = fit_last_mirror(dataset, image, A_parent, b_parent, np.asarray(start, dtype=float))
             dof = fit.fun.size - 3
