@@ -188,6 +188,9 @@ def build_parser() -> argparse.ArgumentParser:
                      "camera_optical_frame); a *_link body-frame name is refused: the .ros.yaml also holds "
                      "camera_link's pose (x forward, REP 103)")
     cal.add_argument("--no-ros", action="store_true", help="do not write the ROS/URDF outputs beside the result")
+    cal.add_argument("--accept-poor-fit", action="store_true",
+                     help="write the result even when the fit is more than 3x worse than the noise model allows "
+                     "(RMS whitened residual; refused by default: exit 3 with the likely causes)")
     _add_common(cal)
 
     many = sub.add_parser("calibrate-many", help="calibrate many datasets or captures (a fleet) on Dask",
@@ -423,7 +426,7 @@ def cmd_calibrate(args, out: _Printer) -> int:
         if calibration.restarts:
             out.info(f"LM ended in a local minimum from the analytical solution; restarted from {calibration.restarts} "
                      "runner-up P3P hypothesis(es) and kept the lowest cost")
-        require_converged(calibration, dataset.source)
+        require_converged(calibration, dataset.source, accept_poor_fit=args.accept_poor_fit)
     calibration.excluded = _detection_exclusions(reports) + list(calibration.excluded)
     result = calibration.to_dict()
     written = outputs.write(result)
@@ -500,7 +503,12 @@ def _run_incremental(dataset, args, out: _Printer):
             out.info(f"[{index:5d}/{total}] 3-sigma rot [" + ", ".join(f"{x:.3f}" for x in s["rotation_deg"])
                      + "] deg, pos [" + ", ".join(f"{x:.1f}" for x in s["position_mm"]) + "] mm")
 
-    return calibrate_incremental(dataset, robust=args.robust, on_estimate=on_estimate)
+    def on_wait(index: int, status: str) -> None:  # before start-up: what the calibrator waits for
+        if index % args.every == 0 or index == total:
+            out.info(f"[{index:5d}/{total}] {status}")
+
+    return calibrate_incremental(dataset, robust=args.robust, on_estimate=on_estimate, on_wait=on_wait,
+                                 accept_poor_fit=args.accept_poor_fit)
 
 
 def cmd_detect(args, out: _Printer) -> int:

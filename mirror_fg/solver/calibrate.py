@@ -3,8 +3,9 @@
 consensus (images and corners that disagree with the rest left out, ``consensus.py``) -> initial
 estimate (analytical solution, Sects. 4-5, ``initial.py``) -> Levenberg-Marquardt MLE (eq. 23) with its
 restarts (``lm.py``) -> marginal covariances (``marginals.py``) -> residuals (``residuals.py``) -> final
-check (measurements far off the solution left out, solve again) -> where the cost is implausible, a
-split of the images into consistent groups (``consistency.py``) ->
+check (measurements far off the solution left out, solve again) -> what the data contradict: a split
+of the images into consistent groups, images of one placement that see different mirrors, a camera that
+moved between placements of mirror 1 (``consistency.py``) ->
 :class:`~mirror_fg.solver.calibration.Calibration`, with everything left out in ``excluded``.
 """
 from __future__ import annotations
@@ -20,7 +21,7 @@ from mirror_fg.io.dataset import Dataset, dataset_from_dict
 from mirror_fg.solver.analytic import AnalyticSolution
 from mirror_fg.solver.calibration import Calibration, Exclusion
 from mirror_fg.solver.consensus import PnPCandidates, final_check, screen, without
-from mirror_fg.solver.consistency import diagnose_split
+from mirror_fg.solver.consistency import diagnose_inconsistency
 from mirror_fg.solver.graph import InitialEstimate, Measurement
 from mirror_fg.solver.initial import initial_estimate
 from mirror_fg.solver.lm import levenberg_marquardt_with_restarts
@@ -78,10 +79,13 @@ def calibrate(
     inconsistent with the other placements of its mirror) are left out before the solve, measurements
     far off the solution (``consensus.FINAL_SIGMAS``) after it, and the solve repeated: each is in
     ``Calibration.excluded`` with its reason (``consensus.py``); with nothing left out the answer is
-    exactly that of the solve alone. Where the final cost is implausible, ``Calibration.inconsistency``
-    names a split of the images (in capture order) into groups each consistent alone (``consistency.py``;
-    a few dozen solves of the groups: ``diagnose=False`` skips it, e.g. for a first solve that is
-    expected to fit badly).
+    exactly that of the solve alone. ``Calibration.inconsistency`` names what the data contradict
+    (``consistency.diagnose_inconsistency``): where the final cost is implausible, a split of the images
+    (in capture order) into groups each consistent alone, else two images labelled as one placement whose
+    mirrors differ; whatever the cost, a split at a boundary between placements of mirror 1 whose two
+    sides' poses differ beyond their covariances (a camera that moved). A few dozen solves of the groups
+    at most: ``diagnose=False`` skips it, e.g. for a first solve that is expected to fit badly.
+    Whether the result may be written is :func:`~mirror_fg.solver.calibration.require_converged`'s call.
     """
     dataset = as_dataset(dataset)
     if dataset.camera is not None and dataset.camera.estimate:  # intrinsics estimated too (camera.estimate)
@@ -113,9 +117,9 @@ def calibrate(
         solved = without(solved, more)
         pnp = {image_id: poses for image_id, poses in pnp.items() if image_id not in {e.image for e in more}}
     calibration.excluded = list(excluded)
-    if diagnose and not calibration.cost_plausible:
+    if diagnose:
         with timed(timings, "consistency"):
-            calibration.inconsistency = diagnose_split(solved, calibration, pnp)
+            calibration.inconsistency = diagnose_inconsistency(solved, calibration, pnp)
         if calibration.inconsistency is not None:
             logger.warning("%s: %s", dataset.source, calibration.inconsistency.message)
     return calibration

@@ -11,12 +11,25 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mirror_fg.core.camera import Camera
-from mirror_fg.core.errors import SolveError
+from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.transform import Transform
 from mirror_fg.solver.analytic import AnalyticSolution
 from mirror_fg.solver.lm import plausible
 
-__all__ = ["Calibration", "EstimatedCamera", "Exclusion", "Inconsistency", "require_converged"]
+__all__ = [
+    "Calibration", "EstimatedCamera", "Exclusion", "Inconsistency", "require_converged", "POOR_FIT_RATIO",
+    "MAX_BASE_DISTANCE_M",
+]
+
+#: A fit is *poor* (refused unless accepted) when its RMS whitened residual is more than this many times
+#: what the noise model allows: ``sqrt(final cost / expected cost) > 3``, i.e. for one ``pixel_sigma`` an
+#: RMS reprojection error above about 3 x sqrt(2) sigma. No plausible sigma explains that much (a
+#: sigma three times too small is a gross mistake too); the real Takahashi photographs, with their
+#: unmodelled distortion, sit at 1.3x the expected cost (a ratio of 1.14).
+POOR_FIT_RATIO = 3.0
+#: A camera-to-base distance above this (metres) is refused: no robot is that large, the target's
+#: sizes were most likely given in millimetres (docs/formats.md).
+MAX_BASE_DISTANCE_M = 20.0
 
 
 @dataclass(frozen=True)
@@ -37,7 +50,9 @@ class Inconsistency:
     """The images split into groups each consistent alone but disagreeing with each other.
 
     ``groups``: image ids per group; ``rotation_deg`` / ``position_mm``: how far apart the groups'
-    ``T_cam_base`` are; ``message``: one line for the user ("images 0-4 and 5-8 disagree by ...").
+    ``T_cam_base`` are (for two images labelled as one placement, ``consistency.placement_disagreement``:
+    the angle between their mirrors' normals and the difference of their distances from the camera);
+    ``message``: one line for the user ("images 0-4 and 5-8 disagree by ...").
     """
 
     groups: tuple[tuple[str, ...], ...]
@@ -146,16 +161,19 @@ class Calibration:
         def vector(values, digits: int) -> str:
             return "n/a" if values is None else "[" + ", ".join(f"{x:.{digits}f}" for x in values) + "]"
 
-        rms = float(np.sqrt(np.mean(self.residual_norms**2))) if len(self.residuals) else float("nan")
+        # An incremental estimate between images carries no residuals (IncrementalCalibrator.calibration).
+        measured = len(self.residuals) > 0
+        rms = f"{float(np.sqrt(np.mean(self.residual_norms**2))):.4g}" if measured else "not computed"
+        measurements = f"{len(self.residuals)} measurements" if measured else "residuals not computed"
         return [
             ("R_cam_base", "; ".join(vector(row, 5) for row in self.R_cam_base)),
             ("t_cam_base (m)", vector(self.t_cam_base, 5)),
             ("3-sigma rotation (deg)", vector(self.sigma3_rotation_deg, 3)),
             ("3-sigma position (mm)", vector(self.sigma3_position_mm, 2)),
-            (f"rms reprojection ({self.residual_units})", f"{rms:.4g}"),
+            (f"rms reprojection ({self.residual_units})", rms),
             ("iterations", f"{self.iterations} ({'converged' if self.converged else 'NOT converged'}, "
                            f"{self.restarts} restart(s))"),
-            ("counts", f"{len(self.residuals)} measurements, {len(self.mirror_vectors)} mirror placements, "
+            ("counts", f"{measurements}, {len(self.mirror_vectors)} mirror placements, "
                        f"{len(self.points)} points"),
         ]
 
@@ -176,6 +194,15 @@ class Calibration:
         """Euclidean reprojection error of each measurement (pixels or normalized units)."""
         return np.linalg.norm(self.residuals, axis=1)
 
+    @property
+    def fit_ratio(self) -> float:
+        """RMS whitened residual over what the noise model allows, ``sqrt(final cost / expected cost)``
+        (about 1 at the optimum; NaN where the expected cost is unknown). Above :data:`POOR_FIT_RATIO`
+        the fit is poor (:func:`require_converged`)."""
+        if not (self.expected_final_error > 0.0 and np.isfinite(self.final_error)):
+            return float("nan")
+        return float(np.sqrt(self.final_error / self.expected_final_error))
+
     def to_dict(self) -> dict:
         """The ``mirror-fg/result@1`` dictionary (docs/formats.md), written by ``io.result``."""
         from mirror_fg.io.result import result_dict  # the format's one writer
@@ -183,9 +210,32 @@ class Calibration:
         return result_dict(self)
 
 
-def require_converged(calibration: Calibration, source: str, solver: str = "Levenberg-Marquardt") -> Calibration:
-    """``calibration`` if its solver converged, else SolveError: one rule for batch and incremental runs."""
+def require_converged(
+    calibration: Calibration, source: str, solver: str = "Levenberg-Marquardt", accept_poor_fit: bool = False
+) -> Calibration:
+    """``calibration`` if it can be written: one rule for batch and incremental runs (``mirror-fg
+    calibrate`` and ``calibrate-many``).
+
+    SolveError when its solver did not converge, or when the fit is poor (:attr:`Calibration.fit_ratio`
+    above :data:`POOR_FIT_RATIO`) unless ``accept_poor_fit``: the message names the likely cause (the
+    images it found inconsistent, else wrong labels, pixel_sigma, distortion, a moved camera).
+    DatasetError when ``T_cam_base`` puts the base more than :data:`MAX_BASE_DISTANCE_M` from the camera
+    (sizes in millimetres where metres are expected).
+    """
     if not calibration.converged:
         raise SolveError(f"{source}: {solver} did not converge in {calibration.iterations} iterations "
                          "(stalled); the result was not written")
+    distance = float(np.linalg.norm(calibration.t_cam_base))
+    if distance > MAX_BASE_DISTANCE_M:
+        raise DatasetError(f"{source}: T_cam_base puts the base {distance:.3g} m from the camera: are the target's "
+                           f"sizes in metres? (more than {MAX_BASE_DISTANCE_M:g} m is refused)")
+    ratio = calibration.fit_ratio
+    if not accept_poor_fit and ratio > POOR_FIT_RATIO:
+        cause = (calibration.inconsistency.message if calibration.inconsistency is not None else
+                 "likely causes: wrong mirror_configs labels (two images given one placement), a pixel_sigma far "
+                 "too small, unmodelled lens distortion, or a camera that moved")
+        rms = float(np.sqrt(np.mean(calibration.residual_norms ** 2))) if len(calibration.residuals) else float("nan")
+        raise SolveError(f"{source}: the fit is {ratio:.3g} times worse than the noise model allows (RMS "
+                         f"{rms:.4g} {calibration.residual_units}; more than {POOR_FIT_RATIO:g}x is refused): {cause}; "
+                         "the result was not written (--accept-poor-fit writes it anyway)")
     return calibration

@@ -45,7 +45,7 @@ from mirror_fg.solver.pnp import pnp_candidates
 
 __all__ = [
     "PNP_POINT_SIGMAS", "MAX_BAD_POINT_FRACTION", "CONSENSUS_MIN_SIGMAS", "CONSENSUS_FACTOR", "FINAL_SIGMAS",
-    "screen", "final_check", "without", "check_image", "board_side", "misfit_sigmas",
+    "screen", "final_check", "without", "check_image", "board_side", "misfit_sigmas", "fit_last_mirror",
 ]
 
 logger = logging.getLogger("mirror_fg")
@@ -427,8 +427,18 @@ def misfit_sigmas(
     mirror_vector: np.ndarray | None,
 ) -> float:
     """RMS whitened reprojection of an image's fiducials through its parent ``(A_{Nv-1}, b_{Nv-1})`` (from an
-    estimate) and its last mirror: ``mirror_vector`` where known, else the one fitting them best (scipy
-    least squares from the reflection nearest to its PnP ``pose``, eqs. 6-7, 5, 9)."""
+    estimate) and its last mirror: ``mirror_vector`` where known, else the one fitting them best
+    (:func:`fit_last_mirror` from the reflection nearest to its PnP ``pose``, eqs. 6-7)."""
+    errors = _last_mirror_errors(dataset, image, A_parent, b_parent)
+    if mirror_vector is None:
+        v0 = reflection_fit(pose[0][None], pose[1][None], A_parent, b_parent)[1][0]
+        mirror_vector = fit_last_mirror(dataset, image, A_parent, b_parent, v0).x
+    return float(np.sqrt(2.0 * np.mean(errors(np.asarray(mirror_vector)) ** 2)))
+
+
+def _last_mirror_errors(dataset: Dataset, image: Image, A_parent: np.ndarray, b_parent: np.ndarray):
+    """Whitened reprojection errors of an image's fiducials as a function of its last mirror vector
+    (eqs. 6-7, 5, 9), the parent ``(A_{Nv-1}, b_{Nv-1})`` held."""
     names = _fiducial_names(dataset, image)
     points = np.array([dataset.fiducials[n] for n in names])
     normalized = dataset.normalized(image)
@@ -440,7 +450,12 @@ def misfit_sigmas(
         depth = np.maximum(camera_points[:, 2], 1e-9)
         return ((camera_points[:, :2] / depth[:, None] - observed) / dataset.normalized_sigma).ravel()  # eq. (9)
 
-    if mirror_vector is None:
-        v0 = reflection_fit(pose[0][None], pose[1][None], A_parent, b_parent)[1][0]
-        mirror_vector = least_squares(errors, v0, x_scale=np.full(3, 1e-3 + 1e-2 * np.linalg.norm(v0)), method="lm").x
-    return float(np.sqrt(2.0 * np.mean(errors(np.asarray(mirror_vector)) ** 2)))
+    return errors
+
+
+def fit_last_mirror(dataset: Dataset, image: Image, A_parent: np.ndarray, b_parent: np.ndarray, start: np.ndarray):
+    """The last mirror vector (camera frame, metres) that fits an image's fiducials best with its parent
+    ``(A_{Nv-1}, b_{Nv-1})`` held: scipy's least-squares result from ``start`` (``x`` the vector, ``fun``
+    the whitened errors, ``jac`` their Jacobian)."""
+    errors = _last_mirror_errors(dataset, image, A_parent, b_parent)
+    return least_squares(errors, start, x_scale=np.full(3, 1e-3 + 1e-2 * np.linalg.norm(start)), method="lm")

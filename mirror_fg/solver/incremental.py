@@ -73,9 +73,9 @@ from mirror_fg.core.transform import covariance_from_pose3, covariance_to_pose3
 from mirror_fg.io.dataset import Dataset, Image, validate_image
 from mirror_fg.solver.analytic import AnalyticSolution
 from mirror_fg.solver.calibrate import as_dataset
-from mirror_fg.solver.calibration import Calibration, Exclusion, Inconsistency, require_converged
+from mirror_fg.solver.calibration import Calibration, Exclusion, require_converged
 from mirror_fg.solver.consensus import CONSENSUS_MIN_SIGMAS, board_side, check_image, misfit_sigmas, screen
-from mirror_fg.solver.consistency import describe_split, fit_group, split_in_capture_order
+from mirror_fg.solver.consistency import diagnose_inconsistency, misfits_split
 from mirror_fg.solver.incremental_graph import (
     MIN_PNP_FIDUCIALS,
     POLISH_SIGMAS,
@@ -84,9 +84,10 @@ from mirror_fg.solver.incremental_graph import (
     RelinearizeThresholds,
 )
 from mirror_fg.solver.initial import initial_estimate
-from mirror_fg.solver.lm import cost_scale, lm_params, plausible
+from mirror_fg.solver.lm import cost_scale, lm_params
 from mirror_fg.solver.marginals import marginal_covariances, unconstrained_message
 from mirror_fg.solver.residuals import outliers_of, predicted_normalized, residual_statistics
+from mirror_fg.solver.placement_tree import complete_tree, tree_shortfall
 from mirror_fg.solver.timing import timed
 
 if TYPE_CHECKING:
@@ -113,29 +114,6 @@ UNSETTLED_EVERY_IMAGE = 8
 UNSETTLED_MAX_INTERVAL = 32
 
 
-def complete_tree(images: Iterable[Image], num_mirrors: int) -> list[Image]:
-    """The images that form a complete configuration tree (Fig. 3), or ``[]`` if there is none.
-
-    Bottom-up, a placement of mirror l is kept when >= 3 kept placements of mirror l+1 were seen under
-    it (a leaf, a placement of mirror Nv, is kept when seen); the tree exists when >= 3 placements of
-    mirror 1 are kept. Returns the images whose every placement is kept, in their order.
-    """
-    images = list(images)
-    kept: set[tuple[int, ...]] = {im.mirror_configs for im in images}  # level Nv: every leaf seen
-    kept_by_level = {num_mirrors: kept}
-    for level in range(num_mirrors, 0, -1):
-        children: dict[tuple[int, ...], set[int]] = defaultdict(set)
-        for prefix in kept:
-            children[prefix[:-1]].add(prefix[-1])
-        kept = {parent for parent, c in children.items() if len(c) >= 3}
-        kept_by_level[level - 1] = kept
-    if () not in kept_by_level[0]:
-        return []
-    return [
-        im for im in images if all(im.mirror_configs[:level] in kept_by_level[level] for level in range(num_mirrors + 1))
-    ]
-
-
 class IncrementalCalibrator(GraphGrowth):
     """Camera-to-base calibration that takes images one at a time (iSAM2 on the batch factors).
 
@@ -146,7 +124,8 @@ class IncrementalCalibrator(GraphGrowth):
     kernel as in ``calibrate``. ``thresholds``: iSAM2 relinearisation thresholds. ``seed``: for the
     analytical solution's P3P hypotheses.
 
-    ``add_image(image)`` returns ``None`` until the analytical solution exists, then a cheap
+    ``add_image(image)`` returns ``None`` until the analytical solution exists (:attr:`status` says what
+    it waits for, :attr:`startup_error` why the latest start-up failed), then a cheap
     ``Calibration`` after every image; ``calibration(full=True)`` adds mirror and point covariances and
     residuals over every image in the graph; ``marginal_covariance()`` gives covariances on demand.
     """
@@ -197,7 +176,8 @@ class IncrementalCalibrator(GraphGrowth):
         self._unsettled_tries = 0
         self._accepted_at_restart = 0
         self._failed_tree: frozenset | None = None  # placements of the last failed analytical solution
-        #: Why the latest start-up attempt failed (``None`` after a successful one).
+        #: Why the latest start-up attempt failed (``None`` after a successful one); :attr:`status`
+        #: says it in one line.
         self.startup_error: Exception | None = None
         self.restarts = 0
         self._lm_iterations: list[int] = []  # LM iterations of each start-up
@@ -241,10 +221,34 @@ class IncrementalCalibrator(GraphGrowth):
         """The analytical solution of the latest start-up (``None`` before start-up)."""
         return self._analytic
 
+    @property
+    def status(self) -> str:
+        """One line on where the calibrator stands; before start-up, why it is waiting (what the
+        configuration tree still lacks, ``placement_tree.tree_shortfall``, or why the start-up failed):
+        ``"waiting: mirror 2 has 2 placement(s) under (1, 0), needs 3"``."""
+        if self.started:
+            state = "settled (iSAM2)" if self._settled else "unsettled (Levenberg-Marquardt estimate, retrying)"
+            return (f"{state}: {self.num_images} image(s) in the graph, {len(self.waiting_images)} waiting, "
+                    f"{len(self.excluded)} left out")
+        usable = [im for im in self._accepted if self._num_fiducials(im) >= MIN_PNP_FIDUCIALS]
+        shortfall = tree_shortfall(usable, self._ds.num_mirrors)
+        if shortfall is None and self.startup_error is not None:
+            return f"waiting: the start-up failed: {self.startup_error}"
+        if shortfall == "no image yet":
+            return (f"waiting: no image with >= {MIN_PNP_FIDUCIALS} fiducials yet" if self._accepted
+                    else "waiting: no image yet")
+        return f"waiting: {shortfall or 'the start-up is due'}"
+
+    def __repr__(self) -> str:
+        """A few words: images given, in the graph, left out, and :attr:`status`."""
+        return (f"IncrementalCalibrator({self._ds.source!r}: {len(self._ids)} image(s) given, {self.num_images} in "
+                f"the graph, {len(self.excluded)} left out; {self.status})")
+
     def add_image(self, image: Image | Mapping[str, Any]) -> Calibration | None:
         """Take one image's observations (a ``mirror_fg.Image`` or its dataset@1 dict).
 
-        Returns ``None`` while the analytical solution cannot be formed, else the current ``Calibration``
+        Returns ``None`` while the analytical solution cannot be formed (:attr:`status` says why), else
+        the current ``Calibration``
         (the cheap one, see :meth:`calibration`). Raises ``DatasetError`` on bad input (unknown point
         name, non-finite value, wrong ``mirror_configs`` length, an id already given) before anything
         changes. Trouble solving never raises here: the calibrator keeps its estimate, unsettled, retries
@@ -361,6 +365,10 @@ class IncrementalCalibrator(GraphGrowth):
                 outliers=outliers_of(g.measurements, whitened),
                 final_error=float(factors.error(estimate)),
             )
+            # Its cost judged as the batch's (lm.LMRun.expected_final_error): two per measurement less
+            # the unknowns (pose, every mirror vector, points).
+            unknowns = 6 + 3 * len(calibration.mirror_vectors) + 3 * len(calibration.points)
+            calibration.expected_final_error = 0.5 * max(2 * len(calibration.residuals) - unknowns, 0)
             calibration.converged = self._settled and g.step_sigmas < POLISH_SIGMAS
         calibration.timings.update(stage_times)
         return calibration
@@ -543,8 +551,7 @@ class IncrementalCalibrator(GraphGrowth):
 
     def _require_started(self) -> None:
         if not self.started:
-            reason = self.startup_error or "each placement needs >= 3 child placements seen with >= 3 fiducials"
-            raise SolveError(f"{self._ds.source}: no estimate yet: {reason}")
+            raise SolveError(f"{self._ds.source}: no estimate yet: {self.status}")
 
     def _make_calibration(
         self, *, covariance, mirror_covs, point_covs, residuals, labels, outliers, final_error
@@ -576,14 +583,20 @@ def calibrate_incremental(
     *,
     robust: str | None = None,
     on_estimate: Callable[[int, Calibration], None] | None = None,
+    on_wait: Callable[[int, str], None] | None = None,
+    accept_poor_fit: bool = False,
 ) -> Calibration:
     """Stream ``dataset``'s images in file order through :class:`IncrementalCalibrator` and return the
     full final calibration (``calibration(full=True)``).
 
     ``on_estimate(index, estimate)`` is called after every image (1-based index) once an estimate
-    exists. Refuses what the batch :func:`~mirror_fg.solver.calibrate.calibrate` path refuses, with the same
-    errors: bad input is DatasetError (at load or in ``add_image``), and a final estimate that did not
-    converge is SolveError (:func:`~mirror_fg.solver.calibration.require_converged`).
+    exists, ``on_wait(index, reason)`` after every image before that (``IncrementalCalibrator.status``).
+    Refuses what the batch path refuses, with the same errors and the same rule
+    (:func:`~mirror_fg.solver.calibration.require_converged`): bad input is DatasetError (at load or in
+    ``add_image``); a final estimate that did not converge, or (unless ``accept_poor_fit``) fits more than
+    ``POOR_FIT_RATIO`` times worse than the noise model allows, is SolveError. What the data contradict
+    is in ``inconsistency`` as in the batch (``consistency.diagnose_inconsistency``), after the images
+    refused as inconsistent with the estimate are asked whether they fit a pose of their own.
     """
     dataset = as_dataset(dataset)
     calibrator = IncrementalCalibrator(dataset, robust=robust)
@@ -594,35 +607,15 @@ def calibrate_incremental(
             started = True
             if on_estimate is not None:
                 on_estimate(index, estimate)
+        elif on_wait is not None:
+            on_wait(index, calibrator.status)
     if not started:
         raise SolveError(f"{dataset.source}: the images never allowed an analytical solution "
-                         "(each placement needs >= 3 child placements)")
-    calibration = require_converged(calibrator.calibration(full=True), dataset.source, "iSAM2")
-    calibration.inconsistency = _misfits_split(dataset, calibrator)
-    if calibration.inconsistency is None and not _plausible_fit(calibrator, calibration):
+                         f"({calibrator.status})")
+    calibration = calibrator.calibration(full=True)
+    if calibration.converged:
         order = {image.id: i for i, image in enumerate(dataset.images)}
-        in_graph = sorted((image for image in calibrator._ds.images if image.id in order), key=lambda im: order[im.id])
-        calibration.inconsistency = split_in_capture_order(
-            replace(dataset, images=in_graph), calibration.final_error)
-    return calibration
-
-
-def _plausible_fit(calibrator: IncrementalCalibrator, calibration: Calibration) -> bool:
-    """Whether the full calibration's cost 0.5 chi^2 is within its range (``lm.plausible``; dof: two per
-    measurement less the unknowns: pose, mirror vectors, points)."""
-    unknowns = 6 + 3 * len(calibration.mirror_vectors) + 3 * len(calibration.points)
-    return plausible(calibration.final_error, 0.5 * max(2 * len(calibration.residuals) - unknowns, 0))
-
-
-def _misfits_split(dataset: Dataset, calibrator: IncrementalCalibrator) -> Inconsistency | None:
-    """Where the images refused as inconsistent with the estimate fit one ``T_cam_base`` of their own (and
-    those in the graph theirs), the two groups named as the batch names a split (``consistency.py``)."""
-    if len(calibrator.misfits) < 3:
-        return None
-    index = {image.id: i for i, image in enumerate(dataset.images)}
-    in_graph = [image for image in calibrator._ds.images if image.id in index]
-    fits = [fit_group(dataset, in_graph), fit_group(dataset, calibrator.misfits)]
-    if fits[0] is None or fits[1] is None or not (fits[0].plausible and fits[1].plausible):
-        return None
-    groups = [sorted(index[image.id] for image in in_graph), sorted(index[image.id] for image in calibrator.misfits)]
-    return describe_split(dataset, groups, [fits[0], fits[1]])
+        in_graph = sorted((im for im in calibrator._ds.images if im.id in order), key=lambda im: order[im.id])
+        calibration.inconsistency = (misfits_split(dataset, in_graph, calibrator.misfits)
+                                     or diagnose_inconsistency(replace(dataset, images=in_graph), calibration))
+    return require_converged(calibration, dataset.source, "iSAM2", accept_poor_fit=accept_poor_fit)
