@@ -38,10 +38,12 @@ CASES = {
     "200img+60pts": {
         "title": "200 images, 3 fiducials + 60 reconstruction points",
         "simulate": {"num_images": 200, "num_points": 60, "mirror1_placements": 3},
+        "oracle": True,  # the LM stage timed against dense_lm (795 unknowns: a dense J^T J is affordable)
     },
 }
 COMMON = {"pixel_sigma": 1.0, "mirror_distance": 0.5, "tilt_deg": 30.0, "seed": 0, "num_mirrors": 2, "num_fiducials": 3}
-GOALS = {"900img": 0.5, "200img+60pts": 1.0}  # seconds, calibrate() total (900 images: issue 14; issue 6 asked 3 s)
+GOALS = {"900img": 0.5, "200img+60pts": 1.0}
+ORACLE_GOAL = 0.25  # LM stage / dense numpy LM (dense_lm), measured alternately in one process (issue 27)  # seconds, calibrate() total (900 images: issue 14; issue 6 asked 3 s)
 LINEARISE_GOAL = 2.0  # x the native floor per measurement
 SPEEDUP_GOAL = 10.0  # x faster than scipy
 MEMORY_GOAL_MB = 1024.0  # 900-image problem with marginals
@@ -263,6 +265,90 @@ def task_scipy(case: str, repeats: int) -> dict:
     }
 
 
+def _column_groups(sparsity) -> list[np.ndarray]:
+    """Columns in groups that share no row (greedy colouring of the sparsity pattern): one residual
+    evaluation per group gives every column of the group's forward difference."""
+    csc = sparsity.tocsc()
+    used: list[np.ndarray] = []
+    groups: list[list[int]] = []
+    for column in range(csc.shape[1]):
+        rows = csc.indices[csc.indptr[column] : csc.indptr[column + 1]]
+        for color, taken in enumerate(used):
+            if not taken[rows].any():
+                break
+        else:
+            color = len(used)
+            used.append(np.zeros(csc.shape[0], dtype=bool))
+            groups.append([])
+        used[color][rows] = True
+        groups[color].append(column)
+    return [np.array(g) for g in groups]
+
+
+def dense_lm(residuals, sparsity, x0: np.ndarray, max_iterations: int = 100) -> tuple[np.ndarray, int, float]:
+    """The oracle the LM stage is timed against: textbook Levenberg-Marquardt in dense numpy on the same
+    whitened residuals (eq. 23). Jacobian by forward differences in column groups (:func:`_column_groups`),
+    dense ``J^T J``, Marquardt's damping ``lambda diag(J^T J)``, Cholesky solve; stops when a step lowers
+    the cost by less than 1e-10 relative. Returns ``(x, iterations, cost)``."""
+    groups = _column_groups(sparsity)
+    pattern = sparsity.toarray().astype(bool)
+    x, r = x0.copy(), residuals(x0)
+    cost, damping = 0.5 * float(r @ r), 1e-5
+    iterations = 0
+    while iterations < max_iterations:
+        iterations += 1
+        J = np.zeros((len(r), len(x)))
+        for group in groups:
+            h = 1.5e-8 * np.maximum(1.0, np.abs(x[group]))
+            probe = x.copy()
+            probe[group] += h
+            difference = residuals(probe) - r
+            for column, step in zip(group, h):
+                rows = pattern[:, column]
+                J[rows, column] = difference[rows] / step
+        JtJ, gradient = J.T @ J, J.T @ r
+        while True:
+            A = JtJ + damping * np.diag(np.diag(JtJ))
+            try:
+                step = -np.linalg.solve(A, gradient)
+            except np.linalg.LinAlgError:
+                damping *= 10.0
+                continue
+            r_new = residuals(x + step)
+            cost_new = 0.5 * float(r_new @ r_new)
+            if cost_new < cost:
+                break
+            damping *= 10.0
+            if damping > 1e10:
+                return x, iterations, cost
+        decrease = cost - cost_new
+        x, r, cost, damping = x + step, r_new, cost_new, max(damping / 10.0, 1e-12)
+        if decrease < 1e-10 * cost:
+            break
+    return x, iterations, cost
+
+
+def task_oracle(case: str, repeats: int) -> dict:
+    """The LM stage beside :func:`dense_lm` from the same start, alternating in one process (the same
+    contention for both): ``calibrate()``'s ``optimize`` time over the oracle's LM time."""
+    from mirror_fg import calibrate, initial_estimate
+
+    dataset, _ = _dataset(case)
+    initial = initial_estimate(dataset)
+    residuals, sparsity, x0, unpack = _scipy_problem(dataset, initial)
+    ours, oracle = [], []
+    for _ in range(repeats):
+        cal = calibrate(dataset, initial=initial)
+        ours.append(cal.timings["optimize"])
+        start = time.perf_counter()
+        x, iterations, cost = dense_lm(residuals, sparsity, x0)
+        oracle.append(time.perf_counter() - start)
+    ratios = [a / b for a, b in zip(ours, oracle)]
+    return {"optimize": float(np.median(ours)), "oracle": float(np.median(oracle)), "ratio": float(np.median(ratios)),
+            "iterations": int(cal.iterations), "oracle_iterations": iterations, "final_error": cal.final_error,
+            "oracle_final_error": cost, "unknowns": int(len(x0)), "load": os.getloadavg()[0]}
+
+
 def task_profile(case: str, repeats: int) -> dict:
     try:
         from pyinstrument import Profiler
@@ -289,18 +375,24 @@ def task_loop(case: str, repeats: int) -> dict:
     return {}
 
 
-#: Where a native stack sample inside ``calibrate()`` is counted: the first rule whose frame name
-#: occurs in the stack (``*`` rules only inside an LM run, subtree or main).
+#: Where a native stack sample inside ``calibrate()`` is counted: the first rule one of whose frame names
+#: (``|`` between alternatives) occurs in the stack (``*`` rules only inside an LM run, subtree or main;
+#: ``!`` rules only outside one).
 _NATIVE_RULES = [
-    ("marginals (Schur complement, GTSAM Marginals)", "marginal_covariances"),
-    ("graph building (factors, initial values)", "build_graph"),
-    ("initial estimate: PnP and closed form (numpy, OpenCV)", "!solve_analytic"),
+    ("marginals (Schur complement, GTSAM Marginals)", "marginal_covariances|eliminated_covariances ("),
+    ("graph building (factors, initial values)", "build_graph|build_eliminated_graph ("),
+    ("initial estimate: PnP and closed form (numpy, OpenCV)", "!solve_analytic|initial_estimate ("),
     ("{lm}: our Python factors (error and Jacobians)", "*CustomFactor::unwhitenedError"),
     ("{lm}: GTSAM forms the Hessian of each dense factor", "*JacobianFactor::updateHessian"),
     ("{lm}: GTSAM Cholesky elimination (the rest)", "*eliminate"),
     ("{lm}: GTSAM other (Values, damping, error sums)", "*LevenbergMarquardtOptimizer"),
+    ("main LM: Gauss-Newton polish and stall test (factors, elimination)", "_polished (|_stationary ("),
     ("residual statistics and the rest (Python)", ""),
 ]
+
+
+def _matches(rule: str, stack: str) -> bool:
+    return any(name in stack for name in rule.split("|"))
 
 
 def native_breakdown(raw: str) -> list[tuple[str, float]]:
@@ -317,12 +409,12 @@ def native_breakdown(raw: str) -> list[tuple[str, float]]:
         in_lm = "LevenbergMarquardtOptimizer" in stack
         for label, rule in _NATIVE_RULES:
             if rule.startswith("*"):
-                if in_lm and rule[1:] in stack:
+                if in_lm and _matches(rule[1:], stack):
                     break
             elif rule.startswith("!"):
-                if rule[1:] in stack and not in_lm:
+                if _matches(rule[1:], stack) and not in_lm:
                     break
-            elif rule in stack:
+            elif _matches(rule, stack):
                 break
         label = label.format(lm=lm)
         counts[label] = counts.get(label, 0) + samples
@@ -408,6 +500,7 @@ TASKS = {
     "linearize": task_linearize,
     "scipy": task_scipy,
     "profile": task_profile,
+    "oracle": task_oracle,
     "loop": task_loop,
 }
 
@@ -482,9 +575,10 @@ def main(argv: list[str] | None = None) -> int:
         baseline = _run("scipy", case, slow)
         profile = _run("profile", case, 1) if args.profile else None
         native = native_profile(case, max(repeats, 3)) if args.native_profile else None
+        oracle = _run("oracle", case, max(min(repeats, 3), 1)) if CASES[case].get("oracle") else None
         report["cases"][case] = {
             "baseline": base, "fast": fast, "reference": reference, "linearize": linearize, "scipy": baseline,
-            "profile": profile, "native_profile": native,
+            "profile": profile, "native_profile": native, "oracle": oracle,
         }
         fm, rm, sm = fast["median"], reference["median"], baseline["median"]
         print(f"fast path: {fast['mode']}")
@@ -521,6 +615,12 @@ def main(argv: list[str] | None = None) -> int:
         print("4. peak memory (ru_maxrss of each task's process), MB")
         print(f"   interpreter + gtsam + data {base['peak_mb']:7.1f}   fast calibrate {fast['peak_mb']:7.1f}   "
               f"reference {reference['peak_mb']:7.1f}   scipy {baseline['peak_mb']:7.1f}   linearisation runs {linearize['peak_mb']:7.1f}")
+        if oracle:
+            print(f"5. LM stage against a dense numpy LM (dense_lm: grouped forward differences, dense J^T J, "
+                  f"{oracle['unknowns']} unknowns), alternating in one process, load {oracle['load']:.2f}")
+            print(f"   ours {oracle['optimize']:.3f} s ({oracle['iterations']} iterations), dense {oracle['oracle']:.3f} s "
+                  f"({oracle['oracle_iterations']} iterations): {oracle['ratio']:.2f}x; cost {oracle['final_error']:.6f} "
+                  f"vs {oracle['oracle_final_error']:.6f}")
         if profile:
             print("profile of one fast calibrate() (pyinstrument):")
             print("\n".join("   " + line for line in profile["text"].splitlines() if line.strip()))
@@ -533,6 +633,9 @@ def main(argv: list[str] | None = None) -> int:
         goal_rows.append((f"{case}: >= {SPEEDUP_GOAL:.0f}x faster than scipy (total)", f"{speedup:.1f}x", speedup >= SPEEDUP_GOAL))
         stage = scipy_stage / fast_stage
         goal_rows.append((f"{case}: >= {SPEEDUP_GOAL:.0f}x faster than scipy (solve + covariance)", f"{stage:.1f}x", stage >= SPEEDUP_GOAL))
+        if oracle:
+            goal_rows.append((f"{case}: LM stage <= {ORACLE_GOAL:g}x dense numpy LM", f"{oracle['ratio']:.2f}x",
+                              oracle["ratio"] <= ORACLE_GOAL))
         if case == "900img":
             goal_rows.append((f"{case}: peak memory <= {MEMORY_GOAL_MB:.0f} MB", f"{fast['peak_mb']:.0f} MB", fast["peak_mb"] <= MEMORY_GOAL_MB))
     load_end = os.getloadavg()
