@@ -18,11 +18,9 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from mirror_fg import __version__
 from mirror_fg.core.errors import DatasetError, MirrorFgError
-from mirror_fg.factors.batched import ROBUST_K
+from mirror_fg.factors.robust import ROBUST_K
 
 if TYPE_CHECKING:
     from mirror_fg.io.dataset import Dataset
@@ -508,6 +506,8 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``mirror-fg`` console script."""
     args = build_parser().parse_args(argv)
     out = _Printer(args.quiet, args.verbose)
+    import numpy as np  # after parsing: --version and --help need none of the numerics
+
     np.set_printoptions(suppress=True)
     logger, handler = logging.getLogger("mirror_fg"), None
     level = logger.level

@@ -492,6 +492,161 @@ def scaling_table(max_images: int, timeout_s: float) -> list[dict]:
     return rows
 
 
+# --------------------------------------------------------------------------------------------------
+# Start-up and a peer (issue 27): the command's own cost, and a public Python port of Takahashi et al.
+# (CVPR 2012: linear solution + scipy bundle adjustment) on the same 5 real photographs.
+
+REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+#: The peer: https://github.com/AbdirayimovS/takahashi2012cvpr (python/tnm.py), given with --peer or
+#: $MIRROR_FG_PEER as a checkout or a git directory; copied into a temporary directory, never vendored.
+PEER = "AbdirayimovS/takahashi2012cvpr"
+STARTUP_GOALS = {"version": 0.3, "calibrate": 0.5}  # seconds: `mirror-fg --version`; calibrate's start-up
+EXAMPLE = os.path.join(REPO_ROOT, "examples", "base_case.json")
+
+
+def takahashi_dir() -> str | None:
+    """The 5 real photographs' corner data (dataset.json and the peer's text files), if present."""
+    for candidate in (os.path.join(REPO_ROOT, "examples", "takahashi2012"),
+                      os.path.join(os.path.dirname(REPO_ROOT), "shared", "data", "takahashi2012")):
+        if all(os.path.exists(os.path.join(candidate, name)) for name in ("dataset.json", "model.txt", "camera.txt")):
+            return candidate
+    return None
+
+
+def peer_checkout(source: str | None, into: str) -> str | None:
+    """``into`` holding the peer's ``tnm.py`` (from a checkout or a git directory ``source``), or None."""
+    source = source or os.environ.get("MIRROR_FG_PEER")
+    if not source:
+        return None
+    checkout = os.path.join(source, "python", "tnm.py")
+    if os.path.isfile(checkout):
+        with open(checkout, encoding="utf-8") as handle:
+            text = handle.read()
+    else:
+        shown = subprocess.run(["git", "--git-dir", source, "show", "HEAD:python/tnm.py"], capture_output=True, text=True)
+        if shown.returncode != 0:
+            return None
+        text = shown.stdout
+    with open(os.path.join(into, "tnm.py"), "w", encoding="utf-8") as handle:
+        handle.write(text)
+    return into
+
+
+#: The peer as a command: its demo without the plots (load the text files, linear solution, bundle adjustment).
+_PEER_SCRIPT = """import sys
+from ast import literal_eval
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+from tnm import tnm, tnm_ba
+data = sys.argv[2]
+model = np.loadtxt(f"{data}/model.txt")
+q = np.array([np.loadtxt(f"{data}/input{i}.txt") for i in range(1, 6)])
+K = np.loadtxt(f"{data}/camera.txt", converters=lambda v: literal_eval(str(v).replace(",", "")))
+R0, T0, n0, d0, rep0 = tnm(model, q, K)
+R, T, n, d, rep = tnm_ba(model, q, K, R0, T0, n0, d0)
+print(f"Reprojection error (BA) = {rep:.3} px")
+"""
+
+
+def _peer_solve(data: str):
+    """One peer solve in this process (``tnm`` then ``tnm_ba``): its mean reprojection error (px)."""
+    from ast import literal_eval
+
+    from tnm import tnm, tnm_ba
+
+    model = np.loadtxt(os.path.join(data, "model.txt"))
+    q = np.array([np.loadtxt(os.path.join(data, f"input{i}.txt")) for i in range(1, 6)])
+    K = np.loadtxt(os.path.join(data, "camera.txt"), converters=lambda v: literal_eval(str(v).replace(",", "")))
+    start = time.perf_counter()
+    R0, T0, n0, d0, _ = tnm(model, q, K)
+    rep = tnm_ba(model, q, K, R0, T0, n0, d0)[4]
+    return time.perf_counter() - start, float(rep)
+
+
+def task_peer(case: str, repeats: int) -> dict:
+    """``case``: the peer's directory. The same 5 photographs solved by the peer and by ``calibrate()``,
+    alternating in this process (imports done first: solve times only)."""
+    from mirror_fg import calibrate, load_dataset
+
+    sys.path.insert(0, case)
+    data = takahashi_dir()
+    dataset = load_dataset(os.path.join(data, "dataset.json"))
+    _peer_solve(data), calibrate(dataset)  # warm: imports and first-call costs out of the figures
+    peer, ours, stages = [], [], []
+    for _ in range(repeats):
+        seconds, rep = _peer_solve(data)
+        peer.append(seconds)
+        start = time.perf_counter()
+        cal = calibrate(dataset)
+        ours.append(time.perf_counter() - start)
+        stages.append(cal.timings)
+    rms = float(np.sqrt(np.mean(cal.residual_norms ** 2)))
+    mean = float(np.mean(cal.residual_norms))
+    return {"peer": float(np.median(peer)), "ours": float(np.median(ours)), "peer_rep_px": rep, "ours_mean_px": mean,
+            "ours_rms_px": rms, "consensus": float(np.median([t.get("consensus", 0.0) for t in stages])),
+            "load": os.getloadavg()[0]}
+
+
+def _wall(command, repeats: int, **kwargs) -> tuple[float, subprocess.CompletedProcess]:
+    """Median wall time over ``repeats`` runs of ``command`` (a list, or run number -> list: outputs are
+    never written over), and the last run."""
+    times = []
+    for run in range(repeats):
+        start = time.perf_counter()
+        done = subprocess.run(command(run) if callable(command) else command, capture_output=True, text=True, **kwargs)
+        times.append(time.perf_counter() - start)
+    return float(np.median(times)), done
+
+
+def startup_report(peer_source: str | None, repeats: int) -> list[tuple[str, str, bool]]:
+    """``--startup``: ``mirror-fg --version``, the start-up of ``calibrate`` on the embedded example (its wall
+    time less the solve's stage timings it prints with -v), and the peer side by side (in one process and
+    as commands) when a checkout of it is given. Prints the figures; returns goal rows."""
+    import re
+    import tempfile
+
+    env = dict(os.environ, PYTHONPATH=REPO_ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    cli = [sys.executable, "-m", "mirror_fg"]
+    rows = []
+    print(f"start-up (median of {repeats} runs; load average {os.getloadavg()[0]:.2f})")
+    version, _ = _wall(cli + ["--version"], repeats, env=env)
+    print(f"   mirror-fg --version                       {version:6.3f} s")
+    rows.append((f"mirror-fg --version <= {STARTUP_GOALS['version']:g} s", f"{version:.3f} s", version <= STARTUP_GOALS["version"]))
+    with tempfile.TemporaryDirectory() as tmp:
+        wall, done = _wall(lambda run: cli + ["calibrate", "-v", EXAMPLE, "-o", os.path.join(tmp, f"base{run}.json")],
+                           repeats, env=env)
+        stages = re.search(r"stage timings: (.*)", done.stdout + done.stderr)
+        solve = sum(float(x) for x in re.findall(r" ([0-9.]+) s", stages.group(1))) if stages else float("nan")
+        startup = wall - solve
+        print(f"   mirror-fg calibrate examples/base_case.json {wall:6.3f} s, of which the solve {solve:.3f} s: "
+              f"start-up {startup:.3f} s")
+        rows.append((f"calibrate start-up <= {STARTUP_GOALS['calibrate']:g} s", f"{startup:.3f} s",
+                     startup <= STARTUP_GOALS["calibrate"]))
+        data, peer = takahashi_dir(), peer_checkout(peer_source, tmp)
+        if data is None or peer is None:
+            why = "the Takahashi data is not found" if data is None else (
+                f"no checkout of {PEER} (--peer DIR or $MIRROR_FG_PEER: a checkout or its git directory)")
+            print(f"peer comparison skipped: {why}")
+            return rows
+        same = _run("peer", peer, max(repeats, 3))
+        print(f"the same 5 real photographs (Takahashi et al. 2012) beside {PEER} (python/tnm.py; load "
+              f"{same['load']:.2f})")
+        print(f"   in one process: peer {same['peer']:.3f} s (mean reprojection {same['peer_rep_px']:.3f} px), ours "
+              f"{same['ours']:.3f} s (mean {same['ours_mean_px']:.3f} px, rms {same['ours_rms_px']:.3f} px; screening "
+              f"{same['consensus']:.3f} s)")
+        script = os.path.join(tmp, "peer_demo.py")
+        with open(script, "w", encoding="utf-8") as handle:
+            handle.write(_PEER_SCRIPT)
+        peer_wall, _ = _wall([sys.executable, script, peer, data], repeats, env=env)
+        ours_wall, _ = _wall(lambda run: cli + ["calibrate", os.path.join(data, "dataset.json"), "-o",
+                                                os.path.join(tmp, f"takahashi{run}.json")], repeats, env=env)
+        print(f"   as commands:    peer {peer_wall:.3f} s, mirror-fg calibrate {ours_wall:.3f} s")
+        rows.append(("faster than the peer in one process", f"{same['ours']:.3f} vs {same['peer']:.3f} s",
+                     same["ours"] < same["peer"]))
+        rows.append(("faster than the peer as a command", f"{ours_wall:.3f} vs {peer_wall:.3f} s", ours_wall < peer_wall))
+    return rows
+
+
 TASKS = {
     "baseline": task_baseline,
     "scaling": task_scaling,
@@ -501,6 +656,7 @@ TASKS = {
     "scipy": task_scipy,
     "profile": task_profile,
     "oracle": task_oracle,
+    "peer": task_peer,
     "loop": task_loop,
 }
 
@@ -541,6 +697,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="--scaling: stop after the sizes <= N images")
     parser.add_argument("--scaling-timeout", type=float, default=300.0, metavar="S",
                         help="--scaling: give up a size (and the larger ones) after S seconds")
+    parser.add_argument("--startup", action="store_true",
+                        help="only the start-up figures (mirror-fg --version, calibrate) and the peer comparison")
+    parser.add_argument("--peer", metavar="DIR",
+                        help=f"a checkout (or git directory) of {PEER} for --startup's side-by-side figures")
     parser.add_argument("--worker", nargs=3, metavar=("TASK", "CASE", "REPEATS"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
@@ -554,6 +714,12 @@ def main(argv: list[str] | None = None) -> int:
                 json.dump({"scaling": rows}, f, indent=1)
         return 0
     repeats, slow = (1, 1) if args.quick else (args.repeats, args.slow_repeats)
+    if args.startup:
+        rows = startup_report(args.peer, repeats)
+        print("\nGoals")
+        for goal, value, met in rows:
+            print(f"   {'met    ' if met else 'NOT met'}  {goal:55s} {value}")
+        return 0
 
     from importlib.metadata import version
 

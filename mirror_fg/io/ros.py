@@ -19,7 +19,6 @@ import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
-from xml.sax.saxutils import quoteattr
 
 import numpy as np
 import yaml
@@ -149,6 +148,13 @@ def link_frame_name(camera_frame: str) -> str:
         if camera_frame.endswith(suffix):
             return camera_frame[: -len(suffix)] + "_link"
     return camera_frame + "_link"
+
+
+def quoteattr(value: str) -> str:
+    """``xml.sax.saxutils.quoteattr``, imported on first use (it loads urllib and ssl: issue 27's start-up)."""
+    from xml.sax.saxutils import quoteattr as quoted
+
+    return quoted(value)
 
 
 def urdf_joint(

@@ -29,9 +29,7 @@ import logging
 from collections import defaultdict
 from itertools import combinations
 
-import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
 from mirror_fg.core.geometry import apply_transform, predict_camera_points, reflect_transforms
 from mirror_fg.io.dataset import Dataset, Image
@@ -87,6 +85,8 @@ def _whitened_errors(dataset: Dataset, A: np.ndarray, b: np.ndarray, points: np.
 
 def _ransac_inliers(points: np.ndarray, observed: np.ndarray, num_mirrors: int, threshold: float) -> np.ndarray | None:
     """Indices of the fiducials that agree with cv2's RANSAC PnP (normalized coordinates), or None."""
+    import cv2  # imported where used: OpenCV is slow to load (issue 27)
+
     image_points = np.array(observed, dtype=np.float64)
     if num_mirrors % 2 == 1:
         image_points[:, 1] *= -1.0  # eq. (11): PnP sees a rotation
@@ -441,6 +441,8 @@ def misfit_sigmas(
         return ((camera_points[:, :2] / depth[:, None] - observed) / dataset.normalized_sigma).ravel()  # eq. (9)
 
     if mirror_vector is None:
+        from scipy.optimize import least_squares  # imported where used: SciPy is slow to load (issue 27)
+
         v0 = reflection_fit(pose[0][None], pose[1][None], A_parent, b_parent)[1][0]
         mirror_vector = least_squares(errors, v0, x_scale=np.full(3, 1e-3 + 1e-2 * np.linalg.norm(v0)), method="lm").x
     return float(np.sqrt(2.0 * np.mean(errors(np.asarray(mirror_vector)) ** 2)))
