@@ -14,6 +14,7 @@ back to the same double) so a pasted transform is the computed one to the last b
 """
 from __future__ import annotations
 
+import html
 import os
 import re
 from collections.abc import Mapping
@@ -151,10 +152,9 @@ def link_frame_name(camera_frame: str) -> str:
 
 
 def quoteattr(value: str) -> str:
-    """``xml.sax.saxutils.quoteattr``, imported on first use (it loads urllib and ssl: issue 27's start-up)."""
-    from xml.sax.saxutils import quoteattr as quoted
-
-    return quoted(value)
+    """``value`` as a double-quoted XML attribute (``&``, ``<``, ``>``, quotes escaped). ``html.escape``:
+    ``xml.sax.saxutils.quoteattr`` would load urllib and ssl into every ``calibrate`` (issue 27's start-up)."""
+    return '"' + html.escape(value, quote=True) + '"'
 
 
 def urdf_joint(
