@@ -18,7 +18,6 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from mirror_fg import __version__
 from mirror_fg.core.errors import DatasetError, MirrorFgError
 from mirror_fg.factors.robust import ROBUST_K
 
@@ -129,6 +128,16 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
     group.add_argument("-v", "--verbose", action="store_true", help="print more detail (and tracebacks of internal errors)")
 
 
+class _VersionAction(argparse.Action):
+    """``--version``: the installed version, read (importlib.metadata) only when asked for."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:  # noqa: ANN001
+        from mirror_fg import __version__
+
+        print(f"mirror-fg {__version__}")
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="mirror-fg",
@@ -137,7 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--version", action="version", version=f"mirror-fg {__version__}")
+    parser.add_argument("--version", action=_VersionAction, nargs=0, help="show the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
 
     sim = sub.add_parser("simulate", help="write a synthetic dataset and its ground truth",
