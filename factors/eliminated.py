@@ -158,8 +158,7 @@ class EliminatedEvaluator:
             # the landmark measurements grouped by landmark: contiguous runs of landmark_order
             landmark_order = np.argsort(local_landmark, kind="stable")
             sorted_columns = local_landmark[landmark_order]
-            landmark_starts = np.flatnonzero(np.r_[True, sorted_columns[1:] != sorted_columns[:-1]]) if len(
-                sorted_columns) else np.zeros(0, dtype=np.intp)
+            landmark_starts = np.flatnonzero(np.diff(sorted_columns, prepend=-1))
             self._factors.append({
                 "lo": lo, "hi": hi, "keys": [self.pose_key] + [self.point_keys[r] for r in rows], "width": width,
                 "columns": global_columns, "landmarks": np.flatnonzero(marks >= 0), "landmark_columns": local_landmark,

@@ -88,7 +88,7 @@ def task_calibrate(case: str, repeats: int, fast: bool) -> dict:
 
     dataset, _ = _dataset(case)
     runs = []
-    mode = "calibrate(fast=True): stacked factors" if fast else "calibrate(fast=False): one ReflectionFactor per measurement"
+    mode = "calibrate(fast=True): the last mirror eliminated (factors/eliminated.py)" if fast else "calibrate(fast=False): one ReflectionFactor per measurement"
     for _ in range(repeats):
         start_wall, start_cpu = time.perf_counter(), time.process_time()
         cal = calibrate(dataset, fast=fast)
