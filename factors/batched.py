@@ -56,14 +56,13 @@ from mirror_fg.factors.stacking import (
     group_measurements,
     sigma_rows,
 )
+from mirror_fg.factors.robust import ROBUST_K
 
 __all__ = [
     "BatchEvaluator", "batched_factors", "batched_evaluator", "robust_weight_and_loss", "ROBUST_K",
 ]
 
 
-#: Default robust threshold in sigmas (as ``reflection.noise_model``).
-ROBUST_K = 1.345
 #: Measured costs (us) to choose how a factor checks that the cache holds its variables: reading and
 #: comparing each of its keys, or comparing the whole ``Values`` with the cached copy (C++).
 _KEY_CHECK_US = 0.5

@@ -13,7 +13,7 @@ Why (issue 14): inside GTSAM's optimizers every Python factor call receives a co
   projection), so the factors' cost is ``min_v`` of the cost of eq. (23): the same minimiser;
 * linearised, each placement is eliminated from its measurements' whitened system ``[J_x J_v | e]``
   (``J_x <- (I - J_v D^-1 J_v^T) J_x`` with ``D = J_v^T J_v``: the Schur complement) and a factor's
-  rows are compressed to ``d + 1`` rows ``[R | r; 0 | rho]`` (:func:`_compressed_normal`): the same ``J^T J``,
+  rows are compressed to ``d + 1`` rows ``[R | r; 0 | rho]`` (:func:`compressed_normal`): the same ``J^T J``,
   ``J^T e`` and ``||e||^2`` as its measurements' system, hence the same LM steps as the joint graph with the
   placements eliminated first.
 
@@ -32,6 +32,9 @@ import gtsam
 import numpy as np
 
 from mirror_fg.factors.model import last_mirror_moments, measurement_arrays, mirror_input, reflection_model
+from mirror_fg.factors.schur import (
+    compressed_normal, gauss_newton_steps, inverses, one_blas_thread, row_products, segment_sums,
+)
 from mirror_fg.factors.stacking import Fiducials, KeyLayout, Observation, sigma_rows
 
 __all__ = [
@@ -66,62 +69,6 @@ def collapsed(mirror_vectors: Sequence[np.ndarray]) -> bool:
 
 class NotEliminable(ValueError):
     """The measurements do not have the structure the elimination needs (use ``batched.py``)."""
-
-
-def _segment_sums(values: np.ndarray, starts: np.ndarray) -> np.ndarray:
-    """Sums of ``values`` over contiguous segments beginning at ``starts`` (first axis)."""
-    return np.add.reduceat(values, starts, axis=0)
-
-
-def _compressed_normal(information: np.ndarray, gradient: np.ndarray, cost: float) -> np.ndarray:
-    """``[R | r; 0 | rho]`` ((d+1) x (d+1)) with ``R^T R = J^T J``, ``R^T r = J^T e`` and
-    ``|r|^2 + rho^2 = |e|^2``, from those three: a system of d + 1 rows with the same normal equations
-    and cost as ``(J, e)`` (``R = sqrt(L) V^T`` from ``J^T J = V L V^T``, which also holds where ``J``
-    is rank-deficient)."""
-    d = len(gradient)
-    eigenvalues, V = np.linalg.eigh(information)
-    eigenvalues = np.clip(eigenvalues, 0.0, None)
-    root = np.sqrt(eigenvalues)
-    projected = V.T @ gradient
-    r = np.divide(projected, root, out=np.zeros(d), where=root > 1e-12 * max(root.max(initial=0.0), 1e-300))
-    out = np.zeros((d + 1, d + 1))
-    out[:d, :d] = root[:, None] * V.T
-    out[:d, d] = r
-    out[d, d] = np.sqrt(max(cost - float(r @ r), 0.0))
-    return out
-
-
-def _gauss_newton_steps(moments: np.ndarray) -> np.ndarray:
-    """Gauss-Newton steps ``-D^-1 g`` (3, S) from the moments of :func:`last_mirror_moments` (rows 0-5
-    the symmetric ``D``, 6-8 ``g``), with ``D^-1`` of :func:`_inverses`."""
-    return -np.einsum("sij,js->is", _inverses(moments[:6]), moments[6:9])
-
-
-def _inverses(d: np.ndarray) -> np.ndarray:
-    """Inverses (S, 3, 3) of the symmetric 3x3 matrices stored as rows (00, 01, 02, 11, 12, 22) of ``d``
-    (6, S), by their adjugates; when some is singular or not positive, ``np.linalg.inv`` (``pinv`` when
-    that fails) of them all."""
-    cofactors = np.take(d, _COFACTOR_A, axis=0)
-    cofactors *= np.take(d, _COFACTOR_B, axis=0)
-    cofactors -= np.take(d, _COFACTOR_C, axis=0) * np.take(d, _COFACTOR_D, axis=0)
-    det = np.einsum("is,is->s", d[:3], cofactors[:3])
-    if np.all(det > 0.0) and np.all(np.isfinite(det)):
-        cofactors /= det
-        return np.ascontiguousarray(np.take(cofactors, _SYMMETRIC, axis=0).T).reshape(-1, 3, 3)
-    D = np.ascontiguousarray(np.take(d, _SYMMETRIC, axis=0).T).reshape(-1, 3, 3)
-    try:
-        return np.linalg.inv(D)
-    except np.linalg.LinAlgError:  # a placement its measurements do not constrain (degenerate values)
-        return np.linalg.pinv(D)
-
-
-#: Cofactors of a symmetric 3x3 stored as (00, 01, 02, 11, 12, 22): ``C_k = d[A] d[B] - d[C] d[D]``,
-#: in the same order; ``_SYMMETRIC`` spreads the 6 back to the 9 entries (row-major).
-_COFACTOR_A = np.array([3, 2, 1, 0, 1, 0], dtype=np.intp)
-_COFACTOR_B = np.array([5, 4, 4, 5, 2, 3], dtype=np.intp)
-_COFACTOR_C = np.array([4, 1, 2, 2, 0, 1], dtype=np.intp)
-_COFACTOR_D = np.array([4, 5, 3, 2, 4, 1], dtype=np.intp)
-_SYMMETRIC = np.array([0, 1, 2, 1, 3, 4, 2, 4, 5], dtype=np.intp)
 
 
 class EliminatedEvaluator:
@@ -208,10 +155,15 @@ class EliminatedEvaluator:
                                    if rows else np.zeros(0, dtype=np.intp)].astype(np.intp)
             local_landmark = np.array([local_of_row[int(r)] for r in marks[marks >= 0]], dtype=np.intp)
             segments = np.flatnonzero((starts >= lo) & (starts < hi))
+            # the landmark measurements grouped by landmark: contiguous runs of landmark_order
+            landmark_order = np.argsort(local_landmark, kind="stable")
+            sorted_columns = local_landmark[landmark_order]
+            landmark_starts = np.flatnonzero(np.diff(sorted_columns, prepend=-1))
             self._factors.append({
                 "lo": lo, "hi": hi, "keys": [self.pose_key] + [self.point_keys[r] for r in rows], "width": width,
                 "columns": global_columns, "landmarks": np.flatnonzero(marks >= 0), "landmark_columns": local_landmark,
-                "segments": segments, "local_of_row": local_of_row,
+                "segments": segments, "local_of_row": local_of_row, "landmark_order": landmark_order,
+                "landmark_starts": landmark_starts, "landmark_unique": sorted_columns[landmark_starts],
             })
 
         # State: the full point array (eliminated rows = the placements' current optimum).
@@ -270,7 +222,7 @@ class EliminatedEvaluator:
 
         e, moments = evaluate()
         for _ in range(INNER_MAX_ITERATIONS):
-            step = _gauss_newton_steps(moments)  # (3, S)
+            step = gauss_newton_steps(moments)  # (3, S)
             step[~np.isfinite(step)] = 0.0
             active = np.max(np.abs(step), axis=0) > INNER_STEP_TOLERANCE
             if not active.any():
@@ -314,6 +266,12 @@ class EliminatedEvaluator:
 
     def _evaluate(self, values: gtsam.Values, jacobians: bool) -> None:
         self._R, self._t, key = self._read(values)
+        if key == self._state_key and not (jacobians and self._systems is None):
+            return
+        with one_blas_thread():
+            self._evaluate_at(key, jacobians)
+
+    def _evaluate_at(self, key: bytes, jacobians: bool) -> None:
         if key != self._state_key:
             self.evaluations += 1
             self._solve_placements()
@@ -329,51 +287,83 @@ class EliminatedEvaluator:
 
     def _linear_systems(self) -> list[tuple[np.ndarray, list[np.ndarray]]]:
         """Each factor's compressed, eliminated system ``(error (d+1,), Jacobian blocks)``; also the
-        pieces the covariances need (``self._blocks``)."""
+        pieces the covariances need (``self._blocks``).
+
+        The normal equations of the eliminated system ``[J_x | e]`` projected by ``I - J_v D^-1 J_v^T``
+        are ``N - C^T D^-1 C`` with ``N = [J_x | e]^T [J_x | e]`` and ``C = J_v^T [J_x | e]`` per placement
+        (the projection is symmetric and idempotent): both sums run over each measurement's nonzero
+        columns only (the pose, the parent placements, its landmark and the error: :meth:`_sparse_normal`),
+        never over the factor's dense width, which grows with the landmarks."""
         residual, _, (cross, GR, mirror) = self._model(self._P, True)
         w = self._whiten.T[:, :, None]  # (M, 2, 1)
         e = self._e  # (M, 2) whitened, at the placements' optimum
-        H_pose = np.concatenate([cross.transpose(2, 0, 1), GR.transpose(2, 0, 1)], axis=2) * w  # (M, 2, 6)
-        Jv = mirror[self.num_mirrors - 1].transpose(2, 0, 1) * w
-        parents = [mirror[level].transpose(2, 0, 1) * w for level in range(self.num_mirrors - 1)]
-        landmark = GR.transpose(2, 0, 1) * w
-        starts = self._placement_starts
+        num_parents = 3 * (self.num_mirrors - 1)
+        # per measurement its nonzero columns [pose | parents | landmark | e], whitened (M, 2, 6 + parents + 4)
+        A = np.zeros((len(e), 2, 10 + num_parents))
+        A[:, :, :3] = cross.transpose(2, 0, 1)
+        A[:, :, 3:6] = GR.transpose(2, 0, 1)
+        for level in range(self.num_mirrors - 1):
+            A[:, :, 6 + 3 * level : 9 + 3 * level] = mirror[level].transpose(2, 0, 1)
+        if len(self._landmark_index):
+            A[self._landmark_index, :, 6 + num_parents : 9 + num_parents] = A[self._landmark_index, :, 3:6]
+        A *= w
+        A[:, :, -1] = e
+        Jv = mirror[self.num_mirrors - 1].transpose(2, 0, 1) * w  # (M, 2, 3)
         moments = self._moments  # D = J_v^T J_v and J_v^T e per placement, at the placements' optimum
         if not (np.all(np.isfinite(moments)) and np.all(np.isfinite(e))):
             raise RuntimeError("a mirror placement of the last mirror has no finite optimum at these values")
-        D_inv = _inverses(moments[:6])
+        D_inv = inverses(moments[:6])
+        moments_v = row_products(Jv, A)  # (M, 3, k): J_v^T [J_x | e] per measurement, compact
         systems, couplings, informations = [], [], []
-        Jv_T = Jv.transpose(0, 2, 1)  # (M, 3, 2)
         for f in self._factors:
-            lo, hi, width = f["lo"], f["hi"], f["width"]
-            J = np.empty((hi - lo, 2, width + 1))  # [J_x | e]: the error is eliminated with the Jacobian
-            J[:, :, :6] = H_pose[lo:hi]
-            J[:, :, 6:width] = 0.0
-            for level, block in enumerate(parents):
-                J[:, :, 6 + 3 * level : 9 + 3 * level] = block[lo:hi]
-            if len(f["landmarks"]):
-                measured = f["landmarks"]
-                for c in range(3):
-                    J[measured, :, f["landmark_columns"] + c] = landmark[lo + measured, :, c]
-            J[:, :, width] = e[lo:hi]
-            segments = f["segments"]
-            local_starts = starts[segments] - lo
-            C = _segment_sums(Jv_T[lo:hi] @ J, local_starts)  # [J_v^T J_x | J_v^T e] per placement
-            K = D_inv[segments] @ C  # (S, 3, d + 1)
-            seg = self._segment_of_measurement[lo:hi] - segments[0]
-            J -= Jv[lo:hi] @ K[seg]  # (I - J_v D^-1 J_v^T) [J_x | e]
-            J_flat = J.reshape(-1, width + 1)
-            normal = J_flat.T @ J_flat
+            width, segments = f["width"], f["segments"]
+            normal, C = self._sparse_normal(f, A, moments_v)
+            K = D_inv[segments] @ C  # D^-1 B^T, (S, 3, d + 1)
+            normal -= C.reshape(-1, width + 1).T @ K.reshape(-1, width + 1)  # the Schur complement
+            normal = 0.5 * (normal + normal.T)
             information = np.ascontiguousarray(normal[:width, :width])
-            R_aug = _compressed_normal(information, normal[:width, width], float(normal[width, width]))
-            C = np.ascontiguousarray(C[:, :, :width])
+            R_aug = compressed_normal(information, normal[:width, width], float(normal[width, width]))
             informations.append(information)
             blocks = [np.asfortranarray(R_aug[:, :6])]
             blocks += [np.asfortranarray(R_aug[:, c : c + 3]) for c in range(6, width, 3)]
             systems.append((np.ascontiguousarray(R_aug[:, width]), blocks))
-            couplings.append(C)
+            couplings.append(np.ascontiguousarray(C[:, :, :width]))
         self._blocks = {"D_inv": D_inv, "C": couplings, "information": informations}
         return systems
+
+    def _sparse_normal(self, f: dict, A: np.ndarray, moments_v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Factor ``f``'s ``N = [J_x | e]^T [J_x | e]`` ((d+1) x (d+1)) and ``C = J_v^T [J_x | e]`` per
+        placement ((S, 3, d+1)) from the measurements' compact rows ``A`` (M, 2, k) (columns: pose, parents,
+        landmark (zero for a fiducial), e) and their ``J_v^T A`` (M, 3, k)."""
+        lo, hi, width = f["lo"], f["hi"], f["width"]
+        k = A.shape[2]
+        fixed = np.r_[0 : k - 4, k - 1]  # compact columns every measurement has: pose, parents, e
+        fixed_columns = np.r_[0 : k - 4, width]  # ... and the factor's columns of them
+        rows = A[lo:hi][:, :, fixed]
+        normal = np.zeros((width + 1, width + 1))
+        flat = rows.reshape(-1, len(fixed))
+        normal[np.ix_(fixed_columns, fixed_columns)] = flat.T @ flat
+        segments = f["segments"]
+        local_starts = self._placement_starts[segments] - lo
+        C = np.zeros((len(segments), 3, width + 1))
+        C[:, :, fixed_columns] = segment_sums(moments_v[lo:hi][:, :, fixed], local_starts)
+        marks = f["landmarks"]
+        if len(marks):
+            order, runs = f["landmark_order"], f["landmark_starts"]
+            seen = A[lo + marks[order], :, k - 4 : k - 1]  # (n, 2, 3) landmark columns, grouped by landmark
+            cross = segment_sums(row_products(rows[marks[order]], seen), runs)  # (u, kF, 3)
+            own = segment_sums(row_products(seen, seen), runs)  # (u, 3, 3)
+            columns = f["landmark_unique"][:, None] + np.arange(3)  # (u, 3)
+            normal[fixed_columns[:, None, None], columns[None]] = cross.transpose(1, 0, 2)
+            normal[columns[:, :, None], fixed_columns[None, None, :]] = cross.transpose(0, 2, 1)
+            normal[columns[:, :, None], columns[:, None, :]] = own
+            # C's landmark columns: each measurement's 3 x 3 added at (its placement, its landmark)
+            segment = self._segment_of_measurement[lo + marks] - segments[0]
+            at = (segment[:, None, None] * 3 + np.arange(3)[None, :, None]) * (width + 1) + (
+                f["landmark_columns"][:, None, None] + np.arange(3)[None, None, :])
+            C += np.bincount(at.ravel(), moments_v[lo + marks, :, k - 4 : k - 1].ravel(),
+                             minlength=C.size).reshape(C.shape)
+        return normal, C
 
     def _linearized_blocks(self) -> dict:
         """The pieces the covariances need (``self._blocks``), once an evaluation with Jacobians made them."""
@@ -424,6 +414,10 @@ class EliminatedEvaluator:
         """``(covariance of the kept unknowns (GTSAM tangents, kept_keys order), {eliminated config: 3x3})``
         at ``values``, or None when the information is singular (the caller names the unknowns)."""
         H = self.information(values)
+        with one_blas_thread():
+            return self._covariances(H)
+
+    def _covariances(self, H: np.ndarray) -> tuple[np.ndarray, dict[tuple[int, int], np.ndarray]] | None:
         try:
             if np.min(np.linalg.eigvalsh(H)) <= 1e-12 * np.max(np.diag(H)):
                 return None

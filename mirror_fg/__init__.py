@@ -6,48 +6,95 @@ covariances are ``[dtheta (rad), dt (m)]`` with ``R_true = Exp(dtheta) @ R_est``
 Layout: ``core`` (errors, transforms, camera, geometry; numpy only), ``io`` (file formats, one owner
 each), ``solver`` (analytical solution, factor graph, LM, marginals, iSAM2), ``vision`` (detection,
 tracking), ``tools`` (simulation, Cramer-Rao bounds and planning, reports, Monte Carlo).
-"""
-import logging as _logging
-from importlib.metadata import PackageNotFoundError, version as _version
 
-try:
-    __version__ = _version("mirror-fg")
-except PackageNotFoundError:  # a source tree that is not installed
-    __version__ = "0+unknown"
+The public names below are imported on first use (PEP 562), so ``import mirror_fg`` (and
+``mirror-fg --version``) does not load GTSAM, OpenCV, SciPy or the plotting and Dask stacks until a
+name that needs them is touched.
+"""
+from __future__ import annotations
+
+import importlib as _importlib
+import logging as _logging
+import os as _os
+from typing import TYPE_CHECKING as _TYPE_CHECKING, Any as _Any
 
 # Library messages go to the "mirror_fg" logger; applications attach their own handlers.
 _logging.getLogger("mirror_fg").addHandler(_logging.NullHandler())
 
-from mirror_fg.core.errors import DatasetError, MirrorFgError, SolveError
-from mirror_fg.core.transform import Transform
-from mirror_fg.core.camera import Camera
-from mirror_fg.io.dataset import Dataset, Image, dataset_from_dict, load_dataset, save_dataset
-from mirror_fg.io.result import load_result, write_result
-from mirror_fg.solver.analytic import AnalyticSolution, solve_analytic
-from mirror_fg.solver.calibration import Calibration
-from mirror_fg.solver.calibrate import calibrate
-from mirror_fg.solver.initial import initial_estimate
-from mirror_fg.solver.incremental import IncrementalCalibrator, calibrate_incremental
+#: Each public name and the module it lives in (imported on first access).
+_PUBLIC = {
+    "AnalyticSolution": "mirror_fg.solver.analytic",
+    "Calibration": "mirror_fg.solver.calibration",
+    "Camera": "mirror_fg.core.camera",
+    "Dataset": "mirror_fg.io.dataset",
+    "DatasetError": "mirror_fg.core.errors",
+    "Image": "mirror_fg.io.dataset",
+    "IncrementalCalibrator": "mirror_fg.solver.incremental",
+    "MirrorFgError": "mirror_fg.core.errors",
+    "SolveError": "mirror_fg.core.errors",
+    "Transform": "mirror_fg.core.transform",
+    "calibrate": "mirror_fg.solver.calibrate",
+    "calibrate_incremental": "mirror_fg.solver.incremental",
+    "dataset_from_dict": "mirror_fg.io.dataset",
+    "initial_estimate": "mirror_fg.solver.initial",
+    "load_dataset": "mirror_fg.io.dataset",
+    "load_result": "mirror_fg.io.result",
+    "save_dataset": "mirror_fg.io.dataset",
+    "solve_analytic": "mirror_fg.solver.analytic",
+    "write_result": "mirror_fg.io.result",
+}
 
-__all__ = [
-    "__version__",
-    "AnalyticSolution",
-    "Calibration",
-    "Camera",
-    "Dataset",
-    "DatasetError",
-    "Image",
-    "IncrementalCalibrator",
-    "MirrorFgError",
-    "SolveError",
-    "Transform",
-    "calibrate",
-    "calibrate_incremental",
-    "dataset_from_dict",
-    "initial_estimate",
-    "load_dataset",
-    "load_result",
-    "save_dataset",
-    "solve_analytic",
-    "write_result",
-]
+__all__ = sorted(["__version__", "load_capture", *_PUBLIC])
+
+
+def load_capture(path: str | _os.PathLike[str], progress: bool = False) -> Dataset:
+    """Read a ``mirror-fg/capture@1`` file (YAML or JSON) and detect its target in every image or video
+    frame: the :class:`Dataset` that ``mirror-fg detect`` would write (``progress``: a bar on stderr).
+
+    Raises DatasetError (one line) on an invalid capture or when no image is kept. The per-image
+    detection reports and tracks are in ``mirror_fg.vision.detect.detect_capture``.
+    """
+    from mirror_fg.io.capture import load_capture as read_capture
+    from mirror_fg.vision.detect import detect_capture
+
+    dataset, _reports = detect_capture(read_capture(path), progress=progress)
+    return dataset
+
+
+def _package_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("mirror-fg")
+    except PackageNotFoundError:  # a source tree that is not installed
+        return "0+unknown"
+
+
+def __getattr__(name: str) -> _Any:
+    if name == "__version__":
+        value: _Any = _package_version()
+    elif name in _PUBLIC:
+        value = getattr(_importlib.import_module(_PUBLIC[name]), name)
+    else:
+        raise AttributeError(f"module 'mirror_fg' has no attribute {name!r}")
+    globals()[name] = value  # later lookups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return list(__all__)
+
+
+if _TYPE_CHECKING:  # the names as static analysers and IDEs see them
+    from mirror_fg.core.camera import Camera  # noqa: F401 - re-exported
+    from mirror_fg.core.errors import DatasetError, MirrorFgError, SolveError  # noqa: F401 - re-exported
+    from mirror_fg.core.transform import Transform  # noqa: F401 - re-exported
+    from mirror_fg.io.dataset import Dataset, Image, dataset_from_dict, load_dataset, save_dataset  # noqa: F401 - re-exported
+    from mirror_fg.io.result import load_result, write_result  # noqa: F401 - re-exported
+    from mirror_fg.solver.analytic import AnalyticSolution, solve_analytic  # noqa: F401 - re-exported
+    from mirror_fg.solver.calibrate import calibrate  # noqa: F401 - re-exported
+    from mirror_fg.solver.calibration import Calibration  # noqa: F401 - re-exported
+    from mirror_fg.solver.incremental import IncrementalCalibrator, calibrate_incremental  # noqa: F401 - re-exported
+    from mirror_fg.solver.initial import initial_estimate  # noqa: F401 - re-exported
+
+    __version__: str

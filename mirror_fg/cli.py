@@ -18,11 +18,8 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from mirror_fg import __version__
 from mirror_fg.core.errors import DatasetError, MirrorFgError
-from mirror_fg.factors.batched import ROBUST_K
+from mirror_fg.factors.robust import ROBUST_K
 
 if TYPE_CHECKING:
     from mirror_fg.io.dataset import Dataset
@@ -143,6 +140,16 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
     group.add_argument("-v", "--verbose", action="store_true", help="print more detail (and tracebacks of internal errors)")
 
 
+class _VersionAction(argparse.Action):
+    """``--version``: the installed version, read (importlib.metadata) only when asked for."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:  # noqa: ANN001
+        from mirror_fg import __version__
+
+        print(f"mirror-fg {__version__}")
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="mirror-fg",
@@ -151,7 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--version", action="version", version=f"mirror-fg {__version__}")
+    parser.add_argument("--version", action=_VersionAction, nargs=0, help="show the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=_Parser)
 
     sim = sub.add_parser("simulate", help="write a synthetic dataset and its ground truth",
@@ -786,6 +793,8 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``mirror-fg`` console script."""
     args = build_parser().parse_args(argv)
     out = _Printer(args.quiet, args.verbose)
+    import numpy as np  # after parsing: --version and --help need none of the numerics
+
     np.set_printoptions(suppress=True)
     logger, handler = logging.getLogger("mirror_fg"), None
     level = logger.level

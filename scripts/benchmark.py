@@ -3,6 +3,7 @@
 
     python scripts/benchmark.py [--repeats 5] [--slow-repeats 3] [--quick] [--profile] [--json out.json]
     python scripts/benchmark.py --scaling [--scaling-max 10000]   # time per stage and memory, 1k..100k images
+    python scripts/benchmark.py --startup [--peer DIR]   # --version, calibrate's start-up, beside Takahashi 2012
 
 Problems (simulator, Sect. 7): two mirrors, 3 fiducials, 1 px; (a) 900 images, mirror 1 in three
 placements of 300, mirror 2 moving every image; (b) 200 images with 60 reconstruction points.
@@ -13,7 +14,11 @@ Printed, medians of repeated runs:
    and one Levenberg-Marquardt iteration of each inside GTSAM;
 3. the same problems with ``scipy.optimize.least_squares`` (sparse Jacobian structure given, finite
    differences) from the same analytical start, plus a covariance by inverting ``J^T J``;
-4. peak resident memory (``ru_maxrss``) of each, every case in its own subprocess.
+4. peak resident memory (``ru_maxrss``) of each, every case in its own subprocess;
+5. (200 images + 60 points) the LM stage against a dense numpy LM (:func:`dense_lm`) from the same start,
+   alternating in one process: goal <= 0.25x.
+``--startup`` times ``mirror-fg --version`` and the start-up of ``calibrate`` on the embedded example, and,
+given a checkout of AbdirayimovS/takahashi2012cvpr (``--peer``), both solvers on the same 5 photographs.
 ``--profile`` adds a pyinstrument profile of one fast calibration per problem, and ``--native-profile``
 a py-spy profile with native frames that splits the time inside GTSAM (pip install '.[bench]').
 The machine is shared: wall and CPU time and the load average are printed to show contention.
@@ -38,10 +43,12 @@ CASES = {
     "200img+60pts": {
         "title": "200 images, 3 fiducials + 60 reconstruction points",
         "simulate": {"num_images": 200, "num_points": 60, "mirror1_placements": 3},
+        "oracle": True,  # the LM stage timed against dense_lm (795 unknowns: a dense J^T J is affordable)
     },
 }
 COMMON = {"pixel_sigma": 1.0, "mirror_distance": 0.5, "tilt_deg": 30.0, "seed": 0, "num_mirrors": 2, "num_fiducials": 3}
-GOALS = {"900img": 0.5, "200img+60pts": 1.0}  # seconds, calibrate() total (900 images: issue 14; issue 6 asked 3 s)
+GOALS = {"900img": 0.5, "200img+60pts": 1.0}
+ORACLE_GOAL = 0.25  # LM stage / dense numpy LM (dense_lm), measured alternately in one process (issue 27)  # seconds, calibrate() total (900 images: issue 14; issue 6 asked 3 s)
 LINEARISE_GOAL = 2.0  # x the native floor per measurement
 SPEEDUP_GOAL = 10.0  # x faster than scipy
 MEMORY_GOAL_MB = 1024.0  # 900-image problem with marginals
@@ -81,7 +88,7 @@ def task_calibrate(case: str, repeats: int, fast: bool) -> dict:
 
     dataset, _ = _dataset(case)
     runs = []
-    mode = "calibrate(fast=True): stacked factors" if fast else "calibrate(fast=False): one ReflectionFactor per measurement"
+    mode = "calibrate(fast=True): the last mirror eliminated (factors/eliminated.py)" if fast else "calibrate(fast=False): one ReflectionFactor per measurement"
     for _ in range(repeats):
         start_wall, start_cpu = time.perf_counter(), time.process_time()
         cal = calibrate(dataset, fast=fast)
@@ -263,6 +270,90 @@ def task_scipy(case: str, repeats: int) -> dict:
     }
 
 
+def _column_groups(sparsity) -> list[np.ndarray]:
+    """Columns in groups that share no row (greedy colouring of the sparsity pattern): one residual
+    evaluation per group gives every column of the group's forward difference."""
+    csc = sparsity.tocsc()
+    used: list[np.ndarray] = []
+    groups: list[list[int]] = []
+    for column in range(csc.shape[1]):
+        rows = csc.indices[csc.indptr[column] : csc.indptr[column + 1]]
+        for color, taken in enumerate(used):
+            if not taken[rows].any():
+                break
+        else:
+            color = len(used)
+            used.append(np.zeros(csc.shape[0], dtype=bool))
+            groups.append([])
+        used[color][rows] = True
+        groups[color].append(column)
+    return [np.array(g) for g in groups]
+
+
+def dense_lm(residuals, sparsity, x0: np.ndarray, max_iterations: int = 100) -> tuple[np.ndarray, int, float]:
+    """The oracle the LM stage is timed against: textbook Levenberg-Marquardt in dense numpy on the same
+    whitened residuals (eq. 23). Jacobian by forward differences in column groups (:func:`_column_groups`),
+    dense ``J^T J``, Marquardt's damping ``lambda diag(J^T J)``, Cholesky solve; stops when a step lowers
+    the cost by less than 1e-10 relative. Returns ``(x, iterations, cost)``."""
+    groups = _column_groups(sparsity)
+    pattern = sparsity.toarray().astype(bool)
+    x, r = x0.copy(), residuals(x0)
+    cost, damping = 0.5 * float(r @ r), 1e-5
+    iterations = 0
+    while iterations < max_iterations:
+        iterations += 1
+        J = np.zeros((len(r), len(x)))
+        for group in groups:
+            h = 1.5e-8 * np.maximum(1.0, np.abs(x[group]))
+            probe = x.copy()
+            probe[group] += h
+            difference = residuals(probe) - r
+            for column, step in zip(group, h):
+                rows = pattern[:, column]
+                J[rows, column] = difference[rows] / step
+        JtJ, gradient = J.T @ J, J.T @ r
+        while True:
+            A = JtJ + damping * np.diag(np.diag(JtJ))
+            try:
+                step = -np.linalg.solve(A, gradient)
+            except np.linalg.LinAlgError:
+                damping *= 10.0
+                continue
+            r_new = residuals(x + step)
+            cost_new = 0.5 * float(r_new @ r_new)
+            if cost_new < cost:
+                break
+            damping *= 10.0
+            if damping > 1e10:
+                return x, iterations, cost
+        decrease = cost - cost_new
+        x, r, cost, damping = x + step, r_new, cost_new, max(damping / 10.0, 1e-12)
+        if decrease < 1e-10 * cost:
+            break
+    return x, iterations, cost
+
+
+def task_oracle(case: str, repeats: int) -> dict:
+    """The LM stage beside :func:`dense_lm` from the same start, alternating in one process (the same
+    contention for both): ``calibrate()``'s ``optimize`` time over the oracle's LM time."""
+    from mirror_fg import calibrate, initial_estimate
+
+    dataset, _ = _dataset(case)
+    initial = initial_estimate(dataset)
+    residuals, sparsity, x0, unpack = _scipy_problem(dataset, initial)
+    ours, oracle = [], []
+    for _ in range(repeats):
+        cal = calibrate(dataset, initial=initial)
+        ours.append(cal.timings["optimize"])
+        start = time.perf_counter()
+        x, iterations, cost = dense_lm(residuals, sparsity, x0)
+        oracle.append(time.perf_counter() - start)
+    ratios = [a / b for a, b in zip(ours, oracle)]
+    return {"optimize": float(np.median(ours)), "oracle": float(np.median(oracle)), "ratio": float(np.median(ratios)),
+            "iterations": int(cal.iterations), "oracle_iterations": iterations, "final_error": cal.final_error,
+            "oracle_final_error": cost, "unknowns": int(len(x0)), "load": os.getloadavg()[0]}
+
+
 def task_profile(case: str, repeats: int) -> dict:
     try:
         from pyinstrument import Profiler
@@ -289,18 +380,24 @@ def task_loop(case: str, repeats: int) -> dict:
     return {}
 
 
-#: Where a native stack sample inside ``calibrate()`` is counted: the first rule whose frame name
-#: occurs in the stack (``*`` rules only inside an LM run, subtree or main).
+#: Where a native stack sample inside ``calibrate()`` is counted: the first rule one of whose frame names
+#: (``|`` between alternatives) occurs in the stack (``*`` rules only inside an LM run, subtree or main;
+#: ``!`` rules only outside one).
 _NATIVE_RULES = [
-    ("marginals (Schur complement, GTSAM Marginals)", "marginal_covariances"),
-    ("graph building (factors, initial values)", "build_graph"),
-    ("initial estimate: PnP and closed form (numpy, OpenCV)", "!solve_analytic"),
+    ("marginals (Schur complement, GTSAM Marginals)", "marginal_covariances|eliminated_covariances ("),
+    ("graph building (factors, initial values)", "build_graph|build_eliminated_graph ("),
+    ("initial estimate: PnP and closed form (numpy, OpenCV)", "!solve_analytic|initial_estimate ("),
     ("{lm}: our Python factors (error and Jacobians)", "*CustomFactor::unwhitenedError"),
     ("{lm}: GTSAM forms the Hessian of each dense factor", "*JacobianFactor::updateHessian"),
     ("{lm}: GTSAM Cholesky elimination (the rest)", "*eliminate"),
     ("{lm}: GTSAM other (Values, damping, error sums)", "*LevenbergMarquardtOptimizer"),
+    ("main LM: Gauss-Newton polish and stall test (factors, elimination)", "_polished (|_stationary ("),
     ("residual statistics and the rest (Python)", ""),
 ]
+
+
+def _matches(rule: str, stack: str) -> bool:
+    return any(name in stack for name in rule.split("|"))
 
 
 def native_breakdown(raw: str) -> list[tuple[str, float]]:
@@ -317,12 +414,12 @@ def native_breakdown(raw: str) -> list[tuple[str, float]]:
         in_lm = "LevenbergMarquardtOptimizer" in stack
         for label, rule in _NATIVE_RULES:
             if rule.startswith("*"):
-                if in_lm and rule[1:] in stack:
+                if in_lm and _matches(rule[1:], stack):
                     break
             elif rule.startswith("!"):
-                if rule[1:] in stack and not in_lm:
+                if _matches(rule[1:], stack) and not in_lm:
                     break
-            elif rule in stack:
+            elif _matches(rule, stack):
                 break
         label = label.format(lm=lm)
         counts[label] = counts.get(label, 0) + samples
@@ -400,6 +497,172 @@ def scaling_table(max_images: int, timeout_s: float) -> list[dict]:
     return rows
 
 
+# --------------------------------------------------------------------------------------------------
+# Start-up and a peer (issue 27): the command's own cost, and a public Python port of Takahashi et al.
+# (CVPR 2012: linear solution + scipy bundle adjustment) on the same 5 real photographs.
+
+REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+#: The peer: https://github.com/AbdirayimovS/takahashi2012cvpr (python/tnm.py), given with --peer or
+#: $MIRROR_FG_PEER as a checkout or a git directory; copied into a temporary directory, never vendored.
+PEER = "AbdirayimovS/takahashi2012cvpr"
+STARTUP_GOALS = {"version": 0.3, "calibrate": 0.5}  # seconds: `mirror-fg --version`; calibrate's start-up
+EXAMPLE = os.path.join(REPO_ROOT, "examples", "base_case.json")
+
+
+def takahashi_dir() -> str | None:
+    """The 5 real photographs' corner data (dataset.json and the peer's text files), if present."""
+    for candidate in (os.path.join(REPO_ROOT, "examples", "takahashi2012"),
+                      os.path.join(os.path.dirname(REPO_ROOT), "shared", "data", "takahashi2012")):
+        if all(os.path.exists(os.path.join(candidate, name)) for name in ("dataset.json", "model.txt", "camera.txt")):
+            return candidate
+    return None
+
+
+def peer_checkout(source: str | None, into: str) -> str | None:
+    """``into`` holding the peer's ``tnm.py`` (from a checkout or a git directory ``source``), or None."""
+    source = source or os.environ.get("MIRROR_FG_PEER")
+    if not source:
+        return None
+    checkout = os.path.join(source, "python", "tnm.py")
+    if os.path.isfile(checkout):
+        with open(checkout, encoding="utf-8") as handle:
+            text = handle.read()
+    else:
+        shown = subprocess.run(["git", "--git-dir", source, "show", "HEAD:python/tnm.py"], capture_output=True, text=True)
+        if shown.returncode != 0:
+            return None
+        text = shown.stdout
+    with open(os.path.join(into, "tnm.py"), "w", encoding="utf-8") as handle:
+        handle.write(text)
+    return into
+
+
+#: The peer as a command: its demo without the plots (load the text files, linear solution, bundle adjustment).
+_PEER_SCRIPT = """import sys
+from ast import literal_eval
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+from tnm import tnm, tnm_ba
+data = sys.argv[2]
+model = np.loadtxt(f"{data}/model.txt")
+q = np.array([np.loadtxt(f"{data}/input{i}.txt") for i in range(1, 6)])
+K = np.loadtxt(f"{data}/camera.txt", converters=lambda v: literal_eval(str(v).replace(",", "")))
+R0, T0, n0, d0, rep0 = tnm(model, q, K)
+R, T, n, d, rep = tnm_ba(model, q, K, R0, T0, n0, d0)
+print(f"Reprojection error (BA) = {rep:.3} px")
+"""
+
+
+def _peer_solve(data: str):
+    """One peer solve in this process (``tnm`` then ``tnm_ba``): its mean reprojection error (px)."""
+    from ast import literal_eval
+
+    from tnm import tnm, tnm_ba
+
+    model = np.loadtxt(os.path.join(data, "model.txt"))
+    q = np.array([np.loadtxt(os.path.join(data, f"input{i}.txt")) for i in range(1, 6)])
+    K = np.loadtxt(os.path.join(data, "camera.txt"), converters=lambda v: literal_eval(str(v).replace(",", "")))
+    start = time.perf_counter()
+    R0, T0, n0, d0, _ = tnm(model, q, K)
+    rep = tnm_ba(model, q, K, R0, T0, n0, d0)[4]
+    return time.perf_counter() - start, float(rep)
+
+
+def task_peer(case: str, repeats: int) -> dict:
+    """``case``: the peer's directory. The same 5 photographs solved by the peer and by ``calibrate()``,
+    alternating in this process (imports done first: solve times only)."""
+    from mirror_fg import calibrate, load_dataset
+
+    sys.path.insert(0, case)
+    data = takahashi_dir()
+    dataset = load_dataset(os.path.join(data, "dataset.json"))
+    _peer_solve(data), calibrate(dataset)  # warm: imports and first-call costs out of the figures
+    peer, ours, stages = [], [], []
+    for _ in range(repeats):
+        seconds, rep = _peer_solve(data)
+        peer.append(seconds)
+        start = time.perf_counter()
+        cal = calibrate(dataset)
+        ours.append(time.perf_counter() - start)
+        stages.append(cal.timings)
+    rms = float(np.sqrt(np.mean(cal.residual_norms ** 2)))
+    mean = float(np.mean(cal.residual_norms))
+    return {"peer": float(np.median(peer)), "ours": float(np.median(ours)), "peer_rep_px": rep, "ours_mean_px": mean,
+            "ours_rms_px": rms, "consensus": float(np.median([t.get("consensus", 0.0) for t in stages])),
+            "load": os.getloadavg()[0]}
+
+
+def _wall(command, repeats: int, **kwargs) -> tuple[float, subprocess.CompletedProcess]:
+    """Median wall time over ``repeats`` runs of ``command`` (a list, or run number -> list: outputs are
+    never written over), and the last run."""
+    times = []
+    for run in range(repeats):
+        start = time.perf_counter()
+        done = subprocess.run(command(run) if callable(command) else command, capture_output=True, text=True, **kwargs)
+        times.append(time.perf_counter() - start)
+    return float(np.median(times)), done
+
+
+def startup_report(peer_source: str | None, repeats: int) -> list[tuple[str, str, bool]]:
+    """``--startup``: ``mirror-fg --version``, the start-up of ``calibrate`` on the embedded example (its wall
+    time less the ``time`` it prints, which runs from reading the input to the summary), and the peer side by side (in one process and
+    as commands) when a checkout of it is given. Prints the figures; returns goal rows."""
+    import re
+    import tempfile
+
+    cli = [sys.executable, "-m", "mirror_fg"]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        # as installed: byte code cached (here in a temporary prefix, even where PYTHONDONTWRITEBYTECODE is set)
+        env = dict(os.environ, PYTHONPATH=REPO_ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""),
+                   PYTHONPYCACHEPREFIX=os.path.join(tmp, "pycache"))
+        env.pop("PYTHONDONTWRITEBYTECODE", None)
+        subprocess.run(cli + ["calibrate", EXAMPLE, "-o", os.path.join(tmp, "warm.json")], capture_output=True, env=env)
+        print(f"start-up (median of {repeats} runs, byte code cached; load average {os.getloadavg()[0]:.2f})")
+        yardstick, _ = _wall([sys.executable, "-c", "import numpy, gtsam"], repeats, env=env)
+        print(f"   python -c 'import numpy, gtsam' (yardstick: this machine now) {yardstick:6.3f} s")
+        version, _ = _wall(cli + ["--version"], repeats, env=env)
+        print(f"   mirror-fg --version                       {version:6.3f} s")
+        rows.append((f"mirror-fg --version <= {STARTUP_GOALS['version']:g} s", f"{version:.3f} s",
+                     version <= STARTUP_GOALS["version"]))
+        wall, done = _wall(lambda run: cli + ["calibrate", "-v", EXAMPLE, "-o", os.path.join(tmp, f"base{run}.json")],
+                           repeats, env=env)
+        printed = done.stdout + done.stderr
+        stages = re.search(r"stage timings: (.*)", printed)
+        solve = sum(float(x) for x in re.findall(r" ([0-9.]+) s", stages.group(1))) if stages else float("nan")
+        clock = re.search(r"^time ([0-9.]+) s", printed, re.MULTILINE)  # from reading the input to the summary
+        work = float(clock.group(1)) if clock else float("nan")
+        startup = wall - work
+        print(f"   mirror-fg calibrate examples/base_case.json {wall:6.3f} s = start-up {startup:.3f} s (interpreter, "
+              f"imports, arguments) + reading, solving, writing {work:.3f} s (of which calibrate() {solve:.3f} s)")
+        rows.append((f"calibrate start-up <= {STARTUP_GOALS['calibrate']:g} s", f"{startup:.3f} s",
+                     startup <= STARTUP_GOALS["calibrate"]))
+        data, peer = takahashi_dir(), peer_checkout(peer_source, tmp)
+        if data is None or peer is None:
+            why = "the Takahashi data is not found" if data is None else (
+                f"no checkout of {PEER} (--peer DIR or $MIRROR_FG_PEER: a checkout or its git directory)")
+            print(f"peer comparison skipped: {why}")
+            return rows
+        same = _run("peer", peer, max(repeats, 3))
+        print(f"the same 5 real photographs (Takahashi et al. 2012) beside {PEER} (python/tnm.py; load "
+              f"{same['load']:.2f})")
+        print(f"   in one process: peer {same['peer']:.3f} s (mean reprojection {same['peer_rep_px']:.3f} px), ours "
+              f"{same['ours']:.3f} s (mean {same['ours_mean_px']:.3f} px, rms {same['ours_rms_px']:.3f} px; screening "
+              f"{same['consensus']:.3f} s)")
+        script = os.path.join(tmp, "peer_demo.py")
+        with open(script, "w", encoding="utf-8") as handle:
+            handle.write(_PEER_SCRIPT)
+        subprocess.run([sys.executable, script, peer, data], capture_output=True, env=env)  # byte code cached
+        peer_wall, _ = _wall([sys.executable, script, peer, data], repeats, env=env)
+        ours_wall, _ = _wall(lambda run: cli + ["calibrate", os.path.join(data, "dataset.json"), "-o",
+                                                os.path.join(tmp, f"takahashi{run}.json")], repeats, env=env)
+        print(f"   as commands:    peer {peer_wall:.3f} s, mirror-fg calibrate {ours_wall:.3f} s")
+        rows.append(("faster than the peer in one process", f"{same['ours']:.3f} vs {same['peer']:.3f} s",
+                     same["ours"] < same["peer"]))
+        rows.append(("faster than the peer as a command", f"{ours_wall:.3f} vs {peer_wall:.3f} s", ours_wall < peer_wall))
+    return rows
+
+
 TASKS = {
     "baseline": task_baseline,
     "scaling": task_scaling,
@@ -408,6 +671,8 @@ TASKS = {
     "linearize": task_linearize,
     "scipy": task_scipy,
     "profile": task_profile,
+    "oracle": task_oracle,
+    "peer": task_peer,
     "loop": task_loop,
 }
 
@@ -448,6 +713,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="--scaling: stop after the sizes <= N images")
     parser.add_argument("--scaling-timeout", type=float, default=300.0, metavar="S",
                         help="--scaling: give up a size (and the larger ones) after S seconds")
+    parser.add_argument("--startup", action="store_true",
+                        help="only the start-up figures (mirror-fg --version, calibrate) and the peer comparison")
+    parser.add_argument("--peer", metavar="DIR",
+                        help=f"a checkout (or git directory) of {PEER} for --startup's side-by-side figures")
     parser.add_argument("--worker", nargs=3, metavar=("TASK", "CASE", "REPEATS"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
@@ -461,6 +730,12 @@ def main(argv: list[str] | None = None) -> int:
                 json.dump({"scaling": rows}, f, indent=1)
         return 0
     repeats, slow = (1, 1) if args.quick else (args.repeats, args.slow_repeats)
+    if args.startup:
+        rows = startup_report(args.peer, repeats)
+        print("\nGoals")
+        for goal, value, met in rows:
+            print(f"   {'met    ' if met else 'NOT met'}  {goal:55s} {value}")
+        return 0
 
     from importlib.metadata import version
 
@@ -482,9 +757,10 @@ def main(argv: list[str] | None = None) -> int:
         baseline = _run("scipy", case, slow)
         profile = _run("profile", case, 1) if args.profile else None
         native = native_profile(case, max(repeats, 3)) if args.native_profile else None
+        oracle = _run("oracle", case, max(min(repeats, 3), 1)) if CASES[case].get("oracle") else None
         report["cases"][case] = {
             "baseline": base, "fast": fast, "reference": reference, "linearize": linearize, "scipy": baseline,
-            "profile": profile, "native_profile": native,
+            "profile": profile, "native_profile": native, "oracle": oracle,
         }
         fm, rm, sm = fast["median"], reference["median"], baseline["median"]
         print(f"fast path: {fast['mode']}")
@@ -521,6 +797,12 @@ def main(argv: list[str] | None = None) -> int:
         print("4. peak memory (ru_maxrss of each task's process), MB")
         print(f"   interpreter + gtsam + data {base['peak_mb']:7.1f}   fast calibrate {fast['peak_mb']:7.1f}   "
               f"reference {reference['peak_mb']:7.1f}   scipy {baseline['peak_mb']:7.1f}   linearisation runs {linearize['peak_mb']:7.1f}")
+        if oracle:
+            print(f"5. LM stage against a dense numpy LM (dense_lm: grouped forward differences, dense J^T J, "
+                  f"{oracle['unknowns']} unknowns), alternating in one process, load {oracle['load']:.2f}")
+            print(f"   ours {oracle['optimize']:.3f} s ({oracle['iterations']} iterations), dense {oracle['oracle']:.3f} s "
+                  f"({oracle['oracle_iterations']} iterations): {oracle['ratio']:.2f}x; cost {oracle['final_error']:.6f} "
+                  f"vs {oracle['oracle_final_error']:.6f}")
         if profile:
             print("profile of one fast calibrate() (pyinstrument):")
             print("\n".join("   " + line for line in profile["text"].splitlines() if line.strip()))
@@ -533,6 +815,9 @@ def main(argv: list[str] | None = None) -> int:
         goal_rows.append((f"{case}: >= {SPEEDUP_GOAL:.0f}x faster than scipy (total)", f"{speedup:.1f}x", speedup >= SPEEDUP_GOAL))
         stage = scipy_stage / fast_stage
         goal_rows.append((f"{case}: >= {SPEEDUP_GOAL:.0f}x faster than scipy (solve + covariance)", f"{stage:.1f}x", stage >= SPEEDUP_GOAL))
+        if oracle:
+            goal_rows.append((f"{case}: LM stage <= {ORACLE_GOAL:g}x dense numpy LM", f"{oracle['ratio']:.2f}x",
+                              oracle["ratio"] <= ORACLE_GOAL))
         if case == "900img":
             goal_rows.append((f"{case}: peak memory <= {MEMORY_GOAL_MB:.0f} MB", f"{fast['peak_mb']:.0f} MB", fast["peak_mb"] <= MEMORY_GOAL_MB))
     load_end = os.getloadavg()

@@ -42,3 +42,42 @@ def test_scaling_task_reports_stages_and_memory(benchmark):
     assert row["images"] == 60 and row["converged"]
     for key in ("analytic", "optimize", "marginals", "wall", "peak_mb"):
         assert row[key] > 0
+
+
+def test_dense_lm_oracle_reaches_the_mle(benchmark):
+    """The oracle the LM stage is timed against solves the same problem: calibrate()'s final cost."""
+    from mirror_fg import calibrate, initial_estimate
+    from mirror_fg.tools.simulate import simulate_base_case
+
+    dataset, _ = simulate_base_case(num_images=24, num_points=4, seed=3)
+    initial = initial_estimate(dataset)
+    residuals, sparsity, x0, _ = benchmark._scipy_problem(dataset, initial)
+    groups = benchmark._column_groups(sparsity)
+    pattern = sparsity.toarray().astype(bool)
+    for group in groups:  # the columns of a group share no row: one evaluation differences them all
+        assert pattern[:, group].sum(axis=1).max() <= 1
+    assert sorted(int(c) for g in groups for c in g) == list(range(len(x0)))
+    _, _, cost = benchmark.dense_lm(residuals, sparsity, x0)
+    assert cost == pytest.approx(calibrate(dataset, initial=initial).final_error, rel=1e-7)
+
+
+def test_the_peer_comes_from_a_checkout_or_a_git_directory_or_not_at_all(benchmark, tmp_path, monkeypatch):
+    import subprocess
+
+    monkeypatch.delenv("MIRROR_FG_PEER", raising=False)
+    repo = tmp_path / "peer"
+    (repo / "python").mkdir(parents=True)
+    (repo / "python" / "tnm.py").write_text("VALUE = 1\n")
+    into = tmp_path / "into"
+    into.mkdir()
+    assert benchmark.peer_checkout(None, str(into)) is None  # nothing given: the comparison is skipped
+    assert benchmark.peer_checkout(str(repo), str(into)) == str(into)
+    assert (into / "tnm.py").read_text() == "VALUE = 1\n"
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run(git + ["init", "-q"], check=True)
+    subprocess.run(git + ["add", "python/tnm.py"], check=True)
+    subprocess.run(git + ["commit", "-q", "-m", "peer"], check=True)
+    (into / "tnm.py").unlink()
+    assert benchmark.peer_checkout(str(repo / ".git"), str(into)) == str(into)
+    assert (into / "tnm.py").read_text() == "VALUE = 1\n"
+    assert benchmark.peer_checkout(str(tmp_path / "missing"), str(into)) is None

@@ -10,6 +10,7 @@ from __future__ import annotations
 import html
 import logging
 import os
+import re
 from collections.abc import Container, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -185,7 +186,11 @@ def load_dataset(path: PathLike) -> Dataset:
     from mirror_fg.io.fileio import parse_json, read_text
 
     source = os.fspath(path)
-    ds = dataset_from_dict(parse_json(read_text(source), source), source=source)
+    text = read_text(source)
+    if re.search(r"[\"']?\bformat[\"']?\s*:\s*[\"']?mirror-fg/capture@", text[:100_000]):  # YAML or JSON
+        raise DatasetError(f"{source}: a capture file (mirror-fg/capture@1), not a dataset: detect it with "
+                           "mirror_fg.load_capture (or `mirror-fg detect`), which returns the Dataset")
+    ds = dataset_from_dict(parse_json(text, source), source=source)
     _log.info("%s: dataset loaded: %s", source, ds)
     return ds
 

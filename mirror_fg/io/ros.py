@@ -14,12 +14,12 @@ back to the same double) so a pasted transform is the computed one to the last b
 """
 from __future__ import annotations
 
+import html
 import os
 import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
-from xml.sax.saxutils import quoteattr
 
 import numpy as np
 import yaml
@@ -149,6 +149,12 @@ def link_frame_name(camera_frame: str) -> str:
         if camera_frame.endswith(suffix):
             return camera_frame[: -len(suffix)] + "_link"
     return camera_frame + "_link"
+
+
+def quoteattr(value: str) -> str:
+    """``value`` as a double-quoted XML attribute (``&``, ``<``, ``>``, quotes escaped). ``html.escape``:
+    ``xml.sax.saxutils.quoteattr`` would load urllib and ssl into every ``calibrate`` (issue 27's start-up)."""
+    return '"' + html.escape(value, quote=True) + '"'
 
 
 def urdf_joint(

@@ -58,6 +58,15 @@ class AnalyticSolution:
     image_transforms: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     alternatives: list[AnalyticSolution] = field(default_factory=list, repr=False)
 
+    def __repr__(self) -> str:
+        """One bounded line: the pose and how many of each unknown (a dataclass repr printed every image's
+        PnP transform and every hypothesis: 54,000 characters for the paper's base case)."""
+        R = "; ".join(" ".join(f"{x:.5g}" for x in row) for row in np.asarray(self.R_cam_base))
+        t = " ".join(f"{x:.5g}" for x in np.asarray(self.t_cam_base))
+        return (f"AnalyticSolution(R_cam_base=[{R}], t_cam_base=[{t}] m, "
+                f"{len(self.mirror_vectors)} mirror placements, {len(self.points)} points, "
+                f"{len(self.image_transforms)} image transforms, {len(self.alternatives)} alternatives)")
+
 
 @dataclass
 class Hypothesis:

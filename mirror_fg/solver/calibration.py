@@ -126,6 +126,26 @@ class Calibration:
         return Transform(self.R_cam_base, self.t_cam_base)
 
     @property
+    def T_base_cam(self) -> Transform:
+        """Base <- camera (the camera's pose in the base frame, as ROS and URDF want it): the inverse of
+        :attr:`T_cam_base`, as ``to_dict()["T_base_cam"]``."""
+        return self.T_cam_base.inverse()
+
+    @property
+    def covariance_cam_base(self) -> np.ndarray | None:
+        """Covariance (6, 6) of :attr:`T_cam_base`, ``[dtheta (rad), dt (m)]`` about the camera axes (as
+        :attr:`covariance`; ``to_dict()["covariance_cam_base"]``); None without a covariance."""
+        return self.covariance
+
+    @property
+    def covariance_base_cam(self) -> np.ndarray | None:
+        """Covariance (6, 6) of :attr:`T_base_cam`, ``[dtheta (rad), dt (m)]`` about the base axes
+        (``to_dict()["covariance_base_cam"]``, first order); None without a covariance."""
+        if self.covariance is None:
+            return None
+        return self.T_cam_base.inverse_covariance(self.covariance)
+
+    @property
     def cost_plausible(self) -> bool:
         """Whether the final cost 0.5 chi^2 fits its distribution at the optimum (dof / 2, spread
         sqrt(dof / 2)) within 10 spreads; far above it means a local minimum or a too small sigma."""

@@ -29,9 +29,7 @@ import logging
 from collections import defaultdict
 from itertools import combinations
 
-import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
 from mirror_fg.core.geometry import apply_transform, predict_camera_points, reflect_transforms
 from mirror_fg.io.dataset import Dataset, Image
@@ -87,6 +85,8 @@ def _whitened_errors(dataset: Dataset, A: np.ndarray, b: np.ndarray, points: np.
 
 def _ransac_inliers(points: np.ndarray, observed: np.ndarray, num_mirrors: int, threshold: float) -> np.ndarray | None:
     """Indices of the fiducials that agree with cv2's RANSAC PnP (normalized coordinates), or None."""
+    import cv2  # imported where used: OpenCV is slow to load (issue 27)
+
     image_points = np.array(observed, dtype=np.float64)
     if num_mirrors % 2 == 1:
         image_points[:, 1] *= -1.0  # eq. (11): PnP sees a rotation
@@ -457,5 +457,7 @@ def fit_last_mirror(dataset: Dataset, image: Image, A_parent: np.ndarray, b_pare
     """The last mirror vector (camera frame, metres) that fits an image's fiducials best with its parent
     ``(A_{Nv-1}, b_{Nv-1})`` held: scipy's least-squares result from ``start`` (``x`` the vector, ``fun``
     the whitened errors, ``jac`` their Jacobian)."""
+    from scipy.optimize import least_squares  # imported where used: SciPy is slow to load (issue 27)
+
     errors = _last_mirror_errors(dataset, image, A_parent, b_parent)
     return least_squares(errors, start, x_scale=np.full(3, 1e-3 + 1e-2 * np.linalg.norm(start)), method="lm")

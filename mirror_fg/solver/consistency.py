@@ -25,7 +25,6 @@ import logging
 
 import gtsam
 import numpy as np
-from scipy.stats import chi2
 
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.geometry import nested_transform
@@ -252,6 +251,8 @@ def moved_camera_split(
     if not boundaries:
         return None
     tested = [boundaries[i] for i in spread_subset(len(boundaries), MAX_MOVE_SPLITS).tolist()]
+    from scipy.stats import chi2  # imported where used: SciPy is slow to load (issue 27)
+
     threshold = chi2.isf(MOVE_SIGNIFICANCE / len(tested), 6)
     worst: tuple[float, int, list[GroupFit]] | None = None
     for k in tested:
@@ -316,6 +317,8 @@ def placement_disagreement(dataset: Dataset, calibration: Calibration) -> Incons
     if not pairs:
         return None
     distance, a, b, v_a, v_b = max(pairs, key=lambda pair: pair[0])
+    from scipy.stats import chi2  # imported where used: SciPy is slow to load (issue 27)
+
     if not distance > chi2.isf(LABEL_SIGNIFICANCE / len(pairs), 3):
         return None
     cosine = float(v_a @ v_b / (np.linalg.norm(v_a) * np.linalg.norm(v_b)))

@@ -31,7 +31,6 @@ from dataclasses import dataclass, replace
 from itertools import combinations, product
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from mirror_fg.core.geometry import project, reflect
 from mirror_fg.io.dataset import Dataset, Image
@@ -249,6 +248,8 @@ class _Images:
 
             if not np.all(np.isfinite(start)) or np.linalg.norm(start) < 1e-12:
                 continue
+            from scipy.optimize import least_squares  # imported where used: SciPy is slow to load (issue 27)
+
             fitted = least_squares(residual, start, method="lm")
             seen = reflect(before, fitted.x)
             if np.all(seen[:, 2] > 0):
