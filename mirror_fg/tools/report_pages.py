@@ -192,7 +192,7 @@ def pdf_document(title: str, blocks: list[Block]) -> bytes:
                 colour = {"verdict": "darkgreen" if b.good else "darkred"}.get(b.kind, "#222")
                 for line in _wrap(b.text, 100 if b.kind == "verdict" else 118):
                     pages.line(line, color=colour, style="italic" if b.kind == "note" else "normal",
-                               **({"size": 11, "weight": "bold", "space": 1.5} if b.kind == "verdict" else {}))
+                               **({"size": 11.0, "weight": "bold", "space": 1.5} if b.kind == "verdict" else {}))  # type: ignore[arg-type]
                 for item in b.items:  # a verdict's reasons
                     for k, line in enumerate(_wrap(item, 112)):
                         pages.line(("• " if k == 0 else "  ") + line, color=colour)

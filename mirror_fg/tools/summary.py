@@ -127,11 +127,13 @@ def _noise_fit(result: Mapping[str, Any], pixel_sigma: float | None = None) -> t
     final, expected, rms = opt.get("final_error"), opt.get("expected_final_error"), res.get("rms_px")
     if not all(isinstance(x, (int, float)) and math.isfinite(x) and x > 0 for x in (expected, rms)):
         return None
+    expected, rms = float(expected), float(rms)  # type: ignore[arg-type]  # checked above (all() does not narrow)
     measurements = expected + unknown_count(result) / 2
     if pixel_sigma is not None and pixel_sigma > 0:
         return rms / (pixel_sigma * math.sqrt(2 * expected / measurements)), float(pixel_sigma)
     if not (isinstance(final, (int, float)) and math.isfinite(final) and final > 0):
         return None
+    final = float(final)
     return math.sqrt(final / expected), rms * math.sqrt(measurements / (2 * final))
 
 

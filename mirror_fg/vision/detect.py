@@ -291,7 +291,9 @@ def _size_hint(capture: Capture, reports: list[ImageReport]) -> str:
         return ""
     missed = {r.id for r in reports if r.status == NOT_FOUND}
     entry = next((e for e in capture.images if e.id in missed and e.file is not None), None)
-    gray = _read_gray(entry)[0] if entry is not None else None
+    if entry is None:
+        return ""
+    gray = _read_gray(entry)[0]
     return "" if gray is None else f"; {chessboard_size_hint(gray, capture.target, capture.mirrored, entry.id)}"
 
 

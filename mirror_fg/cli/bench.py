@@ -1,0 +1,142 @@
+"""The bench commands: ``plan --next`` (the next placement), ``live`` (a session while the mirror
+moves) and ``pattern`` (a screen's pattern)."""
+from __future__ import annotations
+
+import os
+import sys
+
+from mirror_fg.cli.commands import _load_input, _print_transform_summary
+from mirror_fg.cli.printing import EXIT_OK, _Printer
+from mirror_fg.core.errors import DatasetError
+
+
+def plan_next(args, out: _Printer) -> int:
+    """``plan --next``: calibrate the data so far, then rank the reachable placements (tools/suggest.py)."""
+    import json
+    from dataclasses import replace
+
+    from mirror_fg.io.output import OutputPlan
+    from mirror_fg.solver.calibrate import calibrate
+    from mirror_fg.solver.calibration import require_converged
+    from mirror_fg.solver.consensus import without
+    from mirror_fg.tools.suggest import (
+        Reach,
+        default_reach,
+        require_suggestions,
+        suggest_next,
+    )
+
+    outputs = OutputPlan(inputs=[os.fspath(args.next_data)])
+    if args.output is not None:
+        outputs.add(args.output, "suggestions")
+    dataset = _load_input(args.next_data, out, outputs)
+    calibration = require_converged(calibrate(dataset), dataset.source)
+    used = without(dataset, calibration.excluded) if calibration.excluded else dataset
+    reach = default_reach(used, calibration)
+    if args.distance is not None:
+        low, high = (args.distance[0] * 0.9, args.distance[0] * 1.1) if len(args.distance) == 1 else args.distance
+        reach = Reach((low, high), reach.max_tilt_deg)
+    if args.max_tilt is not None:
+        reach = replace(reach, max_tilt_deg=args.max_tilt)
+    suggestions = require_suggestions(suggest_next(used, calibration, count=args.count, reach=reach), dataset.source)
+    if args.output is not None:
+        outputs.commit({os.fspath(args.output): json.dumps(suggestions.to_dict(), indent=2)})
+    out.info(suggestions.text())
+    if args.output is not None:
+        out.info(f"wrote {args.output}")
+    return EXIT_OK
+
+
+def cmd_live(args, out: _Printer) -> int:
+    """``live``: the session loop of tools/live.py between a frame source, the outputs and the page."""
+    import signal
+
+    from mirror_fg.io.calibration_files import plan_calibration_outputs
+    from mirror_fg.io.capture import capture_from_file_data
+    from mirror_fg.io.fileio import load_structured
+    from mirror_fg.io.output import OutputPlan
+    from mirror_fg.solver.calibration import require_converged
+    from mirror_fg.tools.live import LiveSession, run
+    from mirror_fg.tools.live_sources import open_source
+
+    source_path = os.fspath(args.capture)
+    outputs = (plan_calibration_outputs([source_path], args.output, ros=not args.no_ros)
+               if args.output is not None else None)
+    streams = OutputPlan(inputs=[source_path])  # the JSON lines are checked like any output, then streamed
+    if args.json_lines is not None and os.fspath(args.json_lines) != "-":
+        streams.add(args.json_lines, "JSON lines")
+    if args.save is not None and args.save.exists() and any(args.save.iterdir()):
+        raise DatasetError(f"--save {args.save}: the folder exists and is not empty (nothing is written over)")
+    data = load_structured(source_path, source_path)
+    capture = capture_from_file_data(data, source_path, media=False)
+    session = LiveSession(capture, target_mm=args.target_mm, target_deg=args.target_deg,
+                          keep_frames=args.save is not None, picture=args.serve is not None)
+    source = open_source(args.source, idle_s=args.idle)
+    server = None
+    if args.serve is not None:
+        from mirror_fg.tools.live_server import LiveServer
+
+        server = LiveServer(args.serve, lambda: session.state)
+        server.start()
+        out.info(f"serving the live page on {server.url}")
+    lines = None
+    if args.json_lines is not None:
+        lines = sys.stdout if os.fspath(args.json_lines) == "-" else open(args.json_lines, "w")
+
+    def on_record(record) -> None:
+        if lines is not None:
+            lines.write(record.to_json() + "\n")
+            lines.flush()
+        elif record.status == "added":
+            bounds = ("" if record.sigma3_base_cam is None else " 3-sigma pos ["
+                      + ", ".join(f"{x:.1f}" for x in record.sigma3_base_cam["position_mm"]) + "] mm")
+            out.info(f"[frame {record.frame}] placement {record.placements} added{bounds}"
+                     + (f"; {record.reason}" if record.reason else ""))
+
+    interrupted = []
+
+    def stop(signum, frame) -> None:  # noqa: ANN001 - a signal handler
+        interrupted.append(signum)
+        source.stop()
+
+    previous = signal.signal(signal.SIGINT, stop)
+    try:
+        figures = run(session, source, on_record=on_record, stop_when_done=args.stop_when_done)
+        out.info(f"{session.summary()}; {figures['fps']:.1f} frames/s, {figures['dropped']} dropped, "
+                 f"{figures['unreadable']} unreadable")
+        if server is not None and args.hold and not interrupted:
+            out.info(f"source ended; the page stays up on {server.url} until Ctrl-C")
+            import threading
+
+            held = threading.Event()
+            signal.signal(signal.SIGINT, lambda *a: held.set())
+            while not held.wait(0.2):
+                pass
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if server is not None:
+            server.stop()
+        if lines is not None and lines is not sys.stdout:
+            lines.close()
+    if session.done:
+        out.info("done: every bound is below its target")
+    written = []
+    if args.save is not None:
+        written += session.save(os.fspath(args.save), data)
+    calibration = require_converged(session.result(), capture.source)
+    result = calibration.to_dict()
+    if outputs is not None:
+        written += [os.fspath(p) for p in outputs.write(result)]
+    _print_transform_summary(out, result, figures["seconds"], incremental=True)
+    if written:
+        out.info(f"wrote {len(written)} file(s): " + ", ".join(written[-3:]) + (" ..." if len(written) > 3 else ""))
+    return EXIT_OK
+
+
+def cmd_pattern(args, out: _Printer) -> int:
+    from mirror_fg.tools.pattern import pattern_summary, write_pattern
+
+    screen, files = write_pattern(args.output, args.screen, args.screen_mm, args.diagonal, args.kind, args.square_mm)
+    for line in pattern_summary(screen, files):
+        out.info(line)
+    return EXIT_OK

@@ -1,0 +1,317 @@
+"""The calibration commands: simulate, calibrate, calibrate-many, detect, report, plan (argument
+values in, the library's answer printed; the library decides)."""
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from mirror_fg.core.errors import DatasetError
+
+if TYPE_CHECKING:
+    from mirror_fg.io.dataset import Dataset
+    from mirror_fg.io.output import OutputPlan
+    from mirror_fg.vision.tracking import Track
+
+from mirror_fg.cli.printing import EXIT_OK, _error_line, _one_line, _Printer
+
+
+def _print_transform_summary(out: _Printer, result: dict, elapsed: float, incremental: bool = False,
+                             pixel_sigma: float | None = None) -> None:
+    """Each transform with its own bounds in its own frame, the residuals, the solver (tools.summary)."""
+    from mirror_fg.tools.summary import summary_lines
+
+    for line in summary_lines(result, verbose=out.verbose, incremental=incremental, pixel_sigma=pixel_sigma):
+        out.info(line)
+    out.info(f"time {elapsed:.2f} s")
+
+
+def _load_input(path: Path, out: _Printer, plan: OutputPlan, tracks: dict | None = None,
+                capture_only: bool = False) -> Dataset:
+    """A Dataset from a dataset@1 or capture@1 file (detected, with its report printed); read once."""
+    return _load_input_with_reports(path, out, plan, tracks, capture_only)[0]
+
+
+def _load_input_with_reports(path: Path, out: _Printer, plan: OutputPlan, tracks: dict | None = None,
+                             capture_only: bool = False, on_capture: Any = None) -> tuple[Dataset, list]:
+    """:func:`_load_input` and the per-image detection reports (empty for a dataset@1)."""
+    from mirror_fg.vision.detect import load_input
+
+    dataset, reports = load_input(path, plan, progress=out.progress, tracks=tracks, capture_only=capture_only,
+                                  on_capture=on_capture)
+    if reports:
+        _print_detection_report(out, reports)
+    return dataset, list(reports or [])
+
+
+def _detection_exclusions(reports: list) -> list:
+    """Images of a capture that detection left out, as result@1 ``excluded`` entries (nothing dropped silently)."""
+    from mirror_fg.solver.calibration import Exclusion
+    from mirror_fg.vision.detectors import FOUND
+
+    return [Exclusion(r.id, f"detection: {r.status}: {r.reason}") for r in reports if r.status != FOUND]
+
+
+def _print_detection_report(out: _Printer, reports) -> None:
+    found = sum(1 for r in reports if r.status == "found")
+    out.info(f"detection: target found in {found} of {len(reports)} image(s)")
+    for r in reports:
+        if r.status != "found":
+            out.info("  " + r.line())
+        else:
+            out.detail("  " + r.line())
+
+
+def cmd_simulate(args, out: _Printer) -> int:
+    from mirror_fg.tools.simulate import (
+        simulate_base_case,
+        simulate_tree,
+        simulation_outputs,
+        write_simulation,
+    )
+
+    plan = simulation_outputs(args.output)  # checked before the work
+    if args.tree:
+        dataset, truth = simulate_tree(args.mirrors, num_fiducials=args.fiducials, num_points=args.points,
+                                       pixel_sigma=args.sigma, seed=args.seed, mirror_distance=args.distance)
+    else:
+        dataset, truth = simulate_base_case(num_images=args.images, num_points=args.points, pixel_sigma=args.sigma,
+                                            mirror_distance=args.distance, mirror1_placements=args.placements,
+                                            seed=args.seed, num_mirrors=args.mirrors, num_fiducials=args.fiducials)
+    write_simulation(args.output, dataset, truth, plan)
+    out.info(f"wrote {args.output} ({len(dataset.images)} images, {dataset.num_mirrors} mirror(s), "
+             f"{len(dataset.fiducials)} fiducials, {len(dataset.reconstruction_point_names)} points) and its ground truth")
+    return EXIT_OK
+
+
+def cmd_calibrate(args, out: _Printer) -> int:
+    from mirror_fg.io.calibration_files import plan_calibration_outputs
+    from mirror_fg.solver.calibrate import calibrate
+    from mirror_fg.solver.calibration import require_converged
+
+    start = time.perf_counter()
+    outputs = plan_calibration_outputs([args.input], args.output, ros=not args.no_ros,
+                                       base_frame=args.base_frame, camera_frame=args.camera_frame)
+    if not args.no_ros and not outputs.ros:
+        out.info(f"note: the result goes to a device ({args.output}): no ROS outputs written beside it")
+    dataset, reports = _load_input_with_reports(args.input, out, outputs.plan, on_capture=outputs.use_capture)
+    if dataset.camera is not None and dataset.camera.estimate:
+        if args.incremental:
+            raise DatasetError(f"{dataset.source}: camera.estimate ({', '.join(dataset.camera.estimate)}): estimating "
+                               "intrinsics needs the batch solver; drop --incremental")
+        outputs.expect_camera()
+    if args.incremental:
+        calibration = _run_incremental(dataset, args, out)
+    else:
+        with _StageBars(out.progress) as bars:
+            calibration = calibrate(dataset, robust=args.robust, progress=bars.update)
+        if calibration.restarts:
+            out.info(f"LM ended in a local minimum from the analytical solution; restarted from {calibration.restarts} "
+                     "runner-up P3P hypothesis(es) and kept the lowest cost")
+        require_converged(calibration, dataset.source, accept_poor_fit=args.accept_poor_fit)
+    calibration.excluded = _detection_exclusions(reports) + list(calibration.excluded)
+    result = calibration.to_dict()
+    written = outputs.write(result)
+    _print_transform_summary(out, result, time.perf_counter() - start, args.incremental,
+                             pixel_sigma=None if dataset.point_sigma else dataset.pixel_sigma)
+    if calibration.timings:
+        out.detail("stage timings: " + ", ".join(f"{stage} {seconds:.3f} s" for stage, seconds in calibration.timings.items()))
+    out.info("wrote " + ", ".join(str(p) for p in written))
+    return EXIT_OK
+
+
+class _StageBars:
+    """One progress bar per stage of ``calibrate`` (on stderr, when it is a terminal), named after it."""
+
+    def __init__(self, show: bool):
+        self.show = show
+        self.stage: str | None = None
+        self.bar: Any = None  # a tqdm bar while a stage runs
+
+    def update(self, stage: str, done: int, total: int | None) -> None:
+        if not self.show:
+            return
+        if stage != self.stage:
+            self.close()
+            from tqdm import tqdm
+
+            self.stage = stage
+            self.bar = tqdm(desc=stage, total=total, unit=" step", file=sys.stderr, leave=False)
+        if self.bar is not None:
+            self.bar.update(done - self.bar.n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+    def __enter__(self) -> _StageBars:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def cmd_calibrate_many(args, out: _Printer) -> int:
+    from mirror_fg.tools.many import calibrate_many
+
+    rows = calibrate_many(args.inputs, args.output, scheduler=args.scheduler, workers=args.workers,
+                          progress=out.progress, connect_timeout=args.connect_timeout,
+                          in_process=False if args.dask else None)
+    failed = [row for row in rows if row["status"] != "ok"]
+    out.info(f"{len(rows) - len(failed)} of {len(rows)} calibrated into {args.output}")
+    out.info("  camera position: 3-sigma of T_base_cam's translation along the base axes, mm; RMS: rms_px")
+    out.info(f"  {'input':40s} {'status':7s} {'camera position':24s} {'RMS':>7s}  result or reason")
+    for row in rows:
+        if row["status"] == "ok":
+            sigma = "[" + ", ".join(f"{x:.1f}" for x in row["sigma3_base_cam"]["position_mm"]) + "]"
+            out.info(f"  {row['input'][-40:]:40s} {'ok':7s} {sigma:24s} {row['rms']:7.3f}  {row['result']}")
+        else:
+            out.info(f"  {row['input'][-40:]:40s} {'FAILED':7s} {'':24s} {'':>7s}  {_one_line(row['reason'])}")
+    if failed:
+        _error_line(f"mirror-fg: error: {len(failed)} of {len(rows)} input(s) failed (listed above)")
+        return 2
+    return EXIT_OK
+
+
+def _run_incremental(dataset, args, out: _Printer):
+    from mirror_fg.solver.incremental import calibrate_incremental
+
+    total = len(dataset.images)
+
+    def on_estimate(index: int, estimate) -> None:
+        if index % args.every == 0 or index == total:
+            s = estimate.to_dict()["sigma3_cam_base"]
+            out.info(f"[{index:5d}/{total}] 3-sigma rot [" + ", ".join(f"{x:.3f}" for x in s["rotation_deg"])
+                     + "] deg, pos [" + ", ".join(f"{x:.1f}" for x in s["position_mm"]) + "] mm")
+
+    def on_wait(index: int, status: str) -> None:  # before start-up: what the calibrator waits for
+        if index % args.every == 0 or index == total:
+            out.info(f"[{index:5d}/{total}] {status}")
+
+    return calibrate_incremental(dataset, robust=args.robust, on_estimate=on_estimate, on_wait=on_wait,
+                                 accept_poor_fit=args.accept_poor_fit)
+
+
+def cmd_detect(args, out: _Printer) -> int:
+    from mirror_fg.io.dataset import dataset_text
+    from mirror_fg.io.output import OutputPlan
+
+    plan = OutputPlan(inputs=[os.fspath(args.capture)])
+    plan.add(args.output, "dataset")
+    dataset = _load_input(args.capture, out, plan, capture_only=True)
+    _print_consensus(out, dataset)
+    plan.commit({os.fspath(args.output): dataset_text(dataset)})
+    out.info(f"wrote {args.output} ({len(dataset.images)} images)")
+    return EXIT_OK
+
+
+def _print_consensus(out: _Printer, dataset: Dataset) -> None:
+    """What ``calibrate`` will leave out of a detected dataset, and why (``solver.consensus.screen``: each
+    image's own PnP fit, the side of the board, agreement with the other placements of its mirror); the
+    dataset itself keeps every detection."""
+    from mirror_fg.solver.consensus import screen
+
+    _, excluded, _ = screen(dataset)
+    if excluded:
+        out.info(f"check: calibrate will leave out {len(excluded)} image(s) or corner(s) that disagree with the rest:")
+    for e in excluded:
+        sigmas = f" ({e.sigmas:.1f} σ)" if e.sigmas is not None else ""
+        out.info(f"  image '{e.image}'" + (f" point '{e.point}'" if e.point else "") + f": {e.reason}{sigmas}")
+
+
+def cmd_report(args, out: _Printer) -> int:
+    from mirror_fg.io.output import OutputPlan
+    from mirror_fg.io.result import load_result
+    from mirror_fg.io.ros import check_camera_frame_name, check_frame_name
+    from mirror_fg.tools.report import write_report
+
+    plan = OutputPlan(inputs=[os.fspath(p) for p in (args.result, args.dataset) if p is not None])
+    if os.path.exists(args.output) and not os.path.isdir(args.output):
+        raise DatasetError(f"{args.output}: exists and is not a directory (report -o takes a directory)")
+    for name in ("report.html", "report.pdf"):
+        plan.add(Path(args.output) / name, "report")
+    try:
+        check_frame_name(args.base_frame, "--base-frame")
+        check_camera_frame_name(args.camera_frame, "--camera-frame")
+    except ValueError as error:
+        raise DatasetError(str(error)) from None
+    try:
+        result = load_result(args.result)
+    except DatasetError:
+        _refuse_input_as_result(args)
+        raise
+    tracks: dict[str, Track] = {}
+    dataset = None
+    if args.dataset is not None:  # a dataset, or a capture (detected again: its tracks are drawn too)
+        dataset = _load_input(args.dataset, out, plan, tracks=tracks)
+    try:
+        paths = write_report(result, dataset, args.output, progress=out.progress, source=os.fspath(args.result),
+                             base_frame=args.base_frame, camera_frame=args.camera_frame, tracks=tracks or None)
+    except ValueError as error:  # a malformed result file
+        if isinstance(error, DatasetError):
+            raise
+        raise DatasetError(f"{args.result}: {error}") from None
+    out.info("wrote " + ", ".join(str(p) for p in paths.values()))
+    return EXIT_OK
+
+
+def _refuse_input_as_result(args) -> None:
+    """A dataset or capture given where ``report`` wants a result: say so, with the commands in their order."""
+    from mirror_fg.io.capture import CAPTURE_FORMAT
+    from mirror_fg.io.dataset import DATASET_FORMAT
+    from mirror_fg.io.fileio import load_structured
+
+    try:
+        data = load_structured(args.result)
+    except DatasetError:
+        return
+    kinds = {DATASET_FORMAT: "a dataset", CAPTURE_FORMAT: "a capture"}
+    kind = kinds.get(str(data.get("format"))) if isinstance(data, dict) else None
+    if kind is not None:
+        then = ("the result comes first: mirror-fg report RESULT DATASET -o DIR" if args.dataset is not None else
+                f"calibrate it first (mirror-fg calibrate {args.result} -o result.json), then mirror-fg report "
+                f"result.json {args.result} -o {args.output}")
+        raise DatasetError(f"{args.result}: is {kind}, not a result (mirror-fg/result@1); {then}")
+
+
+def cmd_plan(args, out: _Printer) -> int:
+    from mirror_fg.io.output import OutputPlan
+    from mirror_fg.tools.plan import (
+        PlanSetup,
+        format_plan,
+        load_fiducials,
+        plan,
+        setup_from_files,
+    )
+
+    if args.next_data is not None:
+        from mirror_fg.cli.bench import plan_next  # the bench commands build on these
+
+        return plan_next(args, out)
+    if args.output is not None or args.max_tilt is not None or (args.distance is not None and len(args.distance) > 1):
+        raise DatasetError("plan: -o, --max-tilt and --distance MIN,MAX go with --next DATA (the bounds of a "
+                           "described setup are written with --json)")
+    outputs = OutputPlan(inputs=[os.fspath(p) for p in (args.fiducials_file, args.camera, args.capture) if p is not None])
+    if args.json is not None:
+        outputs.add(args.json, "plan JSON")
+    given, taken = setup_from_files(camera=args.camera, capture=args.capture)
+    fiducials = load_fiducials(args.fiducials_file) if args.fiducials_file is not None else given.get("fiducials")
+    setup = PlanSetup(num_mirrors=args.mirrors or given.get("num_mirrors", 2), placements=args.placements,
+                      num_images=args.images, num_fiducials=args.fiducials, fiducials=fiducials, num_points=args.points,
+                      mirror_distance_m=0.5 if args.distance is None else args.distance[0], tilt_deg=args.tilt,
+                      pixel_sigma=args.sigma or given.get("pixel_sigma", 1.0),
+                      focal_px=args.focal or given.get("focal_px"), estimate=args.estimate or given.get("estimate", ()))
+    if taken:
+        out.info(taken)
+    result = plan(setup, draws=args.draws, seed=args.seed)
+    if args.json is not None:
+        import json
+
+        outputs.commit({os.fspath(args.json): json.dumps(result.to_dict(), indent=2)})
+    out.info(format_plan(result))
+    if args.json is not None:
+        out.info(f"wrote {args.json}")
+    return EXIT_OK
