@@ -1,0 +1,266 @@
+"""Least median of squares over the placements of a node of the mirror tree (``consensus.py`` step 3).
+
+At a node of level Nv (its children: the placements of the last mirror), each triple of children gives
+the node's ``(A_{Nv-1}, b_{Nv-1})`` (eqs. 13-17), one hypothesis per choice of its images' PnP
+candidates (P3P's, a planar target's twins); every image is scored by the reprojection of its fiducials
+through the reflection nearest to its best candidate (eqs. 5-9, 6-7). Where the least-median hypothesis
+leaves some images far above its median, the majority's MLE (eq. 23, ``initial.refine_subtree``) judges
+each image again, its mirror placement fitted to its pixels where it is not one of the majority's, and
+an image still far off once more at the MLE of the majority and itself.
+"""
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import replace
+from itertools import combinations, product
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from mirror_fg.core.geometry import apply_transform, predict_camera_points, reflect_transforms
+from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.solver.analytic import Hypothesis, hypothesis_of_subtree, subtree_dataset, subtree_solution
+from mirror_fg.solver.calibration import Exclusion
+from mirror_fg.solver.initial import refine_subtree
+from mirror_fg.solver.peeling import MIN_NORMAL_SPREAD, reflection_fit, solve_children, solve_triples
+
+__all__ = ["CONSENSUS_MIN_SIGMAS", "CONSENSUS_FACTOR", "CONSENSUS_TRIPLES", "MIN_CHILDREN_P3P",
+           "COMBINATIONS_PER_TRIPLE", "check_node", "mirror_fit", "fiducial_names"]
+
+#: PnP candidates ``(A_Nv, b_Nv)`` of each image (by id).
+Candidates = dict[str, list[tuple[np.ndarray, np.ndarray]]]
+
+#: An image is inconsistent with its node's majority when the RMS (whitened) reprojection of its
+#: fiducials through the node's consensus exceeds this many sigmas ...
+CONSENSUS_MIN_SIGMAS = 20.0
+#: ... and this many times the median image's.
+CONSENSUS_FACTOR = 5.0
+#: Triples of children tried per node (all of them when there are fewer).
+CONSENSUS_TRIPLES = 40
+#: A node is judged with at least four children (three are solved exactly: no majority to compare
+#: against); with three-point images or a planar target's twins at least this many: every choice of
+#: a triple's candidates fits those three images, so the median must be over a majority outside it.
+MIN_CHILDREN_P3P = 7
+#: Per triple, the choices of its children's PnP candidates (P3P's, a planar target's twins) kept as
+#: hypotheses: those with the lowest residual of eqs. (13) and (16).
+COMBINATIONS_PER_TRIPLE = 2
+
+
+def fiducial_names(dataset: Dataset, image: Image) -> list[str]:
+    """The image's observations that are of fiducials, in the image's order."""
+    return [name for name in image.observations if name in dataset.fiducials]
+
+
+class _NodeObservations:
+    """A node's images flattened once: every PnP candidate of each image with a copy of the image's fiducial
+    observations (whitened later). ``owner[c]``: the image (index into ``images``) of candidate ``c``."""
+
+    def __init__(self, dataset: Dataset, images: list[Image], candidates: Candidates):
+        self.sigma = dataset.normalized_sigma
+        self.num_images = len(images)
+        A: list[np.ndarray] = []
+        b: list[np.ndarray] = []
+        owner: list[int] = []
+        index: list[int] = []
+        points: list[np.ndarray] = []
+        observed: list[np.ndarray] = []
+        for k, image in enumerate(images):
+            normalized = dataset.normalized(image)
+            names = fiducial_names(dataset, image)
+            image_points = [dataset.fiducials[name] for name in names]
+            image_observed = [normalized[name] for name in names]
+            for A_c, b_c in candidates[image.id]:
+                index.extend([len(A)] * len(names))
+                A.append(A_c)
+                b.append(b_c)
+                owner.append(k)
+                points.extend(image_points)
+                observed.extend(image_observed)
+        self.A, self.b = np.array(A).reshape(-1, 3, 3), np.array(b).reshape(-1, 3)
+        self.owner = np.array(owner, dtype=np.intp)
+        self.index = np.array(index, dtype=np.intp)
+        self.points = np.array(points, dtype=float).reshape(-1, 3)
+        self.observed = np.array(observed, dtype=float).reshape(-1, 2)
+        self.counts = np.maximum(np.bincount(self.index, minlength=len(self.A)), 1)
+        # candidates sorted by image: each image's best is the first of its run after a lexsort
+        self._starts = np.searchsorted(self.owner, np.arange(self.num_images))
+
+    def scores(self, A_parent: np.ndarray, b_parent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per image, the RMS whitened reprojection of its fiducials through the node's ``(A_{Nv-1},
+        b_{Nv-1})`` and the reflection nearest to its PnP candidate (eqs. 6-7, 5, 9; inf behind the
+        camera), the best of its candidates, and which candidate (index into ``self.A``) that is."""
+        _, vectors = reflection_fit(self.A, self.b, A_parent, b_parent)
+        A_pred, b_pred = reflect_transforms(A_parent, b_parent, vectors)  # eqs. (6)-(7)
+        camera_points = predict_camera_points(A_pred, b_pred, self.index, self.points)  # eq. (5)
+        depth = camera_points[:, 2]
+        predicted = camera_points[:, :2] / np.where(depth > 0, depth, 1.0)[:, None]
+        squared = np.sum(((predicted - self.observed) / self.sigma) ** 2, axis=1)  # eq. (9)
+        squared = np.where(depth > 0, squared, np.inf)
+        rms = np.sqrt(np.bincount(self.index, weights=squared, minlength=len(self.A)) / self.counts)
+        order = np.lexsort((rms, self.owner))  # by image, then by score
+        best = order[self._starts]
+        return rms[best], best
+
+
+def _hypotheses(
+    images: list[Image], candidates: Candidates, triples: Sequence[tuple[int, ...]],
+    parent_det: float, rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The node's ``(A_{Nv-1}, b_{Nv-1})`` (stacked) from each triple of children (eqs. 13-17), one image of
+    each child picked at random, solved at once for every choice of their PnP candidates; per triple the
+    ``COMBINATIONS_PER_TRIPLE`` choices with the lowest residual, where the three mirrors' normals are not
+    nearly coplanar."""
+    by_child: dict[int, list[Image]] = defaultdict(list)
+    for image in images:
+        by_child[image.mirror_configs[-1]].append(image)
+    rotations: list[list[np.ndarray]] = []
+    offsets: list[list[np.ndarray]] = []
+    owner: list[int] = []
+    for t, triple in enumerate(triples):
+        picks = [candidates[by_child[c][int(rng.integers(len(by_child[c])))].id] for c in triple]
+        for choice in product(*picks):
+            rotations.append([A for A, _ in choice])
+            offsets.append([b for _, b in choice])
+            owner.append(t)
+    if not rotations:
+        return np.zeros((0, 3, 3)), np.zeros((0, 3))
+    rotations_array: np.ndarray = np.array(rotations)
+    offsets_array: np.ndarray = np.array(offsets)
+    A_parent, b_parent, residual = solve_triples(rotations_array, offsets_array, parent_det)
+    owner_array = np.array(owner)
+    order = np.lexsort((residual, owner_array))
+    rank = np.empty(len(order), dtype=int)
+    firsts = np.searchsorted(owner_array[order], owner_array[order])
+    rank[order] = np.arange(len(order)) - firsts
+    keep = np.flatnonzero(rank < COMBINATIONS_PER_TRIPLE)
+    spread = np.array([_normal_spread(rotations_array[h], offsets_array[h], A_parent[h], b_parent[h]) for h in keep])
+    keep = keep[spread >= MIN_NORMAL_SPREAD] if len(keep) else keep
+    return A_parent[keep], b_parent[keep]
+
+
+def _normal_spread(rotations: np.ndarray, offsets: np.ndarray, A_parent: np.ndarray, b_parent: np.ndarray) -> float:
+    """Third singular value of the unit normals of the mirrors taking ``(A_parent, b_parent)`` to each
+    child's ``(A_l, b_l)`` (~radians out of their plane; eqs. 14-15 need them apart)."""
+    vectors = reflection_fit(rotations, offsets, A_parent, b_parent)[1]
+    normals = vectors / np.maximum(np.linalg.norm(vectors, axis=1), 1e-300)[:, None]
+    return float(np.linalg.svd(normals, compute_uv=False)[2])
+
+
+def check_node(
+    dataset: Dataset, prefix: tuple[int, ...], images: list[Image], candidates: Candidates,
+    rng: np.random.Generator,
+) -> tuple[list[Exclusion], dict[str, int]]:
+    """Least median of squares over triples of a level-Nv node's children: the images inconsistent with it,
+    and the candidate (index into the image's) each image is best explained by."""
+    children = sorted({im.mirror_configs[-1] for im in images})
+    three_point = any(len(candidates[im.id]) > 1 or len(fiducial_names(dataset, im)) == 3 for im in images)
+    if len(children) < (MIN_CHILDREN_P3P if three_point else 4):  # no majority to compare against
+        return [], {}
+    parent_det = (-1.0) ** (dataset.num_mirrors - 1)
+    triples = list(combinations(children, 3))
+    if len(triples) > CONSENSUS_TRIPLES:
+        triples = [triples[i] for i in rng.choice(len(triples), size=CONSENSUS_TRIPLES, replace=False)]
+    observations = _NodeObservations(dataset, images, candidates)
+    best: tuple[float, np.ndarray, np.ndarray] | None = None
+    for A_parent, b_parent in zip(*_hypotheses(images, candidates, triples, parent_det, rng)):
+        scores, chosen = observations.scores(A_parent, b_parent)
+        median = float(np.median(scores))
+        if best is None or median < best[0]:
+            best = (median, scores, chosen)
+    if best is None:
+        return [], {}
+    median, scores, chosen = best
+    first = observations._starts
+    choice = {im.id: int(chosen[k] - first[k]) for k, im in enumerate(images)}
+    inliers = scores <= max(CONSENSUS_MIN_SIGMAS, CONSENSUS_FACTOR * median)
+    if np.all(inliers):
+        return [], choice
+    # The closed form of a few placements is too coarse to judge an image by (real photographs: tens of
+    # sigma); the majority's MLE (eq. 23) judges each image, the others with their mirror fitted alone.
+    chosen_poses = {im.id: candidates[im.id][choice[im.id]] for im in images}
+    refined = _refined_scores(dataset, images, chosen_poses, candidates, inliers)
+    if refined is None:
+        return [], choice
+    scores, median, threshold = refined
+    where = "" if not prefix else " under " + ", ".join(f"mirror {l + 1} placement {m}" for l, m in enumerate(prefix))
+    return [
+        Exclusion(im.id, f"inconsistent with the other placements of mirror {dataset.num_mirrors}{where} "
+                         f"({_sigmas(score)}, the majority {median:.3g} sigma)", None, float(score))
+        for im, score in zip(images, scores) if not score <= threshold
+    ], choice
+
+
+def _refined_scores(
+    dataset: Dataset, images: list[Image], poses: dict[str, tuple[np.ndarray, np.ndarray]],
+    candidates: Candidates, inliers: np.ndarray,
+) -> tuple[np.ndarray, float, float] | None:
+    """RMS whitened reprojection of each image's fiducials at the MLE of the inlier images' subtree
+    (``initial.refine_subtree``, started from their ``poses``), an outlier image's mirror placement fitted
+    alone (from each of its PnP ``candidates``) on that node; the inliers' median and the threshold above
+    which an image is inconsistent. An outlier above it is scored again at the MLE of the inliers and
+    itself: a node of a few placements is too loosely determined to judge an image by its fit to them
+    alone, and an image the model fits is never left out. None when the inliers do not determine the node."""
+    level = dataset.num_mirrors
+    kept = [im for im, ok in zip(images, inliers) if ok]
+    children = sorted({im.mirror_configs[-1] for im in kept})
+    if len(children) < 3:
+        return None
+    parent_det = (-1.0) ** (level - 1)
+    index_of = {m: k for k, m in enumerate(children)}
+    node = solve_children([(index_of[im.mirror_configs[-1]], *poses[im.id]) for im in kept], len(children), parent_det)
+    hypothesis = Hypothesis(node.A_parent, node.b_parent, {(level, m): [v] for m, v in zip(children, node.mirror_vectors)}, {})
+    refined = refine_subtree(subtree_dataset(dataset, kept, level), subtree_solution(hypothesis, level))
+    if refined is None:
+        return None
+    back = hypothesis_of_subtree(refined[1], hypothesis, level)
+    mirror = {m: back.mirror_vectors[(level, m)][0] for m in children}
+    fits = [mirror_fit(dataset, image, [poses[image.id]] if ok else candidates[image.id], back.A, back.b,
+                        mirror.get(image.mirror_configs[-1]))
+            for image, ok in zip(images, inliers)]
+    scores = np.array([score for score, _ in fits])
+    median = float(np.median(scores[inliers]))
+    threshold = max(CONSENSUS_MIN_SIGMAS, CONSENSUS_FACTOR * median)
+    for k, (image, ok) in enumerate(zip(images, inliers)):
+        if ok or scores[k] <= threshold or not np.all(np.isfinite(fits[k][1])):
+            continue
+        start = replace(refined[1], mirror_vectors={**refined[1].mirror_vectors, (1, image.mirror_configs[-1]): fits[k][1]})
+        joint = refine_subtree(subtree_dataset(dataset, [*kept, image], level), start)
+        if joint is not None:
+            together = hypothesis_of_subtree(joint[1], hypothesis, level)
+            scores[k] = mirror_fit(dataset, image, [], together.A, together.b,
+                                    together.mirror_vectors[(level, image.mirror_configs[-1])][0])[0]
+    return scores, median, threshold
+
+
+def _sigmas(rms: float) -> str:
+    return f"{rms:.3g} sigma RMS" if rms < 1e6 else "its fiducials fall behind the camera or a mirror"
+
+
+def mirror_fit(
+    dataset: Dataset, image: Image, poses: list[tuple[np.ndarray, np.ndarray]], A_parent: np.ndarray,
+    b_parent: np.ndarray, mirror_vector: np.ndarray | None,
+) -> tuple[float, np.ndarray]:
+    """``consensus.misfit_sigmas`` and the mirror vector it is at (the given one, or the best fit)."""
+    names = fiducial_names(dataset, image)
+    points = np.array([dataset.fiducials[n] for n in names])
+    normalized = dataset.normalized(image)
+    observed = np.array([normalized[n] for n in names])
+
+    def errors(v: np.ndarray) -> np.ndarray:
+        A, b = reflect_transforms(A_parent, b_parent, v[None])  # eqs. (6)-(7)
+        camera_points = apply_transform(A[0], b[0], points)
+        depth = np.maximum(camera_points[:, 2], 1e-9)
+        return ((camera_points[:, :2] / depth[:, None] - observed) / dataset.normalized_sigma).ravel()  # eq. (9)
+
+    def rms(v: np.ndarray) -> float:
+        return float(np.sqrt(2.0 * np.mean(errors(v) ** 2)))
+
+    if mirror_vector is not None:
+        return rms(np.asarray(mirror_vector)), np.asarray(mirror_vector)
+    best: tuple[float, np.ndarray] = (float("inf"), np.full(3, np.nan))
+    for A, b in poses:
+        v0 = reflection_fit(A[None], b[None], A_parent, b_parent)[1][0]
+        fitted = least_squares(errors, v0, x_scale=np.full(3, 1e-3 + 1e-2 * np.linalg.norm(v0)), method="lm").x
+        best = min(best, (rms(fitted), fitted), key=lambda fit: fit[0])
+    return best

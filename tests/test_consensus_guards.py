@@ -1,0 +1,136 @@
+"""The consensus guards (issue 27): they neither refuse valid data (coplanar fiducials seen from either side,
+a small planar target whose PnP has a twin, a rough start of the intrinsics) nor let one garbage image of
+the paper's three-fiducial set-up sink the batch or the incremental solve."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from conftest import pose_difference
+from test_intrinsics import reference_pixels, seen_points
+
+from mirror_fg import calibrate
+from mirror_fg.core.geometry import apply_transform
+from mirror_fg.io.dataset import Dataset, Image, dataset_from_dict
+from mirror_fg.solver.consensus import screen
+from mirror_fg.solver.incremental import calibrate_incremental
+from mirror_fg.tools.simulate import measure, simulate_base_case, visible
+
+# Ten coplanar fiducials in the simulator's 20 cm triangle (its plane z = 0): corners, edge midpoints,
+# centroid and three inner points (the issue's layout).
+TRIANGLE = [(0.0, 0.0), (0.2, 0.0), (0.0, 0.2), (0.1, 0.0), (0.0, 0.1), (0.1, 0.1), (0.2 / 3, 0.2 / 3),
+            (0.04, 0.03), (0.12, 0.04), (0.03, 0.11)]
+CENTROID = np.array([0.2 / 3, 0.2 / 3, 0.0])
+#: A plane for them that mirror 1's placement 2 sees from the other side than placements 0 and 1 in the
+#: 60-image scene of seed 0, every view at least 20 deg off edge-on (found by a search over normals).
+TILTED_NORMAL = (-0.909, 0.036, 0.416)
+
+
+def _board(normal=(0.0, 0.0, 1.0)) -> dict[str, np.ndarray]:
+    """The ten points turned about the triangle's centroid so that their plane's normal is ``normal``."""
+    a, b = np.array([0.0, 0.0, 1.0]), np.asarray(normal, dtype=float) / np.linalg.norm(normal)
+    v, c = np.cross(a, b), float(a @ b)
+    V = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    R = np.eye(3) + V + V @ V / (1.0 + c)
+    return {f"B{i}": CENTROID + R @ (np.array([x, y, 0.0]) - CENTROID) for i, (x, y) in enumerate(TRIANGLE)}
+
+
+def _board_scene(board: dict[str, np.ndarray], num_images: int, seed: int, pixel_sigma: float = 1.0):
+    """The paper's two-mirror scene (its mirrors and T_cam_base) seen on ``board``; images where a board
+    point would not be visible are dropped."""
+    layout, truth = simulate_base_case(num_images=num_images, pixel_sigma=pixel_sigma, seed=seed)
+    rng = np.random.default_rng(seed + 100)
+    points = apply_transform(truth.R_cam_base, truth.t_cam_base, np.array(list(board.values())))
+    images = [Image(im.id, im.mirror_configs, measure(truth, layout.camera, board, im.mirror_configs, pixel_sigma, rng))
+              for im in layout.images if visible(layout.camera, points, truth.vectors(im.mirror_configs))]
+    return replace(layout, fiducials=board, images=images, source="<board scene>"), truth
+
+
+def _sigmas_from(calibration, R, t) -> np.ndarray:
+    return pose_difference(R, t, calibration.R_cam_base, calibration.t_cam_base) / np.sqrt(np.diag(calibration.covariance))
+
+
+# --------------------------------------------------------------------------------------------------
+# Valid data the guards refused
+
+
+def test_board_seen_from_the_other_side_by_one_mirror_group_is_kept():
+    """A board whose plane one placement of mirror 1 sees from the other side than the other two (every
+    view >= 20 deg off edge-on). Today: the whole group 'seen from behind' left out, then exit 2."""
+    board = _board(TILTED_NORMAL)
+    dataset, truth = _board_scene(board, num_images=60, seed=0)
+    plane_normal = np.cross(board["B1"] - CENTROID, board["B2"] - CENTROID)
+    sides = set()
+    for image in dataset.images:  # the truth: one placement of mirror 1 sees the board's other side
+        A, b = truth.transform(image.mirror_configs)
+        sides.add((image.mirror_configs[0], float(np.sign((A @ plane_normal) @ (A @ CENTROID + b)))))
+    assert len(sides) == 3 and {side for _, side in sides} == {-1.0, 1.0}, sides
+    _, excluded, _ = screen(dataset)
+    assert excluded == []
+    calibration = calibrate(dataset)
+    assert calibration.excluded == [] and calibration.converged
+    assert np.all(np.abs(_sigmas_from(calibration, truth.R_cam_base, truth.t_cam_base)) < 4.0)
+
+
+def test_small_distant_board_keeps_every_valid_image():
+    """Ten coplanar fiducials 2 m away through the mirrors: PnP's twin pose fits about as well as the
+    true one, and judging an image by the wrong twin left valid images out ('inconsistent with the other
+    placements of mirror 2', 1 of 60 here; 3 of 200 at seed 1 of the issue's scene)."""
+    dataset, truth = _board_scene(_board(), num_images=60, seed=6)
+    assert len(dataset.images) == 60
+    _, excluded, _ = screen(dataset)
+    assert excluded == []
+
+
+def test_rough_start_of_the_intrinsics_keeps_every_valid_image():
+    """camera.estimate started at fx = fy = 760 without distortion for a true 810 / 790, k1 = -0.2 (the
+    issue's rough start), the ten coplanar fiducials, 60 images: nothing left out (today 2 valid images)."""
+    truth_intrinsics = {"fx": 810.0, "fy": 790.0, "cx": 512.0, "cy": 384.0, "k1": -0.2}
+    _, truth = simulate_base_case(num_images=60, pixel_sigma=0.0, seed=0)
+    board = _board()
+    base = np.array(list(board.values()))
+    rng = np.random.default_rng(1000)
+    images = []
+    for i in range(60):
+        configs = [i * 3 // 60, i]
+        pixels = reference_pixels(seen_points(truth.R_cam_base, truth.t_cam_base, truth.vectors(configs), base),
+                                  truth_intrinsics) + rng.normal(scale=1.0, size=(len(board), 2))
+        images.append({"id": f"img{i:03d}", "mirror_configs": configs,
+                       "observations": {n: pixels[j].tolist() for j, n in enumerate(board)}})
+    data = {"format": "mirror-fg/dataset@1", "num_mirrors": 2, "pixel_sigma": 1.0,
+            "camera": {"model": "pinhole", "width": 1024, "height": 768, "fx": 760.0, "fy": 760.0, "cx": 512.0,
+                       "cy": 384.0, "dist": [0, 0, 0, 0, 0], "estimate": ["fx", "fy", "cx", "cy", "k1"]},
+            "fiducials": {n: p.tolist() for n, p in board.items()}, "images": images}
+    calibration = calibrate(dataset_from_dict(data), compute_covariance=False)
+    # (at 2 m the focal lengths are weakly determined by 60 images: whether LM converges is not this test's)
+    assert calibration.excluded == []
+
+
+# --------------------------------------------------------------------------------------------------
+# One garbage image of the paper's set-up (3 fiducials: no per-image PnP check)
+
+
+def _with_garbage(dataset: Dataset, index: int, seed: int) -> Dataset:
+    rng = np.random.default_rng(seed)
+    images = list(dataset.images)
+    bad = images[index]
+    images[index] = Image(bad.id, bad.mirror_configs,
+                          {name: rng.uniform([0.0, 0.0], [1024.0, 768.0]) for name in bad.observations})
+    return replace(dataset, images=images)
+
+
+@pytest.mark.parametrize("index", [10, 55])  # before the incremental start-up, and after it
+def test_one_garbage_image_is_left_out_by_batch_and_incremental_alike(index):
+    """Random pixels for one image of 60 (paper's scene, 1 px). Today: batch does not converge (LM
+    stalled, the analytical solution 0.6 m off), iSAM2 stalls or meets an indeterminant system."""
+    clean, _ = simulate_base_case(num_images=60, pixel_sigma=1.0, seed=0)
+    bad = _with_garbage(clean, index, seed=0)
+    bad_id = clean.images[index].id
+    reference = calibrate(replace(clean, images=[im for im in clean.images if im.id != bad_id]))
+    assert reference.excluded == []
+    batch = calibrate(bad)
+    incremental = calibrate_incremental(bad)
+    for calibration in (batch, incremental):
+        assert calibration.converged
+        assert [(e.image, e.point) for e in calibration.excluded] == [(bad_id, None)]
+        assert np.all(np.abs(_sigmas_from(reference, calibration.R_cam_base, calibration.t_cam_base)) < 0.1)
+    assert batch.excluded[0].reason.startswith("inconsistent with the other placements of mirror 2")
