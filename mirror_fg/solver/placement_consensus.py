@@ -16,9 +16,7 @@ from dataclasses import replace
 from itertools import combinations, product
 
 import numpy as np
-from scipy.optimize import least_squares
 
-from mirror_fg.core.geometry import apply_transform, predict_camera_points, reflect_transforms
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.analytic import Hypothesis, hypothesis_of_subtree, subtree_dataset, subtree_solution
 from mirror_fg.solver.calibration import Exclusion
@@ -26,7 +24,7 @@ from mirror_fg.solver.initial import refine_subtree
 from mirror_fg.solver.peeling import MIN_NORMAL_SPREAD, reflection_fit, solve_children, solve_triples
 
 __all__ = ["CONSENSUS_MIN_SIGMAS", "CONSENSUS_FACTOR", "CONSENSUS_TRIPLES", "MIN_CHILDREN_P3P",
-           "COMBINATIONS_PER_TRIPLE", "check_node", "mirror_fit", "fiducial_names"]
+           "COMBINATIONS_PER_TRIPLE", "check_node", "fit_mirrors", "mirror_fit", "fiducial_names"]
 
 #: PnP candidates ``(A_Nv, b_Nv)`` of each image (by id).
 Candidates = dict[str, list[tuple[np.ndarray, np.ndarray]]]
@@ -42,6 +40,12 @@ CONSENSUS_TRIPLES = 40
 #: against); with three-point images or a planar target's twins at least this many: every choice of
 #: a triple's candidates fits those three images, so the median must be over a majority outside it.
 MIN_CHILDREN_P3P = 7
+#: Levenberg-Marquardt iterations at most of :func:`fit_mirrors` (each image's last mirror fitted to its
+#: pixels; from the reflection nearest to its PnP pose it converges in a few).
+MIRROR_FIT_ITERATIONS = 20
+#: ... stopped when no mirror's cost changes by more than this fraction in an iteration (a score to judge
+#: by, not an estimate: its RMS to ~1e-4).
+MIRROR_FIT_TOLERANCE = 1e-4
 #: Per triple, the choices of its children's PnP candidates (P3P's, a planar target's twins) kept as
 #: hypotheses: those with the lowest residual of eqs. (13) and (16).
 COMBINATIONS_PER_TRIPLE = 2
@@ -86,21 +90,97 @@ class _NodeObservations:
         # candidates sorted by image: each image's best is the first of its run after a lexsort
         self._starts = np.searchsorted(self.owner, np.arange(self.num_images))
 
-    def scores(self, A_parent: np.ndarray, b_parent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per image, the RMS whitened reprojection of its fiducials through the node's ``(A_{Nv-1},
-        b_{Nv-1})`` and the reflection nearest to its PnP candidate (eqs. 6-7, 5, 9; inf behind the
-        camera), the best of its candidates, and which candidate (index into ``self.A``) that is."""
-        _, vectors = reflection_fit(self.A, self.b, A_parent, b_parent)
-        A_pred, b_pred = reflect_transforms(A_parent, b_parent, vectors)  # eqs. (6)-(7)
-        camera_points = predict_camera_points(A_pred, b_pred, self.index, self.points)  # eq. (5)
-        depth = camera_points[:, 2]
-        predicted = camera_points[:, :2] / np.where(depth > 0, depth, 1.0)[:, None]
-        squared = np.sum(((predicted - self.observed) / self.sigma) ** 2, axis=1)  # eq. (9)
-        squared = np.where(depth > 0, squared, np.inf)
-        rms = np.sqrt(np.bincount(self.index, weights=squared, minlength=len(self.A)) / self.counts)
-        order = np.lexsort((rms, self.owner))  # by image, then by score
-        best = order[self._starts]
-        return rms[best], best
+    def scores(self, A_parents: np.ndarray, b_parents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For each of H hypotheses ``(A_{Nv-1}, b_{Nv-1})`` of the node (stacked (H, 3, 3), (H, 3)) and
+        each image, the RMS whitened reprojection of its fiducials through the hypothesis and its last
+        mirror fitted to them (:func:`fit_mirrors`, from the reflection nearest to each PnP candidate;
+        eqs. 6-7, 3, 5, 9; inf behind the camera), the best of its candidates (H, images), and which
+        candidate (index into ``self.A``) that is (H, images). All hypotheses in one fit."""
+        num_hypotheses, num_candidates = len(A_parents), len(self.A)
+        starts = np.concatenate([reflection_fit(self.A, self.b, A_p, b_p)[1] for A_p, b_p in zip(A_parents, b_parents)])
+        before = (np.einsum("hab,rb->hra", A_parents, self.points) + b_parents[:, None, :]).reshape(-1, 3)  # eq. (5)
+        index = (np.arange(num_hypotheses)[:, None] * num_candidates + self.index[None, :]).ravel()
+        _, squared = fit_mirrors(before, index, np.tile(self.observed, (num_hypotheses, 1)), self.sigma, starts)
+        counts = np.tile(self.counts, num_hypotheses)
+        rms = np.sqrt(np.bincount(index, weights=squared, minlength=num_hypotheses * num_candidates) / counts)
+        rms = rms.reshape(num_hypotheses, num_candidates)
+        order = np.lexsort((rms, np.broadcast_to(self.owner, rms.shape)), axis=-1)  # by image, then by score
+        best = order[:, self._starts]
+        return np.take_along_axis(rms, best, axis=1), best
+
+
+def _reflected_errors(
+    before: np.ndarray, vectors: np.ndarray, observed: np.ndarray, sigma: np.ndarray, jacobians: bool
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """Whitened reprojection errors (R, 2) of points ``before`` (R, 3, camera frame) reflected by their
+    rows' mirror vectors ``vectors`` (R, 3) (eq. 3) and projected; their Jacobians (R, 2, 3) with respect
+    to the vectors when asked; and whether each point is in front of the camera."""
+    vv = np.einsum("ra,ra->r", vectors, vectors)
+    vx = np.einsum("ra,ra->r", vectors, before)
+    scale = 2.0 * (1.0 - vx / vv)
+    seen = before + scale[:, None] * vectors  # x - 2 ((v.x - v.v) / v.v) v, eq. (3)
+    depth = seen[:, 2]
+    front = depth > 1e-9
+    z = np.where(front, depth, 1e-9)
+    errors = (seen[:, :2] / z[:, None] - observed) / sigma
+    if not jacobians:
+        return errors, None, front
+    # d seen / d v = scale I - (2 / v.v) v x^T + (4 v.x / (v.v)^2) v v^T
+    d_seen = (scale[:, None, None] * np.eye(3) - (2.0 / vv)[:, None, None] * vectors[:, :, None] * before[:, None, :]
+              + (4.0 * vx / vv**2)[:, None, None] * vectors[:, :, None] * vectors[:, None, :])
+    d_project = np.zeros((len(seen), 2, 3))
+    d_project[:, 0, 0] = d_project[:, 1, 1] = 1.0 / z
+    d_project[:, :, 2] = -seen[:, :2] / z[:, None] ** 2
+    return errors, (d_project / sigma[None, :, None]) @ d_seen, front
+
+
+def fit_mirrors(
+    before: np.ndarray, index: np.ndarray, observed: np.ndarray, sigma: np.ndarray, vectors: np.ndarray,
+    iterations: int = MIRROR_FIT_ITERATIONS,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each mirror vector (K, 3, camera frame, metres) fitted by Levenberg-Marquardt, all at once, so that
+    its points reflect onto their observations: point r (``before`` (R, 3): camera-frame position before
+    the mirror) belongs to mirror ``index[r]`` and is seen at ``observed[r]`` (normalized, sigma (2,)).
+    Returns the fitted vectors and each point's squared whitened error (inf behind the camera)."""
+    vectors = np.array(vectors, dtype=float)
+    count = len(vectors)
+
+    def cost_of(candidate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        errors, _, front = _reflected_errors(before, candidate[index], observed, sigma, False)
+        squared = np.where(front, np.sum(errors**2, axis=1), np.inf)
+        return np.bincount(index, weights=squared, minlength=count), squared
+
+    # a point behind the camera costs inf (its error at a clamped depth still steers the step)
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        cost, squared = cost_of(vectors)
+        damping = np.full(count, 1e-3)
+        for _ in range(iterations):
+            errors, jacobian, _ = _reflected_errors(before, vectors[index], observed, sigma, True)
+            assert jacobian is not None
+            per_row = np.einsum("rea,reb->rab", jacobian, jacobian).reshape(-1, 9)
+            hessian = np.stack([np.bincount(index, weights=per_row[:, k], minlength=count) for k in range(9)],
+                               axis=1).reshape(count, 3, 3)
+            per_row_gradient = np.einsum("rea,re->ra", jacobian, errors)
+            gradient = np.stack([np.bincount(index, weights=per_row_gradient[:, k], minlength=count) for k in range(3)],
+                                axis=1)
+            diagonal = np.einsum("kaa->ka", hessian)
+            damped = hessian + (damping[:, None] * np.maximum(diagonal, 1e-30))[:, :, None] * np.eye(3)
+            try:
+                step = np.linalg.solve(damped, -gradient[..., None])[..., 0]
+            except np.linalg.LinAlgError:  # a singular system somewhere (a mirror through its points)
+                step = np.einsum("kab,kb->ka", np.linalg.pinv(np.nan_to_num(damped)), -np.nan_to_num(gradient))
+            trial = vectors + np.where(np.isfinite(step), step, 0.0)
+            trial_cost, trial_squared = cost_of(trial)
+            better = trial_cost < cost
+            vectors[better] = trial[better]
+            rows = better[index]
+            squared[rows] = trial_squared[rows]
+            moved = ~np.isclose(trial_cost, cost, rtol=MIRROR_FIT_TOLERANCE, atol=0.0)  # inf == inf
+            cost = np.where(better, trial_cost, cost)
+            damping = np.where(better, damping * 0.1, damping * 10.0)
+            if not np.any(moved):
+                break
+    return vectors, squared
 
 
 def _hypotheses(
@@ -162,15 +242,13 @@ def check_node(
     if len(triples) > CONSENSUS_TRIPLES:
         triples = [triples[i] for i in rng.choice(len(triples), size=CONSENSUS_TRIPLES, replace=False)]
     observations = _NodeObservations(dataset, images, candidates)
-    best: tuple[float, np.ndarray, np.ndarray] | None = None
-    for A_parent, b_parent in zip(*_hypotheses(images, candidates, triples, parent_det, rng)):
-        scores, chosen = observations.scores(A_parent, b_parent)
-        median = float(np.median(scores))
-        if best is None or median < best[0]:
-            best = (median, scores, chosen)
-    if best is None:
+    A_parents, b_parents = _hypotheses(images, candidates, triples, parent_det, rng)
+    if len(A_parents) == 0:
         return [], {}
-    median, scores, chosen = best
+    all_scores, all_chosen = observations.scores(A_parents, b_parents)
+    medians = np.median(all_scores, axis=1)
+    best = int(np.argmin(medians))  # the first of equal medians, as one at a time
+    median, scores, chosen = float(medians[best]), all_scores[best], all_chosen[best]
     first = observations._starts
     choice = {im.id: int(chosen[k] - first[k]) for k, im in enumerate(images)}
     inliers = scores <= max(CONSENSUS_MIN_SIGMAS, CONSENSUS_FACTOR * median)
@@ -247,20 +325,19 @@ def mirror_fit(
     normalized = dataset.normalized(image)
     observed = np.array([normalized[n] for n in names])
 
-    def errors(v: np.ndarray) -> np.ndarray:
-        A, b = reflect_transforms(A_parent, b_parent, v[None])  # eqs. (6)-(7)
-        camera_points = apply_transform(A[0], b[0], points)
-        depth = np.maximum(camera_points[:, 2], 1e-9)
-        return ((camera_points[:, :2] / depth[:, None] - observed) / dataset.normalized_sigma).ravel()  # eq. (9)
-
-    def rms(v: np.ndarray) -> float:
-        return float(np.sqrt(2.0 * np.mean(errors(v) ** 2)))
-
+    before = points @ A_parent.T + b_parent  # before the last mirror (eq. 5)
     if mirror_vector is not None:
-        return rms(np.asarray(mirror_vector)), np.asarray(mirror_vector)
-    best: tuple[float, np.ndarray] = (float("inf"), np.full(3, np.nan))
-    for A, b in poses:
-        v0 = reflection_fit(A[None], b[None], A_parent, b_parent)[1][0]
-        fitted = least_squares(errors, v0, x_scale=np.full(3, 1e-3 + 1e-2 * np.linalg.norm(v0)), method="lm").x
-        best = min(best, (rms(fitted), fitted), key=lambda fit: fit[0])
-    return best
+        starts = np.asarray(mirror_vector, dtype=float).reshape(1, 3)
+        iterations = 0
+    else:
+        starts = reflection_fit(np.array([A for A, _ in poses]).reshape(-1, 3, 3),
+                                np.array([b for _, b in poses]).reshape(-1, 3), A_parent, b_parent)[1]
+        iterations = MIRROR_FIT_ITERATIONS
+    if len(starts) == 0:
+        return float("inf"), np.full(3, np.nan)
+    index = np.repeat(np.arange(len(starts)), len(points))
+    vectors, squared = fit_mirrors(np.tile(before, (len(starts), 1)), index, np.tile(observed, (len(starts), 1)),
+                                   dataset.normalized_sigma, starts, iterations)
+    rms = np.sqrt(np.bincount(index, weights=squared, minlength=len(starts)) / len(points))
+    best = int(np.argmin(rms))
+    return float(rms[best]), vectors[best]

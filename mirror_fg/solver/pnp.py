@@ -15,8 +15,11 @@ from mirror_fg.core.geometry import FLIP_Y, apply_transform, project, so3_exp_ma
 __all__ = ["pnp_candidates", "pnp_candidates_many", "pnp_minima"]
 
 #: Two refined poses are the same minimum when their rotations (entries) and translations (relative)
-#: differ by less than this; a planar target's twin differs by about its viewing angle's change (>= 1e-2).
+#: differ by less than this (LM stops up to ~1e-4 apart in a shallow twin's valley); a planar target's twin
+#: differs by about its viewing angle's change (>= 1e-2).
 SAME_MINIMUM = 1e-3
+#: Two solvers' starts this close (same measure) lie in one basin: only the better one is refined.
+SAME_BASIN = 1e-3
 _PNP_CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
 
 
@@ -65,8 +68,16 @@ def _pnp_minima(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[n
         except cv2.error:
             continue
         poses.extend(_pose_from_rvec(rvecs[i], tvecs[i]) for i in range(count))
+    # Starts of one basin (the solvers agree on a clear view) are refined once, from the best of them.
+    starts = sorted(((_reprojection_rms(R, t, base_points, normalized), k) for k, (R, t) in enumerate(poses)),
+                    key=lambda entry: entry[0])
     refined: list[tuple[float, np.ndarray, np.ndarray]] = []
-    for R, t in poses:
+    chosen: list[tuple[np.ndarray, np.ndarray]] = []
+    for _, k in starts:
+        R, t = poses[k]
+        if any(_same_pose(R, t, *other, SAME_BASIN) for other in chosen):
+            continue
+        chosen.append((R, t))
         rvec = cv2.Rodrigues(R)[0]
         tvec = t.reshape(3, 1).copy()
         try:
@@ -79,12 +90,16 @@ def _pnp_minima(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[n
             refined.append((error, R_ref, t_ref))
     refined.sort(key=lambda entry: entry[0])
     minima: list[tuple[np.ndarray, np.ndarray]] = []
-    for _, R, t in refined:  # the same minimum reached from several starts once (LM stops up to ~1e-4 apart in a shallow twin)
-        scale = max(float(np.linalg.norm(t)), 1e-12)
-        if all(np.abs(R - R_kept).max() > SAME_MINIMUM or np.linalg.norm(t - t_kept) > SAME_MINIMUM * scale
-               for R_kept, t_kept in minima):
+    for _, R, t in refined:  # the same minimum reached from several starts once
+        if not any(_same_pose(R, t, *kept, SAME_MINIMUM) for kept in minima):
             minima.append((R, t))
     return minima
+
+
+def _same_pose(R: np.ndarray, t: np.ndarray, R_other: np.ndarray, t_other: np.ndarray, tolerance: float) -> bool:
+    """Whether two poses' rotations (entries) and translations (relative) differ by less than ``tolerance``."""
+    scale = max(float(np.linalg.norm(t)), 1e-12)
+    return bool(np.abs(R - R_other).max() <= tolerance and np.linalg.norm(t - t_other) <= tolerance * scale)
 
 
 def pnp_minima(base_points: np.ndarray, normalized: np.ndarray, num_mirrors: int) -> list[tuple[np.ndarray, np.ndarray]]:
