@@ -134,3 +134,60 @@ def test_one_garbage_image_is_left_out_by_batch_and_incremental_alike(index):
         assert [(e.image, e.point) for e in calibration.excluded] == [(bad_id, None)]
         assert np.all(np.abs(_sigmas_from(reference, calibration.R_cam_base, calibration.t_cam_base)) < 0.1)
     assert batch.excluded[0].reason.startswith("inconsistent with the other placements of mirror 2")
+
+
+@pytest.mark.parametrize("incremental", [False, True])
+def test_cli_exits_0_naming_the_garbage_image(tmp_path, incremental):
+    """The command line: exit 0 with the image in result@1's ``excluded`` (its misfit, its fiducials behind
+    the camera, must not make the result file invalid)."""
+    import json
+
+    from mirror_fg.cli import main
+    from mirror_fg.tools.simulate import write_simulation
+
+    clean, truth = simulate_base_case(num_images=60, pixel_sigma=1.0, seed=0)
+    path = tmp_path / "garbage.json"
+    write_simulation(path, _with_garbage(clean, 10, seed=0), truth)
+    out = tmp_path / "result.json"
+    assert main(["calibrate", str(path), "-o", str(out), "--no-ros", "-q", *(["--incremental"] if incremental else [])]) == 0
+    excluded = json.loads(out.read_text())["excluded"]
+    assert [(e["image"], e["point"]) for e in excluded] == [(clean.images[10].id, None)]
+
+
+# --------------------------------------------------------------------------------------------------
+# The screening's mirror fit (speed: one Levenberg-Marquardt of every image and hypothesis at once)
+
+
+def test_fit_mirrors_reaches_each_mirrors_least_squares_optimum():
+    """``fit_mirrors`` on 40 mirrors at once against scipy's least_squares on each alone (same starts,
+    eq. 3 written here from the SPEC), with noise so that the optimum is not the truth."""
+    from scipy.optimize import least_squares
+
+    from mirror_fg.solver.placement_consensus import fit_mirrors
+
+    rng = np.random.default_rng(3)
+    sigma = np.array([1.0 / 800, 1.0 / 790])
+    count, per_mirror = 40, 6
+    normals = np.array([0.0, 0.0, 1.0]) + rng.normal(scale=0.3, size=(count, 3)) * [1, 1, 0]
+    truth = 0.5 * normals / np.linalg.norm(normals, axis=1)[:, None]
+    before = np.concatenate([rng.uniform([-0.2, -0.1, -0.6], [0.2, 0.3, -0.2], size=(per_mirror, 3)) for _ in range(count)])
+    index = np.repeat(np.arange(count), per_mirror)
+
+    def reflect(x, v):  # the plane v.x = v.v
+        return x - 2.0 * (((x * v).sum(axis=-1) - (v * v).sum(axis=-1)) / (v * v).sum(axis=-1))[..., None] * v
+
+    seen = reflect(before, truth[index])
+    observed = seen[:, :2] / seen[:, 2:] + rng.normal(size=(len(index), 2)) * sigma
+    starts = truth + rng.normal(scale=0.02, size=truth.shape)
+    fitted, squared = fit_mirrors(before, index, observed, sigma, starts)
+    costs = np.bincount(index, weights=squared, minlength=count)
+    for k in range(count):
+        rows = index == k
+
+        def residual(v, rows=rows):
+            x = reflect(before[rows], v)
+            return ((x[:, :2] / x[:, 2:] - observed[rows]) / sigma).ravel()
+
+        reference = least_squares(residual, starts[k], method="lm", xtol=1e-14, ftol=1e-14)
+        assert costs[k] <= 2.0 * reference.cost * (1 + 1e-3) + 1e-9
+        assert np.linalg.norm(fitted[k] - reference.x) < 1e-3 * np.linalg.norm(reference.x)

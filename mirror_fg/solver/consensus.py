@@ -30,7 +30,7 @@ Nothing left out is dropped silently: every image or measurement is an
 """
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import logging
 from collections import defaultdict
@@ -50,7 +50,7 @@ from mirror_fg.solver.pnp import pnp_candidates, pnp_candidates_many, pnp_minima
 
 __all__ = [
     "PNP_POINT_SIGMAS", "MAX_BAD_POINT_FRACTION", "CONSENSUS_MIN_SIGMAS", "CONSENSUS_FACTOR", "FINAL_SIGMAS",
-    "screen", "final_check", "without", "check_image", "board_side", "misfit_sigmas",
+    "screen", "check_images", "ImageChecks", "final_check", "without", "check_image", "board_side", "misfit_sigmas",
 ]
 
 logger = logging.getLogger("mirror_fg")
@@ -177,17 +177,25 @@ def _seen_from_behind(
 PnPCandidates = dict[str, list[tuple[np.ndarray, np.ndarray]]]
 
 
-def screen(dataset: Dataset, seed: int = 0) -> tuple[Dataset, list[Exclusion], PnPCandidates]:
-    """``dataset`` without the images and fiducial observations that disagree with the rest, those left
-    out with their reasons (module docstring, steps 1-3), and the PnP candidates of every image kept
-    unchanged (for ``initial_estimate``, which would compute the same again). Images with fewer than 3
-    fiducials are not checked. With nothing left out, ``dataset`` itself is returned (the same object)."""
+@dataclass
+class ImageChecks:
+    """Step 1 of :func:`screen` on every image: the PnP candidates of each image kept (Sect. 4.1, eqs.
+    10-12; what the analytical solution starts from) and what the per-image check left out."""
+
+    candidates: dict[str, list[tuple[np.ndarray, np.ndarray]]]
+    excluded: list[Exclusion]
+
+
+def check_images(dataset: Dataset) -> ImageChecks:
+    """Each image's PnP and its check (module docstring, step 1): with >= 4 fiducials the PnP fit (gross
+    fiducials, wrong corner orders left out; a planar target's twin kept as a candidate), with three
+    P3P's candidates (all images at once, nothing to check), with fewer nothing."""
     excluded: list[Exclusion] = []
     candidates: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     three: list[tuple[str, tuple[np.ndarray, np.ndarray]]] = []
     for image in dataset.images:
         names = fiducial_names(dataset, image)
-        if len(names) == 3:  # P3P's candidates, all images at once below; no per-image check
+        if len(names) == 3:
             normalized = dataset.normalized(image)
             three.append((image.id, (np.array([dataset.fiducials[n] for n in names]),
                                      np.array([normalized[n] for n in names]))))
@@ -203,6 +211,19 @@ def screen(dataset: Dataset, seed: int = 0) -> tuple[Dataset, list[Exclusion], P
     for (image_id, _), poses in zip(three, pnp_candidates_many([problem for _, problem in three], dataset.num_mirrors)):
         if poses:
             candidates[image_id] = poses
+    return ImageChecks(candidates, excluded)
+
+
+def screen(dataset: Dataset, seed: int = 0, checked: ImageChecks | None = None) -> tuple[Dataset, list[Exclusion], PnPCandidates]:
+    """``dataset`` without the images and fiducial observations that disagree with the rest, those left
+    out with their reasons (module docstring, steps 1-3), and the PnP candidates of every image kept
+    unchanged (for ``initial_estimate``, which would compute the same again). ``checked``: step 1's
+    :func:`check_images` of ``dataset`` when already done (``calibrate`` times it as the PnP). Images
+    with fewer than 3 fiducials are not checked. With nothing left out, ``dataset`` itself is returned
+    (the same object)."""
+    checked = checked if checked is not None else check_images(dataset)
+    excluded = list(checked.excluded)
+    candidates = dict(checked.candidates)
     normal = _board_normal(dataset)
     behind = _seen_from_behind(dataset, candidates, normal) if normal is not None and candidates else set()
     reduced = without(dataset, excluded) if excluded else dataset

@@ -21,7 +21,9 @@ from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.analytic import Hypothesis, hypothesis_of_subtree, subtree_dataset, subtree_solution
 from mirror_fg.solver.calibration import Exclusion
 from mirror_fg.solver.initial import refine_subtree
-from mirror_fg.solver.peeling import MIN_NORMAL_SPREAD, reflection_fit, solve_children, solve_triples
+from mirror_fg.solver.peeling import (
+    MIN_NORMAL_SPREAD, reflection_fit, smallest_eigenvectors, solve_children, solve_triples,
+)
 
 __all__ = ["CONSENSUS_MIN_SIGMAS", "CONSENSUS_FACTOR", "CONSENSUS_TRIPLES", "MIN_CHILDREN_P3P",
            "COMBINATIONS_PER_TRIPLE", "check_node", "fit_mirrors", "mirror_fit", "fiducial_names"]
@@ -94,10 +96,11 @@ class _NodeObservations:
         """For each of H hypotheses ``(A_{Nv-1}, b_{Nv-1})`` of the node (stacked (H, 3, 3), (H, 3)) and
         each image, the RMS whitened reprojection of its fiducials through the hypothesis and its last
         mirror fitted to them (:func:`fit_mirrors`, from the reflection nearest to each PnP candidate;
-        eqs. 6-7, 3, 5, 9; inf behind the camera), the best of its candidates (H, images), and which
+        eqs. 6-7, 3, 5, 9; huge behind the camera), the best of its candidates (H, images), and which
         candidate (index into ``self.A``) that is (H, images). All hypotheses in one fit."""
         num_hypotheses, num_candidates = len(A_parents), len(self.A)
-        starts = np.concatenate([reflection_fit(self.A, self.b, A_p, b_p)[1] for A_p, b_p in zip(A_parents, b_parents)])
+        starts = reflection_fit(np.tile(self.A, (num_hypotheses, 1, 1)), np.tile(self.b, (num_hypotheses, 1)),
+                                np.repeat(A_parents, num_candidates, axis=0), np.repeat(b_parents, num_candidates, axis=0))[1]
         before = (np.einsum("hab,rb->hra", A_parents, self.points) + b_parents[:, None, :]).reshape(-1, 3)  # eq. (5)
         index = (np.arange(num_hypotheses)[:, None] * num_candidates + self.index[None, :]).ravel()
         _, squared = fit_mirrors(before, index, np.tile(self.observed, (num_hypotheses, 1)), self.sigma, starts)
@@ -111,27 +114,37 @@ class _NodeObservations:
 
 def _reflected_errors(
     before: np.ndarray, vectors: np.ndarray, observed: np.ndarray, sigma: np.ndarray, jacobians: bool
-) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Whitened reprojection errors (R, 2) of points ``before`` (R, 3, camera frame) reflected by their
-    rows' mirror vectors ``vectors`` (R, 3) (eq. 3) and projected; their Jacobians (R, 2, 3) with respect
-    to the vectors when asked; and whether each point is in front of the camera."""
+    rows' mirror vectors ``vectors`` (R, 3) (eq. 3) and projected (from a depth of at least 1e-9); when
+    asked, their Jacobians with respect to the vectors (2, R, 3: the x rows, then the y rows)."""
     vv = np.einsum("ra,ra->r", vectors, vectors)
     vx = np.einsum("ra,ra->r", vectors, before)
     scale = 2.0 * (1.0 - vx / vv)
     seen = before + scale[:, None] * vectors  # x - 2 ((v.x - v.v) / v.v) v, eq. (3)
     depth = seen[:, 2]
-    front = depth > 1e-9
-    z = np.where(front, depth, 1e-9)
-    errors = (seen[:, :2] / z[:, None] - observed) / sigma
+    inverse_depth = 1.0 / np.maximum(depth, 1e-9)
+    projected = seen[:, :2] * inverse_depth[:, None]
+    errors = (projected - observed) / sigma
     if not jacobians:
-        return errors, None, front
-    # d seen / d v = scale I - (2 / v.v) v x^T + (4 v.x / (v.v)^2) v v^T
-    d_seen = (scale[:, None, None] * np.eye(3) - (2.0 / vv)[:, None, None] * vectors[:, :, None] * before[:, None, :]
-              + (4.0 * vx / vv**2)[:, None, None] * vectors[:, :, None] * vectors[:, None, :])
-    d_project = np.zeros((len(seen), 2, 3))
-    d_project[:, 0, 0] = d_project[:, 1, 1] = 1.0 / z
-    d_project[:, :, 2] = -seen[:, :2] / z[:, None] ** 2
-    return errors, (d_project / sigma[None, :, None]) @ d_seen, front
+        return errors, None
+    # d seen / d v = scale I + v w^T with w = -(2 / v.v) x + (4 v.x / (v.v)^2) v; the projection's
+    # derivative row for u = x / z is (1, 0, -u) / z (and for y alike): row . (scale I + v w^T).
+    w = (-2.0 / vv)[:, None] * before + (4.0 * vx / vv**2)[:, None] * vectors
+    jacobian = np.empty((2, len(seen), 3))
+    for e in range(2):
+        row = np.zeros((len(seen), 3))
+        row[:, e] = inverse_depth
+        row[:, 2] = -projected[:, e] * inverse_depth
+        row_v = np.einsum("ra,ra->r", row, vectors)
+        jacobian[e] = (scale[:, None] * row + row_v[:, None] * w) / sigma[e]
+    return errors, jacobian
+
+
+#: The upper triangle of a symmetric 3x3 matrix (its rows and columns), and where each of its nine
+#: entries is in it.
+_UPPER_A, _UPPER_B = np.triu_indices(3)
+_SYMMETRIC = np.array([0, 1, 2, 1, 3, 4, 2, 4, 5])
 
 
 def fit_mirrors(
@@ -141,28 +154,31 @@ def fit_mirrors(
     """Each mirror vector (K, 3, camera frame, metres) fitted by Levenberg-Marquardt, all at once, so that
     its points reflect onto their observations: point r (``before`` (R, 3): camera-frame position before
     the mirror) belongs to mirror ``index[r]`` and is seen at ``observed[r]`` (normalized, sigma (2,)).
-    Returns the fitted vectors and each point's squared whitened error (inf behind the camera)."""
+    Returns the fitted vectors and each point's squared whitened error (a point behind the camera is
+    projected from a depth of 1e-9: its error is huge, and finite)."""
     vectors = np.array(vectors, dtype=float)
     count = len(vectors)
 
-    def cost_of(candidate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        errors, _, front = _reflected_errors(before, candidate[index], observed, sigma, False)
-        squared = np.where(front, np.sum(errors**2, axis=1), np.inf)
-        return np.bincount(index, weights=squared, minlength=count), squared
+    def per_mirror(values: np.ndarray) -> np.ndarray:  # (R, n) summed per mirror -> (K, n)
+        return np.stack([np.bincount(index, weights=values[:, k], minlength=count) for k in range(values.shape[1])],
+                        axis=1)
 
-    # a point behind the camera costs inf (its error at a clamped depth still steers the step)
+    def squared_of(errors: np.ndarray) -> np.ndarray:
+        return errors[:, 0] ** 2 + errors[:, 1] ** 2  # behind the camera: at a clamped depth, huge but finite
+
     with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
-        cost, squared = cost_of(vectors)
+        errors, jacobian = _reflected_errors(before, vectors[index], observed, sigma, iterations > 0)
+        squared = squared_of(errors)
+        cost = np.bincount(index, weights=squared, minlength=count)
         damping = np.full(count, 1e-3)
-        for _ in range(iterations):
-            errors, jacobian, _ = _reflected_errors(before, vectors[index], observed, sigma, True)
+        for iteration in range(iterations):
+            if iteration:
+                errors, jacobian = _reflected_errors(before, vectors[index], observed, sigma, True)
             assert jacobian is not None
-            per_row = np.einsum("rea,reb->rab", jacobian, jacobian).reshape(-1, 9)
-            hessian = np.stack([np.bincount(index, weights=per_row[:, k], minlength=count) for k in range(9)],
-                               axis=1).reshape(count, 3, 3)
-            per_row_gradient = np.einsum("rea,re->ra", jacobian, errors)
-            gradient = np.stack([np.bincount(index, weights=per_row_gradient[:, k], minlength=count) for k in range(3)],
-                                axis=1)
+            jx, jy = jacobian
+            upper = per_mirror(jx[:, _UPPER_A] * jx[:, _UPPER_B] + jy[:, _UPPER_A] * jy[:, _UPPER_B])  # J^T J, 6 of 9
+            hessian = upper[:, _SYMMETRIC].reshape(count, 3, 3)
+            gradient = per_mirror(jx * errors[:, :1] + jy * errors[:, 1:])
             diagonal = np.einsum("kaa->ka", hessian)
             damped = hessian + (damping[:, None] * np.maximum(diagonal, 1e-30))[:, :, None] * np.eye(3)
             try:
@@ -170,12 +186,13 @@ def fit_mirrors(
             except np.linalg.LinAlgError:  # a singular system somewhere (a mirror through its points)
                 step = np.einsum("kab,kb->ka", np.linalg.pinv(np.nan_to_num(damped)), -np.nan_to_num(gradient))
             trial = vectors + np.where(np.isfinite(step), step, 0.0)
-            trial_cost, trial_squared = cost_of(trial)
+            trial_squared = squared_of(_reflected_errors(before, trial[index], observed, sigma, False)[0])
+            trial_cost = np.bincount(index, weights=trial_squared, minlength=count)
             better = trial_cost < cost
             vectors[better] = trial[better]
             rows = better[index]
             squared[rows] = trial_squared[rows]
-            moved = ~np.isclose(trial_cost, cost, rtol=MIRROR_FIT_TOLERANCE, atol=0.0)  # inf == inf
+            moved = np.abs(trial_cost - cost) > MIRROR_FIT_TOLERANCE * cost
             cost = np.where(better, trial_cost, cost)
             damping = np.where(better, damping * 0.1, damping * 10.0)
             if not np.any(moved):
@@ -214,17 +231,12 @@ def _hypotheses(
     firsts = np.searchsorted(owner_array[order], owner_array[order])
     rank[order] = np.arange(len(order)) - firsts
     keep = np.flatnonzero(rank < COMBINATIONS_PER_TRIPLE)
-    spread = np.array([_normal_spread(rotations_array[h], offsets_array[h], A_parent[h], b_parent[h]) for h in keep])
-    keep = keep[spread >= MIN_NORMAL_SPREAD] if len(keep) else keep
+    # the three mirrors' normals (eq. 13: the -1 eigenvector of A_l A_{l-1}^T) must not be nearly coplanar
+    M = rotations_array[keep] @ np.swapaxes(A_parent[keep], -1, -2)[:, None]
+    normals = smallest_eigenvectors(0.5 * (M + np.swapaxes(M, -1, -2)).reshape(-1, 3, 3)).reshape(-1, 3, 3)
+    spread = np.linalg.svd(normals, compute_uv=False)[:, 2] if len(keep) else np.zeros(0)
+    keep = keep[spread >= MIN_NORMAL_SPREAD]
     return A_parent[keep], b_parent[keep]
-
-
-def _normal_spread(rotations: np.ndarray, offsets: np.ndarray, A_parent: np.ndarray, b_parent: np.ndarray) -> float:
-    """Third singular value of the unit normals of the mirrors taking ``(A_parent, b_parent)`` to each
-    child's ``(A_l, b_l)`` (~radians out of their plane; eqs. 14-15 need them apart)."""
-    vectors = reflection_fit(rotations, offsets, A_parent, b_parent)[1]
-    normals = vectors / np.maximum(np.linalg.norm(vectors, axis=1), 1e-300)[:, None]
-    return float(np.linalg.svd(normals, compute_uv=False)[2])
 
 
 def check_node(
@@ -264,7 +276,8 @@ def check_node(
     where = "" if not prefix else " under " + ", ".join(f"mirror {l + 1} placement {m}" for l, m in enumerate(prefix))
     return [
         Exclusion(im.id, f"inconsistent with the other placements of mirror {dataset.num_mirrors}{where} "
-                         f"({_sigmas(score)}, the majority {median:.3g} sigma)", None, float(score))
+                         f"({_sigmas(score)}, the majority {median:.3g} sigma)", None,
+                  float(score) if np.isfinite(score) else None)
         for im, score in zip(images, scores) if not score <= threshold
     ], choice
 
