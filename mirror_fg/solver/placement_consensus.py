@@ -159,43 +159,48 @@ def fit_mirrors(
     vectors = np.array(vectors, dtype=float)
     count = len(vectors)
 
-    def per_mirror(values: np.ndarray) -> np.ndarray:  # (R, n) summed per mirror -> (K, n)
-        return np.stack([np.bincount(index, weights=values[:, k], minlength=count) for k in range(values.shape[1])],
-                        axis=1)
-
     def squared_of(errors: np.ndarray) -> np.ndarray:
         return errors[:, 0] ** 2 + errors[:, 1] ** 2  # behind the camera: at a clamped depth, huge but finite
 
     with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
-        errors, jacobian = _reflected_errors(before, vectors[index], observed, sigma, iterations > 0)
-        squared = squared_of(errors)
+        squared = squared_of(_reflected_errors(before, vectors[index], observed, sigma, False)[0])
         cost = np.bincount(index, weights=squared, minlength=count)
         damping = np.full(count, 1e-3)
-        for iteration in range(iterations):
-            if iteration:
-                errors, jacobian = _reflected_errors(before, vectors[index], observed, sigma, True)
+        active = np.ones(count, dtype=bool)  # the mirrors still moving: only their points are evaluated
+        for _ in range(iterations):
+            mirrors = np.flatnonzero(active)
+            rows = np.flatnonzero(active[index])
+            local = np.empty(count, dtype=np.intp)
+            local[mirrors] = np.arange(len(mirrors))
+            owner = local[index[rows]]
+
+            def per_mirror(values: np.ndarray) -> np.ndarray:  # (rows, n) summed per active mirror
+                return np.stack([np.bincount(owner, weights=values[:, k], minlength=len(mirrors))
+                                 for k in range(values.shape[1])], axis=1)
+
+            errors, jacobian = _reflected_errors(before[rows], vectors[index[rows]], observed[rows], sigma, True)
             assert jacobian is not None
             jx, jy = jacobian
             upper = per_mirror(jx[:, _UPPER_A] * jx[:, _UPPER_B] + jy[:, _UPPER_A] * jy[:, _UPPER_B])  # J^T J, 6 of 9
-            hessian = upper[:, _SYMMETRIC].reshape(count, 3, 3)
+            hessian = upper[:, _SYMMETRIC].reshape(-1, 3, 3)
             gradient = per_mirror(jx * errors[:, :1] + jy * errors[:, 1:])
-            diagonal = np.einsum("kaa->ka", hessian)
-            damped = hessian + (damping[:, None] * np.maximum(diagonal, 1e-30))[:, :, None] * np.eye(3)
+            diagonal = np.maximum(np.einsum("kaa->ka", hessian), 1e-30)
+            damped = hessian + (damping[mirrors, None] * diagonal)[:, :, None] * np.eye(3)
             try:
                 step = np.linalg.solve(damped, -gradient[..., None])[..., 0]
             except np.linalg.LinAlgError:  # a singular system somewhere (a mirror through its points)
                 step = np.einsum("kab,kb->ka", np.linalg.pinv(np.nan_to_num(damped)), -np.nan_to_num(gradient))
-            trial = vectors + np.where(np.isfinite(step), step, 0.0)
-            trial_squared = squared_of(_reflected_errors(before, trial[index], observed, sigma, False)[0])
-            trial_cost = np.bincount(index, weights=trial_squared, minlength=count)
-            better = trial_cost < cost
-            vectors[better] = trial[better]
-            rows = better[index]
-            squared[rows] = trial_squared[rows]
-            moved = np.abs(trial_cost - cost) > MIRROR_FIT_TOLERANCE * cost
-            cost = np.where(better, trial_cost, cost)
-            damping = np.where(better, damping * 0.1, damping * 10.0)
-            if not np.any(moved):
+            trial = vectors[mirrors] + np.where(np.isfinite(step), step, 0.0)
+            trial_squared = squared_of(_reflected_errors(before[rows], trial[owner], observed[rows], sigma, False)[0])
+            trial_cost = np.bincount(owner, weights=trial_squared, minlength=len(mirrors))
+            better = trial_cost < cost[mirrors]
+            vectors[mirrors[better]] = trial[better]
+            taken = better[owner]
+            squared[rows[taken]] = trial_squared[taken]
+            active[mirrors] = np.abs(trial_cost - cost[mirrors]) > MIRROR_FIT_TOLERANCE * cost[mirrors]
+            cost[mirrors[better]] = trial_cost[better]
+            damping[mirrors] = np.where(better, damping[mirrors] * 0.1, damping[mirrors] * 10.0)
+            if not active.any():
                 break
     return vectors, squared
 

@@ -68,16 +68,13 @@ def _pnp_minima(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[n
         except cv2.error:
             continue
         poses.extend(_pose_from_rvec(rvecs[i], tvecs[i]) for i in range(count))
-    # Starts of one basin (the solvers agree on a clear view) are refined once, from the best of them.
-    starts = sorted(((_reprojection_rms(R, t, base_points, normalized), k) for k, (R, t) in enumerate(poses)),
-                    key=lambda entry: entry[0])
+    # Starts of one basin (the solvers agree on a clear view) are refined once, from the first of them.
     refined: list[tuple[float, np.ndarray, np.ndarray]] = []
-    chosen: list[tuple[np.ndarray, np.ndarray]] = []
-    for _, k in starts:
-        R, t = poses[k]
-        if any(_same_pose(R, t, *other, SAME_BASIN) for other in chosen):
+    chosen = _Poses()
+    for R, t in poses:
+        if chosen.near(R, t, SAME_BASIN):
             continue
-        chosen.append((R, t))
+        chosen.add(R, t)
         rvec = cv2.Rodrigues(R)[0]
         tvec = t.reshape(3, 1).copy()
         try:
@@ -89,17 +86,34 @@ def _pnp_minima(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[n
         if np.isfinite(error):
             refined.append((error, R_ref, t_ref))
     refined.sort(key=lambda entry: entry[0])
-    minima: list[tuple[np.ndarray, np.ndarray]] = []
+    minima = _Poses()
     for _, R, t in refined:  # the same minimum reached from several starts once
-        if not any(_same_pose(R, t, *kept, SAME_MINIMUM) for kept in minima):
-            minima.append((R, t))
-    return minima
+        if not minima.near(R, t, SAME_MINIMUM):
+            minima.add(R, t)
+    return minima.poses
 
 
-def _same_pose(R: np.ndarray, t: np.ndarray, R_other: np.ndarray, t_other: np.ndarray, tolerance: float) -> bool:
-    """Whether two poses' rotations (entries) and translations (relative) differ by less than ``tolerance``."""
-    scale = max(float(np.linalg.norm(t)), 1e-12)
-    return bool(np.abs(R - R_other).max() <= tolerance and np.linalg.norm(t - t_other) <= tolerance * scale)
+class _Poses:
+    """Poses kept so far, and whether a pose is near one of them: rotations (entries) and translations
+    (relative) both within a tolerance."""
+
+    def __init__(self) -> None:
+        self.poses: list[tuple[np.ndarray, np.ndarray]] = []
+        self._R = np.zeros((0, 3, 3))
+        self._t = np.zeros((0, 3))
+
+    def add(self, R: np.ndarray, t: np.ndarray) -> None:
+        self.poses.append((R, t))
+        self._R = np.concatenate([self._R, R[None]])
+        self._t = np.concatenate([self._t, t[None]])
+
+    def near(self, R: np.ndarray, t: np.ndarray, tolerance: float) -> bool:
+        if not self.poses:
+            return False
+        scale = max(float(np.linalg.norm(t)), 1e-12)
+        close = (np.abs(self._R - R).max(axis=(1, 2)) <= tolerance) & (
+            np.linalg.norm(self._t - t, axis=1) <= tolerance * scale)
+        return bool(close.any())
 
 
 def pnp_minima(base_points: np.ndarray, normalized: np.ndarray, num_mirrors: int) -> list[tuple[np.ndarray, np.ndarray]]:
