@@ -343,7 +343,7 @@ def misfit_sigmas(
     A_parent: np.ndarray, b_parent: np.ndarray, mirror_vector: np.ndarray | None,
 ) -> float:
     """RMS whitened reprojection of an image's fiducials through its parent ``(A_{Nv-1}, b_{Nv-1})`` (from an
-    estimate) and its last mirror: ``mirror_vector`` where known, else the one fitting them best (scipy
-    least squares from the reflection nearest to its PnP ``pose``, eqs. 6-7, 5, 9; given a list of PnP
-    candidates, from each: the best fit)."""
+    estimate) and its last mirror: ``mirror_vector`` where known, else the one fitting them best
+    (``placement_consensus.fit_mirrors`` from the reflection nearest to its PnP ``pose``, eqs. 6-7, 5, 9;
+    given a list of PnP candidates, from each: the best fit)."""
     return mirror_fit(dataset, image, pose if isinstance(pose, list) else [pose], A_parent, b_parent, mirror_vector)[0]
