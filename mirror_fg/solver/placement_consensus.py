@@ -3,7 +3,9 @@
 At a node of level Nv (its children: the placements of the last mirror), each triple of children gives
 the node's ``(A_{Nv-1}, b_{Nv-1})`` (eqs. 13-17), one hypothesis per choice of its images' PnP
 candidates (P3P's, a planar target's twins); every image is scored by the reprojection of its fiducials
-through the reflection nearest to its best candidate (eqs. 5-9, 6-7). Where the least-median hypothesis
+through the hypothesis and its last mirror fitted to them (:func:`fit_mirrors`, all images and
+hypotheses in one Levenberg-Marquardt, from the reflection nearest to each candidate; eqs. 3, 5-9),
+the best of its candidates. Where the least-median hypothesis
 leaves some images far above its median, the majority's MLE (eq. 23, ``initial.refine_subtree``) judges
 each image again, its mirror placement fitted to its pixels where it is not one of the majority's, and
 an image still far off once more at the MLE of the majority and itself.
@@ -89,8 +91,8 @@ class _NodeObservations:
         self.points = np.array(points, dtype=float).reshape(-1, 3)
         self.observed = np.array(observed, dtype=float).reshape(-1, 2)
         self.counts = np.maximum(np.bincount(self.index, minlength=len(self.A)), 1)
-        # candidates sorted by image: each image's best is the first of its run after a lexsort
-        self._starts = np.searchsorted(self.owner, np.arange(self.num_images))
+        # candidates sorted by image: the index of each image's first (its best is first after a lexsort)
+        self.first_candidate = np.searchsorted(self.owner, np.arange(self.num_images))
 
     def scores(self, A_parents: np.ndarray, b_parents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For each of H hypotheses ``(A_{Nv-1}, b_{Nv-1})`` of the node (stacked (H, 3, 3), (H, 3)) and
@@ -108,7 +110,7 @@ class _NodeObservations:
         rms = np.sqrt(np.bincount(index, weights=squared, minlength=num_hypotheses * num_candidates) / counts)
         rms = rms.reshape(num_hypotheses, num_candidates)
         order = np.lexsort((rms, np.broadcast_to(self.owner, rms.shape)), axis=-1)  # by image, then by score
-        best = order[:, self._starts]
+        best = order[:, self.first_candidate]
         return np.take_along_axis(rms, best, axis=1), best
 
 
@@ -266,7 +268,7 @@ def check_node(
     medians = np.median(all_scores, axis=1)
     best = int(np.argmin(medians))  # the first of equal medians, as one at a time
     median, scores, chosen = float(medians[best]), all_scores[best], all_chosen[best]
-    first = observations._starts
+    first = observations.first_candidate
     choice = {im.id: int(chosen[k] - first[k]) for k, im in enumerate(images)}
     inliers = scores <= max(CONSENSUS_MIN_SIGMAS, CONSENSUS_FACTOR * median)
     if np.all(inliers):
