@@ -28,7 +28,7 @@ from __future__ import annotations
 from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from itertools import combinations, product
+from itertools import product
 
 import numpy as np
 
@@ -36,7 +36,7 @@ from mirror_fg.core.geometry import reflect
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.io.target import Symmetry
 from mirror_fg.solver.peeling import reflection_fit, solve_children
-from mirror_fg.solver.placement_consensus import fit_mirrors
+from mirror_fg.solver.placement_consensus import fit_mirrors, sample_triples
 from mirror_fg.solver.pnp import pnp_candidates
 
 __all__ = ["LabelReport", "choose_labellings", "AMBIGUITY_COST_RATIO", "AMBIGUITY_COST_GAP"]
@@ -156,11 +156,7 @@ def _fit_node(items: list[_Item], parent_det: float, rng: np.random.Generator) -
     children = sorted(by_child)
     if len(children) < 3:
         return None
-    all_triples = list(combinations(children, 3))
-    if len(all_triples) <= MAX_TRIPLES:
-        triples = all_triples
-    else:
-        triples = [all_triples[k] for k in rng.choice(len(all_triples), size=MAX_TRIPLES, replace=False)]
+    triples = sample_triples(children, MAX_TRIPLES, rng)
     size = len(items[0].transforms)
     best: tuple[float, _NodeFit] | None = None
     for triple in triples:

@@ -16,6 +16,7 @@ from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import replace
 from itertools import combinations, product
+from math import comb
 
 import numpy as np
 
@@ -24,11 +25,12 @@ from mirror_fg.solver.analytic import Hypothesis, hypothesis_of_subtree, subtree
 from mirror_fg.solver.calibration import Exclusion
 from mirror_fg.solver.initial import refine_subtree
 from mirror_fg.solver.peeling import (
-    MIN_NORMAL_SPREAD, reflection_fit, smallest_eigenvectors, solve_children, solve_triples,
+    MIN_NORMAL_SPREAD, reflection_fit, smallest_eigenvectors, solve_children, solve_triples, spread_subset,
 )
 
 __all__ = ["CONSENSUS_MIN_SIGMAS", "CONSENSUS_FACTOR", "CONSENSUS_TRIPLES", "MIN_CHILDREN_P3P",
-           "COMBINATIONS_PER_TRIPLE", "check_node", "fit_mirrors", "mirror_fit", "fiducial_names"]
+           "COMBINATIONS_PER_TRIPLE", "MAX_RANKING_IMAGES", "check_node", "fit_mirrors", "mirror_fit", "fiducial_names",
+           "sample_triples"]
 
 #: PnP candidates ``(A_Nv, b_Nv)`` of each image (by id).
 Candidates = dict[str, list[tuple[np.ndarray, np.ndarray]]]
@@ -50,9 +52,25 @@ MIRROR_FIT_ITERATIONS = 20
 #: ... stopped when no mirror's cost changes by more than this fraction in an iteration (a score to judge
 #: by, not an estimate: its RMS to ~1e-4).
 MIRROR_FIT_TOLERANCE = 1e-4
+#: A node with more images ranks its hypotheses on this many spread over them, through the reflection
+#: nearest to each PnP candidate (the least median needs a sample, not every image, nor their mirrors
+#: fitted); the best hypothesis then scores every image, fitted: bounds a node of hundreds.
+MAX_RANKING_IMAGES = 64
 #: Per triple, the choices of its children's PnP candidates (P3P's, a planar target's twins) kept as
 #: hypotheses: those with the lowest residual of eqs. (13) and (16).
 COMBINATIONS_PER_TRIPLE = 2
+
+
+def sample_triples(children: Sequence[int], limit: int, rng: np.random.Generator) -> list[tuple[int, ...]]:
+    """Every triple of ``children`` when there are at most ``limit``, else ``limit`` distinct ones drawn at
+    random (never all of them listed: 300 children have 4.5 million triples)."""
+    count = len(children)
+    if comb(count, 3) <= limit:
+        return list(combinations(children, 3))
+    drawn: dict[tuple[int, ...], None] = {}
+    while len(drawn) < limit:
+        drawn[tuple(children[k] for k in sorted(rng.choice(count, size=3, replace=False)))] = None
+    return list(drawn)
 
 
 def fiducial_names(dataset: Dataset, image: Image) -> list[str]:
@@ -94,18 +112,20 @@ class _NodeObservations:
         # candidates sorted by image: the index of each image's first (its best is first after a lexsort)
         self.first_candidate = np.searchsorted(self.owner, np.arange(self.num_images))
 
-    def scores(self, A_parents: np.ndarray, b_parents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def scores(self, A_parents: np.ndarray, b_parents: np.ndarray, fit: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """For each of H hypotheses ``(A_{Nv-1}, b_{Nv-1})`` of the node (stacked (H, 3, 3), (H, 3)) and
         each image, the RMS whitened reprojection of its fiducials through the hypothesis and its last
         mirror fitted to them (:func:`fit_mirrors`, from the reflection nearest to each PnP candidate;
         eqs. 6-7, 3, 5, 9; huge behind the camera), the best of its candidates (H, images), and which
-        candidate (index into ``self.A``) that is (H, images). All hypotheses in one fit."""
+        candidate (index into ``self.A``) that is (H, images). All hypotheses in one fit; ``fit=False``:
+        through the reflection nearest to each candidate as it is (a ranking, cheaper)."""
         num_hypotheses, num_candidates = len(A_parents), len(self.A)
         starts = reflection_fit(np.tile(self.A, (num_hypotheses, 1, 1)), np.tile(self.b, (num_hypotheses, 1)),
                                 np.repeat(A_parents, num_candidates, axis=0), np.repeat(b_parents, num_candidates, axis=0))[1]
         before = (np.einsum("hab,rb->hra", A_parents, self.points) + b_parents[:, None, :]).reshape(-1, 3)  # eq. (5)
         index = (np.arange(num_hypotheses)[:, None] * num_candidates + self.index[None, :]).ravel()
-        _, squared = fit_mirrors(before, index, np.tile(self.observed, (num_hypotheses, 1)), self.sigma, starts)
+        _, squared = fit_mirrors(before, index, np.tile(self.observed, (num_hypotheses, 1)), self.sigma, starts,
+                                 MIRROR_FIT_ITERATIONS if fit else 0)
         counts = np.tile(self.counts, num_hypotheses)
         rms = np.sqrt(np.bincount(index, weights=squared, minlength=num_hypotheses * num_candidates) / counts)
         rms = rms.reshape(num_hypotheses, num_candidates)
@@ -257,13 +277,16 @@ def check_node(
     if len(children) < (MIN_CHILDREN_P3P if three_point else 4):  # no majority to compare against
         return [], {}
     parent_det = (-1.0) ** (dataset.num_mirrors - 1)
-    triples = list(combinations(children, 3))
-    if len(triples) > CONSENSUS_TRIPLES:
-        triples = [triples[i] for i in rng.choice(len(triples), size=CONSENSUS_TRIPLES, replace=False)]
-    observations = _NodeObservations(dataset, images, candidates)
+    triples = sample_triples(children, CONSENSUS_TRIPLES, rng)
     A_parents, b_parents = _hypotheses(images, candidates, triples, parent_det, rng)
     if len(A_parents) == 0:
         return [], {}
+    observations = _NodeObservations(dataset, images, candidates)
+    if len(images) > MAX_RANKING_IMAGES:  # the hypotheses ranked on spread images, the best one judges all
+        ranking = [images[k] for k in spread_subset(len(images), MAX_RANKING_IMAGES)]
+        ranked = _NodeObservations(dataset, ranking, candidates).scores(A_parents, b_parents, fit=False)[0]
+        best = int(np.argmin(np.median(ranked, axis=1)))
+        A_parents, b_parents = A_parents[best:best + 1], b_parents[best:best + 1]
     all_scores, all_chosen = observations.scores(A_parents, b_parents)
     medians = np.median(all_scores, axis=1)
     best = int(np.argmin(medians))  # the first of equal medians, as one at a time
