@@ -227,3 +227,32 @@ def test_pnp_refines_one_start_per_basin_to_opencvs_optimum(takahashi_dir):
                                           criteria=(cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15))
         R = cv2.Rodrigues(rvec)[0]
         assert np.allclose(A, FLIP_Y @ R, atol=1e-6) and np.allclose(b, FLIP_Y @ tvec.ravel(), atol=1e-6 * np.linalg.norm(b))
+
+
+def test_fit_last_mirror_is_scipys_least_squares_result():
+    """``consensus.fit_last_mirror`` (what the placement check of ``consistency.py`` fits) against scipy's
+    least_squares on one image of the ten-point board scene, its parent the truth: vector, errors, Jacobian."""
+    from scipy.optimize import least_squares
+
+    from mirror_fg.core.geometry import nested_transform
+    from mirror_fg.solver.consensus import fit_last_mirror
+
+    dataset, truth = _board_scene(_board(), num_images=12, seed=1)
+    image = dataset.images[4]
+    A_parent, b_parent = nested_transform(truth.R_cam_base, truth.t_cam_base, truth.vectors(image.mirror_configs[:-1]))
+    names = list(dataset.fiducials)
+    before = np.array([dataset.fiducials[n] for n in names]) @ A_parent.T + b_parent
+    normalized = dataset.normalized(image)
+    observed = np.array([normalized[n] for n in names])
+
+    def residual(v):  # eq. (3) written here: reflection about the plane v.x = v.v, then projection
+        x = before - 2.0 * ((before @ v - v @ v) / (v @ v))[:, None] * v
+        return ((x[:, :2] / x[:, 2:] - observed) / dataset.normalized_sigma).ravel()
+
+    start = truth.mirror_vectors[(2, image.mirror_configs[-1])] * 1.02
+    reference = least_squares(residual, start, method="lm", xtol=1e-14, ftol=1e-14)
+    fit = fit_last_mirror(dataset, image, A_parent, b_parent, start)
+    assert np.allclose(fit.x, reference.x, atol=1e-6)
+    assert np.allclose(fit.fun, residual(fit.x), atol=1e-9)
+    numeric = np.column_stack([(residual(fit.x + h) - residual(fit.x - h)) / 2e-7 for h in np.eye(3) * 1e-7])
+    assert np.allclose(fit.jac, numeric, rtol=1e-4, atol=1e-2)

@@ -34,6 +34,7 @@ from dataclasses import dataclass, replace
 
 import logging
 from collections import defaultdict
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -44,13 +45,15 @@ from mirror_fg.solver.calibration import Exclusion
 from mirror_fg.solver.graph import Measurement
 from mirror_fg.solver.lm import plausible
 from mirror_fg.solver.placement_consensus import (  # noqa: F401 (the node's constants: public here too)
-    CONSENSUS_FACTOR, CONSENSUS_MIN_SIGMAS, CONSENSUS_TRIPLES, check_node, fiducial_names, mirror_fit,
+    CONSENSUS_FACTOR, CONSENSUS_MIN_SIGMAS, CONSENSUS_TRIPLES, check_node, fiducial_names, fit_mirrors, mirror_fit,
+    reflected_errors,
 )
 from mirror_fg.solver.pnp import pnp_candidates, pnp_candidates_many, pnp_minima
 
 __all__ = [
     "PNP_POINT_SIGMAS", "MAX_BAD_POINT_FRACTION", "CONSENSUS_MIN_SIGMAS", "CONSENSUS_FACTOR", "FINAL_SIGMAS",
     "screen", "check_images", "ImageChecks", "final_check", "without", "check_image", "board_side", "misfit_sigmas",
+    "fit_last_mirror",
 ]
 
 logger = logging.getLogger("mirror_fg")
@@ -347,3 +350,22 @@ def misfit_sigmas(
     (``placement_consensus.fit_mirrors`` from the reflection nearest to its PnP ``pose``, eqs. 6-7, 5, 9;
     given a list of PnP candidates, from each: the best fit)."""
     return mirror_fit(dataset, image, pose if isinstance(pose, list) else [pose], A_parent, b_parent, mirror_vector)[0]
+
+
+def fit_last_mirror(
+    dataset: Dataset, image: Image, A_parent: np.ndarray, b_parent: np.ndarray, start: np.ndarray
+) -> SimpleNamespace:
+    """The last mirror vector (camera frame, metres) that fits an image's fiducials best with its parent
+    ``(A_{Nv-1}, b_{Nv-1})`` held, from ``start`` (``placement_consensus.fit_mirrors``): ``x`` the vector,
+    ``fun`` the whitened errors (x, y of each fiducial in turn, eqs. 6-7, 5, 9) and ``jac`` their Jacobian
+    (2N, 3) there, as scipy's least-squares result names them."""
+    names = fiducial_names(dataset, image)
+    before = np.array([dataset.fiducials[n] for n in names]) @ A_parent.T + b_parent  # eq. (5)
+    normalized = dataset.normalized(image)
+    observed = np.array([normalized[n] for n in names])
+    sigma = dataset.normalized_sigma
+    vectors, _ = fit_mirrors(before, np.zeros(len(names), dtype=np.intp), observed, sigma,
+                             np.asarray(start, dtype=float).reshape(1, 3))
+    errors, jacobian = reflected_errors(before, np.repeat(vectors, len(names), axis=0), observed, sigma, True)
+    assert jacobian is not None
+    return SimpleNamespace(x=vectors[0], fun=errors.ravel(), jac=np.swapaxes(jacobian, 0, 1).reshape(-1, 3))

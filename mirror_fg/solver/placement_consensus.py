@@ -29,7 +29,8 @@ from mirror_fg.solver.peeling import (
 )
 
 __all__ = ["CONSENSUS_MIN_SIGMAS", "CONSENSUS_FACTOR", "CONSENSUS_TRIPLES", "MIN_CHILDREN_P3P",
-           "COMBINATIONS_PER_TRIPLE", "MAX_RANKING_IMAGES", "check_node", "fit_mirrors", "mirror_fit", "fiducial_names",
+           "COMBINATIONS_PER_TRIPLE", "MAX_RANKING_IMAGES", "check_node", "fit_mirrors", "reflected_errors", "mirror_fit",
+           "fiducial_names",
            "sample_triples"]
 
 #: PnP candidates ``(A_Nv, b_Nv)`` of each image (by id).
@@ -134,7 +135,7 @@ class _NodeObservations:
         return np.take_along_axis(rms, best, axis=1), best
 
 
-def _reflected_errors(
+def reflected_errors(
     before: np.ndarray, vectors: np.ndarray, observed: np.ndarray, sigma: np.ndarray, jacobians: bool
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Whitened reprojection errors (R, 2) of points ``before`` (R, 3, camera frame) reflected by their
@@ -185,7 +186,7 @@ def fit_mirrors(
         return errors[:, 0] ** 2 + errors[:, 1] ** 2  # behind the camera: at a clamped depth, huge but finite
 
     with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
-        squared = squared_of(_reflected_errors(before, vectors[index], observed, sigma, False)[0])
+        squared = squared_of(reflected_errors(before, vectors[index], observed, sigma, False)[0])
         cost = np.bincount(index, weights=squared, minlength=count)
         damping = np.full(count, 1e-3)
         active = np.ones(count, dtype=bool)  # the mirrors still moving: only their points are evaluated
@@ -200,7 +201,7 @@ def fit_mirrors(
                 return np.stack([np.bincount(owner, weights=values[:, k], minlength=len(mirrors))
                                  for k in range(values.shape[1])], axis=1)
 
-            errors, jacobian = _reflected_errors(before[rows], vectors[index[rows]], observed[rows], sigma, True)
+            errors, jacobian = reflected_errors(before[rows], vectors[index[rows]], observed[rows], sigma, True)
             assert jacobian is not None
             jx, jy = jacobian
             upper = per_mirror(jx[:, _UPPER_A] * jx[:, _UPPER_B] + jy[:, _UPPER_A] * jy[:, _UPPER_B])  # J^T J, 6 of 9
@@ -213,7 +214,7 @@ def fit_mirrors(
             except np.linalg.LinAlgError:  # a singular system somewhere (a mirror through its points)
                 step = np.einsum("kab,kb->ka", np.linalg.pinv(np.nan_to_num(damped)), -np.nan_to_num(gradient))
             trial = vectors[mirrors] + np.where(np.isfinite(step), step, 0.0)
-            trial_squared = squared_of(_reflected_errors(before[rows], trial[owner], observed[rows], sigma, False)[0])
+            trial_squared = squared_of(reflected_errors(before[rows], trial[owner], observed[rows], sigma, False)[0])
             trial_cost = np.bincount(owner, weights=trial_squared, minlength=len(mirrors))
             better = trial_cost < cost[mirrors]
             vectors[mirrors[better]] = trial[better]
