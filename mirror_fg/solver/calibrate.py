@@ -20,7 +20,7 @@ from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.io.dataset import Dataset, dataset_from_dict
 from mirror_fg.solver.analytic import AnalyticSolution
 from mirror_fg.solver.calibration import Calibration, Exclusion
-from mirror_fg.solver.consensus import PnPCandidates, final_check, screen, without
+from mirror_fg.solver.consensus import PnPCandidates, check_images, final_check, screen, without
 from mirror_fg.solver.consistency import diagnose_inconsistency
 from mirror_fg.solver.graph import InitialEstimate, Measurement
 from mirror_fg.solver.initial import initial_estimate
@@ -94,8 +94,10 @@ def calibrate(
         return calibrate_with_intrinsics(dataset, initial=initial, robust=robust, compute_covariance=compute_covariance,
                                          max_iterations=max_iterations, on_iteration=on_iteration, progress=progress)
     timings: dict[str, float] = {}
+    with timed(timings, "pnp"):
+        checked = check_images(dataset)  # Sect. 4.1 per image, checked; the initial estimate starts from it
     with timed(timings, "consensus"):
-        solved, excluded, pnp = screen(dataset)  # images and corners that disagree with the rest, named
+        solved, excluded, pnp = screen(dataset, checked=checked)  # what disagrees with the rest, named
     for recheck in range(MAX_RECHECKS + 1):
         try:
             calibration, measurements, whitened = _solve(solved, initial, robust, compute_covariance, max_iterations,

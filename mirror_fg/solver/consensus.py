@@ -1,19 +1,26 @@
 """Consensus before the solve and a final check after it (issue 15): images or measurements that do not
 agree with the rest are left out, each named with its reason, instead of sinking the calibration.
 
-Before the solve (:func:`screen`), on images with >= 4 fiducials (three leave P3P twins and no check):
+Before the solve (:func:`screen`), on images with >= 3 fiducials:
 
-1. Per image: the PnP of its fiducials (Sect. 4.1, eq. 10) must reproject them within
+1. Per image with >= 4 fiducials: the PnP of its fiducials (Sect. 4.1, eq. 10) must reproject them within
    ``PNP_POINT_SIGMAS``. Where it does not, RANSAC PnP (cv2) finds the fiducials that agree; a few
    gross ones are left out as measurements, and an image where many disagree (a shuffled row, a wrong
-   corner order) is left out whole.
-2. Planar fiducials (a board): every image must see the board from the side most images see it from.
-   A chessboard labelled with its rows (or columns) in reverse order fits PnP exactly, seen from behind.
+   corner order) is left out whole. A small planar target far away has a twin pose that fits about as
+   well (``TWIN_COST_GAP``): both are the image's candidates, as P3P's are for three fiducials.
+2. Planar fiducials (a board): the images that see it from the other side than most. That alone leaves
+   nothing out (a dataset's points may be seen from either side, and it does not say which side of a
+   board is printed); an image that step 3 leaves out is told so (``BEHIND``): a chessboard labelled
+   with its rows (or columns) in reverse order fits PnP exactly, seen from behind.
 3. Per node of the mirror tree at level Nv (its children: the placements of the last mirror): least
    median of squares over triples of children. Each triple gives the node's ``(A_{Nv-1}, b_{Nv-1})``
-   (eqs. 13-17); every image is scored by the reprojection of its fiducials through the reflection
-   nearest to its PnP pose (eqs. 5-9); images far above the least-median triple's median are left out
-   (a half-turned board fits PnP but no mirror placement).
+   (eqs. 13-17), for each choice of its images' candidates (the best ``COMBINATIONS_PER_TRIPLE``);
+   every image is scored by the reprojection of its fiducials through the reflection nearest to its
+   best candidate (eqs. 5-9). Where some are far above the least-median hypothesis's median, the
+   majority's MLE judges again, an image it does not fit once more at the MLE of the majority and
+   itself: only an image the model cannot fit is left out (a half-turned board fits PnP but no mirror
+   placement; random pixels fit nothing). With three-fiducial images every triple fits its own three,
+   so a node is judged from ``MIN_CHILDREN_P3P`` children on.
 
 After LM (:func:`final_check`): measurements above ``FINAL_SIGMAS``, or whole images where many of
 their measurements are, are left out and the caller solves again.
@@ -23,27 +30,29 @@ Nothing left out is dropped silently: every image or measurement is an
 """
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import logging
 from collections import defaultdict
-from itertools import combinations
+from types import SimpleNamespace
 
 import numpy as np
 
-from mirror_fg.core.geometry import apply_transform, predict_camera_points, reflect_transforms
+from mirror_fg.core.geometry import apply_transform
 from mirror_fg.io.dataset import Dataset, Image
-from mirror_fg.solver.analytic import Hypothesis, hypothesis_of_subtree, subtree_dataset, subtree_solution
 from mirror_fg.solver.calibration import Exclusion
 from mirror_fg.solver.graph import Measurement
-from mirror_fg.solver.peeling import MIN_NORMAL_SPREAD, reflection_fit, solve_children
-from mirror_fg.solver.initial import refine_subtree
 from mirror_fg.solver.lm import plausible
-from mirror_fg.solver.pnp import pnp_candidates
+from mirror_fg.solver.placement_consensus import (  # noqa: F401 (the node's constants: public here too)
+    CONSENSUS_FACTOR, CONSENSUS_MIN_SIGMAS, CONSENSUS_TRIPLES, check_node, fiducial_names, fit_mirrors, mirror_fit,
+    reflected_errors,
+)
+from mirror_fg.solver.pnp import pnp_candidates, pnp_candidates_many, pnp_minima
 
 __all__ = [
     "PNP_POINT_SIGMAS", "MAX_BAD_POINT_FRACTION", "CONSENSUS_MIN_SIGMAS", "CONSENSUS_FACTOR", "FINAL_SIGMAS",
-    "screen", "final_check", "without", "check_image", "board_side", "misfit_sigmas", "fit_last_mirror",
+    "screen", "check_images", "ImageChecks", "final_check", "without", "check_image", "board_side", "misfit_sigmas",
+    "fit_last_mirror",
 ]
 
 logger = logging.getLogger("mirror_fg")
@@ -52,13 +61,11 @@ logger = logging.getLogger("mirror_fg")
 PNP_POINT_SIGMAS = 10.0
 #: An image with more than this fraction of gross fiducials is left out whole (its labelling is wrong).
 MAX_BAD_POINT_FRACTION = 0.1
-#: An image is inconsistent with its node's majority when the RMS (whitened) reprojection of its
-#: fiducials through the node's consensus exceeds this many sigmas ...
-CONSENSUS_MIN_SIGMAS = 20.0
-#: ... and this many times the median image's.
-CONSENSUS_FACTOR = 5.0
-#: Triples of children tried per node (all of them when there are fewer).
-CONSENSUS_TRIPLES = 40
+#: A planar target's twin PnP pose is kept as a candidate when its whitened squared reprojection cost is
+#: above the best's by less than this (a likelihood ratio of about 5 sigma): the image cannot tell them apart.
+TWIN_COST_GAP = 25.0
+#: What an image left out as inconsistent is told when it also sees the board from the other side.
+BEHIND = "board seen from behind, unlike the other images (rows or columns in reverse order?)"
 #: After LM, a measurement above this whitened residual is left out and the solve repeated.
 FINAL_SIGMAS = 10.0
 #: The final check leaves nothing out when more than this fraction of the measurements are above
@@ -68,10 +75,6 @@ FINAL_MAX_FRACTION = 0.2
 
 def _unit(dataset: Dataset) -> str:
     return "px" if dataset.camera is not None else "(normalized)"
-
-
-def _fiducial_names(dataset: Dataset, image: Image) -> list[str]:
-    return [name for name in image.observations if name in dataset.fiducials]
 
 
 def _whitened_errors(dataset: Dataset, A: np.ndarray, b: np.ndarray, points: np.ndarray, observed: np.ndarray) -> np.ndarray:
@@ -106,20 +109,27 @@ def _ransac_inliers(points: np.ndarray, observed: np.ndarray, num_mirrors: int, 
 
 def _check_pnp(
     dataset: Dataset, image: Image, names: list[str]
-) -> tuple[tuple[np.ndarray, np.ndarray] | None, list[Exclusion], Exclusion | None]:
-    """Per-image check: its PnP pose (None if left out), the fiducials left out, or the image left out."""
+) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[Exclusion], Exclusion | None]:
+    """Per-image check: its PnP candidates (empty if left out: the best fit first, then a planar target's
+    twin where the image cannot tell them apart), the fiducials left out, or the image left out."""
     points = np.array([dataset.fiducials[n] for n in names])
     normalized = dataset.normalized(image)
     observed = np.array([normalized[n] for n in names])
-    candidates = pnp_candidates(points, observed, dataset.num_mirrors)
-    errors = _whitened_errors(dataset, *candidates[0], points, observed) if candidates else np.full(len(names), np.inf)
+    minima = pnp_minima(points, observed, dataset.num_mirrors)
+    errors = _whitened_errors(dataset, *minima[0], points, observed) if minima else np.full(len(names), np.inf)
     if np.all(errors <= PNP_POINT_SIGMAS):
-        return candidates[0], [], None
+        best_cost = float(np.sum(errors**2))
+        twins = []
+        for twin in minima[1:]:
+            twin_errors = _whitened_errors(dataset, *twin, points, observed)
+            if np.all(twin_errors <= PNP_POINT_SIGMAS) and float(np.sum(twin_errors**2)) - best_cost < TWIN_COST_GAP:
+                twins.append(twin)
+        return [minima[0], *twins], [], None
     finite = errors[np.isfinite(errors)]
     rms = float(np.sqrt(np.mean(finite**2))) if len(finite) else float("inf")
     threshold = PNP_POINT_SIGMAS * float(np.mean(dataset.normalized_sigma))
     inliers = _ransac_inliers(points, observed, dataset.num_mirrors, threshold)
-    pose = None
+    pose: tuple[np.ndarray, np.ndarray] | None = None
     if inliers is not None and len(inliers) >= max(4, len(names) // 2):  # then judged by the refit's errors
         refit = pnp_candidates(points[inliers], observed[inliers], dataset.num_mirrors)
         if refit:
@@ -130,13 +140,13 @@ def _check_pnp(
         reason = (f"PnP reprojection {rms * dataset.pixel_sigma:.3g} {_unit(dataset)} RMS over its {len(names)} "
                   "fiducials (board order wrong?)" if np.isfinite(rms)
                   else "PnP found no pose with every fiducial in front of the camera")
-        return None, [], Exclusion(image.id, reason, None, rms)
+        return [], [], Exclusion(image.id, reason, None, rms)
     points_out = [
         Exclusion(image.id, f"{errors[i] * dataset.pixel_sigma:.3g} {_unit(dataset)} from the PnP fit of the image's "
                             "other fiducials (wrong detection?)", names[i], float(errors[i]))
         for i in bad
     ]
-    return pose, points_out, None
+    return [pose], points_out, None
 
 
 def _board_normal(dataset: Dataset) -> np.ndarray | None:
@@ -151,191 +161,96 @@ def _board_normal(dataset: Dataset) -> np.ndarray | None:
     return vt[2]
 
 
-def _check_sides(
-    dataset: Dataset, poses: dict[str, tuple[np.ndarray, np.ndarray]], normal: np.ndarray
-) -> list[Exclusion]:
-    """Images that see the board from the other side than the majority (reversed rows or columns)."""
+def _seen_from_behind(
+    dataset: Dataset, candidates: dict[str, list[tuple[np.ndarray, np.ndarray]]], normal: np.ndarray
+) -> set[str]:
+    """Images whose PnP pose sees the board (coplanar fiducials) from the other side than most images do.
+
+    Not a reason to leave an image out on its own: a dataset's points may be seen from either side (LEDs,
+    markers on a glass plate, a board whose sides the dataset does not say). It names the likely cause
+    (rows or columns in reverse order) when an image also fits no placement consistent with the others.
+    """
     centre = np.mean(np.array(list(dataset.fiducials.values())), axis=0)
-    sides = {}
-    for image_id, (A, b) in poses.items():
-        sides[image_id] = float(np.sign((A @ normal) @ (A @ centre + b)))
-    total = sum(sides.values())
-    if total == 0:  # no majority: nothing to decide
-        return []
-    majority = np.sign(total)
-    return [Exclusion(image_id, "board seen from behind, unlike the other images (rows or columns in reverse order?)")
-            for image_id, side in sides.items() if side != majority]
-
-
-class _NodeObservations:
-    """A node's images flattened once: their PnP poses and every fiducial observation (whitened later)."""
-
-    def __init__(self, dataset: Dataset, images: list[Image], poses: dict[str, tuple[np.ndarray, np.ndarray]]):
-        self.sigma = dataset.normalized_sigma
-        self.A = np.array([poses[im.id][0] for im in images])
-        self.b = np.array([poses[im.id][1] for im in images])
-        index, points, observed = [], [], []
-        for k, image in enumerate(images):
-            normalized = dataset.normalized(image)
-            for name in _fiducial_names(dataset, image):
-                index.append(k)
-                points.append(dataset.fiducials[name])
-                observed.append(normalized[name])
-        self.index = np.array(index, dtype=np.intp)
-        self.points = np.array(points, dtype=float).reshape(-1, 3)
-        self.observed = np.array(observed, dtype=float).reshape(-1, 2)
-        self.counts = np.maximum(np.bincount(self.index, minlength=len(images)), 1)
-
-    def scores(self, A_parent: np.ndarray, b_parent: np.ndarray) -> np.ndarray:
-        """RMS whitened reprojection of each image's fiducials through the node's ``(A_{Nv-1}, b_{Nv-1})``
-        and the reflection nearest to the image's PnP pose (eqs. 6-7, 5, 9); inf behind the camera."""
-        _, vectors = reflection_fit(self.A, self.b, A_parent, b_parent)
-        A_pred, b_pred = reflect_transforms(A_parent, b_parent, vectors)  # eqs. (6)-(7)
-        camera_points = predict_camera_points(A_pred, b_pred, self.index, self.points)  # eq. (5)
-        depth = camera_points[:, 2]
-        predicted = camera_points[:, :2] / np.where(depth > 0, depth, 1.0)[:, None]
-        squared = np.sum(((predicted - self.observed) / self.sigma) ** 2, axis=1)  # eq. (9)
-        squared = np.where(depth > 0, squared, np.inf)
-        return np.sqrt(np.bincount(self.index, weights=squared, minlength=len(self.counts)) / self.counts)
-
-
-def _solve_node(
-    images: list[Image], poses: dict[str, tuple[np.ndarray, np.ndarray]], children: list[int], parent_det: float
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """The node's ``(A_{Nv-1}, b_{Nv-1})`` from the images of ``children`` (eqs. 13-17), or None when
-    their mirror normals are nearly coplanar."""
-    index_of = {m: k for k, m in enumerate(children)}
-    observations = [(index_of[im.mirror_configs[-1]], *poses[im.id]) for im in images
-                    if im.mirror_configs[-1] in index_of]
-    node = solve_children(observations, len(children), parent_det)
-    normals = np.array([v / max(np.linalg.norm(v), 1e-300) for v in node.mirror_vectors])
-    if np.linalg.svd(normals, compute_uv=False)[2] < MIN_NORMAL_SPREAD:
-        return None
-    return node.A_parent, node.b_parent
-
-
-def _check_node(
-    dataset: Dataset, prefix: tuple[int, ...], images: list[Image], poses: dict[str, tuple[np.ndarray, np.ndarray]],
-    rng: np.random.Generator,
-) -> list[Exclusion]:
-    """Least median of squares over triples of a level-Nv node's children: the images inconsistent with it."""
-    children = sorted({im.mirror_configs[-1] for im in images})
-    if len(children) < 4:  # three placements are solved exactly: no majority to compare against
-        return []
-    parent_det = (-1.0) ** (dataset.num_mirrors - 1)
-    triples = list(combinations(children, 3))
-    if len(triples) > CONSENSUS_TRIPLES:
-        triples = [triples[i] for i in rng.choice(len(triples), size=CONSENSUS_TRIPLES, replace=False)]
-    observations = _NodeObservations(dataset, images, poses)
-    best: tuple[float, np.ndarray] | None = None
-    for triple in triples:
-        parent = _solve_node(images, poses, list(triple), parent_det)
-        if parent is None:
-            continue
-        scores = observations.scores(*parent)
-        median = float(np.median(scores))
-        if best is None or median < best[0]:
-            best = (median, scores)
-    if best is None:
-        return []
-    median, scores = best
-    inliers = scores <= max(CONSENSUS_MIN_SIGMAS, CONSENSUS_FACTOR * median)
-    if np.all(inliers):
-        return []
-    # The closed form of a few placements is too coarse to judge an image by (real photographs: tens of
-    # sigma); the majority's MLE (eq. 23) judges each image, the others with their mirror fitted alone.
-    refined = _refined_scores(dataset, images, poses, inliers)
-    if refined is None:
-        return []
-    scores = refined
-    median = float(np.median(scores[inliers]))
-    threshold = max(CONSENSUS_MIN_SIGMAS, CONSENSUS_FACTOR * median)
-    where = "" if not prefix else " under " + ", ".join(f"mirror {l + 1} placement {m}" for l, m in enumerate(prefix))
-    return [
-        Exclusion(im.id, f"inconsistent with the other placements of mirror {dataset.num_mirrors}{where} "
-                         f"({_sigmas(score)}, the majority {median:.3g} sigma)", None, float(score))
-        for im, score in zip(images, scores) if not score <= threshold
-    ]
-
-
-def _refined_scores(
-    dataset: Dataset, images: list[Image], poses: dict[str, tuple[np.ndarray, np.ndarray]], inliers: np.ndarray
-) -> np.ndarray | None:
-    """RMS whitened reprojection of each image's fiducials at the MLE of the inlier images' subtree
-    (``initial.refine_subtree``); an outlier image's mirror placement fitted alone (scipy least squares)
-    on that node. None when the inliers do not determine the node."""
-    level = dataset.num_mirrors
-    kept = [im for im, ok in zip(images, inliers) if ok]
-    children = sorted({im.mirror_configs[-1] for im in kept})
-    if len(children) < 3:
-        return None
-    parent_det = (-1.0) ** (level - 1)
-    index_of = {m: k for k, m in enumerate(children)}
-    node = solve_children([(index_of[im.mirror_configs[-1]], *poses[im.id]) for im in kept], len(children), parent_det)
-    hypothesis = Hypothesis(node.A_parent, node.b_parent, {(level, m): [v] for m, v in zip(children, node.mirror_vectors)}, {})
-    start = subtree_solution(hypothesis, level)
-    refined = refine_subtree(subtree_dataset(dataset, kept, level), start)
-    if refined is None:
-        return None
-    back = hypothesis_of_subtree(refined[1], hypothesis, level)
-    A_parent, b_parent = back.A, back.b
-    mirror = {m: back.mirror_vectors[(level, m)][0] for m in children}
-    scores = np.array([
-        misfit_sigmas(dataset, image, poses[image.id], A_parent, b_parent, mirror[image.mirror_configs[-1]] if ok else None)
-        for image, ok in zip(images, inliers)
-    ])
-    return scores
+    sides = {image_id: float(np.sign((poses[0][0] @ normal) @ (poses[0][0] @ centre + poses[0][1])))
+             for image_id, poses in candidates.items()}
+    majority = np.sign(sum(sides.values()))
+    return set() if majority == 0 else {image_id for image_id, side in sides.items() if side != majority}
 
 
 #: PnP candidates ``(A_Nv, b_Nv)`` per image id, as ``pnp.pnp_candidates`` gives them.
 PnPCandidates = dict[str, list[tuple[np.ndarray, np.ndarray]]]
 
 
-def _sigmas(rms: float) -> str:
-    return f"{rms:.3g} sigma RMS" if rms < 1e6 else "its fiducials fall behind the camera or a mirror"
+@dataclass
+class ImageChecks:
+    """Step 1 of :func:`screen` on every image: the PnP candidates of each image kept (Sect. 4.1, eqs.
+    10-12; what the analytical solution starts from) and what the per-image check left out."""
+
+    candidates: dict[str, list[tuple[np.ndarray, np.ndarray]]]
+    excluded: list[Exclusion]
 
 
-def screen(dataset: Dataset, seed: int = 0) -> tuple[Dataset, list[Exclusion], PnPCandidates]:
-    """``dataset`` without the images and fiducial observations that disagree with the rest, those left
-    out with their reasons (module docstring, steps 1-3), and the PnP of every image kept unchanged (for
-    ``initial_estimate``, which would compute the same again). Images with fewer than 4 fiducials are not
-    checked. With nothing left out, ``dataset`` itself is returned (the same object)."""
+def check_images(dataset: Dataset) -> ImageChecks:
+    """Each image's PnP and its check (module docstring, step 1): with >= 4 fiducials the PnP fit (gross
+    fiducials, wrong corner orders left out; a planar target's twin kept as a candidate), with three
+    P3P's candidates (all images at once, nothing to check), with fewer nothing."""
     excluded: list[Exclusion] = []
-    poses: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    candidates: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
+    three: list[tuple[str, tuple[np.ndarray, np.ndarray]]] = []
     for image in dataset.images:
-        names = _fiducial_names(dataset, image)
-        if len(names) < 4:
+        names = fiducial_names(dataset, image)
+        if len(names) == 3:
+            normalized = dataset.normalized(image)
+            three.append((image.id, (np.array([dataset.fiducials[n] for n in names]),
+                                     np.array([normalized[n] for n in names]))))
             continue
-        pose, points_out, image_out = _check_pnp(dataset, image, names)
+        if len(names) < 3:
+            continue
+        poses, points_out, image_out = _check_pnp(dataset, image, names)
         if image_out is not None:
             excluded.append(image_out)
             continue
         excluded.extend(points_out)
-        if pose is not None:
-            poses[image.id] = pose
+        candidates[image.id] = poses
+    for (image_id, _), poses in zip(three, pnp_candidates_many([problem for _, problem in three], dataset.num_mirrors)):
+        if poses:
+            candidates[image_id] = poses
+    return ImageChecks(candidates, excluded)
+
+
+def screen(dataset: Dataset, seed: int = 0, checked: ImageChecks | None = None) -> tuple[Dataset, list[Exclusion], PnPCandidates]:
+    """``dataset`` without the images and fiducial observations that disagree with the rest, those left
+    out with their reasons (module docstring, steps 1-3), and the PnP candidates of every image kept
+    unchanged (for ``initial_estimate``, which would compute the same again). ``checked``: step 1's
+    :func:`check_images` of ``dataset`` when already done (``calibrate`` times it as the PnP). Images
+    with fewer than 3 fiducials are not checked. With nothing left out, ``dataset`` itself is returned
+    (the same object)."""
+    checked = checked if checked is not None else check_images(dataset)
+    excluded = list(checked.excluded)
+    candidates = dict(checked.candidates)
     normal = _board_normal(dataset)
-    if normal is not None and poses:
-        for exclusion in _check_sides(dataset, poses, normal):
-            excluded.append(exclusion)
-            del poses[exclusion.image]
+    behind = _seen_from_behind(dataset, candidates, normal) if normal is not None and candidates else set()
     reduced = without(dataset, excluded) if excluded else dataset
     nodes: dict[tuple[int, ...], list[Image]] = defaultdict(list)
     for image in reduced.images:
-        nodes[image.mirror_configs[:-1]].append(image)
+        if image.id in candidates:
+            nodes[image.mirror_configs[:-1]].append(image)
     rng = np.random.default_rng(seed)
     node_excluded: list[Exclusion] = []
     for prefix in sorted(nodes):
-        images = nodes[prefix]
-        if all(im.id in poses for im in images):
-            node_excluded.extend(_check_node(reduced, prefix, images, poses, rng))
+        out, choice = check_node(reduced, prefix, nodes[prefix], candidates, rng)
+        node_excluded.extend(out)
+        for image_id, k in choice.items():  # the candidate the node explains the image by, first
+            poses = candidates[image_id]
+            candidates[image_id] = [poses[k], *poses[:k], *poses[k + 1:]]
     if node_excluded:
-        excluded.extend(node_excluded)
+        excluded.extend(replace(e, reason=f"{BEHIND}; {e.reason}") if e.image in behind else e for e in node_excluded)
         reduced = without(dataset, excluded)
     for exclusion in excluded:
         logger.warning("%s: image '%s'%s left out: %s", dataset.source, exclusion.image,
                        f" point '{exclusion.point}'" if exclusion.point else "", exclusion.reason)
     untouched = {e.image for e in excluded}
-    return reduced, excluded, {image_id: [pose] for image_id, pose in poses.items() if image_id not in untouched}
+    return reduced, excluded, {image_id: poses for image_id, poses in candidates.items() if image_id not in untouched}
 
 
 def without(dataset: Dataset, excluded: list[Exclusion]) -> Dataset:
@@ -398,18 +313,23 @@ def final_check(
 
 def check_image(
     dataset: Dataset, image: Image
-) -> tuple[Image | None, tuple[np.ndarray, np.ndarray] | None, list[Exclusion]]:
+) -> tuple[Image | None, list[tuple[np.ndarray, np.ndarray]], list[Exclusion]]:
     """Step 1 on one image: the image to use (None when it is left out; a copy without its gross
-    fiducials where it has some), its PnP pose (None with fewer than 4 fiducials) and what was left out."""
-    names = _fiducial_names(dataset, image)
-    if len(names) < 4:
-        return image, None, []
-    pose, points_out, image_out = _check_pnp(dataset, image, names)
+    fiducials where it has some), its PnP candidates (as :func:`screen` gives them: P3P's with three
+    fiducials, unchecked; none with fewer) and what was left out."""
+    names = fiducial_names(dataset, image)
+    if len(names) < 3:
+        return image, [], []
+    if len(names) == 3:
+        normalized = dataset.normalized(image)
+        return image, pnp_candidates(np.array([dataset.fiducials[n] for n in names]),
+                                     np.array([normalized[n] for n in names]), dataset.num_mirrors), []
+    poses, points_out, image_out = _check_pnp(dataset, image, names)
     if image_out is not None:
-        return None, None, [image_out]
+        return None, [], [image_out]
     if points_out:
         image = without(replace(dataset, images=[image]), points_out).images[0]
-    return image, pose, points_out
+    return image, poses, points_out
 
 
 def board_side(dataset: Dataset, pose: tuple[np.ndarray, np.ndarray]) -> float | None:
@@ -423,41 +343,30 @@ def board_side(dataset: Dataset, pose: tuple[np.ndarray, np.ndarray]) -> float |
 
 
 def misfit_sigmas(
-    dataset: Dataset, image: Image, pose: tuple[np.ndarray, np.ndarray], A_parent: np.ndarray, b_parent: np.ndarray,
-    mirror_vector: np.ndarray | None,
+    dataset: Dataset, image: Image, pose: tuple[np.ndarray, np.ndarray] | list[tuple[np.ndarray, np.ndarray]],
+    A_parent: np.ndarray, b_parent: np.ndarray, mirror_vector: np.ndarray | None,
 ) -> float:
     """RMS whitened reprojection of an image's fiducials through its parent ``(A_{Nv-1}, b_{Nv-1})`` (from an
     estimate) and its last mirror: ``mirror_vector`` where known, else the one fitting them best
-    (:func:`fit_last_mirror` from the reflection nearest to its PnP ``pose``, eqs. 6-7)."""
-    errors = _last_mirror_errors(dataset, image, A_parent, b_parent)
-    if mirror_vector is None:
-        v0 = reflection_fit(pose[0][None], pose[1][None], A_parent, b_parent)[1][0]
-        mirror_vector = fit_last_mirror(dataset, image, A_parent, b_parent, v0).x
-    return float(np.sqrt(2.0 * np.mean(errors(np.asarray(mirror_vector)) ** 2)))
+    (``placement_consensus.fit_mirrors`` from the reflection nearest to its PnP ``pose``, eqs. 6-7, 5, 9;
+    given a list of PnP candidates, from each: the best fit)."""
+    return mirror_fit(dataset, image, pose if isinstance(pose, list) else [pose], A_parent, b_parent, mirror_vector)[0]
 
 
-def _last_mirror_errors(dataset: Dataset, image: Image, A_parent: np.ndarray, b_parent: np.ndarray):
-    """Whitened reprojection errors of an image's fiducials as a function of its last mirror vector
-    (eqs. 6-7, 5, 9), the parent ``(A_{Nv-1}, b_{Nv-1})`` held."""
-    names = _fiducial_names(dataset, image)
-    points = np.array([dataset.fiducials[n] for n in names])
+def fit_last_mirror(
+    dataset: Dataset, image: Image, A_parent: np.ndarray, b_parent: np.ndarray, start: np.ndarray
+) -> SimpleNamespace:
+    """The last mirror vector (camera frame, metres) that fits an image's fiducials best with its parent
+    ``(A_{Nv-1}, b_{Nv-1})`` held, from ``start`` (``placement_consensus.fit_mirrors``): ``x`` the vector,
+    ``fun`` the whitened errors (x, y of each fiducial in turn, eqs. 6-7, 5, 9) and ``jac`` their Jacobian
+    (2N, 3) there, as scipy's least-squares result names them."""
+    names = fiducial_names(dataset, image)
+    before = np.array([dataset.fiducials[n] for n in names]) @ A_parent.T + b_parent  # eq. (5)
     normalized = dataset.normalized(image)
     observed = np.array([normalized[n] for n in names])
-
-    def errors(v: np.ndarray) -> np.ndarray:
-        A, b = reflect_transforms(A_parent, b_parent, v[None])  # eqs. (6)-(7)
-        camera_points = apply_transform(A[0], b[0], points)
-        depth = np.maximum(camera_points[:, 2], 1e-9)
-        return ((camera_points[:, :2] / depth[:, None] - observed) / dataset.normalized_sigma).ravel()  # eq. (9)
-
-    return errors
-
-
-def fit_last_mirror(dataset: Dataset, image: Image, A_parent: np.ndarray, b_parent: np.ndarray, start: np.ndarray):
-    """The last mirror vector (camera frame, metres) that fits an image's fiducials best with its parent
-    ``(A_{Nv-1}, b_{Nv-1})`` held: scipy's least-squares result from ``start`` (``x`` the vector, ``fun``
-    the whitened errors, ``jac`` their Jacobian)."""
-    from scipy.optimize import least_squares  # imported where used: SciPy is slow to load (issue 27)
-
-    errors = _last_mirror_errors(dataset, image, A_parent, b_parent)
-    return least_squares(errors, start, x_scale=np.full(3, 1e-3 + 1e-2 * np.linalg.norm(start)), method="lm")
+    sigma = dataset.normalized_sigma
+    vectors, _ = fit_mirrors(before, np.zeros(len(names), dtype=np.intp), observed, sigma,
+                             np.asarray(start, dtype=float).reshape(1, 3))
+    errors, jacobian = reflected_errors(before, np.repeat(vectors, len(names), axis=0), observed, sigma, True)
+    assert jacobian is not None
+    return SimpleNamespace(x=vectors[0], fun=errors.ravel(), jac=np.swapaxes(jacobian, 0, 1).reshape(-1, 3))

@@ -74,7 +74,7 @@ from mirror_fg.io.dataset import Dataset, Image, validate_image
 from mirror_fg.solver.analytic import AnalyticSolution
 from mirror_fg.solver.calibrate import as_dataset
 from mirror_fg.solver.calibration import Calibration, Exclusion, require_converged
-from mirror_fg.solver.consensus import CONSENSUS_MIN_SIGMAS, board_side, check_image, misfit_sigmas, screen
+from mirror_fg.solver.consensus import BEHIND, CONSENSUS_MIN_SIGMAS, board_side, check_image, misfit_sigmas, screen
 from mirror_fg.solver.consistency import diagnose_inconsistency, misfits_split
 from mirror_fg.solver.incremental_graph import (
     MIN_PNP_FIDUCIALS,
@@ -499,17 +499,15 @@ class IncrementalCalibrator(GraphGrowth):
         sees against the majority so far, and, once settled, its misfit with the estimate (the parent of
         its last mirror from the estimate, that mirror's placement fitted where new). Returns the image to
         use, or None when it is refused; everything left out goes to ``excluded``."""
-        kept, pose, excluded = check_image(self._ds, image)
+        kept, candidates, excluded = check_image(self._ds, image)
         self.excluded.extend(excluded)
-        if kept is None or pose is None:
+        if kept is None or not candidates:
             return kept
-        side = board_side(self._ds, pose)
+        side = board_side(self._ds, candidates[0])
+        behind = False  # not a reason on its own (consensus.BEHIND): named when the image misfits too
         if side is not None:
             majority = sum(self._sides.values())
-            if len(self._sides) >= 3 and abs(majority) == len(self._sides) and side != np.sign(majority):
-                self.excluded.append(Exclusion(
-                    image.id, "board seen from behind, unlike the other images (rows or columns in reverse order?)"))
-                return None
+            behind = len(self._sides) >= 3 and abs(majority) == len(self._sides) and side != np.sign(majority)
             self._sides[image.id] = side
         if self._settled and self.num_images >= MIN_IMAGES_TO_JUDGE:
             configs = kept.mirror_configs
@@ -518,10 +516,10 @@ class IncrementalCalibrator(GraphGrowth):
             if len(known) == len(above):
                 A_parent, b_parent = nested_transform(self._g.R, self._g.t, known)  # eqs. (6)-(8)
                 last = self._g.mirrors.get((len(configs), configs[-1]))
-                sigmas = misfit_sigmas(self._ds, kept, pose, A_parent, b_parent, last)
+                sigmas = misfit_sigmas(self._ds, kept, candidates, A_parent, b_parent, last)
                 if sigmas > CONSENSUS_MIN_SIGMAS:
-                    self.excluded.append(Exclusion(
-                        image.id, f"inconsistent with the estimate so far ({sigmas:.3g} sigma RMS)", None, sigmas))
+                    reason = f"inconsistent with the estimate so far ({sigmas:.3g} sigma RMS)"
+                    self.excluded.append(Exclusion(image.id, f"{BEHIND}; {reason}" if behind else reason, None, sigmas))
                     self.misfits.append(kept)
                     self._sides.pop(image.id, None)
                     return None

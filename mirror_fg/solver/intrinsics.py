@@ -11,21 +11,8 @@ damping) over pose, mirrors, points and the intrinsics named in ``camera.estimat
 prior ``camera.prior_sigma`` -> ``gtsam.Marginals`` (the pose's covariance *including* the intrinsics'
 uncertainty, their own covariance and their cross-covariance with the pose) -> residuals in pixels.
 
-Observability criterion (Fisher information). ``F = J^T J`` of the whitened pixel factors at the start
-values; the intrinsics' marginal information is its Schur complement ``S`` with every other unknown
-(pose, mirrors, points) eliminated; ``C = S^-1`` is the Cramér-Rao bound of the intrinsics. Each
-intrinsic is measured by what it does to the image: ``sigma_corner_i = sqrt(C_ii) * s_i`` with ``s_i``
-the displacement (pixels) at the farthest image corner per unit of it (``fx``: ``x_c``; ``cx``: 1;
-``k1``: ``f x_c r_c^2`` ...; see :func:`corner_sensitivity`).
-
-* **unobservable** (refused, :class:`SolveError`): ``S`` not positive definite (smallest eigenvalue of
-  the scaled ``S`` below ``UNOBSERVABLE_RCOND`` times its largest), or ``3 sigma_corner`` of an intrinsic
-  above ``UNOBSERVABLE_FRACTION`` of the image diagonal: such an "estimate" is no calibration (measured:
-  nine simulated photographs of a 10-point board estimating all nine intrinsics, k2 and k3 at 300-400 px
-  for a 1280 px diagonal, refused; the five real photographs of shared/data/takahashi2012 with six
-  intrinsics reach at most 65 px (cx) for a 2000 px diagonal, accepted with a warning);
-* **weak** (:class:`WeakIntrinsicsWarning`, the result is returned): ``3 sigma_corner`` of an intrinsic at
-  the final estimate above ``WEAK_CORNER_PX`` pixels.
+Observability: ``intrinsics_observability.py`` (the Fisher information criterion, unobservable refused,
+weak warned).
 
 Before any solve, estimating fx, fy, cx or cy is refused (SolveError) unless at least ``MIN_BOARD_VIEWS``
 photographs show 4 or more fiducials: a photograph of 3 points fits *any* focal length and centre
@@ -39,7 +26,6 @@ in the mirror, more mirror placements.
 from __future__ import annotations
 
 import logging
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from types import SimpleNamespace
@@ -56,6 +42,10 @@ from mirror_fg.factors.intrinsics import (
 )
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.calibration import Calibration, EstimatedCamera
+from mirror_fg.solver.intrinsics_observability import (  # noqa: F401 (public here too)
+    ADVICE, UNOBSERVABLE_FRACTION, UNOBSERVABLE_RCOND, WEAK_CORNER_PX, IntrinsicsObservability, WeakIntrinsicsWarning,
+    corner_sensitivity, intrinsics_observability, unobservable_refusal, warn_weak,
+)
 from mirror_fg.solver.graph import GraphLayout, InitialEstimate, Measurement, extract_values, initial_values, measurements_of
 from mirror_fg.solver.lm import cost_scale, lm_params, run_optimizer
 from mirror_fg.solver.marginals import unconstrained_message
@@ -69,27 +59,13 @@ __all__ = [
 
 logger = logging.getLogger("mirror_fg")
 
-#: An intrinsic whose 3-sigma moves the farthest image corner by more than this (pixels) is weak.
-WEAK_CORNER_PX = 5.0
-#: An intrinsic whose 3-sigma moves the farthest image corner by more than this fraction of the image
-#: diagonal is unobservable (refused).
-UNOBSERVABLE_FRACTION = 0.1
-#: The scaled marginal information of the intrinsics is singular below this ratio of its eigenvalues.
-UNOBSERVABLE_RCOND = 1e-10
 #: The fixed-intrinsics start is solved with at least this fraction of the image diagonal as its pixel
 #: sigma, so that the start intrinsics' error is not taken for outliers (only gross ones are left out).
 START_SIGMA_FRACTION = 0.003
 #: fx, fy, cx, cy are estimated only with at least this many photographs of 4 or more fiducials.
 MIN_BOARD_VIEWS = 2
-#: What a user can add when intrinsics are weak or unobservable.
-_ADVICE = ("add more points per image (a larger grid of fiducials), more tilt of the target in the "
-           "mirrors, or more mirror placements")
 #: Distortion terms beyond OpenCV's k1, k2, p1, p2, k3 that the pixel factors do not model.
 _MODELLED_DIST = 5
-
-
-class WeakIntrinsicsWarning(UserWarning):
-    """The data constrain an estimated intrinsic only weakly (module docstring: the criterion)."""
 
 
 def camera_intrinsics(camera: Camera) -> np.ndarray:
@@ -109,81 +85,6 @@ def _camera_of(camera: Camera, theta: np.ndarray) -> Camera:
                    dist=tuple(dist), estimate=(), prior_sigma=())
 
 
-def corner_sensitivity(camera: Camera, names: tuple[str, ...]) -> np.ndarray:
-    """Pixels the farthest image corner moves per unit of each intrinsic of ``names`` (undistorted
-    normalized corner ``(x_c, y_c)``, ``r_c^2 = x_c^2 + y_c^2``, ``f = max(fx, fy)``)."""
-    xc = max(camera.cx, camera.width - 1 - camera.cx) / camera.fx
-    yc = max(camera.cy, camera.height - 1 - camera.cy) / camera.fy
-    r2 = xc * xc + yc * yc
-    f = max(camera.fx, camera.fy)
-    r = np.sqrt(r2)
-    per_unit = {"fx": xc, "fy": yc, "cx": 1.0, "cy": 1.0, "k1": f * r * r2, "k2": f * r * r2**2,
-                "k3": f * r * r2**3, "p1": 3.0 * f * r2, "p2": 3.0 * f * r2}
-    return np.array([per_unit[n] for n in names])
-
-
-class IntrinsicsObservability:
-    """The intrinsics' Cramér-Rao bound from the Fisher information (module docstring)."""
-
-    def __init__(self, names: tuple[str, ...], covariance: np.ndarray | None, sigma3_corner_px: np.ndarray,
-                 singular: bool, diagonal_px: float) -> None:
-        self.names = names
-        self.covariance = covariance  # (k, k), None when singular
-        self.sigma3_corner_px = sigma3_corner_px  # (k,), inf when singular
-        self.singular = singular
-        self.diagonal_px = diagonal_px
-
-    @property
-    def unobservable(self) -> list[str]:
-        """Names whose 3-sigma corner displacement exceeds UNOBSERVABLE_FRACTION of the image diagonal
-        (all when singular)."""
-        if self.singular:
-            return list(self.names)
-        limit = UNOBSERVABLE_FRACTION * self.diagonal_px
-        return [n for n, s in zip(self.names, self.sigma3_corner_px) if not s <= limit]
-
-    @property
-    def weak(self) -> list[str]:
-        """Names whose 3-sigma corner displacement exceeds WEAK_CORNER_PX."""
-        return [n for n, s in zip(self.names, self.sigma3_corner_px) if not s <= WEAK_CORNER_PX]
-
-    def describe(self, names: list[str]) -> str:
-        """``fx (3-sigma 12.3 px at the corner), ...``."""
-        by_name = dict(zip(self.names, self.sigma3_corner_px))
-        return ", ".join(f"{n} (3-sigma {by_name[n]:.3g} px at the image corner)" for n in names)
-
-
-def intrinsics_observability(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, layout: GraphLayout,
-                             camera: Camera, names: tuple[str, ...]) -> IntrinsicsObservability:
-    """Fisher information of ``graph`` at ``values``, the intrinsics' Schur complement and their bound."""
-    key = intrinsics_key()
-    others = [layout.pose_key, *layout.mirror_keys.values(), *layout.point_keys.values()]
-    ordering = gtsam.Ordering()
-    for k in [key, *others]:
-        ordering.push_back(k)
-    information, _ = graph.linearize(values).hessian(ordering)
-    k = len(names)
-    scale = corner_sensitivity(camera, names)
-    diagonal = float(np.hypot(camera.width, camera.height))
-    A, B, D = information[:k, :k], information[:k, k:], information[k:, k:]
-    # Jacobi-scale the rest so that its conditioning does not depend on units (metres, radians).
-    d = np.sqrt(np.maximum(np.diag(D), np.finfo(float).tiny))
-    D_scaled = D / np.outer(d, d)
-    try:
-        rest_eig = np.linalg.eigvalsh(D_scaled)
-        if rest_eig[0] <= UNOBSERVABLE_RCOND * rest_eig[-1]:
-            raise np.linalg.LinAlgError
-        schur = A - (B / d) @ np.linalg.solve(D_scaled, (B / d).T)
-    except np.linalg.LinAlgError:
-        return IntrinsicsObservability(names, None, np.full(k, np.inf), True, diagonal)
-    scaled = schur / np.outer(scale, scale)  # information in "pixels at the corner"
-    eig = np.linalg.eigvalsh(scaled)
-    if not eig[0] > UNOBSERVABLE_RCOND * max(eig[-1], np.finfo(float).tiny):
-        return IntrinsicsObservability(names, None, np.full(k, np.inf), True, diagonal)
-    covariance = np.linalg.inv(schur)
-    return IntrinsicsObservability(names, covariance, 3.0 * np.sqrt(np.diag(covariance)) * scale, False, diagonal)
-
-
 def _check_supported(dataset: Dataset) -> Camera:
     """The camera, after the refusals that need no solve: a fisheye model, unmodelled distortion terms
     (DatasetError); fx, fy, cx or cy estimated from fewer than ``MIN_BOARD_VIEWS`` photographs of 4
@@ -196,7 +97,7 @@ def _check_supported(dataset: Dataset) -> Camera:
         most = max(sum(n in dataset.fiducials for n in image.observations) for image in dataset.images)
         raise SolveError(f"{dataset.source}: camera.estimate: the photographs do not determine {', '.join(pinhole)}: "
                          f"{views} image(s) show 4 or more fiducials (at most {most} per image), need {MIN_BOARD_VIEWS} "
-                         f"(any focal length and centre fit 3 points exactly); {_ADVICE}, or give them")
+                         f"(any focal length and centre fit 3 points exactly); {ADVICE}, or give them")
     if camera.model != "pinhole":
         raise DatasetError(f"{dataset.source}: camera.estimate: estimating intrinsics is supported for the "
                            f"pinhole model only, not {camera.model}")
@@ -324,8 +225,41 @@ def _fixed_start(dataset: Dataset, camera: Camera, sigma: float, model: Intrinsi
     solved = without(dataset, start.excluded) if start.excluded else dataset
     graph, layout, measurements, pixels = _joint_problem(solved, replace(solved, camera=camera), model, robust)
     values = _values_for(layout, camera_intrinsics(camera)[model.index], start)
-    refusal = _unobservable(graph, values, layout, camera, model.estimated, dataset.source)
+    refusal = unobservable_refusal(graph, values, layout, camera, model.estimated, dataset.source)
     return _Start(camera, start, solved, graph, layout, measurements, pixels, values, refusal)
+
+
+def _joint_solve(dataset: Dataset, chosen: _Start, model: IntrinsicsModel, robust: str | None, max_iterations: int,
+                 on_iteration: Callable[[int, float, float], None] | None) -> SimpleNamespace:
+    """Joint LM from a start, leaving out what ends far off (``consensus.final_check``) and solving again;
+    the run and what it was solved on (``solved``, ``excluded``, ``measurements``), the estimate and the
+    pixel residuals (``residuals``, ``whitened``)."""
+    from mirror_fg.solver.calibrate import MAX_RECHECKS
+    from mirror_fg.solver.consensus import final_check, without
+
+    start_camera, solved, excluded = chosen.camera, chosen.solved, list(chosen.start.excluded)
+    graph, layout, measurements, pixels, values = chosen.graph, chosen.layout, chosen.measurements, chosen.pixels, chosen.values
+    for recheck in range(MAX_RECHECKS + 1):
+        fixed = replace(solved, camera=start_camera)
+        run = _run_lm(solved, fixed, graph, layout, measurements, pixels, values, max_iterations, on_iteration)
+        R, t, mirror_vectors, points = extract_values(run.result, layout)
+        theta = model.theta(np.asarray(run.result.atVector(intrinsics_key()), dtype=float))
+        predicted = predicted_normalized(solved, measurements, R, t, mirror_vectors, points)
+        residuals = predict_pixels(theta, predicted) - pixels
+        whitened = np.linalg.norm(residuals, axis=1) / pixel_sigmas(dataset, measurements)
+        more = final_check(solved, measurements, whitened, run.result.dim()) if recheck < MAX_RECHECKS else []
+        if not more:
+            break
+        logger.warning("%s: %d measurement(s) or image(s) far off the solution left out; solving again",
+                       dataset.source, len(more))
+        excluded += more
+        solved = without(solved, more)
+        estimate = SimpleNamespace(R_cam_base=R, t_cam_base=t, mirror_vectors=mirror_vectors, points=points)
+        graph, layout, measurements, pixels = _joint_problem(solved, replace(solved, camera=start_camera), model, robust)
+        values = _values_for(layout, run.result.atVector(intrinsics_key()), estimate)
+    return SimpleNamespace(run=run, solved=solved, excluded=excluded, measurements=measurements, R=R, t=t,
+                           mirror_vectors=mirror_vectors, points=points, theta=theta, residuals=residuals,
+                           whitened=whitened)
 
 
 def calibrate_with_intrinsics(
@@ -349,8 +283,7 @@ def calibrate_with_intrinsics(
     Raises DatasetError (a fisheye camera, unmodelled distortion terms) or SolveError (unobservable
     intrinsics, an indeterminant system); warns :class:`WeakIntrinsicsWarning` on weak ones.
     """
-    from mirror_fg.solver.calibrate import MAX_RECHECKS, STAGES
-    from mirror_fg.solver.consensus import final_check, without
+    from mirror_fg.solver.calibrate import STAGES
 
     camera = _check_supported(dataset)
     timings: dict[str, float] = {}
@@ -386,32 +319,31 @@ def calibrate_with_intrinsics(
         if failure is not None and (not attempts or attempts[0].camera is not given_camera):
             raise failure
         raise SolveError(attempts[0].refusal)
-    start, start_camera, solved, excluded = chosen.start, chosen.camera, chosen.solved, list(chosen.start.excluded)
     logger.info("%s: start of the joint estimate (intrinsics fixed): %d iterations, %.3f s", dataset.source,
-                start.iterations, timings["fixed intrinsics"])
-
-    graph, layout, measurements, pixels, values = chosen.graph, chosen.layout, chosen.measurements, chosen.pixels, chosen.values
+                chosen.start.iterations, timings["fixed intrinsics"])
     with timed(timings, "optimize"):
         report(STAGES[1], 0, max_iterations)
-        for recheck in range(MAX_RECHECKS + 1):
-            fixed = replace(solved, camera=start_camera)
-            run = _run_lm(solved, fixed, graph, layout, measurements, pixels, values, max_iterations, on_iteration)
-            R, t, mirror_vectors, points = extract_values(run.result, layout)
-            theta = model.theta(np.asarray(run.result.atVector(intrinsics_key()), dtype=float))
-            predicted = predicted_normalized(solved, measurements, R, t, mirror_vectors, points)
-            residuals = predict_pixels(theta, predicted) - pixels
-            whitened = np.linalg.norm(residuals, axis=1) / pixel_sigmas(dataset, measurements)
-            more = final_check(solved, measurements, whitened, run.result.dim()) if recheck < MAX_RECHECKS else []
-            if not more:
-                break
-            logger.warning("%s: %d measurement(s) or image(s) far off the solution left out; solving again",
-                           dataset.source, len(more))
-            excluded += more
-            solved = without(solved, more)
-            estimate = SimpleNamespace(R_cam_base=R, t_cam_base=t, mirror_vectors=mirror_vectors, points=points)
-            graph, layout, measurements, pixels = _joint_problem(solved, replace(solved, camera=start_camera), model,
-                                                                 robust)
-            values = _values_for(layout, run.result.atVector(intrinsics_key()), estimate)
+        joint = _joint_solve(dataset, chosen, model, robust, max_iterations, on_iteration)
+        if not joint.run.converged and chosen.camera is given_camera:
+            # The given values let the fixed-intrinsics solve through but left the joint solve stuck (the
+            # analytical solution from a rough camera can be another optimum): start from the photographs.
+            photographs = _photograph_start(dataset, given_camera)
+            other = None
+            if photographs is not None:
+                try:
+                    other = _fixed_start(dataset, photographs, start_sigma, model, robust, initial, max_iterations,
+                                         progress)
+                except SolveError:
+                    other = None
+            if other is not None and other.refusal is None:
+                logger.info("%s: the joint estimate from the given intrinsics did not converge; starting them from "
+                            "the photographs", dataset.source)
+                retry = _joint_solve(dataset, other, model, robust, max_iterations, on_iteration)
+                if retry.run.converged:
+                    chosen, joint = other, retry
+    start, run, excluded, measurements = chosen.start, joint.run, joint.excluded, joint.measurements
+    R, t, mirror_vectors, points, theta, residuals, whitened = (joint.R, joint.t, joint.mirror_vectors, joint.points,
+                                                                joint.theta, joint.residuals, joint.whitened)
     logger.info("joint Levenberg-Marquardt with intrinsics: %d iterations, %.3f s", run.iterations, timings["optimize"])
     if not run.converged:
         logger.warning("%s: Levenberg-Marquardt with intrinsics did not converge in %d iterations",
@@ -427,9 +359,9 @@ def calibrate_with_intrinsics(
         if compute_covariance:
             report(STAGES[2], 0, 1)
             covariance, intrinsics_cov, cross, mirror_covs, point_covs = _covariances(
-                run.graph, run.result, layout, R, dataset.source)
+                run.graph, run.result, run.layout, R, dataset.source)
             report(STAGES[2], 1, 1)
-            _warn_weak(intrinsics_cov, estimated_camera, names, dataset.source)
+            warn_weak(intrinsics_cov, estimated_camera, names, dataset.source)
 
     return Calibration(
         R_cam_base=R,
@@ -455,30 +387,6 @@ def calibrate_with_intrinsics(
         camera=EstimatedCamera(camera=estimated_camera, estimated=names, covariance=intrinsics_cov,
                                pose_cross_covariance=cross),
     )
-
-
-def _unobservable(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, layout: GraphLayout,
-                  camera: Camera, names: tuple[str, ...], source: str) -> str | None:
-    """The one-line refusal when the Fisher information at ``values`` leaves an intrinsic unobservable."""
-    observability = intrinsics_observability(graph, values, layout, camera, names)
-    unobservable = observability.unobservable
-    if not unobservable:
-        return None
-    what = (", ".join(unobservable) + " (their Fisher information is singular)"
-            if observability.singular else observability.describe(unobservable))
-    return f"{source}: camera.estimate: the photographs do not determine {what}; {_ADVICE}, or estimate fewer intrinsics"
-
-
-def _warn_weak(covariance: np.ndarray, camera: Camera, names: tuple[str, ...], source: str) -> None:
-    """WeakIntrinsicsWarning (and a logged warning) naming the weakly determined intrinsics."""
-    final = IntrinsicsObservability(names, covariance,
-                                    3.0 * np.sqrt(np.diag(covariance)) * corner_sensitivity(camera, names), False,
-                                    float(np.hypot(camera.width, camera.height)))
-    weak = final.weak
-    if weak:
-        message = f"{source}: camera.estimate: weakly determined intrinsics: {final.describe(weak)}; {_ADVICE}"
-        logger.warning(message)
-        warnings.warn(message, WeakIntrinsicsWarning, stacklevel=3)
 
 
 def _covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, layout: GraphLayout, R: np.ndarray,

@@ -28,14 +28,15 @@ from __future__ import annotations
 from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from itertools import combinations, product
+from itertools import product
 
 import numpy as np
 
-from mirror_fg.core.geometry import project, reflect
+from mirror_fg.core.geometry import reflect
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.io.target import Symmetry
 from mirror_fg.solver.peeling import reflection_fit, solve_children
+from mirror_fg.solver.placement_consensus import fit_mirrors, sample_triples
 from mirror_fg.solver.pnp import pnp_candidates
 
 __all__ = ["LabelReport", "choose_labellings", "AMBIGUITY_COST_RATIO", "AMBIGUITY_COST_GAP"]
@@ -155,11 +156,7 @@ def _fit_node(items: list[_Item], parent_det: float, rng: np.random.Generator) -
     children = sorted(by_child)
     if len(children) < 3:
         return None
-    all_triples = list(combinations(children, 3))
-    if len(all_triples) <= MAX_TRIPLES:
-        triples = all_triples
-    else:
-        triples = [all_triples[k] for k in rng.choice(len(all_triples), size=MAX_TRIPLES, replace=False)]
+    triples = sample_triples(children, MAX_TRIPLES, rng)
     size = len(items[0].transforms)
     best: tuple[float, _NodeFit] | None = None
     for triple in triples:
@@ -232,28 +229,28 @@ class _Images:
 
     def costs(self, image_id: str, A_parent: np.ndarray, b_parent: np.ndarray) -> np.ndarray:
         """Whitened squared reprojection cost of each labelling of an image seen through one more
-        mirror than ``(A_parent, b_parent)``, its mirror vector fitted (eqs. 3, 5, 9)."""
+        mirror than ``(A_parent, b_parent)``, its mirror vector fitted (eqs. 3, 5, 9; all labellings in one
+        :func:`~mirror_fg.solver.placement_consensus.fit_mirrors`); inf where a point ends behind the camera."""
         sigma = self.dataset.normalized_sigma
         before = self.points[image_id] @ A_parent.T + b_parent  # the points before the image's last mirror
         costs = np.full(len(self.transforms[image_id]), np.inf)
-        for g, (transform, observed) in enumerate(zip(self.transforms[image_id], self.observed[image_id])):
-            if transform is None:
-                continue
-            start = reflection_fit(transform[0][None], transform[1][None], A_parent, b_parent)[1][0]
-
-            def residual(v: np.ndarray, observed: np.ndarray = observed) -> np.ndarray:
-                seen = reflect(before, v)  # eq. (3)
-                depth = np.where(seen[:, 2] > 1e-9, seen[:, 2], 1e-9)
-                return ((seen[:, :2] / depth[:, None] - observed) / sigma).ravel()
-
-            if not np.all(np.isfinite(start)) or np.linalg.norm(start) < 1e-12:
-                continue
-            from scipy.optimize import least_squares  # imported where used: SciPy is slow to load (issue 27)
-
-            fitted = least_squares(residual, start, method="lm")
-            seen = reflect(before, fitted.x)
-            if np.all(seen[:, 2] > 0):
-                costs[g] = float(np.sum(((project(seen) - observed) / sigma) ** 2))
+        present = [(g, transform) for g, transform in enumerate(self.transforms[image_id]) if transform is not None]
+        if not present:
+            return costs
+        labellings = [g for g, _ in present]
+        starts = reflection_fit(np.array([A for _, (A, _) in present]), np.array([b for _, (_, b) in present]),
+                                A_parent, b_parent)[1]
+        usable = np.all(np.isfinite(starts), axis=1) & (np.linalg.norm(starts, axis=1) >= 1e-12)
+        labellings = [g for g, ok in zip(labellings, usable) if ok]
+        if not labellings:
+            return costs
+        count = len(before)
+        index = np.repeat(np.arange(len(labellings)), count)
+        observed = np.concatenate([self.observed[image_id][g] for g in labellings])
+        fitted, squared = fit_mirrors(np.tile(before, (len(labellings), 1)), index, observed, sigma, starts[usable])
+        for k, g in enumerate(labellings):
+            if np.all(reflect(before, fitted[k])[:, 2] > 0):
+                costs[g] = float(np.sum(squared[k * count:(k + 1) * count]))
         return costs
 
     def rms(self, image_id: str, cost: float) -> float:

@@ -251,15 +251,16 @@ def reflection_fit(
     A: np.ndarray, b: np.ndarray, A_parent: np.ndarray, b_parent: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """The reflection nearest to each candidate ``(A_l, b_l)`` (stacked (n, 3, 3), (n, 3)) of a known
-    parent ``(A_{l-1}, b_{l-1})`` (eqs. 6-7): misfits (n,), squared and unitless, and mirror vectors (n, 3).
+    parent ``(A_{l-1}, b_{l-1})`` (one, or one per candidate: (n, 3, 3), (n, 3)) (eqs. 6-7): misfits (n,),
+    squared and unitless, and mirror vectors (n, 3).
 
     ``A_l A_{l-1}^T`` must be a Householder matrix (normal: eigenvector of its -1 eigenvalue) and
     ``b_l - M b_{l-1}`` must be ``2 v``, parallel to that normal; the misfit is how far both are off.
     """
-    M = A @ A_parent.T
+    M = A @ np.swapaxes(A_parent, -1, -2)  # one parent, or one per candidate (stacked)
     normals = smallest_eigenvectors(0.5 * (M + M.transpose(0, 2, 1)))
     H = householders(normals, unit=True)
-    offsets = b - H @ b_parent  # must be 2 v, parallel to the normal (eq. 7)
+    offsets = b - (H @ b_parent if np.ndim(b_parent) == 1 else (H @ b_parent[:, :, None])[:, :, 0])  # 2 v (eq. 7)
     along = np.einsum("ia,ia->i", normals, offsets)
     perpendicular = offsets - normals * along[:, None]
     scale = np.maximum(np.linalg.norm(b, axis=1), 1e-9)

@@ -5,15 +5,21 @@ image is mirror-imaged, so PnP runs on the y-flipped image and the flip is put b
 """
 from __future__ import annotations
 
-from itertools import combinations
+from itertools import combinations, islice
 
 import cv2
 import numpy as np
 
 from mirror_fg.core.geometry import FLIP_Y, apply_transform, project, so3_exp_many
 
-__all__ = ["pnp_candidates", "pnp_candidates_many"]
+__all__ = ["pnp_candidates", "pnp_candidates_many", "pnp_minima"]
 
+#: Two refined poses are the same minimum when their rotations (entries) and translations (relative)
+#: differ by less than this (LM stops up to ~1e-4 apart in a shallow twin's valley); a planar target's twin
+#: differs by about its viewing angle's change (>= 1e-2).
+SAME_MINIMUM = 1e-3
+#: Two solvers' starts this close (same measure) lie in one basin: only the better one is refined.
+SAME_BASIN = 1e-3
 _PNP_CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
 
 
@@ -34,16 +40,21 @@ def _pnp_rotation_candidates(base_points: np.ndarray, normalized: np.ndarray) ->
     """All admissible rigid poses (R, t) explaining normalized observations of base points (eq. 10)."""
     if len(base_points) == 3:  # up to four P3P solutions (Fischler & Bolles); every admissible one
         return _p3p_candidates_many([(base_points, normalized)])[0]
+    minima = _pnp_minima(base_points, normalized)
+    return minima[:1]
+
+
+def _pnp_minima(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The distinct local minima (R, t) of the reprojection error of >= 4 points (eq. 10), lowest first:
+    the starts of several solvers, each refined by LM (SQPnP alone can be wrong, STYLE.md)."""
     obj = np.ascontiguousarray(base_points, dtype=np.float64).reshape(-1, 1, 3)
     img = np.ascontiguousarray(normalized, dtype=np.float64).reshape(-1, 1, 2)
     K = np.eye(3)
     poses: list[tuple[np.ndarray, np.ndarray]] = []
-    # >= 4 points: one pose. SQPnP alone can be wrong (STYLE.md), so refine the candidates of several
-    # solvers with LM and keep the one with the lowest reprojection error.
     flags = [cv2.SOLVEPNP_SQPNP, cv2.SOLVEPNP_EPNP, cv2.SOLVEPNP_ITERATIVE]
     centered = base_points - base_points.mean(axis=0)
     if np.linalg.svd(centered, compute_uv=False)[2] < 1e-9 * max(1.0, np.abs(centered).max()):
-        flags.append(cv2.SOLVEPNP_IPPE)
+        flags.append(cv2.SOLVEPNP_IPPE)  # both of a planar target's poses (its twin)
     for flag in flags:
         try:
             ok, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, K, None, flags=flag)
@@ -51,14 +62,19 @@ def _pnp_rotation_candidates(base_points: np.ndarray, normalized: np.ndarray) ->
             continue
         if ok:
             poses.extend(_pose_from_rvec(r, t) for r, t in zip(rvecs, tvecs))
-    for triple in list(combinations(range(len(base_points)), 3))[:4]:
+    for triple in islice(combinations(range(len(base_points)), 3), 4):  # not list(): C(70, 3) tuples cost 3 ms
         try:
             count, rvecs, tvecs = cv2.solveP3P(obj[list(triple)], img[list(triple)], K, None, flags=cv2.SOLVEPNP_P3P)
         except cv2.error:
             continue
         poses.extend(_pose_from_rvec(rvecs[i], tvecs[i]) for i in range(count))
-    best, best_error = None, np.inf
+    # Starts of one basin (the solvers agree on a clear view) are refined once, from the first of them.
+    refined: list[tuple[float, np.ndarray, np.ndarray]] = []
+    chosen = _Poses()
     for R, t in poses:
+        if chosen.near(R, t, SAME_BASIN):
+            continue
+        chosen.add(R, t)
         rvec = cv2.Rodrigues(R)[0]
         tvec = t.reshape(3, 1).copy()
         try:
@@ -67,9 +83,44 @@ def _pnp_rotation_candidates(base_points: np.ndarray, normalized: np.ndarray) ->
             pass
         R_ref, t_ref = _pose_from_rvec(rvec, tvec)
         error = _reprojection_rms(R_ref, t_ref, base_points, normalized)
-        if error < best_error:
-            best, best_error = (R_ref, t_ref), error
-    return [] if best is None or not np.isfinite(best_error) else [best]
+        if np.isfinite(error):
+            refined.append((error, R_ref, t_ref))
+    refined.sort(key=lambda entry: entry[0])
+    minima = _Poses()
+    for _, R, t in refined:  # the same minimum reached from several starts once
+        if not minima.near(R, t, SAME_MINIMUM):
+            minima.add(R, t)
+    return minima.poses
+
+
+class _Poses:
+    """Poses kept so far, and whether a pose is near one of them: rotations (entries) and translations
+    (relative) both within a tolerance."""
+
+    def __init__(self) -> None:
+        self.poses: list[tuple[np.ndarray, np.ndarray]] = []
+        self._R = np.zeros((0, 3, 3))
+        self._t = np.zeros((0, 3))
+
+    def add(self, R: np.ndarray, t: np.ndarray) -> None:
+        self.poses.append((R, t))
+        self._R = np.concatenate([self._R, R[None]])
+        self._t = np.concatenate([self._t, t[None]])
+
+    def near(self, R: np.ndarray, t: np.ndarray, tolerance: float) -> bool:
+        if not self.poses:
+            return False
+        scale = max(float(np.linalg.norm(t)), 1e-12)
+        close = (np.abs(self._R - R).max(axis=(1, 2)) <= tolerance) & (
+            np.linalg.norm(self._t - t, axis=1) <= tolerance * scale)
+        return bool(close.any())
+
+
+def pnp_minima(base_points: np.ndarray, normalized: np.ndarray, num_mirrors: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Every distinct local minimum ``(A_Nv, b_Nv)`` of the reprojection error of one image's >= 4
+    fiducials (eqs. 5, 10-12), lowest first; the first is :func:`pnp_candidates`'. A small planar target
+    far away has two minima that fit about equally (IPPE's twin poses): the caller tells them apart."""
+    return _with_parity(_pnp_minima, base_points, normalized, num_mirrors)
 
 
 def pnp_candidates(base_points: np.ndarray, normalized: np.ndarray, num_mirrors: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -79,11 +130,16 @@ def pnp_candidates(base_points: np.ndarray, normalized: np.ndarray, num_mirrors:
     coordinates. For odd Nv the image is flipped in y so PnP sees a rotation (eq. 11), then
     ``A = F R``, ``b = F t`` (eq. 12). Three points give up to four candidates, four or more give one.
     """
+    return _with_parity(_pnp_rotation_candidates, base_points, normalized, num_mirrors)
+
+
+def _with_parity(solver, base_points: np.ndarray, normalized: np.ndarray, num_mirrors: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``solver``'s rigid poses of the (for odd Nv y-flipped, eq. 11) image as ``(A_Nv, b_Nv)`` (eq. 12)."""
     flip = num_mirrors % 2 == 1
     observed = np.array(normalized, dtype=float)
     if flip:
         observed[:, 1] *= -1.0  # eq. (11)
-    candidates = _pnp_rotation_candidates(np.asarray(base_points, dtype=float), observed)
+    candidates = solver(np.asarray(base_points, dtype=float), observed)
     if flip:
         candidates = [(FLIP_Y @ R, FLIP_Y @ t) for R, t in candidates]  # eq. (12)
     return candidates
