@@ -145,3 +145,22 @@ def test_cli_plan_next_refusals(tmp_path, args, words):
     proc = run_cli("plan", *args, cwd=tmp_path)
     assert proc.returncode == 2 and words in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr
+
+
+def test_cli_plan_next_from_a_result_suggests_what_the_calibration_would(tmp_path):
+    dataset, _ = simulate_base_case(num_images=4, num_mirrors=1, num_fiducials=4, seed=3)
+    save_dataset(tmp_path / "d.json", dataset)
+    assert run_cli("calibrate", "d.json", "-o", "r.json", "--no-ros", cwd=tmp_path).returncode == 0
+    args = ["plan", "--next", "d.json", "--distance", "0.35,0.6", "--max-tilt", "25", "--count", "2"]
+    assert run_cli(*args, "-o", "a.json", cwd=tmp_path).returncode == 0
+    proc = run_cli(*args, "--result", "r.json", "-o", "b.json", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    a, b = (json.loads((tmp_path / name).read_text()) for name in ("a.json", "b.json"))
+    for x, y in zip(a["suggestions"], b["suggestions"]):
+        np.testing.assert_allclose(x["v"], y["v"])
+        np.testing.assert_allclose(x["predicted"]["sigma3_base_cam"]["position_mm"],
+                                   y["predicted"]["sigma3_base_cam"]["position_mm"], rtol=1e-6)
+    other, _ = simulate_base_case(num_images=5, num_mirrors=1, num_fiducials=4, seed=4)
+    save_dataset(tmp_path / "other.json", other)  # a placement the result does not hold
+    proc = run_cli("plan", "--next", "other.json", "--result", "r.json", cwd=tmp_path)
+    assert proc.returncode == 2 and "was it calibrated from them?" in proc.stderr

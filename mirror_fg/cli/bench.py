@@ -22,23 +22,30 @@ def plan_next(args, out: _Printer) -> int:
     from mirror_fg.tools.suggest import (
         Reach,
         default_reach,
+        estimate_from_result,
         require_suggestions,
         suggest_next,
     )
 
-    outputs = OutputPlan(inputs=[os.fspath(args.next_data)])
+    outputs = OutputPlan(inputs=[os.fspath(p) for p in (args.next_data, args.result) if p is not None])
     if args.output is not None:
         outputs.add(args.output, "suggestions")
     dataset = _load_input(args.next_data, out, outputs)
-    calibration = require_converged(calibrate(dataset), dataset.source)
-    used = without(dataset, calibration.excluded) if calibration.excluded else dataset
-    reach = default_reach(used, calibration)
+    if args.result is not None:  # the estimate of a calibration already made
+        from mirror_fg.io.result import load_result
+
+        used, estimate = estimate_from_result(load_result(args.result), dataset, os.fspath(args.result))
+    else:
+        calibration = require_converged(calibrate(dataset), dataset.source)
+        used = without(dataset, calibration.excluded) if calibration.excluded else dataset
+        estimate = calibration
+    reach = default_reach(used, estimate)
     if args.distance is not None:
         low, high = (args.distance[0] * 0.9, args.distance[0] * 1.1) if len(args.distance) == 1 else args.distance
         reach = Reach((low, high), reach.max_tilt_deg)
     if args.max_tilt is not None:
         reach = replace(reach, max_tilt_deg=args.max_tilt)
-    suggestions = require_suggestions(suggest_next(used, calibration, count=args.count, reach=reach), dataset.source)
+    suggestions = require_suggestions(suggest_next(used, estimate, count=args.count, reach=reach), dataset.source)
     if args.output is not None:
         outputs.commit({os.fspath(args.output): json.dumps(suggestions.to_dict(), indent=2)})
     out.info(suggestions.text())

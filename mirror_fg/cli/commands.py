@@ -291,8 +291,9 @@ def cmd_plan(args, out: _Printer) -> int:
         from mirror_fg.cli.bench import plan_next  # the bench commands build on these
 
         return plan_next(args, out)
-    if args.output is not None or args.max_tilt is not None or (args.distance is not None and len(args.distance) > 1):
-        raise DatasetError("plan: -o, --max-tilt and --distance MIN,MAX go with --next DATA (the bounds of a "
+    if (args.output is not None or args.max_tilt is not None or args.result is not None
+            or (args.distance is not None and len(args.distance) > 1)):
+        raise DatasetError("plan: -o, --result, --max-tilt and --distance MIN,MAX go with --next DATA (the bounds of a "
                            "described setup are written with --json)")
     outputs = OutputPlan(inputs=[os.fspath(p) for p in (args.fiducials_file, args.camera, args.capture) if p is not None])
     if args.json is not None:

@@ -197,6 +197,8 @@ def build_parser() -> argparse.ArgumentParser:
     pln.add_argument("--next", dest="next_data", type=Path, metavar="DATA|CAPTURE",
                      help="guided capture: calibrate these data and rank the mirror placements to try next by the "
                           "camera position's predicted 3-sigma")
+    pln.add_argument("--result", type=Path, metavar="RESULT",
+                     help="with --next: the result@1 of these data (its estimate is used; no new calibration)")
     pln.add_argument("--count", type=_COUNT, default=3, help="with --next: suggestions to print (default 3)")
     pln.add_argument("--max-tilt", type=_number(float, 0.0, 89.0, low_open=True),
                      help="with --next: largest reachable tilt of the mirror from the optical axis, degrees "

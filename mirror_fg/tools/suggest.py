@@ -34,7 +34,7 @@ from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.graph import InitialEstimate
 from mirror_fg.tools.crb import POSE_DIM, UnknownIndex, _invert, linearize
 
-__all__ = ["Reach", "Suggestion", "Suggestions", "candidate_mirror_vectors", "random_reachable_vectors",
+__all__ = ["Reach", "Suggestion", "Suggestions", "Estimate", "estimate_from_result", "candidate_mirror_vectors", "random_reachable_vectors",
            "suggest_next", "sees_every_fiducial", "default_reach", "SUGGESTIONS_FORMAT"]
 
 SUGGESTIONS_FORMAT = "mirror-fg/suggestions@1"
@@ -352,6 +352,36 @@ def suggest_next(dataset: Dataset, values: InitialEstimate, *, count: int = 3, r
         ranked += [Suggestion(dataset.num_mirrors, under, usable[k], rotation[k], position[k]) for k in range(len(usable))]
     ranked.sort(key=lambda s: (round(float(np.max(s.predicted_position_mm)), 6), float(np.max(s.predicted_rotation_deg))))
     return Suggestions(now_rotation, now_position, ranked[:count], reach, scored)
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Values of every unknown (a :class:`~mirror_fg.solver.graph.InitialEstimate`), e.g. read from a result."""
+
+    R_cam_base: np.ndarray
+    t_cam_base: np.ndarray
+    mirror_vectors: dict[tuple[int, int], np.ndarray]
+    points: dict[str, np.ndarray]
+
+
+def estimate_from_result(result: dict, dataset: Dataset, source: str) -> tuple[Dataset, Estimate]:
+    """The data a result@1 was calibrated from (without what it left out) and its estimate, to suggest from
+    without calibrating again; DatasetError when the result does not belong to the data."""
+    from mirror_fg.io.result import mirror_vectors, points, pose
+    from mirror_fg.solver.calibration import Exclusion
+    from mirror_fg.solver.consensus import without
+
+    excluded = [Exclusion(e["image"], e["reason"], e.get("point"), e.get("sigmas")) for e in result.get("excluded") or []]
+    used = without(dataset, excluded) if excluded else dataset
+    R, t = pose(result["T_cam_base"])
+    vectors = mirror_vectors(result)
+    point_values = {name: xyz for name, (xyz, _) in points(result).items()}
+    missing = [f"placement {m} of mirror {l}" for l, m in used.configurations if (l, m) not in vectors]
+    missing += [f"point {name}" for name in used.reconstruction_point_names if name not in point_values]
+    if missing:
+        raise DatasetError(f"{source}: holds no estimate of {missing[0]} of {dataset.source}"
+                           f"{f' (and {len(missing) - 1} more)' if len(missing) > 1 else ''}: was it calibrated from them?")
+    return used, Estimate(R, t, vectors, point_values)
 
 
 def require_suggestions(suggestions: Suggestions, source: str) -> Suggestions:
