@@ -70,8 +70,8 @@ class IncrementalGraph:
 
     ``dataset``: the calibrator's; its ``images`` list is the state's images in the graph. ``robust``:
     ``None``, ``"huber"`` or ``"cauchy"``; ``thresholds``: iSAM2's relinearisation thresholds;
-    ``timings``: the calibrator's stage times, added to; ``seed``: of the analytical solution's
-    hypotheses (:meth:`reset`).
+    ``timings``: the calibrator's stage times, added to; ``seed``: of each state's random generator (the
+    hypotheses of a node of new placements, eqs. 13-18; :meth:`reset`).
     """
 
     def __init__(
@@ -101,6 +101,7 @@ class IncrementalGraph:
 
     @state.setter
     def state(self, state: GraphState) -> None:
+        """Make ``state`` the graph's (a new start-up's, or the one a failed start-up rolls back to)."""
         self._state = state
         self._ds.images = state.images
 
