@@ -28,40 +28,23 @@ Life of an image (``IncrementalCalibrator.add_image``):
 3. Afterwards an image whose placements all have values only adds its factors (one ``ISAM2.update``
    with the new factors and values, nothing re-added): its last-mirror placement goes into a new block
    of its own, and every ``MERGE_FANOUT`` blocks of one size under one parent are merged into one (their
-   factors replaced in the same update). A new placement gets its value from the image's
-   PnP ``(A, b)`` (eqs. 10-12) and the current estimate: the known mirrors after it are peeled off
-   ``(A, b)`` and those before it applied to ``T_cam_base``, which leaves one reflection (eqs. 6-7): its
-   normal is the -1 eigenvector of ``A_l A_{l-1}^T``, its offset the part of ``b_l - M_l b_{l-1}`` along
-   it. Several new placements in one image (a new placement of mirror 1 with a new one of mirror 2)
-   wait until their subtree can be solved like a node of the analytical solution (eqs. 13-18) under
-   the known parent. A reconstruction point gets its value by eq. (20) from the current estimate once
-   two images in the graph see it; until then its observations wait (once it has one, the blocks of the
-   images that saw it are re-made with them). Each new unknown is then moved to its optimum with
-   everything else held (a few Gauss-Newton steps on its own factors) so that iSAM2 does not keep it
-   linearised at a rough initial value; an eliminated placement is at its optimum in every evaluation
-   of its factor anyway.
+   factors replaced in the same update). New placements and points get values from the image's PnP and
+   the current estimate, each then moved to its optimum alone (``incremental_values.py``); a point's
+   observations wait until two images in the graph see it.
 
-Settling. On the smallest tree (a placement seen with only three children) the analytical solution
-can be far off: on the issue's 300-image stream (seed 0) it is 1.5 m off at image 203, where the
-likelihood has a long curved valley; Levenberg-Marquardt stalls in it and undamped Gauss-Newton, what
-iSAM2 does, diverged from there (65 deg off after two steps, then an indeterminant system). So a
-start-up counts as *settled* only when iSAM2's Gauss-Newton step at the LM solution moves the pose by
-less than ``SETTLED_SIGMAS`` of its own standard deviation. Until then the estimate reported is the LM
-one and the start-up is re-run on every image so far (on that stream it settles five images later,
-when the analytical solution is 0.3 m off). A settled calibrator whose pose jumps by more than
-``DIVERGENCE_SIGMAS`` in one update, or meets an indeterminant system, restarts the same way; a failed
-start-up rolls the calibrator's :class:`~mirror_fg.solver.incremental_graph.GraphState` back.
+Settling: a start-up counts as settled only when iSAM2's own step at the LM solution is small; until
+then the LM estimate is reported and the start-up re-run with later images (``incremental_startup.py``).
 
-This module holds the public API, start-up and restarts; ``incremental_graph.py`` the graph state and
-how images join it (iSAM2 updates).
+This module holds the public API, the screening of images and when to restart; the calibrator holds an
+:class:`~mirror_fg.solver.incremental_graph.IncrementalGraph` (``incremental_graph.py``: the graph and
+how images join it, iSAM2 updates; its state in ``incremental_state.py``, the values of new unknowns in
+``incremental_values.py``) and starts it with ``incremental_startup.py``.
 """
 from __future__ import annotations
 
-from dataclasses import replace
-
-import math
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Mapping
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 import gtsam
@@ -69,24 +52,19 @@ import numpy as np
 
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.geometry import nested_transform
-from mirror_fg.core.transform import covariance_from_pose3, covariance_to_pose3
+from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.io.dataset import Dataset, Image, validate_image
 from mirror_fg.solver.analytic import AnalyticSolution
 from mirror_fg.solver.calibrate import as_dataset
 from mirror_fg.solver.calibration import Calibration, Exclusion, require_converged
 from mirror_fg.solver.consensus import BEHIND, CONSENSUS_MIN_SIGMAS, board_side, check_image, misfit_sigmas, screen
 from mirror_fg.solver.consistency import diagnose_inconsistency, misfits_split
-from mirror_fg.solver.incremental_graph import (
-    MIN_PNP_FIDUCIALS,
-    POLISH_SIGMAS,
-    GraphGrowth,
-    GraphState,
-    RelinearizeThresholds,
-)
+from mirror_fg.solver.incremental_graph import IncrementalGraph
+from mirror_fg.solver.incremental_startup import DIVERGENCE_SIGMAS, FINAL_LM_ITERATIONS, STARTUP_LM_ITERATIONS, start_graph
+from mirror_fg.solver.incremental_state import GraphState, RelinearizeThresholds
+from mirror_fg.solver.incremental_values import MIN_PNP_FIDUCIALS
 from mirror_fg.solver.initial import initial_estimate
-from mirror_fg.solver.lm import cost_scale, lm_params
-from mirror_fg.solver.marginals import marginal_covariances, unconstrained_message
-from mirror_fg.solver.residuals import outliers_of, predicted_normalized, residual_statistics
+from mirror_fg.solver.marginals import marginal_covariances
 from mirror_fg.solver.placement_tree import complete_tree, tree_shortfall
 from mirror_fg.solver.timing import timed
 
@@ -95,15 +73,6 @@ if TYPE_CHECKING:
 
 __all__ = ["IncrementalCalibrator", "calibrate_incremental", "complete_tree"]
 
-#: Levenberg-Marquardt iterations at most per start-up (a stalled start-up is retried with more images).
-STARTUP_LM_ITERATIONS = 30
-#: ... and for ``calibration(full=True)`` of an unsettled calibrator (as ``calibrate``).
-FINAL_LM_ITERATIONS = 100
-#: A start-up is settled when iSAM2's Gauss-Newton step at the LM solution moves the pose by less than
-#: this many of its own standard deviations (Mahalanobis distance).
-SETTLED_SIGMAS = 0.5
-#: A settled calibrator restarts when one update moves the pose by more than this (Mahalanobis).
-DIVERGENCE_SIGMAS = 5.0
 #: An image is judged against the estimate (refused when it misfits it by more than
 #: ``consensus.CONSENSUS_MIN_SIGMAS``) only once this many images are in the graph: the estimate of a
 #: first, minimal tree is too rough to judge by (and could itself hold an image no majority refused yet).
@@ -114,7 +83,7 @@ UNSETTLED_EVERY_IMAGE = 8
 UNSETTLED_MAX_INTERVAL = 32
 
 
-class IncrementalCalibrator(GraphGrowth):
+class IncrementalCalibrator:
     """Camera-to-base calibration that takes images one at a time (iSAM2 on the batch factors).
 
     ``dataset`` gives the camera, fiducials, number of mirrors and pixel sigma; its images are not
@@ -158,8 +127,6 @@ class IncrementalCalibrator(GraphGrowth):
             self._known_points = None
         if robust not in (None, "huber", "cauchy"):
             raise ValueError(f"unknown robust kernel {robust!r}: use 'huber' or 'cauchy'")
-        self._robust = robust
-        self._thresholds = thresholds or RelinearizeThresholds()
         self._seed = seed
         self._ids: set[str] = set()
         #: Images or fiducials refused by the consensus (``consensus.py``), each with its reason.
@@ -169,7 +136,6 @@ class IncrementalCalibrator(GraphGrowth):
         #: they are consistent among themselves: a camera or board that moved).
         self.misfits: list[Image] = []
         self._accepted: list[Image] = []  # every accepted image, in order
-        self._pnp: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
         # Start-up / restart bookkeeping.
         self._analytic: AnalyticSolution | None = None
         self._settled = False
@@ -182,17 +148,16 @@ class IncrementalCalibrator(GraphGrowth):
         self.restarts = 0
         self._lm_iterations: list[int] = []  # LM iterations of each start-up
         self.timings: dict[str, float] = defaultdict(float)
-        self._updates = 0
-        self._reset_graph()
+        self._graph = IncrementalGraph(self._ds, robust, thresholds or RelinearizeThresholds(), self.timings, seed)
+
+    @property
+    def _g(self) -> GraphState:
+        """The graph's state: graph, estimate, images in and waiting for it."""
+        return self._graph.state
 
     def _reset_graph(self) -> None:
         """Empty graph and estimate (before a start-up); every accepted image waits."""
-        self._set_state(GraphState.empty(self._accepted, self._seed))
-
-    def _set_state(self, state: GraphState) -> None:
-        """Make ``state`` the calibrator's graph state (its images are those of ``self._ds``)."""
-        self._g = state
-        self._ds.images = state.images
+        self._graph.reset(self._accepted)
 
     # --- public -------------------------------------------------------------------------------------
 
@@ -306,7 +271,7 @@ class IncrementalCalibrator(GraphGrowth):
             return self._g.require_isam().marginalCovariance(key)
         # Unsettled, iSAM2 may not hold the reported (LM) estimate; an eliminated placement is not in
         # iSAM2: marginals of the whole graph at the estimate.
-        factors, values = self._explicit_graph()
+        factors, values = self._graph.explicit_graph()
         _, mirrors, points = marginal_covariances(factors, values, self._g.layout, self._ds.source)
         return points[unknown] if isinstance(unknown, str) else mirrors[config]
 
@@ -330,15 +295,7 @@ class IncrementalCalibrator(GraphGrowth):
         """
         self._require_started()
         if not full:
-            return self._make_calibration(
-                covariance=covariance_from_pose3(self._g.R, self._g.pose_cov),
-                mirror_covs={},
-                point_covs={},
-                residuals=np.zeros((0, 2)),
-                labels=[],
-                outliers=[],
-                final_error=math.nan,
-            )
+            return self._graph.calibration(self._analytic, self._settled, self.excluded)
         stage_times: dict[str, float] = {}
         with timed(stage_times, "full"):
             if not self._settled:
@@ -346,30 +303,12 @@ class IncrementalCalibrator(GraphGrowth):
                 self._restart(lm_iterations=FINAL_LM_ITERATIONS)
             if self._settled:
                 try:
-                    self._polish()
+                    self._graph.polish()
                 except SolveError:  # relinearised, the system turned indeterminant: fall back to LM
                     self._settled = False
                     self._restart(lm_iterations=FINAL_LM_ITERATIONS)
             # Unsettled, the estimate is the start-up's Levenberg-Marquardt solution: no Gauss-Newton step.
-            g = self._g
-            factors, estimate = self._explicit_graph()  # every placement an unknown, at the estimate
-            covariance, mirror_covs, point_covs = marginal_covariances(factors, estimate, g.layout, self._ds.source)
-            predicted = predicted_normalized(self._ds, g.measurements, g.R, g.t, g.mirrors, g.points)
-            residuals, whitened = residual_statistics(self._ds, g.measurements, predicted)
-            calibration = self._make_calibration(
-                covariance=covariance,
-                mirror_covs=mirror_covs,
-                point_covs=point_covs,
-                residuals=residuals,
-                labels=[(m.image_id, m.point) for m in g.measurements],
-                outliers=outliers_of(g.measurements, whitened),
-                final_error=float(factors.error(estimate)),
-            )
-            # Its cost judged as the batch's (lm.LMRun.expected_final_error): two per measurement less
-            # the unknowns (pose, every mirror vector, points).
-            unknowns = 6 + 3 * len(calibration.mirror_vectors) + 3 * len(calibration.points)
-            calibration.expected_final_error = 0.5 * max(2 * len(calibration.residuals) - unknowns, 0)
-            calibration.converged = self._settled and g.step_sigmas < POLISH_SIGMAS
+            calibration = self._graph.calibration(self._analytic, self._settled, self.excluded, full=True)
         calibration.timings.update(stage_times)
         return calibration
 
@@ -396,7 +335,7 @@ class IncrementalCalibrator(GraphGrowth):
                 self.startup_error = None
                 return True
             except (SolveError, DatasetError) as error:
-                self._set_state(saved)
+                self._graph.state = saved
                 self.startup_error = error
                 self._settled = False
                 return False
@@ -449,47 +388,13 @@ class IncrementalCalibrator(GraphGrowth):
             raise
         was_started = self.started
         self._reset_graph()
-        self._g.R = analytic.R_cam_base.copy()
-        self._g.t = np.asarray(analytic.t_cam_base, dtype=float).copy()
-        values = gtsam.Values()
-        values.insert(self._g.layout.pose_key, gtsam.Pose3(gtsam.Rot3(self._g.R), self._g.t))
-        for config in sorted(analytic.mirror_vectors):
-            self._new_mirror(config, analytic.mirror_vectors[config], values)
-        factors = gtsam.NonlinearFactorGraph()
-        self._collect(factors, values)
-        analytic.points = dict(self._g.points)  # eq. (20) at the analytical solution
-        initial_error = float(factors.error(values))
-        with timed(self.timings, "startup_lm"):
-            params = lm_params(lm_iterations, cost_scale(self._ds))
-            optimizer = gtsam.LevenbergMarquardtOptimizer(factors, values, params)
-            try:
-                optimized = optimizer.optimize()
-            except RuntimeError as error:  # IndeterminantLinearSystemException
-                raise SolveError(f"{self._ds.source}: {unconstrained_message(error, self._g.layout)}") from None
-            if self._collapsed(optimized):  # a placement run into the camera centre (factors.eliminated.COLLAPSED_FRACTION)
-                optimizer, factors, optimized = self._solve_with_every_placement(params)
-        self._g.isam = self._new_isam2()
-        self._set_estimate(optimized)  # the pose the update's step is measured from; placements below
-        try:
-            self._update(factors, optimized)
-            # Settled when iSAM2's own Gauss-Newton step from the LM solution is small: the linear
-            # model there can be trusted. Otherwise report the LM solution (iSAM2's covariance is the
-            # one there: its linearisation point) and retry with later images.
-            self._settled = self._g.step_sigmas < SETTLED_SIGMAS
-        except SolveError:  # iSAM2's Cholesky gave up near the LM solution (nearly indeterminant)
-            self._settled = False
-            self._set_estimate(optimized)  # and every eliminated placement there, by _explicit_graph
-            covariance, _, _ = marginal_covariances(*self._explicit_graph(), self._g.layout, self._ds.source)
-            self._g.pose_cov = covariance_to_pose3(self._g.R, covariance)  # GTSAM's [w, nu]
-        else:
-            if not self._settled:
-                self._set_estimate(optimized, self._g.blocks)
+        start = start_graph(self._graph, analytic, lm_iterations)
+        self._settled = start.settled
         self._unsettled_tries = 0 if self._settled else self._unsettled_tries + 1
         self._analytic = analytic
-        self._g.initial_error = initial_error
         self._accepted_at_restart = len(self._accepted)
         self.restarts += int(was_started)
-        self._lm_iterations.append(optimizer.iterations())
+        self._lm_iterations.append(start.lm_iterations)
 
     # --- adding images ------------------------------------------------------------------------------
 
@@ -528,14 +433,14 @@ class IncrementalCalibrator(GraphGrowth):
     def _process_waiting(self) -> None:
         values = gtsam.Values()
         factors = gtsam.NonlinearFactorGraph()
-        self._collect(factors, values)
+        self._graph.collect(factors, values)
         if factors.size() == 0 and values.size() == 0:
             return
         before = (self._g.R, self._g.t, self._g.pose_cov)
-        self._refine_new(factors, values)
+        self._graph.refine_new(factors, values)
         try:
-            self._update(factors, values)
-            diverged = self._pose_step_sigmas(*before) > DIVERGENCE_SIGMAS
+            self._graph.update(factors, values)
+            diverged = self._graph.pose_step_sigmas(*before) > DIVERGENCE_SIGMAS
         except SolveError:
             diverged = True
         if diverged:
@@ -550,30 +455,6 @@ class IncrementalCalibrator(GraphGrowth):
     def _require_started(self) -> None:
         if not self.started:
             raise SolveError(f"{self._ds.source}: no estimate yet: {self.status}")
-
-    def _make_calibration(
-        self, *, covariance, mirror_covs, point_covs, residuals, labels, outliers, final_error
-    ) -> Calibration:
-        return Calibration(
-            R_cam_base=self._g.R.copy(),
-            t_cam_base=self._g.t.copy(),
-            covariance=covariance,
-            mirror_vectors=dict(self._g.mirrors),
-            mirror_covariances=mirror_covs,
-            points=dict(self._g.points),
-            point_covariances=point_covs,
-            analytic=self._analytic,
-            iterations=self._updates,
-            initial_error=self._g.initial_error,
-            final_error=final_error,
-            converged=self._settled,
-            residuals=residuals,
-            residual_labels=labels,
-            residual_units="px" if self._ds.camera is not None else "normalized",
-            outliers=outliers,
-            timings=dict(self.timings),
-            excluded=list(self.excluded),
-        )
 
 
 def calibrate_incremental(

@@ -2,9 +2,8 @@
 how waiting images join the graph (values of new placements and points, their factors, one update).
 
 Frames, keys and units as ``incremental.py``. :class:`GraphState` is everything a failed start-up rolls
-back; :class:`GraphGrowth` is the part of the calibrator that grows that graph (a mixin: it works on
-the calibrator's ``_g`` state, ``_ds`` images dataset, ``_robust`` kernel, ``_thresholds``, ``_pnp``
-cache and ``timings``).
+back; :class:`IncrementalGraph` holds one and grows it (the calibrator holds one ``IncrementalGraph``);
+the values of new placements come from ``incremental_placements.py``.
 
 Eliminated placements (issue 14; without a robust kernel). The last mirror moves in (nearly) every image,
 so one ``Point3`` per placement in iSAM2 makes each update cost O(images): every Python factor call gets
@@ -28,33 +27,32 @@ from __future__ import annotations
 import math
 from collections import defaultdict
 from collections.abc import Iterable
-from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import L, V, X
+from gtsam.symbol_shorthand import V
 
-from mirror_fg.core.geometry import householder, nested_transform
 from mirror_fg.core.errors import SolveError
+from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.batched import batched_factors
-from mirror_fg.factors.eliminated import EliminatedEvaluator, collapsed, eliminated_evaluator
+from mirror_fg.factors.eliminated import collapsed, eliminated_evaluator
 from mirror_fg.io.dataset import Dataset, Image
-from mirror_fg.solver.pnp import pnp_candidates
-from mirror_fg.solver.analytic import triangulate_point
+from mirror_fg.solver.analytic import AnalyticSolution
+from mirror_fg.solver.calibration import Calibration, Exclusion
 from mirror_fg.solver.graph import GraphLayout, Measurement, measurement_sigmas
-from mirror_fg.solver.marginals import unconstrained_message
-from mirror_fg.solver.peeling import MIN_NORMAL_SPREAD, reflection_fit, solve_node
+from mirror_fg.solver.incremental_state import GraphState, PlacementBlock, RelinearizeThresholds
+from mirror_fg.solver.incremental_values import (
+    MIN_PNP_FIDUCIALS, REFINE_ITERATIONS, PlacementInitialiser, initialise_points, refine_alone,
+)
+from mirror_fg.solver.marginals import marginal_covariances, unconstrained_message
+from mirror_fg.solver.residuals import outliers_of, predicted_normalized, residual_statistics
 from mirror_fg.solver.timing import timed
 
 __all__ = [
-    "GraphState", "GraphGrowth", "RelinearizeThresholds", "PlacementBlock", "MIN_PNP_FIDUCIALS", "REFINE_ITERATIONS",
+    "GraphState", "IncrementalGraph", "RelinearizeThresholds", "PlacementBlock", "MIN_PNP_FIDUCIALS", "REFINE_ITERATIONS",
     "POLISH_UPDATES", "POLISH_SIGMAS", "MERGE_FANOUT",
 ]
 
-#: Minimum number of fiducials in an image for its own PnP (eq. 10; 3 gives up to four candidates).
-MIN_PNP_FIDUCIALS = 3
-#: Gauss-Newton iterations on a new unknown alone before it goes to iSAM2.
-REFINE_ITERATIONS = 3
 #: ``calibration(full=True)`` relinearises every factor at most this many times ...
 POLISH_UPDATES = 5
 #: ... until a relinearisation moves the pose by less than this (Mahalanobis).
@@ -65,153 +63,79 @@ POLISH_SIGMAS = 1e-3
 MERGE_FANOUT = 8
 
 
-@dataclass(frozen=True)
-class RelinearizeThresholds:
-    """iSAM2 relinearisation thresholds per kind of unknown (absolute tangent components).
+class IncrementalGraph:
+    """The graph of an :class:`~mirror_fg.solver.incremental.IncrementalCalibrator` and how waiting images
+    join it: iSAM2, its factors and values (:attr:`state`, what a failed start-up rolls back), one
+    ``ISAM2.update`` per batch of new factors.
 
-    A variable is relinearised (each of its factors re-evaluated in Python: the expensive part) when a
-    component of its iSAM2 delta exceeds the threshold. ``pose``: ``[w (rad) x3, nu (m) x3]``, GTSAM's
-    Pose3 tangent of ``T_cam_base``; ``mirror`` and ``point``: metres. Every factor touches the pose, so
-    its threshold sets how often an update costs a pass over the whole graph; what a linearisation
-    point that far from the estimate costs in accuracy is second order (one Gauss-Newton step).
-
-    Measured on a 10,000-image stream (``scripts/benchmark_incremental.py --latency``): the pose is not
-    relinearised at all in the last 1,200 images, and the last per-image estimate is 0.03 of a standard
-    deviation from the fully relinearised one (``calibration(full=True)``). A threshold tied to the pose's
-    shrinking standard deviation would add a pass over every image every ~n/4 images for no gain there.
+    ``dataset``: the calibrator's; its ``images`` list is the state's images in the graph. ``robust``:
+    ``None``, ``"huber"`` or ``"cauchy"``; ``thresholds``: iSAM2's relinearisation thresholds;
+    ``timings``: the calibrator's stage times, added to; ``seed``: of each state's random generator (the
+    hypotheses of a node of new placements, eqs. 13-18; :meth:`reset`).
     """
 
-    pose: tuple[float, float, float, float, float, float] = (0.005, 0.005, 0.005, 0.01, 0.01, 0.01)
-    mirror: float = 0.003
-    point: float = 0.003
+    def __init__(
+        self, dataset: Dataset, robust: str | None, thresholds: RelinearizeThresholds, timings: dict[str, float],
+        seed: int,
+    ) -> None:
+        self._ds = dataset
+        self._robust = robust
+        self._thresholds = thresholds
+        self._seed = seed
+        self.timings = timings
+        self._placements = PlacementInitialiser(dataset)
+        #: iSAM2 updates so far (over every state: a start-up's new state continues the count).
+        self.updates = 0
+        self._state: GraphState
+        self.reset([])
 
-    def threshold_map(self) -> gtsam.ISAM2ThresholdMap:
-        thresholds = gtsam.ISAM2ThresholdMap()
-        thresholds.insert(("x", np.asarray(self.pose, dtype=float)))
-        thresholds.insert(("v", np.full(3, float(self.mirror))))
-        thresholds.insert(("l", np.full(3, float(self.point))))
-        return thresholds
+    @property
+    def dataset(self) -> Dataset:
+        """The calibrator's dataset (camera, fiducials, sigma); its ``images``: those in the graph."""
+        return self._ds
 
+    @property
+    def state(self) -> GraphState:
+        """The graph, the estimate, and the images in and waiting for it."""
+        return self._state
 
-@dataclass
-class PlacementBlock:
-    """Last-mirror placements eliminated inside one factor (``factors/eliminated.py``), all under ``parent``
-    (the placements of mirrors 1..Nv-1). ``index``: the factor's index in iSAM2 (``None`` until an update
-    gave it one); ``level``: merges so far in the sense of ``MERGE_FANOUT``."""
+    @state.setter
+    def state(self, state: GraphState) -> None:
+        """Make ``state`` the graph's (a new start-up's, or the one a failed start-up rolls back to)."""
+        self._state = state
+        self._ds.images = state.images
 
-    parent: tuple[int, ...]
-    level: int
-    measurements: list[Measurement]
-    placements: list[tuple[int, int]]
-    evaluator: EliminatedEvaluator
-    factor: gtsam.CustomFactor
-    index: int | None = None
+    def reset(self, waiting: Iterable[Image]) -> None:
+        """Empty graph and estimate (before a start-up); ``waiting``: the images accepted so far."""
+        self.state = GraphState.empty(waiting, self._seed)
 
-
-@dataclass
-class GraphState:
-    """What a failed start-up rolls back: the graph, the estimate, and the images in and waiting for it.
-
-    ``R``, ``t``: ``T_cam_base`` (metres); ``mirrors`` (camera frame) and ``points`` (base frame), metres;
-    ``pose_cov``: 6x6 in GTSAM's Pose3 tangent ``[w, nu]``; ``step_sigmas``: Mahalanobis size of the
-    last pose step; ``initial_error``: the latest start-up graph's cost at its analytical solution.
-    ``factors`` holds the stacked factors of the placements iSAM2 has as unknowns; ``blocks`` the factors
-    with eliminated placements (``block_of`` finds a placement's); ``kept``: the mirror placements that
-    are iSAM2 unknowns (every placement of ``layout`` that is not eliminated).
-    """
-
-    isam: gtsam.ISAM2 | None
-    factors: gtsam.NonlinearFactorGraph  # the stacked factors (iSAM2 holds them too)
-    layout: GraphLayout
-    images: list[Image]  # in the graph, in the order added (the calibrator's dataset holds this list)
-    waiting: list[Image]  # accepted, not in the graph
-    measurements: list[Measurement]  # in the graph, in the order added
-    point_waiting: dict[str, list[Measurement]]  # measurements of points without a value
-    rng: np.random.Generator
-    R: np.ndarray
-    t: np.ndarray
-    mirrors: dict[tuple[int, int], np.ndarray]
-    points: dict[str, np.ndarray]
-    pose_cov: np.ndarray
-    initial_error: float
-    step_sigmas: float
-    kept: dict[tuple[int, int], int] = field(default_factory=dict)
-    blocks: list[PlacementBlock] = field(default_factory=list)
-    block_of: dict[tuple[int, int], PlacementBlock] = field(default_factory=dict)
-    removals: list[int] = field(default_factory=list)  # iSAM2 factors the next update removes
-    pending: list[tuple[PlacementBlock, int]] = field(default_factory=list)  # new blocks, position in the update
-
-    @classmethod
-    def empty(cls, waiting: Iterable[Image], seed: int) -> GraphState:
-        """No graph and no estimate yet (before a start-up); ``waiting``: the images accepted so far."""
-        return cls(
-            isam=None,
-            factors=gtsam.NonlinearFactorGraph(),
-            layout=GraphLayout(pose_key=X(0), mirror_keys={}, point_keys={}),
-            images=[],
-            waiting=list(waiting),
-            measurements=[],
-            point_waiting=defaultdict(list),
-            rng=np.random.default_rng(seed),
-            R=np.eye(3),
-            t=np.zeros(3),
-            mirrors={},
-            points={},
-            pose_cov=np.full((6, 6), np.nan),
-            initial_error=math.nan,
-            step_sigmas=math.inf,
-        )
-
-    def require_isam(self) -> gtsam.ISAM2:
-        """The iSAM2 instance; only a started graph has one (``SolveError`` before start-up)."""
-        if self.isam is None:
-            raise SolveError("no iSAM2 yet: the calibrator has not started")
-        return self.isam
-
-
-@dataclass
-class _Candidate:
-    """One hypothesis for a node's ``(A_k, b_k)`` and the new mirror vectors it implies below it."""
-
-    A: np.ndarray
-    b: np.ndarray
-    mirrors: dict[tuple[int, int], list[np.ndarray]] = field(default_factory=dict)
-
-
-class GraphGrowth:
-    """Mixin of :class:`~mirror_fg.solver.incremental.IncrementalCalibrator`: waiting images into the graph."""
-
-    _g: GraphState
-    _ds: Dataset
-    _robust: str | None
-    _thresholds: RelinearizeThresholds
-    _pnp: dict[str, list[tuple[np.ndarray, np.ndarray]]]
-    timings: dict[str, float]
-    _updates: int  # iSAM2 updates so far
+    def unconstrained(self, error: Exception) -> str:
+        """What GTSAM's indeterminant linear system ``error`` says, naming the unknown of the graph."""
+        return unconstrained_message(error, self._state.layout)
 
     # --- adding images ------------------------------------------------------------------------------
 
-    def _collect(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
+    def collect(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
         """Move every waiting image that can be added into the graph: new values and factors."""
         ready: list[Measurement] = []
         progress = True
         while progress:
             progress = False
             still_waiting = []
-            for image in self._g.waiting:
-                if all((l + 1, m) in self._g.layout.mirror_keys for l, m in enumerate(image.mirror_configs)):
+            for image in self._state.waiting:
+                if all((l + 1, m) in self._state.layout.mirror_keys for l, m in enumerate(image.mirror_configs)):
                     self._add_to_graph(image, ready)
                     progress = True
                 else:
                     still_waiting.append(image)
-            self._g.waiting = still_waiting
-            if self._g.waiting:
+            self._state.waiting = still_waiting
+            if self._state.waiting:
                 with timed(self.timings, "initialise"):
-                    found = self._initialise_placements()
+                    found = self._placements.placements(self._state)
                 for config in sorted(found):
-                    self._new_mirror(config, found[config], values)
+                    self.new_mirror(config, found[config], values)
                     progress = True
-        ready.extend(self._initialise_points(values))
+        ready.extend(initialise_points(self._state, values))
         self._add_factors(ready, factors, values)
 
     def _add_to_graph(self, image: Image, ready: list[Measurement]) -> None:
@@ -220,10 +144,10 @@ class GraphGrowth:
         normalized = self._ds.normalized(image)
         for name in image.observations:
             meas = Measurement(image.id, name, normalized[name], image.mirror_configs)
-            if name in self._ds.fiducials or name in self._g.layout.point_keys:
+            if name in self._ds.fiducials or name in self._state.layout.point_keys:
                 ready.append(meas)
             else:
-                self._g.point_waiting[name].append(meas)
+                self._state.point_waiting[name].append(meas)
 
     def _add_factors(
         self, measurements: list[Measurement], factors: gtsam.NonlinearFactorGraph, values: gtsam.Values
@@ -237,7 +161,7 @@ class GraphGrowth:
         """
         if not measurements:
             return
-        self._g.measurements.extend(measurements)
+        self._state.measurements.extend(measurements)
         if self._robust is None:
             measurements = self._place_in_blocks(measurements, factors, values)
             if not measurements:
@@ -245,14 +169,14 @@ class GraphGrowth:
         configs = {(l + 1, m) for meas in measurements for l, m in enumerate(meas.mirror_configs)}
         names = {meas.point for meas in measurements if meas.point not in self._ds.fiducials}
         layout = GraphLayout(
-            pose_key=self._g.layout.pose_key,
-            mirror_keys={config: self._g.layout.mirror_keys[config] for config in configs},
-            point_keys={name: self._g.layout.point_keys[name] for name in names},
+            pose_key=self._state.layout.pose_key,
+            mirror_keys={config: self._state.layout.mirror_keys[config] for config in configs},
+            point_keys={name: self._state.layout.point_keys[name] for name in names},
         )
         sigmas = measurement_sigmas(self._ds, measurements)  # point_sigma where given
         for factor in batched_factors(self._ds, layout, measurements, sigmas, self._robust):
             factors.add(factor)
-            self._g.factors.add(factor)
+            self._state.factors.add(factor)
 
     def _place_in_blocks(
         self, measurements: list[Measurement], factors: gtsam.NonlinearFactorGraph, values: gtsam.Values
@@ -265,7 +189,7 @@ class GraphGrowth:
         blocks of one level and parent are merged, until none are. Removed blocks' iSAM2 indices go to
         ``removals``, new blocks' factors into ``factors`` (``pending`` until the update numbers them).
         """
-        g = self._g
+        g = self._state
         Nv = self._ds.num_mirrors
         explicit = [m for m in measurements if (Nv, m.mirror_configs[-1]) in g.kept]
         pool = [m for m in measurements if (Nv, m.mirror_configs[-1]) not in g.kept]
@@ -312,7 +236,7 @@ class GraphGrowth:
         factors: gtsam.NonlinearFactorGraph,
     ) -> None:
         """One factor with ``placements`` (all under ``parent``) eliminated, into the state and ``factors``."""
-        g = self._g
+        g = self._state
         configs = {(l + 1, m) for meas in measurements for l, m in enumerate(meas.mirror_configs)}
         names = {meas.point for meas in measurements if meas.point not in self._ds.fiducials}
         layout = GraphLayout(
@@ -333,7 +257,7 @@ class GraphGrowth:
 
     def _drop_block(self, block: PlacementBlock) -> None:
         """Take a block out of the state; its factor leaves iSAM2 with the next update."""
-        g = self._g
+        g = self._state
         g.blocks.remove(block)
         for config in block.placements:
             if g.block_of.get(config) is block:
@@ -343,185 +267,26 @@ class GraphGrowth:
         else:  # made earlier in this same update: not in iSAM2 yet
             g.pending = [(b, position) for b, position in g.pending if b is not block]
 
-    def _new_mirror(self, config: tuple[int, int], v: np.ndarray, values: gtsam.Values) -> None:
+    def new_mirror(self, config: tuple[int, int], v: np.ndarray, values: gtsam.Values) -> None:
         """A key and a value for a new placement; into ``values`` (iSAM2's) unless it is eliminated."""
-        key = V(len(self._g.layout.mirror_keys))
-        self._g.layout.mirror_keys[config] = key
-        self._g.mirrors[config] = np.asarray(v, dtype=float)
+        key = V(len(self._state.layout.mirror_keys))
+        self._state.layout.mirror_keys[config] = key
+        self._state.mirrors[config] = np.asarray(v, dtype=float)
         if self._robust is not None or config[0] < self._ds.num_mirrors:
-            self._g.kept[config] = key
-            values.insert(key, self._g.mirrors[config])
+            self._state.kept[config] = key
+            values.insert(key, self._state.mirrors[config])
 
-    def _initialise_points(self, values: gtsam.Values) -> list[Measurement]:
-        """Eq. (20) for every point seen in two images of the graph, from the current estimate.
-
-        Returns the measurements that now have every value they need.
-        """
-        ready: list[Measurement] = []
-        transforms: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray]] = {}  # per image placements
-        for name in sorted(self._g.point_waiting):
-            waiting = self._g.point_waiting[name]
-            if len({m.image_id for m in waiting}) < 2:
-                continue
-            for m in waiting:
-                if m.mirror_configs not in transforms:
-                    transforms[m.mirror_configs] = self._transform(m.mirror_configs)
-            point = triangulate_point([transforms[m.mirror_configs] for m in waiting], [m.normalized for m in waiting])
-            key = L(len(self._g.layout.point_keys))
-            self._g.layout.point_keys[name] = key
-            self._g.points[name] = point
-            values.insert(key, point)
-            ready.extend(waiting)
-            del self._g.point_waiting[name]
-        return ready
-
-    def _refine_new(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
-        """Gauss-Newton on each new unknown alone, every other unknown held at its estimate.
-
-        iSAM2 linearises a new unknown at its initial value and keeps it there until its delta exceeds
-        the threshold; starting it at its conditional optimum instead keeps that lag out of the pose
-        (measured on a 40-image one-mirror stream: the last estimate 0.25 sigma from the batch
-        optimum with the peeled initial values, 0.02 sigma with this).
-        """
-        new_keys = set(values.keys())
-        if not new_keys:
-            return
-        touching: dict[int, list] = defaultdict(list)
-        involved: set[int] = set()
-        for i in range(factors.size()):
-            factor = factors.at(i)
-            keys = factor.keys()
-            for key in keys:
-                if key in new_keys:
-                    touching[key].append(factor)
-                    involved.update(keys)
-        current = self._values(involved - new_keys)
-        current.insert(values)
-        for key, key_factors in touching.items():
-            for _ in range(REFINE_ITERATIONS):
-                normal, rhs = np.zeros((3, 3)), np.zeros(3)
-                for factor in key_factors:
-                    linear = factor.linearize(current)
-                    keys = list(linear.keys())
-                    column = sum(6 if k == self._g.layout.pose_key else 3 for k in keys[: keys.index(key)])
-                    A, b = linear.jacobian()  # whitened, A delta = b = -error
-                    A_key = A[:, column : column + 3]
-                    normal += A_key.T @ A_key
-                    rhs += A_key.T @ b
-                step = np.linalg.lstsq(normal, rhs, rcond=None)[0]
-                current.update(key, current.atPoint3(key) + step)
-                if np.max(np.abs(step)) < 1e-9:
-                    break
-            values.update(key, current.atPoint3(key))
-
-    def _transform(self, mirror_configs: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
-        """``(A_Nv, b_Nv)`` of an image from the current estimate (eqs. 6-7)."""
-        return nested_transform(self._g.R, self._g.t, [self._g.mirrors[(l + 1, m)] for l, m in enumerate(mirror_configs)])
-
-    # --- values of new placements (eqs. 6-7, 13-18) -------------------------------------------------
-
-    def _initialise_placements(self) -> dict[tuple[int, int], np.ndarray]:
-        """Mirror vectors of the new placements the waiting images determine, from the current estimate.
-
-        Each waiting image is grouped under its lowest placement without a value, ``(j, c)`` (the mirrors
-        before it have values). The subtree below ``(j, c)`` gives candidates for ``(A_j, b_j)``; the
-        known ``(A_{j-1}, b_{j-1})`` picks the most consistent one and leaves one reflection.
-        """
-        groups: dict[tuple[int, int], dict[tuple[int, ...], list[Image]]] = defaultdict(lambda: defaultdict(list))
-        for image in self._g.waiting:
-            configs = image.mirror_configs
-            j = next(l + 1 for l, m in enumerate(configs) if (l + 1, m) not in self._g.layout.mirror_keys)
-            groups[(j, configs[j - 1])][configs[:j]].append(image)
-        estimates: dict[tuple[int, int], list[np.ndarray]] = defaultdict(list)
-        for (j, c), by_prefix in groups.items():
-            for prefix, images in by_prefix.items():
-                A_parent, b_parent = nested_transform(
-                    self._g.R, self._g.t, [self._g.mirrors[(l + 1, m)] for l, m in enumerate(prefix[:-1])]
-                )
-                for candidates in self._node_entries(j, prefix, images):
-                    misfits, vectors = reflection_fit(
-                        np.array([cand.A for cand in candidates]), np.array([cand.b for cand in candidates]),
-                        A_parent, b_parent,
-                    )
-                    best = int(np.argmin(misfits))
-                    estimates[(j, c)].append(vectors[best])
-                    for config, vs in candidates[best].mirrors.items():
-                        estimates[config].extend(vs)
-        return {config: np.mean(vs, axis=0) for config, vs in estimates.items()}
-
-    def _node_entries(self, level: int, prefix: tuple[int, ...], images: list[Image]) -> list[list[_Candidate]]:
-        """Independent measurements of node ``prefix``'s ``(A_level, b_level)``, each a candidate list.
-
-        Leaves (level Nv): each image's PnP candidates. Inner nodes: a child whose placement has a value
-        is peeled off (eqs. 6-7); >= 3 children without values are solved as a node of the analytical
-        solution (eqs. 13-18), which also gives their mirror vectors.
-        """
-        if level == self._ds.num_mirrors:
-            return [[_Candidate(A, b) for A, b in self._pnp_of(im)] for im in images if self._pnp_of(im)]
-        by_child: dict[int, list[Image]] = defaultdict(list)
-        for image in images:
-            by_child[image.mirror_configs[level]].append(image)
-        entries: list[list[_Candidate]] = []
-        unknown: dict[int, list[list[_Candidate]]] = {}
-        for c, child_images in by_child.items():
-            child_entries = self._node_entries(level + 1, prefix + (c,), child_images)
-            if not child_entries:
-                continue
-            v = self._g.mirrors.get((level + 1, c))
-            if v is None:
-                unknown[c] = child_entries
-                continue
-            M = householder(v)
-            for candidates in child_entries:  # A_{l-1} = M_l A_l, b_{l-1} = M_l (b_l - 2 v_l)
-                entries.append([_Candidate(M @ cand.A, M @ (cand.b - 2.0 * v), cand.mirrors) for cand in candidates])
-        if len(unknown) >= 3:
-            node = self._solve_children(level, unknown)
-            if node is not None:
-                entries.append([node])
-        return entries
-
-    def _solve_children(self, level: int, unknown: dict[int, list[list[_Candidate]]]) -> _Candidate | None:
-        """Node ``(A_level, b_level)`` and its children's mirror vectors from >= 3 new children (eqs. 13-18)."""
-        child_ids = sorted(unknown)
-        flat = [(k, candidates) for k, c in enumerate(child_ids) for candidates in unknown[c]]
-        parent_det = (-1.0) ** level
-        picks, node = solve_node(
-            [k for k, _ in flat], [[(cand.A, cand.b) for cand in cands] for _, cands in flat],
-            len(child_ids), parent_det, self._g.rng,
-        )
-        chosen = [cands[p] for (_, cands), p in zip(flat, picks)]
-        normals = np.stack([v / np.linalg.norm(v) for v in node.mirror_vectors])
-        if np.linalg.svd(normals, compute_uv=False)[2] < MIN_NORMAL_SPREAD:
-            return None  # nearly coplanar normals (eqs. 14-15): wait for more placements
-        mirrors: dict[tuple[int, int], list[np.ndarray]] = defaultdict(list)
-        for cand in chosen:
-            for config, vs in cand.mirrors.items():
-                mirrors[config].extend(vs)
-        for c, v in zip(child_ids, node.mirror_vectors):
-            mirrors[(level + 1, c)].append(v)
-        return _Candidate(node.A_parent, node.b_parent, dict(mirrors))
-
-    def _pnp_of(self, image: Image) -> list[tuple[np.ndarray, np.ndarray]]:
-        """PnP candidates ``(A_Nv, b_Nv)`` of an image (eqs. 10-12), cached; ``[]`` without 3 fiducials."""
-        if image.id not in self._pnp:
-            names = [n for n in image.observations if n in self._ds.fiducials]
-            if len(names) < MIN_PNP_FIDUCIALS:
-                self._pnp[image.id] = []
-            else:
-                normalized = self._ds.normalized(image)
-                self._pnp[image.id] = pnp_candidates(
-                    np.array([self._ds.fiducials[n] for n in names]),
-                    np.array([normalized[n] for n in names]),
-                    self._ds.num_mirrors,
-                )
-        return self._pnp[image.id]
+    def refine_new(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
+        """Each new unknown of ``values`` moved to its optimum on ``factors`` with the rest held at the
+        estimate (:func:`~mirror_fg.solver.incremental_values.refine_alone`)."""
+        refine_alone(factors, values, self.estimate_values, self._state.layout.pose_key)
 
     # --- iSAM2 ----------------------------------------------------------------------------------------
 
-    def _update(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
+    def update(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
         """One ``ISAM2.update`` with only the new factors and values (and the removal of the blocks merged
         or re-made); refresh the estimate."""
-        g = self._g
+        g = self._state
         isam = g.require_isam()
         with timed(self.timings, "isam2"):
             pending, g.pending, removals, g.removals = g.pending, [], g.removals, []
@@ -529,27 +294,27 @@ class GraphGrowth:
                 result = isam.update(factors, values, removals)
                 pose_cov = isam.marginalCovariance(g.layout.pose_key)
             except RuntimeError as error:  # IndeterminantLinearSystemException
-                raise SolveError(f"{self._ds.source}: {unconstrained_message(error, g.layout)}") from None
+                raise SolveError(f"{self._ds.source}: {self.unconstrained(error)}") from None
             indices = result.getNewFactorsIndices()
             for block, position in pending:
                 block.index = int(indices[position])
-            self._updates += 1
+            self.updates += 1
         with timed(self.timings, "estimate"):
             before = (g.R, g.t, g.pose_cov)
             estimate = isam.calculateEstimate()
-            self._set_estimate(estimate, [block for block, _ in pending])
+            self.set_estimate(estimate, [block for block, _ in pending])
             g.pose_cov = pose_cov
-            g.step_sigmas = self._pose_step_sigmas(*before)
+            g.step_sigmas = self.pose_step_sigmas(*before)
 
-    def _pose_step_sigmas(self, R: np.ndarray, t: np.ndarray, covariance: np.ndarray) -> float:
+    def pose_step_sigmas(self, R: np.ndarray, t: np.ndarray, covariance: np.ndarray) -> float:
         """Mahalanobis size of the pose step from ``(R, t)`` to the estimate, against ``covariance``
         (GTSAM's tangent; the current covariance when it is undefined, as at a start-up)."""
-        step = gtsam.Pose3(gtsam.Rot3(R), t).localCoordinates(gtsam.Pose3(gtsam.Rot3(self._g.R), self._g.t))
-        reference = covariance if np.all(np.isfinite(covariance)) else self._g.pose_cov
+        step = gtsam.Pose3(gtsam.Rot3(R), t).localCoordinates(gtsam.Pose3(gtsam.Rot3(self._state.R), self._state.t))
+        reference = covariance if np.all(np.isfinite(covariance)) else self._state.pose_cov
         quadratic = float(step @ np.linalg.solve(reference, step))
         return float(np.sqrt(max(quadratic, 0.0)))
 
-    def _new_isam2(self) -> gtsam.ISAM2:
+    def new_isam2(self) -> gtsam.ISAM2:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(self._thresholds.threshold_map())
         params.relinearizeSkip = 1
@@ -560,7 +325,7 @@ class GraphGrowth:
 
     def _all_factors(self) -> gtsam.NonlinearFactorGraph:
         """Every factor of the graph (stacked ones, then the blocks'); the blocks pending as new."""
-        g = self._g
+        g = self._state
         factors = gtsam.NonlinearFactorGraph()
         factors.push_back(g.factors)
         g.pending = []
@@ -569,7 +334,7 @@ class GraphGrowth:
             factors.add(block.factor)
         return factors
 
-    def _polish(self) -> None:
+    def polish(self) -> None:
         """Relinearise every factor at the current estimate until the pose stops moving.
 
         The thresholds leave variables linearised up to a threshold away from the estimate (second-order
@@ -577,17 +342,17 @@ class GraphGrowth:
         Gauss-Newton step (one pass over every factor, like one batch iteration).
         """
         for _ in range(POLISH_UPDATES):
-            values = self._values()
-            self._g.isam = self._new_isam2()
-            self._g.removals = []  # a fresh iSAM2 holds nothing to remove
-            self._update(self._all_factors(), values)
-            if self._g.step_sigmas < POLISH_SIGMAS:
+            values = self.estimate_values()
+            self._state.isam = self.new_isam2()
+            self._state.removals = []  # a fresh iSAM2 holds nothing to remove
+            self.update(self._all_factors(), values)
+            if self._state.step_sigmas < POLISH_SIGMAS:
                 break
 
-    def _set_estimate(self, values: gtsam.Values, blocks: Iterable[PlacementBlock] = ()) -> None:
+    def set_estimate(self, values: gtsam.Values, blocks: Iterable[PlacementBlock] = ()) -> None:
         """Read the estimate of iSAM2's unknowns from ``values``, and the placements of ``blocks`` at it
         (every other eliminated placement keeps the value its block last gave)."""
-        g = self._g
+        g = self._state
         pose = values.atPose3(g.layout.pose_key)
         g.R, g.t = pose.rotation().matrix(), np.array(pose.translation())
         for config, key in g.kept.items():
@@ -597,10 +362,10 @@ class GraphGrowth:
         for block in blocks:
             g.mirrors.update(block.evaluator.mirror_vectors(values))
 
-    def _values(self, keys: Iterable[int] | None = None) -> gtsam.Values:
+    def estimate_values(self, keys: Iterable[int] | None = None) -> gtsam.Values:
         """The current estimate of iSAM2's unknowns (not the eliminated placements) as GTSAM values: every
         one, or those of ``keys``."""
-        g = self._g
+        g = self._state
         values = gtsam.Values()
         wanted = None if keys is None else set(keys)
         if wanted is None or g.layout.pose_key in wanted:
@@ -613,12 +378,12 @@ class GraphGrowth:
                 values.insert(key, g.points[name])
         return values
 
-    def _explicit_graph(self, refresh: bool = True) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+    def explicit_graph(self, refresh: bool = True) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
         """The graph with every placement an unknown (the batch's stacked factors) and its values at the
         estimate, every eliminated placement at its optimum there (``refresh``; else at the value it has):
         what ``calibration(full=True)`` takes covariances and residuals of (O(images), once)."""
-        g = self._g
-        values = self._values()
+        g = self._state
+        values = self.estimate_values()
         for block in g.blocks if refresh else []:
             g.mirrors.update(block.evaluator.mirror_vectors(values))
         if not g.blocks:
@@ -632,30 +397,79 @@ class GraphGrowth:
             factors.add(factor)
         return factors, values
 
-    def _collapsed(self, values: gtsam.Values) -> bool:
+    def placements_collapsed(self, values: gtsam.Values) -> bool:
         """Whether an eliminated placement at ``values`` has run into the camera centre
         (``factors.eliminated.collapsed``)."""
-        return collapsed([v for block in self._g.blocks for v in block.evaluator.mirror_vectors(values).values()])
+        return collapsed([v for block in self._state.blocks for v in block.evaluator.mirror_vectors(values).values()])
 
-    def _solve_with_every_placement(
-        self, params: gtsam.LevenbergMarquardtParams
-    ) -> tuple[gtsam.LevenbergMarquardtOptimizer, gtsam.NonlinearFactorGraph, gtsam.Values]:
-        """Levenberg-Marquardt on the graph with every placement an unknown, from the current values (a
-        start-up's, before its solve), as the batch does without elimination; then the blocks made anew
-        from its solution. Returns the optimizer, every factor (for a fresh iSAM2) and iSAM2's values."""
-        g = self._g
-        factors, values = self._explicit_graph(refresh=False)
-        optimizer = gtsam.LevenbergMarquardtOptimizer(factors, values, params)
-        try:
-            optimized = optimizer.optimize()
-        except RuntimeError as error:  # IndeterminantLinearSystemException
-            raise SolveError(f"{self._ds.source}: {unconstrained_message(error, g.layout)}") from None
-        self._set_estimate(optimized)
+    def remake_blocks(self, solution: gtsam.Values) -> gtsam.NonlinearFactorGraph:
+        """Take the estimate from ``solution``, a solve of :meth:`explicit_graph` (every placement an
+        unknown), and make every block anew from it. Returns every factor, for a fresh iSAM2."""
+        g = self._state
+        self.set_estimate(solution)
         for config, key in g.layout.mirror_keys.items():
-            g.mirrors[config] = np.array(optimized.atPoint3(key))
+            g.mirrors[config] = np.array(solution.atPoint3(key))
         old, g.blocks, g.block_of, g.pending = g.blocks, [], {}, []
         factors = gtsam.NonlinearFactorGraph()
         factors.push_back(g.factors)
         for block in old:  # their placements start from the solution
             self._make_block(block.parent, block.level, block.measurements, block.placements, factors)
-        return optimizer, factors, self._values()
+        return factors
+
+    # --- the estimate as a Calibration ----------------------------------------------------------------
+
+    def calibration(
+        self, analytic: AnalyticSolution | None, settled: bool, excluded: list[Exclusion], full: bool = False
+    ) -> Calibration:
+        """The estimate as a ``Calibration`` (``IncrementalCalibrator.calibration`` says what each holds):
+        ``full=False`` the pose and its covariance from iSAM2, no residuals; ``full=True`` covariances of
+        every unknown and residuals of every measurement, on :meth:`explicit_graph` at the estimate.
+        ``analytic``: the latest start-up's; ``settled``: ``converged`` (with ``full``, also the last
+        relinearisation's pose step below ``POLISH_SIGMAS``); ``excluded``: what the calibrator left out."""
+        g = self._state
+        if not full:
+            return self._calibration(
+                analytic, settled, excluded, covariance=covariance_from_pose3(g.R, g.pose_cov), mirror_covs={},
+                point_covs={}, residuals=np.zeros((0, 2)), labels=[], outliers=[], final_error=math.nan,
+            )
+        factors, estimate = self.explicit_graph()  # every placement an unknown, at the estimate
+        covariance, mirror_covs, point_covs = marginal_covariances(factors, estimate, g.layout, self._ds.source)
+        predicted = predicted_normalized(self._ds, g.measurements, g.R, g.t, g.mirrors, g.points)
+        residuals, whitened = residual_statistics(self._ds, g.measurements, predicted)
+        calibration = self._calibration(
+            analytic, settled, excluded, covariance=covariance, mirror_covs=mirror_covs, point_covs=point_covs,
+            residuals=residuals, labels=[(m.image_id, m.point) for m in g.measurements],
+            outliers=outliers_of(g.measurements, whitened), final_error=float(factors.error(estimate)),
+        )
+        # Its cost judged as the batch's (lm.LMRun.expected_final_error): two per measurement less
+        # the unknowns (pose, every mirror vector, points).
+        unknowns = 6 + 3 * len(calibration.mirror_vectors) + 3 * len(calibration.points)
+        calibration.expected_final_error = 0.5 * max(2 * len(calibration.residuals) - unknowns, 0)
+        calibration.converged = settled and g.step_sigmas < POLISH_SIGMAS
+        return calibration
+
+    def _calibration(
+        self, analytic: AnalyticSolution | None, settled: bool, excluded: list[Exclusion], *, covariance, mirror_covs,
+        point_covs, residuals, labels, outliers, final_error,
+    ) -> Calibration:
+        g = self._state
+        return Calibration(
+            R_cam_base=g.R.copy(),
+            t_cam_base=g.t.copy(),
+            covariance=covariance,
+            mirror_vectors=dict(g.mirrors),
+            mirror_covariances=mirror_covs,
+            points=dict(g.points),
+            point_covariances=point_covs,
+            analytic=analytic,
+            iterations=self.updates,
+            initial_error=g.initial_error,
+            final_error=final_error,
+            converged=settled,
+            residuals=residuals,
+            residual_labels=labels,
+            residual_units="px" if self._ds.camera is not None else "normalized",
+            outliers=outliers,
+            timings=dict(self.timings),
+            excluded=list(excluded),
+        )
