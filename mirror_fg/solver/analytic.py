@@ -21,12 +21,13 @@ from itertools import product
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError, SolveError
-from mirror_fg.core.geometry import FLIP_Y, nested_transform, nested_transforms, predict_camera_points, project, project_to_orthogonal
+from mirror_fg.core.geometry import FLIP_Y, nested_transforms, predict_camera_points, project, project_to_orthogonal
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.peeling import (
     MIN_NORMAL_SPREAD, NodeSolution, StackedCandidates, choose_candidates, consistent_mirror_vectors, solve_children_many,
 )
 from mirror_fg.solver.pnp import pnp_candidates_many
+from mirror_fg.solver.reconstruction import image_transform, reconstruct_points, triangulate_point  # noqa: F401 (public here too)
 from mirror_fg.solver.placement_rule import too_few_placements
 
 __all__ = [
@@ -59,13 +60,11 @@ class AnalyticSolution:
     alternatives: list[AnalyticSolution] = field(default_factory=list, repr=False)
 
     def __repr__(self) -> str:
-        """One bounded line: the pose and how many of each unknown (a dataclass repr printed every image's
-        PnP transform and every hypothesis: 54,000 characters for the paper's base case)."""
+        """One bounded line (a dataclass repr printed every image's PnP transform: 54,000 characters)."""
         R = "; ".join(" ".join(f"{x:.5g}" for x in row) for row in np.asarray(self.R_cam_base))
-        t = " ".join(f"{x:.5g}" for x in np.asarray(self.t_cam_base))
-        return (f"AnalyticSolution(R_cam_base=[{R}], t_cam_base=[{t}] m, "
-                f"{len(self.mirror_vectors)} mirror placements, {len(self.points)} points, "
-                f"{len(self.image_transforms)} image transforms, {len(self.alternatives)} alternatives)")
+        return (f"AnalyticSolution(R_cam_base=[{R}], t_cam_base=[{' '.join(f'{x:.5g}' for x in self.t_cam_base)}] m, "
+                f"{len(self.mirror_vectors)} mirror placements, {len(self.points)} points, {len(self.image_transforms)} "
+                f"image transforms, {len(self.alternatives)} alternatives)")
 
 
 @dataclass
@@ -443,64 +442,3 @@ def solve_analytic(dataset: Dataset, seed: int = 0) -> AnalyticSolution:
     for node in walk.nodes():
         node.scores = node.closed_form_scores()
     return walk.solution()
-
-
-# --- Reconstruction points (Sect. 5, eqs. 19-20) --------------------------------------------------
-
-
-def triangulate_point(transforms: list[tuple[np.ndarray, np.ndarray]], normalized: list[np.ndarray]) -> np.ndarray:
-    """Base-frame point from >= 2 images: ``s_j u_j = A_j Bp + b_j`` solved in least squares (eq. 20).
-
-    The depths ``s_j`` are eliminated exactly: for a unit ray ``u_j`` the least-squares residual of
-    image j is ``(I - u_j u_j^T)(A_j Bp + b_j)``, so eq. (20) reduces to a 3x3 normal equation.
-    """
-    A = np.array([A for A, _ in transforms])
-    b = np.array([b for _, b in transforms])
-    rays = np.column_stack([np.asarray(normalized, dtype=float).reshape(-1, 2), np.ones(len(transforms))])
-    rays /= np.linalg.norm(rays, axis=1, keepdims=True)  # eq. (19)
-    projectors = np.eye(3) - np.einsum("ia,ib->iab", rays, rays)
-    weighted = np.swapaxes(A, 1, 2) @ projectors  # A_j^T (I - u_j u_j^T)
-    normal_matrix = np.sum(weighted @ A, axis=0)
-    rhs = -np.einsum("iab,ib->a", weighted, b)
-    return np.linalg.solve(normal_matrix, rhs)
-
-
-def image_transform(solution: AnalyticSolution, image: Image) -> tuple[np.ndarray, np.ndarray]:
-    """``(A_Nv, b_Nv)`` of an image from the solved pose and mirror vectors (eqs. 6-7)."""
-    vectors = [solution.mirror_vectors[(l + 1, m)] for l, m in enumerate(image.mirror_configs)]
-    return nested_transform(solution.R_cam_base, solution.t_cam_base, vectors)
-
-
-def reconstruct_points(
-    dataset: Dataset, solution: AnalyticSolution, normalized: dict[str, dict[str, np.ndarray]] | None = None
-) -> dict[str, np.ndarray]:
-    """Every reconstruction point by eq. (20) from all images that see it.
-
-    ``normalized``: each image's normalized observations (``Dataset.normalized``) when already at hand.
-    """
-    seen: dict[str, list[Image]] = defaultdict(list)
-    for image in dataset.images:
-        for name in image.observations:
-            if name not in dataset.fiducials:
-                seen[name].append(image)
-    if not seen:
-        return {}
-    if normalized is None:
-        normalized = {}
-    transforms: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    points = {}
-    for name in sorted(seen):
-        images = seen[name]
-        if len(images) < 2:
-            raise DatasetError(
-                f"{dataset.source}: point '{name}' is seen only in image '{images[0].id}'; "
-                "a reconstruction point needs >= 2 images"
-            )
-        for im in images:
-            if im.id not in transforms:
-                transforms[im.id] = image_transform(solution, im)
-            if im.id not in normalized:
-                normalized[im.id] = dataset.normalized(im)
-        rays = [normalized[im.id][name] for im in images]
-        points[name] = triangulate_point([transforms[im.id] for im in images], rays)
-    return points
