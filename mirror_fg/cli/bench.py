@@ -19,6 +19,7 @@ def plan_next(args, out: _Printer) -> int:
     from mirror_fg.solver.calibrate import calibrate
     from mirror_fg.solver.calibration import require_converged
     from mirror_fg.solver.consensus import without
+    from mirror_fg.solver.graph import InitialEstimate
     from mirror_fg.tools.suggest import (
         Reach,
         default_reach,
@@ -31,6 +32,7 @@ def plan_next(args, out: _Printer) -> int:
     if args.output is not None:
         outputs.add(args.output, "suggestions")
     dataset = _load_input(args.next_data, out, outputs)
+    estimate: InitialEstimate
     if args.result is not None:  # the estimate of a calibration already made
         from mirror_fg.io.result import load_result
 

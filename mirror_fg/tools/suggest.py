@@ -354,7 +354,7 @@ def suggest_next(dataset: Dataset, values: InitialEstimate, *, count: int = 3, r
     return Suggestions(now_rotation, now_position, ranked[:count], reach, scored)
 
 
-@dataclass(frozen=True)
+@dataclass
 class Estimate:
     """Values of every unknown (a :class:`~mirror_fg.solver.graph.InitialEstimate`), e.g. read from a result."""
 
