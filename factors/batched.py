@@ -58,7 +58,7 @@ from mirror_fg.factors.stacking import (
 )
 from mirror_fg.factors.robust import ROBUST_K, check_kernel, robust_row_scales, robust_weight_and_loss
 
-__all__ = [
+__all__ = [  # robust_weight_and_loss and ROBUST_K are robust.py's, kept importable from here
     "BatchEvaluator", "batched_factors", "batched_evaluator", "robust_weight_and_loss", "ROBUST_K",
 ]
 
