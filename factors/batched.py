@@ -56,9 +56,9 @@ from mirror_fg.factors.stacking import (
     group_measurements,
     sigma_rows,
 )
-from mirror_fg.factors.robust import ROBUST_K
+from mirror_fg.factors.robust import ROBUST_K, check_kernel, robust_row_scales, robust_weight_and_loss
 
-__all__ = [
+__all__ = [  # robust_weight_and_loss and ROBUST_K are robust.py's, kept importable from here
     "BatchEvaluator", "batched_factors", "batched_evaluator", "robust_weight_and_loss", "ROBUST_K",
 ]
 
@@ -67,25 +67,6 @@ __all__ = [
 #: comparing each of its keys, or comparing the whole ``Values`` with the cached copy (C++).
 _KEY_CHECK_US = 0.5
 _VALUES_CHECK_US_PER_ENTRY = 0.014
-
-
-def robust_weight_and_loss(kind: str | None, residual: np.ndarray, k: float = ROBUST_K) -> tuple[np.ndarray, np.ndarray]:
-    """Weight ``w(e)`` and loss ``rho(e)`` of GTSAM's mEstimators at whitened residual norms ``e``.
-
-    Huber: ``w = min(1, k/e)``, ``rho = e^2/2`` (e <= k) else ``k e - k^2/2``. Cauchy:
-    ``w = k^2/(k^2+e^2)``, ``rho = k^2/2 log(1 + e^2/k^2)``. ``kind=None``: ``w = 1``, ``rho = e^2/2``.
-    """
-    e = np.abs(np.asarray(residual, dtype=float))
-    if kind is None:
-        return np.ones_like(e), 0.5 * e * e
-    if kind == "huber":
-        inside = e <= k
-        weight = np.where(inside, 1.0, k / np.where(inside, 1.0, e))
-        return weight, np.where(inside, 0.5 * e * e, k * e - 0.5 * k * k)
-    if kind == "cauchy":
-        k2 = k * k
-        return k2 / (k2 + e * e), 0.5 * k2 * np.log1p(e * e / k2)
-    raise ValueError(f"unknown robust kernel {kind!r}: use 'huber' or 'cauchy'")
 
 
 @dataclass
@@ -127,8 +108,7 @@ class BatchEvaluator:
         self.num_mirrors = num_mirrors
         self.robust = robust
         self.robust_k = float(robust_k)
-        if robust is not None:
-            robust_weight_and_loss(robust, np.zeros(1), robust_k)  # validates the name
+        check_kernel(robust)
 
         # Batch order: the factors' measurements, contiguous.
         self.order = np.array([i for group in groups for i in group], dtype=np.intp)
@@ -301,11 +281,7 @@ class BatchEvaluator:
             self._err.T[...] = residual
         else:
             r = np.sqrt(np.einsum("im,im->m", residual, residual * self._inv_sigma2))
-            weight, loss = robust_weight_and_loss(self.robust, r, self.robust_k)
-            positive = r > 0.0
-            loss_scale = np.ones_like(r)
-            loss_scale[positive] = np.sqrt(2.0 * loss[positive]) / r[positive]
-            sqrt_w = np.sqrt(weight)
+            sqrt_w, loss_scale = robust_row_scales(self.robust, r, self.robust_k)
             self._err.T[...] = residual * loss_scale
             self._err_lin.T[...] = residual * sqrt_w
         self._has_jacobians = jacobians

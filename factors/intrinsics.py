@@ -27,8 +27,9 @@ from functools import partial
 import gtsam
 import numpy as np
 
-from mirror_fg.factors.batched import ROBUST_K, robust_weight_and_loss
+from mirror_fg.core.camera import INTRINSIC_NAMES  # the K(0) order; re-exported here
 from mirror_fg.factors.model import measurement_arrays, reflection_model
+from mirror_fg.factors.robust import ROBUST_K, check_kernel, robust_row_scales
 from mirror_fg.factors.stacking import (
     MAX_POINTS_PER_FACTOR, Fiducials, KeyLayout, Observation, auto_images_per_factor, group_measurements,
 )
@@ -37,9 +38,6 @@ __all__ = [
     "INTRINSIC_NAMES", "intrinsics_key", "full_intrinsics", "distort_forward", "pixel_jacobians",
     "IntrinsicsModel", "intrinsics_factors", "intrinsics_prior_factor", "predict_pixels",
 ]
-
-#: Order of the intrinsics (OpenCV pinhole model); the ``K(0)`` vector holds the estimated ones in it.
-INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 
 
 def intrinsics_key() -> int:
@@ -148,9 +146,8 @@ def _group_error(model: IntrinsicsModel, group: _Group, this: gtsam.CustomFactor
     if jacobians is None:
         error = (distort_forward(theta, h) - group.pixels_T).T  # (n, 2)
         if group.robust is not None:
-            norm = np.linalg.norm(error, axis=1) / group.sigma_px
-            _, loss = robust_weight_and_loss(group.robust, norm, group.robust_k)
-            error = error * np.where(norm > 0, np.sqrt(2.0 * loss) / np.where(norm > 0, norm, 1.0), 1.0)[:, None]
+            _, loss_scale = robust_row_scales(group.robust, np.linalg.norm(error, axis=1) / group.sigma_px, group.robust_k)
+            error = error * loss_scale[:, None]
         return error.reshape(-1)
     assert blocks is not None
     pixels, D, T = pixel_jacobians(theta, h)
@@ -171,8 +168,7 @@ def _group_error(model: IntrinsicsModel, group: _Group, this: gtsam.CustomFactor
         J_points[group.landmark_index, :, group.landmark_point_rows, :] = chain(GR)[group.landmark_index]
     error = (pixels - group.pixels_T).T  # (n, 2)
     if group.robust is not None:
-        weight, _ = robust_weight_and_loss(group.robust, np.linalg.norm(error, axis=1) / group.sigma_px, group.robust_k)
-        root = np.sqrt(weight)
+        root, _ = robust_row_scales(group.robust, np.linalg.norm(error, axis=1) / group.sigma_px, group.robust_k)
         error = error * root[:, None]
         pose_block *= root[:, None, None]
         jacobians[0] = pose_block.reshape(2 * n, 6)
@@ -192,8 +188,7 @@ def intrinsics_factors(
     mirrors and landmarks of the group]``; noise ``sigma_px`` (pixels: one for all, or one per
     measurement (M,), e.g. a tracked point's ``point_sigma``), stacked by image groups;
     ``robust`` (``"huber"`` / ``"cauchy"``) weights each measurement inside its factor."""
-    if robust is not None:
-        robust_weight_and_loss(robust, np.zeros(1), robust_k)  # validates the name
+    check_kernel(robust)
     point_keys, mirror_rows, landmark_rows, base_points, _ = measurement_arrays(dataset, layout, measurements)
     pixels = np.asarray(pixels, dtype=float).reshape(-1, 2)
     sigmas = np.broadcast_to(np.asarray(sigma_px, dtype=float), (len(pixels),))

@@ -10,13 +10,13 @@ node (base frame, metres). A fiducial's base-frame position is a constant of the
 """
 from __future__ import annotations
 
-from collections.abc import Callable
 from functools import partial
 
 import gtsam
 import numpy as np
 
 from mirror_fg.core.geometry import measurement_jacobians
+from mirror_fg.factors.robust import ROBUST_K, robust_noise_model
 
 __all__ = ["reflection_error", "ReflectionFactor", "noise_model"]
 
@@ -51,22 +51,13 @@ def reflection_error(
 
 
 def noise_model(
-    sigma_normalized: np.ndarray, robust: str | None = None, robust_k: float = 1.345
+    sigma_normalized: np.ndarray, robust: str | None = None, robust_k: float = ROBUST_K
 ) -> gtsam.noiseModel.Base:
     """Diagonal measurement noise (2,) in normalized coordinates, optionally wrapped in a robust kernel.
 
     robust: ``None``, ``"huber"`` or ``"cauchy"``; ``robust_k`` is the kernel's threshold in sigmas.
     """
-    base = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigma_normalized, dtype=float))
-    if robust is None:
-        return base
-    kernels: dict[str, Callable[[float], gtsam.noiseModel.mEstimator.Base]] = {
-        "huber": gtsam.noiseModel.mEstimator.Huber.Create,
-        "cauchy": gtsam.noiseModel.mEstimator.Cauchy.Create,
-    }
-    if robust not in kernels:
-        raise ValueError(f"unknown robust kernel {robust!r}: use 'huber' or 'cauchy'")
-    return gtsam.noiseModel.Robust.Create(kernels[robust](robust_k), base)
+    return robust_noise_model(gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigma_normalized, dtype=float)), robust, robust_k)
 
 
 def ReflectionFactor(

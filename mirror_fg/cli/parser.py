@@ -5,7 +5,7 @@ import argparse
 import math
 from pathlib import Path
 
-from mirror_fg.factors.robust import ROBUST_K
+from mirror_fg.factors.robust import KERNELS, ROBUST_K
 
 EPILOG = """exit status: 0 success, 2 bad input (the message names the file, image or point),
 3 could not solve (degenerate data, no convergence), 1 internal error. Output files are written
@@ -120,7 +120,7 @@ def build_parser() -> argparse.ArgumentParser:
                          formatter_class=argparse.RawDescriptionHelpFormatter)
     cal.add_argument("input", type=Path, help="dataset@1 JSON or capture@1 YAML/JSON file")
     cal.add_argument("-o", "--output", required=True, type=Path, help="result file (.json or .yaml)")
-    cal.add_argument("--robust", choices=["huber", "cauchy"],
+    cal.add_argument("--robust", choices=KERNELS,
                      help=f"robust kernel on every measurement (threshold {ROBUST_K:g} sigma)")
     cal.add_argument("--incremental", action="store_true", help="iSAM2: stream the images in file order")
     cal.add_argument("--every", type=_COUNT, default=25, help="with --incremental: progress line every N images (default 25)")

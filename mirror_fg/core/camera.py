@@ -39,7 +39,8 @@ DIST_LENGTHS = (4, 5, 8, 12, 14)
 MODELS = ("pinhole", "fisheye")
 #: Length of a fisheye distortion vector ``(k1, k2, k3, k4)``: theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8).
 FISHEYE_DIST_LENGTH = 4
-#: Intrinsics that ``camera.estimate`` may name (OpenCV's pinhole model; p1, p2 are not fisheye terms).
+#: Intrinsics that ``camera.estimate`` may name (OpenCV's pinhole model; p1, p2 are not fisheye terms), in
+#: the order of the pixel factors' ``K(0)`` vector (``factors/intrinsics.py``), which holds the estimated ones.
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 #: Keys of a camera object (docs/formats.md); any other is refused with the key probably meant.
 CAMERA_KEYS = ("model", "width", "height", "fx", "fy", "cx", "cy", "dist", "estimate", "prior_sigma")

@@ -3,7 +3,7 @@
 Each checker takes a parsed value and its key path (``mirrors[3].v``) and returns the plain (JSON-like)
 value, numpy values turned into plain ones, or raises :class:`_Invalid` at that path; the validator
 turns that into one :class:`~mirror_fg.core.errors.DatasetError` line. The schema itself (which key
-holds what) lives in ``result.py``. Units as there: metres, 3-sigma bounds in degrees and millimetres.
+holds what) is ``result_schema.py``. Units as there: metres, 3-sigma bounds in degrees and millimetres.
 """
 from __future__ import annotations
 

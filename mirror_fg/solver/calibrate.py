@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError, SolveError
+from mirror_fg.factors.robust import check_kernel
 from mirror_fg.io.dataset import Dataset, dataset_from_dict
 from mirror_fg.solver.analytic import AnalyticSolution
 from mirror_fg.solver.calibration import Calibration, Exclusion
@@ -68,9 +69,9 @@ def calibrate(
     """Analytical solution (Sects. 4-5), then the MLE by Levenberg-Marquardt (eq. 23) and Marginals.
 
     initial: start the MLE from these values instead of the analytical solution (e.g. the ground truth).
-    robust: ``None``, ``"huber"`` or ``"cauchy"`` kernel on every measurement. on_iteration: called with
-    ``(iteration, error_before, error_after)`` after each LM iteration. fast: stacked vectorised
-    factors (default) or the per-measurement reference factors (same estimates). progress: called
+    robust: ``None``, ``"huber"`` or ``"cauchy"`` kernel on every measurement (another name: ValueError).
+    on_iteration: called with ``(iteration, error_before, error_after)`` after each LM iteration. fast:
+    stacked vectorised factors (default) or the per-measurement reference factors (same estimates). progress: called
     ``progress(stage, done, total)`` per stage (:data:`STAGES`): nodes of the mirror tree scored,
     LM iterations (of ``max_iterations``), marginals (0 then 1 of 1). Stage times are logged on the
     ``"mirror_fg"`` logger (INFO).
@@ -87,6 +88,7 @@ def calibrate(
     at most: ``diagnose=False`` skips it, e.g. for a first solve that is expected to fit badly.
     Whether the result may be written is :func:`~mirror_fg.solver.calibration.require_converged`'s call.
     """
+    check_kernel(robust)
     dataset = as_dataset(dataset)
     if dataset.camera is not None and dataset.camera.estimate:  # intrinsics estimated too (camera.estimate)
         from mirror_fg.solver.intrinsics import calibrate_with_intrinsics

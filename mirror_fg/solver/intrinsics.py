@@ -48,7 +48,7 @@ from mirror_fg.solver.intrinsics_observability import (  # noqa: F401 (public he
 )
 from mirror_fg.solver.graph import GraphLayout, InitialEstimate, Measurement, extract_values, initial_values, measurements_of
 from mirror_fg.solver.lm import cost_scale, lm_params, run_optimizer
-from mirror_fg.solver.marginals import unconstrained_message
+from mirror_fg.solver.marginals import unconstrained_as_solve_error, unconstrained_message
 from mirror_fg.solver.residuals import outliers_of, predicted_normalized
 from mirror_fg.solver.timing import timed
 
@@ -393,11 +393,9 @@ def _covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, layout
                  source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, dict]:
     """Pose (SPEC convention, intrinsics marginalised), intrinsics (k, k), their cross-covariance with
     the pose (k, 6, SPEC convention), mirror and point covariances, from ``gtsam.Marginals``."""
-    try:
+    with unconstrained_as_solve_error(source, lambda error: _unconstrained(error, layout)):
         marginals = gtsam.Marginals(graph, values)
         joint = marginals.jointMarginalCovariance([layout.pose_key, intrinsics_key()]).fullMatrix()
-    except RuntimeError as error:
-        raise SolveError(f"{source}: {_unconstrained(error, layout)}") from None
     to_spec = np.zeros((6, 6))
     to_spec[:3, :3] = R  # dtheta = R w, dt = R nu (SPEC's uncertainty convention)
     to_spec[3:, 3:] = R

@@ -17,7 +17,9 @@ from mirror_fg.factors.eliminated import EliminatedEvaluator, collapsed
 from mirror_fg.solver.graph import (
     GraphLayout, InitialEstimate, Measurement, build_eliminated_graph, build_graph, extract_values,
 )
-from mirror_fg.solver.marginals import eliminated_covariances, marginal_covariances, unconstrained_message
+from mirror_fg.solver.marginals import (
+    eliminated_covariances, marginal_covariances, unconstrained_as_solve_error, unconstrained_message,
+)
 from mirror_fg.solver.timing import timed
 
 __all__ = [
@@ -73,10 +75,8 @@ def run_optimizer(
         params.iterationHook = on_iteration  # type: ignore[assignment]
     initial_error = graph.error(values)
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    try:
+    with unconstrained_as_solve_error(source, unconstrained):
         result = optimizer.optimize()
-    except RuntimeError as error:
-        raise SolveError(f"{source}: {unconstrained(error)}") from None
     return optimizer, result, float(initial_error)
 
 

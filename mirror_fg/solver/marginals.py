@@ -6,6 +6,8 @@ points (base frame) 3x3 in m^2.
 """
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from types import SimpleNamespace
 
 import gtsam
@@ -17,7 +19,7 @@ from mirror_fg.factors.eliminated import EliminatedEvaluator
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.graph import GraphLayout, build_graph, extract_values
 
-__all__ = ["marginal_covariances", "eliminated_covariances", "unconstrained_message"]
+__all__ = ["marginal_covariances", "eliminated_covariances", "unconstrained_message", "unconstrained_as_solve_error"]
 
 
 def marginal_covariances(
@@ -123,10 +125,8 @@ def _marginals_from_gtsam(
     graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, layout: GraphLayout, source: str
 ) -> tuple[np.ndarray, dict, dict]:
     """The same marginals from ``gtsam.Marginals`` (also names unconstrained unknowns)."""
-    try:
+    with unconstrained_as_solve_error(source, lambda error: unconstrained_message(error, layout)):
         marginals = gtsam.Marginals(graph, values)
-    except RuntimeError as error:  # IndeterminantLinearSystemException surfaces as RuntimeError
-        raise SolveError(f"{source}: {unconstrained_message(error, layout)}") from None
     pose = values.atPose3(layout.pose_key)
     covariance = covariance_from_pose3(pose.rotation().matrix(), marginals.marginalCovariance(layout.pose_key))
     mirrors = {config: marginals.marginalCovariance(key) for config, key in layout.mirror_keys.items()}
@@ -141,3 +141,14 @@ def unconstrained_message(error: Exception, layout: GraphLayout) -> str:
         if gtsam.DefaultKeyFormatter(key) in text:
             return f"the data do not constrain {layout.name_of(key)} (indeterminant system near it)"
     return "the data leave some unknowns unconstrained (indeterminant linear system)"
+
+
+@contextmanager
+def unconstrained_as_solve_error(source: str, unconstrained: Callable[[Exception], str]) -> Iterator[None]:
+    """Turn GTSAM's ``IndeterminantLinearSystemException`` (a ``RuntimeError`` in Python) raised inside the
+    block into a :class:`SolveError` ``"SOURCE: ..."`` naming, through ``unconstrained(error)`` (e.g.
+    :func:`unconstrained_message` of the graph's layout), the unknown GTSAM found unconstrained."""
+    try:
+        yield
+    except RuntimeError as error:
+        raise SolveError(f"{source}: {unconstrained(error)}") from None
