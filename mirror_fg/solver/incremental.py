@@ -53,6 +53,7 @@ import numpy as np
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.geometry import nested_transform
 from mirror_fg.core.transform import covariance_from_pose3
+from mirror_fg.factors.robust import check_kernel
 from mirror_fg.io.dataset import Dataset, Image, validate_image
 from mirror_fg.solver.analytic import AnalyticSolution
 from mirror_fg.solver.calibrate import as_dataset
@@ -125,8 +126,7 @@ class IncrementalCalibrator:
             self._known_points = set(dataset.reconstruction_point_names)
         else:
             self._known_points = None
-        if robust not in (None, "huber", "cauchy"):
-            raise ValueError(f"unknown robust kernel {robust!r}: use 'huber' or 'cauchy'")
+        check_kernel(robust)
         self._seed = seed
         self._ids: set[str] = set()
         #: Images or fiducials refused by the consensus (``consensus.py``), each with its reason.

@@ -32,7 +32,6 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import V
 
-from mirror_fg.core.errors import SolveError
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.batched import batched_factors
 from mirror_fg.factors.eliminated import collapsed, eliminated_evaluator
@@ -44,7 +43,7 @@ from mirror_fg.solver.incremental_state import GraphState, PlacementBlock, Relin
 from mirror_fg.solver.incremental_values import (
     MIN_PNP_FIDUCIALS, REFINE_ITERATIONS, PlacementInitialiser, initialise_points, refine_alone,
 )
-from mirror_fg.solver.marginals import marginal_covariances, unconstrained_message
+from mirror_fg.solver.marginals import marginal_covariances, unconstrained_as_solve_error, unconstrained_message
 from mirror_fg.solver.residuals import outliers_of, predicted_normalized, residual_statistics
 from mirror_fg.solver.timing import timed
 
@@ -290,11 +289,9 @@ class IncrementalGraph:
         isam = g.require_isam()
         with timed(self.timings, "isam2"):
             pending, g.pending, removals, g.removals = g.pending, [], g.removals, []
-            try:
+            with unconstrained_as_solve_error(self._ds.source, self.unconstrained):
                 result = isam.update(factors, values, removals)
                 pose_cov = isam.marginalCovariance(g.layout.pose_key)
-            except RuntimeError as error:  # IndeterminantLinearSystemException
-                raise SolveError(f"{self._ds.source}: {self.unconstrained(error)}") from None
             indices = result.getNewFactorsIndices()
             for block, position in pending:
                 block.index = int(indices[position])
