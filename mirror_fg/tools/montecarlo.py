@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
 import socket
 import struct
 import sys
@@ -152,6 +153,10 @@ def _local_cluster(workers: int):
     """A started local cluster, or None after ``_CLUSTER_STARTS`` failed starts (a warning says why)."""
     from dask.distributed import LocalCluster
 
+    # A worker process sets up distributed's logging when it imports it, before ``silence_logs`` reaches it:
+    # a worker the nanny restarts after a crash logged its INFO lines (and a closed-comm traceback) to our
+    # stderr. The environment reaches every worker process from its start (the user's own setting wins).
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "error")
     reason = ""
     for attempt in range(1, _CLUSTER_STARTS + 1):
         try:
