@@ -17,7 +17,6 @@ from typing import Any
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError, SolveError
-from mirror_fg.factors.robust import check_kernel
 from mirror_fg.io.dataset import Dataset, dataset_from_dict
 from mirror_fg.solver.analytic import AnalyticSolution
 from mirror_fg.solver.calibration import Calibration, Exclusion
@@ -26,18 +25,14 @@ from mirror_fg.solver.consistency import diagnose_inconsistency
 from mirror_fg.solver.graph import InitialEstimate, Measurement
 from mirror_fg.solver.initial import initial_estimate
 from mirror_fg.solver.lm import levenberg_marquardt_with_restarts
+from mirror_fg.solver.options import STAGES, Linearization, Progress, SolveOptions
 from mirror_fg.solver.residuals import outliers_of, predicted_normalized, residual_statistics
 from mirror_fg.solver.timing import timed
 
-__all__ = ["as_dataset", "calibrate", "Progress", "STAGES"]
+__all__ = ["as_dataset", "calibrate", "Progress", "SolveOptions", "STAGES"]
 
 logger = logging.getLogger("mirror_fg")
 
-#: ``progress(stage, done, total)``: called as each stage of ``calibrate`` advances (``total`` None
-#: where it is not known in advance).
-Progress = Callable[[str, int, "int | None"], None]
-#: The stages ``calibrate`` reports, in order.
-STAGES = ("initial estimate", "Levenberg-Marquardt", "marginals")
 #: Times the final check may leave measurements out and solve again.
 MAX_RECHECKS = 2
 
@@ -65,6 +60,7 @@ def calibrate(
     fast: bool = True,
     progress: Progress | None = None,
     diagnose: bool = True,
+    options: SolveOptions | None = None,
 ) -> Calibration:
     """Analytical solution (Sects. 4-5), then the MLE by Levenberg-Marquardt (eq. 23) and Marginals.
 
@@ -87,14 +83,23 @@ def calibrate(
     sides' poses differ beyond their covariances (a camera that moved). A few dozen solves of the groups
     at most: ``diagnose=False`` skips it, e.g. for a first solve that is expected to fit badly.
     Whether the result may be written is :func:`~mirror_fg.solver.calibration.require_converged`'s call.
+
+    options: all of the settings above in one :class:`~mirror_fg.solver.options.SolveOptions` (then give
+    none of them separately: TypeError); ``fast=True`` is ``linearization="eliminated"``, ``fast=False``
+    ``"reference"``, and ``SolveOptions(linearization="stacked")`` the stacked factors without elimination.
     """
-    check_kernel(robust)
+    separate = (robust, compute_covariance, max_iterations, on_iteration, fast, progress, diagnose)
+    if options is None:
+        options = SolveOptions(robust=robust, compute_covariance=compute_covariance, max_iterations=max_iterations,
+                               on_iteration=on_iteration, progress=progress, diagnose=diagnose,
+                               linearization=Linearization.ELIMINATED if fast else Linearization.REFERENCE)
+    elif separate != (None, True, 100, None, True, None, True):
+        raise TypeError("calibrate(): give the settings either in options= or as separate arguments, not both")
     dataset = as_dataset(dataset)
     if dataset.camera is not None and dataset.camera.estimate:  # intrinsics estimated too (camera.estimate)
         from mirror_fg.solver.intrinsics import calibrate_with_intrinsics
 
-        return calibrate_with_intrinsics(dataset, initial=initial, robust=robust, compute_covariance=compute_covariance,
-                                         max_iterations=max_iterations, on_iteration=on_iteration, progress=progress)
+        return calibrate_with_intrinsics(dataset, initial=initial, options=options)
     timings: dict[str, float] = {}
     with timed(timings, "pnp"):
         checked = check_images(dataset)  # Sect. 4.1 per image, checked; the initial estimate starts from it
@@ -102,8 +107,7 @@ def calibrate(
         solved, excluded, pnp = screen(dataset, checked=checked)  # what disagrees with the rest, named
     for recheck in range(MAX_RECHECKS + 1):
         try:
-            calibration, measurements, whitened = _solve(solved, initial, robust, compute_covariance, max_iterations,
-                                                         on_iteration, fast, progress, timings, pnp)
+            calibration, measurements, whitened = _solve(solved, initial, options, timings, pnp)
         except (DatasetError, SolveError) as error:
             if not excluded:
                 raise
@@ -121,7 +125,7 @@ def calibrate(
         solved = without(solved, more)
         pnp = {image_id: poses for image_id, poses in pnp.items() if image_id not in {e.image for e in more}}
     calibration.excluded = list(excluded)
-    if diagnose:
+    if options.diagnose:
         with timed(timings, "consistency"):
             calibration.inconsistency = diagnose_inconsistency(solved, calibration, pnp)
         if calibration.inconsistency is not None:
@@ -137,12 +141,12 @@ def _listed(excluded: list[Exclusion], limit: int = 5) -> str:
 
 
 def _solve(
-    dataset: Dataset, initial: InitialEstimate | None, robust: str | None, compute_covariance: bool, max_iterations: int,
-    on_iteration: Callable[[int, float, float], None] | None, fast: bool, progress: Progress | None,
-    timings: dict[str, float], pnp: PnPCandidates,
+    dataset: Dataset, initial: InitialEstimate | None, options: SolveOptions, timings: dict[str, float],
+    pnp: PnPCandidates,
 ) -> tuple[Calibration, list[Measurement], np.ndarray]:
     """One solve of ``dataset`` as it is: the analytical solution, LM with its restarts, marginals; the
     calibration with its measurements and their whitened residual norms (sigmas)."""
+    progress, on_iteration, max_iterations = options.progress, options.on_iteration, options.max_iterations
     report = progress if progress is not None else (lambda stage, done, total: None)
     logger.info("%s: calibrating %d images, %d mirror placements", dataset.source, len(dataset.images),
                 len(dataset.configurations))
@@ -159,10 +163,7 @@ def _solve(
             on_iteration(number, error_before, error_after)
 
     report(STAGES[1], 0, max_iterations)
-    run, analytic, restarts = levenberg_marquardt_with_restarts(
-        dataset, start, analytic, robust, fast, max_iterations, iteration,
-        timings,
-    )
+    run, analytic, restarts = levenberg_marquardt_with_restarts(dataset, start, analytic, options, iteration, timings)
     logger.info("Levenberg-Marquardt: %d iterations, %d restart(s), %.3f s (build %.3f s)", run.iterations, restarts,
                 timings.get("optimize", 0.0), timings.get("build", 0.0))
     if not run.converged:
@@ -172,7 +173,7 @@ def _solve(
         covariance: np.ndarray | None = None
         mirror_covs: dict[tuple[int, int], np.ndarray] = {}
         point_covs: dict[str, np.ndarray] = {}
-        if compute_covariance:
+        if options.compute_covariance:
             report(STAGES[2], 0, 1)
             covariance, mirror_covs, point_covs = run.covariances(dataset)
             report(STAGES[2], 1, 1)

@@ -49,6 +49,7 @@ from mirror_fg.solver.intrinsics_observability import (  # noqa: F401 (public he
 from mirror_fg.solver.graph import GraphLayout, InitialEstimate, Measurement, extract_values, initial_values, measurements_of
 from mirror_fg.solver.lm import cost_scale, lm_params, run_optimizer
 from mirror_fg.solver.marginals import unconstrained_as_solve_error, unconstrained_message
+from mirror_fg.solver.options import STAGES, Linearization, Progress, SolveOptions
 from mirror_fg.solver.residuals import outliers_of, predicted_normalized
 from mirror_fg.solver.timing import timed
 
@@ -209,28 +210,29 @@ class _Start:
         return self.start.converged and self.refusal is None
 
 
-def _fixed_start(dataset: Dataset, camera: Camera, sigma: float, model: IntrinsicsModel, robust: str | None,
-                 initial: InitialEstimate | None, max_iterations: int, progress: Callable[[str, int, Any], None] | None,
-                 ) -> _Start:
+def _fixed_start(dataset: Dataset, camera: Camera, sigma: float, model: IntrinsicsModel, options: SolveOptions,
+                 initial: InitialEstimate | None) -> _Start:
     """``calibrate`` with the intrinsics fixed at ``camera`` (pixel sigma ``sigma``), the joint problem
-    at its solution and the observability check there (module docstring)."""
+    at its solution and the observability check there (module docstring). Of ``options`` the start takes
+    the kernel, the iterations and the progress; no covariance, no diagnosis, the default factors."""
     from mirror_fg.solver.calibrate import calibrate
     from mirror_fg.solver.consensus import without
 
     # diagnose=False: with first-guess intrinsics the fit is often implausible; the split search belongs
     # to the joint solution, not to this start.
     inflated = {name: max(value, sigma) for name, value in dataset.point_sigma.items()}
-    start = calibrate(replace(dataset, camera=camera, pixel_sigma=sigma, point_sigma=inflated), initial=initial, robust=robust,
-                      compute_covariance=False, max_iterations=max_iterations, progress=progress, diagnose=False)
+    start_options = replace(options, linearization=Linearization.ELIMINATED, compute_covariance=False,
+                            on_iteration=None, diagnose=False)
+    start = calibrate(replace(dataset, camera=camera, pixel_sigma=sigma, point_sigma=inflated), initial=initial,
+                      options=start_options)
     solved = without(dataset, start.excluded) if start.excluded else dataset
-    graph, layout, measurements, pixels = _joint_problem(solved, replace(solved, camera=camera), model, robust)
+    graph, layout, measurements, pixels = _joint_problem(solved, replace(solved, camera=camera), model, options.robust)
     values = _values_for(layout, camera_intrinsics(camera)[model.index], start)
     refusal = unobservable_refusal(graph, values, layout, camera, model.estimated, dataset.source)
     return _Start(camera, start, solved, graph, layout, measurements, pixels, values, refusal)
 
 
-def _joint_solve(dataset: Dataset, chosen: _Start, model: IntrinsicsModel, robust: str | None, max_iterations: int,
-                 on_iteration: Callable[[int, float, float], None] | None) -> SimpleNamespace:
+def _joint_solve(dataset: Dataset, chosen: _Start, model: IntrinsicsModel, options: SolveOptions) -> SimpleNamespace:
     """Joint LM from a start, leaving out what ends far off (``consensus.final_check``) and solving again;
     the run and what it was solved on (``solved``, ``excluded``, ``measurements``), the estimate and the
     pixel residuals (``residuals``, ``whitened``)."""
@@ -241,7 +243,8 @@ def _joint_solve(dataset: Dataset, chosen: _Start, model: IntrinsicsModel, robus
     graph, layout, measurements, pixels, values = chosen.graph, chosen.layout, chosen.measurements, chosen.pixels, chosen.values
     for recheck in range(MAX_RECHECKS + 1):
         fixed = replace(solved, camera=start_camera)
-        run = _run_lm(solved, fixed, graph, layout, measurements, pixels, values, max_iterations, on_iteration)
+        run = _run_lm(solved, fixed, graph, layout, measurements, pixels, values, options.max_iterations,
+                      options.on_iteration)
         R, t, mirror_vectors, points = extract_values(run.result, layout)
         theta = model.theta(np.asarray(run.result.atVector(intrinsics_key()), dtype=float))
         predicted = predicted_normalized(solved, measurements, R, t, mirror_vectors, points)
@@ -255,7 +258,8 @@ def _joint_solve(dataset: Dataset, chosen: _Start, model: IntrinsicsModel, robus
         excluded += more
         solved = without(solved, more)
         estimate = SimpleNamespace(R_cam_base=R, t_cam_base=t, mirror_vectors=mirror_vectors, points=points)
-        graph, layout, measurements, pixels = _joint_problem(solved, replace(solved, camera=start_camera), model, robust)
+        graph, layout, measurements, pixels = _joint_problem(solved, replace(solved, camera=start_camera), model,
+                                                             options.robust)
         values = _values_for(layout, run.result.atVector(intrinsics_key()), estimate)
     return SimpleNamespace(run=run, solved=solved, excluded=excluded, measurements=measurements, R=R, t=t,
                            mirror_vectors=mirror_vectors, points=points, theta=theta, residuals=residuals,
@@ -270,7 +274,8 @@ def calibrate_with_intrinsics(
     compute_covariance: bool = True,
     max_iterations: int = 100,
     on_iteration: Callable[[int, float, float], None] | None = None,
-    progress: Callable[[str, int, Any], None] | None = None,
+    progress: Progress | None = None,
+    options: SolveOptions | None = None,
 ) -> Calibration:
     """The MLE of every unknown and of the intrinsics named in ``dataset.camera.estimate`` (module
     docstring). Arguments as :func:`mirror_fg.solver.calibrate.calibrate`; ``initial`` starts the
@@ -282,12 +287,16 @@ def calibrate_with_intrinsics(
 
     Raises DatasetError (a fisheye camera, unmodelled distortion terms) or SolveError (unobservable
     intrinsics, an indeterminant system); warns :class:`WeakIntrinsicsWarning` on weak ones.
+    ``options``: the settings in one :class:`SolveOptions` instead (its ``linearization`` and ``diagnose``
+    are not used: the start takes the default factors, the joint solve pixel factors).
     """
-    from mirror_fg.solver.calibrate import STAGES
-
+    if options is None:
+        options = SolveOptions(robust=robust, compute_covariance=compute_covariance, max_iterations=max_iterations,
+                               on_iteration=on_iteration, progress=progress)
     camera = _check_supported(dataset)
     timings: dict[str, float] = {}
-    report = progress if progress is not None else (lambda stage, done, total: None)
+    max_iterations = options.max_iterations
+    report = options.progress if options.progress is not None else (lambda stage, done, total: None)
     model = IntrinsicsModel(camera_intrinsics(camera), camera.estimate)
     names = model.estimated
     # The start intrinsics may be off by many pixels: with the file's sigma the fixed-intrinsics solve
@@ -307,8 +316,7 @@ def calibrate_with_intrinsics(
                 logger.info("%s: no usable start with the given intrinsics; starting them from the photographs: %s",
                             dataset.source, ", ".join(f"{k}={getattr(start_camera, k):.6g}" for k in ("fx", "fy", "cx", "cy")))
             try:
-                attempts.append(_fixed_start(dataset, start_camera, start_sigma, model, robust, initial, max_iterations,
-                                             progress))
+                attempts.append(_fixed_start(dataset, start_camera, start_sigma, model, options, initial))
             except SolveError as error:  # e.g. LM from a degenerate analytical solution
                 failure = failure or error
                 continue
@@ -323,7 +331,7 @@ def calibrate_with_intrinsics(
                 chosen.start.iterations, timings["fixed intrinsics"])
     with timed(timings, "optimize"):
         report(STAGES[1], 0, max_iterations)
-        joint = _joint_solve(dataset, chosen, model, robust, max_iterations, on_iteration)
+        joint = _joint_solve(dataset, chosen, model, options)
         if not joint.run.converged and chosen.camera is given_camera:
             # The given values let the fixed-intrinsics solve through but left the joint solve stuck (the
             # analytical solution from a rough camera can be another optimum): start from the photographs.
@@ -331,14 +339,13 @@ def calibrate_with_intrinsics(
             other = None
             if photographs is not None:
                 try:
-                    other = _fixed_start(dataset, photographs, start_sigma, model, robust, initial, max_iterations,
-                                         progress)
+                    other = _fixed_start(dataset, photographs, start_sigma, model, options, initial)
                 except SolveError:
                     other = None
             if other is not None and other.refusal is None:
                 logger.info("%s: the joint estimate from the given intrinsics did not converge; starting them from "
                             "the photographs", dataset.source)
-                retry = _joint_solve(dataset, other, model, robust, max_iterations, on_iteration)
+                retry = _joint_solve(dataset, other, model, options)
                 if retry.run.converged:
                     chosen, joint = other, retry
     start, run, excluded, measurements = chosen.start, joint.run, joint.excluded, joint.measurements
@@ -356,7 +363,7 @@ def calibrate_with_intrinsics(
     intrinsics_cov: np.ndarray | None = None
     cross: np.ndarray | None = None
     with timed(timings, "marginals"):
-        if compute_covariance:
+        if options.compute_covariance:
             report(STAGES[2], 0, 1)
             covariance, intrinsics_cov, cross, mirror_covs, point_covs = _covariances(
                 run.graph, run.result, run.layout, R, dataset.source)
