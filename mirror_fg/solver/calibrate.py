@@ -41,7 +41,7 @@ from mirror_fg.solver.consistency import diagnose_inconsistency
 from mirror_fg.solver.graph import GraphLayout, InitialEstimate, Measurement, extract_values
 from mirror_fg.solver.initial import initial_estimate
 from mirror_fg.solver.intrinsics import (
-    START_SIGMA_FRACTION, camera_intrinsics, camera_of, check_supported, joint_covariances, joint_problem, joint_values,
+    START_SIGMA_FRACTION, JointRun, camera_intrinsics, camera_of, check_supported, joint_covariances, joint_problem, joint_values,
     photograph_start, pixel_sigmas, run_joint_lm,
 )
 from mirror_fg.solver.intrinsics_observability import unobservable_refusal, warn_weak
@@ -277,7 +277,24 @@ def _fixed_start(dataset: Dataset, camera: Camera, sigma: float, model: Intrinsi
     return _Start(camera, start, solved, graph, layout, measurements, pixels, values, refusal)
 
 
-def _joint_solve(dataset: Dataset, chosen: _Start, model: IntrinsicsModel, options: SolveOptions) -> SimpleNamespace:
+@dataclass
+class _JointSolution:
+    """The joint solve's last run, what it was solved on, its estimate, intrinsics and pixel residuals."""
+
+    run: JointRun
+    solved: Dataset
+    excluded: list[Exclusion]
+    measurements: list[Measurement]
+    R: np.ndarray
+    t: np.ndarray
+    mirror_vectors: dict[tuple[int, int], np.ndarray]
+    points: dict[str, np.ndarray]
+    theta: np.ndarray
+    residuals: np.ndarray
+    whitened: np.ndarray
+
+
+def _joint_solve(dataset: Dataset, chosen: _Start, model: IntrinsicsModel, options: SolveOptions) -> _JointSolution:
     """Joint LM from a start, leaving out what ends far off (``consensus.final_check``) and solving again;
     the run and what it was solved on (``solved``, ``excluded``, ``measurements``), the estimate and the
     pixel residuals (``residuals``, ``whitened``)."""
@@ -286,7 +303,7 @@ def _joint_solve(dataset: Dataset, chosen: _Start, model: IntrinsicsModel, optio
     for recheck in range(MAX_RECHECKS + 1):
         fixed = replace(solved, camera=start_camera)
         run = run_joint_lm(solved, fixed, graph, layout, measurements, pixels, values, options.max_iterations,
-                      options.on_iteration)
+                           options.on_iteration)
         R, t, mirror_vectors, points = extract_values(run.result, layout)
         theta = model.theta(np.asarray(run.result.atVector(intrinsics_key()), dtype=float))
         predicted = predicted_normalized(solved, measurements, R, t, mirror_vectors, points)
@@ -301,11 +318,11 @@ def _joint_solve(dataset: Dataset, chosen: _Start, model: IntrinsicsModel, optio
         solved = without(solved, more)
         estimate = SimpleNamespace(R_cam_base=R, t_cam_base=t, mirror_vectors=mirror_vectors, points=points)
         graph, layout, measurements, pixels = joint_problem(solved, replace(solved, camera=start_camera), model,
-                                                             options.robust)
+                                                            options.robust)
         values = joint_values(layout, run.result.atVector(intrinsics_key()), estimate)
-    return SimpleNamespace(run=run, solved=solved, excluded=excluded, measurements=measurements, R=R, t=t,
-                           mirror_vectors=mirror_vectors, points=points, theta=theta, residuals=residuals,
-                           whitened=whitened)
+    return _JointSolution(run=run, solved=solved, excluded=excluded, measurements=measurements, R=R, t=t,
+                          mirror_vectors=mirror_vectors, points=points, theta=theta, residuals=residuals,
+                          whitened=whitened)
 
 
 def calibrate_with_intrinsics(

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any
 
 import gtsam
 import numpy as np
@@ -42,7 +41,7 @@ from mirror_fg.solver.intrinsics_observability import (  # noqa: F401 (public he
     ADVICE, UNOBSERVABLE_FRACTION, UNOBSERVABLE_RCOND, WEAK_CORNER_PX, IntrinsicsObservability, WeakIntrinsicsWarning,
     corner_sensitivity, intrinsics_observability, unobservable_refusal, warn_weak,
 )
-from mirror_fg.solver.graph import GraphLayout, Measurement, initial_values, measurements_of
+from mirror_fg.solver.graph import GraphLayout, InitialEstimate, Measurement, initial_values, measurements_of
 from mirror_fg.solver.lm import cost_scale, lm_params, run_optimizer
 from mirror_fg.solver.marginals import unconstrained_as_solve_error, unconstrained_message
 
@@ -160,7 +159,7 @@ def run_joint_lm(dataset: Dataset, fixed: Dataset, graph: gtsam.NonlinearFactorG
                      iterations, converged)
 
 
-def joint_values(layout: GraphLayout, intrinsics: np.ndarray, estimate: Any) -> gtsam.Values:
+def joint_values(layout: GraphLayout, intrinsics: np.ndarray, estimate: InitialEstimate) -> gtsam.Values:
     """Start values of ``layout``'s unknowns from an estimate, and of the ``K(0)`` vector."""
     values = initial_values(layout, estimate)
     values.insert(intrinsics_key(), np.array(intrinsics, dtype=float))
