@@ -34,6 +34,7 @@ from mirror_fg.solver.calibration import Calibration, Inconsistency
 from mirror_fg.solver.consensus import PnPCandidates, fit_last_mirror
 from mirror_fg.solver.initial import initial_estimate
 from mirror_fg.solver.lm import levenberg_marquardt
+from mirror_fg.solver.options import SolveOptions
 from mirror_fg.solver.peeling import spread_subset
 from mirror_fg.solver.placement_tree import complete_tree
 
@@ -83,7 +84,7 @@ def fit_group(
     group = replace(dataset, images=images)
     try:
         start = initial_estimate(group, pnp=pnp)
-        run = levenberg_marquardt(group, start, None, True, 100, None, {})
+        run = levenberg_marquardt(group, start, SolveOptions(), None, {})
         pose_covariance = run.covariances(group)[0] if covariance and run.converged else None
     except (DatasetError, SolveError, RuntimeError, np.linalg.LinAlgError):
         return None

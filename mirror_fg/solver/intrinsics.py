@@ -1,15 +1,14 @@
-"""``calibrate_with_intrinsics``: the MLE (eq. 23) with the camera intrinsics among the unknowns (issue 16).
+"""The pixel problem: the MLE (eq. 23) with the camera intrinsics among the unknowns (issue 16).
 
-Pipeline: the dataset's camera holds the start intrinsics (the given values; where fx, fy, cx or cy
-was absent, :func:`mirror_fg.core.camera.initial_intrinsics` computed them from the photographs when
-the dataset was loaded) -> ``calibrate()`` with those intrinsics fixed (analytical solution on the
-image normalised with them, LM, restarts, left-out outliers) for the start of pose, mirrors and
-points -> the observability check below at that start; where that start did not converge or fails
-the check, the same again with fx, fy, cx, cy started from the photographs (a given value too far
-off can make the analytical solution degenerate) -> joint Levenberg-Marquardt (Marquardt's diagonal
-damping) over pose, mirrors, points and the intrinsics named in ``camera.estimate`` with pixel factors (``factors/intrinsics.py``) and the optional Gaussian
-prior ``camera.prior_sigma`` -> ``gtsam.Marginals`` (the pose's covariance *including* the intrinsics'
-uncertainty, their own covariance and their cross-covariance with the pose) -> residuals in pixels.
+Its pieces, which ``calibrate.calibrate_with_intrinsics`` (the pipeline) puts together: the dataset's
+camera holds the start intrinsics (the given values; where fx, fy, cx or cy was absent,
+:func:`mirror_fg.core.camera.initial_intrinsics` computed them from the photographs when the dataset was
+loaded, :func:`photograph_start` again when the given ones give no usable start); the joint graph of pixel
+factors (``factors/intrinsics.py``) with the optional Gaussian prior ``camera.prior_sigma``
+(:func:`joint_problem`, :func:`joint_values`); joint Levenberg-Marquardt with Marquardt's diagonal damping
+(:func:`run_joint_lm`); ``gtsam.Marginals`` (:func:`joint_covariances`: the pose's covariance *including*
+the intrinsics' uncertainty, their own covariance and their cross-covariance with the pose).
+This module imports nothing of the pipeline (``calibrate.py``), which imports it.
 
 Observability: ``intrinsics_observability.py`` (the Fisher information criterion, unobservable refused,
 weak warned).
@@ -25,11 +24,8 @@ in the mirror, more mirror placements.
 """
 from __future__ import annotations
 
-import logging
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from types import SimpleNamespace
-from typing import Any
 
 import gtsam
 import numpy as np
@@ -38,26 +34,24 @@ from mirror_fg.core.camera import Camera, initial_intrinsics
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.intrinsics import (
-    IntrinsicsModel, intrinsics_factors, intrinsics_key, intrinsics_prior_factor, predict_pixels,
+    IntrinsicsModel, intrinsics_factors, intrinsics_key, intrinsics_prior_factor,
 )
 from mirror_fg.io.dataset import Dataset
-from mirror_fg.solver.calibration import Calibration, EstimatedCamera
 from mirror_fg.solver.intrinsics_observability import (  # noqa: F401 (public here too)
     ADVICE, UNOBSERVABLE_FRACTION, UNOBSERVABLE_RCOND, WEAK_CORNER_PX, IntrinsicsObservability, WeakIntrinsicsWarning,
     corner_sensitivity, intrinsics_observability, unobservable_refusal, warn_weak,
 )
-from mirror_fg.solver.graph import GraphLayout, InitialEstimate, Measurement, extract_values, initial_values, measurements_of
+from mirror_fg.solver.graph import GraphLayout, InitialEstimate, Measurement, initial_values, measurements_of
 from mirror_fg.solver.lm import cost_scale, lm_params, run_optimizer
 from mirror_fg.solver.marginals import unconstrained_as_solve_error, unconstrained_message
-from mirror_fg.solver.residuals import outliers_of, predicted_normalized
-from mirror_fg.solver.timing import timed
 
 __all__ = [
-    "calibrate_with_intrinsics", "WeakIntrinsicsWarning", "IntrinsicsObservability", "intrinsics_observability",
+    "WeakIntrinsicsWarning", "IntrinsicsObservability", "intrinsics_observability",
     "corner_sensitivity", "camera_intrinsics", "WEAK_CORNER_PX", "UNOBSERVABLE_RCOND", "UNOBSERVABLE_FRACTION", "MIN_BOARD_VIEWS",
+    "START_SIGMA_FRACTION", "JointRun", "camera_of", "check_supported", "joint_covariances", "joint_problem",
+    "joint_values", "photograph_start", "pixel_sigmas", "run_joint_lm",
 ]
 
-logger = logging.getLogger("mirror_fg")
 
 #: The fixed-intrinsics start is solved with at least this fraction of the image diagonal as its pixel
 #: sigma, so that the start intrinsics' error is not taken for outliers (only gross ones are left out).
@@ -75,7 +69,7 @@ def camera_intrinsics(camera: Camera) -> np.ndarray:
                     dtype=float)
 
 
-def _camera_of(camera: Camera, theta: np.ndarray) -> Camera:
+def camera_of(camera: Camera, theta: np.ndarray) -> Camera:
     """``camera`` with the nine intrinsics ``theta``, nothing left to estimate."""
     dist = list(camera.dist)
     dist[:4] = [float(v) for v in theta[4:8]]
@@ -85,7 +79,7 @@ def _camera_of(camera: Camera, theta: np.ndarray) -> Camera:
                    dist=tuple(dist), estimate=(), prior_sigma=())
 
 
-def _check_supported(dataset: Dataset) -> Camera:
+def check_supported(dataset: Dataset) -> Camera:
     """The camera, after the refusals that need no solve: a fisheye model, unmodelled distortion terms
     (DatasetError); fx, fy, cx or cy estimated from fewer than ``MIN_BOARD_VIEWS`` photographs of 4
     or more fiducials (SolveError, module docstring)."""
@@ -108,7 +102,7 @@ def _check_supported(dataset: Dataset) -> Camera:
 
 
 @dataclass
-class _JointRun:
+class JointRun:
     """One joint LM run over pose, mirrors, points and the intrinsics, with what it was built from."""
 
     dataset: Dataset
@@ -128,7 +122,7 @@ def pixel_sigmas(dataset: Dataset, measurements: list[Measurement]) -> np.ndarra
     return np.array([dataset.point_sigma.get(m.point, dataset.pixel_sigma) for m in measurements], dtype=float)
 
 
-def _joint_problem(dataset: Dataset, fixed: Dataset, model: IntrinsicsModel, robust: str | None,
+def joint_problem(dataset: Dataset, fixed: Dataset, model: IntrinsicsModel, robust: str | None,
                    ) -> tuple[gtsam.NonlinearFactorGraph, GraphLayout, list[Measurement], np.ndarray]:
     """The graph of pixel factors (and the prior) of ``dataset``; ``fixed`` the same images with the
     start camera (its measurements give the structure)."""
@@ -147,9 +141,9 @@ def _joint_problem(dataset: Dataset, fixed: Dataset, model: IntrinsicsModel, rob
     return graph, layout, measurements, pixels
 
 
-def _run_lm(dataset: Dataset, fixed: Dataset, graph: gtsam.NonlinearFactorGraph, layout: GraphLayout,
+def run_joint_lm(dataset: Dataset, fixed: Dataset, graph: gtsam.NonlinearFactorGraph, layout: GraphLayout,
             measurements: list[Measurement], pixels: np.ndarray, values: gtsam.Values, max_iterations: int,
-            on_iteration: Callable[[int, float, float], None] | None) -> _JointRun:
+            on_iteration: Callable[[int, float, float], None] | None) -> JointRun:
     """Levenberg-Marquardt (eq. 23) from ``values`` with the project's settings (``lm.lm_params``)."""
     params = lm_params(max_iterations, cost_scale(fixed))
     # Marquardt's damping (lambda diag(J^T J)): the unknowns' units differ by orders of magnitude
@@ -161,18 +155,18 @@ def _run_lm(dataset: Dataset, fixed: Dataset, graph: gtsam.NonlinearFactorGraph,
     iterations = optimizer.iterations()
     final_error = graph.error(result)
     converged = bool(np.isfinite(final_error)) and iterations < max_iterations
-    return _JointRun(dataset, graph, layout, measurements, pixels, result, float(initial_error), float(final_error),
+    return JointRun(dataset, graph, layout, measurements, pixels, result, float(initial_error), float(final_error),
                      iterations, converged)
 
 
-def _values_for(layout: GraphLayout, intrinsics: np.ndarray, estimate: Any) -> gtsam.Values:
+def joint_values(layout: GraphLayout, intrinsics: np.ndarray, estimate: InitialEstimate) -> gtsam.Values:
     """Start values of ``layout``'s unknowns from an estimate, and of the ``K(0)`` vector."""
     values = initial_values(layout, estimate)
     values.insert(intrinsics_key(), np.array(intrinsics, dtype=float))
     return values
 
 
-def _photograph_start(dataset: Dataset, camera: Camera) -> Camera | None:
+def photograph_start(dataset: Dataset, camera: Camera) -> Camera | None:
     """``camera`` with the estimated ones of fx, fy, cx, cy started from the photographs
     (:func:`~mirror_fg.core.camera.initial_intrinsics`), or None where they cannot be (none of them
     estimated, fiducials not coplanar, too few board views)."""
@@ -190,206 +184,7 @@ def _photograph_start(dataset: Dataset, camera: Camera) -> Camera | None:
     return replace(camera, fx=start["fx"], fy=start["fy"], cx=start["cx"], cy=start["cy"])
 
 
-@dataclass
-class _Start:
-    """The fixed-intrinsics solve from one start camera and the joint problem built on it."""
-
-    camera: Camera
-    start: Calibration
-    solved: Dataset  # the dataset without what the start left out
-    graph: gtsam.NonlinearFactorGraph
-    layout: GraphLayout
-    measurements: list[Measurement]
-    pixels: np.ndarray
-    values: gtsam.Values
-    refusal: str | None  # why the intrinsics are unobservable from this start, or None
-
-    @property
-    def usable(self) -> bool:
-        return self.start.converged and self.refusal is None
-
-
-def _fixed_start(dataset: Dataset, camera: Camera, sigma: float, model: IntrinsicsModel, robust: str | None,
-                 initial: InitialEstimate | None, max_iterations: int, progress: Callable[[str, int, Any], None] | None,
-                 ) -> _Start:
-    """``calibrate`` with the intrinsics fixed at ``camera`` (pixel sigma ``sigma``), the joint problem
-    at its solution and the observability check there (module docstring)."""
-    from mirror_fg.solver.calibrate import calibrate
-    from mirror_fg.solver.consensus import without
-
-    # diagnose=False: with first-guess intrinsics the fit is often implausible; the split search belongs
-    # to the joint solution, not to this start.
-    inflated = {name: max(value, sigma) for name, value in dataset.point_sigma.items()}
-    start = calibrate(replace(dataset, camera=camera, pixel_sigma=sigma, point_sigma=inflated), initial=initial, robust=robust,
-                      compute_covariance=False, max_iterations=max_iterations, progress=progress, diagnose=False)
-    solved = without(dataset, start.excluded) if start.excluded else dataset
-    graph, layout, measurements, pixels = _joint_problem(solved, replace(solved, camera=camera), model, robust)
-    values = _values_for(layout, camera_intrinsics(camera)[model.index], start)
-    refusal = unobservable_refusal(graph, values, layout, camera, model.estimated, dataset.source)
-    return _Start(camera, start, solved, graph, layout, measurements, pixels, values, refusal)
-
-
-def _joint_solve(dataset: Dataset, chosen: _Start, model: IntrinsicsModel, robust: str | None, max_iterations: int,
-                 on_iteration: Callable[[int, float, float], None] | None) -> SimpleNamespace:
-    """Joint LM from a start, leaving out what ends far off (``consensus.final_check``) and solving again;
-    the run and what it was solved on (``solved``, ``excluded``, ``measurements``), the estimate and the
-    pixel residuals (``residuals``, ``whitened``)."""
-    from mirror_fg.solver.calibrate import MAX_RECHECKS
-    from mirror_fg.solver.consensus import final_check, without
-
-    start_camera, solved, excluded = chosen.camera, chosen.solved, list(chosen.start.excluded)
-    graph, layout, measurements, pixels, values = chosen.graph, chosen.layout, chosen.measurements, chosen.pixels, chosen.values
-    for recheck in range(MAX_RECHECKS + 1):
-        fixed = replace(solved, camera=start_camera)
-        run = _run_lm(solved, fixed, graph, layout, measurements, pixels, values, max_iterations, on_iteration)
-        R, t, mirror_vectors, points = extract_values(run.result, layout)
-        theta = model.theta(np.asarray(run.result.atVector(intrinsics_key()), dtype=float))
-        predicted = predicted_normalized(solved, measurements, R, t, mirror_vectors, points)
-        residuals = predict_pixels(theta, predicted) - pixels
-        whitened = np.linalg.norm(residuals, axis=1) / pixel_sigmas(dataset, measurements)
-        more = final_check(solved, measurements, whitened, run.result.dim()) if recheck < MAX_RECHECKS else []
-        if not more:
-            break
-        logger.warning("%s: %d measurement(s) or image(s) far off the solution left out; solving again",
-                       dataset.source, len(more))
-        excluded += more
-        solved = without(solved, more)
-        estimate = SimpleNamespace(R_cam_base=R, t_cam_base=t, mirror_vectors=mirror_vectors, points=points)
-        graph, layout, measurements, pixels = _joint_problem(solved, replace(solved, camera=start_camera), model, robust)
-        values = _values_for(layout, run.result.atVector(intrinsics_key()), estimate)
-    return SimpleNamespace(run=run, solved=solved, excluded=excluded, measurements=measurements, R=R, t=t,
-                           mirror_vectors=mirror_vectors, points=points, theta=theta, residuals=residuals,
-                           whitened=whitened)
-
-
-def calibrate_with_intrinsics(
-    dataset: Dataset,
-    *,
-    initial: InitialEstimate | None = None,
-    robust: str | None = None,
-    compute_covariance: bool = True,
-    max_iterations: int = 100,
-    on_iteration: Callable[[int, float, float], None] | None = None,
-    progress: Callable[[str, int, Any], None] | None = None,
-) -> Calibration:
-    """The MLE of every unknown and of the intrinsics named in ``dataset.camera.estimate`` (module
-    docstring). Arguments as :func:`mirror_fg.solver.calibrate.calibrate`; ``initial`` starts the
-    fixed-intrinsics stage (pose, mirrors, points), the intrinsics start at the camera's values.
-
-    Measurements or images that ``calibrate`` leaves out at the start (far off even with the start
-    intrinsics' sigma, see ``START_SIGMA_FRACTION``) or that end far off the joint solution
-    (``consensus.final_check``) are left out, as ``calibrate`` does, and listed in ``excluded``.
-
-    Raises DatasetError (a fisheye camera, unmodelled distortion terms) or SolveError (unobservable
-    intrinsics, an indeterminant system); warns :class:`WeakIntrinsicsWarning` on weak ones.
-    """
-    from mirror_fg.solver.calibrate import STAGES
-
-    camera = _check_supported(dataset)
-    timings: dict[str, float] = {}
-    report = progress if progress is not None else (lambda stage, done, total: None)
-    model = IntrinsicsModel(camera_intrinsics(camera), camera.estimate)
-    names = model.estimated
-    # The start intrinsics may be off by many pixels: with the file's sigma the fixed-intrinsics solve
-    # would leave out sound measurements as outliers. Its estimate does not depend on a uniform sigma.
-    start_sigma = max(dataset.pixel_sigma, START_SIGMA_FRACTION * float(np.hypot(camera.width, camera.height)))
-    given_camera = replace(camera, estimate=(), prior_sigma=())
-    attempts: list[_Start] = []
-    failure: SolveError | None = None  # the given start's own failure, raised if no start works
-    with timed(timings, "fixed intrinsics"):
-        for start_camera in (given_camera, None):
-            if start_camera is None:
-                # The given values were too far off for the analytical solution (measured: fx 16 % off
-                # and no distortion gave mirror vectors near zero on a simulation): start from the photographs.
-                start_camera = _photograph_start(dataset, given_camera)
-                if start_camera is None:
-                    break
-                logger.info("%s: no usable start with the given intrinsics; starting them from the photographs: %s",
-                            dataset.source, ", ".join(f"{k}={getattr(start_camera, k):.6g}" for k in ("fx", "fy", "cx", "cy")))
-            try:
-                attempts.append(_fixed_start(dataset, start_camera, start_sigma, model, robust, initial, max_iterations,
-                                             progress))
-            except SolveError as error:  # e.g. LM from a degenerate analytical solution
-                failure = failure or error
-                continue
-            if attempts[-1].usable:
-                break
-    chosen = next((a for a in attempts if a.usable), next((a for a in attempts if a.refusal is None), None))
-    if chosen is None:
-        if failure is not None and (not attempts or attempts[0].camera is not given_camera):
-            raise failure
-        raise SolveError(attempts[0].refusal)
-    logger.info("%s: start of the joint estimate (intrinsics fixed): %d iterations, %.3f s", dataset.source,
-                chosen.start.iterations, timings["fixed intrinsics"])
-    with timed(timings, "optimize"):
-        report(STAGES[1], 0, max_iterations)
-        joint = _joint_solve(dataset, chosen, model, robust, max_iterations, on_iteration)
-        if not joint.run.converged and chosen.camera is given_camera:
-            # The given values let the fixed-intrinsics solve through but left the joint solve stuck (the
-            # analytical solution from a rough camera can be another optimum): start from the photographs.
-            photographs = _photograph_start(dataset, given_camera)
-            other = None
-            if photographs is not None:
-                try:
-                    other = _fixed_start(dataset, photographs, start_sigma, model, robust, initial, max_iterations,
-                                         progress)
-                except SolveError:
-                    other = None
-            if other is not None and other.refusal is None:
-                logger.info("%s: the joint estimate from the given intrinsics did not converge; starting them from "
-                            "the photographs", dataset.source)
-                retry = _joint_solve(dataset, other, model, robust, max_iterations, on_iteration)
-                if retry.run.converged:
-                    chosen, joint = other, retry
-    start, run, excluded, measurements = chosen.start, joint.run, joint.excluded, joint.measurements
-    R, t, mirror_vectors, points, theta, residuals, whitened = (joint.R, joint.t, joint.mirror_vectors, joint.points,
-                                                                joint.theta, joint.residuals, joint.whitened)
-    logger.info("joint Levenberg-Marquardt with intrinsics: %d iterations, %.3f s", run.iterations, timings["optimize"])
-    if not run.converged:
-        logger.warning("%s: Levenberg-Marquardt with intrinsics did not converge in %d iterations",
-                       dataset.source, run.iterations)
-    estimated_camera = _camera_of(camera, theta)
-
-    covariance = None
-    mirror_covs: dict[tuple[int, int], np.ndarray] = {}
-    point_covs: dict[str, np.ndarray] = {}
-    intrinsics_cov: np.ndarray | None = None
-    cross: np.ndarray | None = None
-    with timed(timings, "marginals"):
-        if compute_covariance:
-            report(STAGES[2], 0, 1)
-            covariance, intrinsics_cov, cross, mirror_covs, point_covs = _covariances(
-                run.graph, run.result, run.layout, R, dataset.source)
-            report(STAGES[2], 1, 1)
-            warn_weak(intrinsics_cov, estimated_camera, names, dataset.source)
-
-    return Calibration(
-        R_cam_base=R,
-        t_cam_base=t,
-        covariance=covariance,
-        mirror_vectors=mirror_vectors,
-        mirror_covariances=mirror_covs,
-        points=points,
-        point_covariances=point_covs,
-        analytic=start.analytic,
-        iterations=run.iterations,
-        initial_error=run.initial_error,
-        final_error=run.final_error,
-        converged=run.converged,
-        residuals=residuals,
-        residual_labels=[(m.image_id, m.point) for m in measurements],
-        residual_units="px",
-        outliers=outliers_of(measurements, whitened),
-        timings={**{f'start: {k}': v for k, v in start.timings.items()}, **timings},
-        expected_final_error=0.5 * max(2 * len(measurements) - run.result.dim(), 0),
-        restarts=start.restarts,
-        excluded=excluded,
-        camera=EstimatedCamera(camera=estimated_camera, estimated=names, covariance=intrinsics_cov,
-                               pose_cross_covariance=cross),
-    )
-
-
-def _covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, layout: GraphLayout, R: np.ndarray,
+def joint_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, layout: GraphLayout, R: np.ndarray,
                  source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, dict]:
     """Pose (SPEC convention, intrinsics marginalised), intrinsics (k, k), their cross-covariance with
     the pose (k, 6, SPEC convention), mirror and point covariances, from ``gtsam.Marginals``."""

@@ -20,6 +20,7 @@ from mirror_fg.solver.graph import (
 from mirror_fg.solver.marginals import (
     eliminated_covariances, marginal_covariances, unconstrained_as_solve_error, unconstrained_message,
 )
+from mirror_fg.solver.options import SolveOptions
 from mirror_fg.solver.timing import timed
 
 __all__ = [
@@ -129,8 +130,9 @@ def plausible(final_error: float, expected_final_error: float) -> bool:
 
 
 #: Solve with the last mirror's placements eliminated inside the factors (``factors/eliminated.py``)
-#: where the data allow it (no robust kernel): linear cost in the number of images. False: the stacked
-#: factors of ``factors/batched.py`` with every placement in the graph (same estimates).
+#: where the options ask for it and the data allow it (no robust kernel, ``SolveOptions.eliminates``):
+#: linear cost in the number of images. False: the stacked factors of ``factors/batched.py`` with
+#: every placement in the graph (same estimates).
 ELIMINATE = True
 
 #: At most this many restarts of LM from the analytical solution's runner-up hypotheses.
@@ -175,22 +177,22 @@ class LMRun:
 
 
 def levenberg_marquardt(
-    dataset: Dataset, initial: InitialEstimate, robust: str | None, fast: bool, max_iterations: int,
+    dataset: Dataset, initial: InitialEstimate, options: SolveOptions,
     on_iteration: Callable[[int, float, float], None] | None, timings: dict[str, float],
 ) -> LMRun:
-    """Build the graph from ``initial`` and run LM (eq. 23); times added to ``timings``."""
-    run = _levenberg_marquardt(dataset, initial, robust, fast and robust is None and ELIMINATE, fast, max_iterations,
-                               on_iteration, timings)
+    """Build the graph from ``initial`` with ``options``' factors and kernel and run LM (eq. 23) for at most
+    ``options.max_iterations``; ``on_iteration`` its iteration hook, times added to ``timings``."""
+    run = _levenberg_marquardt(dataset, initial, options, options.eliminates(ELIMINATE), on_iteration, timings)
     if run.evaluator is not None and collapsed(list(run.evaluator.mirror_vectors(run.result).values())):
         # a placement ran into the camera centre inside its factor (factors.eliminated.COLLAPSED_FRACTION)
         logger.info("%s: an eliminated mirror placement collapsed into the camera centre: solving again with every "
                     "placement an unknown", dataset.source)
-        run = _levenberg_marquardt(dataset, initial, robust, False, fast, max_iterations, on_iteration, timings)
+        run = _levenberg_marquardt(dataset, initial, options, False, on_iteration, timings)
     return run
 
 
 def _levenberg_marquardt(
-    dataset: Dataset, initial: InitialEstimate, robust: str | None, eliminate: bool, fast: bool, max_iterations: int,
+    dataset: Dataset, initial: InitialEstimate, options: SolveOptions, eliminate: bool,
     on_iteration: Callable[[int, float, float], None] | None, timings: dict[str, float],
 ) -> LMRun:
     """:func:`levenberg_marquardt` on the eliminated graph (``eliminate``, where the schedule allows it) or
@@ -201,9 +203,10 @@ def _levenberg_marquardt(
             graph, values, layout, measurements = eliminated.graph, eliminated.values, eliminated.layout, eliminated.measurements
             evaluator, dimension = eliminated.evaluator, eliminated.evaluator.dimension
         else:
-            graph, values, layout, measurements = build_graph(dataset, initial, robust, fast=fast)
+            graph, values, layout, measurements = build_graph(dataset, initial, options.robust, fast=options.stacked)
             evaluator, dimension = None, values.dim()
 
+    max_iterations = options.max_iterations
     with timed(timings, "optimize"):
         scale = cost_scale(dataset)
         params = lm_params(max_iterations, scale)
@@ -222,8 +225,8 @@ def _levenberg_marquardt(
 
 
 def levenberg_marquardt_with_restarts(
-    dataset: Dataset, initial: InitialEstimate, analytic: AnalyticSolution | None, robust: str | None, fast: bool,
-    max_iterations: int, on_iteration: Callable[[int, float, float], None] | None, timings: dict[str, float],
+    dataset: Dataset, initial: InitialEstimate, analytic: AnalyticSolution | None, options: SolveOptions,
+    on_iteration: Callable[[int, float, float], None] | None, timings: dict[str, float],
 ) -> tuple[LMRun, AnalyticSolution | None, int]:
     """LM from ``initial``; when it ends implausibly and ``analytic`` is that start, LM again from the
     root's runner-up hypotheses (best fiducial reprojection first, at most ``MAX_RESTARTS``).
@@ -231,7 +234,7 @@ def levenberg_marquardt_with_restarts(
     Returns the best run (converged first, then lowest cost), the analytical solution it started from
     and the number of restarts.
     """
-    run = levenberg_marquardt(dataset, initial, robust, fast, max_iterations, on_iteration, timings)
+    run = levenberg_marquardt(dataset, initial, options, on_iteration, timings)
     restarts = 0
     if analytic is None or run.plausible:
         return run, analytic, restarts
@@ -244,7 +247,7 @@ def levenberg_marquardt_with_restarts(
             alternative.points = reconstruct_points(dataset, alternative)
         restarts += 1
         try:
-            other = levenberg_marquardt(dataset, alternative, robust, fast, max_iterations, None, timings)
+            other = levenberg_marquardt(dataset, alternative, options, None, timings)
         except SolveError:
             continue
         if (other.converged, -other.final_error) > (run.converged, -run.final_error):

@@ -1,0 +1,63 @@
+"""``SolveOptions``: how ``calibrate`` solves, in one frozen value (as GTSAM's ``SmartProjectionParams``).
+
+The factor kind is a :class:`Linearization`: the per-measurement ``reference`` factors
+(``factors/reflection.py``), the ``stacked`` vectorised ones (``factors/batched.py``, same model and
+Jacobians) or ``eliminated``: the stacked factors with the last mirror's placements eliminated inside
+them (``factors/eliminated.py``) where the data allow it, else stacked (see :meth:`SolveOptions.eliminates`).
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from enum import Enum
+
+from mirror_fg.factors.robust import check_kernel
+
+__all__ = ["Linearization", "Progress", "SolveOptions", "STAGES"]
+
+#: ``progress(stage, done, total)``: called as each stage of ``calibrate`` advances (``total`` None
+#: where it is not known in advance).
+Progress = Callable[[str, int, "int | None"], None]
+#: The stages ``calibrate`` reports, in order.
+STAGES = ("initial estimate", "Levenberg-Marquardt", "marginals")
+
+
+class Linearization(str, Enum):
+    """The factors the MLE (eq. 23) is linearised with; every kind gives the same estimates."""
+
+    REFERENCE = "reference"  # one factor per measurement (factors/reflection.py)
+    STACKED = "stacked"  # the measurements stacked into vectorised factors (factors/batched.py)
+    ELIMINATED = "eliminated"  # stacked, the last mirror's placements eliminated inside (factors/eliminated.py)
+
+
+@dataclass(frozen=True)
+class SolveOptions:
+    """The settings of one ``calibrate`` (arguments as :func:`mirror_fg.solver.calibrate.calibrate`).
+
+    robust: ``None``, ``"huber"`` or ``"cauchy"`` (another name: ValueError). linearization: a
+    :class:`Linearization` or its value. on_iteration: ``(iteration, error_before, error_after)`` after
+    each LM iteration. progress: ``progress(stage, done, total)`` per stage of :data:`STAGES`.
+    """
+
+    robust: str | None = None
+    linearization: Linearization = Linearization.ELIMINATED
+    max_iterations: int = 100
+    compute_covariance: bool = True
+    on_iteration: Callable[[int, float, float], None] | None = None
+    progress: Progress | None = None
+    diagnose: bool = True
+
+    def __post_init__(self) -> None:
+        check_kernel(self.robust)
+        # a string ("stacked") is taken as its Linearization; another value: ValueError
+        object.__setattr__(self, "linearization", Linearization(self.linearization))
+
+    @property
+    def stacked(self) -> bool:
+        """Whether the graph uses the stacked factors (``graph.build_graph(fast=...)``) rather than the reference ones."""
+        return self.linearization is not Linearization.REFERENCE
+
+    def eliminates(self, allowed: bool = True) -> bool:
+        """Whether to build the eliminated graph: asked for, no robust kernel (the elimination solves
+        the placements by least squares) and ``allowed`` (``lm.ELIMINATE``, the switch tests turn off)."""
+        return self.linearization is Linearization.ELIMINATED and self.robust is None and allowed

@@ -1,0 +1,94 @@
+"""``SolveOptions`` (solver/options.py): one frozen value for how ``calibrate`` solves.
+
+``calibrate(dataset, options=SolveOptions(...))`` must give exactly what the separate arguments give,
+the ``linearization`` must pick the factors it names (eliminated only where no robust kernel is used
+and ``lm.ELIMINATE`` allows it, as ``fast=True`` always did), and bad settings are refused.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from mirror_fg.solver import lm as lm_module
+from mirror_fg.solver.calibrate import calibrate
+from mirror_fg.solver.options import Linearization, SolveOptions
+from mirror_fg.tools.simulate import simulate_base_case
+
+
+@pytest.fixture(scope="module")
+def scene():
+    dataset, _ = simulate_base_case(num_images=12, num_points=0, num_mirrors=2, mirror1_placements=3, seed=4)
+    return dataset
+
+
+@pytest.mark.parametrize("settings, options", [
+    ({}, SolveOptions()),
+    ({"fast": False}, SolveOptions(linearization="reference")),
+    ({"robust": "huber", "max_iterations": 50}, SolveOptions(robust="huber", max_iterations=50)),
+    ({"compute_covariance": False, "diagnose": False}, SolveOptions(compute_covariance=False, diagnose=False)),
+], ids=["default", "reference", "huber", "no-covariance"])
+def test_options_give_exactly_what_the_separate_arguments_give(scene, settings, options):
+    separate = calibrate(scene, **settings)
+    together = calibrate(scene, options=options)
+    np.testing.assert_array_equal(together.R_cam_base, separate.R_cam_base)
+    np.testing.assert_array_equal(together.t_cam_base, separate.t_cam_base)
+    assert together.final_error == separate.final_error
+    assert together.iterations == separate.iterations
+    assert (together.covariance is None) == (separate.covariance is None)
+    if separate.covariance is not None:
+        np.testing.assert_array_equal(together.covariance, separate.covariance)
+
+
+def _graphs_built(monkeypatch, scene, options, eliminate=True):
+    """Which graphs ``calibrate`` builds for its LM runs: "eliminated", "stacked" or "reference" per build."""
+    built: list[str] = []
+    eliminated_graph, graph = lm_module.build_eliminated_graph, lm_module.build_graph
+
+    def eliminated_spy(*args, **kwargs):
+        built.append("eliminated")
+        return eliminated_graph(*args, **kwargs)
+
+    def graph_spy(dataset, initial, robust=None, fast=True):
+        built.append("stacked" if fast else "reference")
+        return graph(dataset, initial, robust, fast=fast)
+
+    monkeypatch.setattr(lm_module, "build_eliminated_graph", eliminated_spy)
+    monkeypatch.setattr(lm_module, "build_graph", graph_spy)
+    monkeypatch.setattr(lm_module, "ELIMINATE", eliminate)
+    calibrate(scene, options=dataclasses.replace(options, compute_covariance=False, diagnose=False))
+    return set(built)
+
+
+@pytest.mark.parametrize("options, eliminate, expected", [
+    (SolveOptions(), True, {"eliminated"}),
+    (SolveOptions(), False, {"stacked"}),  # the switch the tests turn off
+    (SolveOptions(robust="cauchy"), True, {"stacked"}),  # no elimination under a kernel
+    (SolveOptions(linearization=Linearization.STACKED), True, {"stacked"}),
+    (SolveOptions(linearization="reference"), True, {"reference"}),
+    (SolveOptions(linearization="reference", robust="huber"), True, {"reference"}),
+], ids=["eliminated", "ELIMINATE-off", "robust", "stacked", "reference", "reference-huber"])
+def test_linearization_picks_the_factors_it_names(monkeypatch, scene, options, eliminate, expected):
+    assert _graphs_built(monkeypatch, scene, options, eliminate) == expected
+
+
+def test_stacked_reaches_the_reference_estimate(scene):
+    stacked = calibrate(scene, options=SolveOptions(linearization="stacked"))
+    reference = calibrate(scene, fast=False)
+    assert stacked.converged and reference.converged
+    np.testing.assert_allclose(stacked.t_cam_base, reference.t_cam_base, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(stacked.R_cam_base, reference.R_cam_base, rtol=1e-9, atol=1e-12)
+    assert np.isclose(stacked.final_error, reference.final_error, rtol=1e-9)
+
+
+def test_bad_settings_are_refused(scene):
+    with pytest.raises(ValueError, match="robust kernel"):
+        SolveOptions(robust="tukey")
+    with pytest.raises(ValueError):
+        SolveOptions(linearization="sparse")
+    assert SolveOptions(linearization="stacked").linearization is Linearization.STACKED
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        SolveOptions().robust = "huber"  # type: ignore[misc]
+    with pytest.raises(TypeError, match="options="):
+        calibrate(scene, robust="huber", options=SolveOptions())
