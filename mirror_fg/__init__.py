@@ -32,6 +32,7 @@ _PUBLIC = {
     "IncrementalCalibrator": "mirror_fg.solver.incremental",
     "MirrorFgError": "mirror_fg.core.errors",
     "SolveError": "mirror_fg.core.errors",
+    "SolveOptions": "mirror_fg.solver.options",
     "Transform": "mirror_fg.core.transform",
     "calibrate": "mirror_fg.solver.calibrate",
     "calibrate_incremental": "mirror_fg.solver.incremental",
@@ -96,5 +97,6 @@ if _TYPE_CHECKING:  # the names as static analysers and IDEs see them
     from mirror_fg.solver.calibration import Calibration  # noqa: F401 - re-exported
     from mirror_fg.solver.incremental import IncrementalCalibrator, calibrate_incremental  # noqa: F401 - re-exported
     from mirror_fg.solver.initial import initial_estimate  # noqa: F401 - re-exported
+    from mirror_fg.solver.options import SolveOptions  # noqa: F401 - re-exported
 
     __version__: str
