@@ -32,7 +32,6 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +41,7 @@ from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.transform import rotation_angle
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.analytic import solve_analytic
+from mirror_fg.solver.graph import Estimate
 from mirror_fg.tools.montecarlo import run_script, run_trials
 from mirror_fg.tools.simulate import simulate_base_case
 from mirror_fg.tools.trial_log import TrialLog
@@ -52,14 +52,8 @@ POSE_TOL_M = 1e-4
 COST_REL_TOL = 1e-6
 
 
-@dataclass
-class NaiveGuess:
-    """Initial values that know nothing about the scene (see the module docstring)."""
-
-    R_cam_base: np.ndarray
-    t_cam_base: np.ndarray
-    mirror_vectors: dict[tuple[int, int], np.ndarray]
-    points: dict[str, np.ndarray]
+#: Initial values that know nothing about the scene (see the module docstring).
+NaiveGuess = Estimate
 
 
 def naive_guess(dataset: Dataset, distance_m: float = 0.5) -> NaiveGuess:

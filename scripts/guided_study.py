@@ -22,7 +22,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +33,7 @@ from mirror_fg.core.geometry import nested_transform, project  # noqa: E402
 from mirror_fg.core.transform import Transform  # noqa: E402
 from mirror_fg.io.dataset import Dataset, Image  # noqa: E402
 from mirror_fg.solver.calibrate import calibrate  # noqa: E402
+from mirror_fg.solver.graph import Estimate  # noqa: E402
 from mirror_fg.tools.crb import cramer_rao_bound  # noqa: E402
 from mirror_fg.tools.simulate import simulate_base_case  # noqa: E402
 from mirror_fg.tools.suggest import (  # noqa: E402
@@ -40,14 +41,8 @@ from mirror_fg.tools.suggest import (  # noqa: E402
 )
 
 
-@dataclass
-class Values:
-    """Values of every unknown (the truth grown by each new placement)."""
-
-    R_cam_base: np.ndarray
-    t_cam_base: np.ndarray
-    mirror_vectors: dict
-    points: dict
+#: Values of every unknown (the truth grown by each new placement).
+Values = Estimate
 
 
 def start(num_mirrors: int, seed: int) -> tuple[Dataset, Values]:

@@ -37,6 +37,16 @@ class InitialEstimate(Protocol):
 
 
 @dataclass
+class Estimate:
+    """Plain values of every unknown (an :class:`InitialEstimate`): a guess, a truth, a result read back."""
+
+    R_cam_base: np.ndarray
+    t_cam_base: np.ndarray
+    mirror_vectors: dict[tuple[int, int], np.ndarray]
+    points: dict[str, np.ndarray]
+
+
+@dataclass
 class GraphLayout:
     """Which key holds which unknown."""
 

@@ -31,7 +31,7 @@ from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.geometry import householder, skew
 from mirror_fg.core.transform import Transform, covariance_from_pose3
 from mirror_fg.io.dataset import Dataset
-from mirror_fg.solver.graph import InitialEstimate
+from mirror_fg.solver.graph import Estimate, InitialEstimate
 from mirror_fg.tools.crb import POSE_DIM, UnknownIndex, _invert, linearize
 
 __all__ = ["Reach", "Suggestion", "Suggestions", "Estimate", "estimate_from_result", "candidate_mirror_vectors", "random_reachable_vectors",
@@ -352,16 +352,6 @@ def suggest_next(dataset: Dataset, values: InitialEstimate, *, count: int = 3, r
         ranked += [Suggestion(dataset.num_mirrors, under, usable[k], rotation[k], position[k]) for k in range(len(usable))]
     ranked.sort(key=lambda s: (round(float(np.max(s.predicted_position_mm)), 6), float(np.max(s.predicted_rotation_deg))))
     return Suggestions(now_rotation, now_position, ranked[:count], reach, scored)
-
-
-@dataclass
-class Estimate:
-    """Values of every unknown (a :class:`~mirror_fg.solver.graph.InitialEstimate`), e.g. read from a result."""
-
-    R_cam_base: np.ndarray
-    t_cam_base: np.ndarray
-    mirror_vectors: dict[tuple[int, int], np.ndarray]
-    points: dict[str, np.ndarray]
 
 
 def estimate_from_result(result: dict, dataset: Dataset, source: str) -> tuple[Dataset, Estimate]:
