@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import json
 import os
-import threading
 import time
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -124,9 +123,8 @@ class LiveSession:
         self.began: float | None = None
         self.current_tilt: tuple[float, float] | None = None
         self._virtual_rotations: list[np.ndarray] = []  # each added frame's virtual-view A (PnP)
-        self._last_rotation: np.ndarray | None = None
+        self._view: tuple[np.ndarray, np.ndarray] | None = None  # this frame's PnP, once computed
         self.state = LiveState()
-        self._lock = threading.Lock()
         self._last_picture = 0.0
 
     # --- per frame ---------------------------------------------------------------------------------
@@ -167,7 +165,9 @@ class LiveSession:
                 return "not found", ("the board is seen from behind (it reads unmirrored through the mirror): turn its "
                                      "printed face towards the mirror"), points
             return "not found", detection.reason or f"{len(points)} fiducials found, {MIN_FIDUCIALS} needed", points
-        self._track_tilt(points)
+        self._view = None
+        if self.picture and self.calibration is not None:  # only the page shows the mirror's tilt now
+            self._track_tilt(points)
         moved = _mean_distance(points, previous)
         if moved is None or moved > MOTION_PX:
             return "skipped", ("moving" if moved is not None else "first sight") + (
@@ -197,8 +197,9 @@ class LiveSession:
             return "refused", refusals[0].reason, points
         self.added.append(_Added(index, points, gray if self.keep_frames else None))
         self.sharpness.append(sharp)
-        if self._last_rotation is not None:
-            self._virtual_rotations.append(self._last_rotation)
+        view = self._virtual_view(points)
+        if view is not None:
+            self._virtual_rotations.append(view[0])
         reason = ""
         if calibration is not None:
             self.calibration = calibration
@@ -241,21 +242,25 @@ class LiveSession:
 
     # --- the mirror's tilt in each frame (once the pose is known), and degenerate motion -------------
 
+    def _virtual_view(self, points: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
+        """PnP of this frame (eqs. 10-12): its virtual view ``(A, b)``, computed once per frame, only for the
+        frames that need it (added, or drawn on the page once there is an estimate)."""
+        if self._view is None:
+            names = list(points)
+            base = np.array([self.fiducials[n] for n in names])
+            candidates = pnp_candidates(base, self.camera.normalize(np.array([points[n] for n in names])), 1)
+            self._view = candidates[0] if candidates else None
+        return self._view
+
     def _track_tilt(self, points: dict[str, np.ndarray]) -> None:
-        """PnP of the frame (eqs. 10-12): the virtual view's (A, b); with the estimate, the mirror
-        ``v = (b - M t) / 2`` where ``M = A R^T`` (eqs. 5-8 with one mirror)."""
-        names = list(points)
-        base = np.array([self.fiducials[n] for n in names])
-        normalized = self.camera.normalize(np.array([points[n] for n in names]))
-        candidates = pnp_candidates(base, normalized, 1)
-        if not candidates:
-            self.current_tilt = self._last_rotation = None
-            return
-        A, b = candidates[0]
-        self._last_rotation = A
-        if self.calibration is None:
+        """The mirror of this frame with the estimate: ``v = (b - M t) / 2`` where ``M = A R^T`` (eqs. 5-8
+        with one mirror)."""
+        assert self.calibration is not None
+        view = self._virtual_view(points)
+        if view is None:
             self.current_tilt = None
             return
+        A, b = view
         M = A @ self.calibration.R_cam_base.T
         self.current_tilt = _tilt(0.5 * (b - M @ self.calibration.t_cam_base))
 
