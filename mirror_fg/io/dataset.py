@@ -58,6 +58,13 @@ class Image:
     id: str
     mirror_configs: tuple[int, ...]
     observations: dict[str, np.ndarray]
+    #: The placements ``(mirror, config)`` the light meets from the points to the camera, in that order
+    #: (docs/formats.md, "Views of any reflection order"); ``()`` is a direct view. Derived from
+    #: ``mirror_configs`` when not given: ``((1, m1), ..., (Nv, mNv))``. An image whose reflections are
+    #: not of that form has ``mirror_configs == ()``.
+    reflections: tuple[tuple[int, int], ...] = ()
+    #: The name of the camera that took it (a dataset with ``cameras``), else None.
+    camera: str | None = None
     #: ``observations`` in normalized image coordinates, computed once where the image is validated for
     #: a dataset (:func:`validate_image`); None for an image built by hand. Read through
     #: :meth:`Dataset.normalized`, which also checks that they still belong to ``observations``.
@@ -67,17 +74,33 @@ class Image:
         default=None, init=False, repr=False, compare=False
     )
 
+    def __post_init__(self) -> None:
+        if not self.reflections and self.mirror_configs:
+            self.reflections = tuple((l + 1, int(m)) for l, m in enumerate(self.mirror_configs))
+
     def restricted(self, mirror_configs: tuple[int, ...], names: Container[str]) -> Image:
         """This image with ``mirror_configs`` and only its observations of ``names`` (in its order), e.g.
         as a subtree of the mirror tree sees it; its normalized observations come along with the raw
         ones they were computed from (so :meth:`Dataset.normalized` still checks them)."""
         kept = [n for n in self.observations if n in names]
-        image = Image(self.id, mirror_configs, {n: self.observations[n] for n in kept})
+        image = Image(self.id, mirror_configs, {n: self.observations[n] for n in kept},
+                      reflections=() if mirror_configs else self.reflections, camera=self.camera)
         if self.normalized is not None and self.normalized_from is not None and list(self.normalized) == list(self.observations):
             rows = [k for k, n in enumerate(self.normalized) if n in names]
             image.normalized = {n: self.normalized[n] for n in kept}
             image.normalized_from = (self.normalized_from[0], self.normalized_from[1][rows])
         return image
+
+
+@dataclass(frozen=True)
+class Scale:
+    """What fixes the scale without a known target (docs/formats.md, "Without a known target"): the
+    length of placement ``(mirror, config)``'s mirror vector, or the distance between two ``points``,
+    ``distance`` metres."""
+
+    distance: float
+    placement: tuple[int, int] | None = None
+    points: tuple[str, str] | None = None
 
 
 @dataclass
@@ -97,6 +120,11 @@ class Dataset:
     images: list[Image]
     source: str = "<dataset>"
     point_sigma: dict[str, float] = field(default_factory=dict)
+    #: ``{name: camera}`` of a dataset with several cameras (``cameras``), in the file's order; None for
+    #: one ``camera``. ``camera`` is then the first of them.
+    cameras: dict[str, Camera] | None = None
+    #: What fixes the scale of a dataset without fiducials (``scale``), else None.
+    scale: Scale | None = None
 
     def __repr__(self) -> str:
         """One bounded line (a dataclass repr would print every observation)."""

@@ -84,6 +84,35 @@ class EstimatedCamera:
 
 
 @dataclass
+class CameraPose:
+    """One camera of a dataset with several cameras (``cameras``, docs/formats.md "Several cameras").
+
+    ``R_cam_base``, ``t_cam_base``: camera <- base. ``covariance``: its (6, 6) marginal in SPEC's
+    convention (the joint estimate's), None without covariances. ``camera``: the intrinsics as used (as
+    estimated where the camera estimated them); ``estimated``: set where it estimated intrinsics."""
+
+    name: str
+    R_cam_base: np.ndarray
+    t_cam_base: np.ndarray
+    covariance: np.ndarray | None
+    camera: Camera | None = None
+    estimated: EstimatedCamera | None = None
+
+    @property
+    def T_cam_base(self) -> Transform:
+        return Transform(self.R_cam_base, self.t_cam_base)
+
+    @property
+    def T_base_cam(self) -> Transform:
+        return self.T_cam_base.inverse()
+
+    @property
+    def covariance_base_cam(self) -> np.ndarray | None:
+        """Covariance (6, 6) of :attr:`T_base_cam` about the base axes (first order), or None."""
+        return None if self.covariance is None else self.T_cam_base.inverse_covariance(self.covariance)
+
+
+@dataclass
 class Calibration:
     """Result of a calibration: MLE, its covariance, the analytical solution it started from.
 
@@ -119,6 +148,18 @@ class Calibration:
     inconsistency: Inconsistency | None = None
     #: Set where intrinsics were estimated; ``covariance`` then includes their uncertainty.
     camera: EstimatedCamera | None = None
+    #: Every camera of a dataset with ``cameras`` (in its order; the first is the top-level pose), else None.
+    cameras: dict[str, CameraPose] | None = None
+    #: The joint covariance (6C, 6C) of every camera's ``T_cam_base`` in ``cameras`` order, SPEC's
+    #: convention per (6, 6) block; None without covariances or without ``cameras``.
+    camera_pose_covariance: np.ndarray | None = None
+    #: Kalibr's ``T_cn_cnm1`` chain of ``cameras`` (``solver/rig.py``), empty with one camera.
+    rig: list = field(default_factory=list)
+    #: ``{(l, m): camera name}``: the camera frame each mirror vector is in (with ``cameras``), else empty.
+    mirror_frames: dict[tuple[int, int], str] = field(default_factory=dict)
+    #: Per residual (parallel to ``residual_labels``): ``(camera name or None, reflections)`` of its view;
+    #: empty where every image follows the mirror tree (``mirror_configs``).
+    residual_views: list[tuple[str | None, tuple[tuple[int, int], ...]]] = field(default_factory=list)
 
     @property
     def T_cam_base(self) -> Transform:
