@@ -208,7 +208,7 @@ class ViewFactor:
         error = (residual * scale).T.reshape(-1)
         if jacobians is not None:
             assert dz is not None and dzB is not None
-            J = np.transpose(dz * scale, (2, 0, 1)).reshape(-1, self.slots.size)  # rows: measurement-major
+            J = np.transpose(dz * scale, (2, 0, 1)).reshape(2 * residual.shape[1], self.slots.size)  # measurement-major
             k = 0
             for name in self.pose_keys:
                 c = self.slots.pose_cols[name]
