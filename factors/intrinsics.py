@@ -216,7 +216,8 @@ def _prior_error(index: np.ndarray, given: np.ndarray, this: gtsam.CustomFactor,
     return vector[index] - given
 
 
-def intrinsics_prior_factor(model: IntrinsicsModel, sigmas: dict[str, float]) -> gtsam.CustomFactor | None:
+def intrinsics_prior_factor(model: IntrinsicsModel, sigmas: dict[str, float],
+                            key: int | None = None) -> gtsam.CustomFactor | None:
     """Prior factor on ``K(0)``: each estimated name in ``sigmas`` at its value in ``model.fixed`` (the
     given value) with that sigma (pixels or unitless). None when no estimated name has a sigma."""
     names = [n for n in model.estimated if n in sigmas]
@@ -225,7 +226,7 @@ def intrinsics_prior_factor(model: IntrinsicsModel, sigmas: dict[str, float]) ->
     index = np.array([model.estimated.index(n) for n in names], dtype=np.intp)
     given = model.fixed[[INTRINSIC_NAMES.index(n) for n in names]]
     noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sigmas[n] for n in names], dtype=float))
-    return gtsam.CustomFactor(noise, [intrinsics_key()], partial(_prior_error, index, given))
+    return gtsam.CustomFactor(noise, [intrinsics_key() if key is None else key], partial(_prior_error, index, given))
 
 
 def predict_pixels(theta: np.ndarray, normalized: np.ndarray) -> np.ndarray:

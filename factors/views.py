@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from mirror_fg.factors.intrinsics import IntrinsicsModel, pixel_jacobians
 from mirror_fg.factors.robust import ROBUST_K, check_kernel, robust_row_scales
 
 __all__ = ["ViewSlots", "view_model", "ViewFactor", "transfer_mirror_vector"]
@@ -152,12 +153,16 @@ class ViewFactor:
     values (the first camera without a known target). ``mirror_keys``: ``{placement: key}``;
     ``owners``: each placement's camera. ``fiducials``: (3, N) base points, NaN columns where
     ``landmark_keys[i]`` (a key, else -1) gives the point. ``observed`` (2, N); ``sigmas`` (2, N).
+    ``intrinsics``: ``(model, key)`` where the camera's intrinsics are estimated (issue 16): then the
+    factor predicts pixels through them (``factors/intrinsics.py``), ``observed`` and ``sigmas`` are
+    pixels, and the intrinsics vector is the last key.
     """
 
     def __init__(self, camera: str, reflections: Sequence[tuple[int, int]], pose_keys: dict[str, int],
                  fixed_poses: dict[str, tuple[np.ndarray, np.ndarray]], mirror_keys: dict[tuple[int, int], int],
                  owners: dict[tuple[int, int], str], base_points: np.ndarray, landmark_keys: Sequence[int],
-                 observed: np.ndarray, sigmas: np.ndarray, robust: str | None = None, robust_k: float = ROBUST_K):
+                 observed: np.ndarray, sigmas: np.ndarray, robust: str | None = None, robust_k: float = ROBUST_K,
+                 intrinsics: tuple[IntrinsicsModel, int] | None = None):
         check_kernel(robust)
         self.camera, self.reflections = camera, tuple(reflections)
         self.owners = {p: owners[p] for p in self.reflections}
@@ -176,7 +181,9 @@ class ViewFactor:
         self.observed = np.asarray(observed, dtype=float)
         self.sigmas = np.asarray(sigmas, dtype=float)
         self.robust, self.robust_k = robust, robust_k
-        self.keys = [*self.pose_keys.values(), *self.mirror_keys.values(), *self.unique_landmarks]
+        self.intrinsics = intrinsics
+        self.keys = [*self.pose_keys.values(), *self.mirror_keys.values(), *self.unique_landmarks,
+                     *([intrinsics[1]] if intrinsics is not None else [])]
 
     def _state(self, values: gtsam.Values) -> tuple[dict, dict, np.ndarray]:
         poses = dict(self.fixed)
@@ -195,10 +202,25 @@ class ViewFactor:
         poses, mirrors, B = self._state(values)
         return view_model(self.camera, self.reflections, poses, mirrors, self.owners, B)[0]
 
+    def theta(self, values: gtsam.Values) -> np.ndarray:
+        """All nine intrinsics at ``values`` (only with ``intrinsics``)."""
+        assert self.intrinsics is not None
+        model, key = self.intrinsics
+        return model.theta(np.asarray(values.atVector(key), dtype=float))
+
     def error(self, this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
         poses, mirrors, B = self._state(values)
         slots = self.slots if jacobians is not None else None
         z, dz, dzB = view_model(self.camera, self.reflections, poses, mirrors, self.owners, B, slots)
+        dK = None
+        if self.intrinsics is not None:  # pixels through the estimated intrinsics
+            pixels, D, T = pixel_jacobians(self.theta(values), z)
+            z = pixels
+            if slots is not None:
+                assert dz is not None and dzB is not None
+                dz = np.einsum("ijn,jpn->ipn", D, dz)
+                dzB = np.einsum("ijn,jpn->ipn", D, dzB)
+                dK = T[:, self.intrinsics[0].index, :]
         residual = z - self.observed  # (2, N), h - z
         scale = np.ones(residual.shape[1])
         if self.robust is not None:
@@ -225,6 +247,8 @@ class ViewFactor:
                     block[2 * j:2 * j + 2] = JB[j]
                 jacobians[k] = block
                 k += 1
+            if dK is not None:
+                jacobians[k] = np.ascontiguousarray(np.transpose(dK * scale, (2, 0, 1)).reshape(2 * residual.shape[1], -1))
         return error
 
     def factor(self) -> gtsam.CustomFactor:

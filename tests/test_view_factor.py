@@ -84,3 +84,44 @@ def test_transferred_plane_is_the_same_plane() -> None:
     ya = xa - 2.0 * v[:, None] * ((v @ xa) / (v @ v) - 1.0)
     yb = Rb @ Ra.T @ (ya - ta[:, None]) + tb[:, None]
     np.testing.assert_allclose(zb, yb[:2] / yb[2], rtol=1e-12)
+
+
+def test_factor_with_intrinsics_matches_numerical_differences() -> None:
+    from mirror_fg.factors.intrinsics import IntrinsicsModel
+
+    rng = np.random.default_rng(11)
+    poses, mirrors, owners, B = _scene(rng)
+    keys = {"a": gtsam.symbol("x", 0), "b": gtsam.symbol("x", 1)}
+    mkeys = {p: gtsam.symbol("v", k) for k, p in enumerate(mirrors)}
+    model = IntrinsicsModel(np.array([900.0, 910.0, 640.0, 480.0, -0.1, 0.02, 0.001, -0.002, 0.0]),
+                            ("fx", "fy", "cx", "cy", "k1", "k2"))
+    kkey = gtsam.symbol("k", 1)
+    values = gtsam.Values()
+    for name, (R, t) in poses.items():
+        values.insert(keys[name], gtsam.Pose3(gtsam.Rot3(R), t))
+    for p, v in mirrors.items():
+        values.insert(mkeys[p], v)
+    values.insert(gtsam.symbol("l", 0), B[:, 2])
+    values.insert(kkey, np.array([900.0, 910.0, 640.0, 480.0, -0.1, 0.02]))
+    view = ViewFactor("b", [(1, 0), (2, 0)], keys, {}, mkeys, owners, B, [-1, -1, gtsam.symbol("l", 0), -1, -1],
+                      np.zeros((2, 5)), np.full((2, 5), 0.5), intrinsics=(model, kkey))
+    factor = view.factor()
+    A, _ = factor.linearize(values).jacobian()
+    columns = []
+    for key in view.keys:
+        chr_ = gtsam.Symbol(key).chr()
+        dim = 6 if chr_ == ord("x") else (6 if chr_ == ord("k") else 3)
+        for i in range(dim):
+            delta = np.zeros(dim)
+            delta[i] = 1e-6 if chr_ != ord("k") or i < 4 else 1e-8
+            plus, minus = gtsam.Values(values), gtsam.Values(values)
+            for sign, vals in ((1.0, plus), (-1.0, minus)):
+                if chr_ == ord("x"):
+                    vals.update(key, values.atPose3(key).retract(sign * delta))
+                elif chr_ == ord("k"):
+                    vals.update(key, values.atVector(key) + sign * delta)
+                else:
+                    vals.update(key, values.atPoint3(key) + sign * delta)
+            columns.append((factor.unwhitenedError(plus) - factor.unwhitenedError(minus)) / (2 * delta[i]))
+    numerical = np.array(columns).T / 0.5
+    np.testing.assert_allclose(A, numerical, rtol=1e-5, atol=1e-6 * np.abs(numerical).max())

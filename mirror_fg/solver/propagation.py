@@ -322,7 +322,8 @@ def propagate(views: list[ViewObs], fiducials: dict[str, np.ndarray], cameras: l
 def _name_unknown(views: list[ViewObs], known: Propagation, cameras: list[str]) -> None:
     for camera in cameras:
         if camera not in known.poses and any(v.camera == camera for v in views):
-            raise Unsolvable(f"camera {camera!r}: its pose cannot be started from these images: give it a direct view "
+            who = "the camera" if len(cameras) == 1 else f"camera {camera!r}"
+            raise Unsolvable(f"{who}: its pose cannot be started from these images: give it a direct view "
                              "of 4 or more fiducials, 3 or more placements of one mirror seen alone, or views through "
                              "placements that a solved camera also sees")
     placements = sorted({p for v in views for p in v.reflections})

@@ -16,10 +16,11 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import L, V, X
+from gtsam.symbol_shorthand import K, L, V, X
 
 from mirror_fg.core.camera import Camera
 from mirror_fg.core.transform import covariance_from_pose3
+from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_prior_factor, predict_pixels
 from mirror_fg.factors.views import ViewFactor, view_model
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.io.point_sigma import normalized_sigmas
@@ -57,17 +58,23 @@ def views_of(dataset: Dataset) -> list[ViewObs]:
 
 @dataclass
 class ViewEstimate:
-    """Values of every unknown: poses ``{camera: (R, t)}``, mirror vectors (owner frames), points."""
+    """Values of every unknown: poses ``{camera: (R, t)}``, mirror vectors (owner frames), points, and
+    the nine intrinsics of every camera that estimates them (``theta``)."""
 
     poses: dict[str, tuple[np.ndarray, np.ndarray]]
     mirror_vectors: dict[Placement, np.ndarray]
     points: dict[str, np.ndarray]
+    theta: dict[str, np.ndarray] | None = None
 
 
 class ViewProblem:
-    """Keys, graph, estimate and covariances of a dataset in the general view model."""
+    """Keys, graph, estimate and covariances of a dataset in the general view model.
 
-    def __init__(self, dataset: Dataset, robust: str | None = None):
+    ``intrinsics``: ``{camera: IntrinsicsModel}`` of the cameras whose intrinsics are estimated (their
+    factors then predict pixels, with one ``Vector`` key ``K(k)`` per camera)."""
+
+    def __init__(self, dataset: Dataset, robust: str | None = None,
+                 intrinsics: dict[str, IntrinsicsModel] | None = None):
         self.dataset = dataset
         self.cameras = camera_names(dataset)
         self.views = views_of(dataset)
@@ -84,10 +91,16 @@ class ViewProblem:
         self.point_names = dataset.reconstruction_point_names
         self.point_keys = {name: L(j) for j, name in enumerate(self.point_names)}
         self.robust = robust
+        self.intrinsics = dict(intrinsics or {})
+        self.intrinsics_keys = {name: K(k) for k, name in enumerate(self.cameras) if name in self.intrinsics}
         self.factors: list[ViewFactor] = []
         for image, view in zip(dataset.images, self.views):
             camera = dataset.camera_of(image)
-            sigmas = normalized_sigmas(camera, dataset.pixel_sigma, dataset.point_sigma, view.names).T
+            pixel = view.camera in self.intrinsics
+            sigmas = normalized_sigmas(None if pixel else camera, dataset.pixel_sigma, dataset.point_sigma, view.names).T
+            observed = (np.array([image.observations[n] for n in view.names], dtype=float).reshape(-1, 2).T if pixel
+                        else view.normalized.T)
+            model = (self.intrinsics[view.camera], self.intrinsics_keys[view.camera]) if pixel else None
             base = np.full((3, len(view.names)), np.nan)
             landmarks = []
             for k, name in enumerate(view.names):
@@ -97,7 +110,7 @@ class ViewProblem:
                 else:
                     landmarks.append(self.point_keys[name])
             self.factors.append(ViewFactor(view.camera, view.reflections, self.pose_keys, self.fixed, self.mirror_keys,
-                                           self.owners, base, landmarks, view.normalized.T, sigmas, robust))
+                                           self.owners, base, landmarks, observed, sigmas, robust, intrinsics=model))
         self.constraints = 1 if dataset.scale is not None else 0
 
     # ------------------------------------------------------------------ estimates
@@ -132,6 +145,9 @@ class ViewProblem:
             values.insert(key, np.asarray(estimate.mirror_vectors[p], float))
         for name, key in self.point_keys.items():
             values.insert(key, np.asarray(estimate.points[name], float))
+        for name, key in self.intrinsics_keys.items():
+            theta = (estimate.theta or {}).get(name, self.intrinsics[name].fixed)
+            values.insert(key, np.asarray(theta, float)[self.intrinsics[name].index])
         return values
 
     def read(self, values: gtsam.Values) -> ViewEstimate:
@@ -139,14 +155,21 @@ class ViewProblem:
         for name, key in self.pose_keys.items():
             pose = values.atPose3(key)
             poses[name] = (pose.rotation().matrix(), np.asarray(pose.translation(), float))
+        theta = {name: self.intrinsics[name].theta(np.asarray(values.atVector(key), float))
+                 for name, key in self.intrinsics_keys.items()}
         return ViewEstimate(poses, {p: np.asarray(values.atPoint3(k), float) for p, k in self.mirror_keys.items()},
-                            {n: np.asarray(values.atPoint3(k), float) for n, k in self.point_keys.items()})
+                            {n: np.asarray(values.atPoint3(k), float) for n, k in self.point_keys.items()}, theta or None)
 
     # ------------------------------------------------------------------ graph
     def graph(self) -> gtsam.NonlinearFactorGraph:
         graph = gtsam.NonlinearFactorGraph()
         for factor in self.factors:
             graph.add(factor.factor())
+        for name, key in self.intrinsics_keys.items():
+            camera = self.dataset.cameras[name] if self.dataset.cameras is not None else self.dataset.camera
+            prior = intrinsics_prior_factor(self.intrinsics[name], dict(camera.prior_sigma), key)
+            if prior is not None:
+                graph.add(prior)
         scale = self.dataset.scale
         if scale is not None:
             noise = gtsam.noiseModel.Isotropic.Sigma(1, SCALE_SIGMA * scale.distance)
@@ -182,13 +205,19 @@ class ViewProblem:
                 if name in self.point_keys:
                     B[:, k] = estimate.points[name]
             z = view_model(view.camera, view.reflections, estimate.poses, estimate.mirror_vectors, self.owners, B)[0].T
-            whitened.append(np.linalg.norm((z - view.normalized) / factor.sigmas.T, axis=1))
             camera: Camera | None = self.dataset.camera_of(image)
-            if camera is not None:
-                observed = np.array([image.observations[n] for n in view.names], dtype=float).reshape(-1, 2)
-                residuals.append(camera.distort(z) - observed)
+            if factor.intrinsics is not None:  # pixels through the estimated intrinsics
+                assert estimate.theta is not None
+                residual = predict_pixels(estimate.theta[view.camera], z) - factor.observed.T
+                whitened.append(np.linalg.norm(residual / factor.sigmas.T, axis=1))
             else:
-                residuals.append(z - view.normalized)
+                whitened.append(np.linalg.norm((z - view.normalized) / factor.sigmas.T, axis=1))
+                if camera is not None:
+                    observed = np.array([image.observations[n] for n in view.names], dtype=float).reshape(-1, 2)
+                    residual = camera.distort(z) - observed
+                else:
+                    residual = z - view.normalized
+            residuals.append(residual)
             labels.extend((image.id, n) for n in view.names)
             views.extend([(image.camera, view.reflections)] * len(view.names))
         return np.vstack(residuals), np.concatenate(whitened), labels, views
@@ -219,7 +248,19 @@ class ViewProblem:
             poses[name] = covariance_from_pose3(R, marginals.marginalCovariance(self.pose_keys[name]))
         mirrors = {p: marginals.marginalCovariance(k) for p, k in self.mirror_keys.items()}
         points = {n: marginals.marginalCovariance(k) for n, k in self.point_keys.items()}
-        return poses, joint, mirrors, points
+        intrinsics = {}
+        for name, key in self.intrinsics_keys.items():  # (k, k) and its cross-covariance (k, 6) with the pose
+            k = len(self.intrinsics[name].index)
+            if name in self.pose_keys:
+                kv = gtsam.KeyVector()
+                kv.append(key)
+                kv.append(self.pose_keys[name])
+                both = marginals.jointMarginalCovariance(kv).fullMatrix()
+                J = np.kron(np.eye(2), estimate.poses[name][0])
+                intrinsics[name] = (both[:k, :k], both[:k, k:] @ J.T)
+            else:
+                intrinsics[name] = (marginals.marginalCovariance(key), None)
+        return poses, joint, mirrors, points, intrinsics
 
 
 def _length_error(distance: float, between: bool):

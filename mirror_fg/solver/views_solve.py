@@ -6,19 +6,20 @@ solution left out, solved again) -> Marginals -> :class:`~mirror_fg.solver.calib
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
+import gtsam
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.io.dataset import Dataset, Image
-from mirror_fg.solver.calibration import Calibration, CameraPose, Exclusion
+from mirror_fg.solver.calibration import Calibration, CameraPose, EstimatedCamera, Exclusion
 from mirror_fg.solver.consensus import final_check, without
 from mirror_fg.solver.lm import cost_scale, lm_params, run_optimizer
 from mirror_fg.solver.options import STAGES, SolveOptions
-from mirror_fg.solver.propagation import propagate
+from mirror_fg.solver.propagation import Unsolvable, propagate
 from mirror_fg.solver.timing import timed
-from mirror_fg.solver.views import ViewEstimate, ViewProblem, camera_names
+from mirror_fg.solver.views import SINGLE_CAMERA, ViewEstimate, ViewProblem, camera_names
 
 __all__ = ["calibrate_views", "tree_start_for"]
 
@@ -89,24 +90,93 @@ def _start(problem: ViewProblem, initial) -> ViewEstimate:
         pose = (np.asarray(initial.R_cam_base, float), np.asarray(initial.t_cam_base, float))
         return ViewEstimate({problem.cameras[0]: pose}, dict(initial.mirror_vectors), dict(initial.points))
     dataset = problem.dataset
-    known = propagate(problem.views, dataset.fiducials, problem.cameras, problem.fixed, tree_start_for(dataset),
-                      dataset.scale)
+    try:
+        known = propagate(problem.views, dataset.fiducials, problem.cameras, problem.fixed, tree_start_for(dataset),
+                          dataset.scale)
+    except Unsolvable as error:
+        raise Unsolvable(f"{dataset.source}: {error}") from None
     return problem.estimate_from(known)
 
 
+@dataclass
+class _Run:
+    """One solve with its rechecks: the problem, graph and values it ended with and what it left out."""
+
+    problem: ViewProblem
+    graph: gtsam.NonlinearFactorGraph
+    result: gtsam.Values
+    estimate: ViewEstimate
+    residuals: np.ndarray
+    whitened: np.ndarray
+    labels: list
+    views: list
+    dimension: int
+    iterations: int
+    initial_error: float
+    excluded: list[Exclusion]
+    timings: dict[str, float]
+
+
 def calibrate_views(dataset: Dataset, initial=None, options: SolveOptions | None = None) -> Calibration:
-    """The MLE and covariances of a dataset in the general view model (module docstring)."""
+    """The MLE and covariances of a dataset in the general view model (module docstring). Where cameras
+    estimate intrinsics (``estimate``), first the same solve with them fixed at their given values (its
+    pixel sigma at least ``intrinsics.START_SIGMA_FRACTION`` of the image diagonal, so that their error
+    is not taken for outliers), then the joint solve in pixels from there."""
     options = options or SolveOptions()
+    models = _intrinsics_models(dataset)
+    if not models:
+        return _finish(_solve(dataset, initial, options, {}, []), options)
+    first = _solve(_fixed_intrinsics(dataset), initial, replace(options, compute_covariance=False), {}, [])
+    solved = without(dataset, first.excluded) if first.excluded else dataset
+    joint = _solve(solved, first.estimate, options, models, list(first.excluded))
+    joint.timings = {**{f"start: {k}": v for k, v in first.timings.items()}, **joint.timings}
+    return _finish(joint, options)
+
+
+def _intrinsics_models(dataset: Dataset) -> dict:
+    """``{camera: IntrinsicsModel}`` of the cameras that estimate intrinsics, after the refusals that need
+    no solve (``intrinsics.check_supported``, per camera)."""
+    from mirror_fg.factors.intrinsics import IntrinsicsModel
+    from mirror_fg.solver.intrinsics import camera_intrinsics, check_supported
+
+    cameras = dataset.cameras if dataset.cameras is not None else {SINGLE_CAMERA: dataset.camera}
+    models = {}
+    for name, camera in cameras.items():
+        if camera is None or not camera.estimate:
+            continue
+        own = [im for im in dataset.images if dataset.cameras is None or im.camera == name]
+        check_supported(replace(dataset, camera=camera, cameras=None, images=own,
+                                source=dataset.source if dataset.cameras is None else f"{dataset.source}: camera {name!r}"))
+        models[name] = IntrinsicsModel(camera_intrinsics(camera), camera.estimate)
+    return models
+
+
+def _fixed_intrinsics(dataset: Dataset) -> Dataset:
+    """``dataset`` with every camera's intrinsics fixed at their given values and the start's pixel sigma."""
+    from mirror_fg.solver.intrinsics import START_SIGMA_FRACTION
+
+    def fixed(camera):
+        return None if camera is None else replace(camera, estimate=(), prior_sigma=())
+
+    cameras = None if dataset.cameras is None else {n: fixed(c) for n, c in dataset.cameras.items()}
+    every = list((cameras or {SINGLE_CAMERA: dataset.camera}).values())
+    diagonal = max(float(np.hypot(c.width, c.height)) for c in every if c is not None)
+    sigma = max(dataset.pixel_sigma, START_SIGMA_FRACTION * diagonal)
+    return replace(dataset, camera=fixed(dataset.camera) if cameras is None else next(iter(cameras.values())),
+                   cameras=cameras, pixel_sigma=sigma,
+                   point_sigma={n: max(v, sigma) for n, v in dataset.point_sigma.items()})
+
+
+def _solve(dataset: Dataset, start, options: SolveOptions, models: dict, excluded: list[Exclusion]) -> _Run:
+    """Start -> LM -> final check (what ends far off left out, solved again), at most MAX_RECHECKS times."""
     report = options.progress if options.progress is not None else (lambda stage, done, total: None)
     timings: dict[str, float] = {}
-    solved, excluded = dataset, []
-    start = None
+    solved = dataset
     for recheck in range(MAX_RECHECKS + 1):
-        problem = ViewProblem(solved, options.robust)
+        problem = ViewProblem(solved, options.robust, models)
         with timed(timings, "analytic"):
-            start = _start(problem, initial if start is None else start)
+            start = _start(problem, start)
         graph = problem.graph()
-        values = problem.values(start)
         params = lm_params(options.max_iterations, cost_scale(solved))
 
         def iteration(number: int, before: float, after: float) -> None:
@@ -116,47 +186,46 @@ def calibrate_views(dataset: Dataset, initial=None, options: SolveOptions | None
 
         with timed(timings, "optimize"):
             optimizer, result, initial_error = run_optimizer(
-                graph, values, params, solved.source,
+                graph, problem.values(start), params, solved.source,
                 lambda error: f"the data do not constrain every unknown ({_named(problem, error)})", iteration)
         estimate = problem.read(result)
         residuals, whitened, labels, views = problem.residuals(estimate)
-        measurements = [_Label(image, point) for image, point in labels]
         dimension = result.dim() - problem.constraints
-        more = final_check(solved, measurements, whitened, dimension) if recheck < MAX_RECHECKS else []  # type: ignore[arg-type]
+        more = (final_check(solved, [_Label(i, p) for i, p in labels], whitened, dimension)  # type: ignore[arg-type]
+                if recheck < MAX_RECHECKS else [])
         if not more:
             break
         logger.warning("%s: %d measurement(s) or image(s) far off the solution left out; solving again",
                        dataset.source, len(more))
-        excluded += more
+        excluded = excluded + more
         solved = without(solved, more)
         start = _kept(estimate, ViewProblem(solved, options.robust))
-    iterations = int(optimizer.iterations())
-    final_error = float(graph.error(result))
-    converged = iterations < options.max_iterations
-    pose_covs: dict[str, np.ndarray] = {}
-    joint = None
-    mirror_covs: dict = {}
-    point_covs: dict = {}
+    return _Run(problem, graph, result, estimate, residuals, whitened, labels, views, dimension,
+                int(optimizer.iterations()), initial_error, excluded, timings)
+
+
+def _finish(run: _Run, options: SolveOptions) -> Calibration:
+    """The run's marginals and its :class:`Calibration`."""
+    report = options.progress if options.progress is not None else (lambda stage, done, total: None)
+    problem = run.problem
+    covariances = None
     if options.compute_covariance:
         report(STAGES[2], 0, 1)
-        with timed(timings, "marginals"):
+        with timed(run.timings, "marginals"):
             try:
-                pose_covs, joint, mirror_covs, point_covs = problem.covariances(graph, result, estimate)
+                covariances = problem.covariances(run.graph, run.result, run.estimate)
             except RuntimeError as error:
-                raise SolveError(f"{dataset.source}: the data do not constrain every unknown "
+                raise SolveError(f"{problem.dataset.source}: the data do not constrain every unknown "
                                  f"({_named(problem, error)})") from None
         report(STAGES[2], 1, 1)
-    return _calibration(problem, estimate, pose_covs, joint, mirror_covs, point_covs, residuals, whitened, labels,
-                        views, iterations=iterations, initial_error=initial_error, final_error=final_error,
-                        converged=converged, expected=0.5 * max(len(whitened) * 2 - dimension, 0),
-                        excluded=excluded, timings=timings)
+    return _calibration(run, covariances, converged=run.iterations < options.max_iterations)
 
 
 def _kept(estimate: ViewEstimate, problem: ViewProblem) -> ViewEstimate:
     """``estimate`` restricted to what ``problem`` still has (after images were left out)."""
     return ViewEstimate({n: p for n, p in estimate.poses.items()},
                         {p: v for p, v in estimate.mirror_vectors.items() if p in problem.mirror_keys},
-                        {n: x for n, x in estimate.points.items() if n in problem.point_keys})
+                        {n: x for n, x in estimate.points.items() if n in problem.point_keys}, estimate.theta)
 
 
 def _named(problem: ViewProblem, error: Exception) -> str:
@@ -169,34 +238,43 @@ def _named(problem: ViewProblem, error: Exception) -> str:
     return "indeterminant linear system"
 
 
-def _calibration(problem: ViewProblem, estimate: ViewEstimate, pose_covs, joint, mirror_covs, point_covs,
-                 residuals, whitened, labels, views, *, iterations, initial_error, final_error, converged, expected,
-                 excluded: list[Exclusion], timings) -> Calibration:
+def _calibration(run: _Run, covariances, converged: bool) -> Calibration:
+    from mirror_fg.solver.intrinsics import camera_of
     from mirror_fg.solver.residuals import outliers_of
 
+    problem, estimate = run.problem, run.estimate
+    pose_covs, joint, mirror_covs, point_covs, intrinsics_covs = covariances or ({}, None, {}, {}, {})
     dataset = problem.dataset
     first = problem.cameras[0]
     R, t = estimate.poses[first]
+    estimated: dict[str, EstimatedCamera] = {}
+    for name, model in problem.intrinsics.items():
+        given = dataset.cameras[name] if dataset.cameras is not None else dataset.camera
+        assert given is not None and estimate.theta is not None
+        cov, cross = intrinsics_covs.get(name, (None, None))
+        estimated[name] = EstimatedCamera(camera_of(given, estimate.theta[name]), model.estimated, cov, cross)
     cameras = None
     rig: list = []
     if dataset.cameras is not None:
-        cameras = {name: CameraPose(name, *estimate.poses[name], pose_covs.get(name), dataset.cameras[name])
+        cameras = {name: CameraPose(name, *estimate.poses[name], pose_covs.get(name),
+                                    estimated[name].camera if name in estimated else dataset.cameras[name],
+                                    estimated.get(name))
                    for name in camera_names(dataset) if name in estimate.poses}
         rig = _rig(cameras, joint)
-    calibration = Calibration(
+    return Calibration(
         R_cam_base=R, t_cam_base=t, covariance=pose_covs.get(first),
         mirror_vectors=estimate.mirror_vectors, mirror_covariances=mirror_covs,
         points=estimate.points, point_covariances=point_covs, analytic=None,
-        iterations=iterations, initial_error=initial_error, final_error=final_error, converged=converged,
-        residuals=residuals, residual_labels=labels,
+        iterations=run.iterations, initial_error=run.initial_error, final_error=float(run.graph.error(run.result)),
+        converged=converged, residuals=run.residuals, residual_labels=run.labels,
         residual_units="px" if dataset.camera is not None else "normalized",
-        outliers=outliers_of([_Label(i, p) for i, p in labels], whitened),  # type: ignore[arg-type]
-        timings=timings, expected_final_error=expected, excluded=list(excluded),
+        outliers=outliers_of([_Label(i, p) for i, p in run.labels], run.whitened),  # type: ignore[arg-type]
+        timings=run.timings, expected_final_error=0.5 * max(2 * len(run.whitened) - run.dimension, 0),
+        excluded=list(run.excluded), camera=estimated.get(first),
         cameras=cameras, camera_pose_covariance=joint if dataset.cameras is not None else None, rig=rig,
         mirror_frames=dict(problem.owners) if dataset.cameras is not None else {},
-        residual_views=views,
+        residual_views=run.views,
     )
-    return calibration
 
 
 def _rig(cameras: dict[str, CameraPose], joint) -> list:
