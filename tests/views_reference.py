@@ -242,6 +242,10 @@ class Reference:
     owners: dict
     num_measurements: int
     num_unknowns: int
+    #: The joint covariance of every reported quantity, and each block's slice in it (("pose", c),
+    #: ("mirror", (l, m)), ("point", name)).
+    covariance: np.ndarray | None = None
+    blocks: dict | None = None
 
     def rig(self, frm: str, to: str):
         """T_to_from = T_to_base T_from_base^-1 (x_to = R x_from + t) and its (6, 6) covariance."""
@@ -300,12 +304,14 @@ def start_state(problem: Problem, truth: Truth, perturbation: float = 0.0, seed:
     return poses, mirrors, points
 
 
-def reference_mle(dataset_dict: dict, truth: Truth, perturbation: float = 0.0, seed: int = 0) -> Reference:
+def reference_mle(dataset_dict: dict, truth: Truth, perturbation: float = 0.0, seed: int = 0,
+                  passes: int = 3) -> Reference:
     """The MLE of ``dataset_dict`` started from ``truth`` (or from it perturbed, see :func:`start_state`)
-    and its covariance (inverse of J^T J of the whitened residuals) in SPEC's conventions."""
+    and its covariance (inverse of J^T J of the whitened residuals) in SPEC's conventions. ``passes``:
+    solves, each re-centred at the previous optimum."""
     problem = read_problem(dataset_dict)
     model = Model(problem, *start_state(problem, truth, perturbation, seed))
-    for _ in range(3):  # solve, re-centre at the optimum, solve again (the last pass moves ~nothing)
+    for _ in range(passes):  # solve, re-centre at the optimum, solve again (the last pass moves ~nothing)
         fit = least_squares(model.residuals, np.zeros(model.size), jac=model.jacobian, method="lm",
                             xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=200)
         model = Model(problem, *model.state(fit.x))
@@ -333,6 +339,7 @@ def reference_mle(dataset_dict: dict, truth: Truth, perturbation: float = 0.0, s
         points={n: np.real(x) for n, x in points.items()},
         point_cov={n: cov_q[blocks[("point", n)], blocks[("point", n)]] for n in problem.point_names},
         cost=0.5 * float(r @ r), owners=dict(problem.owners), num_measurements=r.size, num_unknowns=model.size,
+        covariance=cov_q, blocks=blocks,
     )
 
 
