@@ -1,6 +1,8 @@
 """The independent reference of the general view model (views_reference.py) against itself: noise-free
 data give the truth, the complex-step Jacobian equals central differences, the covariance matches a
 Monte Carlo, the gauge is held, and the generated views are physically plausible."""
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -212,3 +214,37 @@ def test_rig_transform_and_its_covariance():
     uncorrelated[:6, 6:] = uncorrelated[6:, :6] = 0
     independent = vr.rig_transform(ref.poses, uncorrelated, ["left", "right"], "left", "right")[2]
     assert not np.allclose(cov, independent, rtol=0.05)
+
+
+def _as_calibration(ref, dataset, shift_sigmas=0.0, cov_scale=1.0):
+    """The reference dressed as a mirror_fg.Calibration (the attributes compare reads), every estimate
+    moved by ``shift_sigmas`` of its own sigma, every covariance scaled by ``cov_scale``."""
+    def moved(x, cov):
+        return x + shift_sigmas * np.sqrt(np.diag(cov))
+
+    cams = {}
+    for c, (R, t) in ref.poses.items():
+        e = shift_sigmas * np.sqrt(np.diag(ref.pose_cov[c]))
+        cams[c] = SimpleNamespace(R_cam_base=vr.exp_so3(e[:3]) @ R, t_cam_base=t + e[3:],
+                                  covariance=cov_scale * ref.pose_cov[c])
+    cal = SimpleNamespace(mirror_vectors={p: moved(v, ref.mirror_cov[p]) for p, v in ref.mirrors.items()},
+                          mirror_covariances={p: cov_scale * c for p, c in ref.mirror_cov.items()},
+                          points={n: moved(x, ref.point_cov[n]) for n, x in ref.points.items()},
+                          point_covariances={n: cov_scale * c for n, c in ref.point_cov.items()},
+                          cameras=cams if "cameras" in dataset else None)
+    if "cameras" not in dataset:
+        first = cams[vr.SINGLE]
+        cal.R_cam_base, cal.t_cam_base, cal.covariance = first.R_cam_base, first.t_cam_base, first.covariance
+    return cal
+
+
+@pytest.mark.parametrize("name", ["kaleidoscope_three_mirrors_one_point", "rig_three_cameras"])
+def test_compare_measures_in_reference_sigmas(name):
+    dataset, truth = vr.CASES[name](0)
+    ref = vr.reference_mle(dataset, truth)
+    same = vr.compare(_as_calibration(ref, dataset), ref, dataset)
+    assert same.worst_sigmas < 1e-9 and abs(same.ratio_min - 1) < 1e-12 and abs(same.ratio_max - 1) < 1e-12
+    assert same.gauge_error == 0.0
+    off = vr.compare(_as_calibration(ref, dataset, shift_sigmas=0.1, cov_scale=1.21), ref, dataset)
+    assert abs(off.worst_sigmas - 0.1) < 1e-3, off.worst_label
+    assert abs(off.ratio_min - 1.1) < 1e-9 and abs(off.ratio_max - 1.1) < 1e-9
