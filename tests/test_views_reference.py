@@ -197,7 +197,14 @@ def test_rig_transform_and_its_covariance():
     (Rl, tl), (Rr, tr) = ref.poses["left"], ref.poses["right"]
     x = np.array([0.1, -0.2, 0.9])  # a point in the left camera's frame
     np.testing.assert_allclose(R @ x + t, Rr @ (Rl.T @ (x - tl)) + tr, atol=1e-12)
-    # the propagation against a Monte Carlo of the joint pose covariance (linear regime: samples x 1e-3)
+    # the propagation against the first-order rig error by hand: R' = Exp(a_r) R Exp(-a_l) = Exp(a_r - R a_l) R,
+    # t' = t_r + dt_r - R' (t_l + dt_l) ~ t + dt_r - R dt_l - [a_r - R a_l]x R t_l
+    G = np.zeros((6, 12))
+    G[:3, :3], G[:3, 6:9] = -R, np.eye(3)
+    G[3:, 3:6], G[3:, 9:12] = -R, np.eye(3)
+    G[3:, :] += vr.skew(R @ tl) @ G[:3, :]  # -[d]x R t_l = [R t_l]x d
+    np.testing.assert_allclose(cov, G @ ref.joint_pose_cov @ G.T, rtol=1e-7, atol=1e-7 * np.abs(cov).max())
+    # and against a Monte Carlo of the joint pose covariance (linear regime: samples x 1e-3)
     rng = np.random.default_rng(0)
     L = np.linalg.cholesky(ref.joint_pose_cov + 1e-30 * np.eye(12))
     samples = []
@@ -248,3 +255,14 @@ def test_compare_measures_in_reference_sigmas(name):
     off = vr.compare(_as_calibration(ref, dataset, shift_sigmas=0.1, cov_scale=1.21), ref, dataset)
     assert abs(off.worst_sigmas - 0.1) < 1e-3, off.worst_label
     assert abs(off.ratio_min - 1.1) < 1e-9 and abs(off.ratio_max - 1.1) < 1e-9
+
+
+def test_reference_imports_nothing_from_mirror_fg():
+    import ast
+    from pathlib import Path
+
+    for module in ("views_reference.py", "views_scenes.py"):
+        tree = ast.parse((Path(__file__).parent / module).read_text())
+        names = [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
+        names += [n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
+        assert not [n for n in names if n.split(".")[0] == "mirror_fg"], module
