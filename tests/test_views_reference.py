@@ -25,6 +25,22 @@ def test_noise_free_mle_from_a_perturbed_start_is_the_truth(name):
 
 
 @pytest.mark.parametrize("name", CASE_NAMES)
+def test_noisy_mle_does_not_depend_on_the_start(name):
+    """One optimum near the truth: started 0.6 deg / 1 mm away, the noisy MLE is the one from the truth."""
+    dataset, truth = vr.CASES[name](0)
+    from_truth = vr.reference_mle(dataset, truth)
+    from_elsewhere = vr.reference_mle(dataset, truth, perturbation=0.01, seed=5)
+    assert abs(from_elsewhere.cost - from_truth.cost) < 1e-9 * from_truth.cost
+    for p, v in from_truth.mirrors.items():
+        z = (from_elsewhere.mirrors[p] - v) / np.sqrt(np.diag(from_truth.mirror_cov[p]))
+        assert np.abs(z).max() < 1e-4, p
+    for c, (R, t) in from_truth.poses.items():
+        var = np.diag(from_truth.pose_cov[c])
+        e = vr.pose_error(R, t, *from_elsewhere.poses[c])
+        assert np.all(np.abs(e[var > 0]) < 1e-4 * np.sqrt(var[var > 0])) and np.all(e[var == 0] == 0), c
+
+
+@pytest.mark.parametrize("name", CASE_NAMES)
 def test_complex_step_jacobian_equals_central_differences(name):
     dataset, truth = vr.CASES[name](0)
     problem = vr.read_problem(dataset)
