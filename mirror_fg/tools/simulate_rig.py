@@ -127,7 +127,7 @@ def simulate_rig_tree(num_cameras: int = 2, own: Sequence[int] | None = None, sh
     enough = (placements >= 3 or num_mirrors == 1)
     alone = {name: enough and (own[i] >= tree or shared >= tree) for i, name in enumerate(names)}
     _check_solvable(names, alone, shared, 2 if num_fiducials == 3 else 1,
-                    f"fewer than {tree} photographs of its own (3 under each of {placements} placements of mirror 1)"
+                    f"fewer than {tree} photographs of its own, 3 under each of {placements} placements of mirror 1"
                     if num_mirrors == 2 else "fewer than 3 photographs of its own")
     rng = np.random.default_rng(seed)
     cameras = rig_cameras(num_cameras)
