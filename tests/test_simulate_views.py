@@ -421,3 +421,74 @@ def test_second_order_views_are_ordered_pairs():
     pairs = {tuple(l for l, _ in reflections_of(im)) for im in dataset["images"] if len(reflections_of(im)) == 2}
     assert any((j, i) in pairs for i, j in pairs)
     assert pairs <= set(itertools.permutations(range(1, 4), 2))
+
+
+# --- the simulated data determine their unknowns ----------------------------------------------------
+
+
+def pixel_jacobian(dataset, truth, step=1e-6):
+    """Central-difference Jacobian of every noise-free pixel prediction (own projection code) with respect
+    to every unknown: each camera's pose (rotation about its axes, translation; none without fiducials,
+    the base frame is then the camera's), each mirror vector in its own frame, each reconstruction point."""
+    from dataclasses import replace
+
+    from mirror_fg.core.geometry import so3_exp
+
+    blocks = [("pose", name, 6) for name in truth.poses] if dataset["fiducials"] else []
+    blocks += [("mirror", p, 3) for p in sorted(truth.mirror_vectors)] + [("point", n, 3) for n in sorted(truth.points)]
+    starts = np.concatenate([[0], np.cumsum([size for *_, size in blocks])]).astype(int)
+
+    def model(delta):
+        poses, vectors, points = dict(truth.poses), dict(truth.mirror_vectors), dict(truth.points)
+        for (kind, key, size), start in zip(blocks, starts):
+            d = delta[start: start + size]
+            if kind == "pose":
+                R, t = poses[key]
+                poses[key] = (so3_exp(d[:3]) @ R, t + d[3:])
+            elif kind == "mirror":
+                vectors[key] = vectors[key] + d
+            else:
+                points[key] = points[key] + d
+        return replace(truth, poses=poses, mirror_vectors=vectors, points=points)
+
+    def predict(m):
+        points = base_points(dataset, m)
+        rows = []
+        for image in dataset["images"]:
+            name, camera = image_camera(dataset, image)
+            R, t = m.poses[name]
+            path = [plane_point_normal(m, p, name) for p in reflections_of(image)]
+            for point in image["observations"]:
+                x = R @ points[point] + t
+                for q, n in path:
+                    x = mirror_point(x, q, n)
+                rows.append((camera_matrix(camera) @ x)[:2] / x[2])
+        return np.concatenate(rows)
+
+    columns = []
+    for i in range(int(starts[-1])):
+        e = np.zeros(int(starts[-1]))
+        e[i] = step
+        columns.append((predict(model(e)) - predict(model(-e))) / (2.0 * step))
+    return np.column_stack(columns)
+
+
+@pytest.mark.parametrize("make, gauge", [
+    (lambda: simulate_kaleidoscope(2, pixel_sigma=0.0, seed=1), 0),
+    (lambda: simulate_kaleidoscope(3, target=False, pixel_sigma=0.0, seed=1), 1),  # the scale
+    (lambda: simulate_kaleidoscope(2, target=False, pixel_sigma=0.0, seed=2), 1),
+    (lambda: simulate_mixed((4, 2), pixel_sigma=0.0, seed=3), 0),
+    (lambda: simulate_rig_tree(3, own=[9, 9, 0], shared=2, pixel_sigma=0.0, seed=5), 0),
+    (lambda: simulate_rig_mixed(3, own=[3, 1, 0], shared=1, pixel_sigma=0.0, seed=6), 0),
+])
+def test_simulated_data_determine_every_unknown(make, gauge):
+    """The pixel Jacobian has full rank but for the gauge (the scale without a known target): every
+    camera, placement and point is determined (locally), so an MLE of these data is well posed."""
+    dataset, truth = make()
+    J = pixel_jacobian(dataset, truth)
+    singular = np.linalg.svd(J, compute_uv=False)
+    rank = int(np.sum(singular > 1e-7 * singular[0]))
+    assert rank == J.shape[1] - gauge, (rank, J.shape, singular[-3:] / singular[0])
+    if gauge:
+        assert singular[-1] < 1e-9 * singular[0]  # the unseen scale, nothing else
+    assert singular[-1 - gauge] > 1e-5 * singular[0]

@@ -147,18 +147,24 @@ def simulate_rig_tree(num_cameras: int = 2, own: Sequence[int] | None = None, sh
                 return False
         return True
 
-    groups: dict[str, list[int]] = {}
+    # Mirror-1 placements: each camera's own photographs have their own; the shared photographs are
+    # taken while the first camera with a tree of its own holds its mirror 1 still (a mirror-1 placement
+    # seen in one photograph only leaves its plane's rotation about the line it shares with mirror 2
+    # unseen: two reflections are one rigid motion, eqs. 5-8).
+    anchor = next((name for i, name in enumerate(names) if own[i] >= tree), "shared")
+    groups: dict[str, list[list[int]]] = {}  # group -> [own photographs, shared photographs under them]
     for index, (group, _) in enumerate(photos):
-        groups.setdefault(group, []).append(index)
+        lists = groups.setdefault(anchor if group == "shared" else group, [[], []])
+        lists[group == "shared" and anchor != "shared"].append(index)
     vectors: dict[tuple[int, int], np.ndarray] = {}  # cam0 frame while drawing
     configs: list[tuple[int, ...]] = [()] * len(photos)
     next_config = 0
-    for group, indices in groups.items():
+    for group, (indices, extra) in groups.items():
         count = min(placements, len(indices)) if num_mirrors == 2 else 0
         for _ in range(_GROUP_TRIES):
             drawn: dict[tuple[int, int], np.ndarray] = {}
             for j in range(max(count, 1)):
-                under = indices[j::count] if count else indices
+                under = (indices[j::count] + extra[j::count]) if count else indices + extra
                 for _ in range(_TRIES):
                     first = [_random_mirror_vector(rng, back, mirror_distance, tilt_deg)] if count else []
                     leaves = {}
