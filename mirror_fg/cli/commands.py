@@ -65,25 +65,105 @@ def _print_detection_report(out: _Printer, reports) -> None:
 
 
 def cmd_simulate(args, out: _Printer) -> int:
-    from mirror_fg.tools.simulate import (
-        simulate_base_case,
-        simulate_tree,
-        simulation_outputs,
-        write_simulation,
-    )
+    from mirror_fg.tools.simulate import simulation_outputs
 
+    _check_simulate_options(args)
     plan = simulation_outputs(args.output)  # checked before the work
-    if args.tree:
-        dataset, truth = simulate_tree(args.mirrors, num_fiducials=args.fiducials, num_points=args.points,
-                                       pixel_sigma=args.sigma, seed=args.seed, mirror_distance=args.distance)
-    else:
-        dataset, truth = simulate_base_case(num_images=args.images, num_points=args.points, pixel_sigma=args.sigma,
-                                            mirror_distance=args.distance, mirror1_placements=args.placements,
-                                            seed=args.seed, num_mirrors=args.mirrors, num_fiducials=args.fiducials)
+    if args.kind == "tree" and args.cameras is None:
+        return _simulate_tree(args, out, plan)
+    from mirror_fg.tools.simulate_rig import simulate_rig_mixed, simulate_rig_tree
+    from mirror_fg.tools.simulate_views import simulate_kaleidoscope, simulate_mixed, write_views_simulation
+
+    own = None if args.own is None else _simulate_counts(args.own, "--own", args.cameras)
+    try:
+        if args.kind == "kaleidoscope":
+            dataset, truth = simulate_kaleidoscope(args.mirrors or 2, target=not args.no_target, num_points=args.points,
+                                                   pixel_sigma=args.sigma, seed=args.seed)
+        elif args.cameras is None:  # mixed
+            placements = _simulate_counts(args.placements or "4", "--placements", 2)
+            dataset, truth = simulate_mixed(placements, direct=args.direct or 0, num_points=args.points or 0,
+                                            pixel_sigma=args.sigma, seed=args.seed)
+        elif args.kind == "mixed":
+            dataset, truth = simulate_rig_mixed(args.cameras, own=own, shared=2 if args.shared is None else args.shared,
+                                                direct=args.direct or 0, num_points=args.points or 0,
+                                                pixel_sigma=args.sigma, seed=args.seed)
+        else:
+            placements = _simulate_counts(args.placements or "3", "--placements", 1)[0]
+            dataset, truth = simulate_rig_tree(args.cameras, own=own, shared=8 if args.shared is None else args.shared,
+                                               placements=placements, num_mirrors=args.mirrors or 2,
+                                               num_fiducials=args.fiducials or 3, num_points=args.points or 0,
+                                               pixel_sigma=args.sigma, mirror_distance=args.distance or 0.5,
+                                               seed=args.seed)
+    except (ValueError, RuntimeError) as error:
+        raise DatasetError(f"simulate: {str(error).removeprefix('simulate: ')}") from None
+    write_views_simulation(args.output, dataset, truth, plan)
+    orders = sorted({len(image.get("reflections", image.get("mirror_configs", []))) for image in dataset["images"]})
+    cameras = f", {len(dataset['cameras'])} cameras" if "cameras" in dataset else ""
+    out.info(f"wrote {args.output} ({len(dataset['images'])} images{cameras}, {dataset['num_mirrors']} mirror(s), "
+             f"reflection orders {', '.join(map(str, orders))}, {len(dataset['fiducials'])} fiducials, "
+             f"{len(truth.points)} points) and its ground truth")
+    return EXIT_OK
+
+
+def _simulate_tree(args, out: _Printer, plan: OutputPlan) -> int:
+    """The paper's tree (the base case, or ``--tree``) for one camera."""
+    from mirror_fg.tools.simulate import simulate_base_case, simulate_tree, write_simulation
+
+    mirrors, fiducials, points = args.mirrors or 2, args.fiducials or 3, args.points or 0
+    distance = args.distance or 0.5
+    placements = _simulate_counts(args.placements or "3", "--placements", 1)[0]
+    try:
+        if args.tree:
+            dataset, truth = simulate_tree(mirrors, num_fiducials=fiducials, num_points=points,
+                                           pixel_sigma=args.sigma, seed=args.seed, mirror_distance=distance)
+        else:
+            dataset, truth = simulate_base_case(num_images=args.images or 200, num_points=points, pixel_sigma=args.sigma,
+                                                mirror_distance=distance, mirror1_placements=placements,
+                                                seed=args.seed, num_mirrors=mirrors, num_fiducials=fiducials)
+    except ValueError as error:
+        raise DatasetError(f"simulate: {error}") from None
     write_simulation(args.output, dataset, truth, plan)
     out.info(f"wrote {args.output} ({len(dataset.images)} images, {dataset.num_mirrors} mirror(s), "
              f"{len(dataset.fiducials)} fiducials, {len(dataset.reconstruction_point_names)} points) and its ground truth")
     return EXIT_OK
+
+
+def _check_simulate_options(args) -> None:
+    """One line (exit 2) for options that do not go with ``--kind`` / ``--cameras``."""
+    kind, rig = args.kind, args.cameras is not None
+    allowed = {  # option -> where it applies
+        "--tree": kind == "tree" and not rig, "--images": kind == "tree" and not rig,
+        "--no-target": kind == "kaleidoscope", "--direct": kind == "mixed",
+        "--fiducials": kind == "tree", "--distance": kind == "tree",
+        "--placements": kind == "tree" or (kind == "mixed" and not rig),
+        "--shared": rig, "--own": rig, "--cameras": kind != "kaleidoscope",
+    }
+    given = {"--tree": args.tree, "--images": args.images is not None, "--no-target": args.no_target,
+             "--direct": args.direct is not None, "--fiducials": args.fiducials is not None,
+             "--distance": args.distance is not None, "--placements": args.placements is not None,
+             "--shared": args.shared is not None, "--own": args.own is not None, "--cameras": rig}
+    for option, used in given.items():
+        if used and not allowed[option]:
+            if option in ("--shared", "--own"):
+                raise DatasetError(f"simulate: {option} goes with --cameras N (a rig)")
+            where = f"--kind {kind}" + (" with --cameras" if rig and option != "--cameras" else "")
+            raise DatasetError(f"simulate: {option} does not go with {where} (see mirror-fg simulate --help)")
+    if kind == "kaleidoscope" and args.mirrors not in (None, 2, 3):
+        raise DatasetError(f"simulate: a kaleidoscope has 2 or 3 mirrors, got --mirrors {args.mirrors}")
+    if kind == "mixed" and args.mirrors not in (None, 2):
+        raise DatasetError(f"simulate: --kind mixed simulates two hand-held mirrors, got --mirrors {args.mirrors}")
+    if kind == "tree" and rig and args.mirrors not in (None, 1, 2):
+        raise DatasetError(f"simulate: a simulated rig sees one or two mirrors, got --mirrors {args.mirrors}")
+
+
+def _simulate_counts(text: str, option: str, count: int) -> list[int]:
+    """``N`` (for all ``count``) or ``N1,...,Ncount``, each a whole number >= 0 (>= 1 for placements)."""
+    parts = [p.strip() for p in text.split(",")]
+    low = 1 if option == "--placements" else 0
+    if not all(p.isdigit() and int(p) >= low for p in parts) or len(parts) not in (1, count):
+        expect = "N" if count == 1 else f"N or {count} numbers N1,...,N{count}"
+        raise DatasetError(f"simulate: {option} takes {expect} (whole numbers >= {low}), got {text[:40]!r}")
+    return [int(parts[0])] * count if len(parts) == 1 else [int(p) for p in parts]
 
 
 def cmd_calibrate(args, out: _Printer) -> int:

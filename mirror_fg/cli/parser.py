@@ -98,17 +98,35 @@ def build_parser() -> argparse.ArgumentParser:
 
     sim = sub.add_parser("simulate", help="write a synthetic dataset and its ground truth",
                          description="Write a synthetic mirror-fg/dataset@1 (the paper's Sect. 7 base case by "
-                         "default) and, beside it, <name>.truth.json with the true unknowns.", epilog=EPILOG,
-                         formatter_class=argparse.RawDescriptionHelpFormatter)
+                         "default) and, beside it, <name>.truth.json with the true unknowns. --kind kaleidoscope: "
+                         "2 or 3 fixed mirrors, one image per view (direct, first- and second-order); --kind mixed: "
+                         "two hand-held mirrors seen alone and both in either order; --cameras N: a rig of N "
+                         "cameras with different intrinsics, some photographs shared by all of them.",
+                         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     sim.add_argument("-o", "--output", required=True, type=Path, help="dataset file to write (JSON)")
-    sim.add_argument("--mirrors", type=_COUNT, default=2, help="number of mirrors Nv (default 2)")
-    sim.add_argument("--images", type=_COUNT, default=200, help="number of images (base case; default 200)")
-    sim.add_argument("--points", type=_COUNT0, default=0, help="reconstruction points near the fiducials (default 0)")
+    sim.add_argument("--kind", choices=["tree", "kaleidoscope", "mixed"], default="tree",
+                     help="tree: the paper's nested mirrors (default); kaleidoscope: fixed mirrors around the "
+                     "target; mixed: two hand-held mirrors in views of orders 1 and 2")
+    sim.add_argument("--mirrors", type=_COUNT, help="number of mirrors Nv (default 2; a kaleidoscope 2 or 3)")
+    sim.add_argument("--images", type=_COUNT, help="number of images (tree base case; default 200)")
+    sim.add_argument("--points", type=_COUNT0,
+                     help="reconstruction points (default 0; 1 with --no-target)")
     sim.add_argument("--sigma", type=_POSITIVE, default=1.0, help="pixel noise standard deviation, pixels (default 1.0)")
-    sim.add_argument("--fiducials", type=int, default=3, choices=[3, 4], help="3 (paper) or 4 fiducials")
-    sim.add_argument("--distance", type=_POSITIVE, default=0.5, help="camera-to-mirror distance, metres (default 0.5)")
-    sim.add_argument("--placements", type=_COUNT, default=3, help="placements of mirror 1 (default 3)")
+    sim.add_argument("--fiducials", type=int, choices=[3, 4], help="3 (paper) or 4 fiducials (tree kind)")
+    sim.add_argument("--distance", type=_POSITIVE, help="camera-to-mirror distance, metres (tree kind; default 0.5)")
+    sim.add_argument("--placements", metavar="N[,N2]",
+                     help="tree: placements of mirror 1 (default 3); mixed: of mirror 1 and 2 (default 4,4; one "
+                     "number for both)")
     sim.add_argument("--tree", action="store_true", help="minimal tree instead: 3 placements per node, 3^Nv images")
+    sim.add_argument("--no-target", action="store_true",
+                     help="kaleidoscope without fiducials: unknown points only, scale = mirror 1's distance")
+    sim.add_argument("--direct", type=_COUNT0, help="mixed: photographs that also give the direct view (default 0)")
+    sim.add_argument("--cameras", type=_number(int, 2), help="a rig of N >= 2 cameras (tree or mixed kind)")
+    sim.add_argument("--shared", type=_COUNT0,
+                     help="with --cameras: photographs every camera sees (default 8 tree, 2 mixed)")
+    sim.add_argument("--own", metavar="N[,N...]",
+                     help="with --cameras: photographs only each camera sees, one number for all or one per camera "
+                     "(default 30 tree, 4 mixed)")
     sim.add_argument("--seed", type=_COUNT0, default=0, help="random seed (default 0)")
     _add_common(sim)
 
