@@ -240,7 +240,7 @@ def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Datase
     cameras = None
     if "cameras" in d:
         if camera is not None:
-            raise DatasetError(f"{source}: give either camera or cameras, not both")
+            raise DatasetError(f"{source}: camera and cameras are both given: give one of them (cameras for several)")
         cameras = cameras_from_dict(d["cameras"], source)
         camera = next(iter(cameras.values()))
     elif isinstance(camera, str) or (isinstance(camera, Mapping) and "file" in camera):  # SPEC: capture@1 only

@@ -8,7 +8,10 @@ a known target, whose frame is then the base frame), one ``Point3`` ``V(i)`` per
 in its owner camera's frame: the first camera, in ``cameras`` order, with an image that sees it) and one
 ``Point3`` ``L(j)`` per reconstruction point (base frame). Measurements: ``factors/views.py``, one factor
 per image. Without a known target the scale is held by a prior of relative sigma :data:`SCALE_SIGMA` on
-the named distance (its variance is then ~1e-12 of the distance squared: the gauge held).
+the named distance (the measurements do not change along the gauge, so the optimum meets it exactly),
+and the covariances are those with the gauge held exactly: with the prior's information ``H`` (well
+conditioned), ``C = H^-1 - H^-1 a a^T H^-1 / (a^T H^-1 a)``, ``a`` the constraint's gradient (the limit
+of a vanishing prior sigma; dense, the data without a target are small).
 """
 from __future__ import annotations
 
@@ -31,7 +34,7 @@ __all__ = ["SINGLE_CAMERA", "ViewProblem", "views_of", "camera_names"]
 #: The camera's name where a dataset gives one ``camera``.
 SINGLE_CAMERA = "camera"
 #: Relative standard deviation of the scale prior without a known target.
-SCALE_SIGMA = 1e-6
+SCALE_SIGMA = 1e-3
 
 Placement = tuple[int, int]
 
@@ -226,7 +229,7 @@ class ViewProblem:
     def covariances(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, estimate: ViewEstimate):
         """``(pose covariances {camera: 6x6}, joint (6C, 6C), mirrors {p: 3x3}, points {name: 3x3})`` in
         SPEC's conventions; a fixed camera's blocks are zero."""
-        marginals = gtsam.Marginals(graph, values)
+        marginals = gtsam.Marginals(graph, values) if self.dataset.scale is None else _GaugeHeld(self, graph, values)
         keys = list(self.pose_keys.values())
         joint = np.zeros((6 * len(self.cameras), 6 * len(self.cameras)))
         if keys:
@@ -276,3 +279,63 @@ def _length_error(distance: float, between: bool):
                 jacobians[1] = (-diff / length).reshape(1, 3)
         return np.array([length - distance])
     return error
+
+
+class _GaugeHeld:
+    """Covariances with the scale held exactly (module docstring), read like ``gtsam.Marginals``."""
+
+    def __init__(self, problem: ViewProblem, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values):
+        ordering = gtsam.Ordering()
+        self.columns: dict[int, slice] = {}
+        start = 0
+        for key in [*problem.pose_keys.values(), *problem.mirror_keys.values(), *problem.point_keys.values(),
+                    *problem.intrinsics_keys.values()]:
+            ordering.push_back(key)
+            dim = _dimension(values, key)
+            self.columns[key] = slice(start, start + dim)
+            start += dim
+        A, _ = graph.linearize(values).jacobian(ordering)
+        information = A.T @ A
+        gradient = np.zeros(start)
+        scale = problem.dataset.scale
+        if scale.placement is not None:
+            v = np.asarray(values.atPoint3(problem.mirror_keys[scale.placement]), float)
+            gradient[self.columns[problem.mirror_keys[scale.placement]]] = v / np.linalg.norm(v)
+        else:
+            a, b = (problem.point_keys[n] for n in scale.points)
+            diff = np.asarray(values.atPoint3(a), float) - np.asarray(values.atPoint3(b), float)
+            gradient[self.columns[a]] = diff / np.linalg.norm(diff)
+            gradient[self.columns[b]] = -diff / np.linalg.norm(diff)
+        try:
+            covariance = np.linalg.inv(information)
+        except np.linalg.LinAlgError as error:
+            raise RuntimeError(f"indeterminant system: {error}") from None
+        along = covariance @ gradient
+        self.covariance = covariance - np.outer(along, along) / float(gradient @ along)
+
+    def marginalCovariance(self, key: int) -> np.ndarray:
+        c = self.columns[key]
+        return self.covariance[c, c].copy()
+
+    def jointMarginalCovariance(self, keys) -> "_Block":
+        rows = np.concatenate([np.arange(self.columns[k].start, self.columns[k].stop) for k in keys])
+        return _Block(self.covariance[np.ix_(rows, rows)])
+
+
+class _Block:
+    def __init__(self, matrix: np.ndarray):
+        self.matrix = matrix
+
+    def fullMatrix(self) -> np.ndarray:
+        return self.matrix
+
+
+def _dimension(values: gtsam.Values, key: int) -> int:
+    """The tangent dimension of one value (Pose3 6, Point3 3, a Vector its length)."""
+    symbol = chr(gtsam.Symbol(key).chr())
+    if symbol == "x":
+        return 6
+    if symbol == "k":
+        return len(values.atVector(key))
+    return 3
+
