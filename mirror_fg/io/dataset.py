@@ -19,10 +19,14 @@ import numpy as np
 
 from mirror_fg.core.camera import Camera, camera_from_dict, camera_to_dict, check_camera, initial_intrinsics
 from mirror_fg.core.errors import DatasetError
+from mirror_fg.io.dataset_fields import (
+    COLLINEAR_TOL, check_scale, dataset_summary, image_camera, cameras_from_dict, check_reflections, fiducials_from_dict, reflections_to_list, scale_from_dict,
+    scale_to_dict, tree_configs,
+)
 from mirror_fg.io.output import atomic_write, json_text
 from mirror_fg.io.point_sigma import measurement_sigma, point_sigma_from_dict, point_sigma_to_dict
 from mirror_fg.core.values import (
-    MAX_INDEX, check_extent, check_format, check_keys, clip, coordinates, is_index, is_int, short, type_name,
+    MAX_INDEX, check_format, check_keys, coordinates, is_index, is_int, short, type_name,
 )
 
 DATASET_FORMAT = "mirror-fg/dataset@1"
@@ -39,12 +43,13 @@ __all__ = [
     "save_dataset",
     "validate_image",
     "dataset_text",
+    "fiducials_from_dict",
+    "COLLINEAR_TOL",
 ]
 
-#: Fiducials all within this fraction of their extent from one line are collinear.
-COLLINEAR_TOL = 1e-6
-_DATASET_KEYS = ("format", "num_mirrors", "camera", "pixel_sigma", "point_sigma", "fiducials", "images")
-_IMAGE_KEYS = ("id", "mirror_configs", "observations")
+_DATASET_KEYS = ("format", "num_mirrors", "camera", "cameras", "pixel_sigma", "point_sigma", "fiducials", "scale",
+                 "images")
+_IMAGE_KEYS = ("id", "mirror_configs", "reflections", "camera", "observations")
 
 
 @dataclass
@@ -128,36 +133,15 @@ class Dataset:
 
     def __repr__(self) -> str:
         """One bounded line (a dataclass repr would print every observation)."""
-        return f"Dataset({', '.join(f'{k}={v}' for k, v in self._summary())})"
+        return f"Dataset({', '.join(f'{k}={v}' for k, v in dataset_summary(self))})"
 
     def _repr_html_(self) -> str:
         """A summary table for notebooks, bounded like :meth:`__repr__`."""
         rows = "".join(
             f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>"
-            for k, v in self._summary()
+            for k, v in dataset_summary(self)
         )
         return f"<table><caption>mirror_fg Dataset</caption>{rows}</table>"
-
-    def _summary(self) -> list[tuple[str, str]]:
-        """(label, value) pairs describing the dataset in bounded text."""
-        per_mirror = [sorted({image.mirror_configs[l] for image in self.images}) for l in range(self.num_mirrors)]
-        points = self.reconstruction_point_names
-        camera = "none (normalized coordinates)"
-        if self.camera is not None:
-            c = self.camera
-            camera = f"{c.model} {c.width}x{c.height} fx={c.fx:.6g} fy={c.fy:.6g} cx={c.cx:.6g} cy={c.cy:.6g}"
-            if any(k != 0.0 for k in c.dist):
-                camera += f" dist={short([round(k, 6) for k in c.dist], 70)}"
-        return [
-            ("source", short(self.source)),
-            ("num_mirrors", f"{self.num_mirrors} (placements: {', '.join(str(len(p)) for p in per_mirror[:8])})"),
-            ("camera", camera),
-            ("pixel_sigma", f"{self.pixel_sigma:.6g}{' px' if self.camera is not None else ' (normalized)'}"),
-            ("fiducials", _names(list(self.fiducials))),
-            ("images", str(len(self.images))),
-            ("observations", str(sum(len(image.observations) for image in self.images))),
-            ("points", _names(points)),
-        ]
 
     @property
     def normalized_sigma(self) -> np.ndarray:
@@ -180,11 +164,26 @@ class Dataset:
         names = list(image.observations)
         raw = _observation_array(image.observations, names)
         stored = image.normalized_from
-        if (image.normalized is None or stored is None or stored[0] != self.camera
+        camera = self.camera_of(image)
+        if (image.normalized is None or stored is None or stored[0] != camera
                 or list(image.normalized) != names or not np.array_equal(stored[1], raw)):
-            image.normalized = _normalize(self.camera, names, raw)
-            image.normalized_from = (self.camera, raw)
+            image.normalized = _normalize(camera, names, raw)
+            image.normalized_from = (camera, raw)
         return image.normalized
+
+    def camera_of(self, image: Image) -> Camera | None:
+        """The camera that took ``image``: its named one of :attr:`cameras`, else :attr:`camera`."""
+        if self.cameras is not None and image.camera is not None:
+            return self.cameras[image.camera]
+        return self.camera
+
+    @property
+    def is_tree(self) -> bool:
+        """Whether this is the paper's problem: one camera, a known target, and every image seeing the
+        points through mirrors 1..num_mirrors in that order (``mirror_configs``). Anything else is solved
+        by the general view model (:mod:`mirror_fg.solver.views`)."""
+        return (self.cameras is None and bool(self.fiducials) and self.scale is None
+                and all(len(image.mirror_configs) == self.num_mirrors for image in self.images))
 
     @property
     def reconstruction_point_names(self) -> list[str]:
@@ -195,7 +194,7 @@ class Dataset:
     @property
     def configurations(self) -> list[tuple[int, int]]:
         """Sorted mirror configurations ``(l, m)`` (mirror l is 1-based) seen in the images."""
-        return sorted({(l + 1, m) for image in self.images for l, m in enumerate(image.mirror_configs)})
+        return sorted({placement for image in self.images for placement in image.reflections})
 
 
 # --------------------------------------------------------------------------------------------------
@@ -238,13 +237,19 @@ def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Datase
         raise DatasetError(f"{source}: num_mirrors must be an integer >= 1, got {short(num_mirrors)}")
 
     camera = d.get("camera")
-    if isinstance(camera, str) or (isinstance(camera, Mapping) and "file" in camera):  # SPEC: capture@1 only
+    cameras = None
+    if "cameras" in d:
+        if camera is not None:
+            raise DatasetError(f"{source}: give either camera or cameras, not both")
+        cameras = cameras_from_dict(d["cameras"], source)
+        camera = next(iter(cameras.values()))
+    elif isinstance(camera, str) or (isinstance(camera, Mapping) and "file" in camera):  # SPEC: capture@1 only
         raise DatasetError(f"{source}: camera: a dataset@1 holds the camera inline ({{model, width, height, fx, fy, "
                            f"cx, cy, dist}}); a calibration file such as {short(camera)} can be named in a capture@1")
-    if camera is not None and not isinstance(camera, Mapping):
+    if cameras is None and camera is not None and not isinstance(camera, Mapping):
         raise DatasetError(f"{source}: camera: expected an object or null, got {type_name(camera)}")
     unstarted: dict[str, Any] | None = None  # the checked camera whose fx, fy, cx or cy is to start from the images
-    if camera is not None:
+    if cameras is None and camera is not None:
         checked = check_camera(camera, f"{source}: camera", allow_unstarted=True)
         if any(checked[k] is None for k in _STARTED):
             unstarted, camera = checked, None
@@ -256,14 +261,23 @@ def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Datase
     image_size = None if camera is None else (camera.width, camera.height)
     pixel_sigma = measurement_sigma(d["pixel_sigma"], image_size, f"{source}: pixel_sigma")
 
+    scale = None
+    if d.get("scale") is not None:
+        distance, placement, scale_points = scale_from_dict(d["scale"], source)
+        scale = Scale(distance, placement, scale_points)
     ds = Dataset(
         num_mirrors=int(num_mirrors),
         camera=camera,
         pixel_sigma=float(pixel_sigma),
-        fiducials=fiducials_from_dict(d.get("fiducials"), source),
+        fiducials=fiducials_from_dict(d.get("fiducials"), source, allow_empty=scale is not None),
         images=[],
         source=source,
+        cameras=cameras,
+        scale=scale,
     )
+    if scale is not None and ds.fiducials:
+        raise DatasetError(f"{source}: scale is for data without a known target (fiducials: {{}}); the fiducials "
+                           "fix the scale here")
 
     images = d.get("images")
     if images is None or (isinstance(images, list) and not images):
@@ -282,6 +296,8 @@ def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Datase
         ds.images.append(image)
     if unstarted is not None:
         _start_camera(ds, unstarted)
+    if scale is not None:
+        check_scale(ds, scale)
     ds.point_sigma = point_sigma_from_dict(d.get("point_sigma"), (n for im in ds.images for n in im.observations), source,
                                            image_size)
     return ds
@@ -335,12 +351,16 @@ def validate_image(
     where = f"images[{index}]" if index is not None else "image"
     if isinstance(image, Image):
         image_id: Any = image.id
-        configs: Any = image.mirror_configs
+        configs: Any = image.mirror_configs if image.mirror_configs or not image.reflections else None
+        reflections: Any = None if configs is not None else [list(p) for p in image.reflections]
+        camera_name: Any = image.camera
         observations: Any = image.observations
     elif isinstance(image, Mapping):
         check_keys(image, _IMAGE_KEYS, f"{source}: {where}")
         image_id = image.get("id")
         configs = image.get("mirror_configs")
+        reflections = image.get("reflections")
+        camera_name = image.get("camera")
         observations = image.get("observations")
     else:
         raise DatasetError(
@@ -352,12 +372,18 @@ def validate_image(
         raise DatasetError(f"{source}: {where}: image id must be a non-empty string, got {short(image_id)}")
     prefix = f"{source}: image {image_id!r}"
 
-    if configs is None:
-        raise DatasetError(f"{prefix}: missing 'mirror_configs'")
+    camera = image_camera(ds, camera_name, prefix)
+    if configs is not None and reflections is not None:
+        raise DatasetError(f"{prefix}: give either mirror_configs or reflections, not both")
+    if reflections is not None:
+        placements = check_reflections(reflections, ds.num_mirrors, prefix)
+        configs = list(tree_configs(placements, ds.num_mirrors))
+    elif configs is None:
+        raise DatasetError(f"{prefix}: missing 'mirror_configs' (or 'reflections')")
     if isinstance(configs, (str, bytes, Mapping)) or not isinstance(configs, Iterable):
         raise DatasetError(f"{prefix}: mirror_configs must be a list of integers, got {short(configs)}")
     configs = list(configs)
-    if len(configs) != ds.num_mirrors:
+    if reflections is None and len(configs) != ds.num_mirrors:
         raise DatasetError(
             f"{prefix}: mirror_configs has {len(configs)} entries, expected {ds.num_mirrors} (num_mirrors)"
         )
@@ -383,34 +409,28 @@ def validate_image(
         if known_points is not None and name not in ds.fiducials and name not in known_points:
             raise DatasetError(f"{prefix}: unknown point {name!r} (neither a fiducial nor a known point)")
         obs[name] = coordinates(value, 2, "[u, v]", f"{prefix}: point {name!r}")
-    if ds.camera is not None:
+    if camera is not None:
         names = list(obs)
-        inside = ds.camera.contains(np.array([obs[n] for n in names]))
+        inside = camera.contains(np.array([obs[n] for n in names]))
         if not inside.all():
             name = names[int(np.argmin(inside))]
             raise DatasetError(
                 f"{prefix}: point {short(name)} at {short([round(float(x), 2) for x in obs[name]])} px is "
-                f"outside the {ds.camera.width}x{ds.camera.height} image"
+                f"outside the {camera.width}x{camera.height} image"
             )
-    checked = Image(id=image_id, mirror_configs=tuple(int(m) for m in configs), observations=obs)
+    checked = Image(id=image_id, mirror_configs=tuple(int(m) for m in configs), observations=obs,
+                    reflections=placements if reflections is not None else (), camera=camera_name)
     raw = _observation_array(obs, list(obs))
-    checked.normalized = _normalize(ds.camera, list(obs), raw)  # once, here (issue 13)
+    checked.normalized = _normalize(camera, list(obs), raw)  # once, here (issue 13)
     for name, z in checked.normalized.items():
         if not np.all(np.isfinite(z)):
-            assert ds.camera is not None  # normalized coordinates are checked finite above
+            assert camera is not None  # normalized coordinates are checked finite above
             raise DatasetError(
                 f"{prefix}: point {short(name)} at {short([round(float(x), 2) for x in obs[name]])} px cannot be "
-                f"undistorted with the {ds.camera.model} camera model (beyond the lens's field of view)"
+                f"undistorted with the {camera.model} camera model (beyond the lens's field of view)"
             )
-    checked.normalized_from = (ds.camera, raw)
+    checked.normalized_from = (camera, raw)
     return checked
-
-
-def _names(names: list[str], limit: int = 6) -> str:
-    """``count (a, b, ...)`` with at most ``limit`` names, each bounded."""
-    shown = ", ".join(clip(n, 20) for n in names[:limit])
-    more = ", ..." if len(names) > limit else ""
-    return f"{len(names)} ({shown}{more})" if names else "0"
 
 
 def _observation_array(observations: Mapping[str, np.ndarray], names: list[str]) -> np.ndarray:
@@ -424,41 +444,6 @@ def _normalize(camera: Camera | None, names: list[str], raw: np.ndarray) -> dict
     return {name: coords[i] for i, name in enumerate(names)}
 
 
-def fiducials_from_dict(fiducials: Any, source: str) -> dict[str, np.ndarray]:
-    """Fiducials ``{name: (3,) metres in {B}}``: at least three, not all on one line, at most 5 m across."""
-    if fiducials is None:
-        raise DatasetError(f"{source}: missing 'fiducials' (at least 3 non-collinear points)")
-    if not isinstance(fiducials, Mapping):
-        raise DatasetError(
-            f"{source}: fiducials must be an object {{name: [x, y, z]}}, got {type_name(fiducials)}"
-        )
-    result: dict[str, np.ndarray] = {}
-    for name, value in fiducials.items():
-        if not isinstance(name, str) or not name:
-            raise DatasetError(f"{source}: fiducial name must be a non-empty string, got {short(name)}")
-        result[name] = coordinates(value, 3, "[x, y, z]", f"{source}: fiducial {name!r}")
-    if len(result) < 3:
-        raise DatasetError(f"{source}: {len(result)} fiducials, need at least 3 (non-collinear)")
-    check_extent(result.values(), f"{source}: fiducials", "fiducial layout")  # millimetres typed as metres
-    if _collinear(np.array(list(result.values()))):
-        raise DatasetError(
-            f"{source}: the {len(result)} fiducials are collinear (all on one line); "
-            "need at least 3 non-collinear"
-        )
-    return result
-
-
-def _collinear(points: np.ndarray, tol: float = COLLINEAR_TOL) -> bool:
-    """True when every point (N, 3) lies within ``tol`` times the points' extent of one line."""
-    centred = points - points.mean(axis=0)
-    extent = float(np.max(np.linalg.norm(centred, axis=1)))
-    if extent == 0.0:
-        return True  # all coincide
-    direction = np.linalg.svd(centred)[2][0]
-    off_line = centred - np.outer(centred @ direction, direction)
-    return float(np.max(np.linalg.norm(off_line, axis=1))) <= tol * extent
-
-
 # --------------------------------------------------------------------------------------------------
 # Writing dataset@1
 # --------------------------------------------------------------------------------------------------
@@ -468,21 +453,31 @@ def dataset_to_dict(ds: Dataset) -> dict[str, Any]:
     """The dataset@1 dictionary of ``ds`` (plain lists and floats; ``camera`` is null without one;
     ``point_sigma`` only when some observed point has one)."""
     point_sigma = point_sigma_to_dict(ds.point_sigma, (n for image in ds.images for n in image.observations))
+    cameras = ({"cameras": {name: camera_to_dict(c) for name, c in ds.cameras.items()}} if ds.cameras is not None
+               else {"camera": None if ds.camera is None else camera_to_dict(ds.camera)})
+    scale = ds.scale
     return {
         "format": DATASET_FORMAT,
         "num_mirrors": int(ds.num_mirrors),
-        "camera": None if ds.camera is None else camera_to_dict(ds.camera),
+        **cameras,
         "pixel_sigma": float(ds.pixel_sigma),
         **({"point_sigma": point_sigma} if point_sigma else {}),
         "fiducials": {name: [float(x) for x in p] for name, p in ds.fiducials.items()},
-        "images": [
-            {
-                "id": image.id,
-                "mirror_configs": [int(m) for m in image.mirror_configs],
-                "observations": {name: [float(x) for x in z] for name, z in image.observations.items()},
-            }
-            for image in ds.images
-        ],
+        **({"scale": scale_to_dict(scale.distance, scale.placement, scale.points)} if scale is not None else {}),
+        "images": [_image_dict(image, ds.num_mirrors) for image in ds.images],
+    }
+
+
+def _image_dict(image: Image, num_mirrors: int) -> dict[str, Any]:
+    """One image's dataset@1 shape: ``mirror_configs`` where it follows the tree, else ``reflections``."""
+    placements: dict[str, Any] = (
+        {"mirror_configs": [int(m) for m in image.mirror_configs]} if len(image.mirror_configs) == num_mirrors
+        else {"reflections": reflections_to_list(image.reflections)})
+    return {
+        "id": image.id,
+        **({"camera": image.camera} if image.camera is not None else {}),
+        **placements,
+        "observations": {name: [float(x) for x in z] for name, z in image.observations.items()},
     }
 
 

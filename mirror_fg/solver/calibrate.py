@@ -117,6 +117,10 @@ def calibrate(
     elif separate != (None, True, 100, None, True, None, True):
         raise TypeError("calibrate(): give the settings either in options= or as separate arguments, not both")
     dataset = as_dataset(dataset)
+    if not dataset.is_tree:  # direct views, fixed mirrors, any order, no known target, several cameras
+        from mirror_fg.solver.views_solve import calibrate_views
+
+        return calibrate_views(dataset, initial, options)
     if dataset.camera is not None and dataset.camera.estimate:  # intrinsics estimated too (camera.estimate)
         return calibrate_with_intrinsics(dataset, initial=initial, options=options)
     timings: dict[str, float] = {}

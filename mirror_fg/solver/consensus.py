@@ -265,8 +265,8 @@ def without(dataset: Dataset, excluded: list[Exclusion]) -> Dataset:
         if image.id in images_out:
             continue
         if image.id in points_out:
-            image = Image(image.id, image.mirror_configs,
-                          {n: z for n, z in image.observations.items() if n not in points_out[image.id]})
+            image = replace(image, observations={n: z for n, z in image.observations.items()
+                                                 if n not in points_out[image.id]})
         images.append(image)
     return replace(dataset, images=images)
 

@@ -1,0 +1,218 @@
+"""The dataset@1 keys of the general view model (docs/formats.md, "Views of any reflection order, and
+several cameras"): an image's ``reflections`` and ``camera``, the dataset's ``cameras`` and ``scale``.
+
+Checked here, used by :mod:`mirror_fg.io.dataset` (the format's one reader and writer).
+"""
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+from mirror_fg.core.camera import Camera, camera_from_dict, check_camera
+from mirror_fg.core.errors import DatasetError
+import numpy as np
+
+from mirror_fg.core.values import MAX_INDEX, check_extent, check_keys, clip, coordinates, is_index, is_number, short, type_name
+
+__all__ = ["fiducials_from_dict", "check_scale", "image_camera", "dataset_summary", "names_text", "Placement", "check_reflections", "tree_configs", "cameras_from_dict", "scale_from_dict",
+           "scale_to_dict", "reflections_to_list"]
+
+#: Fiducials all within this fraction of their extent from one line are collinear.
+COLLINEAR_TOL = 1e-6
+
+#: One mirror placement ``(mirror, config)``: mirror l (1-based) at its configuration m.
+Placement = tuple[int, int]
+
+#: Longest sequence of reflections of one view (a light path through more mirrors is no measurement).
+MAX_REFLECTIONS = 16
+
+
+def check_reflections(value: Any, num_mirrors: int, prefix: str) -> tuple[Placement, ...]:
+    """An image's ``reflections`` as a tuple of placements: each ``[mirror, config]`` with mirror in
+    1..num_mirrors and config a non-negative integer, two consecutive pairs naming different mirrors
+    (a light path meets another mirror between two reflections in one). ``prefix`` names the image."""
+    if isinstance(value, (str, bytes, Mapping)) or not isinstance(value, Iterable):
+        raise DatasetError(f"{prefix}: reflections must be a list of [mirror, config] pairs, got {short(value)}")
+    pairs = list(value)
+    if len(pairs) > MAX_REFLECTIONS:
+        raise DatasetError(f"{prefix}: reflections has {len(pairs)} pairs, at most {MAX_REFLECTIONS} are taken")
+    result: list[Placement] = []
+    for k, pair in enumerate(pairs):
+        if isinstance(pair, (str, bytes, Mapping)) or not isinstance(pair, Iterable) or len(list(pair)) != 2:
+            raise DatasetError(f"{prefix}: reflections[{k}] must be a [mirror, config] pair, got {short(pair)}")
+        mirror, config = list(pair)
+        if not is_index(mirror, 1) or mirror > num_mirrors:
+            raise DatasetError(f"{prefix}: reflections[{k}]: mirror {short(mirror)} is not one of the "
+                               f"{num_mirrors} mirror(s) (num_mirrors); mirrors are numbered from 1")
+        if not is_index(config):
+            raise DatasetError(f"{prefix}: reflections[{k}]: config must be a non-negative integer (at most "
+                               f"{MAX_INDEX}), got {short(config)}")
+        if result and result[-1][0] == mirror:
+            raise DatasetError(f"{prefix}: reflections[{k - 1}] and reflections[{k}] both name mirror {mirror}: "
+                               "light cannot meet one mirror twice in a row")
+        result.append((int(mirror), int(config)))
+    return tuple(result)
+
+
+def tree_configs(reflections: tuple[Placement, ...], num_mirrors: int) -> tuple[int, ...]:
+    """The ``mirror_configs`` equivalent to ``reflections`` (mirrors 1..num_mirrors in order, each once),
+    or ``()`` where the reflections are not of that form."""
+    if len(reflections) == num_mirrors and all(l == k + 1 for k, (l, _) in enumerate(reflections)):
+        return tuple(m for _, m in reflections)
+    return ()
+
+
+def reflections_to_list(reflections: tuple[Placement, ...]) -> list[list[int]]:
+    """The JSON shape of ``reflections``."""
+    return [[int(l), int(m)] for l, m in reflections]
+
+
+def cameras_from_dict(value: Any, source: str) -> dict[str, Camera]:
+    """``cameras: {name: camera}`` as Cameras in the file's order: at least one, every name a non-empty
+    string, every camera a full camera object (fx, fy, cx, cy given: intrinsics started from the
+    photographs are taken for one ``camera`` only in this version)."""
+    if not isinstance(value, Mapping) or not value:
+        raise DatasetError(f"{source}: cameras must be an object {{name: camera}} with at least one camera, "
+                           f"got {short(value) if not isinstance(value, Mapping) else '{}'}")
+    cameras: dict[str, Camera] = {}
+    for name, camera in value.items():
+        where = f"{source}: cameras[{short(name)}]"
+        if not isinstance(name, str) or not name.strip():
+            raise DatasetError(f"{source}: cameras: a camera name must be a non-empty string, got {short(name)}")
+        if not isinstance(camera, Mapping):
+            raise DatasetError(f"{where}: expected a camera object, got {type_name(camera)}")
+        checked = check_camera(camera, where, allow_unstarted=True)
+        missing = [k for k in ("fx", "fy", "cx", "cy") if checked[k] is None]
+        if missing:
+            raise DatasetError(f"{where}: give {', '.join(missing)}: with several cameras every camera needs its "
+                               "start intrinsics (estimate may still name them)")
+        cameras[name] = camera_from_dict(camera, where)
+    return cameras
+
+
+def scale_from_dict(value: Any, source: str) -> tuple[float, Placement | None, tuple[str, str] | None]:
+    """``scale`` as ``(distance, placement, points)``: ``{mirror, config, distance}`` (the length of that
+    placement's mirror vector) or ``{points: [a, b], distance}``, distance metres > 0."""
+    where = f"{source}: scale"
+    if not isinstance(value, Mapping):
+        raise DatasetError(f"{where}: expected {{mirror, config, distance}} or {{points: [a, b], distance}}, "
+                           f"got {short(value)}")
+    check_keys(value, ("mirror", "config", "points", "distance"), where)
+    distance = value.get("distance")
+    if not is_number(distance) or not 0.0 < float(distance) <= 100.0:
+        raise DatasetError(f"{where}: distance must be a length in metres (> 0, at most 100), got {short(distance)}")
+    if "points" in value:
+        if "mirror" in value or "config" in value:
+            raise DatasetError(f"{where}: give either points or mirror and config, not both")
+        points = value["points"]
+        if (not isinstance(points, list) or len(points) != 2 or not all(isinstance(p, str) and p for p in points)
+                or points[0] == points[1]):
+            raise DatasetError(f"{where}: points must be two different point names, got {short(points)}")
+        return float(distance), None, (points[0], points[1])
+    mirror, config = value.get("mirror"), value.get("config")
+    if not is_index(mirror, 1) or not is_index(config):
+        raise DatasetError(f"{where}: give mirror (from 1) and config (from 0) of the placement whose mirror "
+                           f"distance is known, or points; got mirror {short(mirror)}, config {short(config)}")
+    return float(distance), (int(mirror), int(config)), None
+
+
+def scale_to_dict(distance: float, placement: Placement | None, points: tuple[str, str] | None) -> dict[str, Any]:
+    """The JSON shape of a scale."""
+    if placement is not None:
+        return {"mirror": placement[0], "config": placement[1], "distance": float(distance)}
+    assert points is not None
+    return {"points": list(points), "distance": float(distance)}
+
+
+def fiducials_from_dict(fiducials: Any, source: str, allow_empty: bool = False) -> dict[str, np.ndarray]:
+    """Fiducials ``{name: (3,) metres in {B}}``: at least three, not all on one line, at most 5 m across;
+    or none (``{}``) where ``allow_empty`` (a dataset with ``scale``: no known target)."""
+    if fiducials is None:
+        raise DatasetError(f"{source}: missing 'fiducials' (at least 3 non-collinear points)")
+    if not isinstance(fiducials, Mapping):
+        raise DatasetError(
+            f"{source}: fiducials must be an object {{name: [x, y, z]}}, got {type_name(fiducials)}"
+        )
+    result: dict[str, np.ndarray] = {}
+    if not fiducials and allow_empty:
+        return result
+    for name, value in fiducials.items():
+        if not isinstance(name, str) or not name:
+            raise DatasetError(f"{source}: fiducial name must be a non-empty string, got {short(name)}")
+        result[name] = coordinates(value, 3, "[x, y, z]", f"{source}: fiducial {name!r}")
+    if len(result) < 3:
+        empty = " (without a known target give fiducials: {} and a scale)" if not result else ""
+        raise DatasetError(f"{source}: {len(result)} fiducials, need at least 3 (non-collinear){empty}")
+    check_extent(result.values(), f"{source}: fiducials", "fiducial layout")  # millimetres typed as metres
+    if _collinear(np.array(list(result.values()))):
+        raise DatasetError(
+            f"{source}: the {len(result)} fiducials are collinear (all on one line); "
+            "need at least 3 non-collinear"
+        )
+    return result
+
+
+def _collinear(points: np.ndarray, tol: float = COLLINEAR_TOL) -> bool:
+    """True when every point (N, 3) lies within ``tol`` times the points' extent of one line."""
+    centred = points - points.mean(axis=0)
+    extent = float(np.max(np.linalg.norm(centred, axis=1)))
+    if extent == 0.0:
+        return True  # all coincide
+    direction = np.linalg.svd(centred)[2][0]
+    off_line = centred - np.outer(centred @ direction, direction)
+    return float(np.max(np.linalg.norm(off_line, axis=1))) <= tol * extent
+
+
+def check_scale(ds: Any, scale: Any) -> None:
+    """The scale names a placement or points that the images see."""
+    if scale.placement is not None and scale.placement not in set(ds.configurations):
+        raise DatasetError(f"{ds.source}: scale: no image sees mirror {scale.placement[0]} at config "
+                           f"{scale.placement[1]}")
+    seen = {n for image in ds.images for n in image.observations}
+    for name in scale.points or ():
+        if name not in seen:
+            raise DatasetError(f"{ds.source}: scale: no image observes point {short(name)}")
+
+
+def image_camera(ds: Any, name: Any, prefix: str) -> Camera | None:
+    """The camera an image names (``camera``, a dataset with ``cameras``), else the dataset's camera."""
+    if ds.cameras is None:
+        if name is not None:
+            raise DatasetError(f"{prefix}: camera {short(name)}: this dataset has one camera (give cameras: "
+                               "{name: camera} to name them)")
+        return ds.camera
+    if name is None:
+        raise DatasetError(f"{prefix}: missing 'camera' (one of {', '.join(short(n) for n in ds.cameras)})")
+    if not isinstance(name, str) or name not in ds.cameras:
+        raise DatasetError(f"{prefix}: camera {short(name)} is not declared in cameras "
+                           f"({', '.join(short(n) for n in ds.cameras)})")
+    return ds.cameras[name]
+
+
+def dataset_summary(ds: Any) -> list[tuple[str, str]]:
+    """(label, value) pairs describing the dataset in bounded text."""
+    per_mirror = [sorted({m for l, m in ds.configurations if l == k + 1}) for k in range(ds.num_mirrors)]
+    points = ds.reconstruction_point_names
+    camera = "none (normalized coordinates)"
+    if ds.camera is not None:
+        c = ds.camera
+        camera = f"{c.model} {c.width}x{c.height} fx={c.fx:.6g} fy={c.fy:.6g} cx={c.cx:.6g} cy={c.cy:.6g}"
+        if any(k != 0.0 for k in c.dist):
+            camera += f" dist={short([round(k, 6) for k in c.dist], 70)}"
+    return [
+        ("source", short(ds.source)),
+        ("num_mirrors", f"{ds.num_mirrors} (placements: {', '.join(str(len(p)) for p in per_mirror[:8])})"),
+        ("camera", camera if ds.cameras is None else f"{len(ds.cameras)} cameras ({', '.join(clip(n, 20) for n in ds.cameras)})"),
+        ("pixel_sigma", f"{ds.pixel_sigma:.6g}{' px' if ds.camera is not None else ' (normalized)'}"),
+        ("fiducials", names_text(list(ds.fiducials))),
+        ("images", str(len(ds.images))),
+        ("observations", str(sum(len(image.observations) for image in ds.images))),
+        ("points", names_text(points)),
+    ]
+
+
+def names_text(names: list[str], limit: int = 6) -> str:
+    """``count (a, b, ...)`` with at most ``limit`` names, each bounded."""
+    shown = ", ".join(clip(n, 20) for n in names[:limit])
+    more = ", ..." if len(names) > limit else ""
+    return f"{len(names)} ({shown}{more})" if names else "0"

@@ -1,0 +1,237 @@
+"""The general view model's problem (docs/formats.md, "Views of any reflection order, and several
+cameras"): which key holds which unknown, the graph of every view, the estimate read back and the
+covariances, for data that the paper's tree does not describe (direct views, fixed mirrors, any order of
+reflections, no known target, several cameras). ``calibrate()`` drives it (``solver/calibrate.py``).
+
+Unknowns: one ``Pose3`` ``X(k)`` per camera (``T_cam_base``; not a variable for the first camera without
+a known target, whose frame is then the base frame), one ``Point3`` ``V(i)`` per placement (mirror vector
+in its owner camera's frame: the first camera, in ``cameras`` order, with an image that sees it) and one
+``Point3`` ``L(j)`` per reconstruction point (base frame). Measurements: ``factors/views.py``, one factor
+per image. Without a known target the scale is held by a prior of relative sigma :data:`SCALE_SIGMA` on
+the named distance (its variance is then ~1e-12 of the distance squared: the gauge held).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, V, X
+
+from mirror_fg.core.camera import Camera
+from mirror_fg.core.transform import covariance_from_pose3
+from mirror_fg.factors.views import ViewFactor, view_model
+from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.io.point_sigma import normalized_sigmas
+from mirror_fg.solver.propagation import Propagation, ViewObs, mirror_vector_in
+
+__all__ = ["SINGLE_CAMERA", "ViewProblem", "views_of", "camera_names"]
+
+#: The camera's name where a dataset gives one ``camera``.
+SINGLE_CAMERA = "camera"
+#: Relative standard deviation of the scale prior without a known target.
+SCALE_SIGMA = 1e-6
+
+Placement = tuple[int, int]
+
+
+def camera_names(dataset: Dataset) -> list[str]:
+    """The dataset's camera names in order (one ``camera`` is :data:`SINGLE_CAMERA`)."""
+    return list(dataset.cameras) if dataset.cameras is not None else [SINGLE_CAMERA]
+
+
+def _camera_name(image: Image) -> str:
+    return image.camera if image.camera is not None else SINGLE_CAMERA
+
+
+def views_of(dataset: Dataset) -> list[ViewObs]:
+    """Every image as a view, observations normalized with its own camera."""
+    views = []
+    for image in dataset.images:
+        normalized = dataset.normalized(image)
+        names = list(image.observations)
+        views.append(ViewObs(image.id, _camera_name(image), tuple(image.reflections), names,
+                             np.array([normalized[n] for n in names], dtype=float).reshape(-1, 2)))
+    return views
+
+
+@dataclass
+class ViewEstimate:
+    """Values of every unknown: poses ``{camera: (R, t)}``, mirror vectors (owner frames), points."""
+
+    poses: dict[str, tuple[np.ndarray, np.ndarray]]
+    mirror_vectors: dict[Placement, np.ndarray]
+    points: dict[str, np.ndarray]
+
+
+class ViewProblem:
+    """Keys, graph, estimate and covariances of a dataset in the general view model."""
+
+    def __init__(self, dataset: Dataset, robust: str | None = None):
+        self.dataset = dataset
+        self.cameras = camera_names(dataset)
+        self.views = views_of(dataset)
+        self.fixed: dict[str, tuple[np.ndarray, np.ndarray]] = (
+            {} if dataset.fiducials else {self.cameras[0]: (np.eye(3), np.zeros(3))})
+        seen = [v.camera for v in self.views]
+        self.pose_keys = {name: X(k) for k, name in enumerate(self.cameras) if name not in self.fixed and name in seen}
+        self.placements = sorted({p for v in self.views for p in v.reflections})
+        order = {name: k for k, name in enumerate(self.cameras)}
+        self.owners: dict[Placement, str] = {}
+        for p in self.placements:
+            self.owners[p] = min((v.camera for v in self.views if p in v.reflections), key=order.__getitem__)
+        self.mirror_keys = {p: V(i) for i, p in enumerate(self.placements)}
+        self.point_names = dataset.reconstruction_point_names
+        self.point_keys = {name: L(j) for j, name in enumerate(self.point_names)}
+        self.robust = robust
+        self.factors: list[ViewFactor] = []
+        for image, view in zip(dataset.images, self.views):
+            camera = dataset.camera_of(image)
+            sigmas = normalized_sigmas(camera, dataset.pixel_sigma, dataset.point_sigma, view.names).T
+            base = np.full((3, len(view.names)), np.nan)
+            landmarks = []
+            for k, name in enumerate(view.names):
+                if name in dataset.fiducials:
+                    base[:, k] = dataset.fiducials[name]
+                    landmarks.append(-1)
+                else:
+                    landmarks.append(self.point_keys[name])
+            self.factors.append(ViewFactor(view.camera, view.reflections, self.pose_keys, self.fixed, self.mirror_keys,
+                                           self.owners, base, landmarks, view.normalized.T, sigmas, robust))
+        self.constraints = 1 if dataset.scale is not None else 0
+
+    # ------------------------------------------------------------------ estimates
+    def estimate_from(self, known: Propagation) -> ViewEstimate:
+        """The propagation's base-frame planes as mirror vectors in their owners' frames."""
+        poses = {name: known.poses[name] for name in self.cameras if name in known.poses}
+        mirrors = {p: mirror_vector_in(known.planes[p], poses[self.owners[p]]) for p in self.placements}
+        points = {name: np.asarray(known.points[name], float) for name in self.point_names}
+        return self._scaled(ViewEstimate(poses, mirrors, points))
+
+    def _scaled(self, estimate: ViewEstimate) -> ViewEstimate:
+        """``estimate`` with the scale constraint met exactly (no known target), so LM starts on it."""
+        scale = self.dataset.scale
+        if scale is None:
+            return estimate
+        if scale.placement is not None:
+            length = float(np.linalg.norm(estimate.mirror_vectors[scale.placement]))
+        else:
+            a, b = scale.points  # type: ignore[misc]
+            length = float(np.linalg.norm(estimate.points[a] - estimate.points[b]))
+        f = scale.distance / length
+        return ViewEstimate({n: (R, t * f) for n, (R, t) in estimate.poses.items()},
+                            {p: v * f for p, v in estimate.mirror_vectors.items()},
+                            {n: x * f for n, x in estimate.points.items()})
+
+    def values(self, estimate: ViewEstimate) -> gtsam.Values:
+        values = gtsam.Values()
+        for name, key in self.pose_keys.items():
+            R, t = estimate.poses[name]
+            values.insert(key, gtsam.Pose3(gtsam.Rot3(R), np.asarray(t, float)))
+        for p, key in self.mirror_keys.items():
+            values.insert(key, np.asarray(estimate.mirror_vectors[p], float))
+        for name, key in self.point_keys.items():
+            values.insert(key, np.asarray(estimate.points[name], float))
+        return values
+
+    def read(self, values: gtsam.Values) -> ViewEstimate:
+        poses = dict(self.fixed)
+        for name, key in self.pose_keys.items():
+            pose = values.atPose3(key)
+            poses[name] = (pose.rotation().matrix(), np.asarray(pose.translation(), float))
+        return ViewEstimate(poses, {p: np.asarray(values.atPoint3(k), float) for p, k in self.mirror_keys.items()},
+                            {n: np.asarray(values.atPoint3(k), float) for n, k in self.point_keys.items()})
+
+    # ------------------------------------------------------------------ graph
+    def graph(self) -> gtsam.NonlinearFactorGraph:
+        graph = gtsam.NonlinearFactorGraph()
+        for factor in self.factors:
+            graph.add(factor.factor())
+        scale = self.dataset.scale
+        if scale is not None:
+            noise = gtsam.noiseModel.Isotropic.Sigma(1, SCALE_SIGMA * scale.distance)
+            if scale.placement is not None:
+                graph.add(gtsam.CustomFactor(noise, [self.mirror_keys[scale.placement]],
+                                             _length_error(scale.distance, False)))
+            else:
+                a, b = scale.points  # type: ignore[misc]
+                graph.add(gtsam.CustomFactor(noise, [self.point_keys[a], self.point_keys[b]],
+                                             _length_error(scale.distance, True)))
+        return graph
+
+    def name_of(self, key: int) -> str:
+        for name, k in self.pose_keys.items():
+            if k == key:
+                return f"camera {name!r}" if self.dataset.cameras is not None else "T_cam_base"
+        for (l, m), k in self.mirror_keys.items():
+            if k == key:
+                return f"mirror {l} placement {m}"
+        for name, k in self.point_keys.items():
+            if k == key:
+                return f"point '{name}'"
+        return gtsam.DefaultKeyFormatter(key)
+
+    # ------------------------------------------------------------------ residuals
+    def residuals(self, estimate: ViewEstimate) -> tuple[np.ndarray, np.ndarray, list[tuple[str, str]], list]:
+        """Per measurement (file order): residuals (N, 2) in pixels with a camera (else normalized), their
+        whitened norms (sigmas), ``(image, point)`` labels and ``(camera, reflections)`` views."""
+        residuals, whitened, labels, views = [], [], [], []
+        for image, view, factor in zip(self.dataset.images, self.views, self.factors):
+            B = factor.base_points.copy()
+            for k, name in enumerate(view.names):
+                if name in self.point_keys:
+                    B[:, k] = estimate.points[name]
+            z = view_model(view.camera, view.reflections, estimate.poses, estimate.mirror_vectors, self.owners, B)[0].T
+            whitened.append(np.linalg.norm((z - view.normalized) / factor.sigmas.T, axis=1))
+            camera: Camera | None = self.dataset.camera_of(image)
+            if camera is not None:
+                observed = np.array([image.observations[n] for n in view.names], dtype=float).reshape(-1, 2)
+                residuals.append(camera.distort(z) - observed)
+            else:
+                residuals.append(z - view.normalized)
+            labels.extend((image.id, n) for n in view.names)
+            views.extend([(image.camera, view.reflections)] * len(view.names))
+        return np.vstack(residuals), np.concatenate(whitened), labels, views
+
+    # ------------------------------------------------------------------ covariances
+    def covariances(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, estimate: ViewEstimate):
+        """``(pose covariances {camera: 6x6}, joint (6C, 6C), mirrors {p: 3x3}, points {name: 3x3})`` in
+        SPEC's conventions; a fixed camera's blocks are zero."""
+        marginals = gtsam.Marginals(graph, values)
+        keys = list(self.pose_keys.values())
+        joint = np.zeros((6 * len(self.cameras), 6 * len(self.cameras)))
+        if keys:
+            kv = gtsam.KeyVector()
+            for key in keys:
+                kv.append(key)
+            block = marginals.jointMarginalCovariance(kv).fullMatrix()
+            index = {name: k for k, name in enumerate(self.pose_keys)}
+            for i, a in enumerate(self.cameras):
+                for j, b in enumerate(self.cameras):
+                    if a in index and b in index:
+                        Ja = np.kron(np.eye(2), estimate.poses[a][0])
+                        Jb = np.kron(np.eye(2), estimate.poses[b][0])
+                        C = block[6 * index[a]:6 * index[a] + 6, 6 * index[b]:6 * index[b] + 6]
+                        joint[6 * i:6 * i + 6, 6 * j:6 * j + 6] = Ja @ C @ Jb.T
+        poses = {name: joint[6 * i:6 * i + 6, 6 * i:6 * i + 6].copy() for i, name in enumerate(self.cameras)}
+        for name in self.pose_keys:  # the diagonal blocks exactly as the single-camera path converts them
+            R = estimate.poses[name][0]
+            poses[name] = covariance_from_pose3(R, marginals.marginalCovariance(self.pose_keys[name]))
+        mirrors = {p: marginals.marginalCovariance(k) for p, k in self.mirror_keys.items()}
+        points = {n: marginals.marginalCovariance(k) for n, k in self.point_keys.items()}
+        return poses, joint, mirrors, points
+
+
+def _length_error(distance: float, between: bool):
+    """A scale factor's error: ``|v| - d`` (one key) or ``|a - b| - d`` (two keys)."""
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
+        keys = this.keys()
+        a = np.asarray(values.atPoint3(keys[0]), float)
+        diff = a - np.asarray(values.atPoint3(keys[1]), float) if between else a
+        length = float(np.linalg.norm(diff))
+        if jacobians is not None:
+            jacobians[0] = (diff / length).reshape(1, 3)
+            if between:
+                jacobians[1] = (-diff / length).reshape(1, 3)
+        return np.array([length - distance])
+    return error
