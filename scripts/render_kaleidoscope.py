@@ -88,6 +88,24 @@ def scene(target: str = "charuco") -> Kaleidoscope:
     return Kaleidoscope(dict(CAMERA), R, t, vectors, board, spec)
 
 
+def moved_camera(k: Kaleidoscope, R_rel: np.ndarray, t_rel: np.ndarray) -> Kaleidoscope:
+    """The same board and mirrors seen by a second camera with ``x_2 = R_rel x_1 + t_rel``: its
+    ``T_cam_base`` and its mirror vectors (eq. 3: the plane ``n . x = d`` has normal ``R_rel n`` and
+    distance ``d + (R_rel n) . t_rel`` in the second camera's frame)."""
+    vectors = {}
+    for l, v in k.mirror_vectors.items():
+        d = float(np.linalg.norm(v))
+        n = R_rel @ (v / d)
+        vectors[l] = (d + float(n @ t_rel)) * n
+    return Kaleidoscope(dict(k.camera), R_rel @ k.R_cam_base, R_rel @ k.t_cam_base + t_rel, vectors, k.target,
+                        k.target_dict)
+
+
+#: The rig's second camera (``--rig``): 4 cm to the first one's left and turned 2 degrees about y,
+#: ``x_right = R x_left + t``.
+RIG_R, RIG_T = so3_exp(np.radians([0.0, 2.0, 0.0])), np.array([0.04, 0.0, 0.0])
+
+
 def _sheet(board) -> tuple[float, float, float, float]:
     """The printed sheet (board and white margin) in the board frame: x0, x1, y0, y1 (metres)."""
     s, q = board.square, QUIET_SQUARES * board.square
@@ -191,12 +209,16 @@ def render(k: Kaleidoscope, seed: int = 0) -> tuple[np.ndarray, list[dict]]:
     return np.clip(np.round(encoded), 0, 255).astype(np.uint8), views
 
 
+def _image(file: str, views: list[dict], camera: str | None = None) -> dict:
+    return {"file": file, **({"camera": camera} if camera else {}),
+            "views": [{"roi": v["roi"], "reflections": v["reflections"]} for v in views]}
+
+
 def capture_dict(k: Kaleidoscope, views: list[dict], image_file: str = "kaleidoscope.png",
                  pixel_sigma: float = 0.1) -> dict:
     """The capture@1 of the photograph: one image with its ``views`` (roi and reflections each)."""
     return {"format": "mirror-fg/capture@1", "num_mirrors": 2, "camera": k.camera, "pixel_sigma": pixel_sigma,
-            "target": k.target_dict,
-            "images": [{"file": image_file, "views": [{"roi": v["roi"], "reflections": v["reflections"]} for v in views]}]}
+            "target": k.target_dict, "images": [_image(image_file, views)]}
 
 
 def truth_dict(k: Kaleidoscope, views: list[dict]) -> dict:
@@ -204,17 +226,32 @@ def truth_dict(k: Kaleidoscope, views: list[dict]) -> dict:
             "mirror_vectors": {str(l): v.tolist() for l, v in k.mirror_vectors.items()}, "views": views}
 
 
-def write(out: Path, target: str = "charuco", seed: int = 0) -> tuple[Path, dict]:
-    """Render into ``out``: the photograph, ``capture.yaml`` and ``truth.json``; the capture's path and the truth."""
+def write(out: Path, target: str = "charuco", seed: int = 0, rig: bool = False) -> tuple[Path, dict]:
+    """Render into ``out``: the photograph, ``capture.yaml`` and ``truth.json``; the capture's path and the
+    truth. ``rig``: two cameras (``left``, ``right``: :data:`RIG_R`, :data:`RIG_T`) photograph the same
+    kaleidoscope at once (``kaleidoscope_left.png``, ``kaleidoscope_right.png``; their views share the two
+    fixed placements); the truth is then ``{"left": ..., "right": ...}``."""
     import yaml
 
     out.mkdir(parents=True, exist_ok=True)
     k = scene(target)
-    image, views = render(k, seed)
-    cv2.imwrite(str(out / "kaleidoscope.png"), image)
+    if not rig:
+        image, views = render(k, seed)
+        cv2.imwrite(str(out / "kaleidoscope.png"), image)
+        capture, truth = capture_dict(k, views), truth_dict(k, views)
+    else:
+        cameras, images, truth = {}, [], {}
+        for index, (name, kc) in enumerate((("left", k), ("right", moved_camera(k, RIG_R, RIG_T)))):
+            image, views = render(kc, seed + index)
+            cv2.imwrite(str(out / f"kaleidoscope_{name}.png"), image)
+            cameras[name] = kc.camera
+            images.append(_image(f"kaleidoscope_{name}.png", views, name))
+            truth[name] = truth_dict(kc, views)
+        single = capture_dict(k, [])
+        capture = {"format": single["format"], "num_mirrors": 2, "cameras": cameras,
+                   **{key: single[key] for key in ("pixel_sigma", "target")}, "images": images}
     path = out / "capture.yaml"
-    path.write_text(yaml.safe_dump(capture_dict(k, views), sort_keys=False))
-    truth = truth_dict(k, views)
+    path.write_text(yaml.safe_dump(capture, sort_keys=False))
     (out / "truth.json").write_text(json.dumps(truth, indent=1))
     return path, truth
 
@@ -226,9 +263,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("out", type=Path)
     parser.add_argument("--target", choices=sorted(TARGETS), default="charuco")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--rig", action="store_true", help="two cameras photograph the kaleidoscope at once")
     args = parser.parse_args(argv)
-    path, truth = write(args.out, args.target, args.seed)
-    print(f"wrote {args.out}/kaleidoscope.png ({len(truth['views'])} views), {path.name}, truth.json")
+    path, _ = write(args.out, args.target, args.seed, args.rig)
+    print(f"wrote {args.out}: photograph{'s' if args.rig else ''}, {path.name}, truth.json")
     return 0
 
 

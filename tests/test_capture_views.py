@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import load_script
+from conftest import load_script, pose_difference
 import mirror_fg.vision.detect as detect_module
 from mirror_fg.core.camera import camera_from_dict
 from mirror_fg.core.errors import DatasetError
@@ -92,6 +92,24 @@ def test_views_keep_their_reflections_in_the_dataset(kaleidoscope):
     assert all("mirror_configs" not in im and "camera" not in im for im in data["images"])
     assert data["camera"]["width"] == 1600 and "cameras" not in data and data["num_mirrors"] == 2
     assert set(data["fiducials"]) >= set(data["images"][0]["observations"])
+
+
+def test_kaleidoscope_photograph_calibrates_to_the_truth(kaleidoscope):
+    """End to end: the views' dataset (the real parser) calibrated; pose and both fixed mirrors within 3 sigma."""
+    from mirror_fg import calibrate
+    from mirror_fg.io.capture import load_capture
+
+    kind, path, truth, _, _ = kaleidoscope
+    ds, _ = detect_capture(load_capture(path), progress=False)
+    assert [im.reflections for im in ds.images] == [tuple(map(tuple, v["reflections"])) for v in truth["views"]]
+    cal = calibrate(ds)
+    error = pose_difference(truth["R_cam_base"], truth["t_cam_base"], cal.R_cam_base, cal.t_cam_base)
+    sigma = np.sqrt(np.diag(cal.covariance))
+    print(f"{kind}: pose error / sigma {np.round(error / sigma, 2)}")
+    assert np.all(np.abs(error) < 3 * sigma), error / sigma
+    for mirror in cal.to_dict()["mirrors"]:
+        v_true = np.array(truth["mirror_vectors"][str(mirror["mirror"])])
+        assert np.all(np.abs(np.array(mirror["v"]) - v_true) < np.array(mirror["sigma3_mm"]) / 1000), mirror
 
 
 def test_mirrored_views_need_their_own_parity(kaleidoscope):
@@ -299,3 +317,31 @@ def test_rig_images_are_checked_against_their_own_camera(tmp_path, monkeypatch):
     message = str(info.value)
     assert "l: not found" in message and "r: not found" in message
     assert "wrong: refused: image is 640 x 480 pixels, the camera 320 x 240" in message
+
+
+def test_rendered_rig_kaleidoscope_detected_per_camera_and_calibrated(tmp_path, monkeypatch):
+    """Two cameras photograph the kaleidoscope at once: each photograph's views are detected with its own
+    camera, share the two fixed placements, and the rig calibrates to both cameras' true poses."""
+    from mirror_fg import calibrate
+    from mirror_fg.io.capture import load_capture
+
+    path, truth = render_kaleidoscope.write(tmp_path, "chessboard", rig=True)
+    capture = load_capture(path)
+    data, reports = detected_dict(capture, monkeypatch)
+    assert [r.status for r in reports] == [FOUND] * 10
+    assert list(data["cameras"]) == ["left", "right"] and "camera" not in data
+    for image in data["images"]:
+        name, k = image["id"].removeprefix("kaleidoscope_").split("#")
+        view = truth[name]["views"][int(k)]
+        assert image["camera"] == name and image["reflections"] == view["reflections"]
+        errors = [np.linalg.norm(np.subtract(image["observations"][n], view["pixels"][n])) for n in view["pixels"]]
+        assert max(errors) < 0.25, (image["id"], max(errors))
+    monkeypatch.undo()
+    ds, _ = detect_capture(capture, progress=False)
+    cal = calibrate(ds)
+    assert list(cal.cameras) == ["left", "right"]
+    for name, pose in cal.cameras.items():
+        error = pose_difference(truth[name]["R_cam_base"], truth[name]["t_cam_base"], pose.R_cam_base, pose.t_cam_base)
+        sigma = np.sqrt(np.diag(pose.covariance))
+        print(f"rig {name}: pose error / sigma {np.round(error / sigma, 2)}")
+        assert np.all(np.abs(error) < 3 * sigma), (name, error / sigma)
