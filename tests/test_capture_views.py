@@ -345,3 +345,46 @@ def test_rendered_rig_kaleidoscope_detected_per_camera_and_calibrated(tmp_path, 
         sigma = np.sqrt(np.diag(pose.covariance))
         print(f"rig {name}: pose error / sigma {np.round(error / sigma, 2)}")
         assert np.all(np.abs(error) < 3 * sigma), (name, error / sigma)
+
+
+def test_rig_cameras_from_one_camchain_and_input_files(tmp_path):
+    import yaml
+
+    chain = {f"cam{k}": {"camera_model": "pinhole", "intrinsics": [500.0 + k, 500.0, 319.5, 239.5],
+                         "distortion_model": "radtan", "distortion_coeffs": [0.0, 0.0, 0.0, 0.0],
+                         "resolution": [640, 480]} for k in range(2)}
+    (tmp_path / "camchain.yaml").write_text(yaml.safe_dump(chain))
+    cameras = {"left": {"file": "camchain.yaml", "name": "cam0"}, "right": {"file": "camchain.yaml", "name": "cam1"}}
+    cap = capture_from_dict(points_capture([
+        {"id": "l0", "camera": "left", "reflections": [[1, 0]], "observations": OBS},
+        {"id": "r0", "camera": "right", "reflections": [[1, 0]], "observations": OBS},
+    ], cameras=cameras), source="cap.yaml", base_dir=str(tmp_path))
+    assert (cap.cameras["left"]["fx"], cap.cameras["right"]["fx"]) == (500.0, 501.0)
+    assert cap.input_files() == [str(tmp_path / "camchain.yaml")]  # once; no capture file (built from a dict)
+
+
+def test_video_segments_take_reflections(tmp_path):
+    writer = cv2.VideoWriter(str(tmp_path / "run.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10, (64, 48), isColor=False)
+    for _ in range(6):
+        writer.write(np.full((48, 64), 128, np.uint8))
+    writer.release()
+    capture = board_capture(None, video={"file": "run.avi", "segments": [
+        {"frames": [0, 2], "reflections": [[1, "each"]]}, {"frames": [3, 5], "mirror_configs": [0, 1]}]})
+    del capture["images"]
+    cap = capture_from_dict(capture, source="cap.yaml", base_dir=str(tmp_path))
+    first, second = cap.video.segments
+    assert first.reflections == ((1, "each"),) and first.mirror_configs == ()
+    assert second.reflections == ((1, 0), (2, 1)) and second.mirror_configs == (0, 1)
+    outputs = [Output(f"run:{f}", s.mirror_configs, {}, s.reflections) for s in (first, second) for f in s.output_frames()]
+    assert expand_each(cap, outputs) == [{"reflections": [[1, 1]]}, {"reflections": [[1, 2]]}, {"reflections": [[1, 3]]}] \
+        + [{"mirror_configs": [0, 1]}] * 3
+    capture["video"]["segments"][0]["mirror_configs"] = [0, 0]
+    with pytest.raises(DatasetError, match=r"cap.yaml: video \(run.avi\): segments\[0\]: give mirror_configs or reflections"):
+        capture_from_dict(capture, source="cap.yaml", base_dir=str(tmp_path))
+
+
+def test_symmetric_chessboard_with_views_is_refused_in_one_line(photo):
+    capture = board_capture([{"file": "k.png", "views": [{"roi": [0, 0, 99, 99], "reflections": []}]}])
+    capture["target"] = {"kind": "chessboard", "cols": 5, "rows": 3, "square": 0.03}
+    with pytest.raises(DatasetError, match=r"^cap.yaml: target: a symmetric chessboard .* use a board with cols \+ rows odd"):
+        detect_capture(capture_from_dict(capture, source="cap.yaml", base_dir=str(photo)), progress=False)

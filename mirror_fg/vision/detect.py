@@ -157,6 +157,12 @@ def detect_capture(
     (kind, history of KLT and refined pixels with residuals; ``.sigma()``). Raises DatasetError when no
     image is kept, the video cannot be read, or the dataset is refused (as ``dataset_from_dict`` would).
     """
+    board = capture.target
+    if isinstance(board, ChessboardTarget) and board.symmetric and capture.images is not None and (
+            capture.cameras is not None or any(e.views is not None or not e.mirror_configs for e in capture.images)):
+        raise DatasetError(f"{capture.source}: target: a symmetric chessboard (cols + rows = {board.cols + board.rows}, "
+                           "even) is labelled across one camera's mirror_configs images only; with reflections, views "
+                           "or cameras use a board with cols + rows odd, or ChArUco")
     camera = dict(capture.camera)
     cameras = {None: camera} if capture.cameras is None else {n: dict(c) for n, c in capture.cameras.items()}
     outputs: list[Output] = []
