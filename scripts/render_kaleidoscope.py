@@ -33,6 +33,9 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from render_scene import srgb_encode  # noqa: E402
 
 from mirror_fg.core.geometry import nested_transform, so3_exp  # noqa: E402
 from mirror_fg.io.target import CharucoTarget, ChessboardTarget, target_from_dict  # noqa: E402
@@ -172,11 +175,6 @@ def _overlap(a, b) -> bool:
     return a[0] < b[0] + b[2] and b[0] < a[0] + a[2] and a[1] < b[1] + b[3] and b[1] < a[1] + a[3]
 
 
-def _srgb(linear: np.ndarray) -> np.ndarray:
-    x = np.clip(linear, 0.0, 1.0)
-    return 255.0 * np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-
-
 def render(k: Kaleidoscope, seed: int = 0) -> tuple[np.ndarray, list[dict]]:
     """The photograph (8-bit grey) and per view ``{reflections, roi, pixels: {name: [u, v]}}`` (truth)."""
     tex, board_to_texel = texture(k.target)
@@ -205,7 +203,7 @@ def render(k: Kaleidoscope, seed: int = 0) -> tuple[np.ndarray, list[dict]]:
         views.append({"reflections": [list(p) for p in reflections], "roi": list(roi), "pixels": pixels})
     linear = cv2.GaussianBlur(linear, (0, 0), BLUR_PX)
     rng = np.random.default_rng(seed)
-    encoded = _srgb(linear) + rng.normal(0.0, NOISE_GREY, linear.shape)
+    encoded = srgb_encode(linear) + rng.normal(0.0, NOISE_GREY, linear.shape)
     return np.clip(np.round(encoded), 0, 255).astype(np.uint8), views
 
 
