@@ -6,7 +6,7 @@ A capture file is YAML or JSON. Paths in it are relative to the capture file. To
     ``mirror-fg/capture@1``.
 ``num_mirrors``
     Integer >= 1: how many mirrors the light meets between the target and the camera.
-``camera``
+``camera`` (or a rig's ``cameras: {name: camera}``)
     Either the dataset@1 camera object (``model: pinhole`` or ``fisheye``, ``width``, ``height``, ``fx``,
     ``fy``, ``cx``, ``cy`` in pixels, OpenCV ``dist``: ``(k1, k2, p1, p2[, k3, ...])``, fisheye ``(k1, k2,
     k3, k4)``) or a path to a calibration file,
@@ -34,7 +34,8 @@ A capture file is YAML or JSON. Paths in it are relative to the capture file. To
     text with one ``name u v`` or ``u v`` per line (the latter in the order of the target's fiducials,
     like a hand-measured ``inputN.txt``). Names that are not fiducials are reconstruction points. The
     image id in the dataset is ``id`` if given, else the stem of ``file`` (else of the observations
-    file).
+    file). ``reflections`` instead of ``mirror_configs``, kaleidoscope ``views`` and a rig's ``camera``:
+    :mod:`mirror_fg.io.capture_views`.
 ``video``
     Instead of ``images``: ``{file, segments: [{frames: [first, last], mirror_configs, step?}]}`` with
     inclusive frame ranges (0-based) that do not overlap. Every frame of a segment is tracked (KLT,
@@ -62,16 +63,16 @@ from typing import Any
 
 import numpy as np
 
-from mirror_fg.core.camera import check_camera
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.io.camera_files import camera_from_file
-from mirror_fg.io.fileio import MAX_IMAGE_PIXELS, load_structured, open_video, resolve_path, video_frame_count
+from mirror_fg.io.capture_views import (
+    EACH, Config, Placement, ViewEntry, camera_entry, image_camera, image_placements, image_views, is_mirrored,
+    rig_cameras,
+)
+from mirror_fg.io.fileio import load_structured, open_video, resolve_path, video_frame_count
 from mirror_fg.io.observations import observations_from
 from mirror_fg.io.target import PointsTarget, TagTarget, Target, pose_from_dict, target_from_dict
 from mirror_fg.io.point_sigma import measurement_sigma
-from mirror_fg.core.values import (
-    MAX_INDEX, check_format, check_keys, finite, is_index, is_int, short, short_path, type_name, vector,
-)
+from mirror_fg.core.values import check_format, check_keys, finite, is_int, short, short_path, type_name, vector
 
 __all__ = [
     "CAPTURE_FORMAT",
@@ -90,8 +91,6 @@ __all__ = [
 CAPTURE_FORMAT = "mirror-fg/capture@1"
 #: Library messages (a capture loaded, at INFO); a child of the ``mirror_fg`` logger.
 _log = logging.getLogger(__name__)
-#: ``mirror_configs`` entry meaning "a placement of its own in this image / frame".
-EACH = "each"
 DEFAULT_PIXEL_SIGMA = 0.5
 #: Feature kinds a ``track:`` entry may name (mirror_fg.vision.tracking refines onto them; ``klt``, no
 #: refinement, is for the API only).
@@ -101,9 +100,6 @@ TRACK_FEATURES = ("corner", "blob", "dot", "template")
 # --------------------------------------------------------------------------------------------------
 # Value objects
 # --------------------------------------------------------------------------------------------------
-
-
-Config = int | str  # an integer placement or EACH
 
 
 @dataclass
@@ -119,6 +115,22 @@ class ImageEntry:
     label: str = "images[0]"
     #: Absolute path of the observations file, when the pixels come from one.
     observations_file: str | None = None
+    #: The placements the light meets, in order (:mod:`mirror_fg.io.capture_views`); ``mirror_configs``
+    #: is ``()`` when the image gave ``reflections`` (or ``views``) instead.
+    reflections: tuple[Placement, ...] = ()
+    #: A kaleidoscope photograph's views (each detected in its region of interest), else None.
+    views: list[ViewEntry] | None = None
+    #: The camera that took it (a capture with ``cameras``), else None.
+    camera: str | None = None
+
+    def __post_init__(self) -> None:
+        if not self.reflections and self.mirror_configs:
+            self.reflections = tuple((l + 1, m) for l, m in enumerate(self.mirror_configs))
+
+    @property
+    def mirrored(self) -> bool:
+        """Seen through an odd number of reflections (for an image with ``views``: per view)."""
+        return is_mirrored(self.reflections)
 
 
 @dataclass
@@ -130,6 +142,12 @@ class VideoSegment:
     mirror_configs: tuple[Config, ...]
     step: int = 1
     where: str = "video.segments[0]"
+    #: As :attr:`ImageEntry.reflections` (``mirror_configs`` is ``()`` when the segment gave these).
+    reflections: tuple[Placement, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.reflections and self.mirror_configs:
+            self.reflections = tuple((l + 1, m) for l, m in enumerate(self.mirror_configs))
 
     def output_frames(self) -> range:
         return range(self.first, self.last + 1, self.step)
@@ -182,11 +200,15 @@ class Capture:
     track: dict[str, TrackStart] = field(default_factory=dict)
     file: str | None = None
     camera_file: str | None = None
+    #: A rig's ``{name: camera}`` in the file's order (``camera`` is then the first), else None.
+    cameras: dict[str, dict[str, Any]] | None = None
+    #: The calibration file of each rig camera read from one.
+    camera_files: dict[str, str] = field(default_factory=dict)
 
     def input_files(self) -> list[str]:
         """Absolute paths of every file this capture reads, once each: the capture file, the camera file,
         then per image its image and observations files, or the video. Symbolic links are not resolved."""
-        paths = [self.file, self.camera_file]
+        paths = [self.file, self.camera_file, *self.camera_files.values()]
         for e in self.images or []:
             paths += [e.file, e.observations_file]
         if self.video is not None:
@@ -195,7 +217,9 @@ class Capture:
 
     @property
     def mirrored(self) -> bool:
-        """True when the target is seen through an odd number of mirrors (the image is mirror-imaged)."""
+        """True when the target is seen through an odd number of mirrors (the image is mirror-imaged), for
+        ``mirror_configs`` data; an image or view with ``reflections`` has its own (``ImageEntry.mirrored``,
+        :func:`~mirror_fg.io.capture_views.is_mirrored`)."""
         return self.num_mirrors % 2 == 1
 
     def fiducials(self) -> dict[str, np.ndarray]:
@@ -248,16 +272,24 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".", me
     camera, pixel_sigma, target and T_base_target only; images, video and track are not read (planning
     before the photographs exist)."""
     check_format(d, CAPTURE_FORMAT, source)
-    check_keys(d, ("format", "num_mirrors", "camera", "pixel_sigma", "target", "T_base_target", "images", "video",
-                   "track"), source)
+    check_keys(d, ("format", "num_mirrors", "camera", "cameras", "pixel_sigma", "target", "T_base_target", "images",
+                   "video", "track"), source)
 
     num_mirrors = d.get("num_mirrors")
     if not is_int(num_mirrors) or num_mirrors < 1:
         raise DatasetError(f"{source}: num_mirrors must be an integer >= 1, got {short(num_mirrors)}")
 
-    if "camera" not in d:
+    cameras, camera_files = None, {}
+    if d.get("cameras") is not None:
+        if "camera" in d:
+            raise DatasetError(f"{source}: give 'camera' (one camera) or 'cameras' (a rig, {{name: camera}}), not both")
+        cameras, camera_files = rig_cameras(d["cameras"], source, base_dir)
+        first = next(iter(cameras))
+        camera, camera_file = cameras[first], camera_files.get(first)
+    elif "camera" not in d:
         raise DatasetError(f"{source}: missing 'camera' (intrinsics, or a path to a calibration file)")
-    camera, camera_file = _camera(d["camera"], source, base_dir)
+    else:
+        camera, camera_file = camera_entry(d["camera"], f"{source}: camera", base_dir)
 
     pixel_sigma = measurement_sigma(d.get("pixel_sigma", DEFAULT_PIXEL_SIGMA), (camera["width"], camera["height"]),
                                     f"{source}: pixel_sigma")
@@ -288,6 +320,8 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".", me
         R_base_target=R,
         t_base_target=t,
         camera_file=camera_file,
+        cameras=cameras,
+        camera_files=camera_files,
     )
 
     if not media:
@@ -300,61 +334,22 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".", me
     else:
         if isinstance(target, PointsTarget):
             raise DatasetError(f"{source}: video: a points target needs 'images' with per-image observations")
+        if cameras is not None:
+            raise DatasetError(f"{source}: video: a rig ('cameras') needs 'images', each naming its camera")
         cap.video = _video(d["video"], cap, base_dir)
     if d.get("track") is not None:
         if cap.images is not None and any(e.file is None for e in cap.images):
             raise DatasetError(
                 f"{source}: track: tracking needs image files; without them give the pixels under each image's 'observations'"
             )
+        if cap.images is not None and any(e.views is not None for e in cap.images):
+            raise DatasetError(f"{source}: track: tracking through photographs with 'views' is not supported; "
+                               "track in photographs without views")
         cap.track = _track(d["track"], cap)
     return cap
 
 
-# --- camera ---------------------------------------------------------------------------------------
-
-
-def _camera(value: Any, source: str, base_dir: str) -> tuple[dict[str, Any], str | None]:
-    """The camera dictionary and the calibration file it was read from (None for inline intrinsics)."""
-    where = f"{source}: camera"
-    if isinstance(value, str) or (isinstance(value, Mapping) and "file" in value):
-        name = None
-        if isinstance(value, Mapping):
-            extra = sorted(str(k) for k in value if k not in ("file", "name"))
-            if extra:
-                raise DatasetError(f"{where}: unknown key {short(extra[0])} next to 'file' (expected 'name')")
-            name = value.get("name")
-            if name is not None and not isinstance(name, str):
-                raise DatasetError(f"{where}: name must be a camera name such as 'cam0', got {short(name)}")
-            value = value["file"]
-            if not isinstance(value, str) or not value:
-                raise DatasetError(f"{where}: file must be a path, got {short(value)}")
-        path = resolve_path(value, base_dir)
-        if not os.path.isfile(path):
-            raise DatasetError(f"{where}: calibration file {short_path(value)!r} not found")
-        return camera_from_file(path, name, f"{where} ({short_path(value)})"), path
-    if not isinstance(value, Mapping):
-        raise DatasetError(f"{where}: expected intrinsics or a path to a calibration file, got {type_name(value)}")
-    return check_camera(value, where, max_pixels=MAX_IMAGE_PIXELS, allow_unstarted=True), None
-
-
 # --- images, video, tracks --------------------------------------------------------------------------
-
-
-def _configs(value: Any, num_mirrors: int, where: str) -> tuple[Config, ...]:
-    if not isinstance(value, (list, tuple)):
-        raise DatasetError(f"{where}: mirror_configs must be a list of {num_mirrors} integers or 'each', got {short(value)}")
-    if len(value) != num_mirrors:
-        raise DatasetError(f"{where}: mirror_configs has {len(value)} entries, expected {num_mirrors} (num_mirrors)")
-    out: list[Config] = []
-    for l, m in enumerate(value):
-        if m == EACH:
-            out.append(EACH)
-        elif is_index(m):
-            out.append(int(m))
-        else:
-            raise DatasetError(f"{where}: mirror_configs[{l}] (mirror {l + 1}) must be a non-negative integer "
-                               f"(at most {MAX_INDEX}) or 'each', got {short(m)}")
-    return tuple(out)
 
 
 def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
@@ -369,7 +364,7 @@ def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
         where = f"{source}: images[{index}]"
         if not isinstance(e, Mapping):
             raise DatasetError(f"{where}: expected {{file, mirror_configs}}, got {type_name(e)}")
-        check_keys(e, ("file", "mirror_configs", "observations", "id"), where)
+        check_keys(e, ("file", "mirror_configs", "reflections", "views", "camera", "observations", "id"), where)
         file = e.get("file")
         path = None
         if file is not None:
@@ -381,9 +376,12 @@ def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
                 missing.append(where)
         elif not points_target:
             raise DatasetError(f"{where}: missing 'file' (the image)")
-        if "mirror_configs" not in e:
-            raise DatasetError(f"{where}: missing 'mirror_configs'")
-        configs = _configs(e["mirror_configs"], cap.num_mirrors, where)
+        camera_name = image_camera(e, cap.cameras, where)
+        if e.get("views") is None:
+            configs, reflections = image_placements(e, cap.num_mirrors, where)
+        elif points_target or e.get("observations") is not None or "mirror_configs" in e or "reflections" in e:
+            raise DatasetError(f"{where}: views: give each view its reflections, and detect them (a points target, "
+                               "or observations, go with images without views: one image per view, each with an 'id')")
         obs_value = e.get("observations")
         obs_file = None
         if obs_value is None:
@@ -407,7 +405,18 @@ def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
         seen[image_id] = f"images[{index}]"
         label = where.removeprefix(f"{source}: ")
         obs_path = resolve_path(obs_file, base_dir) if obs_file is not None else None
-        entries.append(ImageEntry(image_id, path, configs, observations, where, label, obs_path))
+        views = None
+        if e.get("views") is not None:
+            camera = cap.camera if cap.cameras is None else cap.cameras[str(camera_name)]
+            views = image_views(e["views"], image_id, cap.num_mirrors, (camera["width"], camera["height"]), where)
+            configs, reflections = (), ()
+            for view in views:  # the views are the dataset's images: their ids are unique too
+                if view.id in seen:
+                    raise DatasetError(f"{where}: {view.label.rsplit(' ', 1)[-1]}: image id {short(view.id)} is also "
+                                       f"that of {seen[view.id]}; give the view an 'id'")
+                seen[view.id] = view.label
+        entries.append(ImageEntry(image_id, path, configs or (), observations, where, label, obs_path,
+                                  reflections=reflections, views=views, camera=camera_name))
     if len(missing) == 1:
         raise DatasetError(f"{missing[0]}: image file not found")
     if missing:
@@ -439,7 +448,7 @@ def _video(v: Any, cap: Capture, base_dir: str) -> VideoSpec:
         sw = f"{where}: segments[{i}]"
         if not isinstance(s, Mapping):
             raise DatasetError(f"{sw}: expected {{frames, mirror_configs}}, got {type_name(s)}")
-        check_keys(s, ("frames", "mirror_configs", "step"), sw)
+        check_keys(s, ("frames", "mirror_configs", "reflections", "step"), sw)
         fr = s.get("frames")
         if not isinstance(fr, (list, tuple)) or len(fr) != 2 or not all(is_int(x) and x >= 0 for x in fr) or fr[0] > fr[1]:
             raise DatasetError(f"{sw}: frames must be [first, last] with 0 <= first <= last, got {short(fr)}")
@@ -448,10 +457,8 @@ def _video(v: Any, cap: Capture, base_dir: str) -> VideoSpec:
         step = s.get("step", 1)
         if not is_int(step) or step < 1:
             raise DatasetError(f"{sw}: step must be an integer >= 1, got {short(step)}")
-        if "mirror_configs" not in s:
-            raise DatasetError(f"{sw}: missing 'mirror_configs'")
-        configs = _configs(s["mirror_configs"], cap.num_mirrors, sw)
-        segments.append(VideoSegment(int(fr[0]), int(fr[1]), configs, int(step), where=sw))
+        configs, reflections = image_placements(s, cap.num_mirrors, sw)
+        segments.append(VideoSegment(int(fr[0]), int(fr[1]), configs or (), int(step), where=sw, reflections=reflections))
     ordered = sorted(segments, key=lambda s: s.first)
     for a, b in zip(ordered, ordered[1:]):
         if b.first <= a.last:

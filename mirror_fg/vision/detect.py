@@ -34,8 +34,9 @@ import cv2
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.io.capture import CAPTURE_FORMAT, EACH, Capture, ImageEntry, capture_from_file_data, open_video
-from mirror_fg.io.dataset import DATASET_FORMAT, Dataset, dataset_from_dict
+from mirror_fg.io.capture import CAPTURE_FORMAT, Capture, ImageEntry, capture_from_file_data, open_video
+from mirror_fg.io.capture_views import is_mirrored
+from mirror_fg.io.dataset import Dataset, dataset_from_dict
 from mirror_fg.io.fileio import MAX_IMAGE_PIXELS, load_structured, native_stderr
 from mirror_fg.io.output import OutputPlan
 from mirror_fg.io.target import CharucoTarget, ChessboardTarget, PointsTarget, TagTarget
@@ -52,6 +53,7 @@ from mirror_fg.vision.detectors import (
     detect_chessboard,
     detect_tags,
 )
+from mirror_fg.vision.detect_views import DatasetParts, Output, dataset_dict, detect_in_views
 from mirror_fg.vision.track_sigma import tracked_point_sigma
 from mirror_fg.vision.tracking import KLTParams, PointTracker, Track
 
@@ -121,13 +123,17 @@ class _Detector:
         self.aruco = aruco_detector(self.target) if isinstance(self.target, TagTarget) else None
         self.charuco = charuco_detector(self.target) if isinstance(self.target, CharucoTarget) else None
 
-    def __call__(self, gray: np.ndarray) -> Detection:
+    def __call__(self, gray: np.ndarray, mirrored: bool | None = None, camera: dict[str, Any] | None = None) -> Detection:
+        """Detect in ``gray`` seen through an odd number of reflections when ``mirrored`` (default: the
+        capture's ``num_mirrors``), checking the plane fit with ``camera`` (default: the bound one)."""
+        mirrored = self.capture.mirrored if mirrored is None else mirrored
+        camera = self.camera if camera is None else camera
         if isinstance(self.target, ChessboardTarget):
-            return detect_chessboard(gray, self.target, self.capture.mirrored, self.camera)
+            return detect_chessboard(gray, self.target, mirrored, camera)
         if isinstance(self.target, CharucoTarget):
-            return detect_charuco(gray, self.target, self.capture.mirrored, self.camera, self.charuco)
+            return detect_charuco(gray, self.target, mirrored, camera, self.charuco)
         if isinstance(self.target, TagTarget):
-            return detect_tags(gray, self.target, self.capture.mirrored, self.aruco)
+            return detect_tags(gray, self.target, mirrored, self.aruco)
         return Detection(status=NOT_FOUND, reason="a points target detects nothing")
 
 
@@ -136,37 +142,36 @@ class _Detector:
 # --------------------------------------------------------------------------------------------------
 
 
-@dataclass
-class _Output:
-    """A kept image before its ``each`` placements get their integers."""
-
-    id: str
-    configs: tuple[Any, ...]
-    points: dict[str, np.ndarray]
-
-
 def detect_capture(
     capture: Capture, progress: bool = True, tracks: dict[str, Track] | None = None
 ) -> tuple[Dataset, list[ImageReport]]:
     """Detect the target in every image (or video frame) of ``capture``.
 
     Returns the validated :class:`~mirror_fg.io.dataset.Dataset` (pixel observations with the capture's
-    camera, fiducials in the base frame, images with ids = file stems or ``stem:frame``, ``each``
-    placements expanded into fresh integers; ``source`` is ``capture.source``) and one
+    camera(s), fiducials in the base frame, images with ids = file stems or ``stem:frame`` (a view of a
+    photograph: ``stem#k``), ``each`` placements expanded into fresh integers
+    (:mod:`mirror_fg.vision.detect_views`); ``source`` is ``capture.source``) and one
     :class:`ImageReport` per image/frame in capture order. ``progress`` shows a tqdm bar on stderr when
     it is a terminal. An image that cannot be decoded, or is above MAX_IMAGE_PIXELS, is refused with the
     reason. ``tracks`` (optional, filled in): every ``track:`` point's :class:`~mirror_fg.vision.tracking.Track`
     (kind, history of KLT and refined pixels with residuals; ``.sigma()``). Raises DatasetError when no
     image is kept, the video cannot be read, or the dataset is refused (as ``dataset_from_dict`` would).
     """
+    board = capture.target
+    if isinstance(board, ChessboardTarget) and board.symmetric and capture.images is not None and (
+            capture.cameras is not None or any(e.views is not None or not e.mirror_configs for e in capture.images)):
+        raise DatasetError(f"{capture.source}: target: a symmetric chessboard (cols + rows = {board.cols + board.rows}, "
+                           "even) is labelled across one camera's mirror_configs images only; with reflections, views "
+                           "or cameras use a board with cols + rows odd, or ChArUco")
     camera = dict(capture.camera)
-    outputs: list[_Output] = []
+    cameras = {None: camera} if capture.cameras is None else {n: dict(c) for n, c in capture.cameras.items()}
+    outputs: list[Output] = []
     reports: list[ImageReport] = []
     show = bool(progress) and sys.stderr.isatty()
     gamma = getattr(capture.target, "image_gamma", "srgb")
     tracker = PointTracker(KLTParams(), default_kind="corner", image_gamma=gamma)
     if capture.images is not None:
-        _detect_images(capture, camera, outputs, reports, show, tracker)
+        _detect_images(capture, cameras, outputs, reports, show, tracker)
     else:
         _detect_video(capture, camera, outputs, reports, show, tracker)
     if tracks is not None:
@@ -177,27 +182,8 @@ def detect_capture(
         reasons = "; ".join(r.line() for r in reports[:3]) + ("; ..." if len(reports) > 3 else "")
         raise DatasetError(f"{capture.source}: the target was found in none of the {len(reports)} images ({reasons})"
                            + _size_hint(capture, reports))
-    if camera.get("width") is None or camera.get("height") is None:
-        raise DatasetError(f"{capture.source}: camera: no image size (give width and height)")
-
-    fiducials = capture.fiducials()
     point_sigma = tracked_point_sigma(capture, tracker.tracks, (n for out in outputs for n in out.points))
-    data = {
-        "format": DATASET_FORMAT,
-        "num_mirrors": capture.num_mirrors,
-        "camera": camera,
-        "pixel_sigma": capture.pixel_sigma,
-        **({"point_sigma": point_sigma} if point_sigma else {}),
-        "fiducials": {name: [float(x) for x in p] for name, p in fiducials.items()},
-        "images": [
-            {
-                "id": out.id,
-                "mirror_configs": configs,
-                "observations": {name: [float(p[0]), float(p[1])] for name, p in out.points.items()},
-            }
-            for out, configs in zip(outputs, _expand_each(capture, outputs))
-        ],
-    }
+    data = dataset_dict(capture, DatasetParts(cameras, outputs, point_sigma or {}))
     dataset = dataset_from_dict(data, source=capture.source)
     if isinstance(capture.target, ChessboardTarget) and capture.target.symmetric:
         dataset = _label_symmetric(dataset, capture, reports)
@@ -228,27 +214,6 @@ def _label_symmetric(dataset: Dataset, capture: Capture, reports: list[ImageRepo
             f"{capture.source}: no image of the symmetric {board.cols} x {board.rows} board could be labelled ({reasons})"
         )
     return labelled
-
-
-def _expand_each(capture: Capture, outputs: list[_Output]) -> list[list[int]]:
-    """``each`` -> fresh integers per mirror, above every integer the capture uses for that mirror."""
-    declared: list[tuple[Any, ...]] = (
-        [e.mirror_configs for e in capture.images] if capture.images is not None
-        else [s.mirror_configs for s in capture.video.segments]  # type: ignore[union-attr]
-    )
-    next_free = [
-        1 + max((c[l] for c in declared if c[l] != EACH), default=-1) for l in range(capture.num_mirrors)
-    ]
-    result = []
-    for out in outputs:
-        configs = []
-        for l, m in enumerate(out.configs):
-            if m == EACH:
-                m = next_free[l]
-                next_free[l] += 1
-            configs.append(int(m))
-        result.append(configs)
-    return result
 
 
 def _progress(total: int, unit: str, show: bool) -> Any:
@@ -293,22 +258,28 @@ def _size_hint(capture: Capture, reports: list[ImageReport]) -> str:
     entry = next((e for e in capture.images if e.id in missed and e.file is not None), None)
     if entry is None:
         return ""
-    gray = _read_gray(entry)[0]
-    return "" if gray is None else f"; {chessboard_size_hint(gray, capture.target, capture.mirrored, entry.id)}"
+    gray = _read_gray(entry)[0] if entry.views is None else None  # a kaleidoscope's views: no hint
+    return "" if gray is None else f"; {chessboard_size_hint(gray, capture.target, entry.mirrored, entry.id)}"
 
 
 def _detect_images(
-    capture: Capture, camera: dict[str, Any], outputs: list[_Output], reports: list[ImageReport], show: bool,
-    tracker: PointTracker,
+    capture: Capture, cameras: dict[str | None, dict[str, Any]], outputs: list[Output], reports: list[ImageReport],
+    show: bool, tracker: PointTracker,
 ) -> None:
-    """Each image detected on its own; ``track:`` points followed through the images in list order."""
-    detector = _Detector(capture, camera)
+    """Each image detected on its own (a photograph with views: each view in its region);
+    ``track:`` points followed through the images in list order."""
+    detectors = {name: _Detector(capture, camera) for name, camera in cameras.items()}
     entries: list[ImageEntry] = capture.images or []
     starts = _track_starts(capture)
     cuts: list[str] = []
     with _progress(len(entries), "image", show) as bar:
         for index, entry in enumerate(entries):
-            det = _detect_entry(entry, detector, capture, camera)
+            camera = cameras[entry.camera]
+            if entry.views is not None:
+                _detect_views(entry, detectors[entry.camera], camera, outputs, reports)
+                bar.update(1)
+                continue
+            det = _detect_entry(entry, detectors[entry.camera], capture, camera)
             if capture.track:
                 gray = _read_gray(entry)[0] if det.status != REFUSED else None  # decoded again: tracking only
                 if gray is None:
@@ -324,12 +295,32 @@ def _detect_images(
                     det.reason = "; ".join(([det.reason] if det.reason else []) + cuts)
                     cuts = []
             if det.status == FOUND and det.points:
-                outputs.append(_Output(entry.id, entry.mirror_configs, det.points))
+                outputs.append(Output(entry.id, entry.mirror_configs, det.points, entry.reflections, entry.camera))
                 _report(reports, ImageReport(entry.id, FOUND, det.reason, len(det.points)))
             else:
                 status = det.status if det.status != FOUND else NOT_FOUND
                 _report(reports, ImageReport(entry.id, status, det.reason or "no observations"))
             bar.update(1)
+
+
+def _detect_views(entry: ImageEntry, detector: _Detector, camera: dict[str, Any], outputs: list[Output],
+                  reports: list[ImageReport]) -> None:
+    """A kaleidoscope photograph: one output and one report per view (ids ``stem#k``); a photograph
+    that cannot be read or is of another size refuses all its views with the reason."""
+    gray, why = _read_gray(entry)
+    why = why or (_check_size(gray, camera) if gray is not None else "")
+    if gray is None or why:
+        for view in entry.views or []:
+            _report(reports, ImageReport(view.id, REFUSED, why))
+        return
+    for view, det in detect_in_views(entry, gray, detector, camera):
+        if det.status == FOUND and det.points:
+            outputs.append(Output(view.id, view.mirror_configs or (), det.points, view.reflections, entry.camera,
+                                  group=entry.id))
+            _report(reports, ImageReport(view.id, FOUND, det.reason, len(det.points)))
+        else:
+            _report(reports, ImageReport(view.id, det.status if det.status != FOUND else NOT_FOUND,
+                                         det.reason or "no observations"))
 
 
 def _detect_entry(entry: ImageEntry, detector: _Detector, capture: Capture, camera: dict[str, Any]) -> Detection:
@@ -346,7 +337,7 @@ def _detect_entry(entry: ImageEntry, detector: _Detector, capture: Capture, came
     mismatch = _check_size(gray, camera)
     if mismatch:
         return Detection(status=REFUSED, reason=mismatch)
-    det = detector(gray)
+    det = detector(gray, entry.mirrored)
     if det.status != FOUND:
         if entry.observations:  # the given points alone
             return Detection(points=dict(entry.observations), reason=f"{det.reason}; given observations only")
@@ -398,7 +389,7 @@ def _too_large(path: str) -> str:
 
 
 def _detect_video(
-    capture: Capture, camera: dict[str, Any], outputs: list[_Output], reports: list[ImageReport], show: bool,
+    capture: Capture, camera: dict[str, Any], outputs: list[Output], reports: list[ImageReport], show: bool,
     tracker: PointTracker,
 ) -> None:
     video = capture.video
@@ -442,7 +433,7 @@ def _detect_video(
                     if mismatch:
                         raise DatasetError(f"{where}: {mismatch}")
                     cuts += _cut_notes(tracker, tracker.step(gray, index=frame), capture)
-                    det = detector(gray)
+                    det = detector(gray, is_mirrored(seg.reflections))
                     for name, p in det.points.items():
                         tracker.set(name, p, kind="corner")  # tag and chessboard corners
                     _start_tracks(tracker, starts.get(frame, []))
@@ -464,7 +455,7 @@ def _detect_video(
                     elif det.reason:
                         notes.append(det.reason)
                     notes, cuts = notes + cuts, []
-                    outputs.append(_Output(frame_id, seg.mirror_configs, points))
+                    outputs.append(Output(frame_id, seg.mirror_configs, points, seg.reflections))
                     _report(reports, ImageReport(frame_id, FOUND, "; ".join(notes), len(points)))
     finally:
         vc.release()
