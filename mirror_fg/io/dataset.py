@@ -307,6 +307,16 @@ def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Datase
 _STARTED = ("fx", "fy", "cx", "cy")
 
 
+def _parity(ds: Dataset, where: str) -> bool:
+    """Whether every image is mirror-imaged (an odd number of reflections), for intrinsics started from the
+    photographs; refused where images of both parities mix (give fx, fy, cx, cy then)."""
+    odd = {len(image.reflections) % 2 == 1 for image in ds.images}
+    if len(odd) > 1:
+        raise DatasetError(f"{where}: give fx, fy, cx and cy: they are started from the photographs only when every "
+                           "image sees the target through an even number of reflections, or every one through an odd")
+    return odd.pop()
+
+
 def _start_camera(ds: Dataset, checked: dict[str, Any]) -> None:
     """Give ``ds`` its camera with fx, fy, cx, cy started from its pixel observations (issue 16), then
     validate its images again with it (image bounds, normalization).
@@ -316,7 +326,7 @@ def _start_camera(ds: Dataset, checked: dict[str, Any]) -> None:
     where = f"{ds.source}: camera"
     start = initial_intrinsics(
         checked["width"], checked["height"], ds.fiducials, [image.observations for image in ds.images],
-        mirrored=ds.num_mirrors % 2 == 1, given={k: checked[k] for k in _STARTED}, dist=tuple(checked["dist"]),
+        mirrored=_parity(ds, where), given={k: checked[k] for k in _STARTED}, dist=tuple(checked["dist"]),
         where=where, free_k1="k1" in checked.get("estimate", ()),
     )
     ds.camera = Camera(

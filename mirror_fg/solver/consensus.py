@@ -115,7 +115,8 @@ def _check_pnp(
     points = np.array([dataset.fiducials[n] for n in names])
     normalized = dataset.normalized(image)
     observed = np.array([normalized[n] for n in names])
-    minima = pnp_minima(points, observed, dataset.num_mirrors)
+    parity = len(image.reflections)  # eq. (11): an odd number of reflections flips the image
+    minima = pnp_minima(points, observed, parity)
     errors = _whitened_errors(dataset, *minima[0], points, observed) if minima else np.full(len(names), np.inf)
     if np.all(errors <= PNP_POINT_SIGMAS):
         best_cost = float(np.sum(errors**2))
@@ -128,10 +129,10 @@ def _check_pnp(
     finite = errors[np.isfinite(errors)]
     rms = float(np.sqrt(np.mean(finite**2))) if len(finite) else float("inf")
     threshold = PNP_POINT_SIGMAS * float(np.mean(dataset.normalized_sigma))
-    inliers = _ransac_inliers(points, observed, dataset.num_mirrors, threshold)
+    inliers = _ransac_inliers(points, observed, parity, threshold)
     pose: tuple[np.ndarray, np.ndarray] | None = None
     if inliers is not None and len(inliers) >= max(4, len(names) // 2):  # then judged by the refit's errors
-        refit = pnp_candidates(points[inliers], observed[inliers], dataset.num_mirrors)
+        refit = pnp_candidates(points[inliers], observed[inliers], parity)
         if refit:
             pose = refit[0]
             errors = _whitened_errors(dataset, *pose, points, observed)
@@ -200,6 +201,8 @@ def check_images(dataset: Dataset) -> ImageChecks:
     for image in dataset.images:
         names = fiducial_names(dataset, image)
         if len(names) == 3:
+            if not dataset.is_tree:  # P3P's candidates feed only the tree's analytical solution
+                continue
             normalized = dataset.normalized(image)
             three.append((image.id, (np.array([dataset.fiducials[n] for n in names]),
                                      np.array([normalized[n] for n in names]))))
@@ -232,7 +235,7 @@ def screen(dataset: Dataset, seed: int = 0, checked: ImageChecks | None = None) 
     behind = _seen_from_behind(dataset, candidates, normal) if normal is not None and candidates else set()
     reduced = without(dataset, excluded) if excluded else dataset
     nodes: dict[tuple[int, ...], list[Image]] = defaultdict(list)
-    for image in reduced.images:
+    for image in reduced.images if dataset.is_tree else ():  # steps 2-3 compare placements of the tree
         if image.id in candidates:
             nodes[image.mirror_configs[:-1]].append(image)
     rng = np.random.default_rng(seed)

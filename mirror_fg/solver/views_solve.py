@@ -14,7 +14,7 @@ import numpy as np
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.calibration import Calibration, CameraPose, EstimatedCamera, Exclusion
-from mirror_fg.solver.consensus import final_check, without
+from mirror_fg.solver.consensus import final_check, screen, without
 from mirror_fg.solver.lm import cost_scale, lm_params, run_optimizer
 from mirror_fg.solver.options import STAGES, SolveOptions
 from mirror_fg.solver.propagation import Unsolvable, propagate
@@ -125,7 +125,8 @@ def calibrate_views(dataset: Dataset, initial=None, options: SolveOptions | None
     options = options or SolveOptions()
     models = _intrinsics_models(dataset)
     if not models:
-        return _finish(_solve(dataset, initial, options, {}, []), options)
+        screened, excluded, _ = screen(dataset)  # each image's own PnP fit (wrong corner order, gross corners)
+        return _finish(_solve(screened, initial, options, {}, excluded), options)
     first = _solve(_fixed_intrinsics(dataset), initial, replace(options, compute_covariance=False), {}, [])
     solved = without(dataset, first.excluded) if first.excluded else dataset
     joint = _solve(solved, first.estimate, options, models, list(first.excluded))
