@@ -1,0 +1,141 @@
+"""result@1 of several cameras (``cameras``, ``rig``, ``mirrors[].camera``): written from a synthetic
+multi-camera Calibration, read back through the validator, tied together; refused where inconsistent."""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from mirror_fg.core.errors import DatasetError
+from mirror_fg.core.transform import Transform
+from mirror_fg.io.result import load_result, result_dict, validate_result, write_result
+from mirror_fg.solver.rig import rig_jacobian
+from rig_calibration import NAMES, rig_calibration
+
+
+@pytest.mark.parametrize("suffix", [".json", ".yaml"])
+def test_a_result_with_cameras_round_trips(tmp_path, suffix):
+    calibration = rig_calibration(0)
+    result = result_dict(calibration)
+    path = tmp_path / f"calib{suffix}"
+    write_result(path, result)
+    loaded = load_result(path)
+    assert loaded == validate_result(json.loads(json.dumps(result)), "again")
+    assert list(loaded["cameras"]) == list(NAMES)  # the dataset's order
+    assert [(r["from"], r["to"]) for r in loaded["rig"]] == [("left", "right"), ("right", "wrist")]
+    assert [m["camera"] for m in loaded["mirrors"]] == [calibration.mirror_frames[(m["mirror"], m["config"])]
+                                                        for m in loaded["mirrors"]]
+    # The first camera is the top-level pose.
+    assert loaded["cameras"]["left"]["T_cam_base"] == loaded["T_cam_base"]
+
+
+def test_camera_entries_hold_each_camera_with_its_own_bounds():
+    calibration = rig_calibration(1)
+    result = result_dict(calibration)
+    for name, pose in calibration.cameras.items():
+        entry = result["cameras"][name]
+        T = Transform(pose.R_cam_base, pose.t_cam_base)
+        assert np.allclose(entry["T_base_cam"]["R"], T.inverse().R, atol=0, rtol=0)
+        assert np.allclose(entry["T_base_cam"]["t"], T.inverse().t, atol=1e-15)
+        assert np.allclose(entry["covariance_cam_base"], pose.covariance, rtol=0, atol=0)
+        assert np.allclose(entry["covariance_base_cam"], pose.covariance_base_cam, rtol=1e-15)
+        sd3 = 3 * np.sqrt(np.diag(pose.covariance_base_cam))
+        assert np.allclose(entry["sigma3_base_cam"]["rotation_deg"], np.degrees(sd3[:3]))
+        assert np.allclose(entry["sigma3_base_cam"]["position_mm"], 1e3 * sd3[3:])
+    assert result["cameras"]["left"]["camera"]["estimated"] == ["fx", "fy", "cx", "cy"]
+    assert result["cameras"]["left"]["camera"]["sigma3"] == {"fx": 6.0, "fy": 6.0, "cx": 3.0, "cy": 3.0}
+    kept = result["cameras"]["wrist"]["camera"]
+    assert kept["estimated"] == [] and kept["model"] == "fisheye" and kept["dist"] == [0.02, -0.01, 0.003, -0.001]
+
+
+def test_rig_entries_are_the_propagation_of_the_joint_covariance():
+    calibration = rig_calibration(2)
+    result = result_dict(calibration)
+    poses = [(p.R_cam_base, p.t_cam_base) for p in calibration.cameras.values()]
+    P = calibration.camera_pose_covariance
+    for n, entry in enumerate(result["rig"], start=1):
+        (R_a, t_a), (R_b, t_b) = poses[n - 1], poses[n]
+        assert np.allclose(entry["T"]["R"], R_b @ R_a.T, atol=1e-15)
+        assert np.allclose(entry["T"]["t"], t_b - R_b @ R_a.T @ t_a, atol=1e-15)
+        J = rig_jacobian(R_a, t_a, R_b, t_b)
+        block = P[6 * (n - 1): 6 * n + 6, 6 * (n - 1): 6 * n + 6]
+        assert np.allclose(entry["covariance"], J @ block @ J.T, rtol=1e-12, atol=1e-22)
+        sd3 = 3 * np.sqrt(np.diag(J @ block @ J.T))
+        assert np.allclose(entry["sigma3"]["rotation_deg"], np.degrees(sd3[:3]))
+        assert np.allclose(entry["sigma3"]["position_mm"], 1e3 * sd3[3:])
+
+
+def test_without_covariances_the_cameras_and_rig_have_none():
+    result = validate_result(result_dict(rig_calibration(3, covariance=False)), "r")
+    assert all(e["covariance_cam_base"] is None and e["sigma3_base_cam"] is None for e in result["cameras"].values())
+    assert all(r["covariance"] is None and r["sigma3"] is None for r in result["rig"])
+
+
+def test_a_single_camera_result_has_no_rig_keys():
+    single = dataclasses.replace(rig_calibration(4), cameras=None, camera_pose_covariance=None, rig=[], mirror_frames={})
+    result = result_dict(single)
+    assert "cameras" not in result and "rig" not in result
+    assert all("camera" not in m for m in result["mirrors"])
+
+
+def test_result_dict_refuses_a_calibration_whose_rig_or_frames_the_solver_left_out():
+    calibration = rig_calibration(5)
+    with pytest.raises(ValueError, match="not the chain"):
+        result_dict(dataclasses.replace(calibration, rig=[]))
+    frames = dict(calibration.mirror_frames)
+    del frames[(1, 2)]
+    with pytest.raises(ValueError, match="mirror 1 config 2 has no camera frame"):
+        result_dict(dataclasses.replace(calibration, mirror_frames=frames))
+
+
+def _edit(result, path, value):
+    out = copy.deepcopy(result)
+    node = out
+    for key in path[:-1]:
+        node = node[key]
+    if value is KeyError:
+        del node[path[-1]]
+    else:
+        node[path[-1]] = value
+    return out
+
+
+@pytest.mark.parametrize("path, value, words", [
+    (("rig", 0, "from"), "wrist", r"rig\[0\]: from 'wrist' to 'right', expected from 'left' to 'right'"),
+    (("rig", 1, "T", "t"), [9.0, 9.0, 9.0], r"rig\[1\]\.T: not T_cam_base of 'wrist' times the inverse"),
+    (("rig",), [], r"rig: expected 2 entries"),
+    (("mirrors", 2, "camera"), "head", r"mirrors\[2\]\.camera: names camera 'head', not one of the cameras"),
+    (("mirrors", 0, "camera"), KeyError, r"mirrors\[0\]\.camera: missing"),
+    (("cameras", "right", "T_base_cam", "t"), [0.0, 0.0, 0.0], r"cameras\.right\.T_base_cam: not the inverse"),
+    (("cameras", "left"), {"T_cam_base": {"R": np.eye(3).tolist(), "t": [1.0, 2.0, 3.0]}},
+     r"cameras\.left\.T_cam_base: the first camera is not the top-level T_cam_base"),
+    (("cameras",), {}, r"cameras: expected at least one camera"),
+    (("rig", 0, "covariance"), [[1.0] * 5] * 6, r"rig\[0\]\.covariance\[0\]: expected 6 numbers"),
+    (("cameras", "wrist", "camera", "fx"), -1.0, r"cameras\.wrist\.camera\.fx: expected a number >= "),
+])
+def test_inconsistent_rig_results_are_refused(path, value, words):
+    result = result_dict(rig_calibration(6))
+    result = json.loads(json.dumps(result))
+    validate_result(result, "calib.json")
+    with pytest.raises(DatasetError, match=r"^calib\.json: " + words):
+        validate_result(_edit(result, path, value), "calib.json")
+
+
+def test_a_covariance_base_cam_of_another_camera_is_refused():
+    result = json.loads(json.dumps(result_dict(rig_calibration(7))))
+    result["cameras"]["right"]["covariance_base_cam"] = result["cameras"]["wrist"]["covariance_base_cam"]
+    with pytest.raises(DatasetError, match=r"cameras\.right\.covariance_base_cam: does not match"):
+        validate_result(result, "calib.json")
+
+
+def test_rig_or_mirror_camera_without_cameras_is_refused():
+    single = dataclasses.replace(rig_calibration(8), cameras=None, camera_pose_covariance=None, rig=[], mirror_frames={})
+    result = json.loads(json.dumps(result_dict(single)))
+    with pytest.raises(DatasetError, match="rig: a rig without cameras"):
+        validate_result({**result, "rig": result_dict(rig_calibration(8))["rig"]}, "calib.json")
+    result["mirrors"][0]["camera"] = "left"
+    with pytest.raises(DatasetError, match=r"mirrors\[0\]\.camera: names camera 'left' but the result has no cameras"):
+        validate_result(result, "calib.json")
