@@ -139,3 +139,120 @@ def test_rig_or_mirror_camera_without_cameras_is_refused():
     result["mirrors"][0]["camera"] = "left"
     with pytest.raises(DatasetError, match=r"mirrors\[0\]\.camera: names camera 'left' but the result has no cameras"):
         validate_result(result, "calib.json")
+
+
+# --------------------------------------------------------------------------------------------------
+# Kalibr camchain (io.camchain), read the way Kalibr's ConfigReader reads it
+# --------------------------------------------------------------------------------------------------
+
+
+class KalibrCamchain:
+    """A few lines of Kalibr's ``CameraChainParameters`` / ``CameraParameters`` (kalibr_common/ConfigReader.py):
+    the same keys, the same checks, the same chain composition (kalibr_camera_validator)."""
+
+    def __init__(self, path):
+        import yaml
+
+        with open(path) as f:
+            self.data = yaml.safe_load(f)
+
+    def numCameras(self):
+        return len(self.data)  # Kalibr: every top-level key is a camera
+
+    def camera(self, nr):
+        cam = self.data[f"cam{nr}"]
+        assert cam["camera_model"] == "pinhole"
+        fu, fv, pu, pv = cam["intrinsics"]  # checkIntrinsics: 4 floats, non-negative
+        assert all(isinstance(x, float) and x >= 0.0 for x in (fu, fv, pu, pv))
+        assert len(cam["distortion_coeffs"]) == {"radtan": 4, "equidistant": 4, "fov": 1, "none": 0}[cam["distortion_model"]]
+        w, h = cam["resolution"]
+        assert isinstance(w, int) and isinstance(h, int)
+        assert isinstance(cam["rostopic"], str)
+        assert all(c < self.numCameras() for c in cam["cam_overlaps"])
+        return cam
+
+    def getExtrinsicsLastCamToHere(self, nr):
+        assert nr > 0, "can't get extrinsics for first camera in chain (cam0=base)"
+        T = np.array(self.data[f"cam{nr}"]["T_cn_cnm1"], dtype=float)
+        assert T.shape == (4, 4) and np.allclose(T[3], [0, 0, 0, 1])
+        return T
+
+    def T_high_low(self, low, high):
+        """kalibr_camera_validator: ``T_high_low = baseline_HL * T_high_low`` over the chain."""
+        T = np.eye(4)
+        for cidx in range(low, high):
+            T = self.getExtrinsicsLastCamToHere(cidx + 1) @ T
+        return T
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_camchain_loads_in_kalibrs_conventions_and_holds_the_rig(tmp_path, seed):
+    from mirror_fg.io.camchain import camchain_texts
+
+    calibration = rig_calibration(seed)
+    result = result_dict(calibration)
+    texts = camchain_texts(result, tmp_path / "calib.json")
+    assert sorted(texts) == [str(tmp_path / "calib.camchain-sigma.yaml"), str(tmp_path / "calib.camchain.yaml")]
+    for path, text in texts.items():
+        (tmp_path / path).write_text(text)
+    chain = KalibrCamchain(tmp_path / "calib.camchain.yaml")
+    assert chain.numCameras() == 3
+    poses = [Transform(p.R_cam_base, p.t_cam_base).matrix() for p in calibration.cameras.values()]
+    for n in range(3):
+        cam = chain.camera(n)
+        intrinsics = calibration.cameras[NAMES[n]].camera
+        assert cam["intrinsics"] == [intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy]
+        assert cam["resolution"] == [intrinsics.width, intrinsics.height]
+        assert cam["rostopic"] == f"/{NAMES[n]}/image_raw"
+    assert chain.camera(0)["distortion_model"] == "radtan" and chain.camera(0)["distortion_coeffs"] == [-0.11, 0.08, 1e-4, -2e-4]
+    assert chain.camera(2)["distortion_model"] == "equidistant"
+    assert chain.camera(2)["distortion_coeffs"] == [0.02, -0.01, 0.003, -0.001]
+    points = np.random.default_rng(seed).normal(size=(5, 3))
+    homogeneous = np.c_[points, np.ones(5)]
+    in_camera = [homogeneous @ T.T for T in poses]
+    for n in (1, 2):
+        T = chain.getExtrinsicsLastCamToHere(n)
+        rig = result["rig"][n - 1]
+        assert np.allclose(T[:3, :3], rig["T"]["R"], atol=1e-15) and np.allclose(T[:3, 3], rig["T"]["t"], atol=1e-15)
+        assert np.allclose(in_camera[n - 1] @ T.T, in_camera[n], atol=1e-12)  # T_cn_cnm1: from n-1 into n
+    assert np.allclose(in_camera[0] @ chain.T_high_low(0, 2).T, in_camera[2], atol=1e-12)
+
+
+def test_camchain_sigma_file_holds_the_rig_and_intrinsics_standard_deviations(tmp_path):
+    import yaml
+
+    from mirror_fg.io.camchain import camchain_texts
+
+    calibration = rig_calibration(4)
+    result = result_dict(calibration)
+    texts = camchain_texts(result, tmp_path / "calib.json")
+    sigma = yaml.safe_load(texts[str(tmp_path / "calib.camchain-sigma.yaml")])
+    assert [sigma[f"cam{n}"]["name"] for n in range(3)] == list(NAMES)
+    assert sigma["cam0"]["intrinsics_sigma"] == [2.0, 2.0, 1.0, 1.0]  # sqrt of the estimated variances
+    assert sigma["cam1"]["intrinsics_sigma"] == [None] * 4  # kept, not estimated
+    for n in (1, 2):
+        rig = calibration.rig[n - 1]
+        sd = np.sqrt(np.diag(rig.covariance))
+        assert sigma[f"cam{n}"]["T_cn_cnm1_from"] == NAMES[n - 1]
+        assert np.allclose(sigma[f"cam{n}"]["T_cn_cnm1_sigma"]["rotation_deg"], np.degrees(sd[:3]), rtol=1e-12)
+        assert np.allclose(sigma[f"cam{n}"]["T_cn_cnm1_sigma"]["position_mm"], 1e3 * sd[3:], rtol=1e-12)
+        assert np.allclose(sigma[f"cam{n}"]["T_cn_cnm1_sigma3"]["position_mm"], 3e3 * sd[3:], rtol=1e-12)
+        assert np.allclose(sigma[f"cam{n}"]["T_cn_cnm1_covariance"], rig.covariance, rtol=1e-12)
+
+
+def test_camchain_refuses_a_result_without_cameras_and_notes_dropped_terms(tmp_path):
+    from mirror_fg.core.camera import Camera
+    from mirror_fg.io.camchain import camchain_texts
+
+    single = dataclasses.replace(rig_calibration(5), cameras=None, camera_pose_covariance=None, rig=[], mirror_frames={})
+    with pytest.raises(DatasetError, match=r"calib\.json: a camchain needs a result with cameras"):
+        camchain_texts(result_dict(single), tmp_path / "calib.json")
+    calibration = rig_calibration(5)
+    right = calibration.cameras["right"]
+    calibration.cameras["right"] = dataclasses.replace(right, camera=Camera(640, 480, 500.0, 500.0, 320.0, 240.0,
+                                                                            (0.1, 0.01, 0.0, 0.0, 0.25)))
+    text = camchain_texts(result_dict(calibration), tmp_path / "calib.json")[str(tmp_path / "calib.camchain.yaml")]
+    assert "# cam1: OpenCV distortion terms beyond Kalibr's four left out: [0.25]" in text
+    calibration.cameras["right"] = dataclasses.replace(right, camera=None)
+    with pytest.raises(DatasetError, match="camera 'right' has no intrinsics"):
+        camchain_texts(result_dict(calibration), tmp_path / "calib.json")
