@@ -256,3 +256,74 @@ def test_camchain_refuses_a_result_without_cameras_and_notes_dropped_terms(tmp_p
     calibration.cameras["right"] = dataclasses.replace(right, camera=None)
     with pytest.raises(DatasetError, match="camera 'right' has no intrinsics"):
         camchain_texts(result_dict(calibration), tmp_path / "calib.json")
+
+
+# --------------------------------------------------------------------------------------------------
+# URDF and ROS 2 outputs of every camera (io.ros, io.ros_rig)
+# --------------------------------------------------------------------------------------------------
+
+
+def _publisher_matrix(args: str) -> tuple[np.ndarray, str, str]:
+    """The 4x4 transform, parent and child of ``static_transform_publisher`` new-style arguments."""
+    from scipy.spatial.transform import Rotation
+
+    words = args.split()
+    values = {words[i][2:]: words[i + 1] for i in range(0, len(words), 2)}
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat([float(values[k]) for k in ("qx", "qy", "qz", "qw")]).as_matrix()
+    T[:3, 3] = [float(values[k]) for k in ("x", "y", "z")]
+    return T, values["frame-id"], values["child-frame-id"]
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_urdf_holds_every_camera_where_the_result_puts_it(tmp_path, seed):
+    import yaml
+
+    from mirror_fg.io.ros import write_ros_outputs
+
+    yourdfpy = pytest.importorskip("yourdfpy")
+    result = result_dict(rig_calibration(seed))
+    yaml_path, urdf_path = write_ros_outputs(result, tmp_path / "calib.json")
+    robot = yourdfpy.URDF.load(str(urdf_path))
+    frames = {name: f"{name}_optical_frame" for name in NAMES}
+    assert sorted(robot.link_map) == sorted(["base_link", *frames.values()])
+    content = yaml.safe_load(yaml_path.read_text())
+    assert content["frames"]["camera"] == "left_optical_frame"  # the top level is the first camera's
+    for name, frame in frames.items():
+        entry = result["cameras"][name]
+        T_base_cam = Transform(np.array(entry["T_base_cam"]["R"]), np.array(entry["T_base_cam"]["t"])).matrix()
+        assert np.max(np.abs(robot.get_transform(frame, "base_link") - T_base_cam)) < 1e-9
+        camera = content["cameras"][name]
+        assert np.max(np.abs(np.array(camera["T_base_cam"]["matrix"]) - T_base_cam)) < 1e-12
+        assert camera["sigma3_base_cam"] == entry["sigma3_base_cam"]
+        T, parent, child = _publisher_matrix(camera["static_transform_publisher"])
+        assert (parent, child) == ("base_link", frame) and np.max(np.abs(T - T_base_cam)) < 1e-9
+        # The camera_link variant: base -> <name>_link -> optical, the same pose (yourdfpy on its joints).
+        link = camera["camera_link"]
+        assert link["frames"]["link"] == f"{name}_link"
+        urdf = (f'<robot name="r"><link name="base_link"/><link name="{name}_link"/><link name="{frame}"/>'
+                f"{link['urdf_joints']}</robot>")
+        (tmp_path / "link.urdf").write_text(urdf)
+        chained = yourdfpy.URDF.load(str(tmp_path / "link.urdf"))
+        assert np.max(np.abs(chained.get_transform(frame, "base_link") - T_base_cam)) < 1e-9
+        commands = [c.split("static_transform_publisher ")[1] for c in link["static_transform_publisher_commands"]]
+        (T1, p1, c1), (T2, p2, c2) = (_publisher_matrix(c) for c in commands)
+        assert (p1, c1, p2, c2) == ("base_link", f"{name}_link", f"{name}_link", frame)
+        assert np.max(np.abs(T1 @ T2 - T_base_cam)) < 1e-9
+    assert content["static_transform_publisher_commands"] == [
+        content["cameras"][name]["static_transform_publisher_command"] for name in NAMES]
+    for k, rig in enumerate(content["rig"]):
+        assert (rig["from"], rig["to"]) == (frames[NAMES[k]], frames[NAMES[k + 1]])
+        assert np.allclose(np.array(rig["T_cn_cnm1"]["matrix"])[:3, :3], result["rig"][k]["T"]["R"], atol=1e-15)
+        assert np.allclose(robot.get_transform(frames[NAMES[k]], frames[NAMES[k + 1]]),
+                           np.array(rig["T_cn_cnm1"]["matrix"]), atol=1e-9)  # T_to_from: from's frame in to's
+
+
+def test_camera_names_become_frame_names_and_clashes_are_refused(tmp_path):
+    from mirror_fg.io.ros import ros_outputs
+
+    content = ros_outputs(result_dict(rig_calibration(0, names=("front cam", "back-cam"))))
+    assert [c["frames"]["camera"] for c in content["cameras"].values()] == ["front_cam_optical_frame",
+                                                                           "back_cam_optical_frame"]
+    with pytest.raises(DatasetError, match=r"calib\.json: cameras 'a b' and 'a_b' would both be frame 'a_b_optical_frame'"):
+        ros_outputs(result_dict(rig_calibration(0, names=("a b", "a_b"))), source="calib.json")
