@@ -327,3 +327,70 @@ def test_camera_names_become_frame_names_and_clashes_are_refused(tmp_path):
                                                                            "back_cam_optical_frame"]
     with pytest.raises(DatasetError, match=r"calib\.json: cameras 'a b' and 'a_b' would both be frame 'a_b_optical_frame'"):
         ros_outputs(result_dict(rig_calibration(0, names=("a b", "a_b"))), source="calib.json")
+
+
+# --------------------------------------------------------------------------------------------------
+# The calibration's files (io.calibration_files): the camchain planned and written with the others
+# --------------------------------------------------------------------------------------------------
+
+
+def _names(tmp_path):
+    return sorted(p.name for p in tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("expect", [True, False])
+def test_camchain_is_written_with_the_result_and_the_ros_files(tmp_path, expect):
+    from mirror_fg.io.calibration_files import plan_calibration_outputs
+
+    (tmp_path / "rig.json").write_text("{}")
+    outputs = plan_calibration_outputs([tmp_path / "rig.json"], tmp_path / "calib.json")
+    if expect:
+        outputs.expect_cameras()
+    written = outputs.write(result_dict(rig_calibration(0)))
+    assert sorted(p.name for p in written) == ["calib.camchain-sigma.yaml", "calib.camchain.yaml", "calib.json",
+                                               "calib.ros.yaml", "calib.urdf.xml"]
+    assert KalibrCamchain(tmp_path / "calib.camchain.yaml").numCameras() == 3
+    # A second run replaces what mirror-fg wrote.
+    again = plan_calibration_outputs([tmp_path / "rig.json"], tmp_path / "calib.json")
+    again.expect_cameras()
+    again.write(result_dict(rig_calibration(1)))
+    assert load_result(tmp_path / "calib.json")["T_cam_base"] == validate_result(result_dict(rig_calibration(1)), "r")["T_cam_base"]
+
+
+def test_a_stranger_file_where_the_camchain_goes_is_refused_before_anything_is_written(tmp_path):
+    from mirror_fg.io.calibration_files import plan_calibration_outputs
+
+    (tmp_path / "calib.camchain.yaml").write_text("cam0: {}  # someone's own Kalibr file\n")
+    outputs = plan_calibration_outputs([], tmp_path / "calib.json")
+    with pytest.raises(DatasetError, match=r"calib\.camchain\.yaml: exists and was not written by mirror-fg"):
+        outputs.expect_cameras()
+    late = plan_calibration_outputs([], tmp_path / "calib.json")
+    with pytest.raises(DatasetError, match="was not written by mirror-fg"):
+        late.write(result_dict(rig_calibration(0)))
+    assert _names(tmp_path) == ["calib.camchain.yaml"]  # nothing else written, the file untouched
+    assert "someone's own" in (tmp_path / "calib.camchain.yaml").read_text()
+
+
+def test_the_camchain_is_never_written_over_an_input(tmp_path):
+    from mirror_fg.io.calibration_files import plan_calibration_outputs
+
+    (tmp_path / "calib.camchain-sigma.yaml").write_text("mirror-fg\n")
+    outputs = plan_calibration_outputs([tmp_path / "calib.camchain-sigma.yaml"], tmp_path / "calib.json")
+    with pytest.raises(DatasetError, match="refusing to write the camchain standard deviations over an input file"):
+        outputs.expect_cameras()
+
+
+def test_no_camchain_for_a_device_a_single_camera_or_cameras_without_intrinsics(tmp_path):
+    from mirror_fg.io.calibration_files import plan_calibration_outputs
+
+    device = plan_calibration_outputs([], "/dev/null")
+    device.expect_cameras()
+    assert [p.name for p in device.write(result_dict(rig_calibration(0)))] == ["null"]
+    single = dataclasses.replace(rig_calibration(0), cameras=None, camera_pose_covariance=None, rig=[], mirror_frames={})
+    written = plan_calibration_outputs([], tmp_path / "one.json").write(result_dict(single))
+    assert sorted(p.name for p in written) == ["one.json", "one.ros.yaml", "one.urdf.xml"]
+    normalized = rig_calibration(0)
+    for name, pose in normalized.cameras.items():
+        normalized.cameras[name] = dataclasses.replace(pose, camera=None, estimated=None)
+    written = plan_calibration_outputs([], tmp_path / "norm.json").write(result_dict(normalized))
+    assert sorted(p.name for p in written) == ["norm.json", "norm.ros.yaml", "norm.urdf.xml"]
