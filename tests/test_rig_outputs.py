@@ -394,3 +394,43 @@ def test_no_camchain_for_a_device_a_single_camera_or_cameras_without_intrinsics(
         normalized.cameras[name] = dataclasses.replace(pose, camera=None, estimated=None)
     written = plan_calibration_outputs([], tmp_path / "norm.json").write(result_dict(normalized))
     assert sorted(p.name for p in written) == ["norm.json", "norm.ros.yaml", "norm.urdf.xml"]
+
+
+# --------------------------------------------------------------------------------------------------
+# The CLI summary (tools.summary): every camera and every rig transform with its own bounds
+# --------------------------------------------------------------------------------------------------
+
+
+def test_summary_prints_every_camera_and_rig_transform_with_its_own_bounds():
+    from mirror_fg.tools.summary import summary_lines, unknown_count
+
+    calibration = rig_calibration(0)
+    calibration.cameras["wrist"] = dataclasses.replace(calibration.cameras["wrist"],
+                                                       estimated=dataclasses.replace(calibration.camera, camera=calibration.cameras["wrist"].camera))
+    result = result_dict(calibration)
+    text = "\n".join(summary_lines(result))
+    fmt = lambda values, f: "[" + ", ".join(format(float(x), f) for x in values) + "]"  # noqa: E731
+    for name, pose in calibration.cameras.items():
+        sd3 = 3 * np.sqrt(np.diag(pose.covariance_base_cam))
+        block = (f"  {name}: t {fmt(pose.T_base_cam.t, ' .5f')} m, q_xyzw {fmt(pose.T_base_cam.quaternion_xyzw(), ' .6f')}\n"
+                 f"    3-sigma bounds in base axes (x, y, z): rotation ±{fmt(np.degrees(sd3[:3]), '.3f')} deg, "
+                 f"camera position ±{fmt(1e3 * sd3[3:], '.2f')} mm")
+        assert block in text
+    for rig in calibration.rig:
+        sd3 = 3 * np.sqrt(np.diag(rig.covariance))
+        assert (f"  {rig.from_camera} -> {rig.to_camera}: t {fmt(rig.t, ' .5f')} m (baseline "
+                f"{1e3 * np.linalg.norm(rig.t):.2f} mm)") in text
+        assert (f"    3-sigma bounds in {rig.to_camera}'s axes (x, y, z): rotation ±{fmt(np.degrees(sd3[:3]), '.3f')} deg, "
+                f"position ±{fmt(1e3 * sd3[3:], '.2f')} mm") in text
+    # The wrist camera's intrinsics are printed under it; the first camera's once, at the top.
+    assert text.count("camera intrinsics estimated through the mirrors (pinhole 1600x1200)") == 1
+    assert "    camera intrinsics estimated through the mirrors (fisheye 1920x1080)" in text
+    assert unknown_count(result) == 6 * 3 + 3 * 4 + 4 + 4  # three poses, four placements, 4 + 4 intrinsics
+
+
+def test_summary_without_rig_covariance_says_not_computed():
+    from mirror_fg.tools.summary import summary_lines
+
+    lines = summary_lines(result_dict(rig_calibration(1, covariance=False)))
+    rig_start = next(i for i, line in enumerate(lines) if line.startswith("rig (Kalibr's T_cn_cnm1)"))
+    assert lines[rig_start + 2] == "    3-sigma bounds: not computed (the result has no covariance)"
