@@ -32,6 +32,15 @@ def test_a_result_with_cameras_round_trips(tmp_path, suffix):
     assert loaded["cameras"]["left"]["T_cam_base"] == loaded["T_cam_base"]
 
 
+def test_a_result_with_one_named_camera_has_an_empty_rig(tmp_path):
+    from mirror_fg.io.camchain import camchain
+
+    result = validate_result(result_dict(rig_calibration(9, names=("solo",))), "r")
+    assert list(result["cameras"]) == ["solo"] and result["rig"] == []
+    assert {m["camera"] for m in result["mirrors"]} == {"solo"}
+    assert list(camchain(result)) == ["cam0"] and "T_cn_cnm1" not in camchain(result)["cam0"]
+
+
 def test_camera_entries_hold_each_camera_with_its_own_bounds():
     calibration = rig_calibration(1)
     result = result_dict(calibration)

@@ -86,7 +86,9 @@ class CalibrationLike(Protocol):
 
     ``R_cam_base``, ``t_cam_base`` (metres): ``Cp = R Bp + t``; ``covariance`` 6x6 ``[dtheta, dt]`` or
     None; mirror vectors ``(l, m) -> v`` (camera frame, metres) and points (base frame, metres) with
-    their 3x3 covariances; ``analytic``: the analytical solution's pose or None.
+    their 3x3 covariances; ``analytic``: the analytical solution's pose or None. A calibration of several
+    cameras also has ``cameras`` (name -> CameraPose), ``rig`` (solver.rig.rig_transforms of them) and
+    ``mirror_frames`` ((l, m) -> camera name), read where present (``cameras`` None: one camera).
     """
 
     R_cam_base: np.ndarray
