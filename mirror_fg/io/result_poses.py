@@ -136,7 +136,8 @@ def _check_covariance_pair(entry: Mapping[str, Any], path: str) -> None:
     P, P_bc = entry.get("covariance_cam_base"), entry.get("covariance_base_cam")
     if P is None or P_bc is None:
         return
-    want = base_cam_covariance(*(np.array(entry["T_cam_base"][k], dtype=float) for k in ("R", "t")), np.array(P))
+    T = _pose(entry["T_cam_base"])
+    want = base_cam_covariance(T.R, T.t, np.array(P))
     off = float(np.max(np.abs(np.array(P_bc) - want)))
     if off > SYMMETRY_TOL * max(float(np.max(np.abs(want))), 1e-300):
         raise _Invalid(_child(path, "covariance_base_cam"), f"does not match covariance_cam_base (off by {off:.3g})")
