@@ -1,4 +1,5 @@
-"""The files of one calibration: the result@1 file and its ROS side files, planned and written together.
+"""The files of one calibration: the result@1 file and its ROS side files (and, for several cameras, the
+Kalibr camchain and its standard deviations), planned and written together.
 
 :func:`plan_calibration_outputs` checks every path before any work (io.output.OutputPlan: never over
 an input, side files only over files mirror-fg wrote, no side files beside a device);
@@ -13,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from mirror_fg.core.errors import DatasetError
+from mirror_fg.io.camchain import camchain_paths, camchain_texts
 from mirror_fg.io.output import OutputPlan
 from mirror_fg.io.result import estimated_camera, result_text
 from mirror_fg.io.screen_result import screen_block, screen_xml_path, screen_xml_text
@@ -36,12 +38,23 @@ SIDE_FILE_MARKER = b"mirror-fg"
 class CalibrationOutputs:
     """A checked plan for ``result_path`` and (``ros``) its side files; :meth:`write` commits them."""
 
-    def __init__(self, plan: OutputPlan, result_path: str, ros: bool, base_frame: str, camera_frame: str):
-        self.plan, self.result_path, self.ros = plan, result_path, ros
+    def __init__(self, plan: OutputPlan, result_path: str, ros: bool, base_frame: str, camera_frame: str,
+                 side_files: bool = True):
+        self.plan, self.result_path, self.ros, self.side_files = plan, result_path, ros, side_files
         self.base_frame, self.camera_frame = base_frame, camera_frame
         self.camera_info: Path | None = None
         self.screen: Any = None  # the ScreenTarget of a screen capture: the result gets its screen block
         self.screen_xml: str | None = None
+        self.camchain: tuple[str, str] | None = None
+
+    def expect_cameras(self) -> None:
+        """The dataset has several cameras: plan (check now, before the solve) ``<stem>.camchain.yaml`` and
+        ``<stem>.camchain-sigma.yaml`` (:mod:`mirror_fg.io.camchain`), written with the result. Without this
+        call, :meth:`write` plans them when the result has ``cameras`` (checked then, still before any write)."""
+        if self.side_files and self.camchain is None:
+            chain, sigma = camchain_paths(self.result_path)
+            self.camchain = (self.plan.add(chain, "Kalibr camchain", marker=SIDE_FILE_MARKER),
+                             self.plan.add(sigma, "camchain standard deviations", marker=SIDE_FILE_MARKER))
 
     def expect_camera(self) -> None:
         """The intrinsics will be estimated: plan (check now, before the solve) ``<stem>.camera_info.yaml``,
@@ -61,13 +74,17 @@ class CalibrationOutputs:
 
     def write(self, result: Mapping[str, Any]) -> list[Path]:
         """Write the result@1 dictionary and its ROS outputs, all-or-nothing; the paths written. The result
-        of a screen capture is written with its ``screen`` block, and ``<stem>.screen.xml`` beside it."""
+        of a screen capture is written with its ``screen`` block, and ``<stem>.screen.xml`` beside it; a result
+        with ``cameras`` (each with its intrinsics) gets the Kalibr camchain and its standard deviations."""
         texts = {}
         if self.screen is not None:
             result = {**result, "screen": screen_block(self.screen, result)}
             if self.screen_xml is not None:
                 texts[self.screen_xml] = screen_xml_text(result)
         texts = {self.result_path: result_text(result, self.result_path), **texts}
+        if self.side_files and result.get("cameras") and all(e.get("camera") for e in result["cameras"].values()):
+            self.expect_cameras()
+            texts.update(camchain_texts(result, self.result_path))
         if self.ros:
             texts.update(ros_output_texts(result, self.result_path, self.base_frame, self.camera_frame))
             camera = result.get("camera")
@@ -99,4 +116,4 @@ def plan_calibration_outputs(
         yaml_path, urdf_path = ros_output_paths(target)
         plan.add(yaml_path, "ROS YAML", marker=SIDE_FILE_MARKER)
         plan.add(urdf_path, "URDF", marker=SIDE_FILE_MARKER)
-    return CalibrationOutputs(plan, target, ros, base_frame, camera_frame)
+    return CalibrationOutputs(plan, target, ros, base_frame, camera_frame, side_files=not plan.is_device(target))

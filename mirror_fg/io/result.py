@@ -27,11 +27,19 @@ from typing import Any, Protocol
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.core.transform import Transform, rotation_to_quaternion_xyzw
 from mirror_fg.core.values import check_format, short
 from mirror_fg.io.fileio import parse_json, parse_yaml, read_text
 from mirror_fg.io.output import atomic_write, is_yaml, json_text
 from mirror_fg.io.result_checks import ORTHONORMAL_TOL, SYMMETRY_TOL, _fields, _Invalid, nearest_rotation
+from mirror_fg.io.result_poses import (
+    base_cam_covariance,
+    camera_block,
+    camera_entries,
+    check_cameras,
+    rig_entries,
+    sigma3_pose,
+    transform_entry,
+)
 from mirror_fg.io.result_schema import OPTIONAL, REQUIRED
 from mirror_fg.io.screen_result import check_screen_pose
 
@@ -78,7 +86,9 @@ class CalibrationLike(Protocol):
 
     ``R_cam_base``, ``t_cam_base`` (metres): ``Cp = R Bp + t``; ``covariance`` 6x6 ``[dtheta, dt]`` or
     None; mirror vectors ``(l, m) -> v`` (camera frame, metres) and points (base frame, metres) with
-    their 3x3 covariances; ``analytic``: the analytical solution's pose or None.
+    their 3x3 covariances; ``analytic``: the analytical solution's pose or None. A calibration of several
+    cameras also has ``cameras`` (name -> CameraPose), ``rig`` (solver.rig.rig_transforms of them) and
+    ``mirror_frames`` ((l, m) -> camera name), read where present (``cameras`` None: one camera).
     """
 
     R_cam_base: np.ndarray
@@ -115,10 +125,10 @@ class CalibrationLike(Protocol):
 def result_dict(calibration: CalibrationLike) -> dict:
     """The ``mirror-fg/result@1`` dictionary of ``calibration`` (docs/formats.md)."""
 
-    def transform(R: np.ndarray, t: np.ndarray) -> dict:
-        return {"R": R.tolist(), "t": np.asarray(t).tolist(), "q_xyzw": rotation_to_quaternion_xyzw(R).tolist()}
-
+    transform = transform_entry
     c = calibration
+    cameras = getattr(c, "cameras", None)
+    frames = getattr(c, "mirror_frames", None) or {}
     norms = c.residual_norms
     P = None if c.covariance is None else np.asarray(c.covariance, dtype=float)
     P_bc = None if P is None else base_cam_covariance(c.R_cam_base, c.t_cam_base, P)
@@ -140,6 +150,7 @@ def result_dict(calibration: CalibrationLike) -> dict:
                 "config": m,
                 "v": c.mirror_vectors[(l, m)].tolist(),
                 "sigma3_mm": _sigma3_mm(c.mirror_covariances.get((l, m))),
+                **({} if cameras is None else {"camera": _mirror_frame(frames, l, m)}),
             }
             for l, m in sorted(c.mirror_vectors)
         ],
@@ -174,30 +185,18 @@ def result_dict(calibration: CalibrationLike) -> dict:
             "position_mm": float(i.position_mm), "message": i.message,
         }
     if c.camera is not None:
-        result["camera"] = _camera_block(c.camera)
+        result["camera"] = camera_block(c.camera)
+    if cameras is not None:  # several cameras (docs/formats.md "Several cameras"); absent, the file is as before
+        result["cameras"] = camera_entries(cameras)
+        result["rig"] = rig_entries(cameras, list(getattr(c, "rig", None) or []))
     return result
 
 
-def _camera_block(estimated: Any) -> dict[str, Any]:
-    """result@1's ``camera``: the estimated camera, the names estimated, their 3-sigma bounds, and (extras)
-    their covariance and its cross-covariance with the pose ``[dtheta, dt]`` of ``T_cam_base``."""
-    from mirror_fg.core.camera import camera_to_dict
-
-    block = camera_to_dict(estimated.camera)
-    block.pop("estimate", None)
-    block.pop("prior_sigma", None)
-    block["estimated"] = list(estimated.estimated)
-    block["sigma3"] = estimated.sigma3
-    P, C = estimated.covariance, estimated.pose_cross_covariance
-    block["covariance"] = None if P is None else np.asarray(P, dtype=float).tolist()
-    block["cross_covariance_cam_base"] = None if C is None else np.asarray(C, dtype=float).tolist()
-    return block
-
-
-def base_cam_covariance(R_cam_base: np.ndarray, t_cam_base: np.ndarray, covariance: np.ndarray) -> np.ndarray:
-    """Covariance (6, 6) of ``T_base_cam`` from that of ``T_cam_base``, both ``[dtheta, dt]`` (docs/formats.md);
-    the inverse's rotation error is about the base axes. First order (:meth:`Transform.inverse_covariance`)."""
-    return Transform(R_cam_base, t_cam_base).inverse_covariance(covariance)
+def _mirror_frame(frames: Mapping[tuple[int, int], str], l: int, m: int) -> str:
+    """The camera whose frame placement ``(l, m)``'s mirror vector is in; ValueError where the solver gave none."""
+    if (l, m) not in frames:
+        raise ValueError(f"result: mirror {l} config {m} has no camera frame (Calibration.mirror_frames)")
+    return frames[(l, m)]
 
 
 def ros_pose_covariance(covariance: np.ndarray) -> np.ndarray:
@@ -205,14 +204,6 @@ def ros_pose_covariance(covariance: np.ndarray) -> np.ndarray:
     rotations about the parent's fixed axes (which ``R_true = Exp(dtheta) R`` is)."""
     order = [3, 4, 5, 0, 1, 2]
     return np.asarray(covariance, dtype=float)[np.ix_(order, order)]
-
-
-def sigma3_pose(covariance: np.ndarray | None) -> dict[str, list[float]] | None:
-    """``{"rotation_deg", "position_mm"}``: 3-sigma bounds of a ``[dtheta, dt]`` covariance, or None."""
-    if covariance is None:
-        return None
-    sd3 = 3.0 * np.sqrt(np.clip(np.diag(covariance), 0.0, None))
-    return {"rotation_deg": np.rad2deg(sd3[:3]).tolist(), "position_mm": (1e3 * sd3[3:]).tolist()}
 
 
 def _sigma3_mm(covariance: np.ndarray | None) -> list[float] | None:
@@ -289,6 +280,7 @@ def validate_result(data: Any, source: str) -> dict[str, Any]:
         if out.get("T_base_cam") is not None:
             _check_inverse(out["T_cam_base"], out["T_base_cam"])
         _check_base_cam_covariances(out)
+        check_cameras(out)
         if out.get("screen") is not None:
             check_screen_pose(out)
     except _Invalid as error:

@@ -38,7 +38,7 @@ REQUIRED: dict[str, Checker] = {"T_cam_base": _transform}
 _SIGMA3: dict[str, Checker] = {"rotation_deg": _sigma3, "position_mm": _sigma3}
 _MIRROR: tuple[dict[str, Checker], dict[str, Checker]] = (
     {"mirror": lambda x, p: _integer(x, p, 1), "config": lambda x, p: _integer(x, p, 0), "v": _vector3},
-    {"sigma3_mm": _sigma3},
+    {"sigma3_mm": _sigma3, "camera": _text},  # camera: the frame of v (a result with cameras)
 )
 _OUTLIER: tuple[dict[str, Checker], dict[str, Checker]] = ({"image": _text, "point": _text, "sigmas": _statistic}, {})
 _OPTIMIZER: dict[str, Checker] = {
@@ -128,6 +128,33 @@ def _camera(value: Any, path: str) -> dict[Any, Any]:
     return out
 
 
+def _camera_pose(value: Any, path: str) -> dict[Any, Any]:
+    """One camera of ``cameras``: its transforms, covariances, bounds and (optional) ``camera`` block."""
+    return _fields(value, path, {"T_cam_base": _transform}, {
+        "T_base_cam": _transform, "covariance_cam_base": _covariance, "covariance_base_cam": _covariance,
+        "sigma3_cam_base": lambda x, p: _fields(x, p, {}, _SIGMA3),
+        "sigma3_base_cam": lambda x, p: _fields(x, p, {}, _SIGMA3), "camera": _camera})
+
+
+def _cameras(value: Any, path: str) -> dict[str, dict[Any, Any]]:
+    """``{name: camera pose}`` of a result with several cameras, at least one, in the dataset's order."""
+    entries = _mapping(value, path)
+    if not entries:
+        raise _Invalid(path, "expected at least one camera, got none")
+    out: dict[str, dict[Any, Any]] = {}
+    for name, entry in entries.items():
+        where = _child(path, name)
+        _text(name, f"{where} (name)")
+        out[name] = _camera_pose(entry, where)
+    return out
+
+
+_RIG: tuple[dict[str, Checker], dict[str, Checker]] = (
+    {"from": _text, "to": _text, "T": _transform},
+    {"covariance": _covariance, "sigma3": lambda x, p: _fields(x, p, {}, _SIGMA3)},
+)
+
+
 #: Top-level keys a reader uses, each optional except ``T_cam_base`` (:data:`REQUIRED`).
 OPTIONAL: dict[str, Checker] = {
     "T_base_cam": _transform,
@@ -144,5 +171,7 @@ OPTIONAL: dict[str, Checker] = {
     "excluded": _list_of(lambda e, p: _fields(e, p, *_EXCLUDED)),
     "inconsistency": _inconsistency,
     "camera": _camera,
+    "cameras": _cameras,  # several cameras (docs/formats.md "Several cameras"); tied together by result_poses
+    "rig": _list_of(lambda e, p: _fields(e, p, *_RIG)),
     "screen": check_screen_block,  # a screen capture's screen (io.screen_result)
 }

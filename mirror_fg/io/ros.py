@@ -250,6 +250,10 @@ def ros_outputs(
     (default :func:`link_frame_name`; REP 103, x forward): ``T_base_link`` = ``T_base_cam`` with the
     REP 103 rotation applied, the fixed ``T_link_optical``, both URDF joints and both publisher commands.
     ``camera_frame`` is the optical frame; a body-frame name is refused (:func:`check_camera_frame_name`).
+    A result with ``cameras`` also gets ``cameras``, ``rig`` and ``static_transform_publisher_commands``
+    (:func:`mirror_fg.io.ros_rig.rig_ros_outputs`); every frame is then named after its camera
+    (``<name>_optical_frame``, ``<name>_link``: ``camera_frame`` and ``link_frame`` are not used) and the
+    top-level keys are the first camera's.
     Raises DatasetError (a ValueError) naming ``source`` and the key on a malformed result
     (:func:`mirror_fg.io.result.validate_result`), ValueError on a bad frame name.
     """
@@ -257,6 +261,13 @@ def ros_outputs(
     camera_frame = check_camera_frame_name(camera_frame, "camera frame")
     link_frame = check_frame_name(link_frame or link_frame_name(camera_frame), "camera link frame")
     result = validate_result(result, source)
+    rig = None
+    if result.get("cameras"):  # several cameras: each is named after its camera (io.ros_rig)
+        from mirror_fg.io import ros_rig  # it builds on this module's snippets: imported where used, not in a circle
+
+        rig = ros_rig.rig_ros_outputs(result, base_frame, source)
+        camera_frame = next(iter(rig["cameras"].values()))["frames"]["camera"]
+        link_frame = link_frame_name(camera_frame)
     (R_cb, t_cb), (R_bc, t_bc) = transforms(result)
     hint_cb = result["T_cam_base"].get("q_xyzw")
     hint_bc = (result.get("T_base_cam") or {}).get("q_xyzw")
@@ -286,6 +297,8 @@ def ros_outputs(
         "static_transform_publisher_command": f"ros2 run tf2_ros static_transform_publisher {args}",
         "camera_link": _camera_link(R_bc, t_bc, base_frame, link_frame, camera_frame),
     }
+    if rig is not None:
+        out.update(rig)
     return out
 
 
@@ -366,6 +379,12 @@ def ros_output_texts(
         f"# Frames: {base_frame} (base), {camera_frame} (camera: {_CAMERA_CONVENTION}).\n"
         "# Metres, radians; quaternions x y z w; URDF rpy fixed-axis: R = Rz(yaw) Ry(pitch) Rx(roll).\n"
     )
+    if content.get("cameras"):
+        from mirror_fg.io.ros_rig import rig_urdf_text  # see ros_outputs
+
+        frames = ", ".join(c["frames"]["camera"] for c in content["cameras"].values())
+        header = header.replace(f"{camera_frame} (camera:", f"{frames} (cameras:", 1)
+        return {os.fspath(yaml_path): _yaml_text(content, header), os.fspath(urdf_path): rig_urdf_text(content, base_frame, source)}
     link = content["camera_link"]["frames"]["link"]
     urdf = (
         '<?xml version="1.0"?>\n'

@@ -18,7 +18,7 @@ import numpy as np
 
 from mirror_fg.io.result import base_cam_sigma3, transforms, validate_result
 
-__all__ = ["summary_lines", "frame_convention", "cost_warning", "verdict_line", "noise_note", "unknown_count",
+__all__ = ["summary_lines", "rig_lines", "frame_convention", "cost_warning", "verdict_line", "noise_note", "unknown_count",
            "NOISE_BAND", "RMS_DEFINITION", "MAX_OUTLIER_LINES"]
 
 #: The one RMS of the project (docs/formats.md ``rms_px``), as printed beside it.
@@ -84,6 +84,8 @@ def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, increment
     lines += frame_convention()
     if result.get("camera") is not None:
         lines += camera_lines(result["camera"], result.get("covariance_cam_base"))
+    if result.get("cameras"):
+        lines += rig_lines(result)
     lines += _residual_lines(result.get("residuals") or {}, verbose)
     lines += excluded_lines(result.get("excluded") or [], verbose)
     if result.get("inconsistency") is not None:
@@ -94,12 +96,46 @@ def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, increment
 
 
 def unknown_count(result: Mapping[str, Any]) -> int:
-    """The solve's unknowns p: the pose (6), each mirror placement and reconstruction point (3 each), each
-    estimated intrinsic (the degrees of freedom the residuals lose at the optimum)."""
+    """The solve's unknowns p: the pose (6; 6 per camera with ``cameras``), each mirror placement and
+    reconstruction point (3 each), each estimated intrinsic (of every camera with ``cameras``): the degrees
+    of freedom the residuals lose at the optimum."""
     from mirror_fg.io.result import mirror_vectors, points
 
-    return (6 + 3 * len(mirror_vectors(result)) + 3 * len(points(result))
-            + len((result.get("camera") or {}).get("estimated") or []))
+    cameras = result.get("cameras") or {}
+    blocks = [entry.get("camera") or {} for entry in cameras.values()] if cameras else [result.get("camera") or {}]
+    return (6 * max(len(cameras), 1) + 3 * len(mirror_vectors(result)) + 3 * len(points(result))
+            + sum(len(block.get("estimated") or []) for block in blocks))
+
+
+def rig_lines(result: Mapping[str, Any]) -> list[str]:
+    """Every camera of a multi-camera result (its ``T_base_cam`` with its own 3-sigma bounds about the base
+    axes, the intrinsics it estimated) and every rig transform (Kalibr's ``T_cn_cnm1``) with its own bounds
+    about the ``to`` camera's axes."""
+    from mirror_fg.core.transform import rotation_to_quaternion_xyzw
+
+    cameras = result["cameras"]
+    names = list(cameras)
+    lines = [f"cameras ({len(names)}; {names[0]} is the pose above): T_base_cam, each camera's pose on the robot"]
+    for name, entry in cameras.items():
+        T = entry.get("T_base_cam") or {}
+        R_cb, t_cb = np.array(entry["T_cam_base"]["R"]), np.array(entry["T_cam_base"]["t"])
+        R, t = (np.array(T["R"]), np.array(T["t"])) if T else (R_cb.T, -R_cb.T @ t_cb)
+        q = T.get("q_xyzw") if T else None
+        lines.append(f"  {name}: t {_vector(t, ' .5f')} m, q_xyzw "
+                     f"{_vector(q if q is not None else rotation_to_quaternion_xyzw(R), ' .6f')}")
+        lines.append("  " + _bounds(entry.get("sigma3_base_cam"), "base", "camera position"))
+        block = entry.get("camera") or {}
+        if block.get("estimated") and block != result.get("camera"):  # the top-level camera is printed above
+            lines += ["    " + line for line in camera_lines(block, entry.get("covariance_cam_base"))]
+    lines.append("rig (Kalibr's T_cn_cnm1): p_to = R p_from + t; bounds about and along the 'to' camera's axes")
+    for entry in result.get("rig") or []:
+        R, t = np.array(entry["T"]["R"]), np.array(entry["T"]["t"])
+        q = entry["T"].get("q_xyzw")
+        lines.append(f"  {entry['from']} -> {entry['to']}: t {_vector(t, ' .5f')} m (baseline "
+                     f"{1e3 * float(np.linalg.norm(t)):.2f} mm), q_xyzw "
+                     f"{_vector(q if q is not None else rotation_to_quaternion_xyzw(R), ' .6f')}")
+        lines.append("  " + _bounds(entry.get("sigma3"), f"{entry['to']}'s", "position"))
+    return lines
 
 
 def noise_note(ratio: float, sigma: float, units: str) -> str:
