@@ -8,7 +8,12 @@ in its *owner* camera's frame (the first camera that sees it); in another camera
 
     u = R_co v_o,  t_co = t_c - R_co t_o,  R_co = R_c R_o^T,  v_c = u (1 + u . t_co / |v_o|^2)
 
-(the plane ``n . y = d``, ``v_o = d n``, carried into frame c). k = 0 is a direct view; the same
+(the plane ``n . y = d``, ``v_o = d n``, carried into frame c). The variable behind a placement is the
+plane itself, a GTSAM ``OrientedPlane3`` ``(n, d)`` with ``v = d n``: unlike ``v``, it has no
+singularity where a mirror's plane passes near the camera centre (the side walls of a kaleidoscope, a
+mirror held beside the camera), where a small change of ``v`` would turn its normal far (measured: LM
+then stalls in another minimum). Its local coordinates ``xi`` give ``dv/dxi = [d B, n]`` (``B`` the
+normal's tangent basis). k = 0 is a direct view; the same
 placement may appear more than once in a view (a kaleidoscope's third-order chambers), the same mirror
 never twice in a row.
 
@@ -30,7 +35,22 @@ import numpy as np
 from mirror_fg.factors.intrinsics import IntrinsicsModel, pixel_jacobians
 from mirror_fg.factors.robust import ROBUST_K, check_kernel, robust_row_scales
 
-__all__ = ["ViewSlots", "view_model", "ViewFactor", "transfer_mirror_vector"]
+__all__ = ["ViewSlots", "view_model", "ViewFactor", "transfer_mirror_vector", "plane_of", "vector_of_plane"]
+
+
+def plane_of(v: np.ndarray) -> gtsam.OrientedPlane3:
+    """The plane variable of mirror vector ``v`` (camera frame): normal ``v / |v|``, distance ``|v|``."""
+    v = np.asarray(v, dtype=float)
+    d = float(np.linalg.norm(v))
+    return gtsam.OrientedPlane3(gtsam.Unit3(v / d), d)
+
+
+def vector_of_plane(plane: gtsam.OrientedPlane3) -> tuple[np.ndarray, np.ndarray]:
+    """``(v, dv/dxi)``: the mirror vector ``d n`` of a plane variable and its (3, 3) derivative in the
+    plane's local coordinates (two of the normal's tangent, then the distance)."""
+    n = np.asarray(plane.normal().point3(), dtype=float)
+    d = float(plane.distance())
+    return d * n, np.column_stack([d * np.asarray(plane.normal().basis(), dtype=float), n])
 
 
 def _skew(a: np.ndarray) -> np.ndarray:
@@ -81,9 +101,12 @@ def view_model(
     owners: dict[tuple[int, int], str],
     base_points: np.ndarray,
     slots: ViewSlots | None = None,
+    mirror_jacobians: dict[tuple[int, int], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Predicted normalized coordinates (2, N) of base points (3, N) in this view; with ``slots`` also
-    ``dz`` (2, P, N) in the factor's local coordinates and ``dz/dBp`` (2, 3, N)."""
+    ``dz`` (2, P, N) in the factor's local coordinates and ``dz/dBp`` (2, 3, N). ``mirror_jacobians``:
+    each placement's ``dv/dxi`` (3, 3) where its variable is not ``v`` itself (a plane)."""
+    identity = np.eye(3)
     R_c, t_c = poses[camera]
     B = np.asarray(base_points, dtype=float)
     x = R_c @ B + t_c[:, None]  # eq. (2)
@@ -106,13 +129,13 @@ def view_model(
             if slots is not None:
                 dv = np.zeros((3, slots.size))
                 col = slots.mirror_cols[placement]
-                dv[:, col:col + 3] = np.eye(3)
+                dv[:, col:col + 3] = identity if mirror_jacobians is None else mirror_jacobians[placement]
         else:
             v, dv_v, dv_wc, dv_nc, dv_wo, dv_no = transfer_mirror_vector(v_o, poses[camera], poses[owner])
             if slots is not None:
                 dv = np.zeros((3, slots.size))
                 col = slots.mirror_cols[placement]
-                dv[:, col:col + 3] = dv_v
+                dv[:, col:col + 3] = dv_v if mirror_jacobians is None else dv_v @ mirror_jacobians[placement]
                 for who, dw, dn in ((camera, dv_wc, dv_nc), (owner, dv_wo, dv_no)):
                     if who in slots.pose_cols:
                         c = slots.pose_cols[who]
@@ -150,7 +173,8 @@ class ViewFactor:
     """The factor of one image (module docstring) as a ``gtsam.CustomFactor``: build with :meth:`factor`.
 
     ``pose_keys``: ``{camera: key}`` of the poses that are variables; ``fixed_poses``: the others'
-    values (the first camera without a known target). ``mirror_keys``: ``{placement: key}``;
+    values (the first camera without a known target). ``mirror_keys``: ``{placement: key}`` of the
+    ``OrientedPlane3`` variables (module docstring);
     ``owners``: each placement's camera. ``fiducials``: (3, N) base points, NaN columns where
     ``landmark_keys[i]`` (a key, else -1) gives the point. ``observed`` (2, N); ``sigmas`` (2, N).
     ``intrinsics``: ``(model, key)`` where the camera's intrinsics are estimated (issue 16): then the
@@ -185,21 +209,23 @@ class ViewFactor:
         self.keys = [*self.pose_keys.values(), *self.mirror_keys.values(), *self.unique_landmarks,
                      *([intrinsics[1]] if intrinsics is not None else [])]
 
-    def _state(self, values: gtsam.Values) -> tuple[dict, dict, np.ndarray]:
+    def _state(self, values: gtsam.Values) -> tuple[dict, dict, np.ndarray, dict]:
         poses = dict(self.fixed)
         for name, key in self.pose_keys.items():
             pose = values.atPose3(key)
             poses[name] = (pose.rotation().matrix(), np.asarray(pose.translation(), dtype=float))
-        mirrors = {p: np.asarray(values.atPoint3(key), dtype=float) for p, key in self.mirror_keys.items()}
+        mirrors, mirror_jacobians = {}, {}
+        for p, key in self.mirror_keys.items():
+            mirrors[p], mirror_jacobians[p] = vector_of_plane(values.atOrientedPlane3(key))
         B = self.base_points.copy()
         for j, key in enumerate(self.landmark_keys):
             if key >= 0:
                 B[:, j] = values.atPoint3(int(key))
-        return poses, mirrors, B
+        return poses, mirrors, B, mirror_jacobians
 
     def predict(self, values: gtsam.Values) -> np.ndarray:
         """Predicted normalized coordinates (2, N) at ``values``."""
-        poses, mirrors, B = self._state(values)
+        poses, mirrors, B, _ = self._state(values)
         return view_model(self.camera, self.reflections, poses, mirrors, self.owners, B)[0]
 
     def theta(self, values: gtsam.Values) -> np.ndarray:
@@ -209,9 +235,9 @@ class ViewFactor:
         return model.theta(np.asarray(values.atVector(key), dtype=float))
 
     def error(self, this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
-        poses, mirrors, B = self._state(values)
+        poses, mirrors, B, mirror_jacobians = self._state(values)
         slots = self.slots if jacobians is not None else None
-        z, dz, dzB = view_model(self.camera, self.reflections, poses, mirrors, self.owners, B, slots)
+        z, dz, dzB = view_model(self.camera, self.reflections, poses, mirrors, self.owners, B, slots, mirror_jacobians)
         dK = None
         if self.intrinsics is not None:  # pixels through the estimated intrinsics
             pixels, D, T = pixel_jacobians(self.theta(values), z)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mirror_fg.core.geometry import measurement
-from mirror_fg.factors.views import ViewFactor, view_model
+from mirror_fg.factors.views import ViewFactor, plane_of, view_model
 
 
 def _rotation(rng: np.random.Generator, scale: float = 0.3) -> np.ndarray:
@@ -36,7 +36,7 @@ def test_factor_jacobians_match_numerical_differences(camera, reflections) -> No
     for name, (R, t) in poses.items():
         values.insert(keys[name], gtsam.Pose3(gtsam.Rot3(R), t))
     for p, v in mirrors.items():
-        values.insert(mkeys[p], v)
+        values.insert(mkeys[p], plane_of(v))
     values.insert(gtsam.symbol("l", 0), B[:, 1])
     values.insert(gtsam.symbol("l", 1), B[:, 3])
     observed = np.zeros((2, 5))
@@ -55,6 +55,8 @@ def test_factor_jacobians_match_numerical_differences(camera, reflections) -> No
             for sign, vals in ((1.0, plus), (-1.0, minus)):
                 if dim == 6:
                     vals.update(key, values.atPose3(key).retract(sign * delta))
+                elif gtsam.Symbol(key).chr() == ord("v"):
+                    vals.update(key, values.atOrientedPlane3(key).retract(sign * delta))
                 else:
                     vals.update(key, values.atPoint3(key) + sign * delta)
             columns.append((factor.unwhitenedError(plus) - factor.unwhitenedError(minus)) / 2e-6)
@@ -100,7 +102,7 @@ def test_factor_with_intrinsics_matches_numerical_differences() -> None:
     for name, (R, t) in poses.items():
         values.insert(keys[name], gtsam.Pose3(gtsam.Rot3(R), t))
     for p, v in mirrors.items():
-        values.insert(mkeys[p], v)
+        values.insert(mkeys[p], plane_of(v))
     values.insert(gtsam.symbol("l", 0), B[:, 2])
     values.insert(kkey, np.array([900.0, 910.0, 640.0, 480.0, -0.1, 0.02]))
     view = ViewFactor("b", [(1, 0), (2, 0)], keys, {}, mkeys, owners, B, [-1, -1, gtsam.symbol("l", 0), -1, -1],
@@ -118,6 +120,8 @@ def test_factor_with_intrinsics_matches_numerical_differences() -> None:
             for sign, vals in ((1.0, plus), (-1.0, minus)):
                 if chr_ == ord("x"):
                     vals.update(key, values.atPose3(key).retract(sign * delta))
+                elif chr_ == ord("v"):
+                    vals.update(key, values.atOrientedPlane3(key).retract(sign * delta))
                 elif chr_ == ord("k"):
                     vals.update(key, values.atVector(key) + sign * delta)
                 else:

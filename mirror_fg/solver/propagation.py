@@ -219,7 +219,10 @@ class _Propagator:
             changed = True
         return changed
 
-    def run(self) -> Propagation:
+    def run(self, tree_first: bool = False) -> Propagation:
+        if tree_first:  # rule 2 for every camera before any one view's PnP (another start)
+            for camera in self.cameras:
+                self.tree_for_camera(camera)
         changed = True
         while changed:
             changed = False
@@ -301,12 +304,15 @@ def takahashi_start(views: list[ViewObs], camera: str, scale) -> Propagation | N
 
 
 def propagate(views: list[ViewObs], fiducials: dict[str, np.ndarray], cameras: list[str],
-              fixed: dict[str, tuple[np.ndarray, np.ndarray]], tree_start=None, scale=None) -> Propagation:
+              fixed: dict[str, tuple[np.ndarray, np.ndarray]], tree_start=None, scale=None,
+              tree_first: bool = False) -> Propagation:
     """Every pose, plane and point found by the rules of the module docstring; raises
     :class:`Unsolvable` naming the first camera, placement or point left unknown and what would solve it.
 
     ``fixed``: poses known beforehand (the first camera without a known target). ``tree_start(camera)``:
-    rule 2 for one camera, ``((R, t), {placement: v})`` or None."""
+    rule 2 for one camera, ``((R, t), {placement: v})`` or None. ``tree_first``: rule 2 for every camera
+    before the others (by default rule 2 only where the others are stuck: a direct view's PnP is the
+    better start where there is one), the second start ``calibrate`` tries when the first ends implausibly."""
     propagator = _Propagator(views, fiducials, cameras, fixed, tree_start)
     if not fiducials:
         first = cameras[0]
@@ -314,7 +320,7 @@ def propagate(views: list[ViewObs], fiducials: dict[str, np.ndarray], cameras: l
         if seeded is not None:
             propagator.known.planes.update(seeded.planes)
             propagator.known.points.update(seeded.points)
-    known = propagator.run()
+    known = propagator.run(tree_first)
     _name_unknown(views, known, cameras)
     return known
 

@@ -4,8 +4,9 @@ covariances, for data that the paper's tree does not describe (direct views, fix
 reflections, no known target, several cameras). ``calibrate()`` drives it (``solver/calibrate.py``).
 
 Unknowns: one ``Pose3`` ``X(k)`` per camera (``T_cam_base``; not a variable for the first camera without
-a known target, whose frame is then the base frame), one ``Point3`` ``V(i)`` per placement (mirror vector
-in its owner camera's frame: the first camera, in ``cameras`` order, with an image that sees it) and one
+a known target, whose frame is then the base frame), one ``OrientedPlane3`` ``V(i)`` per placement (its
+mirror plane in its owner camera's frame, ``v = d n``: the first camera, in ``cameras`` order, with an
+image that sees it; ``factors/views.py`` says why a plane and not ``v``) and one
 ``Point3`` ``L(j)`` per reconstruction point (base frame). Measurements: ``factors/views.py``, one factor
 per image. Without a known target the scale is held by a prior of relative sigma :data:`SCALE_SIGMA` on
 the named distance (the measurements do not change along the gauge, so the optimum meets it exactly),
@@ -24,7 +25,7 @@ from gtsam.symbol_shorthand import K, L, V, X
 from mirror_fg.core.camera import Camera
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_prior_factor, predict_pixels
-from mirror_fg.factors.views import ViewFactor, view_model
+from mirror_fg.factors.views import ViewFactor, plane_of, vector_of_plane, view_model
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.propagation import Propagation, ViewObs, mirror_vector_in
@@ -115,6 +116,8 @@ class ViewProblem:
             self.factors.append(ViewFactor(view.camera, view.reflections, self.pose_keys, self.fixed, self.mirror_keys,
                                            self.owners, base, landmarks, observed, sigmas, robust, intrinsics=model))
         self.constraints = 1 if dataset.scale is not None else 0
+        #: Number of residual rows (2 per measurement).
+        self.size = sum(2 * len(v.names) for v in self.views)
 
     # ------------------------------------------------------------------ estimates
     def estimate_from(self, known: Propagation) -> ViewEstimate:
@@ -145,7 +148,7 @@ class ViewProblem:
             R, t = estimate.poses[name]
             values.insert(key, gtsam.Pose3(gtsam.Rot3(R), np.asarray(t, float)))
         for p, key in self.mirror_keys.items():
-            values.insert(key, np.asarray(estimate.mirror_vectors[p], float))
+            values.insert(key, plane_of(estimate.mirror_vectors[p]))
         for name, key in self.point_keys.items():
             values.insert(key, np.asarray(estimate.points[name], float))
         for name, key in self.intrinsics_keys.items():
@@ -160,7 +163,7 @@ class ViewProblem:
             poses[name] = (pose.rotation().matrix(), np.asarray(pose.translation(), float))
         theta = {name: self.intrinsics[name].theta(np.asarray(values.atVector(key), float))
                  for name, key in self.intrinsics_keys.items()}
-        return ViewEstimate(poses, {p: np.asarray(values.atPoint3(k), float) for p, k in self.mirror_keys.items()},
+        return ViewEstimate(poses, {p: vector_of_plane(values.atOrientedPlane3(k))[0] for p, k in self.mirror_keys.items()},
                             {n: np.asarray(values.atPoint3(k), float) for n, k in self.point_keys.items()}, theta or None)
 
     # ------------------------------------------------------------------ graph
@@ -177,12 +180,11 @@ class ViewProblem:
         if scale is not None:
             noise = gtsam.noiseModel.Isotropic.Sigma(1, SCALE_SIGMA * scale.distance)
             if scale.placement is not None:
-                graph.add(gtsam.CustomFactor(noise, [self.mirror_keys[scale.placement]],
-                                             _length_error(scale.distance, False)))
+                graph.add(gtsam.CustomFactor(noise, [self.mirror_keys[scale.placement]], _distance_error(scale.distance)))
             else:
                 a, b = scale.points  # type: ignore[misc]
                 graph.add(gtsam.CustomFactor(noise, [self.point_keys[a], self.point_keys[b]],
-                                             _length_error(scale.distance, True)))
+                                             _length_error(scale.distance)))
         return graph
 
     def name_of(self, key: int) -> str:
@@ -249,7 +251,10 @@ class ViewProblem:
         for name in self.pose_keys:  # the diagonal blocks exactly as the single-camera path converts them
             R = estimate.poses[name][0]
             poses[name] = covariance_from_pose3(R, marginals.marginalCovariance(self.pose_keys[name]))
-        mirrors = {p: marginals.marginalCovariance(k) for p, k in self.mirror_keys.items()}
+        mirrors = {}
+        for p, k in self.mirror_keys.items():  # of v = d n, from the plane's local coordinates
+            J = vector_of_plane(plane_of(estimate.mirror_vectors[p]))[1]
+            mirrors[p] = J @ marginals.marginalCovariance(k) @ J.T
         points = {n: marginals.marginalCovariance(k) for n, k in self.point_keys.items()}
         intrinsics = {}
         for name, key in self.intrinsics_keys.items():  # (k, k) and its cross-covariance (k, 6) with the pose
@@ -266,17 +271,25 @@ class ViewProblem:
         return poses, joint, mirrors, points, intrinsics
 
 
-def _length_error(distance: float, between: bool):
-    """A scale factor's error: ``|v| - d`` (one key) or ``|a - b| - d`` (two keys)."""
+def _distance_error(distance: float):
+    """A scale factor's error on a plane variable: ``|d| - distance``."""
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
+        d = float(values.atOrientedPlane3(this.keys()[0]).distance())
+        if jacobians is not None:
+            jacobians[0] = np.array([[0.0, 0.0, np.sign(d)]])
+        return np.array([abs(d) - distance])
+    return error
+
+
+def _length_error(distance: float):
+    """A scale factor's error on two points: ``|a - b| - distance``."""
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
         keys = this.keys()
-        a = np.asarray(values.atPoint3(keys[0]), float)
-        diff = a - np.asarray(values.atPoint3(keys[1]), float) if between else a
+        diff = np.asarray(values.atPoint3(keys[0]), float) - np.asarray(values.atPoint3(keys[1]), float)
         length = float(np.linalg.norm(diff))
         if jacobians is not None:
             jacobians[0] = (diff / length).reshape(1, 3)
-            if between:
-                jacobians[1] = (-diff / length).reshape(1, 3)
+            jacobians[1] = (-diff / length).reshape(1, 3)
         return np.array([length - distance])
     return error
 
@@ -299,8 +312,8 @@ class _GaugeHeld:
         gradient = np.zeros(start)
         scale = problem.dataset.scale
         if scale.placement is not None:
-            v = np.asarray(values.atPoint3(problem.mirror_keys[scale.placement]), float)
-            gradient[self.columns[problem.mirror_keys[scale.placement]]] = v / np.linalg.norm(v)
+            d = float(values.atOrientedPlane3(problem.mirror_keys[scale.placement]).distance())
+            gradient[self.columns[problem.mirror_keys[scale.placement]]] = [0.0, 0.0, np.sign(d)]
         else:
             a, b = (problem.point_keys[n] for n in scale.points)
             diff = np.asarray(values.atPoint3(a), float) - np.asarray(values.atPoint3(b), float)

@@ -15,9 +15,10 @@ from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.calibration import Calibration, CameraPose, EstimatedCamera, Exclusion
 from mirror_fg.solver.consensus import final_check, screen, without
-from mirror_fg.solver.lm import cost_scale, lm_params, run_optimizer
+from mirror_fg.solver.lm import cost_scale, lm_params, plausible, run_optimizer
 from mirror_fg.solver.options import STAGES, SolveOptions
 from mirror_fg.solver.propagation import Unsolvable, propagate
+from mirror_fg.solver.rig import rig_transforms
 from mirror_fg.solver.timing import timed
 from mirror_fg.solver.views import SINGLE_CAMERA, ViewEstimate, ViewProblem, camera_names
 
@@ -51,7 +52,7 @@ def tree_start_for(dataset: Dataset):
             if len(im.reflections) == 1:
                 groups.setdefault(im.reflections[0][0], []).append(im)
         attempts = []
-        tree = [im for im in images if len(im.mirror_configs) == dataset.num_mirrors]
+        tree = _solvable_subtree([im for im in images if len(im.mirror_configs) == dataset.num_mirrors])
         if tree and dataset.num_mirrors > 1:
             attempts.append((dataset.num_mirrors, None, tree))
         for mirror, group in sorted(groups.items(), key=lambda g: -len({im.reflections[0] for im in g[1]})):
@@ -81,7 +82,30 @@ def tree_start_for(dataset: Dataset):
     return start
 
 
-def _start(problem: ViewProblem, initial) -> ViewEstimate:
+def _other_start(problem: ViewProblem) -> ViewEstimate | None:
+    """The analytical start with rule 2 first for every camera, or None where it cannot be formed."""
+    try:
+        return _start(problem, None, tree_first=True)
+    except SolveError:
+        return None
+
+
+def _solvable_subtree(images: list[Image], children: int = 3) -> list[Image]:
+    """The images of the largest subtree in which every node has ``children`` or more placements of the next
+    mirror under it (the paper's Sect. 5 condition): the rest are started by propagation afterwards."""
+    while True:
+        below: dict[tuple[int, ...], set[int]] = {}
+        for im in images:
+            for level in range(len(im.mirror_configs)):
+                below.setdefault(im.mirror_configs[:level], set()).add(im.mirror_configs[level])
+        kept = [im for im in images
+                if all(len(below[im.mirror_configs[:level]]) >= children for level in range(len(im.mirror_configs)))]
+        if len(kept) == len(images):
+            return kept
+        images = kept
+
+
+def _start(problem: ViewProblem, initial, tree_first: bool = False) -> ViewEstimate:
     """The analytical start, or ``initial`` (a :class:`ViewEstimate`, or a single-camera estimate with
     ``R_cam_base``, ``t_cam_base``, ``mirror_vectors``, ``points``)."""
     if isinstance(initial, ViewEstimate):
@@ -92,7 +116,7 @@ def _start(problem: ViewProblem, initial) -> ViewEstimate:
     dataset = problem.dataset
     try:
         known = propagate(problem.views, dataset.fiducials, problem.cameras, problem.fixed, tree_start_for(dataset),
-                          dataset.scale)
+                          dataset.scale, tree_first)
     except Unsolvable as error:
         raise Unsolvable(f"{dataset.source}: {error}") from None
     return problem.estimate_from(known)
@@ -173,6 +197,7 @@ def _solve(dataset: Dataset, start, options: SolveOptions, models: dict, exclude
     report = options.progress if options.progress is not None else (lambda stage, done, total: None)
     timings: dict[str, float] = {}
     solved = dataset
+    analytic = start is None
     for recheck in range(MAX_RECHECKS + 1):
         problem = ViewProblem(solved, options.robust, models)
         with timed(timings, "analytic"):
@@ -185,13 +210,24 @@ def _solve(dataset: Dataset, start, options: SolveOptions, models: dict, exclude
             if options.on_iteration is not None:
                 options.on_iteration(number, before, after)
 
+        def optimize(first: ViewEstimate):
+            return run_optimizer(graph, problem.values(first), params, solved.source,
+                                 lambda error: f"the data do not constrain every unknown ({_named(problem, error)})",
+                                 iteration)
+
         with timed(timings, "optimize"):
-            optimizer, result, initial_error = run_optimizer(
-                graph, problem.values(start), params, solved.source,
-                lambda error: f"the data do not constrain every unknown ({_named(problem, error)})", iteration)
+            optimizer, result, initial_error = optimize(start)
+            dimension = result.dim() - problem.constraints
+            if (recheck == 0 and analytic and not plausible(graph.error(result), 0.5 * max(problem.size - dimension, 0))):
+                other = _other_start(problem)  # the analytical start ended implausibly: try the other one
+                if other is not None:
+                    tried = optimize(other)
+                    if graph.error(tried[1]) < graph.error(result):
+                        logger.info("%s: the second analytical start fits better", solved.source)
+                        optimizer, result, initial_error = tried
+                        start = other
         estimate = problem.read(result)
         residuals, whitened, labels, views = problem.residuals(estimate)
-        dimension = result.dim() - problem.constraints
         more = (final_check(solved, [_Label(i, p) for i, p in labels], whitened, dimension)  # type: ignore[arg-type]
                 if recheck < MAX_RECHECKS else [])
         if not more:
@@ -279,10 +315,6 @@ def _calibration(run: _Run, covariances, converged: bool) -> Calibration:
 
 
 def _rig(cameras: dict[str, CameraPose], joint) -> list:
-    """Kalibr's ``T_cn_cnm1`` chain (``solver/rig.py``), where it is available."""
-    try:
-        from mirror_fg.solver.rig import rig_transforms
-    except ImportError:
-        return []
+    """Kalibr's ``T_cn_cnm1`` chain of the cameras (``solver/rig.py``), with its covariance."""
     names = list(cameras)
     return rig_transforms(names, [(cameras[n].R_cam_base, cameras[n].t_cam_base) for n in names], joint)
