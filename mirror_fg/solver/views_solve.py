@@ -39,22 +39,35 @@ class _Label:
 
 
 def tree_start_for(dataset: Dataset):
-    """Rule 2 of the propagation for one camera: its images through one mirror alone (the mirror with the
-    most such placements, >= 3) or through the whole tree, solved by the paper's analytical solution
-    (``initial.initial_estimate``) on their fiducials; ``((R, t), {placement: v})`` or None."""
-    from mirror_fg.solver.initial import initial_estimate
+    """Rule 2 of the propagation for one camera: its images through the whole tree (the largest subtree
+    with three placements under every node, then the one of its three best-seen placements of mirror 1)
+    or through one mirror alone (>= 3 placements), each solved as the paper's problem by ``calibrate``
+    on their fiducials (analytical solution, then LM with its restarts); the first that fits the noise
+    (``Calibration.fit_ratio`` at most ``calibration.POOR_FIT_RATIO``) gives ``((R, t), {placement: v})``,
+    else None."""
+    from mirror_fg.solver.calibrate import calibrate
+    from mirror_fg.solver.calibration import POOR_FIT_RATIO
 
     def start(camera_name: str):
         images = [im for im in dataset.images if dataset.cameras is None or im.camera == camera_name]
         camera = dataset.cameras[camera_name] if dataset.cameras is not None else dataset.camera
+        if camera is not None and camera.estimate:
+            camera = replace(camera, estimate=(), prior_sigma=())
+        attempts = []
+        if dataset.num_mirrors > 1:
+            tree = _solvable_subtree([im for im in images if len(im.mirror_configs) == dataset.num_mirrors])
+            if tree:
+                attempts.append((dataset.num_mirrors, None, tree))
+                counts: dict[int, int] = {}
+                for im in tree:
+                    counts[im.mirror_configs[0]] = counts.get(im.mirror_configs[0], 0) + 1
+                best = set(sorted(counts, key=lambda m: -counts[m])[:3])
+                if len(counts) > 3:
+                    attempts.append((dataset.num_mirrors, None, [im for im in tree if im.mirror_configs[0] in best]))
         groups: dict[int, list[Image]] = {}
         for im in images:
             if len(im.reflections) == 1:
                 groups.setdefault(im.reflections[0][0], []).append(im)
-        attempts = []
-        tree = _solvable_subtree([im for im in images if len(im.mirror_configs) == dataset.num_mirrors])
-        if tree and dataset.num_mirrors > 1:
-            attempts.append((dataset.num_mirrors, None, tree))
         for mirror, group in sorted(groups.items(), key=lambda g: -len({im.reflections[0] for im in g[1]})):
             if len({im.reflections[0] for im in group}) >= 3:
                 attempts.append((1, mirror, group))
@@ -62,17 +75,19 @@ def tree_start_for(dataset: Dataset):
             sub_images = []
             for im in group:
                 observations = {n: z for n, z in im.observations.items() if n in dataset.fiducials}
-                if len(observations) < 3:
-                    continue
-                configs = im.mirror_configs if mirror is None else (im.reflections[0][1],)
-                sub_images.append(Image(im.id, configs, observations))
+                if len(observations) >= 3:
+                    configs = im.mirror_configs if mirror is None else (im.reflections[0][1],)
+                    sub_images.append(Image(im.id, configs, observations))
             sub = Dataset(num_mirrors=num_mirrors, camera=camera, pixel_sigma=dataset.pixel_sigma,
-                          fiducials=dataset.fiducials, images=sub_images, source=dataset.source)
+                          fiducials=dataset.fiducials, images=sub_images, source=dataset.source,
+                          point_sigma={n: s for n, s in dataset.point_sigma.items() if n in dataset.fiducials})
             try:
-                solution = initial_estimate(sub)
+                solution = calibrate(sub, options=SolveOptions(compute_covariance=False, diagnose=False))
             except (DatasetError, SolveError, ValueError, np.linalg.LinAlgError) as error:
                 logger.debug("%s: camera %s: no start from %s: %s", dataset.source, camera_name,
                              "the tree" if mirror is None else f"mirror {mirror} alone", error)
+                continue
+            if not solution.fit_ratio <= POOR_FIT_RATIO:
                 continue
             vectors = {((l, m) if mirror is None else (mirror, m)): np.asarray(v, float)
                        for (l, m), v in solution.mirror_vectors.items()}
