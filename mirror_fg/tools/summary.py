@@ -75,6 +75,15 @@ def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, increment
     """
     result = validate_result(result, source)
     (R_cb, t_cb), (R_bc, t_bc) = transforms(result)
+    if without_target(result):
+        lines = ["no known target: the base frame is the camera frame (T_cam_base is the identity, not estimated) "
+                 "and the dataset's scale fixes the lengths; the mirrors and points below are in it"]
+        lines += _target_free_lines(result)
+        lines += _residual_lines(result.get("residuals") or {}, verbose)
+        lines += excluded_lines(result.get("excluded") or [], verbose)
+        lines += _optimizer_lines(result.get("optimizer") or {}, verbose, incremental)
+        lines.append(verdict_line(result, pixel_sigma))
+        return lines
     lines = ["T_base_cam  the camera's pose on the robot: p_base = R p_cam + t (tf/URDF parent base, child camera)"]
     lines += _transform_lines(result.get("T_base_cam") or {}, R_bc, t_bc, full=True)
     lines.append(_bounds(base_cam_sigma3(result), "base", "camera position"))
@@ -95,6 +104,30 @@ def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, increment
     return lines
 
 
+def without_target(result: Mapping[str, Any]) -> bool:
+    """Whether the result is of data without a known target (``fiducials: {}``): the first camera's pose
+    is then exactly the identity with an exactly zero covariance (not estimated)."""
+    cov = result.get("covariance_cam_base")
+    T = result["T_cam_base"]
+    return (cov is not None and not np.any(np.asarray(cov, dtype=float))
+            and np.array_equal(np.asarray(T["R"], dtype=float), np.eye(3)) and not np.any(np.asarray(T["t"], dtype=float)))
+
+
+def _target_free_lines(result: Mapping[str, Any]) -> list[str]:
+    """Each mirror's distance and each point with their 3-sigma bounds (camera frame, millimetres)."""
+    lines = []
+    for entry in result.get("mirrors") or []:
+        v = np.asarray(entry["v"], dtype=float)
+        sigma = entry.get("sigma3_mm")
+        lines.append(f"  mirror {entry['mirror']} placement {entry['config']}: {1000 * np.linalg.norm(v):.2f} mm from the "
+                     f"camera, v {_vector(v, ' .5f')} m" + (f", 3-sigma ±{_vector(sigma, '.2f')} mm" if sigma else ""))
+    for name, entry in list((result.get("points") or {}).items())[:20]:
+        sigma = entry.get("sigma3_mm")
+        lines.append(f"  point {name}: {_vector(entry['xyz'], ' .5f')} m"
+                     + (f", 3-sigma ±{_vector(sigma, '.2f')} mm" if sigma else ""))
+    return lines
+
+
 def unknown_count(result: Mapping[str, Any]) -> int:
     """The solve's unknowns p: the pose (6; 6 per camera with ``cameras``), each mirror placement and
     reconstruction point (3 each), each estimated intrinsic (of every camera with ``cameras``): the degrees
@@ -103,7 +136,8 @@ def unknown_count(result: Mapping[str, Any]) -> int:
 
     cameras = result.get("cameras") or {}
     blocks = [entry.get("camera") or {} for entry in cameras.values()] if cameras else [result.get("camera") or {}]
-    return (6 * max(len(cameras), 1) + 3 * len(mirror_vectors(result)) + 3 * len(points(result))
+    poses = 6 * max(len(cameras), 1) - (7 if without_target(result) else 0)  # the first pose fixed, and the scale
+    return (poses + 3 * len(mirror_vectors(result)) + 3 * len(points(result))
             + sum(len(block.get("estimated") or []) for block in blocks))
 
 
