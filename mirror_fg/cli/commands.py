@@ -357,6 +357,45 @@ def _refuse_input_as_result(args) -> None:
         raise DatasetError(f"{args.result}: is {kind}, not a result (mirror-fg/result@1); {then}")
 
 
+def _plan_views(args, out: _Printer) -> int:
+    """``plan --kind kaleidoscope|mixed`` and ``plan --cameras N [--shared K,...]`` (tools/plan_views.py)."""
+    import json
+
+    from mirror_fg.io.output import OutputPlan
+    from mirror_fg.tools.plan_views import format_views_plan, plan_views
+
+    if args.shared is not None and args.cameras is None:
+        raise DatasetError("plan: --shared goes with --cameras N")
+    kind = args.kind or "tree"
+    if args.cameras is not None and kind == "kaleidoscope":
+        raise DatasetError("plan: --cameras takes the tree or mixed kind")
+    try:
+        shared = [None] if args.shared is None else [int(k) for k in str(args.shared).split(",")]
+    except ValueError:
+        raise DatasetError(f"plan: --shared must be counts such as 1,2,4, got {args.shared!r}") from None
+    if any(k is not None and k < 0 for k in shared):
+        raise DatasetError("plan: --shared counts must be >= 0")
+    outputs = OutputPlan(inputs=[])
+    if args.json is not None:
+        outputs.add(args.json, "plan JSON")
+    results = []
+    for k in shared:
+        options = {} if k is None else {"shared": k}
+        if kind == "kaleidoscope" and args.mirrors is not None:
+            options["num_mirrors"] = args.mirrors
+        try:
+            result = plan_views(kind, args.cameras or 1, draws=args.draws, seed=args.seed,
+                                pixel_sigma=args.sigma or 1.0, **options)
+        except ValueError as error:  # the simulator's refusal: a camera that cannot be solved, ...
+            raise DatasetError(f"plan: {error}") from None
+        results.append(result)
+        out.info(format_views_plan(result))
+    if args.json is not None:
+        outputs.commit({os.fspath(args.json): json.dumps([r.to_dict() for r in results], indent=2)})
+        out.info(f"wrote {args.json}")
+    return EXIT_OK
+
+
 def cmd_plan(args, out: _Printer) -> int:
     from mirror_fg.io.output import OutputPlan
     from mirror_fg.tools.plan import (
@@ -371,6 +410,8 @@ def cmd_plan(args, out: _Printer) -> int:
         from mirror_fg.cli.bench import plan_next  # the bench commands build on these
 
         return plan_next(args, out)
+    if args.cameras is not None or args.kind in ("kaleidoscope", "mixed") or args.shared is not None:
+        return _plan_views(args, out)
     if (args.output is not None or args.max_tilt is not None or args.result is not None
             or (args.distance is not None and len(args.distance) > 1)):
         raise DatasetError("plan: -o, --result, --max-tilt and --distance MIN,MAX go with --next DATA (the bounds of a "

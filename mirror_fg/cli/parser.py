@@ -209,6 +209,12 @@ def build_parser() -> argparse.ArgumentParser:
     pln.add_argument("--estimate", type=_intrinsic_names, default=(),
                      help="intrinsics estimated through the mirrors too, e.g. fx,fy,cx,cy,k1,k2: their bounds, and "
                           "the pose's with their uncertainty")
+    pln.add_argument("--kind", choices=["tree", "kaleidoscope", "mixed"], default=None,
+                     help="the set-up simulated (as mirror-fg simulate --kind; default the paper's tree)")
+    pln.add_argument("--cameras", type=_number(int, 2), help="a rig of N >= 2 cameras: every camera's bounds and the "
+                     "rig's (tree or mixed kind)")
+    pln.add_argument("--shared", metavar="K[,K...]",
+                     help="with --cameras: photographs every camera sees; several values compare them (e.g. 1,2,4,8)")
     pln.add_argument("--draws", type=_COUNT, default=5, help="random scenes averaged (default 5)")
     pln.add_argument("--seed", type=_COUNT0, default=0, help="random seed (default 0)")
     pln.add_argument("--json", type=Path, help="also write the bounds to this JSON file")
