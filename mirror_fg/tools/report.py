@@ -34,7 +34,7 @@ from mirror_fg.tools.report_diagnostics import figure_radial, figure_tracks, ima
 from mirror_fg.tools.report_general import (
     base_is_first_camera,
     camera_input_rows,
-    console_result,
+    console_lines,
     dataset_line,
     no_target_text,
     rig_ros_blocks,
@@ -57,7 +57,6 @@ from mirror_fg.tools.summary import (
     camera_lines,
     cost_warning,
     noise_note,
-    summary_lines,
     unknown_count,
 )
 
@@ -409,7 +408,7 @@ def _blocks(result: Mapping[str, Any], dataset: Dataset | None, summary: _Summar
     if base_is_first_camera(result, dataset):
         blocks.append(Block("p", no_target_text(result, dataset), id="no-target", css="flagged"))
     blocks += [Block("p", _FRAMES, id="frames"), Block("h2", "Console summary (mirror-fg calibrate)"),
-               Block("pre", "\n".join(summary_lines(console_result(result, dataset)))),
+               Block("pre", "\n".join(console_lines(result, dataset))),
                Block("h2", "Inputs"), Block("table", rows=inputs, id="inputs")]
     if dataset is not None and not dataset.is_tree or result.get("cameras"):
         blocks += view_blocks(result, dataset, residuals if isinstance(residuals, ViewResiduals) else None, base_frame)

@@ -31,7 +31,7 @@ if TYPE_CHECKING:
     from mirror_fg.io.dataset import Dataset
 
 __all__ = ["base_is_first_camera", "no_target_text", "console_result", "view_unknown_count", "dataset_line",
-           "view_blocks", "camera_input_rows", "rig_ros_blocks", "MAX_PLACEMENT_ROWS"]
+           "view_blocks", "console_lines", "camera_input_rows", "rig_ros_blocks", "MAX_PLACEMENT_ROWS"]
 
 #: Placements listed one row each up to this many (beyond it, the shared ones and the counts).
 MAX_PLACEMENT_ROWS = 40
@@ -84,6 +84,18 @@ def console_result(result: Mapping[str, Any], dataset: Dataset | None) -> Mappin
     if not base_is_first_camera(result, dataset):
         return result
     return {k: v for k, v in result.items() if k not in _BOUND_KEYS}
+
+
+def console_lines(result: Mapping[str, Any], dataset: Dataset | None) -> list[str]:
+    """The console summary (:func:`mirror_fg.tools.summary.summary_lines`) of :func:`console_result`, its
+    missing bounds said to be not estimated where the pose is the base frame itself."""
+    from mirror_fg.tools.summary import summary_lines
+
+    lines = summary_lines(console_result(result, dataset))
+    if base_is_first_camera(result, dataset):
+        lines = [line.replace("not computed (the result has no covariance)",
+                              "not estimated (the base frame is this camera's frame: no known target)") for line in lines]
+    return lines
 
 
 def view_unknown_count(result: Mapping[str, Any], dataset: Dataset | None) -> int:
