@@ -201,7 +201,11 @@ def _placement_blocks(dataset: Dataset) -> list[Block]:
     shown = items if len(items) <= MAX_PLACEMENT_ROWS else [(p, s) for p, s in items if len(s) > 1][:MAX_PLACEMENT_ROWS]
     rows = [(f"mirror {p[0]} config {p[1]}", who(s)) for p, s in shown]
     if len(shown) < len(items):
-        rows.append((f"the other {len(items) - len(shown)} placement(s)", "seen by one camera each"))
+        listed = {p for p, _ in shown}
+        shared = sum(1 for p, seen in items if p not in listed and len(seen) > 1)
+        alone = sum(1 for p, seen in items if p not in listed and len(seen) <= 1)
+        rows.append((f"the other {len(items) - len(shown)} placement(s)",
+                     f"{shared} more shared by several cameras, {alone} seen by one camera each"))
     heading = "Mirror placements and the cameras that saw them" if several else "Mirror placements and their views"
     blocks = [Block("h2", heading), Block("table", rows=rows, id="placements")]
     if several:

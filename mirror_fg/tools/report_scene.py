@@ -22,6 +22,7 @@ from mirror_fg.core.transform import Transform
 from mirror_fg.io.result import base_cam_covariance, base_cam_pose_covariance, mirror_vectors
 from mirror_fg.io.result import points as reconstruction_points
 from mirror_fg.tools.report_figures import (
+    MAX_PLACEMENTS_DRAWN,
     POSE_UNCERTAINTY_FRACTION,
     _draw_axes,
     _draw_target,
@@ -169,7 +170,8 @@ def _draw(ax: Any, scene: _Scene, with_target: bool) -> str:
     for p in scene.feet:
         per_mirror[p[0]] = per_mirror.get(p[0], 0) + 1
     labelled: set[Any] = set()
-    for p, f in scene.feet.items():
+    for p in _drawn_squares(scene):
+        f = scene.feet[p]
         a, b = _orthonormal_pair(scene.normals[p])
         quad = [f + scene.half_side * (sa * a + sb * b) for sa, sb in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
         colour = _MIRROR_COLOURS[(p[0] - 1) % len(_MIRROR_COLOURS)]
@@ -177,7 +179,6 @@ def _draw(ax: Any, scene: _Scene, with_target: bool) -> str:
         alpha = float(np.clip(1.0 / per_mirror[p[0]], 0.05, 0.3))
         ax.add_collection3d(Poly3DCollection([quad], facecolor=colour, alpha=alpha, lw=1.2 if shared else 0.5,
                                              edgecolor="k" if shared else colour))
-        ax.scatter(*f, color=colour, s=10, depthshade=False)
         key = p if len(scene.feet) <= MAX_PLACEMENT_LABELS else p[0]
         if key not in labelled:
             labelled.add(key)
@@ -185,6 +186,13 @@ def _draw(ax: Any, scene: _Scene, with_target: bool) -> str:
             text = (f"mirror {p[0]} config {p[1]}" + (f" (seen by {seen})" if seen else "")
                     if key == p else f"mirror {p[0]} ({per_mirror[p[0]]} placements)")
             ax.plot([], [], color=colour, lw=6, alpha=0.4, label=text)
+    for l in sorted(per_mirror):
+        xyz = np.array([f for p, f in scene.feet.items() if p[0] == l])
+        ax.scatter(*xyz.T, color=_MIRROR_COLOURS[(l - 1) % len(_MIRROR_COLOURS)], s=10 if len(xyz) <= 200 else 2,
+                   depthshade=False)
+    if any(n > MAX_PLACEMENTS_DRAWN for n in per_mirror.values()):
+        ax.plot([], [], ls="none", marker=".", color="k",
+                label=f"beyond {MAX_PLACEMENTS_DRAWN} placements of a mirror: a sample as squares, all as dots")
     if any(len(t) > 1 for t in scene.ties.values()):
         ax.plot([], [], color="k", lw=1.2, label="black edge: seen by several cameras")
     if with_target:
@@ -194,6 +202,22 @@ def _draw(ax: Any, scene: _Scene, with_target: bool) -> str:
     ax.set_ylabel("y (m)")
     ax.set_zlabel("z (m)")
     return f"3σ position ellipsoids × {factor:g}" if semis else ""
+
+
+def _drawn_squares(scene: _Scene) -> list[tuple[int, int]]:
+    """The placements drawn as squares: all, or MAX_PLACEMENTS_DRAWN per mirror, those seen by several
+    cameras first, the rest a seeded sample (every foot point is still drawn as a dot)."""
+    rng = np.random.default_rng(0)
+    out: list[tuple[int, int]] = []
+    for l in sorted({p[0] for p in scene.feet}):
+        keys = [p for p in scene.feet if p[0] == l]
+        if len(keys) > MAX_PLACEMENTS_DRAWN:
+            shared = [p for p in keys if len(scene.ties.get(p, {})) > 1][:MAX_PLACEMENTS_DRAWN]
+            rest = [p for p in keys if p not in set(shared)]
+            extra = MAX_PLACEMENTS_DRAWN - len(shared)
+            keys = shared + [rest[i] for i in sorted(rng.choice(len(rest), extra, replace=False))] if extra else shared
+        out += keys
+    return out
 
 
 def figure_views_scene(result: Mapping[str, Any], dataset: Dataset | None) -> Figure:
@@ -214,7 +238,7 @@ def figure_views_scene(result: Mapping[str, Any], dataset: Dataset | None) -> Fi
     if close_up:
         ax2 = fig.add_subplot(1, 2, 2, projection="3d")
         magnified = _draw(ax2, scene, with_target=False)
-        ax2.set_title("Close-up of the cameras and mirrors" + (f"\n({magnified})" if magnified else ""), fontsize=10)
+        ax2.set_title(f"Close-up of the camera{'s' if len(scene.names) > 1 else ''} and mirrors" + (f"\n({magnified})" if magnified else ""), fontsize=10)
     notes = []
     semis = [3e3 * math.sqrt(max(float(np.linalg.eigvalsh(P).max()), 0.0)) for P in scene.covariances.values()
              if P is not None]
