@@ -282,3 +282,54 @@ def test_tree_report_has_no_view_sections(tmp_path):
     for absent in ("id='orders'", "id='placements'", "id='no-target'", "Residuals by reflection order"):
         assert absent not in page
     assert len(re.findall(r"data:image/png;base64,", page)) == 6
+
+
+def test_rig_without_a_target_marks_the_first_camera_as_the_base_frame(tmp_path):
+    """The board's corners as reconstruction points, {B} = left's frame: left's pose is not estimated,
+    right's is (a result at the truth, with covariances written by hand)."""
+    poses, mirrors, owners = _rig_scene()
+    to_left = Transform(*poses["left"])
+    relative = {n: Transform(*p) @ to_left.inverse() for n, p in poses.items()}
+    poses = {n: (T.R, T.t) for n, T in relative.items()}
+    points = {n: to_left.apply(np.array(x)) for n, x in BOARD.items()}
+    cams = {"left": CAM, "right": CAM_RIGHT}
+    images = []
+    for camera in ("left", "right"):
+        for seq in SEQUENCES[1:] if camera == "right" else SEQUENCES:
+            px = _seen(camera, seq, poses, mirrors, owners, cams, np.array(list(points.values())))
+            images.append({"id": f"{camera}{len(images)}", "camera": camera, "reflections": [list(p) for p in seq],
+                           "observations": {n: p.tolist() for n, p in zip(points, px)}})
+    ds = dataset_from_dict({"format": "mirror-fg/dataset@1", "num_mirrors": 2, "cameras": cams, "pixel_sigma": 0.5,
+                            "fiducials": {}, "scale": {"mirror": 1, "config": 0, "distance": 0.15},
+                            "images": images}, "<rig, no target>")
+    result = dict(truth_result((poses, mirrors, owners)))
+    result["points"] = {n: {"xyz": p.tolist(), "sigma3_mm": [1.0, 1.0, 3.0]} for n, p in points.items()}
+    zero, P = np.zeros((6, 6)), np.diag([1e-6] * 3 + [4e-6] * 3)
+    result["covariance_cam_base"] = result["covariance_base_cam"] = zero.tolist()
+    result["cameras"]["left"].update(covariance_cam_base=zero.tolist(), covariance_base_cam=zero.tolist(),
+                                     sigma3_base_cam=sigma3_pose(zero))
+    P_bc = Transform(*poses["right"]).inverse_covariance(P)
+    result["cameras"]["right"].update(covariance_cam_base=P.tolist(), covariance_base_cam=P_bc.tolist(),
+                                      sigma3_base_cam=sigma3_pose(P_bc))
+    page = write_report(validate_result(result, "<r>"), ds, tmp_path, progress=False)["html"].read_text(encoding="utf-8")
+    assert "the base frame {B} is the frame of camera left" in page
+    cameras = re.search(r"id='cameras'>(.*?)</table>", page).group(1)
+    left, right = cameras.split("camera right")[0], "camera right" + cameras.split("camera right", 1)[1]
+    assert "not estimated: the base frame itself" in left and "not estimated" not in right
+    assert f"position {_bounds(P_bc)} mm" in right
+    # 1 estimated pose, 2 placements, 20 points, less the scale.
+    assert view_unknown_count(result, ds) == 6 + 6 + 60 - 1
+    res, _ = view_residuals(result, ds, "<r>")
+    assert np.max(np.abs(res.residual)) < 1e-7
+
+
+def _bounds(P_bc):
+    return "[" + ", ".join(f"{x:.3g}" for x in 3e3 * np.sqrt(np.diag(P_bc)[3:])) + "]"
+
+
+def test_rig_report_without_its_dataset(rig_report, tmp_path):
+    _, result, _, _ = rig_report
+    page = write_report(result, None, tmp_path, progress=False)["html"].read_text(encoding="utf-8")
+    for present in ("id='cameras'", "id='rig'", "3D scene"):
+        assert present in page
+    assert "id='orders'" not in page and "id='placements'" not in page

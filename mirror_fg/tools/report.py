@@ -360,7 +360,7 @@ def _figures(
                             "point, with the RMS of each ring. Growth towards the edge is the signature of a wrong "
                             "or missing distortion model.")
         bar.update()
-    if dataset is not None and not dataset.is_tree:
+    if dataset is not None and not dataset.is_tree or result.get("cameras"):
         add("3D scene", figure_views_scene, result, dataset,
             caption="Base frame {B} (x red, y green, z blue); every camera's frustum and axes at its T_base_cam with "
                     "its 3σ position ellipsoid (all magnified by the one factor in the title); each mirror placement "
