@@ -31,6 +31,16 @@ from mirror_fg.io.output import OutputPlan
 from mirror_fg.io.result import base_cam_sigma3, pose, pose_covariance, transforms, validate_result
 from mirror_fg.io.ros import DEFAULT_BASE_FRAME, DEFAULT_CAMERA_FRAME, check_frame_name, ros_outputs
 from mirror_fg.tools.report_diagnostics import figure_radial, figure_tracks, image_centre, radial_verdict
+from mirror_fg.tools.report_general import (
+    base_is_first_camera,
+    camera_input_rows,
+    console_lines,
+    dataset_line,
+    no_target_text,
+    rig_ros_blocks,
+    view_blocks,
+    view_unknown_count,
+)
 from mirror_fg.tools.report_figures import (
     figure_correlation,
     figure_histogram,
@@ -39,13 +49,14 @@ from mirror_fg.tools.report_figures import (
     figure_scene,
 )
 from mirror_fg.tools.report_pages import Block, RenderedFigure, html_page, pdf_document
+from mirror_fg.tools.report_scene import figure_views_scene, pose_is_estimated
+from mirror_fg.tools.report_views import ViewResiduals, figure_cameras, figure_orders, view_residuals
 from mirror_fg.tools.residuals import OUTLIER_FACTOR, Residuals, residuals_of_valid_result
 from mirror_fg.tools.summary import (
     RMS_DEFINITION,
     camera_lines,
     cost_warning,
     noise_note,
-    summary_lines,
     unknown_count,
 )
 
@@ -64,9 +75,11 @@ MAX_NAMES_ECHOED = 24
 
 
 def _fmt(values: Any, digits: int = 4) -> str:
-    """Numbers as ``[a, b, c]`` with ``digits`` significant digits; a scalar alone; None as an en dash."""
+    """Numbers as ``[a, b, c]`` with ``digits`` significant digits; a scalar alone; None as an en dash; text as it is."""
     if values is None:
         return "–"
+    if isinstance(values, str):
+        return values
     arr = np.asarray(values, dtype=float)
     if arr.ndim == 0:
         return f"{float(arr):.{digits}g}"
@@ -90,8 +103,11 @@ def _summary(
     (R_cb, t_cb), (R_bc, t_bc) = transforms(result)
     T_base_cam = Transform(R_bc, t_bc)
     notes: list[str] = []
+    fixed = base_is_first_camera(result, dataset)
     s_bc = base_cam_sigma3(result) or {}
     s_cb = result.get("sigma3_cam_base") or {}
+    if fixed:  # no known target: the pose is the base frame itself, its zero bounds are no estimate
+        s_bc = s_cb = {k: "not estimated (the base frame is this camera's frame)" for k in ("rotation_deg", "position_mm")}
     rows = [
         (f"T_base_cam translation (camera centre in {base_frame}), m", _fmt(t_bc, 6)),
         ("T_base_cam quaternion (x, y, z, w)", _fmt(T_base_cam.quaternion_xyzw(), 6)),
@@ -103,6 +119,10 @@ def _summary(
         ("T_cam_base 3σ rotation about camera x, y, z, deg", _fmt(s_cb.get("rotation_deg"), 3)),
         ("T_cam_base 3σ base origin along camera x, y, z, mm", _fmt(s_cb.get("position_mm"), 3)),
     ]
+    if result.get("cameras"):  # several cameras: the rows above are the first camera's (each under "Cameras")
+        names = list(result["cameras"])
+        rows.insert(0, ("camera of the pose rows below", f"{names[0]} (the first of {len(names)} cameras: "
+                        + ", ".join(names) + "; each camera's pose is under Cameras)"))
     res = result.get("residuals") or {}
     units = residuals.units if residuals is not None else str(res.get("units") or "px")
     rms = _fmt(res.get("rms_px"))
@@ -133,11 +153,15 @@ def _summary(
         rows.append(("analytic vs MLE: translation, mm", f"{_fmt(np.linalg.norm(dt))} (Δt = {_fmt(dt)})"))
     else:
         notes.append("The result carries no analytic solution: no analytic vs MLE comparison.")
-    if dataset is not None:
+    if dataset is not None and not dataset.is_tree:
+        rows.append(("dataset", dataset_line(result, dataset, units)))
+    elif dataset is not None:
         configs = {(l + 1, m) for im in dataset.images for l, m in enumerate(im.mirror_configs)}
         rows.append(("dataset", f"{len(dataset.images)} images, {dataset.num_mirrors} mirror(s), {len(configs)} mirror "
                      f"configurations, {len(dataset.fiducials)} fiducials, {len(result.get('points') or {})} "
                      f"reconstruction points, σ = {_fmt(dataset.pixel_sigma)} {units}"))
+    if fixed:
+        notes.append(no_target_text(result, dataset))
     problems, facts = _verdict(result, dataset, residuals, opt)
     good = not problems
     reasons = [text for _, text in problems] + facts
@@ -172,7 +196,7 @@ def _verdict(result: Mapping[str, Any], dataset: Dataset | None, residuals: Resi
         ratio = residuals.rms / residuals.expected_rms
         # At the MLE the residuals lose one degree of freedom per unknown: E[RMS^2] = 2 sigma^2 (1 - p / 2N).
         coordinates = 2 * int(np.sum(residuals.valid))
-        unknowns = unknown_count(result)
+        unknowns = unknown_count(result) if dataset.is_tree else view_unknown_count(result, dataset)
         expected = math.sqrt(max(1.0 - unknowns / coordinates, 0.0)) if coordinates else 1.0
         flagged = residuals.flagged_images()
         rms = (f"RMS {residuals.rms:.3g} {residuals.units} = {ratio:.2f} × √2·σ ({expected:.2f} × expected from "
@@ -207,13 +231,17 @@ def _inputs(result: Mapping[str, Any], dataset: Dataset | None, source: str, ext
     if dataset is not None:
         rows.append(("dataset", f"{dataset.source} ({len(dataset.images)} images)"))
         cam = dataset.camera
-        rows.append(("camera", "none: normalized image coordinates" if cam is None else
-                     f"{cam.model} {cam.width}×{cam.height} px, fx {cam.fx:.6g}, fy {cam.fy:.6g}, cx {cam.cx:.6g}, "
-                     f"cy {cam.cy:.6g}, dist {_fmt(cam.dist, 4)}"))
+        if dataset.cameras:
+            rows += camera_input_rows(dataset)
+        else:
+            rows.append(("camera", "none: normalized image coordinates" if cam is None else
+                         f"{cam.model} {cam.width}×{cam.height} px, fx {cam.fx:.6g}, fy {cam.fy:.6g}, "
+                         f"cx {cam.cx:.6g}, cy {cam.cy:.6g}, dist {_fmt(cam.dist, 4)}"))
         names = list(dataset.fiducials)
         shown = ", ".join(names[:MAX_NAMES_ECHOED]) + (f", … ({len(names) - MAX_NAMES_ECHOED} more)"
                                                        if len(names) > MAX_NAMES_ECHOED else "")
-        rows.append(("target", f"{len(names)} fiducials in the base frame: {shown}"))
+        rows.append(("target", f"{len(names)} fiducials in the base frame: {shown}" if names else
+                     "none (fiducials: {}): the base frame is the first camera's frame"))
         rows.append(("pixel sigma", _fmt(dataset.pixel_sigma)))
     if result.get("camera"):
         rows.append(("intrinsics estimated", ", ".join(result["camera"].get("estimated") or []) or "–"))
@@ -265,13 +293,18 @@ def write_report(
     title = title or "mirror-fg calibration report"
     stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     with tqdm(total=9, desc="report", unit="step", disable=not progress, file=sys.stderr, leave=False) as bar:
-        residuals = residuals_of_valid_result(result, dataset, source) if dataset is not None else None
+        view_notes: list[str] = []
+        residuals: Residuals | None = None
+        if dataset is not None and not dataset.is_tree:  # any reflection order, several cameras, no target
+            residuals, view_notes = view_residuals(result, dataset, source)
+        elif dataset is not None:
+            residuals = residuals_of_valid_result(result, dataset, source)
         bar.update()
         summary = _summary(result, dataset, residuals, base_frame)
         bar.update()
         figures, notes = _figures(result, dataset, residuals, tracks, bar)
-        blocks = _blocks(result, summary, summary.notes + notes, figures, residuals, ros,
-                         _inputs(result, dataset, source, inputs, stamp))
+        blocks = _blocks(result, dataset, summary, summary.notes + view_notes + notes, figures, residuals, ros,
+                         _inputs(result, dataset, source, inputs, stamp), base_frame)
         page, pdf = html_page(title, blocks), pdf_document(title, blocks)
         plan.commit({paths["html"]: page, paths["pdf"]: pdf})
         bar.update()
@@ -311,6 +344,15 @@ def _figures(
             caption="RMS reprojection error of each point, by name; all residual vectors with the 3σ circle; "
                     "residual arrows at the observed positions (magnified).")
         bar.update()
+        if isinstance(residuals, ViewResiduals):
+            add("Residuals by reflection order", figure_orders, residuals,
+                caption="Residual lengths of the direct views and of the views through one, two, ... mirrors: RMS "
+                        "and largest of each order (with the number of measurements and views), and each order's "
+                        "distribution against the noise model's (|e| of e ~ N(0, σ² I)).")
+            if len(set(residuals.cameras)) > 1:
+                add("Residuals per camera", figure_cameras, residuals,
+                    caption="RMS reprojection error of each camera, and each camera's residual vectors coloured "
+                            "by reflection order with the 3σ circle.")
         profile = residuals.radial_profile(image_centre(dataset))
         if profile is not None:
             add("Residual vs distance from the image centre", figure_radial, residuals, profile,
@@ -318,14 +360,24 @@ def _figures(
                             "point, with the RMS of each ring. Growth towards the edge is the signature of a wrong "
                             "or missing distortion model.")
         bar.update()
-    add("3D scene", figure_scene, result, dataset,
-        caption="Base frame {B} (x red, y green, z blue), the camera frustum at T_base_cam with its 3σ position "
+    if dataset is not None and not dataset.is_tree or result.get("cameras"):
+        add("3D scene", figure_views_scene, result, dataset,
+            caption="Base frame {B} (x red, y green, z blue); every camera's frustum and axes at its T_base_cam with "
+                    "its 3σ position ellipsoid (all magnified by the one factor in the title); each mirror placement "
+                    "once, as a translucent square on its plane centred on its foot point (black edge: seen by "
+                    "several cameras), dotted lines from each camera to the placements it saw; fiducials and "
+                    "reconstruction points with axis-aligned 3σ ellipsoids. Metres.")
+    else:
+        add("3D scene", figure_scene, result, dataset,
+            caption="Base frame {B} (x red, y green, z blue), the camera frustum at T_base_cam with its 3σ position "
                     "ellipsoid and optical-axis cone (magnified by the factors in the title and legend), every "
                     "mirror placement as a translucent square centred on its foot point (a sample of squares "
                     "where there are many), fiducials, and reconstruction points with axis-aligned 3σ "
                     "ellipsoids. Metres.")
     bar.update()
-    if pose_covariance(result) is not None:
+    if base_is_first_camera(result, dataset):
+        notes.append("T_cam_base is the base frame itself (no known target), not an estimate: no correlation matrix.")
+    elif pose_is_estimated(pose_covariance(result)):
         add("Covariance correlation", figure_correlation, result,
             caption="Correlation matrix of the 6×6 covariance of T_cam_base: [rx, ry, rz] rotation "
                         "about the camera axes (R_true = Exp(dθ) R), [x, y, z] translation (t_true = t + dt).")
@@ -347,13 +399,19 @@ _FRAMES = ("Frames: {B} base, {C} camera (OpenCV = ROS optical: x right, y down,
            "of its first frame, t_true = t + dt along them — base axes for T_base_cam, camera axes for T_cam_base.")
 
 
-def _blocks(result: Mapping[str, Any], summary: _Summary, notes: list[str], figures: list[tuple[str, Any, str]],
-            residuals: Residuals | None, ros: Mapping[str, Any], inputs: list[tuple[str, str]]) -> list[Block]:
+def _blocks(result: Mapping[str, Any], dataset: Dataset | None, summary: _Summary, notes: list[str],
+            figures: list[tuple[str, Any, str]], residuals: Residuals | None, ros: Mapping[str, Any],
+            inputs: list[tuple[str, str]], base_frame: str) -> list[Block]:
     """Everything the report says, in order, for both renderings."""
     blocks = [Block("verdict", summary.headline, items=summary.reasons, good=summary.good), Block("h2", "Summary"),
-              Block("table", rows=summary.rows, id="summary"), Block("p", _FRAMES, id="frames"),
-              Block("h2", "Console summary (mirror-fg calibrate)"), Block("pre", "\n".join(summary_lines(result))),
-              Block("h2", "Inputs"), Block("table", rows=inputs, id="inputs")]
+              Block("table", rows=summary.rows, id="summary")]
+    if base_is_first_camera(result, dataset):
+        blocks.append(Block("p", no_target_text(result, dataset), id="no-target", css="flagged"))
+    blocks += [Block("p", _FRAMES, id="frames"), Block("h2", "Console summary (mirror-fg calibrate)"),
+               Block("pre", "\n".join(console_lines(result, dataset))),
+               Block("h2", "Inputs"), Block("table", rows=inputs, id="inputs")]
+    if dataset is not None and not dataset.is_tree or result.get("cameras"):
+        blocks += view_blocks(result, dataset, residuals if isinstance(residuals, ViewResiduals) else None, base_frame)
     if residuals is not None:
         flagged = residuals.flagged_images()
         blocks.append(Block("h2", f"Flagged images (RMS > {OUTLIER_FACTOR:g} × median)"))
@@ -395,4 +453,4 @@ def _blocks(result: Mapping[str, Any], summary: _Summary, notes: list[str], figu
                    "(REP 103 rotation applied) and their static transforms:"),
         Block("pre", link["urdf_joints"] + "\n" + "\n".join(link["static_transform_publisher_commands"])),
     ]
-    return blocks
+    return blocks + rig_ros_blocks(ros)
