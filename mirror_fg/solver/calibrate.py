@@ -24,7 +24,6 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
-from types import SimpleNamespace
 from typing import Any
 
 import gtsam
@@ -36,9 +35,9 @@ from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_key, predic
 from mirror_fg.io.dataset import Dataset, dataset_from_dict
 from mirror_fg.solver.analytic import AnalyticSolution
 from mirror_fg.solver.calibration import Calibration, EstimatedCamera, Exclusion
-from mirror_fg.solver.consensus import PnPCandidates, check_images, final_check, screen, without
+from mirror_fg.solver.consensus import PnPCandidates, check_images, screen, without
 from mirror_fg.solver.consistency import diagnose_inconsistency
-from mirror_fg.solver.graph import GraphLayout, InitialEstimate, Measurement, extract_values
+from mirror_fg.solver.graph import Estimate, GraphLayout, InitialEstimate, Measurement, extract_values
 from mirror_fg.solver.initial import initial_estimate
 from mirror_fg.solver.intrinsics import (
     START_SIGMA_FRACTION, JointRun, camera_intrinsics, camera_of, check_supported, joint_covariances, joint_problem, joint_values,
@@ -46,6 +45,7 @@ from mirror_fg.solver.intrinsics import (
 )
 from mirror_fg.solver.intrinsics_observability import unobservable_refusal, warn_weak
 from mirror_fg.solver.lm import levenberg_marquardt_with_restarts
+from mirror_fg.solver.rechecks import MAX_RECHECKS, Checked, solve_with_rechecks  # noqa: F401 (MAX_RECHECKS public here)
 from mirror_fg.solver.options import STAGES, Linearization, Progress, SolveOptions
 from mirror_fg.solver.residuals import outliers_of, predicted_normalized, residual_statistics
 from mirror_fg.solver.timing import timed
@@ -54,8 +54,7 @@ __all__ = ["as_dataset", "calibrate", "calibrate_with_intrinsics", "Progress", "
 
 logger = logging.getLogger("mirror_fg")
 
-#: Times the final check may leave measurements out and solve again.
-MAX_RECHECKS = 2
+
 
 
 def as_dataset(data: Dataset | Mapping[str, Any], what: str = "calibrate()") -> Dataset:
@@ -128,26 +127,24 @@ def calibrate(
         checked = check_images(dataset)  # Sect. 4.1 per image, checked; the initial estimate starts from it
     with timed(timings, "consensus"):
         solved, excluded, pnp = screen(dataset, checked=checked)  # what disagrees with the rest, named
-    for recheck in range(MAX_RECHECKS + 1):
+    screened = len(excluded)
+
+    def solve(solved: Dataset, excluded: list[Exclusion]) -> tuple[Calibration, list[Measurement], np.ndarray]:
+        left_out = {e.image for e in excluded[screened:]}  # by the final check: their PnP is of other data
         try:
-            calibration, measurements, whitened = _solve(solved, initial, options, timings, pnp)
+            return _solve(solved, initial, options, timings, {i: p for i, p in pnp.items() if i not in left_out})
         except (DatasetError, SolveError) as error:
             if not excluded:
                 raise
             raise type(error)(f"{error} (after leaving out {_listed(excluded)})") from None
-        dimension = 2 * len(measurements) - round(2 * calibration.expected_final_error)  # unknowns (lm.LMRun)
-        more = final_check(solved, measurements, whitened, dimension) if recheck < MAX_RECHECKS else []
-        if not more:
-            break
-        logger.warning("%s: %d measurement(s) or image(s) far off the solution left out; solving again", dataset.source,
-                       len(more))
-        for exclusion in more:
-            logger.warning("%s: image '%s'%s left out: %s", dataset.source, exclusion.image,
-                           f" point '{exclusion.point}'" if exclusion.point else "", exclusion.reason)
-        excluded = excluded + more
-        solved = without(solved, more)
-        pnp = {image_id: poses for image_id, poses in pnp.items() if image_id not in {e.image for e in more}}
-    calibration.excluded = list(excluded)
+
+    def checked(run: tuple[Calibration, list[Measurement], np.ndarray]) -> Checked:
+        calibration, measurements, whitened = run
+        return Checked(measurements, whitened, 2 * len(measurements) - round(2 * calibration.expected_final_error))
+
+    rechecked = solve_with_rechecks(solved, solve, checked, excluded)
+    (calibration, _, _), solved = rechecked.run, rechecked.solved
+    calibration.excluded = list(rechecked.excluded)
     if options.diagnose:
         with timed(timings, "consistency"):
             calibration.inconsistency = diagnose_inconsistency(solved, calibration, pnp)
@@ -299,34 +296,38 @@ class _JointSolution:
 
 
 def _joint_solve(dataset: Dataset, chosen: _Start, model: IntrinsicsModel, options: SolveOptions) -> _JointSolution:
-    """Joint LM from a start, leaving out what ends far off (``consensus.final_check``) and solving again;
-    the run and what it was solved on (``solved``, ``excluded``, ``measurements``), the estimate and the
-    pixel residuals (``residuals``, ``whitened``)."""
-    start_camera, solved, excluded = chosen.camera, chosen.solved, list(chosen.start.excluded)
-    graph, layout, measurements, pixels, values = chosen.graph, chosen.layout, chosen.measurements, chosen.pixels, chosen.values
-    for recheck in range(MAX_RECHECKS + 1):
-        fixed = replace(solved, camera=start_camera)
-        run = run_joint_lm(solved, fixed, graph, layout, measurements, pixels, values, options.max_iterations,
-                           options.on_iteration)
+    """Joint LM from a start, leaving out what ends far off (``rechecks.solve_with_rechecks``) and solving
+    again from the last estimate; the run and what it was solved on (``solved``, ``excluded``,
+    ``measurements``), the estimate and the pixel residuals (``residuals``, ``whitened``)."""
+    start_camera = chosen.camera
+    problem = [chosen.graph, chosen.layout, chosen.measurements, chosen.pixels, chosen.values]
+
+    def solve(solved: Dataset, excluded: list[Exclusion]) -> _JointSolution:
+        if solved is not chosen.solved:  # after leaving some out: the problem again, from the last estimate
+            last = runs[-1]
+            estimate = Estimate(last.R, last.t, last.mirror_vectors, last.points)
+            problem[:4] = joint_problem(solved, replace(solved, camera=start_camera), model, options.robust)
+            problem[4] = joint_values(problem[1], last.run.result.atVector(intrinsics_key()), estimate)
+        graph, layout, measurements, pixels, values = problem
+        run = run_joint_lm(solved, replace(solved, camera=start_camera), graph, layout, measurements, pixels, values,
+                           options.max_iterations, options.on_iteration)
         R, t, mirror_vectors, points = extract_values(run.result, layout)
         theta = model.theta(np.asarray(run.result.atVector(intrinsics_key()), dtype=float))
         predicted = predicted_normalized(solved, measurements, R, t, mirror_vectors, points)
         residuals = predict_pixels(theta, predicted) - pixels
         whitened = np.linalg.norm(residuals, axis=1) / pixel_sigmas(dataset, measurements)
-        more = final_check(solved, measurements, whitened, run.result.dim()) if recheck < MAX_RECHECKS else []
-        if not more:
-            break
-        logger.warning("%s: %d measurement(s) or image(s) far off the solution left out; solving again",
-                       dataset.source, len(more))
-        excluded += more
-        solved = without(solved, more)
-        estimate = SimpleNamespace(R_cam_base=R, t_cam_base=t, mirror_vectors=mirror_vectors, points=points)
-        graph, layout, measurements, pixels = joint_problem(solved, replace(solved, camera=start_camera), model,
-                                                            options.robust)
-        values = joint_values(layout, run.result.atVector(intrinsics_key()), estimate)
-    return _JointSolution(run=run, solved=solved, excluded=excluded, measurements=measurements, R=R, t=t,
-                          mirror_vectors=mirror_vectors, points=points, theta=theta, residuals=residuals,
-                          whitened=whitened)
+        runs.append(_JointSolution(run=run, solved=solved, excluded=list(excluded), measurements=measurements, R=R,
+                                   t=t, mirror_vectors=mirror_vectors, points=points, theta=theta, residuals=residuals,
+                                   whitened=whitened))
+        return runs[-1]
+
+    runs: list[_JointSolution] = []
+    rechecked = solve_with_rechecks(chosen.solved, solve,
+                                    lambda joint: Checked(joint.measurements, joint.whitened, joint.run.result.dim()),
+                                    chosen.start.excluded)
+    joint = rechecked.run
+    joint.excluded = rechecked.excluded
+    return joint
 
 
 def calibrate_with_intrinsics(

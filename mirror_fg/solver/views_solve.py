@@ -14,10 +14,11 @@ import numpy as np
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.calibration import Calibration, CameraPose, EstimatedCamera, Exclusion
-from mirror_fg.solver.consensus import final_check, screen, without
+from mirror_fg.solver.consensus import screen, without
 from mirror_fg.solver.lm import cost_scale, lm_params, plausible, run_optimizer
 from mirror_fg.solver.options import STAGES, SolveOptions
 from mirror_fg.solver.propagation import Unsolvable, propagate
+from mirror_fg.solver.rechecks import Checked, solve_with_rechecks
 from mirror_fg.solver.rig import rig_transforms
 from mirror_fg.solver.timing import timed
 from mirror_fg.solver.views import SINGLE_CAMERA, ViewEstimate, ViewProblem, camera_names
@@ -26,8 +27,6 @@ __all__ = ["calibrate_views", "tree_start_for"]
 
 logger = logging.getLogger("mirror_fg")
 
-#: Times the final check may leave measurements out and solve again.
-MAX_RECHECKS = 2
 
 
 @dataclass
@@ -208,22 +207,25 @@ def _fixed_intrinsics(dataset: Dataset) -> Dataset:
 
 
 def _solve(dataset: Dataset, start, options: SolveOptions, models: dict, excluded: list[Exclusion]) -> _Run:
-    """Start -> LM -> final check (what ends far off left out, solved again), at most MAX_RECHECKS times."""
+    """Start -> LM -> final check (``rechecks.solve_with_rechecks``: what ends far off left out, solved
+    again from the last estimate). An analytical start whose LM ends implausibly is followed by the other
+    analytical start (rule 2 first), and the better of the two kept."""
     report = options.progress if options.progress is not None else (lambda stage, done, total: None)
     timings: dict[str, float] = {}
-    solved = dataset
     analytic = start is None
-    for recheck in range(MAX_RECHECKS + 1):
+    last: list[ViewEstimate | None] = [start]
+
+    def iteration(number: int, before: float, after: float) -> None:
+        report(STAGES[1], number, options.max_iterations)
+        if options.on_iteration is not None:
+            options.on_iteration(number, before, after)
+
+    def solve(solved: Dataset, left_out: list[Exclusion]) -> _Run:
         problem = ViewProblem(solved, options.robust, models)
         with timed(timings, "analytic"):
-            start = _start(problem, start)
+            begin = _start(problem, last[0])
         graph = problem.graph()
         params = lm_params(options.max_iterations, cost_scale(solved))
-
-        def iteration(number: int, before: float, after: float) -> None:
-            report(STAGES[1], number, options.max_iterations)
-            if options.on_iteration is not None:
-                options.on_iteration(number, before, after)
 
         def optimize(first: ViewEstimate):
             return run_optimizer(graph, problem.values(first), params, solved.source,
@@ -231,29 +233,28 @@ def _solve(dataset: Dataset, start, options: SolveOptions, models: dict, exclude
                                  iteration)
 
         with timed(timings, "optimize"):
-            optimizer, result, initial_error = optimize(start)
+            optimizer, result, initial_error = optimize(begin)
             dimension = result.dim() - problem.constraints
-            if (recheck == 0 and analytic and not plausible(graph.error(result), 0.5 * max(problem.size - dimension, 0))):
+            if analytic and last[0] is None and not plausible(graph.error(result),
+                                                              0.5 * max(problem.size - dimension, 0)):
                 other = _other_start(problem)  # the analytical start ended implausibly: try the other one
                 if other is not None:
                     tried = optimize(other)
                     if graph.error(tried[1]) < graph.error(result):
                         logger.info("%s: the second analytical start fits better", solved.source)
                         optimizer, result, initial_error = tried
-                        start = other
         estimate = problem.read(result)
+        last[0] = estimate  # the start of the next solve, after leaving some out
         residuals, whitened, labels, views = problem.residuals(estimate)
-        more = (final_check(solved, [_Label(i, p) for i, p in labels], whitened, dimension)  # type: ignore[arg-type]
-                if recheck < MAX_RECHECKS else [])
-        if not more:
-            break
-        logger.warning("%s: %d measurement(s) or image(s) far off the solution left out; solving again",
-                       dataset.source, len(more))
-        excluded = excluded + more
-        solved = without(solved, more)
-        start = _kept(estimate, ViewProblem(solved, options.robust))
-    return _Run(problem, graph, result, estimate, residuals, whitened, labels, views, dimension,
-                int(optimizer.iterations()), initial_error, excluded, timings)
+        return _Run(problem, graph, result, estimate, residuals, whitened, labels, views, dimension,
+                    int(optimizer.iterations()), initial_error, list(left_out), timings)
+
+    rechecked = solve_with_rechecks(
+        dataset, solve, lambda run: Checked([_Label(i, p) for i, p in run.labels], run.whitened, run.dimension),
+        excluded)
+    run = rechecked.run
+    run.excluded = rechecked.excluded
+    return run
 
 
 def _finish(run: _Run, options: SolveOptions) -> Calibration:
@@ -271,13 +272,6 @@ def _finish(run: _Run, options: SolveOptions) -> Calibration:
                                  f"({_named(problem, error)})") from None
         report(STAGES[2], 1, 1)
     return _calibration(run, covariances, converged=run.iterations < options.max_iterations)
-
-
-def _kept(estimate: ViewEstimate, problem: ViewProblem) -> ViewEstimate:
-    """``estimate`` restricted to what ``problem`` still has (after images were left out)."""
-    return ViewEstimate({n: p for n, p in estimate.poses.items()},
-                        {p: v for p, v in estimate.mirror_vectors.items() if p in problem.mirror_keys},
-                        {n: x for n, x in estimate.points.items() if n in problem.point_keys}, estimate.theta)
 
 
 def _named(problem: ViewProblem, error: Exception) -> str:
