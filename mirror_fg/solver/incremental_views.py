@@ -1,0 +1,407 @@
+"""Incremental calibration of the general view model (docs/formats.md, "Views of any reflection order,
+and several cameras") on iSAM2: direct views, fixed mirrors, any order of reflections, several cameras,
+no known target. ``IncrementalCalibrator`` and ``calibrate_incremental`` (``incremental.py``) send every
+dataset that is not the paper's tree (``Dataset.is_tree``) here.
+
+Same unknowns, keys, factors and noise as the batch (``views.py``'s :class:`ViewProblem`, one
+``ViewFactor`` per image; ``X(k)`` camera k's ``T_cam_base``, ``V(i)`` a placement's mirror vector in its
+owner camera's frame, ``L(j)`` a point, base frame; without a known target the first camera's frame is the
+base and a prior of relative sigma ``views.SCALE_SIGMA`` holds the scale). The key layout is the
+ViewProblem's of the dataset given at construction (``calibrate_incremental``: the whole file); a
+placement, point or camera an added image brings beyond it gets the next key, its owner being that image's
+camera.
+
+Life of an image (:meth:`ViewsIncrementalCalibrator.add_image`): validated (``dataset.validate_image``,
+DatasetError before anything changes), then it waits. After every image the waiting ones are offered to
+the propagation (``incremental_views_start.py``: the propagation's rules seeded with the current
+estimate); those it can start, and whose factors determine what they bring, go into one ``ISAM2.update``
+with their factors and the values of their new unknowns (the scale prior with the first update); the
+others wait for later images. The first update is the start: before it ``add_image`` returns None.
+
+``calibration(full=True)``: iSAM2 relinearises every factor (Gauss-Newton steps) until the estimate
+moves less than ``POLISH_STEP``, then ``gtsam.Marginals`` on iSAM2's factors at its estimate gives the
+covariances, and every image in the graph its residuals, as ``views_solve.calibrate_views`` reports them.
+Not done here (the batch does them): the consensus and the final check that leave measurements out.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import replace
+from typing import Any
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, V, X
+
+from mirror_fg.core.errors import DatasetError, SolveError
+from mirror_fg.core.transform import covariance_from_pose3
+from mirror_fg.factors.robust import check_kernel
+from mirror_fg.factors.views import ViewFactor
+from mirror_fg.io.dataset import Dataset, Image, validate_image
+from mirror_fg.io.point_sigma import normalized_sigmas
+from mirror_fg.solver.calibration import Calibration, Exclusion, require_converged
+from mirror_fg.solver.incremental_views_start import determines_new_unknowns, joining_views
+from mirror_fg.solver.propagation import ViewObs
+from mirror_fg.solver.timing import timed
+from mirror_fg.solver.views import SCALE_SIGMA, ViewEstimate, ViewProblem, _length_error, camera_names, views_of
+from mirror_fg.solver.views_solve import _calibration, _named
+
+__all__ = ["ViewsIncrementalCalibrator", "calibrate_views_incremental"]
+
+#: ``calibration(full=True)`` relinearises until no value moves more than this (m, rad) ...
+POLISH_STEP = 1e-10
+#: ... at most this many times.
+MAX_POLISH_STEPS = 30
+#: Extra iSAM2 updates (relinearising what moved) after an update that added new unknowns.
+SETTLE_UPDATES = 3
+
+
+class ViewsIncrementalCalibrator:
+    """Incremental calibration of a general dataset (module docstring); the public face of
+    ``incremental.IncrementalCalibrator``: ``add_image``, ``calibration``, ``marginal_covariance``,
+    ``status``, ``started``, ``settled``, ``num_images``, ``waiting_images``, ``excluded``."""
+
+    def __init__(self, dataset: Dataset, *, points: Iterable[str] | None = None, robust: str | None = None,
+                 thresholds: Any = None, seed: int = 0) -> None:
+        check_kernel(robust)
+        self.robust = robust
+        self._ds = replace(dataset, images=[])  # the images in the graph
+        self._order = {image.id: k for k, image in enumerate(dataset.images)}
+        if points is not None:
+            self._known_points: set[str] | None = set(points)
+        elif dataset.images:
+            self._known_points = set(dataset.reconstruction_point_names)
+        else:
+            self._known_points = None
+        self.cameras = camera_names(dataset)
+        self.fixed = {} if dataset.fiducials else {self.cameras[0]: (np.eye(3), np.zeros(3))}
+        self.pose_keys = {name: X(k) for k, name in enumerate(self.cameras) if name not in self.fixed}
+        layout = ViewProblem(dataset, robust) if dataset.images else None
+        self.mirror_keys = dict(layout.mirror_keys) if layout else {}
+        self.owners = dict(layout.owners) if layout else {}
+        self.point_keys = dict(layout.point_keys) if layout else {}
+        self._ids: set[str] = set()
+        self._waiting: list[tuple[Image, ViewObs]] = []
+        self._views: list[ViewObs] = []  # of the images in the graph
+        self._isam: gtsam.ISAM2 | None = None
+        self._graph = gtsam.NonlinearFactorGraph()  # every factor given to iSAM2
+        self._estimate = ViewEstimate(dict(self.fixed), {}, {})
+        self._updates = 0
+        self._initial_error = float("nan")
+        #: Nothing is refused by this calibrator (no consensus yet); kept for the common interface.
+        self.excluded: list[Exclusion] = []
+        self.misfits: list[Image] = []
+        #: Why the latest update failed (the data did not determine what the joining images bring).
+        self.startup_error: Exception | None = None
+        self.restarts = 0
+        self.timings: dict[str, float] = {}
+
+    # --- public -------------------------------------------------------------------------------------
+
+    @property
+    def started(self) -> bool:
+        return self._isam is not None
+
+    @property
+    def settled(self) -> bool:
+        return self.started
+
+    @property
+    def num_images(self) -> int:
+        return len(self._ds.images)
+
+    @property
+    def waiting_images(self) -> list[str]:
+        return [image.id for image, _ in self._waiting]
+
+    @property
+    def status(self) -> str:
+        if self.started:
+            return f"settled (iSAM2): {self.num_images} image(s) in the graph, {len(self._waiting)} waiting"
+        if not self._waiting:
+            return "waiting: no image yet"
+        why = f": {self.startup_error}" if self.startup_error is not None else ""
+        return (f"waiting: the propagation cannot start every unknown of any {len(self._waiting)} image(s) "
+                f"so far{why}")
+
+    def __repr__(self) -> str:
+        return f"ViewsIncrementalCalibrator({self._ds.source!r}: {len(self._ids)} image(s) given; {self.status})"
+
+    def add_image(self, image: Image | Mapping[str, Any]) -> Calibration | None:
+        """Take one image (an ``Image`` or its dataset@1 dict); None until the start, then the cheap
+        ``Calibration``. DatasetError on bad input, before anything changes."""
+        if isinstance(image, Image) and len(image.mirror_configs) != self._ds.num_mirrors:
+            # validate_image reads an Image's empty mirror_configs as the tree's (a direct view is refused)
+            image = {"id": image.id, "reflections": [list(p) for p in image.reflections],
+                     "observations": image.observations, **({"camera": image.camera} if image.camera else {})}
+        checked = validate_image(image, self._ds, known_points=self._known_points)
+        if checked.id in self._ids:
+            raise DatasetError(f"{self._ds.source}: image {checked.id!r}: duplicate image id (already given)")
+        self._ids.add(checked.id)
+        self._extend_layout(checked)
+        view = views_of(replace(self._ds, images=[checked]))[0]
+        self._waiting.append((checked, view))
+        with timed(self.timings, "update"):
+            self._join_waiting()
+        return self.calibration() if self.started else None
+
+    def calibration(self, full: bool = False) -> Calibration:
+        """The estimate as a ``Calibration`` (batch shape). ``full=False``: camera pose covariances from
+        iSAM2, no mirror or point covariances, no residuals. ``full=True``: relinearised to convergence,
+        every covariance by ``gtsam.Marginals`` on the graph at the estimate, every residual."""
+        if not self.started:
+            raise SolveError(f"{self._ds.source}: no estimate yet: {self.status}")
+        isam = self._isam
+        assert isam is not None
+        converged = True
+        if full:
+            converged = self._polish()
+        values = isam.calculateEstimate()
+        problem = self._problem()
+        estimate = problem.read(values)
+        if full:
+            try:
+                pose_covs, joint, mirror_covs, point_covs = problem.covariances(self._graph, values, estimate)
+            except RuntimeError as error:
+                raise SolveError(f"{self._ds.source}: the data do not constrain every unknown "
+                                 f"({_named(problem, error)})") from None
+            residuals, whitened, labels, views = problem.residuals(estimate)
+        else:
+            pose_covs = {name: np.zeros((6, 6)) for name in self.fixed}
+            for name, key in problem.pose_keys.items():
+                pose_covs[name] = covariance_from_pose3(estimate.poses[name][0], isam.marginalCovariance(key))
+            joint, mirror_covs, point_covs = None, {}, {}
+            residuals, whitened, labels, views = np.zeros((0, 2)), np.zeros(0), [], []
+        dimension = values.dim() - problem.constraints
+        final_error = float(self._graph.error(values)) if full else float("nan")
+        expected = 0.5 * max(len(whitened) * 2 - dimension, 0) if full else 0.0
+        calibration = _calibration(problem, estimate, pose_covs, joint, mirror_covs, point_covs, residuals, whitened,
+                                   labels, views, iterations=self._updates, initial_error=self._initial_error,
+                                   final_error=final_error, converged=converged, expected=expected,
+                                   excluded=list(self.excluded), timings=dict(self.timings))
+        if not full and self._ds.cameras is not None:
+            calibration.camera_pose_covariance = None
+        return calibration
+
+    def marginal_covariance(self, unknown: tuple[int, int] | str | None = None) -> np.ndarray:
+        """iSAM2's marginal covariance: ``None`` the first camera's pose (6x6, SPEC's convention; zero
+        where it is fixed), a camera name its pose, ``(l, m)`` a mirror vector (owner frame), a point."""
+        if not self.started:
+            raise SolveError(f"{self._ds.source}: no estimate yet: {self.status}")
+        isam = self._isam
+        assert isam is not None
+        name = self.cameras[0] if unknown is None else unknown
+        if isinstance(name, str) and name in self.cameras:
+            if name in self.fixed:
+                return np.zeros((6, 6))
+            return covariance_from_pose3(self._estimate.poses[name][0], isam.marginalCovariance(self.pose_keys[name]))
+        key = self.point_keys.get(name) if isinstance(name, str) else self.mirror_keys.get(tuple(name))
+        if key is None or not isam.valueExists(key):
+            raise KeyError(f"{unknown!r} has no value in the graph yet")
+        return isam.marginalCovariance(key)
+
+    # --- the graph ------------------------------------------------------------------------------------
+
+    def _extend_layout(self, image: Image) -> None:
+        """Keys for what ``image`` brings beyond the layout (module docstring)."""
+        camera = image.camera if image.camera is not None else self.cameras[0]
+        for p in image.reflections:
+            if p not in self.mirror_keys:
+                self.mirror_keys[p] = V(len(self.mirror_keys))
+                self.owners[p] = camera
+        for name in image.observations:
+            if name not in self._ds.fiducials and name not in self.point_keys:
+                self.point_keys[name] = L(len(self.point_keys))
+
+    def _factor(self, image: Image, view: ViewObs) -> ViewFactor:
+        """The image's factor exactly as ``ViewProblem`` builds it."""
+        camera = self._ds.camera_of(image)
+        sigmas = normalized_sigmas(camera, self._ds.pixel_sigma, self._ds.point_sigma, view.names).T
+        base = np.full((3, len(view.names)), np.nan)
+        landmarks = []
+        for k, name in enumerate(view.names):
+            if name in self._ds.fiducials:
+                base[:, k] = self._ds.fiducials[name]
+                landmarks.append(-1)
+            else:
+                landmarks.append(self.point_keys[name])
+        return ViewFactor(view.camera, view.reflections, self.pose_keys, self.fixed, self.mirror_keys, self.owners,
+                          base, landmarks, view.normalized.T, sigmas, self.robust)
+
+    def _scale_prior(self) -> gtsam.NonlinearFactorGraph:
+        graph = gtsam.NonlinearFactorGraph()
+        scale = self._ds.scale
+        if scale is not None:
+            noise = gtsam.noiseModel.Isotropic.Sigma(1, SCALE_SIGMA * scale.distance)
+            if scale.placement is not None:
+                graph.add(gtsam.CustomFactor(noise, [self.mirror_keys[scale.placement]],
+                                             _length_error(scale.distance, False)))
+            else:
+                a, b = scale.points  # type: ignore[misc]
+                graph.add(gtsam.CustomFactor(noise, [self.point_keys[a], self.point_keys[b]],
+                                             _length_error(scale.distance, True)))
+        return graph
+
+    def _join_waiting(self) -> None:
+        """The waiting images the propagation can start, into iSAM2 in one update (module docstring)."""
+        if not self._waiting:
+            return
+        joining = joining_views(self._ds, self._waiting, self._estimate, self.owners, self.cameras, self.fixed,
+                                self._views)
+        if not joining.indices:
+            return
+        new = ViewEstimate(joining.poses, joining.mirror_vectors, joining.points)
+        if not self.started:
+            new = self._scaled(new)
+            if new is None:  # the scale's placement or points are not among the first images
+                return
+        factors = gtsam.NonlinearFactorGraph()
+        images = [self._waiting[k] for k in joining.indices]
+        for image, view in images:
+            factors.add(self._factor(image, view).factor())
+        if not self.started:
+            factors.push_back(self._scale_prior())
+        values = gtsam.Values()
+        for name, (R, t) in new.poses.items():
+            values.insert(self.pose_keys[name], gtsam.Pose3(gtsam.Rot3(R), np.asarray(t, float)))
+        for p, v in new.mirror_vectors.items():
+            values.insert(self.mirror_keys[p], np.asarray(v, float))
+        for name, x in new.points.items():
+            values.insert(self.point_keys[name], np.asarray(x, float))
+        everything = gtsam.Values(values)
+        if self.started:
+            everything.insert(self._isam.calculateEstimate())  # type: ignore[union-attr]
+        if not determines_new_unknowns(factors, everything, list(values.keys())):
+            self.startup_error = SolveError(f"images {', '.join(im.id for im, _ in images)} do not determine "
+                                            "what they bring yet")
+            return
+        isam = self._isam if self._isam is not None else _new_isam2()
+        try:
+            isam.update(factors, values)
+            for _ in range(SETTLE_UPDATES if values.size() else 0):
+                isam.update()
+        except RuntimeError as error:  # iSAM2 refused it: start over from the graph so far, the images wait
+            self.startup_error = SolveError(f"{self._ds.source}: {error}")
+            self._rebuild()
+            return
+        if not self.started:
+            self._initial_error = float(factors.error(values))
+        self._isam = isam
+        self._graph.push_back(factors)
+        self._updates += 1
+        self.startup_error = None
+        joined = set(joining.indices)
+        self._ds.images = self._ds.images + [image for image, _ in images]
+        self._views.extend(view for _, view in images)
+        self._waiting = [w for k, w in enumerate(self._waiting) if k not in joined]
+        self._estimate = self._read(isam.calculateEstimate())
+
+    def _scaled(self, new: ViewEstimate) -> ViewEstimate | None:
+        """The start with the scale constraint met exactly (no known target), as ``ViewProblem`` does."""
+        scale = self._ds.scale
+        if scale is None:
+            return new
+        if scale.placement is not None:
+            if scale.placement not in new.mirror_vectors:
+                return None
+            length = float(np.linalg.norm(new.mirror_vectors[scale.placement]))
+        else:
+            a, b = scale.points  # type: ignore[misc]
+            if a not in new.points or b not in new.points:
+                return None
+            length = float(np.linalg.norm(new.points[a] - new.points[b]))
+        f = scale.distance / length
+        return ViewEstimate({n: (R, t * f) for n, (R, t) in new.poses.items()},
+                            {p: v * f for p, v in new.mirror_vectors.items()},
+                            {n: x * f for n, x in new.points.items()})
+
+    def _rebuild(self) -> None:
+        """A fresh iSAM2 holding the graph so far at the last estimate (after iSAM2 refused an update)."""
+        if self._isam is None:
+            return
+        problem = self._problem()
+        isam = _new_isam2()
+        isam.update(self._graph, problem.values(self._estimate))
+        self._isam = isam
+        self.restarts += 1
+
+    def _polish(self) -> bool:
+        """Relinearise every factor (a Gauss-Newton step each) until the estimate stops moving."""
+        isam = self._isam
+        assert isam is not None
+        params = gtsam.ISAM2UpdateParams()
+        params.force_relinearize = True
+        for _ in range(MAX_POLISH_STEPS):
+            isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), params)
+            self._updates += 1
+            before, self._estimate = self._estimate, self._read(isam.calculateEstimate())
+            if _step(before, self._estimate) < POLISH_STEP:
+                return True
+        return False
+
+    def _read(self, values: gtsam.Values) -> ViewEstimate:
+        """The estimate of every unknown in ``values``."""
+        poses = dict(self.fixed)
+        for name, key in self.pose_keys.items():
+            if values.exists(key):
+                pose = values.atPose3(key)
+                poses[name] = (pose.rotation().matrix(), np.asarray(pose.translation(), float))
+        return ViewEstimate(poses, {p: np.asarray(values.atPoint3(k), float) for p, k in self.mirror_keys.items()
+                                    if values.exists(k)},
+                            {n: np.asarray(values.atPoint3(k), float) for n, k in self.point_keys.items()
+                             if values.exists(k)})
+
+    def _problem(self) -> ViewProblem:
+        """A ViewProblem of the images in the graph (file order where known) keyed as this calibrator is."""
+        images = sorted(self._ds.images, key=lambda im: self._order.get(im.id, len(self._order)))
+        problem = ViewProblem(replace(self._ds, images=images), self.robust)
+        present = {v.camera for v in problem.views} | {self.owners[p] for p in problem.placements}
+        problem.pose_keys = {n: k for n, k in self.pose_keys.items() if n in present}
+        problem.mirror_keys = {p: self.mirror_keys[p] for p in problem.placements}
+        problem.owners = {p: self.owners[p] for p in problem.placements}
+        problem.point_keys = {n: self.point_keys[n] for n in problem.point_names}
+        return problem
+
+
+def _step(before: ViewEstimate, after: ViewEstimate) -> float:
+    """The largest change of any value between two estimates (m; rad for rotations)."""
+    step = 0.0
+    for name, (R, t) in after.poses.items():
+        R0, t0 = before.poses.get(name, (R, t))
+        step = max(step, float(np.linalg.norm(R - R0)), float(np.linalg.norm(t - t0)))
+    for old, new in ((before.mirror_vectors, after.mirror_vectors), (before.points, after.points)):
+        for k, x in new.items():
+            step = max(step, float(np.linalg.norm(x - old.get(k, x))))
+    return step
+
+
+def _new_isam2() -> gtsam.ISAM2:
+    params = gtsam.ISAM2Params()
+    params.setRelinearizeThreshold(1e-6)
+    params.relinearizeSkip = 1
+    params.setOptimizationParams(gtsam.ISAM2GaussNewtonParams(0.0))
+    return gtsam.ISAM2(params)
+
+
+def calibrate_views_incremental(dataset: Dataset, *, robust: str | None = None,
+                                on_estimate: Callable[[int, Calibration], None] | None = None,
+                                on_wait: Callable[[int, str], None] | None = None,
+                                accept_poor_fit: bool = False) -> Calibration:
+    """``incremental.calibrate_incremental`` for a general dataset: its images in file order through
+    :class:`ViewsIncrementalCalibrator`, then ``calibration(full=True)`` under ``require_converged``.
+    SolveError when images are still waiting at the end (what the batch could not start either)."""
+    calibrator = ViewsIncrementalCalibrator(dataset, robust=robust)
+    for index, image in enumerate(dataset.images, start=1):
+        estimate = calibrator.add_image(image)
+        if estimate is not None:
+            if on_estimate is not None:
+                on_estimate(index, estimate)
+        elif on_wait is not None:
+            on_wait(index, calibrator.status)
+    if not calibrator.started:
+        raise SolveError(f"{dataset.source}: the images never allowed a start by propagation ({calibrator.status})")
+    if calibrator.waiting_images:
+        raise SolveError(f"{dataset.source}: image(s) {', '.join(calibrator.waiting_images)} could not be started "
+                         "from the others (the batch names what they lack: mirror-fg calibrate without --incremental)")
+    calibration = calibrator.calibration(full=True)
+    return require_converged(calibration, dataset.source, "iSAM2", accept_poor_fit=accept_poor_fit)
