@@ -39,8 +39,9 @@ from mirror_fg.factors.robust import check_kernel
 from mirror_fg.factors.views import ViewFactor
 from mirror_fg.io.dataset import Dataset, Image, validate_image
 from mirror_fg.io.point_sigma import normalized_sigmas
-from mirror_fg.solver.calibration import Calibration, Exclusion, require_converged
-from mirror_fg.solver.incremental_views_start import determines_new_unknowns, joining_views
+from mirror_fg.solver.calibration import POOR_FIT_RATIO, Calibration, Exclusion, require_converged
+from mirror_fg.solver.incremental_views_start import _dim, determines_new_unknowns, joining_views
+from mirror_fg.solver.lm import cost_scale, lm_params
 from mirror_fg.solver.propagation import ViewObs
 from mirror_fg.solver.timing import timed
 from mirror_fg.solver.views import SCALE_SIGMA, ViewEstimate, ViewProblem, _length_error, camera_names, views_of
@@ -52,6 +53,8 @@ __all__ = ["ViewsIncrementalCalibrator", "calibrate_views_incremental"]
 POLISH_STEP = 1e-10
 #: ... at most this many times.
 MAX_POLISH_STEPS = 30
+#: Levenberg-Marquardt iterations that move an update's new unknowns to their optimum before iSAM2.
+REFINE_ITERATIONS = 100
 #: Extra iSAM2 updates (relinearising what moved) after an update that added new unknowns.
 SETTLE_UPDATES = 3
 
@@ -275,6 +278,15 @@ class ViewsIncrementalCalibrator:
             self.startup_error = SolveError(f"images {', '.join(im.id for im, _ in images)} do not determine "
                                             "what they bring yet")
             return
+        start_error = float(factors.error(everything))  # at the propagation's values
+        values = self._refined(factors, values, everything)
+        if not self.started:  # a start the data contradict (a minimal, ill-conditioned one): wait for more images
+            rows = sum(2 * len(view.names) for _, view in images) + self._scale_prior().size()
+            fit = float(np.sqrt(factors.error(values) / (0.5 * max(rows - values.dim(), 1))))
+            if not fit <= POOR_FIT_RATIO:
+                self.startup_error = SolveError(f"images {', '.join(im.id for im, _ in images)} fit the start "
+                                                f"{fit:.3g} times worse than the noise model allows")
+                return
         isam = self._isam if self._isam is not None else _new_isam2()
         try:
             isam.update(factors, values)
@@ -285,7 +297,7 @@ class ViewsIncrementalCalibrator:
             self._rebuild()
             return
         if not self.started:
-            self._initial_error = float(factors.error(values))
+            self._initial_error = start_error
         self._isam = isam
         self._graph.push_back(factors)
         self._updates += 1
@@ -295,6 +307,37 @@ class ViewsIncrementalCalibrator:
         self._views.extend(view for _, view in images)
         self._waiting = [w for k, w in enumerate(self._waiting) if k not in joined]
         self._estimate = self._read(isam.calculateEstimate())
+
+    def _refined(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+                 everything: gtsam.Values) -> gtsam.Values:
+        """The new unknowns moved to their optimum under the joining images' factors, the graph's unknowns
+        held at the estimate (Levenberg-Marquardt, eq. 23; at the first update this is the start's LM
+        refinement): iSAM2's undamped Gauss-Newton steps then start near the minimum."""
+        graph = gtsam.NonlinearFactorGraph(factors)
+        start = gtsam.Values()
+        for key in sorted(set(factors.keyVector())):
+            if _dim(key) == 6:
+                pose = everything.atPose3(key)
+                start.insert(key, pose)
+                if not values.exists(key):
+                    graph.add(gtsam.NonlinearEqualityPose3(key, pose))
+            else:
+                x = everything.atPoint3(key)
+                start.insert(key, x)
+                if not values.exists(key):
+                    graph.add(gtsam.NonlinearEqualityPoint3(key, x))
+        try:
+            result = gtsam.LevenbergMarquardtOptimizer(graph, start, lm_params(REFINE_ITERATIONS,
+                                                                               cost_scale(self._ds))).optimize()
+        except RuntimeError:  # let iSAM2 try from the propagation's values
+            return values
+        refined = gtsam.Values()
+        for key in values.keys():
+            if _dim(key) == 6:
+                refined.insert(key, result.atPose3(key))
+            else:
+                refined.insert(key, result.atPoint3(key))
+        return refined
 
     def _scaled(self, new: ViewEstimate) -> ViewEstimate | None:
         """The start with the scale constraint met exactly (no known target), as ``ViewProblem`` does."""
