@@ -17,6 +17,8 @@ from mirror_fg.core.errors import SolveError
 from mirror_fg.io.dataset import dataset_from_dict
 from mirror_fg.solver.incremental import IncrementalCalibrator, calibrate_incremental
 from mirror_fg.solver.incremental_views import ViewsIncrementalCalibrator
+from mirror_fg.solver.incremental_views_start import determines_new_unknowns
+from mirror_fg.solver.views import ViewEstimate, ViewProblem
 
 #: Largest difference from the batch, in the batch's standard deviations.
 MAX_SIGMAS = 0.1
@@ -34,7 +36,8 @@ def _dataset(raw: dict, name: str):
     return dataset_from_dict(raw, source=name)
 
 
-def _pose_sigmas(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray], covariance: np.ndarray) -> np.ndarray:
+def _pose_sigmas(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray],
+                 covariance: np.ndarray) -> np.ndarray:
     """|a - b| per component in the standard deviations of ``covariance`` (SPEC: ``R_a = Exp(dtheta) R_b``)."""
     dtheta = gtsam.Rot3.Logmap(gtsam.Rot3(a[0] @ b[0].T))
     return np.abs(np.concatenate([dtheta, a[1] - b[1]])) / np.sqrt(np.diag(covariance))
@@ -170,3 +173,27 @@ def test_cli_calibrate_incremental(tmp_path, scene: str) -> None:
     pose = (np.array(result["T_cam_base"]["R"]), np.array(result["T_cam_base"]["t"]))
     assert np.max(_pose_sigmas(pose, (batch.R_cam_base, batch.t_cam_base), batch.covariance)) < MAX_SIGMAS
     assert result["optimizer"]["converged"]
+
+
+def test_determines_new_unknowns_counts_what_a_factor_fixes() -> None:
+    """A point seen by one image is not determined by it (2 rows, 3 unknowns), by two it is; the first
+    camera's pose by one image of 20 fiducials is, a mirror vector through it too, but not with the points."""
+    from gtsam.symbol_shorthand import L, X
+
+    dataset = _dataset(mixed(), "mixed")
+    batch = mirror_fg.calibrate(dataset)
+    problem = ViewProblem(dataset)
+    values = problem.values(ViewEstimate({"camera": (batch.R_cam_base, batch.t_cam_base)}, batch.mirror_vectors,
+                                         batch.points))
+    one, two = gtsam.NonlinearFactorGraph(), gtsam.NonlinearFactorGraph()
+    one.add(problem.factors[0].factor())
+    two.add(problem.factors[0].factor())
+    two.add(problem.factors[1].factor())
+    point = problem.point_keys["P0"]
+    assert point == L(0)
+    assert not determines_new_unknowns(one, values, [point])
+    assert determines_new_unknowns(two, values, [point])
+    assert determines_new_unknowns(one, values, [X(0)])
+    mirror = problem.mirror_keys[dataset.images[0].reflections[0]]
+    assert determines_new_unknowns(one, values, [mirror])
+    assert not determines_new_unknowns(one, values, [mirror, point, problem.point_keys["P1"]])

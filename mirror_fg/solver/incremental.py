@@ -101,10 +101,11 @@ class IncrementalCalibrator:
     residuals over every image in the graph; ``marginal_covariance()`` gives covariances on demand.
     """
 
-    def __new__(cls, dataset: Dataset, **options: Any) -> Any:
+    def __new__(cls, dataset: Dataset | None = None, **options: Any) -> Any:
         """General data (not the paper's tree, ``Dataset.is_tree``): ``incremental_views.py``'s calibrator."""
-        dataset = as_dataset(dataset, "IncrementalCalibrator()")
-        return super().__new__(cls) if dataset.is_tree else ViewsIncrementalCalibrator(dataset, **options)
+        dataset = None if dataset is None else as_dataset(dataset, "IncrementalCalibrator()")
+        general = dataset is not None and not dataset.is_tree
+        return ViewsIncrementalCalibrator(dataset, **options) if general else super().__new__(cls)
 
     def __init__(self, dataset: Dataset, *, points: Iterable[str] | None = None, robust: str | None = None,
                  thresholds: RelinearizeThresholds | None = None, seed: int = 0) -> None:

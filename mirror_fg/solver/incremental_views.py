@@ -90,6 +90,7 @@ class ViewsIncrementalCalibrator:
         self._graph = gtsam.NonlinearFactorGraph()  # every factor given to iSAM2
         self._estimate = ViewEstimate(dict(self.fixed), {}, {})
         self._updates = 0
+        self._cached_problem: ViewProblem | None = None
         self._initial_error = float("nan")
         #: Nothing is refused by this calibrator (no consensus yet); kept for the common interface.
         self.excluded: list[Exclusion] = []
@@ -396,6 +397,11 @@ class ViewsIncrementalCalibrator:
 
     def _problem(self) -> ViewProblem:
         """A ViewProblem of the images in the graph (file order where known) keyed as this calibrator is."""
+        if self._cached_problem is None or len(self._cached_problem.views) != self.num_images:
+            self._cached_problem = self._new_problem()
+        return self._cached_problem
+
+    def _new_problem(self) -> ViewProblem:
         images = sorted(self._ds.images, key=lambda im: self._order.get(im.id, len(self._order)))
         problem = ViewProblem(replace(self._ds, images=images), self.robust)
         present = {v.camera for v in problem.views} | {self.owners[p] for p in problem.placements}

@@ -57,7 +57,9 @@ def joining_views(dataset: Dataset, waiting: list[tuple[Image, ViewObs]], estima
     for p, v in estimate.mirror_vectors.items():
         known.planes[p] = plane_from_camera(v, estimate.poses[owners[p]])
     known.points.update(estimate.points)
-    if not dataset.fiducials and dataset.scale is not None:  # rule 5, as propagate() does
+    lacking = any(p not in estimate.mirror_vectors for view in views for p in view.reflections) or any(
+        name not in estimate.points for view in views for name in view.names)
+    if not dataset.fiducials and dataset.scale is not None and lacking:  # rule 5, as propagate() does
         seeded = takahashi_start(graph_views + views, cameras[0], dataset.scale)
         if seeded is not None:  # where the estimate has no value yet
             for p, plane in seeded.planes.items():
