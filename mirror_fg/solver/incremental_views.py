@@ -56,7 +56,7 @@ MAX_POLISH_STEPS = 30
 #: Levenberg-Marquardt iterations that move an update's new unknowns to their optimum before iSAM2.
 REFINE_ITERATIONS = 100
 #: Extra iSAM2 updates (relinearising what moved) after an update that added new unknowns.
-SETTLE_UPDATES = 3
+SETTLE_UPDATES = 1
 
 
 class ViewsIncrementalCalibrator:
@@ -90,7 +90,7 @@ class ViewsIncrementalCalibrator:
         self._graph = gtsam.NonlinearFactorGraph()  # every factor given to iSAM2
         self._estimate = ViewEstimate(dict(self.fixed), {}, {})
         self._updates = 0
-        self._cached_problem: ViewProblem | None = None
+        self._full_problem: ViewProblem | None = None
         self._initial_error = float("nan")
         #: Nothing is refused by this calibrator (no consensus yet); kept for the common interface.
         self.excluded: list[Exclusion] = []
@@ -161,7 +161,7 @@ class ViewsIncrementalCalibrator:
         if full:
             converged = self._polish()
         values = isam.calculateEstimate()
-        problem = self._problem()
+        problem = self._problem(full)
         estimate = problem.read(values)
         if full:
             try:
@@ -395,20 +395,21 @@ class ViewsIncrementalCalibrator:
                             {n: np.asarray(values.atPoint3(k), float) for n, k in self.point_keys.items()
                              if values.exists(k)})
 
-    def _problem(self) -> ViewProblem:
-        """A ViewProblem of the images in the graph (file order where known) keyed as this calibrator is."""
-        if self._cached_problem is None or len(self._cached_problem.views) != self.num_images:
-            self._cached_problem = self._new_problem()
-        return self._cached_problem
-
-    def _new_problem(self) -> ViewProblem:
-        images = sorted(self._ds.images, key=lambda im: self._order.get(im.id, len(self._order)))
+    def _problem(self, full: bool = False) -> ViewProblem:
+        """A ViewProblem keyed as this calibrator is, of the unknowns in the graph; ``full``: with every
+        image in the graph (file order where known) for its residuals, else none (cheap)."""
+        if full and self._full_problem is not None and len(self._full_problem.views) == self.num_images:
+            return self._full_problem
+        images = sorted(self._ds.images, key=lambda im: self._order.get(im.id, len(self._order))) if full else []
         problem = ViewProblem(replace(self._ds, images=images), self.robust)
-        present = {v.camera for v in problem.views} | {self.owners[p] for p in problem.placements}
-        problem.pose_keys = {n: k for n, k in self.pose_keys.items() if n in present}
+        problem.pose_keys = {n: k for n, k in self.pose_keys.items() if n in self._estimate.poses}
+        problem.placements = sorted(self._estimate.mirror_vectors)
         problem.mirror_keys = {p: self.mirror_keys[p] for p in problem.placements}
         problem.owners = {p: self.owners[p] for p in problem.placements}
+        problem.point_names = sorted(self._estimate.points)
         problem.point_keys = {n: self.point_keys[n] for n in problem.point_names}
+        if full:
+            self._full_problem = problem
         return problem
 
 
