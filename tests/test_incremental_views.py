@@ -197,3 +197,11 @@ def test_determines_new_unknowns_counts_what_a_factor_fixes() -> None:
     mirror = problem.mirror_keys[dataset.images[0].reflections[0]]
     assert determines_new_unknowns(one, values, [mirror])
     assert not determines_new_unknowns(one, values, [mirror, point, problem.point_keys["P1"]])
+
+
+@pytest.mark.parametrize("robust", ["huber", "cauchy"])
+@pytest.mark.parametrize("scene", ["no_target", "mixed"])
+def test_robust_kernels_equal_the_batch(scene: str, robust: str) -> None:
+    """With a robust kernel the final Gauss-Newton steps may not settle: Levenberg-Marquardt finishes."""
+    dataset = _dataset(_late(SCENES[scene]()), scene)
+    assert_matches_batch(calibrate_incremental(dataset, robust=robust), mirror_fg.calibrate(dataset, robust=robust))

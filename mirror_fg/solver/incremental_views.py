@@ -51,8 +51,9 @@ __all__ = ["ViewsIncrementalCalibrator", "calibrate_views_incremental"]
 
 #: ``calibration(full=True)`` relinearises until no value moves more than this (m, rad) ...
 POLISH_STEP = 1e-10
-#: ... at most this many times.
-MAX_POLISH_STEPS = 30
+#: ... at most this many times, then Levenberg-Marquardt with at most this many iterations.
+MAX_POLISH_STEPS = 10
+FINAL_LM_ITERATIONS = 100
 #: Levenberg-Marquardt iterations that move an update's new unknowns to their optimum before iSAM2.
 REFINE_ITERATIONS = 100
 #: Extra iSAM2 updates (relinearising what moved) after an update that added new unknowns.
@@ -157,10 +158,7 @@ class ViewsIncrementalCalibrator:
             raise SolveError(f"{self._ds.source}: no estimate yet: {self.status}")
         isam = self._isam
         assert isam is not None
-        converged = True
-        if full:
-            converged = self._polish()
-        values = isam.calculateEstimate()
+        values, converged = self._polish() if full else (isam.calculateEstimate(), True)
         problem = self._problem(full)
         estimate = problem.read(values)
         if full:
@@ -360,7 +358,8 @@ class ViewsIncrementalCalibrator:
                             {n: x * f for n, x in new.points.items()})
 
     def _rebuild(self) -> None:
-        """A fresh iSAM2 holding the graph so far at the last estimate (after iSAM2 refused an update)."""
+        """A fresh iSAM2 holding the graph so far at the last estimate (after iSAM2 refused an update, or
+        Levenberg-Marquardt polished the estimate)."""
         if self._isam is None:
             return
         problem = self._problem()
@@ -369,8 +368,11 @@ class ViewsIncrementalCalibrator:
         self._isam = isam
         self.restarts += 1
 
-    def _polish(self) -> bool:
-        """Relinearise every factor (a Gauss-Newton step each) until the estimate stops moving."""
+    def _polish(self) -> tuple[gtsam.Values, bool]:
+        """Relinearise every factor (a Gauss-Newton step each) until the estimate stops moving; where
+        that does not settle (a robust kernel's weights can swing the steps), Levenberg-Marquardt on
+        iSAM2's factors from there (eq. 23, the batch's settings), and a fresh iSAM2 at its result.
+        Returns ``(values, converged)``."""
         isam = self._isam
         assert isam is not None
         params = gtsam.ISAM2UpdateParams()
@@ -378,10 +380,17 @@ class ViewsIncrementalCalibrator:
         for _ in range(MAX_POLISH_STEPS):
             isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), params)
             self._updates += 1
-            before, self._estimate = self._estimate, self._read(isam.calculateEstimate())
+            values = isam.calculateEstimate()
+            before, self._estimate = self._estimate, self._read(values)
             if _step(before, self._estimate) < POLISH_STEP:
-                return True
-        return False
+                return values, True
+        lm = lm_params(FINAL_LM_ITERATIONS, cost_scale(self._ds))
+        optimizer = gtsam.LevenbergMarquardtOptimizer(self._graph, values, lm)
+        values = optimizer.optimize()
+        self._updates += int(optimizer.iterations())
+        self._estimate = self._read(values)
+        self._rebuild()
+        return values, int(optimizer.iterations()) < FINAL_LM_ITERATIONS
 
     def _read(self, values: gtsam.Values) -> ViewEstimate:
         """The estimate of every unknown in ``values``."""
