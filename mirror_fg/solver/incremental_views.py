@@ -40,7 +40,7 @@ from mirror_fg.factors.views import ViewFactor
 from mirror_fg.io.dataset import Dataset, Image, validate_image
 from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.calibration import POOR_FIT_RATIO, Calibration, Exclusion, require_converged
-from mirror_fg.solver.incremental_views_start import _dim, determines_new_unknowns, joining_views
+from mirror_fg.solver.incremental_views_start import determines_new_unknowns, joining_views, refined_new, scaled_start
 from mirror_fg.solver.lm import cost_scale, lm_params
 from mirror_fg.solver.propagation import ViewObs
 from mirror_fg.solver.timing import timed
@@ -54,8 +54,6 @@ POLISH_STEP = 1e-10
 #: ... at most this many times, then Levenberg-Marquardt with at most this many iterations.
 MAX_POLISH_STEPS = 10
 FINAL_LM_ITERATIONS = 100
-#: Levenberg-Marquardt iterations that move an update's new unknowns to their optimum before iSAM2.
-REFINE_ITERATIONS = 100
 #: Extra iSAM2 updates (relinearising what moved) after an update that added new unknowns.
 SETTLE_UPDATES = 1
 
@@ -254,7 +252,7 @@ class ViewsIncrementalCalibrator:
             return
         new = ViewEstimate(joining.poses, joining.mirror_vectors, joining.points)
         if not self.started:
-            new = self._scaled(new)
+            new = scaled_start(new, self._ds.scale)
             if new is None:  # the scale's placement or points are not among the first images
                 return
         factors = gtsam.NonlinearFactorGraph()
@@ -278,7 +276,7 @@ class ViewsIncrementalCalibrator:
                                             "what they bring yet")
             return
         start_error = float(factors.error(everything))  # at the propagation's values
-        values = self._refined(factors, values, everything)
+        values = refined_new(factors, values, everything, self._ds)
         if not self.started:  # a start the data contradict (a minimal, ill-conditioned one): wait for more images
             rows = sum(2 * len(view.names) for _, view in images) + self._scale_prior().size()
             fit = float(np.sqrt(factors.error(values) / (0.5 * max(rows - values.dim(), 1))))
@@ -306,56 +304,6 @@ class ViewsIncrementalCalibrator:
         self._views.extend(view for _, view in images)
         self._waiting = [w for k, w in enumerate(self._waiting) if k not in joined]
         self._estimate = self._read(isam.calculateEstimate())
-
-    def _refined(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-                 everything: gtsam.Values) -> gtsam.Values:
-        """The new unknowns moved to their optimum under the joining images' factors, the graph's unknowns
-        held at the estimate (Levenberg-Marquardt, eq. 23; at the first update this is the start's LM
-        refinement): iSAM2's undamped Gauss-Newton steps then start near the minimum."""
-        graph = gtsam.NonlinearFactorGraph(factors)
-        start = gtsam.Values()
-        for key in sorted(set(factors.keyVector())):
-            if _dim(key) == 6:
-                pose = everything.atPose3(key)
-                start.insert(key, pose)
-                if not values.exists(key):
-                    graph.add(gtsam.NonlinearEqualityPose3(key, pose))
-            else:
-                x = everything.atPoint3(key)
-                start.insert(key, x)
-                if not values.exists(key):
-                    graph.add(gtsam.NonlinearEqualityPoint3(key, x))
-        try:
-            result = gtsam.LevenbergMarquardtOptimizer(graph, start, lm_params(REFINE_ITERATIONS,
-                                                                               cost_scale(self._ds))).optimize()
-        except RuntimeError:  # let iSAM2 try from the propagation's values
-            return values
-        refined = gtsam.Values()
-        for key in values.keys():
-            if _dim(key) == 6:
-                refined.insert(key, result.atPose3(key))
-            else:
-                refined.insert(key, result.atPoint3(key))
-        return refined
-
-    def _scaled(self, new: ViewEstimate) -> ViewEstimate | None:
-        """The start with the scale constraint met exactly (no known target), as ``ViewProblem`` does."""
-        scale = self._ds.scale
-        if scale is None:
-            return new
-        if scale.placement is not None:
-            if scale.placement not in new.mirror_vectors:
-                return None
-            length = float(np.linalg.norm(new.mirror_vectors[scale.placement]))
-        else:
-            a, b = scale.points  # type: ignore[misc]
-            if a not in new.points or b not in new.points:
-                return None
-            length = float(np.linalg.norm(new.points[a] - new.points[b]))
-        f = scale.distance / length
-        return ViewEstimate({n: (R, t * f) for n, (R, t) in new.poses.items()},
-                            {p: v * f for p, v in new.mirror_vectors.items()},
-                            {n: x * f for n, x in new.points.items()})
 
     def _rebuild(self) -> None:
         """A fresh iSAM2 holding the graph so far at the last estimate (after iSAM2 refused an update, or

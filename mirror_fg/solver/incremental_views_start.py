@@ -22,13 +22,16 @@ from dataclasses import dataclass, replace
 import gtsam
 import numpy as np
 
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.io.dataset import Dataset, Image, Scale
+from mirror_fg.solver.lm import cost_scale, lm_params
 from mirror_fg.solver.propagation import ViewObs, _Propagator, mirror_vector_in, plane_from_camera, takahashi_start
 from mirror_fg.solver.views import ViewEstimate
 from mirror_fg.solver.views_solve import tree_start_for
 
-__all__ = ["Joining", "joining_views", "determines_new_unknowns"]
+__all__ = ["Joining", "joining_views", "determines_new_unknowns", "refined_new", "scaled_start"]
 
+#: Levenberg-Marquardt iterations that move an update's new unknowns to their optimum before iSAM2.
+REFINE_ITERATIONS = 100
 #: Smallest singular value, relative to the largest, of the new unknowns' whitened Jacobian columns.
 MIN_RELATIVE_SINGULAR_VALUE = 1e-9
 
@@ -127,6 +130,59 @@ def determines_new_unknowns(factors: gtsam.NonlinearFactorGraph, values: gtsam.V
         return False
     s = np.linalg.svd(J, compute_uv=False)
     return bool(s[-1] > MIN_RELATIVE_SINGULAR_VALUE * s[0])
+
+
+def refined_new(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, everything: gtsam.Values,
+                dataset: Dataset) -> gtsam.Values:
+    """The new unknowns moved to their optimum under the joining images' factors, the graph's unknowns
+    held at the estimate (Levenberg-Marquardt, eq. 23; at the first update this is the start's LM
+    refinement): iSAM2's undamped Gauss-Newton steps then start near the minimum."""
+    graph = gtsam.NonlinearFactorGraph(factors)
+    start = gtsam.Values()
+    for key in sorted(set(factors.keyVector())):
+        if _dim(key) == 6:
+            pose = everything.atPose3(key)
+            start.insert(key, pose)
+            if not values.exists(key):
+                graph.add(gtsam.NonlinearEqualityPose3(key, pose))
+        else:
+            x = everything.atPoint3(key)
+            start.insert(key, x)
+            if not values.exists(key):
+                graph.add(gtsam.NonlinearEqualityPoint3(key, x))
+    try:
+        result = gtsam.LevenbergMarquardtOptimizer(graph, start, lm_params(REFINE_ITERATIONS,
+                                                                           cost_scale(dataset))).optimize()
+    except RuntimeError:  # let iSAM2 try from the propagation's values
+        return values
+    refined = gtsam.Values()
+    for key in values.keys():
+        if _dim(key) == 6:
+            refined.insert(key, result.atPose3(key))
+        else:
+            refined.insert(key, result.atPoint3(key))
+    return refined
+
+
+
+def scaled_start(new: ViewEstimate, scale: Scale | None) -> ViewEstimate | None:
+    """The start with the scale constraint met exactly (no known target), as ``ViewProblem`` does; None
+    where the scale's placement or points are not among its unknowns."""
+    if scale is None:
+        return new
+    if scale.placement is not None:
+        if scale.placement not in new.mirror_vectors:
+            return None
+        length = float(np.linalg.norm(new.mirror_vectors[scale.placement]))
+    else:
+        a, b = scale.points  # type: ignore[misc]
+        if a not in new.points or b not in new.points:
+            return None
+        length = float(np.linalg.norm(new.points[a] - new.points[b]))
+    f = scale.distance / length
+    return ViewEstimate({n: (R, t * f) for n, (R, t) in new.poses.items()},
+                        {p: v * f for p, v in new.mirror_vectors.items()},
+                        {n: x * f for n, x in new.points.items()})
 
 
 def _dim(key: int) -> int:
