@@ -205,3 +205,20 @@ def test_robust_kernels_equal_the_batch(scene: str, robust: str) -> None:
     """With a robust kernel the final Gauss-Newton steps may not settle: Levenberg-Marquardt finishes."""
     dataset = _dataset(_late(SCENES[scene]()), scene)
     assert_matches_batch(calibrate_incremental(dataset, robust=robust), mirror_fg.calibrate(dataset, robust=robust))
+
+
+@pytest.mark.parametrize("scene", ["mixed", "rig"])
+def test_a_gross_measurement_is_left_out_as_the_batch_does(scene: str) -> None:
+    """One observation 15 px off: the final check (``consensus.final_check``) leaves it out, as the batch's
+    does, and the rest is solved again: the same exclusion, the same solution."""
+    raw = _late(SCENES[scene]())
+    image = raw["images"][-2]
+    name = list(image["observations"])[1]
+    u, v = image["observations"][name]
+    image["observations"][name] = [u + 15.0, v]
+    dataset = _dataset(raw, scene)
+    batch = mirror_fg.calibrate(dataset)
+    incremental = calibrate_incremental(dataset)
+    assert [(e.image, e.point) for e in batch.excluded] == [(image["id"], name)]
+    assert [(e.image, e.point) for e in incremental.excluded] == [(image["id"], name)]
+    assert_matches_batch(incremental, batch)

@@ -25,6 +25,7 @@ Not done here (the batch does them): the consensus and the final check that leav
 """
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import replace
 from typing import Any
@@ -40,14 +41,17 @@ from mirror_fg.factors.views import ViewFactor
 from mirror_fg.io.dataset import Dataset, Image, validate_image
 from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.calibration import POOR_FIT_RATIO, Calibration, Exclusion, require_converged
+from mirror_fg.solver.consensus import final_check, without
 from mirror_fg.solver.incremental_views_start import determines_new_unknowns, joining_views, refined_new, scaled_start
 from mirror_fg.solver.lm import cost_scale, lm_params
 from mirror_fg.solver.propagation import ViewObs
 from mirror_fg.solver.timing import timed
 from mirror_fg.solver.views import SCALE_SIGMA, ViewEstimate, ViewProblem, _length_error, camera_names, views_of
-from mirror_fg.solver.views_solve import _calibration, _named
+from mirror_fg.solver.views_solve import MAX_RECHECKS, _calibration, _Label, _named
 
 __all__ = ["ViewsIncrementalCalibrator", "calibrate_views_incremental"]
+
+logger = logging.getLogger("mirror_fg")
 
 #: ``calibration(full=True)`` relinearises until no value moves more than this (m, rad) ...
 POLISH_STEP = 1e-10
@@ -91,7 +95,8 @@ class ViewsIncrementalCalibrator:
         self._updates = 0
         self._full_problem: ViewProblem | None = None
         self._initial_error = float("nan")
-        #: Nothing is refused by this calibrator (no consensus yet); kept for the common interface.
+        #: What the final check left out (:meth:`leave_out_far_measurements`); images are not screened
+        #: as they come (no consensus yet).
         self.excluded: list[Exclusion] = []
         self.misfits: list[Image] = []
         #: Why the latest update failed (the data did not determine what the joining images bring).
@@ -200,6 +205,36 @@ class ViewsIncrementalCalibrator:
             raise KeyError(f"{unknown!r} has no value in the graph yet")
         return isam.marginalCovariance(key)
 
+    def leave_out_far_measurements(self) -> list[Exclusion]:
+        """The batch's final check (``consensus.final_check``) at the estimate (after ``calibration(full=
+        True)``): the measurements (or whole images) far off the solution are left out, iSAM2 restarted on
+        the rest at the estimate, its unknowns that nothing sees any more dropped. Returns what was left
+        out (empty: nothing)."""
+        problem = self._problem(full=True)
+        _, whitened, labels, _ = problem.residuals(self._estimate)
+        dimension = problem.values(self._estimate).dim() - problem.constraints
+        excluded = final_check(problem.dataset, [_Label(i, p) for i, p in labels], whitened,  # type: ignore[arg-type]
+                               dimension)
+        if not excluded:
+            return []
+        self.excluded.extend(excluded)
+        kept = without(problem.dataset, excluded).images
+        self._ds.images = kept
+        self._views = views_of(replace(self._ds, images=kept))
+        self._graph = gtsam.NonlinearFactorGraph()
+        for image, view in zip(kept, self._views):
+            self._graph.add(self._factor(image, view).factor())
+        self._graph.push_back(self._scale_prior())
+        seen = set(self._graph.keyVector())
+        self._estimate = ViewEstimate(
+            {n: pose for n, pose in self._estimate.poses.items() if n in self.fixed or self.pose_keys[n] in seen},
+            {p: v for p, v in self._estimate.mirror_vectors.items() if self.mirror_keys[p] in seen},
+            {n: x for n, x in self._estimate.points.items() if self.point_keys[n] in seen})
+        self._full_problem = None
+        self._isam = _new_isam2()
+        self._rebuild()
+        return excluded
+
     # --- the graph ------------------------------------------------------------------------------------
 
     def _extend_layout(self, image: Image) -> None:
@@ -306,13 +341,12 @@ class ViewsIncrementalCalibrator:
         self._estimate = self._read(isam.calculateEstimate())
 
     def _rebuild(self) -> None:
-        """A fresh iSAM2 holding the graph so far at the last estimate (after iSAM2 refused an update, or
-        Levenberg-Marquardt polished the estimate)."""
+        """A fresh iSAM2 holding the graph so far at the last estimate (after iSAM2 refused an update,
+        Levenberg-Marquardt polished the estimate, or measurements were left out)."""
         if self._isam is None:
             return
-        problem = self._problem()
         isam = _new_isam2()
-        isam.update(self._graph, problem.values(self._estimate))
+        isam.update(self._graph, self._problem().values(self._estimate))
         self._isam = isam
         self.restarts += 1
 
@@ -411,4 +445,10 @@ def calibrate_views_incremental(dataset: Dataset, *, robust: str | None = None,
         raise SolveError(f"{dataset.source}: image(s) {', '.join(calibrator.waiting_images)} could not be started "
                          "from the others (the batch names what they lack: mirror-fg calibrate without --incremental)")
     calibration = calibrator.calibration(full=True)
+    for _ in range(MAX_RECHECKS):  # as the batch: what is far off the solution left out, solved again
+        if not calibrator.leave_out_far_measurements():
+            break
+        logger.warning("%s: %d measurement(s) or image(s) far off the solution left out; solving again",
+                       dataset.source, len(calibrator.excluded))
+        calibration = calibrator.calibration(full=True)
     return require_converged(calibration, dataset.source, "iSAM2", accept_poor_fit=accept_poor_fit)
