@@ -15,13 +15,19 @@ Life of an image (:meth:`ViewsIncrementalCalibrator.add_image`): validated (``da
 DatasetError before anything changes), then it waits. After every image the waiting ones are offered to
 the propagation (``incremental_views_start.py``: the propagation's rules seeded with the current
 estimate); those it can start, and whose factors determine what they bring, go into one ``ISAM2.update``
-with their factors and the values of their new unknowns (the scale prior with the first update); the
-others wait for later images. The first update is the start: before it ``add_image`` returns None.
+with their factors and the values of their new unknowns, each first moved to its optimum under those
+factors with the graph's unknowns held (Levenberg-Marquardt, eq. 23). The others wait for later images.
+The first update is the start (with the scale prior): before it ``add_image`` returns None, and a start
+that fits its images worse than ``calibration.POOR_FIT_RATIO`` allows (three nearly parallel placements
+of one mirror, a minimal and ill-conditioned case of Sect. 4) is not taken: the images wait for more.
 
 ``calibration(full=True)``: iSAM2 relinearises every factor (Gauss-Newton steps) until the estimate
-moves less than ``POLISH_STEP``, then ``gtsam.Marginals`` on iSAM2's factors at its estimate gives the
+moves less than ``POLISH_STEP`` (Levenberg-Marquardt finishes where that does not settle, as a robust
+kernel's weights may make it), then ``gtsam.Marginals`` on iSAM2's factors at its estimate gives the
 covariances, and every image in the graph its residuals, as ``views_solve.calibrate_views`` reports them.
-Not done here (the batch does them): the consensus and the final check that leave measurements out.
+``calibrate_views_incremental`` then runs the batch's final check (``consensus.final_check``: what is far
+off the solution left out, solved again, at most ``views_solve.MAX_RECHECKS`` times). Not done here:
+the batch consensus on each image as it comes (the tree calibrator's ``_screen``).
 """
 from __future__ import annotations
 

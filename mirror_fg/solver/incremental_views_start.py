@@ -14,6 +14,10 @@ joining images (two measurements do not fix a point's three coordinates), else t
 wait. Last, the joining images' factors must determine their new unknowns given the graph's (full column
 rank of their Jacobian in the new unknowns, the scale prior counted at the first update): when the graph
 determines its unknowns and the new factors determine the new ones, the whole system is determined.
+
+The new unknowns' values are then moved to their optimum under the joining factors with the graph's
+unknowns held (:func:`refined_new`); the first update's start meets the scale exactly
+(:func:`scaled_start`).
 """
 from __future__ import annotations
 
