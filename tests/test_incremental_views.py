@@ -5,6 +5,7 @@ standard deviation, covariances within 5 %, whatever order the images come in.""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import gtsam
 import numpy as np
@@ -222,3 +223,17 @@ def test_a_gross_measurement_is_left_out_as_the_batch_does(scene: str) -> None:
     assert [(e.image, e.point) for e in batch.excluded] == [(image["id"], name)]
     assert [(e.image, e.point) for e in incremental.excluded] == [(image["id"], name)]
     assert_matches_batch(incremental, batch)
+
+
+def test_a_calibrator_built_without_images_turns_to_the_view_model_at_the_first_image_off_the_tree() -> None:
+    """A dataset without images looks like the tree (one camera, a target): the tree calibrator takes the
+    first double view in tree order, and becomes the view model's at the next one, fed both."""
+    raw = _late(mixed())
+    dataset = _dataset(raw, "mixed")
+    calibrator = IncrementalCalibrator(replace(dataset, images=[]))
+    assert type(calibrator) is IncrementalCalibrator
+    assert calibrator.add_image(raw["images"][0]) is None  # ((1, 0), (2, 0)): the tree's order
+    results = [calibrator.add_image(image) for image in raw["images"][1:]]
+    assert isinstance(calibrator, ViewsIncrementalCalibrator)
+    assert results[-1] is not None and calibrator.num_images == len(raw["images"])
+    assert_matches_batch(calibrator.calibration(full=True), mirror_fg.calibrate(dataset))

@@ -64,7 +64,8 @@ from mirror_fg.solver.incremental_graph import IncrementalGraph
 from mirror_fg.solver.incremental_startup import DIVERGENCE_SIGMAS, FINAL_LM_ITERATIONS, STARTUP_LM_ITERATIONS, start_graph
 from mirror_fg.solver.incremental_state import GraphState, RelinearizeThresholds
 from mirror_fg.solver.incremental_values import MIN_PNP_FIDUCIALS
-from mirror_fg.solver.incremental_views import ViewsIncrementalCalibrator, calibrate_views_incremental
+from mirror_fg.solver.incremental_views import (ViewsIncrementalCalibrator, become_views_calibrator,
+                                                calibrate_views_incremental)
 from mirror_fg.solver.initial import initial_estimate
 from mirror_fg.solver.marginals import marginal_covariances
 from mirror_fg.solver.placement_tree import complete_tree, tree_shortfall
@@ -120,7 +121,7 @@ class IncrementalCalibrator:
         else:
             self._known_points = None
         check_kernel(robust)
-        self._seed = seed
+        self._seed, self._options, self._given = seed, {"points": points, "robust": robust, "seed": seed}, []
         self._ids: set[str] = set()
         #: Images or fiducials refused by the consensus (``consensus.py``), each with its reason.
         self.excluded: list[Exclusion] = []
@@ -216,7 +217,10 @@ class IncrementalCalibrator:
         if checked.id in self._ids:
             raise DatasetError(f"{self._ds.source}: image {checked.id!r}: duplicate image id (already given)")
         # Accepted: nothing below is input validation.
+        if len(checked.mirror_configs) != self._ds.num_mirrors:  # off the tree: the view model from here on
+            return become_views_calibrator(self, [*self._given, checked], self._options)
         self._ids.add(checked.id)
+        self._given.append(checked)
         screened = self._screen(checked)
         if screened is None:  # refused as inconsistent: named in ``excluded``, the estimate untouched
             return self.calibration() if self.started else None

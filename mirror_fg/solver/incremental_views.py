@@ -55,7 +55,7 @@ from mirror_fg.solver.timing import timed
 from mirror_fg.solver.views import SCALE_SIGMA, ViewEstimate, ViewProblem, _length_error, camera_names, views_of
 from mirror_fg.solver.views_solve import MAX_RECHECKS, _calibration, _Label, _named
 
-__all__ = ["ViewsIncrementalCalibrator", "calibrate_views_incremental"]
+__all__ = ["ViewsIncrementalCalibrator", "calibrate_views_incremental", "become_views_calibrator"]
 
 logger = logging.getLogger("mirror_fg")
 
@@ -408,6 +408,20 @@ class ViewsIncrementalCalibrator:
         if full:
             self._full_problem = problem
         return problem
+
+
+def become_views_calibrator(calibrator: Any, images: list[Image], options: dict) -> Calibration | None:
+    """A tree calibrator (``incremental.IncrementalCalibrator``, built on a dataset without images) given
+    an image off the tree becomes a :class:`ViewsIncrementalCalibrator` (the same object) fed every image
+    it was given, in order; returns what the last ``add_image`` returns."""
+    dataset = replace(calibrator._ds, images=[])
+    calibrator.__class__ = ViewsIncrementalCalibrator
+    calibrator.__dict__.clear()
+    ViewsIncrementalCalibrator.__init__(calibrator, dataset, **options)
+    result = None
+    for image in images:
+        result = calibrator.add_image(image)
+    return result
 
 
 def _step(before: ViewEstimate, after: ViewEstimate) -> float:
