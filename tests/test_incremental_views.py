@@ -10,11 +10,11 @@ from dataclasses import replace
 import gtsam
 import numpy as np
 import pytest
-from views_scenes import SCENES, board, images_of, mixed
+from views_scenes import SCENES, board, images_of, mixed, rig
 
 import mirror_fg
 from mirror_fg.cli import main
-from mirror_fg.core.errors import SolveError
+from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.io.dataset import dataset_from_dict
 from mirror_fg.solver.incremental import IncrementalCalibrator, calibrate_incremental
 from mirror_fg.solver.incremental_views import ViewsIncrementalCalibrator
@@ -237,3 +237,18 @@ def test_a_calibrator_built_without_images_turns_to_the_view_model_at_the_first_
     assert isinstance(calibrator, ViewsIncrementalCalibrator)
     assert results[-1] is not None and calibrator.num_images == len(raw["images"])
     assert_matches_batch(calibrator.calibration(full=True), mirror_fg.calibrate(dataset))
+
+
+def test_bad_images_are_refused_before_anything_changes() -> None:
+    dataset = _dataset(rig(), "rig")
+    calibrator = IncrementalCalibrator(dataset)
+    first = rig()["images"][0]
+    calibrator.add_image(first)
+    given = calibrator.num_images, list(calibrator.waiting_images)
+    with pytest.raises(DatasetError, match="duplicate image id"):
+        calibrator.add_image(first)
+    with pytest.raises(DatasetError, match="middle"):
+        calibrator.add_image(dict(first, id="other", camera="middle"))
+    with pytest.raises(DatasetError, match="mirror 3"):
+        calibrator.add_image(dict(first, id="third", reflections=[[3, 0]]))
+    assert (calibrator.num_images, calibrator.waiting_images) == given

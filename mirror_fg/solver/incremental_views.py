@@ -71,7 +71,9 @@ SETTLE_UPDATES = 1
 class ViewsIncrementalCalibrator:
     """Incremental calibration of a general dataset (module docstring); the public face of
     ``incremental.IncrementalCalibrator``: ``add_image``, ``calibration``, ``marginal_covariance``,
-    ``status``, ``started``, ``settled``, ``num_images``, ``waiting_images``, ``excluded``."""
+    ``status``, ``started``, ``settled``, ``num_images``, ``waiting_images``, ``excluded`` (no
+    ``suggest_next``). ``points``, ``robust`` as there; ``thresholds`` and ``seed`` are taken for the same
+    signature and not used (one relinearisation threshold, ``_new_isam2``; the propagation is deterministic)."""
 
     def __init__(self, dataset: Dataset, *, points: Iterable[str] | None = None, robust: str | None = None,
                  thresholds: Any = None, seed: int = 0) -> None:
