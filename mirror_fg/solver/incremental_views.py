@@ -18,8 +18,9 @@ estimate); those it can start, and whose factors determine what they bring, go i
 with their factors and the values of their new unknowns, each first moved to its optimum under those
 factors with the graph's unknowns held (Levenberg-Marquardt, eq. 23). The others wait for later images.
 The first update is the start (with the scale prior): before it ``add_image`` returns None, and a start
-that fits its images worse than ``calibration.POOR_FIT_RATIO`` allows (three nearly parallel placements
-of one mirror, a minimal and ill-conditioned case of Sect. 4) is not taken: the images wait for more.
+whose measurements fit it worse than ``calibration.POOR_FIT_RATIO`` allows, by their median (three nearly
+parallel placements of one mirror, a minimal and ill-conditioned case of Sect. 4) is not taken: the
+images wait for more.
 
 ``calibration(full=True)``: iSAM2 relinearises every factor (Gauss-Newton steps) until the estimate
 moves less than ``POLISH_STEP`` (Levenberg-Marquardt finishes where that does not settle, as a robust
@@ -48,8 +49,8 @@ from mirror_fg.io.dataset import Dataset, Image, validate_image
 from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.calibration import POOR_FIT_RATIO, Calibration, Exclusion, require_converged
 from mirror_fg.solver.consensus import final_check, without
-from mirror_fg.solver.incremental_views_start import determines_new_unknowns, joining_views, refined_new, scaled_start
-from mirror_fg.solver.lm import cost_scale, lm_params
+from mirror_fg.solver.incremental_views_start import (determines_new_unknowns, joining_views, lm_settings,
+                                                      refined_new, scaled_start)
 from mirror_fg.solver.propagation import ViewObs
 from mirror_fg.solver.timing import timed
 from mirror_fg.solver.views import SCALE_SIGMA, ViewEstimate, ViewProblem, _length_error, camera_names, views_of
@@ -300,8 +301,10 @@ class ViewsIncrementalCalibrator:
                 return
         factors = gtsam.NonlinearFactorGraph()
         images = [self._waiting[k] for k in joining.indices]
+        view_factors: list[ViewFactor] = []
         for image, view in images:
-            factors.add(self._factor(image, view).factor())
+            view_factors.append(self._factor(image, view))
+            factors.add(view_factors[-1].factor())
         if not self.started:
             factors.push_back(self._scale_prior())
         values = gtsam.Values()
@@ -321,8 +324,7 @@ class ViewsIncrementalCalibrator:
         start_error = float(factors.error(everything))  # at the propagation's values
         values = refined_new(factors, values, everything, self._ds)
         if not self.started:  # a start the data contradict (a minimal, ill-conditioned one): wait for more images
-            rows = sum(2 * len(view.names) for _, view in images) + self._scale_prior().size()
-            fit = float(np.sqrt(factors.error(values) / (0.5 * max(rows - values.dim(), 1))))
+            fit = _median_fit(view_factors, values)
             if not fit <= POOR_FIT_RATIO:
                 self.startup_error = SolveError(f"images {', '.join(im.id for im, _ in images)} fit the start "
                                                 f"{fit:.3g} times worse than the noise model allows")
@@ -332,10 +334,19 @@ class ViewsIncrementalCalibrator:
             isam.update(factors, values)
             for _ in range(SETTLE_UPDATES if values.size() else 0):
                 isam.update()
-        except RuntimeError as error:  # iSAM2 refused it: start over from the graph so far, the images wait
-            self.startup_error = SolveError(f"{self._ds.source}: {error}")
-            self._rebuild()
-            return
+        except RuntimeError as error:  # undamped steps failed: Levenberg-Marquardt on it all, a fresh iSAM2
+            graph = gtsam.NonlinearFactorGraph(self._graph)
+            graph.push_back(factors)
+            start = gtsam.Values(values)
+            if self.started:
+                start.insert(self._problem().values(self._estimate))
+            fresh = self._fresh_isam(graph, start)
+            if fresh is None:  # the images wait; iSAM2 starts over from the graph so far
+                self.startup_error = SolveError(f"{self._ds.source}: images {', '.join(im.id for im, _ in images)}: "
+                                                f"{str(error).strip().splitlines()[0]}")
+                self._rebuild()
+                return
+            isam = fresh
         if not self.started:
             self._initial_error = start_error
         self._isam = isam
@@ -349,14 +360,29 @@ class ViewsIncrementalCalibrator:
         self._estimate = self._read(isam.calculateEstimate())
 
     def _rebuild(self) -> None:
-        """A fresh iSAM2 holding the graph so far at the last estimate (after iSAM2 refused an update,
+        """A fresh iSAM2 holding the graph so far, from the last estimate (after iSAM2 refused an update,
         Levenberg-Marquardt polished the estimate, or measurements were left out)."""
         if self._isam is None:
             return
-        isam = _new_isam2()
-        isam.update(self._graph, self._problem().values(self._estimate))
+        isam = self._fresh_isam(self._graph, self._problem().values(self._estimate))
+        if isam is None:
+            raise SolveError(f"{self._ds.source}: the data do not constrain every unknown (iSAM2 and "
+                             "Levenberg-Marquardt both failed on the images in the graph)")
         self._isam = isam
+        self._estimate = self._read(isam.calculateEstimate())
+
+    def _fresh_isam(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> gtsam.ISAM2 | None:
+        """Levenberg-Marquardt on ``graph`` from ``values`` (eq. 23), then a fresh iSAM2 at its result;
+        None where the system is indeterminate."""
+        try:
+            settings = lm_settings(FINAL_LM_ITERATIONS, self._ds)
+            result = gtsam.LevenbergMarquardtOptimizer(graph, values, settings).optimize()
+            isam = _new_isam2()
+            isam.update(graph, result)
+        except RuntimeError:
+            return None
         self.restarts += 1
+        return isam
 
     def _polish(self) -> tuple[gtsam.Values, bool]:
         """Relinearise every factor (a Gauss-Newton step each) until the estimate stops moving; where
@@ -374,8 +400,7 @@ class ViewsIncrementalCalibrator:
             before, self._estimate = self._estimate, self._read(values)
             if _step(before, self._estimate) < POLISH_STEP:
                 return values, True
-        lm = lm_params(FINAL_LM_ITERATIONS, cost_scale(self._ds))
-        optimizer = gtsam.LevenbergMarquardtOptimizer(self._graph, values, lm)
+        optimizer = gtsam.LevenbergMarquardtOptimizer(self._graph, values, lm_settings(FINAL_LM_ITERATIONS, self._ds))
         values = optimizer.optimize()
         self._updates += int(optimizer.iterations())
         self._estimate = self._read(values)
@@ -424,6 +449,15 @@ def become_views_calibrator(calibrator: Any, images: list[Image], options: dict)
     for image in images:
         result = calibrator.add_image(image)
     return result
+
+
+def _median_fit(view_factors: list[ViewFactor], values: gtsam.Values) -> float:
+    """How many times worse than the noise model the measurements fit at ``values``, by their median
+    (a few gross ones do not count): ``sqrt(median(|whitened|^2) / (2 ln 2))``, the median of a chi^2
+    with 2 degrees of freedom being ``2 ln 2``."""
+    whitened = np.concatenate([np.sum(((f.predict(values) - f.observed) / f.sigmas) ** 2, axis=0)
+                               for f in view_factors])
+    return float(np.sqrt(np.median(whitened) / (2.0 * np.log(2.0))))
 
 
 def _step(before: ViewEstimate, after: ViewEstimate) -> float:

@@ -32,10 +32,12 @@ from mirror_fg.solver.propagation import ViewObs, _Propagator, mirror_vector_in,
 from mirror_fg.solver.views import ViewEstimate
 from mirror_fg.solver.views_solve import tree_start_for
 
-__all__ = ["Joining", "joining_views", "determines_new_unknowns", "refined_new", "scaled_start"]
+__all__ = ["Joining", "joining_views", "determines_new_unknowns", "lm_settings", "refined_new", "scaled_start"]
 
 #: Levenberg-Marquardt iterations that move an update's new unknowns to their optimum before iSAM2.
 REFINE_ITERATIONS = 100
+#: Levenberg-Marquardt's largest damping, times ``lm.cost_scale`` (:func:`lm_settings`).
+LAMBDA_UPPER_BOUND = 1e10
 #: Smallest singular value, relative to the largest, of the new unknowns' whitened Jacobian columns.
 MIN_RELATIVE_SINGULAR_VALUE = 1e-9
 
@@ -136,6 +138,15 @@ def determines_new_unknowns(factors: gtsam.NonlinearFactorGraph, values: gtsam.V
     return bool(s[-1] > MIN_RELATIVE_SINGULAR_VALUE * s[0])
 
 
+def lm_settings(max_iterations: int, dataset: Dataset) -> gtsam.LevenbergMarquardtParams:
+    """The batch's Levenberg-Marquardt settings (``lm.lm_params``) with room for the damping to grow to
+    :data:`LAMBDA_UPPER_BOUND` (times ``lm.cost_scale``): from a start far off (a gross measurement among
+    the first images) the batch's bound, 1e5, stops it before its first step."""
+    params = lm_params(max_iterations, cost_scale(dataset))
+    params.setlambdaUpperBound(LAMBDA_UPPER_BOUND * cost_scale(dataset))
+    return params
+
+
 def refined_new(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, everything: gtsam.Values,
                 dataset: Dataset) -> gtsam.Values:
     """The new unknowns moved to their optimum under the joining images' factors, the graph's unknowns
@@ -155,8 +166,7 @@ def refined_new(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, every
             if not values.exists(key):
                 graph.add(gtsam.NonlinearEqualityPoint3(key, x))
     try:
-        result = gtsam.LevenbergMarquardtOptimizer(graph, start, lm_params(REFINE_ITERATIONS,
-                                                                           cost_scale(dataset))).optimize()
+        result = gtsam.LevenbergMarquardtOptimizer(graph, start, lm_settings(REFINE_ITERATIONS, dataset)).optimize()
     except RuntimeError:  # let iSAM2 try from the propagation's values
         return values
     refined = gtsam.Values()
