@@ -361,7 +361,7 @@ def validate_image(
     where = f"images[{index}]" if index is not None else "image"
     if isinstance(image, Image):
         image_id: Any = image.id
-        configs: Any = image.mirror_configs if image.mirror_configs or not image.reflections else None
+        configs: Any = image.mirror_configs if image.mirror_configs else None  # else reflections ([] = direct)
         reflections: Any = None if configs is not None else [list(p) for p in image.reflections]
         camera_name: Any = image.camera
         observations: Any = image.observations

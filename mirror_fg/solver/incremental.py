@@ -36,9 +36,9 @@ Settling: a start-up counts as settled only when iSAM2's own step at the LM solu
 then the LM estimate is reported and the start-up re-run with later images (``incremental_startup.py``).
 
 This module holds the public API, the screening of images and when to restart; the calibrator holds an
-:class:`~mirror_fg.solver.incremental_graph.IncrementalGraph` (``incremental_graph.py``: the graph and
-how images join it, iSAM2 updates; its state in ``incremental_state.py``, the values of new unknowns in
-``incremental_values.py``) and starts it with ``incremental_startup.py``.
+:class:`~mirror_fg.solver.incremental_graph.IncrementalGraph` (``incremental_graph.py``: graph, iSAM2
+updates; state in ``incremental_state.py``, new values in ``incremental_values.py``), started by
+``incremental_startup.py``. Data that are not the tree (``Dataset.is_tree``): ``incremental_views.py``.
 """
 from __future__ import annotations
 
@@ -64,6 +64,8 @@ from mirror_fg.solver.incremental_graph import IncrementalGraph
 from mirror_fg.solver.incremental_startup import DIVERGENCE_SIGMAS, FINAL_LM_ITERATIONS, STARTUP_LM_ITERATIONS, start_graph
 from mirror_fg.solver.incremental_state import GraphState, RelinearizeThresholds
 from mirror_fg.solver.incremental_values import MIN_PNP_FIDUCIALS
+from mirror_fg.solver.incremental_views import (ViewsIncrementalCalibrator, become_views_calibrator,
+                                                calibrate_views_incremental)
 from mirror_fg.solver.initial import initial_estimate
 from mirror_fg.solver.marginals import marginal_covariances
 from mirror_fg.solver.placement_tree import complete_tree, tree_shortfall
@@ -100,26 +102,18 @@ class IncrementalCalibrator:
     residuals over every image in the graph; ``marginal_covariance()`` gives covariances on demand.
     """
 
-    def __init__(
-        self,
-        dataset: Dataset,
-        *,
-        points: Iterable[str] | None = None,
-        robust: str | None = None,
-        thresholds: RelinearizeThresholds | None = None,
-        seed: int = 0,
-    ) -> None:
+    def __new__(cls, dataset: Dataset | None = None, **options: Any) -> Any:
+        """General data (not the paper's tree, ``Dataset.is_tree``): ``incremental_views.py``'s calibrator."""
+        dataset = None if dataset is None else as_dataset(dataset, "IncrementalCalibrator()")
+        general = dataset is not None and not dataset.is_tree
+        return ViewsIncrementalCalibrator(dataset, **options) if general else super().__new__(cls)
+
+    def __init__(self, dataset: Dataset, *, points: Iterable[str] | None = None, robust: str | None = None,
+                 thresholds: RelinearizeThresholds | None = None, seed: int = 0) -> None:
         dataset = as_dataset(dataset, "IncrementalCalibrator()")
         # Our own Dataset holds the images in the graph: normalisation cache, residuals, messages.
-        self._ds = Dataset(
-            num_mirrors=dataset.num_mirrors,
-            camera=dataset.camera,
-            pixel_sigma=dataset.pixel_sigma,
-            fiducials={name: np.array(p, dtype=float) for name, p in dataset.fiducials.items()},
-            images=[],
-            source=dataset.source,
-            point_sigma=dict(dataset.point_sigma),
-        )
+        self._ds = replace(dataset, images=[], point_sigma=dict(dataset.point_sigma),
+                           fiducials={name: np.array(p, dtype=float) for name, p in dataset.fiducials.items()})
         if points is not None:
             self._known_points: set[str] | None = set(points)
         elif dataset.images:
@@ -127,7 +121,7 @@ class IncrementalCalibrator:
         else:
             self._known_points = None
         check_kernel(robust)
-        self._seed = seed
+        self._seed, self._options, self._given = seed, {"points": points, "robust": robust, "seed": seed}, []
         self._ids: set[str] = set()
         #: Images or fiducials refused by the consensus (``consensus.py``), each with its reason.
         self.excluded: list[Exclusion] = []
@@ -223,7 +217,10 @@ class IncrementalCalibrator:
         if checked.id in self._ids:
             raise DatasetError(f"{self._ds.source}: image {checked.id!r}: duplicate image id (already given)")
         # Accepted: nothing below is input validation.
+        if len(checked.mirror_configs) != self._ds.num_mirrors:  # off the tree: the view model from here on
+            return become_views_calibrator(self, [*self._given, checked], self._options)
         self._ids.add(checked.id)
+        self._given.append(checked)
         screened = self._screen(checked)
         if screened is None:  # refused as inconsistent: named in ``excluded``, the estimate untouched
             return self.calibration() if self.started else None
@@ -478,6 +475,9 @@ def calibrate_incremental(
     refused as inconsistent with the estimate are asked whether they fit a pose of their own.
     """
     dataset = as_dataset(dataset)
+    if not dataset.is_tree:  # the general view model (incremental_views.py)
+        return calibrate_views_incremental(dataset, robust=robust, on_estimate=on_estimate, on_wait=on_wait,
+                                           accept_poor_fit=accept_poor_fit)
     calibrator = IncrementalCalibrator(dataset, robust=robust)
     started = False
     for index, image in enumerate(dataset.images, start=1):
