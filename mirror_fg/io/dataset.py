@@ -1,9 +1,8 @@
 """Dataset files (``mirror-fg/dataset@1``): reading, validation, writing; the Dataset and Image it holds.
 
-Coordinates: fiducials in the base frame {B}, metres; observations in pixels when the dataset has a
-camera (undistorted and normalized once, where an image is validated, with the OpenCV model of
-:class:`~mirror_fg.core.camera.Camera`), else normalized image coordinates. result@1 files are
-:mod:`mirror_fg.io.result`'s; the value checks and message quotes are :mod:`mirror_fg.core.values`'.
+Coordinates: fiducials in the base frame {B}, metres; observations in pixels with a camera (undistorted and
+normalized once, where an image is validated, with :class:`~mirror_fg.core.camera.Camera`'s OpenCV model),
+else normalized. result@1 is :mod:`mirror_fg.io.result`'s; value checks :mod:`mirror_fg.core.values`'.
 """
 from __future__ import annotations
 
@@ -361,7 +360,7 @@ def validate_image(
     where = f"images[{index}]" if index is not None else "image"
     if isinstance(image, Image):
         image_id: Any = image.id
-        configs: Any = image.mirror_configs if image.mirror_configs else None  # else reflections ([] = direct)
+        configs: Any = image.mirror_configs or None  # else its reflections ([] = a direct view)
         reflections: Any = None if configs is not None else [list(p) for p in image.reflections]
         camera_name: Any = image.camera
         observations: Any = image.observations

@@ -3,13 +3,9 @@ and several cameras") on iSAM2: direct views, fixed mirrors, any order of reflec
 no known target. ``IncrementalCalibrator`` and ``calibrate_incremental`` (``incremental.py``) send every
 dataset that is not the paper's tree (``Dataset.is_tree``) here.
 
-Same unknowns, keys, factors and noise as the batch (``views.py``'s :class:`ViewProblem`, one
-``ViewFactor`` per image; ``X(k)`` camera k's ``T_cam_base``, ``V(i)`` a placement's mirror vector in its
-owner camera's frame, ``L(j)`` a point, base frame; without a known target the first camera's frame is the
-base and a prior of relative sigma ``views.SCALE_SIGMA`` holds the scale). The key layout is the
-ViewProblem's of the dataset given at construction (``calibrate_incremental``: the whole file); a
-placement, point or camera an added image brings beyond it gets the next key, its owner being that image's
-camera.
+Same unknowns, keys, factors and noise as the batch (``views.py``'s :class:`ViewProblem`: its key layout
+of the dataset given at construction, ``calibrate_incremental``: the whole file); a placement, point or
+camera an added image brings beyond it gets the next key, its owner being that image's camera.
 
 Life of an image (:meth:`ViewsIncrementalCalibrator.add_image`): validated (``dataset.validate_image``,
 DatasetError before anything changes), then it waits. After every image the waiting ones are offered to
@@ -25,10 +21,8 @@ images wait for more.
 ``calibration(full=True)``: iSAM2 relinearises every factor (Gauss-Newton steps) until the estimate
 moves less than ``POLISH_STEP`` (Levenberg-Marquardt finishes where that does not settle, as a robust
 kernel's weights may make it), then ``gtsam.Marginals`` on iSAM2's factors at its estimate gives the
-covariances, and every image in the graph its residuals, as ``views_solve.calibrate_views`` reports them.
-``calibrate_views_incremental`` then runs the batch's final check (``consensus.final_check``: what is far
-off the solution left out, solved again, at most ``views_solve.MAX_RECHECKS`` times). Not done here:
-the batch consensus on each image as it comes (the tree calibrator's ``_screen``).
+covariances and residuals as ``views_solve.calibrate_views`` reports them; ``calibrate_views_incremental``
+then runs the batch's final check. Not done here: the consensus on each image as it comes.
 """
 from __future__ import annotations
 
@@ -53,8 +47,12 @@ from mirror_fg.solver.incremental_views_start import (determines_new_unknowns, j
                                                       refined_new, scaled_start)
 from mirror_fg.solver.propagation import ViewObs
 from mirror_fg.solver.timing import timed
-from mirror_fg.solver.views import SCALE_SIGMA, ViewEstimate, ViewProblem, _length_error, camera_names, views_of
-from mirror_fg.solver.views_solve import MAX_RECHECKS, _calibration, _Label, _named
+from mirror_fg.factors.views import vector_of_plane
+from mirror_fg.solver.views import (
+    ViewEstimate, ViewProblem, camera_names, mirror_vector_at, plane_of, scale_prior, views_of,
+)
+from mirror_fg.solver.rechecks import MAX_RECHECKS
+from mirror_fg.solver.views_solve import _Label, _named, calibration_of
 
 __all__ = ["ViewsIncrementalCalibrator", "calibrate_views_incremental", "become_views_calibrator"]
 
@@ -175,7 +173,7 @@ class ViewsIncrementalCalibrator:
         estimate = problem.read(values)
         if full:
             try:
-                pose_covs, joint, mirror_covs, point_covs = problem.covariances(self._graph, values, estimate)
+                covariances = problem.covariances(self._graph, values, estimate)
             except RuntimeError as error:
                 raise SolveError(f"{self._ds.source}: the data do not constrain every unknown "
                                  f"({_named(problem, error)})") from None
@@ -184,15 +182,15 @@ class ViewsIncrementalCalibrator:
             pose_covs = {name: np.zeros((6, 6)) for name in self.fixed}
             for name, key in problem.pose_keys.items():
                 pose_covs[name] = covariance_from_pose3(estimate.poses[name][0], isam.marginalCovariance(key))
-            joint, mirror_covs, point_covs = None, {}, {}
+            covariances = (pose_covs, None, {}, {}, {})
             residuals, whitened, labels, views = np.zeros((0, 2)), np.zeros(0), [], []
         dimension = values.dim() - problem.constraints
         final_error = float(self._graph.error(values)) if full else float("nan")
         expected = 0.5 * max(len(whitened) * 2 - dimension, 0) if full else 0.0
-        calibration = _calibration(problem, estimate, pose_covs, joint, mirror_covs, point_covs, residuals, whitened,
-                                   labels, views, iterations=self._updates, initial_error=self._initial_error,
-                                   final_error=final_error, converged=converged, expected=expected,
-                                   excluded=list(self.excluded), timings=dict(self.timings))
+        calibration = calibration_of(problem, estimate, covariances, residuals, whitened, labels, views,
+                                     iterations=self._updates, initial_error=self._initial_error,
+                                     final_error=final_error, converged=converged, expected=expected,
+                                     excluded=list(self.excluded), timings=dict(self.timings))
         if not full and self._ds.cameras is not None:
             calibration.camera_pose_covariance = None
         return calibration
@@ -212,7 +210,10 @@ class ViewsIncrementalCalibrator:
         key = self.point_keys.get(name) if isinstance(name, str) else self.mirror_keys.get(tuple(name))
         if key is None or not isam.valueExists(key):
             raise KeyError(f"{unknown!r} has no value in the graph yet")
-        return isam.marginalCovariance(key)
+        if isinstance(name, str):
+            return isam.marginalCovariance(key)
+        J = vector_of_plane(isam.calculateEstimate().atOrientedPlane3(key))[1]  # v = d n, from the plane's coordinates
+        return J @ isam.marginalCovariance(key) @ J.T
 
     def leave_out_far_measurements(self) -> list[Exclusion]:
         """The batch's final check (``consensus.final_check``) at the estimate (after ``calibration(full=
@@ -273,18 +274,7 @@ class ViewsIncrementalCalibrator:
                           base, landmarks, view.normalized.T, sigmas, self.robust)
 
     def _scale_prior(self) -> gtsam.NonlinearFactorGraph:
-        graph = gtsam.NonlinearFactorGraph()
-        scale = self._ds.scale
-        if scale is not None:
-            noise = gtsam.noiseModel.Isotropic.Sigma(1, SCALE_SIGMA * scale.distance)
-            if scale.placement is not None:
-                graph.add(gtsam.CustomFactor(noise, [self.mirror_keys[scale.placement]],
-                                             _length_error(scale.distance, False)))
-            else:
-                a, b = scale.points  # type: ignore[misc]
-                graph.add(gtsam.CustomFactor(noise, [self.point_keys[a], self.point_keys[b]],
-                                             _length_error(scale.distance, True)))
-        return graph
+        return scale_prior(self._ds, self.mirror_keys, self.point_keys)
 
     def _join_waiting(self) -> None:
         """The waiting images the propagation can start, into iSAM2 in one update (module docstring)."""
@@ -311,7 +301,7 @@ class ViewsIncrementalCalibrator:
         for name, (R, t) in new.poses.items():
             values.insert(self.pose_keys[name], gtsam.Pose3(gtsam.Rot3(R), np.asarray(t, float)))
         for p, v in new.mirror_vectors.items():
-            values.insert(self.mirror_keys[p], np.asarray(v, float))
+            values.insert(self.mirror_keys[p], plane_of(v))
         for name, x in new.points.items():
             values.insert(self.point_keys[name], np.asarray(x, float))
         everything = gtsam.Values(values)
@@ -414,7 +404,7 @@ class ViewsIncrementalCalibrator:
             if values.exists(key):
                 pose = values.atPose3(key)
                 poses[name] = (pose.rotation().matrix(), np.asarray(pose.translation(), float))
-        return ViewEstimate(poses, {p: np.asarray(values.atPoint3(k), float) for p, k in self.mirror_keys.items()
+        return ViewEstimate(poses, {p: mirror_vector_at(values, k) for p, k in self.mirror_keys.items()
                                     if values.exists(k)},
                             {n: np.asarray(values.atPoint3(k), float) for n, k in self.point_keys.items()
                              if values.exists(k)})

@@ -160,6 +160,11 @@ def refined_new(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, every
             start.insert(key, pose)
             if not values.exists(key):
                 graph.add(gtsam.NonlinearEqualityPose3(key, pose))
+        elif _is_plane(key):
+            plane = everything.atOrientedPlane3(key)
+            start.insert(key, plane)
+            if not values.exists(key):
+                graph.add(_held_plane(key, plane))
         else:
             x = everything.atPoint3(key)
             start.insert(key, x)
@@ -173,6 +178,8 @@ def refined_new(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, every
     for key in values.keys():
         if _dim(key) == 6:
             refined.insert(key, result.atPose3(key))
+        elif _is_plane(key):
+            refined.insert(key, result.atOrientedPlane3(key))
         else:
             refined.insert(key, result.atPoint3(key))
     return refined
@@ -197,6 +204,21 @@ def scaled_start(new: ViewEstimate, scale: Scale | None) -> ViewEstimate | None:
     return ViewEstimate({n: (R, t * f) for n, (R, t) in new.poses.items()},
                         {p: v * f for p, v in new.mirror_vectors.items()},
                         {n: x * f for n, x in new.points.items()})
+
+
+def _is_plane(key: int) -> bool:
+    """Whether a key is a placement's plane ``V(i)`` (``OrientedPlane3``, solver/views.py)."""
+    return gtsam.Symbol(key).chr() == ord("v")
+
+
+def _held_plane(key: int, plane: gtsam.OrientedPlane3) -> gtsam.CustomFactor:
+    """A plane held where it is (GTSAM has no NonlinearEquality for OrientedPlane3): its local
+    coordinates from ``plane``, with a sigma far below any measurement's effect."""
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
+        if jacobians is not None:
+            jacobians[0] = np.eye(3)
+        return np.asarray(plane.localCoordinates(values.atOrientedPlane3(key)), dtype=float)
+    return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(3, 1e-9), [key], error)
 
 
 def _dim(key: int) -> int:

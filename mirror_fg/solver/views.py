@@ -30,7 +30,7 @@ from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.propagation import Propagation, ViewObs, mirror_vector_in
 
-__all__ = ["SINGLE_CAMERA", "ViewProblem", "views_of", "camera_names"]
+__all__ = ["SINGLE_CAMERA", "ViewProblem", "views_of", "camera_names", "scale_prior", "mirror_vector_at", "plane_of"]
 
 #: The camera's name where a dataset gives one ``camera``.
 SINGLE_CAMERA = "camera"
@@ -176,15 +176,7 @@ class ViewProblem:
             prior = intrinsics_prior_factor(self.intrinsics[name], dict(camera.prior_sigma), key)
             if prior is not None:
                 graph.add(prior)
-        scale = self.dataset.scale
-        if scale is not None:
-            noise = gtsam.noiseModel.Isotropic.Sigma(1, SCALE_SIGMA * scale.distance)
-            if scale.placement is not None:
-                graph.add(gtsam.CustomFactor(noise, [self.mirror_keys[scale.placement]], _distance_error(scale.distance)))
-            else:
-                a, b = scale.points  # type: ignore[misc]
-                graph.add(gtsam.CustomFactor(noise, [self.point_keys[a], self.point_keys[b]],
-                                             _length_error(scale.distance)))
+        graph.push_back(scale_prior(self.dataset, self.mirror_keys, self.point_keys))
         return graph
 
     def name_of(self, key: int) -> str:
@@ -269,6 +261,25 @@ class ViewProblem:
             else:
                 intrinsics[name] = (marginals.marginalCovariance(key), None)
         return poses, joint, mirrors, points, intrinsics
+
+
+def scale_prior(dataset: Dataset, mirror_keys: dict, point_keys: dict) -> gtsam.NonlinearFactorGraph:
+    """The prior that holds the scale without a known target (module docstring); empty with a target."""
+    graph = gtsam.NonlinearFactorGraph()
+    scale = dataset.scale
+    if scale is not None:
+        noise = gtsam.noiseModel.Isotropic.Sigma(1, SCALE_SIGMA * scale.distance)
+        if scale.placement is not None:
+            graph.add(gtsam.CustomFactor(noise, [mirror_keys[scale.placement]], _distance_error(scale.distance)))
+        else:
+            a, b = scale.points  # type: ignore[misc]
+            graph.add(gtsam.CustomFactor(noise, [point_keys[a], point_keys[b]], _length_error(scale.distance)))
+    return graph
+
+
+def mirror_vector_at(values: gtsam.Values, key: int) -> np.ndarray:
+    """The mirror vector ``d n`` of a placement's plane variable in ``values``."""
+    return vector_of_plane(values.atOrientedPlane3(key))[0]
 
 
 def _distance_error(distance: float):

@@ -23,7 +23,7 @@ from mirror_fg.solver.rig import rig_transforms
 from mirror_fg.solver.timing import timed
 from mirror_fg.solver.views import SINGLE_CAMERA, ViewEstimate, ViewProblem, camera_names
 
-__all__ = ["calibrate_views", "tree_start_for"]
+__all__ = ["calibrate_views", "tree_start_for", "calibration_of"]
 
 logger = logging.getLogger("mirror_fg")
 
@@ -271,7 +271,12 @@ def _finish(run: _Run, options: SolveOptions) -> Calibration:
                 raise SolveError(f"{problem.dataset.source}: the data do not constrain every unknown "
                                  f"({_named(problem, error)})") from None
         report(STAGES[2], 1, 1)
-    return _calibration(run, covariances, converged=run.iterations < options.max_iterations)
+    return calibration_of(run.problem, run.estimate, covariances, run.residuals, run.whitened, run.labels, run.views,
+                          iterations=run.iterations, initial_error=run.initial_error,
+                          final_error=float(run.graph.error(run.result)),
+                          converged=run.iterations < options.max_iterations,
+                          expected=0.5 * max(2 * len(run.whitened) - run.dimension, 0), excluded=run.excluded,
+                          timings=run.timings)
 
 
 def _named(problem: ViewProblem, error: Exception) -> str:
@@ -284,11 +289,16 @@ def _named(problem: ViewProblem, error: Exception) -> str:
     return "indeterminant linear system"
 
 
-def _calibration(run: _Run, covariances, converged: bool) -> Calibration:
+def calibration_of(problem: ViewProblem, estimate: ViewEstimate, covariances, residuals: np.ndarray,
+                   whitened: np.ndarray, labels: list, views: list, *, iterations: int, initial_error: float,
+                   final_error: float, converged: bool, expected: float, excluded: list[Exclusion],
+                   timings: dict[str, float]) -> Calibration:
+    """The :class:`Calibration` of an estimate of ``problem`` (batch or incremental): ``covariances`` as
+    ``ViewProblem.covariances`` gives them (or None), the residuals and their labels and views as
+    ``ViewProblem.residuals``, and what the solve reports."""
     from mirror_fg.solver.intrinsics import camera_of
     from mirror_fg.solver.residuals import outliers_of
 
-    problem, estimate = run.problem, run.estimate
     pose_covs, joint, mirror_covs, point_covs, intrinsics_covs = covariances or ({}, None, {}, {}, {})
     dataset = problem.dataset
     first = problem.cameras[0]
@@ -311,15 +321,15 @@ def _calibration(run: _Run, covariances, converged: bool) -> Calibration:
         R_cam_base=R, t_cam_base=t, covariance=pose_covs.get(first),
         mirror_vectors=estimate.mirror_vectors, mirror_covariances=mirror_covs,
         points=estimate.points, point_covariances=point_covs, analytic=None,
-        iterations=run.iterations, initial_error=run.initial_error, final_error=float(run.graph.error(run.result)),
-        converged=converged, residuals=run.residuals, residual_labels=run.labels,
+        iterations=iterations, initial_error=initial_error, final_error=final_error,
+        converged=converged, residuals=residuals, residual_labels=labels,
         residual_units="px" if dataset.camera is not None else "normalized",
-        outliers=outliers_of([_Label(i, p) for i, p in run.labels], run.whitened),  # type: ignore[arg-type]
-        timings=run.timings, expected_final_error=0.5 * max(2 * len(run.whitened) - run.dimension, 0),
-        excluded=list(run.excluded), camera=estimated.get(first),
+        outliers=outliers_of([_Label(i, p) for i, p in labels], whitened),  # type: ignore[arg-type]
+        timings=timings, expected_final_error=expected,
+        excluded=list(excluded), camera=estimated.get(first),
         cameras=cameras, camera_pose_covariance=joint if dataset.cameras is not None else None, rig=rig,
         mirror_frames=dict(problem.owners) if dataset.cameras is not None else {},
-        residual_views=run.views,
+        residual_views=views,
     )
 
 
