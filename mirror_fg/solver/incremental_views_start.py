@@ -27,7 +27,7 @@ import gtsam
 import numpy as np
 
 from mirror_fg.io.dataset import Dataset, Image, Scale
-from mirror_fg.solver.lm import cost_scale, lm_params
+from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params
 from mirror_fg.solver.propagation import ViewObs, _Propagator, mirror_vector_in, plane_from_camera, takahashi_start
 from mirror_fg.solver.views import ViewEstimate
 from mirror_fg.solver.views_solve import tree_start_for
@@ -37,7 +37,7 @@ __all__ = ["Joining", "joining_views", "determines_new_unknowns", "lm_settings",
 #: Levenberg-Marquardt iterations that move an update's new unknowns to their optimum before iSAM2.
 REFINE_ITERATIONS = 100
 #: Levenberg-Marquardt's largest damping, times ``lm.cost_scale`` (:func:`lm_settings`).
-LAMBDA_UPPER_BOUND = 1e10
+LAMBDA_UPPER_BOUND = GENERAL_LAMBDA_UPPER_BOUND
 #: Smallest singular value, relative to the largest, of the new unknowns' whitened Jacobian columns.
 MIN_RELATIVE_SINGULAR_VALUE = 1e-9
 
@@ -142,9 +142,7 @@ def lm_settings(max_iterations: int, dataset: Dataset) -> gtsam.LevenbergMarquar
     """The batch's Levenberg-Marquardt settings (``lm.lm_params``) with room for the damping to grow to
     :data:`LAMBDA_UPPER_BOUND` (times ``lm.cost_scale``): from a start far off (a gross measurement among
     the first images) the batch's bound, 1e5, stops it before its first step."""
-    params = lm_params(max_iterations, cost_scale(dataset))
-    params.setlambdaUpperBound(LAMBDA_UPPER_BOUND * cost_scale(dataset))
-    return params
+    return lm_params(max_iterations, cost_scale(dataset), LAMBDA_UPPER_BOUND)
 
 
 def refined_new(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, everything: gtsam.Values,

@@ -46,19 +46,25 @@ def cost_scale(dataset: Dataset) -> float:
     return (REFERENCE_NORMALIZED_SIGMA / sigma) ** 2
 
 
-def lm_params(max_iterations: int, scale: float = 1.0) -> gtsam.LevenbergMarquardtParams:
+def lm_params(max_iterations: int, scale: float = 1.0, lambda_upper_bound: float = 1e5) -> gtsam.LevenbergMarquardtParams:
     """Levenberg-Marquardt settings of the MLE (eq. 23): tight tolerances, at most ``max_iterations``.
 
     ``scale``: :func:`cost_scale` of the data; the damping and the absolute tolerance scale with it
-    (GTSAM's defaults, 1e-5 and 1e5 for the damping, hold at the reference noise).
+    (GTSAM's defaults, 1e-5 and 1e5 for the damping, hold at the reference noise). The general view
+    model's solves give the damping room to 1e10 (:data:`GENERAL_LAMBDA_UPPER_BOUND`): from a start far
+    off (a gross measurement that no per-image check can see) 1e5 stops LM before its first step.
     """
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
     params.setRelativeErrorTol(1e-10)
     params.setAbsoluteErrorTol(1e-12 * scale)
     params.setlambdaInitial(1e-5 * scale)
-    params.setlambdaUpperBound(1e5 * scale)
+    params.setlambdaUpperBound(lambda_upper_bound * scale)
     return params
+
+
+#: The damping's bound in the general view model's solves (:func:`lm_params`).
+GENERAL_LAMBDA_UPPER_BOUND = 1e10
 
 
 def run_optimizer(

@@ -15,7 +15,7 @@ from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.calibration import Calibration, CameraPose, EstimatedCamera, Exclusion
 from mirror_fg.solver.consensus import screen, without
-from mirror_fg.solver.lm import cost_scale, lm_params, plausible, run_optimizer
+from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, plausible, run_optimizer
 from mirror_fg.solver.options import STAGES, SolveOptions
 from mirror_fg.solver.propagation import Unsolvable, propagate
 from mirror_fg.solver.rechecks import Checked, solve_with_rechecks
@@ -225,7 +225,7 @@ def _solve(dataset: Dataset, start, options: SolveOptions, models: dict, exclude
         with timed(timings, "analytic"):
             begin = _start(problem, last[0])
         graph = problem.graph()
-        params = lm_params(options.max_iterations, cost_scale(solved))
+        params = lm_params(options.max_iterations, cost_scale(solved), GENERAL_LAMBDA_UPPER_BOUND)
 
         def optimize(first: ViewEstimate):
             return run_optimizer(graph, problem.values(first), params, solved.source,
