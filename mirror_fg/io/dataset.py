@@ -235,26 +235,26 @@ def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Datase
     if not is_int(num_mirrors) or num_mirrors < 1:
         raise DatasetError(f"{source}: num_mirrors must be an integer >= 1, got {short(num_mirrors)}")
 
-    camera = d.get("camera")
+    given: Any = d.get("camera")
+    camera: Camera | None = None
     cameras = None
     if "cameras" in d:
-        if camera is not None:
+        if given is not None:
             raise DatasetError(f"{source}: camera and cameras are both given: give one of them (cameras for several)")
         cameras = cameras_from_dict(d["cameras"], source)
         camera = next(iter(cameras.values()))
-    elif isinstance(camera, str) or (isinstance(camera, Mapping) and "file" in camera):  # SPEC: capture@1 only
+    elif isinstance(given, str) or (isinstance(given, Mapping) and "file" in given):  # SPEC: capture@1 only
         raise DatasetError(f"{source}: camera: a dataset@1 holds the camera inline ({{model, width, height, fx, fy, "
-                           f"cx, cy, dist}}); a calibration file such as {short(camera)} can be named in a capture@1")
-    if cameras is None and camera is not None and not isinstance(camera, Mapping):
-        raise DatasetError(f"{source}: camera: expected an object or null, got {type_name(camera)}")
+                           f"cx, cy, dist}}); a calibration file such as {short(given)} can be named in a capture@1")
+    if cameras is None and given is not None and not isinstance(given, Mapping):
+        raise DatasetError(f"{source}: camera: expected an object or null, got {type_name(given)}")
     unstarted: dict[str, Any] | None = None  # the checked camera whose fx, fy, cx or cy is to start from the images
-    if cameras is None and camera is not None:
-        checked = check_camera(camera, f"{source}: camera", allow_unstarted=True)
+    if cameras is None and given is not None:
+        checked = check_camera(given, f"{source}: camera", allow_unstarted=True)
         if any(checked[k] is None for k in _STARTED):
-            unstarted, camera = checked, None
+            unstarted = checked
         else:
-            camera = camera_from_dict(camera, f"{source}: camera")
-
+            camera = camera_from_dict(given, f"{source}: camera")
     if "pixel_sigma" not in d:
         raise DatasetError(f"{source}: missing 'pixel_sigma' (measurement noise, pixels)")
     image_size = None if camera is None else (camera.width, camera.height)

@@ -98,7 +98,7 @@ def scale_from_dict(value: Any, source: str) -> tuple[float, Placement | None, t
         raise DatasetError(f"{where}: expected {{mirror, config, distance}} or {{points: [a, b], distance}}, "
                            f"got {short(value)}")
     check_keys(value, ("mirror", "config", "points", "distance"), where)
-    distance = value.get("distance")
+    distance: Any = value.get("distance")
     if not is_number(distance) or not 0.0 < float(distance) <= 100.0:
         raise DatasetError(f"{where}: distance must be a length in metres (> 0, at most 100), got {short(distance)}")
     if "points" in value:
@@ -109,7 +109,8 @@ def scale_from_dict(value: Any, source: str) -> tuple[float, Placement | None, t
                 or points[0] == points[1]):
             raise DatasetError(f"{where}: points must be two different point names, got {short(points)}")
         return float(distance), None, (points[0], points[1])
-    mirror, config = value.get("mirror"), value.get("config")
+    mirror: Any = value.get("mirror")
+    config: Any = value.get("config")
     if not is_index(mirror, 1) or not is_index(config):
         raise DatasetError(f"{where}: give mirror (from 1) and config (from 0) of the placement whose mirror "
                            f"distance is known, or points; got mirror {short(mirror)}, config {short(config)}")

@@ -138,11 +138,11 @@ def calibrate(
                 raise
             raise type(error)(f"{error} (after leaving out {_listed(excluded)})") from None
 
-    def checked(run: tuple[Calibration, list[Measurement], np.ndarray]) -> Checked:
+    def check_of(run: tuple[Calibration, list[Measurement], np.ndarray]) -> Checked:
         calibration, measurements, whitened = run
         return Checked(measurements, whitened, 2 * len(measurements) - round(2 * calibration.expected_final_error))
 
-    rechecked = solve_with_rechecks(solved, solve, checked, excluded)
+    rechecked = solve_with_rechecks(solved, solve, check_of, excluded)
     (calibration, _, _), solved = rechecked.run, rechecked.solved
     calibration.excluded = list(rechecked.excluded)
     if options.diagnose:
@@ -300,15 +300,16 @@ def _joint_solve(dataset: Dataset, chosen: _Start, model: IntrinsicsModel, optio
     again from the last estimate; the run and what it was solved on (``solved``, ``excluded``,
     ``measurements``), the estimate and the pixel residuals (``residuals``, ``whitened``)."""
     start_camera = chosen.camera
-    problem = [chosen.graph, chosen.layout, chosen.measurements, chosen.pixels, chosen.values]
 
     def solve(solved: Dataset, excluded: list[Exclusion]) -> _JointSolution:
+        graph, layout, measurements, pixels, values = (chosen.graph, chosen.layout, chosen.measurements,
+                                                        chosen.pixels, chosen.values)
         if solved is not chosen.solved:  # after leaving some out: the problem again, from the last estimate
             last = runs[-1]
             estimate = Estimate(last.R, last.t, last.mirror_vectors, last.points)
-            problem[:4] = joint_problem(solved, replace(solved, camera=start_camera), model, options.robust)
-            problem[4] = joint_values(problem[1], last.run.result.atVector(intrinsics_key()), estimate)
-        graph, layout, measurements, pixels, values = problem
+            graph, layout, measurements, pixels = joint_problem(solved, replace(solved, camera=start_camera), model,
+                                                                options.robust)
+            values = joint_values(layout, last.run.result.atVector(intrinsics_key()), estimate)
         run = run_joint_lm(solved, replace(solved, camera=start_camera), graph, layout, measurements, pixels, values,
                            options.max_iterations, options.on_iteration)
         R, t, mirror_vectors, points = extract_values(run.result, layout)

@@ -30,6 +30,8 @@ Nothing left out is dropped silently: every image or measurement is an
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from dataclasses import dataclass, replace
 
 import logging
@@ -41,7 +43,7 @@ import numpy as np
 from mirror_fg.core.geometry import apply_transform
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.calibration import Exclusion
-from mirror_fg.solver.graph import Measurement
+from mirror_fg.solver.graph import Labelled, Measurement
 from mirror_fg.solver.lm import plausible
 from mirror_fg.solver.placement_consensus import (  # noqa: F401 (the node's constants: public here too)
     CONSENSUS_FACTOR, CONSENSUS_MIN_SIGMAS, CONSENSUS_TRIPLES, check_node, fiducial_names, fit_mirrors, mirror_fit,
@@ -275,7 +277,7 @@ def without(dataset: Dataset, excluded: list[Exclusion]) -> Dataset:
 
 
 def final_check(
-    dataset: Dataset, measurements: list[Measurement], whitened: np.ndarray, dimension: int
+    dataset: Dataset, measurements: Sequence[Labelled], whitened: np.ndarray, dimension: int
 ) -> list[Exclusion]:
     """After LM: the measurements above ``FINAL_SIGMAS`` to leave out, or their whole image where more than
     two and more than ``MAX_BAD_POINT_FRACTION`` of its measurements are. None when too many are (a wrong minimum), or when

@@ -21,10 +21,18 @@ from mirror_fg.io.dataset import Dataset
 from mirror_fg.io.point_sigma import normalized_sigmas
 
 __all__ = [
-    "InitialEstimate", "GraphLayout", "Measurement", "measurements_of", "measurement_sigmas", "measurement_factor",
+    "InitialEstimate", "Labelled", "GraphLayout", "Measurement", "measurements_of", "measurement_sigmas", "measurement_factor",
     "build_graph",
     "extract_values", "initial_values", "EliminatedGraph", "build_eliminated_graph",
 ]
+
+
+class Labelled(Protocol):
+    """What the outlier checks read of a measurement: its image and point (a :class:`Measurement`, or a
+    general view model's label)."""
+
+    image_id: str
+    point: str
 
 
 class InitialEstimate(Protocol):

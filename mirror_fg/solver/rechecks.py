@@ -15,6 +15,7 @@ import numpy as np
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.calibration import Exclusion
 from mirror_fg.solver.consensus import final_check, without
+from mirror_fg.solver.graph import Labelled
 
 __all__ = ["MAX_RECHECKS", "Checked", "Rechecked", "solve_with_rechecks"]
 
@@ -29,7 +30,7 @@ class Checked:
     """What the final check reads of one solve: each measurement's ``image_id`` and ``point`` (in
     ``measurements``), its whitened residual norm and the number of unknowns solved for."""
 
-    measurements: Sequence
+    measurements: Sequence[Labelled]
     whitened: np.ndarray
     dimension: int
 

@@ -6,11 +6,13 @@ One prediction for batch and incremental results: the core's batched primitives
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from mirror_fg.core.geometry import nested_transforms, predict_camera_points, project
 from mirror_fg.io.dataset import Dataset
-from mirror_fg.solver.graph import Measurement, measurement_sigmas
+from mirror_fg.solver.graph import Labelled, Measurement, measurement_sigmas
 
 __all__ = ["OUTLIER_SIGMAS", "predicted_normalized", "residual_statistics", "outliers_of"]
 
@@ -54,6 +56,6 @@ def residual_statistics(
     return dataset.camera.distort(predicted) - observed_pixels, whitened
 
 
-def outliers_of(measurements: list[Measurement], whitened: np.ndarray) -> list[tuple[str, str, float]]:
+def outliers_of(measurements: Sequence[Labelled], whitened: np.ndarray) -> list[tuple[str, str, float]]:
     """``(image id, point, sigmas)`` of each measurement whose whitened residual exceeds ``OUTLIER_SIGMAS``."""
     return [(m.image_id, m.point, float(w)) for m, w in zip(measurements, whitened) if w > OUTLIER_SIGMAS]

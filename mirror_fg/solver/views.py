@@ -173,6 +173,7 @@ class ViewProblem:
             graph.add(factor.factor())
         for name, key in self.intrinsics_keys.items():
             camera = self.dataset.cameras[name] if self.dataset.cameras is not None else self.dataset.camera
+            assert camera is not None  # it estimates intrinsics
             prior = intrinsics_prior_factor(self.intrinsics[name], dict(camera.prior_sigma), key)
             if prior is not None:
                 graph.add(prior)
@@ -195,7 +196,10 @@ class ViewProblem:
     def residuals(self, estimate: ViewEstimate) -> tuple[np.ndarray, np.ndarray, list[tuple[str, str]], list]:
         """Per measurement (file order): residuals (N, 2) in pixels with a camera (else normalized), their
         whitened norms (sigmas), ``(image, point)`` labels and ``(camera, reflections)`` views."""
-        residuals, whitened, labels, views = [], [], [], []
+        residuals: list[np.ndarray] = []
+        whitened: list[np.ndarray] = []
+        labels: list[tuple[str, str]] = []
+        views: list[tuple[str | None, tuple[Placement, ...]]] = []
         for image, view, factor in zip(self.dataset.images, self.views, self.factors):
             B = factor.base_points.copy()
             for k, name in enumerate(view.names):
@@ -248,7 +252,7 @@ class ViewProblem:
             J = vector_of_plane(plane_of(estimate.mirror_vectors[p]))[1]
             mirrors[p] = J @ marginals.marginalCovariance(k) @ J.T
         points = {n: marginals.marginalCovariance(k) for n, k in self.point_keys.items()}
-        intrinsics = {}
+        intrinsics: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
         for name, key in self.intrinsics_keys.items():  # (k, k) and its cross-covariance (k, 6) with the pose
             k = len(self.intrinsics[name].index)
             if name in self.pose_keys:
@@ -322,10 +326,12 @@ class _GaugeHeld:
         information = A.T @ A
         gradient = np.zeros(start)
         scale = problem.dataset.scale
+        assert scale is not None and (scale.placement is not None or scale.points is not None)
         if scale.placement is not None:
             d = float(values.atOrientedPlane3(problem.mirror_keys[scale.placement]).distance())
             gradient[self.columns[problem.mirror_keys[scale.placement]]] = [0.0, 0.0, np.sign(d)]
         else:
+            assert scale.points is not None
             a, b = (problem.point_keys[n] for n in scale.points)
             diff = np.asarray(values.atPoint3(a), float) - np.asarray(values.atPoint3(b), float)
             gradient[self.columns[a]] = diff / np.linalg.norm(diff)

@@ -52,7 +52,7 @@ def tree_start_for(dataset: Dataset):
         camera = dataset.cameras[camera_name] if dataset.cameras is not None else dataset.camera
         if camera is not None and camera.estimate:
             camera = replace(camera, estimate=(), prior_sigma=())
-        attempts = []
+        attempts: list[tuple[int, int | None, list[Image]]] = []
         if dataset.num_mirrors > 1:
             tree = _solvable_subtree([im for im in images if len(im.mirror_configs) == dataset.num_mirrors])
             if tree:
@@ -67,9 +67,9 @@ def tree_start_for(dataset: Dataset):
         for im in images:
             if len(im.reflections) == 1:
                 groups.setdefault(im.reflections[0][0], []).append(im)
-        for mirror, group in sorted(groups.items(), key=lambda g: -len({im.reflections[0] for im in g[1]})):
+        for alone, group in sorted(groups.items(), key=lambda g: -len({im.reflections[0] for im in g[1]})):
             if len({im.reflections[0] for im in group}) >= 3:
-                attempts.append((1, mirror, group))
+                attempts.append((1, alone, group))
         for num_mirrors, mirror, group in attempts:
             sub_images = []
             for im in group:
@@ -299,7 +299,13 @@ def calibration_of(problem: ViewProblem, estimate: ViewEstimate, covariances, re
     from mirror_fg.solver.intrinsics import camera_of
     from mirror_fg.solver.residuals import outliers_of
 
-    pose_covs, joint, mirror_covs, point_covs, intrinsics_covs = covariances or ({}, None, {}, {}, {})
+    pose_covs: dict[str, np.ndarray] = {}
+    joint: np.ndarray | None = None
+    mirror_covs: dict[tuple[int, int], np.ndarray] = {}
+    point_covs: dict[str, np.ndarray] = {}
+    intrinsics_covs: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
+    if covariances is not None:
+        pose_covs, joint, mirror_covs, point_covs, intrinsics_covs = covariances
     dataset = problem.dataset
     first = problem.cameras[0]
     R, t = estimate.poses[first]
@@ -324,7 +330,7 @@ def calibration_of(problem: ViewProblem, estimate: ViewEstimate, covariances, re
         iterations=iterations, initial_error=initial_error, final_error=final_error,
         converged=converged, residuals=residuals, residual_labels=labels,
         residual_units="px" if dataset.camera is not None else "normalized",
-        outliers=outliers_of([_Label(i, p) for i, p in labels], whitened),  # type: ignore[arg-type]
+        outliers=outliers_of([_Label(i, p) for i, p in labels], whitened),
         timings=timings, expected_final_error=expected,
         excluded=list(excluded), camera=estimated.get(first),
         cameras=cameras, camera_pose_covariance=joint if dataset.cameras is not None else None, rig=rig,
