@@ -43,7 +43,7 @@ import numpy as np
 from mirror_fg.core.geometry import apply_transform
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.calibration import Exclusion
-from mirror_fg.solver.graph import Labelled, Measurement
+from mirror_fg.solver.graph import Labelled
 from mirror_fg.solver.lm import plausible
 from mirror_fg.solver.placement_consensus import (  # noqa: F401 (the node's constants: public here too)
     CONSENSUS_FACTOR, CONSENSUS_MIN_SIGMAS, CONSENSUS_TRIPLES, check_node, fiducial_names, fit_mirrors, mirror_fit,
