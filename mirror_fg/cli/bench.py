@@ -32,6 +32,11 @@ def plan_next(args, out: _Printer) -> int:
     if args.output is not None:
         outputs.add(args.output, "suggestions")
     dataset = _load_input(args.next_data, out, outputs)
+    if not dataset.is_tree:
+        raise DatasetError(f"{dataset.source}: plan --next ranks the next placement of the paper's hand-held mirrors "
+                           "(images with mirror_configs, one camera, a known target); these images give reflections, "
+                           "cameras or no fiducials: `mirror-fg plan --kind kaleidoscope|mixed` or `--cameras N` gives "
+                           "the bounds of such set-ups")
     estimate: InitialEstimate
     if args.result is not None:  # the estimate of a calibration already made
         from mirror_fg.io.result import load_result
