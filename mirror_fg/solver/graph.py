@@ -21,7 +21,7 @@ from mirror_fg.io.dataset import Dataset
 from mirror_fg.io.point_sigma import normalized_sigmas
 
 __all__ = [
-    "InitialEstimate", "Labelled", "GraphLayout", "Measurement", "measurements_of", "measurement_sigmas", "measurement_factor",
+    "InitialEstimate", "Labelled", "GraphLayout", "unknown_name", "Measurement", "measurements_of", "measurement_sigmas", "measurement_factor",
     "build_graph",
     "extract_values", "initial_values", "EliminatedGraph", "build_eliminated_graph",
 ]
@@ -72,15 +72,22 @@ class GraphLayout:
 
     def name_of(self, key: int) -> str:
         """Human name of the unknown behind a key."""
-        if key == self.pose_key:
-            return "T_cam_base"
-        for (l, m), k in self.mirror_keys.items():
-            if k == key:
-                return f"mirror {l} placement {m}"
-        for name, k in self.point_keys.items():
-            if k == key:
-                return f"point '{name}'"
-        return gtsam.DefaultKeyFormatter(key)
+        return unknown_name(key, {self.pose_key: "T_cam_base"}, self.mirror_keys, self.point_keys)
+
+
+def unknown_name(key: int, poses: dict[int, str], mirror_keys: dict[tuple[int, int], int],
+                 point_keys: dict[str, int]) -> str:
+    """Human name of the unknown behind a key: ``poses`` names the pose keys, then a mirror placement or a
+    point (GTSAM's key formatting for anything else)."""
+    if key in poses:
+        return poses[key]
+    for (l, m), k in mirror_keys.items():
+        if k == key:
+            return f"mirror {l} placement {m}"
+    for name, k in point_keys.items():
+        if k == key:
+            return f"point '{name}'"
+    return gtsam.DefaultKeyFormatter(key)
 
 
 @dataclass

@@ -28,6 +28,7 @@ from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_prior_facto
 from mirror_fg.factors.views import ViewFactor, plane_of, vector_of_plane, view_model
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.io.point_sigma import normalized_sigmas
+from mirror_fg.solver.graph import unknown_name
 from mirror_fg.solver.propagation import Propagation, ViewObs, mirror_vector_in
 
 __all__ = ["SINGLE_CAMERA", "ViewProblem", "views_of", "camera_names", "scale_prior", "mirror_vector_at", "plane_of"]
@@ -181,16 +182,9 @@ class ViewProblem:
         return graph
 
     def name_of(self, key: int) -> str:
-        for name, k in self.pose_keys.items():
-            if k == key:
-                return f"camera {name!r}" if self.dataset.cameras is not None else "T_cam_base"
-        for (l, m), k in self.mirror_keys.items():
-            if k == key:
-                return f"mirror {l} placement {m}"
-        for name, k in self.point_keys.items():
-            if k == key:
-                return f"point '{name}'"
-        return gtsam.DefaultKeyFormatter(key)
+        poses = {k: (f"camera {name!r}" if self.dataset.cameras is not None else "T_cam_base")
+                 for name, k in self.pose_keys.items()}
+        return unknown_name(key, poses, self.mirror_keys, self.point_keys)
 
     # ------------------------------------------------------------------ residuals
     def residuals(self, estimate: ViewEstimate) -> tuple[np.ndarray, np.ndarray, list[tuple[str, str]], list]:
