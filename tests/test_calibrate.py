@@ -190,7 +190,7 @@ def test_an_implausible_optimum_restarts_from_the_runner_up_hypotheses(monkeypat
     """When LM from the analytical solution ends far above the chi-square range of the cost, calibrate()
     starts again from the root's runner-up hypotheses and keeps the best: here the first hypothesis is
     a deliberately wrong pose (rotated 150 deg, 2 m off), the runner-up the real solution."""
-    import mirror_fg.solver.calibrate as calibrate_module
+    import mirror_fg.solver.tree_problem as calibrate_module  # the tree problem starts from it
     from mirror_fg.solver.analytic import AnalyticSolution
     from mirror_fg.core.geometry import so3_exp
 
