@@ -34,14 +34,15 @@ from dataclasses import dataclass, replace
 
 import logging
 from collections import defaultdict
+from collections.abc import Sequence
 from types import SimpleNamespace
+from typing import Protocol
 
 import numpy as np
 
 from mirror_fg.core.geometry import apply_transform
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.calibration import Exclusion
-from mirror_fg.solver.graph import Measurement
 from mirror_fg.solver.lm import plausible
 from mirror_fg.solver.placement_consensus import (  # noqa: F401 (the node's constants: public here too)
     CONSENSUS_FACTOR, CONSENSUS_MIN_SIGMAS, CONSENSUS_TRIPLES, check_node, fiducial_names, fit_mirrors, mirror_fit,
@@ -274,8 +275,18 @@ def without(dataset: Dataset, excluded: list[Exclusion]) -> Dataset:
     return replace(dataset, images=images)
 
 
+class LabelledMeasurement(Protocol):
+    """What :func:`final_check` reads of a measurement: a ``graph.Measurement``, or an (image, point) label."""
+
+    @property
+    def image_id(self) -> str: ...
+
+    @property
+    def point(self) -> str: ...
+
+
 def final_check(
-    dataset: Dataset, measurements: list[Measurement], whitened: np.ndarray, dimension: int
+    dataset: Dataset, measurements: Sequence[LabelledMeasurement], whitened: np.ndarray, dimension: int
 ) -> list[Exclusion]:
     """After LM: the measurements above ``FINAL_SIGMAS`` to leave out, or their whole image where more than
     two and more than ``MAX_BAD_POINT_FRACTION`` of its measurements are. None when too many are (a wrong minimum), or when
