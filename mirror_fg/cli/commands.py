@@ -80,8 +80,8 @@ def cmd_simulate(args, out: _Printer) -> int:
             dataset, truth = simulate_kaleidoscope(args.mirrors or 2, target=not args.no_target, num_points=args.points,
                                                    pixel_sigma=args.sigma, seed=args.seed)
         elif args.cameras is None:  # mixed
-            placements = _simulate_counts(args.placements or "4", "--placements", 2)
-            dataset, truth = simulate_mixed(placements, direct=args.direct or 0, num_points=args.points or 0,
+            placement_counts = _simulate_counts(args.placements or "4", "--placements", 2)
+            dataset, truth = simulate_mixed(placement_counts, direct=args.direct or 0, num_points=args.points or 0,
                                             pixel_sigma=args.sigma, seed=args.seed)
         elif args.kind == "mixed":
             dataset, truth = simulate_rig_mixed(args.cameras, own=own, shared=2 if args.shared is None else args.shared,

@@ -279,7 +279,7 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".", me
     if not is_int(num_mirrors) or num_mirrors < 1:
         raise DatasetError(f"{source}: num_mirrors must be an integer >= 1, got {short(num_mirrors)}")
 
-    cameras, camera_files = None, {}
+    cameras, camera_files = None, dict[str, str]()
     if d.get("cameras") is not None:
         if "camera" in d:
             raise DatasetError(f"{source}: give 'camera' (one camera) or 'cameras' (a rig, {{name: camera}}), not both")

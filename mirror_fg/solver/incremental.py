@@ -104,9 +104,9 @@ class IncrementalCalibrator:
 
     def __new__(cls, dataset: Dataset | None = None, **options: Any) -> Any:
         """General data (not the paper's tree, ``Dataset.is_tree``): ``incremental_views.py``'s calibrator."""
-        dataset = None if dataset is None else as_dataset(dataset, "IncrementalCalibrator()")
-        general = dataset is not None and not dataset.is_tree
-        return ViewsIncrementalCalibrator(dataset, **options) if general else super().__new__(cls)
+        if dataset is not None and not (dataset := as_dataset(dataset, "IncrementalCalibrator()")).is_tree:
+            return ViewsIncrementalCalibrator(dataset, **options)
+        return super().__new__(cls)
 
     def __init__(self, dataset: Dataset, *, points: Iterable[str] | None = None, robust: str | None = None,
                  thresholds: RelinearizeThresholds | None = None, seed: int = 0) -> None:
@@ -121,7 +121,8 @@ class IncrementalCalibrator:
         else:
             self._known_points = None
         check_kernel(robust)
-        self._seed, self._options, self._given = seed, {"points": points, "robust": robust, "seed": seed}, []
+        self._seed, self._options = seed, {"points": points, "robust": robust, "seed": seed}
+        self._given: list[Image] = []  # every image taken, in order (to hand over to the views calibrator)
         self._ids: set[str] = set()
         #: Images or fiducials refused by the consensus (``consensus.py``), each with its reason.
         self.excluded: list[Exclusion] = []
@@ -206,12 +207,11 @@ class IncrementalCalibrator:
     def add_image(self, image: Image | Mapping[str, Any]) -> Calibration | None:
         """Take one image's observations (a ``mirror_fg.Image`` or its dataset@1 dict).
 
-        Returns ``None`` while the analytical solution cannot be formed (:attr:`status` says why), else
-        the current ``Calibration``
-        (the cheap one, see :meth:`calibration`). Raises ``DatasetError`` on bad input (unknown point
-        name, non-finite value, wrong ``mirror_configs`` length, an id already given) before anything
-        changes. Trouble solving never raises here: the calibrator keeps its estimate, unsettled, retries
-        with later images and keeps the reason in ``startup_error``.
+        Returns ``None`` while the analytical solution cannot be formed (:attr:`status` says why), else the
+        current ``Calibration`` (the cheap one, see :meth:`calibration`). Raises ``DatasetError`` on bad input
+        (unknown point name, non-finite value, wrong ``mirror_configs`` length, an id already given) before
+        anything changes. Trouble solving never raises here: the calibrator keeps its estimate, unsettled,
+        retries with later images and keeps the reason in ``startup_error``.
         """
         checked = validate_image(image, self._ds, known_points=self._known_points)
         if checked.id in self._ids:

@@ -38,7 +38,7 @@ from gtsam.symbol_shorthand import L, V, X
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.robust import check_kernel
-from mirror_fg.factors.views import ViewFactor
+from mirror_fg.factors.views import ViewFactor, vector_of_plane
 from mirror_fg.io.dataset import Dataset, Image, validate_image
 from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.calibration import POOR_FIT_RATIO, Calibration, Exclusion, require_converged
@@ -47,7 +47,6 @@ from mirror_fg.solver.incremental_views_start import (determines_new_unknowns, j
                                                       refined_new, scaled_start)
 from mirror_fg.solver.propagation import ViewObs
 from mirror_fg.solver.timing import timed
-from mirror_fg.factors.views import vector_of_plane
 from mirror_fg.solver.views import (
     ViewEstimate, ViewProblem, camera_names, mirror_vector_at, plane_of, scale_prior, views_of,
 )
@@ -207,7 +206,7 @@ class ViewsIncrementalCalibrator:
             if name in self.fixed:
                 return np.zeros((6, 6))
             return covariance_from_pose3(self._estimate.poses[name][0], isam.marginalCovariance(self.pose_keys[name]))
-        key = self.point_keys.get(name) if isinstance(name, str) else self.mirror_keys.get(tuple(name))
+        key = self.point_keys.get(name) if isinstance(name, str) else self.mirror_keys.get((*name,))  # a list too
         if key is None or not isam.valueExists(key):
             raise KeyError(f"{unknown!r} has no value in the graph yet")
         if isinstance(name, str):
@@ -223,8 +222,7 @@ class ViewsIncrementalCalibrator:
         problem = self._problem(full=True)
         _, whitened, labels, _ = problem.residuals(self._estimate)
         dimension = problem.values(self._estimate).dim() - problem.constraints
-        excluded = final_check(problem.dataset, [_Label(i, p) for i, p in labels], whitened,  # type: ignore[arg-type]
-                               dimension)
+        excluded = final_check(problem.dataset, [_Label(i, p) for i, p in labels], whitened, dimension)
         if not excluded:
             return []
         self.excluded.extend(excluded)
@@ -286,9 +284,10 @@ class ViewsIncrementalCalibrator:
             return
         new = ViewEstimate(joining.poses, joining.mirror_vectors, joining.points)
         if not self.started:
-            new = scaled_start(new, self._ds.scale)
-            if new is None:  # the scale's placement or points are not among the first images
+            scaled = scaled_start(new, self._ds.scale)
+            if scaled is None:  # the scale's placement or points are not among the first images
                 return
+            new = scaled
         factors = gtsam.NonlinearFactorGraph()
         images = [self._waiting[k] for k in joining.indices]
         view_factors: list[ViewFactor] = []
@@ -456,9 +455,10 @@ def _step(before: ViewEstimate, after: ViewEstimate) -> float:
     for name, (R, t) in after.poses.items():
         R0, t0 = before.poses.get(name, (R, t))
         step = max(step, float(np.linalg.norm(R - R0)), float(np.linalg.norm(t - t0)))
-    for old, new in ((before.mirror_vectors, after.mirror_vectors), (before.points, after.points)):
-        for k, x in new.items():
-            step = max(step, float(np.linalg.norm(x - old.get(k, x))))
+    for placement, v in after.mirror_vectors.items():
+        step = max(step, float(np.linalg.norm(v - before.mirror_vectors.get(placement, v))))
+    for point, p in after.points.items():
+        step = max(step, float(np.linalg.norm(p - before.points.get(point, p))))
     return step
 
 

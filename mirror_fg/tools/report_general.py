@@ -191,7 +191,7 @@ def _placement_blocks(dataset: Dataset) -> list[Block]:
     ties = placement_ties(dataset)
     if not ties:
         return []
-    several = bool(dataset.cameras) and len(dataset.cameras) > 1
+    several = dataset.cameras is not None and len(dataset.cameras) > 1
 
     def who(seen: Mapping[str | None, int]) -> str:
         text = ", ".join(f"{n} view(s)" if c is None else f"{c}: {n} view(s)" for c, n in seen.items())
@@ -217,9 +217,9 @@ def _placement_blocks(dataset: Dataset) -> list[Block]:
                     pairs[(a, b)] = pairs.get((a, b), 0) + 1
         assert dataset.cameras is not None
         lines = [f"{a} – {b}: {n} shared placement(s)" for (a, b), n in pairs.items()]
-        alone = [c for c in dataset.cameras if not any(c in key for key in pairs)]
+        unshared = [c for c in dataset.cameras if not any(c in key for key in pairs)]
         lines += [f"{c}: no placement shared with another camera (tied to the others only through the target)"
-                  for c in alone]
+                  for c in unshared]
         blocks += [Block("p", "Cameras tied by shared placements (a shared placement is one plane seen by both):"),
                    Block("list", items=lines, id="ties")]
     return blocks

@@ -14,7 +14,7 @@ import math
 import textwrap
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeGuard
 
 import numpy as np
 
@@ -47,7 +47,7 @@ MAX_SIGHT_LINES = 60
 _MIRROR_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink")
 
 
-def pose_is_estimated(covariance: np.ndarray | None) -> bool:
+def pose_is_estimated(covariance: np.ndarray | None) -> TypeGuard[np.ndarray]:
     """A pose covariance that says something: present, finite and not all zero (a fixed pose, e.g. the
     base frame's camera without a known target, has a zero one)."""
     return covariance is not None and bool(np.all(np.isfinite(covariance))) and bool(np.any(covariance != 0.0))

@@ -289,8 +289,8 @@ def figure_orders(residuals: ViewResiduals) -> Figure:
     largest = np.array([s.largest for s in stats.values()])
     bars.bar(x, rms, color=colours, width=0.6, label="RMS")
     bars.scatter(x, largest, marker="v", c="k", zorder=3, label="largest")
-    for k, s in zip(x, stats.values()):
-        bars.annotate(f"n={s.count}\n{s.images} view(s)", (k, s.rms), textcoords="offset points", xytext=(0, 4),
+    for position, s in zip(x, stats.values()):
+        bars.annotate(f"n={s.count}\n{s.images} view(s)", (position, s.rms), textcoords="offset points", xytext=(0, 4),
                       ha="center", fontsize=7)
     bars.axhline(residuals.expected_rms, color="tab:green", lw=1, label=f"expected √2·σ = {residuals.expected_rms:.3g}")
     bars.set_xticks(x, [f"{s.label}\n({k} mirror{'s' if k != 1 else ''})" for k, s in stats.items()], fontsize=8)
@@ -327,8 +327,8 @@ def figure_cameras(residuals: ViewResiduals) -> Figure:
     bars = fig.add_subplot(grid[0, :])
     x = np.arange(len(stats))
     bars.bar(x, [s.rms for s in stats.values()], color=[f"C{k % 10}" for k in range(len(stats))], width=0.6)
-    for k, s in zip(x, stats.values()):
-        bars.annotate(f"RMS {s.rms:.3g}, largest {s.largest:.3g}\nn={s.count}, {s.images} image(s)", (k, s.rms),
+    for position, s in zip(x, stats.values()):
+        bars.annotate(f"RMS {s.rms:.3g}, largest {s.largest:.3g}\nn={s.count}, {s.images} image(s)", (position, s.rms),
                       textcoords="offset points", xytext=(0, 3), ha="center", fontsize=7)
     bars.axhline(residuals.expected_rms, color="tab:green", lw=1, label=f"expected √2·σ = {residuals.expected_rms:.3g}")
     bars.set_xticks(x, [s.label for s in stats.values()])
@@ -347,7 +347,7 @@ def figure_cameras(residuals: ViewResiduals) -> Figure:
         r = residuals.residual[sel]
         orders = residuals.orders[sel]
         for order in sorted(set(orders.tolist())):
-            ax.scatter(*r[orders == order].T, s=5, c=f"C{order % 10}", label=order_name(order))
+            ax.scatter(r[orders == order, 0], r[orders == order, 1], s=5, c=f"C{order % 10}", label=order_name(order))
         ax.plot(3 * residuals.sigma * np.cos(angles), 3 * residuals.sigma * np.sin(angles), "g--", lw=1, label="3σ")
         ax.set_xlim(-lim, lim)
         ax.set_ylim(-lim, lim)

@@ -278,7 +278,8 @@ def _photo(cameras, poses, first, camera_points, point_names, fiducial_names, i,
     for name in photo_cameras:
         local = {a: plane_in_camera(walls[0], poses[first], poses[name]),
                  b: plane_in_camera(walls[1], poses[first], poses[name])}
-        for view in ([[]] if with_direct else []) + [[a], [b], [a, b], [b, a]]:
+        direct: list[list[tuple[int, int]]] = [[]] if with_direct else []
+        for view in direct + [[a], [b], [a, b], [b, a]]:
             tag = "".join(str(l) for l, _ in view) or "d"
             image = _image(cameras[name], f"{name}_{i:03d}_{tag}", view, camera_points[name], point_names,
                            fiducial_names, local, [a, b], MIN_FIDUCIALS_PER_VIEW)

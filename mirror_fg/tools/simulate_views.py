@@ -284,7 +284,8 @@ def simulate_kaleidoscope(num_mirrors: int = 2, target: bool = True, num_points:
     names = [*fiducials, *points]
     camera_points = apply_transform(*pose, np.array([*fiducials.values(), *points.values()]).reshape(-1, 3))  # eq. (2)
     mirrors = list(range(1, num_mirrors + 1))
-    views = [[]] + [[(l, 0)] for l in mirrors] + [[(i, 0), (j, 0)] for i in mirrors for j in mirrors if i != j]
+    views: list[list[tuple[int, int]]] = [[]] + [[(l, 0)] for l in mirrors]
+    views += [[(i, 0), (j, 0)] for i in mirrors for j in mirrors if i != j]
     for _ in range(_SCENE_TRIES):
         walls = _kaleidoscope_walls(rng, num_mirrors, tilt_deg, jitter_deg, spread=0.1)
         vectors = {(l, 0): walls[l - 1] for l in mirrors}

@@ -12,6 +12,7 @@ import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -84,8 +85,8 @@ class ViewsTruth:
             if rig:
                 entry["camera"] = self.mirror_cameras.get((l, m), self.first_camera)
             mirrors.append(entry)
-        data = {"format": TRUTH_FORMAT, "T_cam_base": {"R": _floats(R), "t": _floats(t)}, "mirrors": mirrors,
-                "points": {name: _floats(p) for name, p in self.points.items()}}
+        data: dict[str, Any] = {"format": TRUTH_FORMAT, "T_cam_base": {"R": _floats(R), "t": _floats(t)},
+                                "mirrors": mirrors, "points": {name: _floats(p) for name, p in self.points.items()}}
         if rig:
             data["cameras"] = {name: {"T_cam_base": {"R": _floats(R_c), "t": _floats(t_c)}}
                                for name, (R_c, t_c) in self.poses.items()}
@@ -101,6 +102,7 @@ def views_truth_from_dict(data: Mapping) -> ViewsTruth:
     def pose(T: Mapping) -> tuple[np.ndarray, np.ndarray]:
         return np.array(T["R"], dtype=float).reshape(3, 3), np.array(T["t"], dtype=float).reshape(3)
 
+    poses: dict[Camera_name, tuple[np.ndarray, np.ndarray]]
     if "cameras" in data:
         poses = {str(name): pose(entry["T_cam_base"]) for name, entry in data["cameras"].items()}
     else:
@@ -121,10 +123,6 @@ def views_truth_from_dict(data: Mapping) -> ViewsTruth:
 def load_views_truth(path: str | Path) -> ViewsTruth:
     """Read a ``<stem>.truth.json`` written by :func:`write_views_simulation` (or by ``simulate``)."""
     return views_truth_from_dict(json.loads(Path(path).read_text(encoding="utf-8")))
-
-
-def _floats(x) -> list:
-    return np.asarray(x, dtype=float).tolist()
 
 
 def plane_in_camera(v: np.ndarray, pose_from: tuple[np.ndarray, np.ndarray],

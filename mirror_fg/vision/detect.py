@@ -164,7 +164,8 @@ def detect_capture(
                            "even) is labelled across one camera's mirror_configs images only; with reflections, views "
                            "or cameras use a board with cols + rows odd, or ChArUco")
     camera = dict(capture.camera)
-    cameras = {None: camera} if capture.cameras is None else {n: dict(c) for n, c in capture.cameras.items()}
+    cameras: dict[str | None, dict[str, Any]] = (
+        {None: camera} if capture.cameras is None else {n: dict(c) for n, c in capture.cameras.items()})
     outputs: list[Output] = []
     reports: list[ImageReport] = []
     show = bool(progress) and sys.stderr.isatty()
