@@ -18,12 +18,13 @@ from mirror_fg.solver.consensus import screen, without
 from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, plausible, run_optimizer
 from mirror_fg.solver.options import STAGES, SolveOptions
 from mirror_fg.solver.propagation import Unsolvable, propagate
-from mirror_fg.solver.rechecks import Checked, solve_with_rechecks
+from mirror_fg.solver.pipeline import run_pipeline
+from mirror_fg.solver.rechecks import Checked, Rechecked, solve_with_rechecks
 from mirror_fg.solver.rig import rig_transforms
 from mirror_fg.solver.timing import timed
 from mirror_fg.solver.views import SINGLE_CAMERA, ViewEstimate, ViewProblem, camera_names
 
-__all__ = ["calibrate_views", "tree_start_for", "calibration_of"]
+__all__ = ["calibrate_views", "ViewsProblem", "tree_start_for", "calibration_of"]
 
 logger = logging.getLogger("mirror_fg")
 
@@ -156,20 +157,10 @@ class _Run:
 
 
 def calibrate_views(dataset: Dataset, initial=None, options: SolveOptions | None = None) -> Calibration:
-    """The MLE and covariances of a dataset in the general view model (module docstring). Where cameras
-    estimate intrinsics (``estimate``), first the same solve with them fixed at their given values (its
-    pixel sigma at least ``intrinsics.START_SIGMA_FRACTION`` of the image diagonal, so that their error
-    is not taken for outliers), then the joint solve in pixels from there."""
+    """The MLE and covariances of a dataset in the general view model (module docstring), by the
+    pipeline (``pipeline.py``) over :class:`ViewsProblem`."""
     options = options or SolveOptions()
-    models = _intrinsics_models(dataset)
-    if not models:
-        screened, excluded, _ = screen(dataset)  # each image's own PnP fit (wrong corner order, gross corners)
-        return _finish(_solve(screened, initial, options, {}, excluded), options)
-    first = _solve(_fixed_intrinsics(dataset), initial, replace(options, compute_covariance=False), {}, [])
-    solved = without(dataset, first.excluded) if first.excluded else dataset
-    joint = _solve(solved, first.estimate, options, models, list(first.excluded))
-    joint.timings = {**{f"start: {k}": v for k, v in first.timings.items()}, **joint.timings}
-    return _finish(joint, options)
+    return run_pipeline(ViewsProblem(initial, options, _intrinsics_models(dataset)), dataset)
 
 
 def _intrinsics_models(dataset: Dataset) -> dict:
@@ -206,37 +197,58 @@ def _fixed_intrinsics(dataset: Dataset) -> Dataset:
                    point_sigma={n: max(v, sigma) for n, v in dataset.point_sigma.items()})
 
 
-def _solve(dataset: Dataset, start, options: SolveOptions, models: dict, excluded: list[Exclusion]) -> _Run:
-    """Start -> LM -> final check (``rechecks.solve_with_rechecks``: what ends far off left out, solved
-    again from the last estimate). An analytical start whose LM ends implausibly is followed by the other
-    analytical start (rule 2 first), and the better of the two kept."""
-    report = options.progress if options.progress is not None else (lambda stage, done, total: None)
-    timings: dict[str, float] = {}
-    analytic = start is None
-    last: list[ViewEstimate | None] = [start]
+class ViewsProblem:
+    """The general view model in ``calibrate()``'s pipeline (``pipeline.py``).
 
-    def iteration(number: int, before: float, after: float) -> None:
-        report(STAGES[1], number, options.max_iterations)
-        if options.on_iteration is not None:
-            options.on_iteration(number, before, after)
+    screen: each image's own PnP fit (``consensus.screen``: wrong corner orders, gross corners); where
+    cameras estimate intrinsics (``models``), the whole pipeline with them fixed at their given values
+    first (its pixel sigma at least ``intrinsics.START_SIGMA_FRACTION`` of the image diagonal, so that
+    their error is not taken for outliers), whose estimate starts the joint solve in pixels. solve: the
+    start (propagation, ``initial``, or the last solve's estimate after leaving some out) and LM; an
+    analytical start whose LM ends implausibly is followed by the other analytical start (rule 2 first)
+    and the better kept. finish: marginals and the :class:`Calibration`."""
 
-    def solve(solved: Dataset, left_out: list[Exclusion]) -> _Run:
-        problem = ViewProblem(solved, options.robust, models)
+    def __init__(self, initial, options: SolveOptions, models: dict | None = None):
+        self.options, self.models = options, dict(models or {})
+        self.analytic = initial is None
+        self.last: ViewEstimate | None = initial
+        self.timings: dict[str, float] = {}
+
+    def screen(self, dataset: Dataset) -> tuple[Dataset, list[Exclusion]]:
+        if not self.models:
+            screened, excluded, _ = screen(dataset)
+            return screened, excluded
+        fixed = ViewsProblem(self.last, replace(self.options, compute_covariance=False))
+        screened, excluded = fixed.screen(_fixed_intrinsics(dataset))
+        first = solve_with_rechecks(screened, fixed.solve, fixed.check, excluded)
+        self.last, self.analytic = first.run.estimate, False
+        self.timings.update({f"start: {k}": v for k, v in fixed.timings.items()})
+        return (without(dataset, first.excluded) if first.excluded else dataset), list(first.excluded)
+
+    def _iteration(self, number: int, before: float, after: float) -> None:
+        if self.options.progress is not None:
+            self.options.progress(STAGES[1], number, self.options.max_iterations)
+        if self.options.on_iteration is not None:
+            self.options.on_iteration(number, before, after)
+
+    def solve(self, solved: Dataset, left_out: list[Exclusion]) -> _Run:
+        options, timings = self.options, self.timings
+        problem = ViewProblem(solved, options.robust, self.models)
         with timed(timings, "analytic"):
-            begin = _start(problem, last[0])
+            begin = _start(problem, self.last)
         graph = problem.graph()
         params = lm_params(options.max_iterations, cost_scale(solved), GENERAL_LAMBDA_UPPER_BOUND)
 
         def optimize(first: ViewEstimate):
             return run_optimizer(graph, problem.values(first), params, solved.source,
                                  lambda error: f"the data do not constrain every unknown ({_named(problem, error)})",
-                                 iteration)
+                                 self._iteration)
 
         with timed(timings, "optimize"):
             optimizer, result, initial_error = optimize(begin)
             dimension = result.dim() - problem.constraints
-            if analytic and last[0] is None and not plausible(graph.error(result),
-                                                              0.5 * max(problem.size - dimension, 0)):
+            if self.analytic and self.last is None and not plausible(graph.error(result),
+                                                                     0.5 * max(problem.size - dimension, 0)):
                 other = _other_start(problem)  # the analytical start ended implausibly: try the other one
                 if other is not None:
                     tried = optimize(other)
@@ -244,17 +256,18 @@ def _solve(dataset: Dataset, start, options: SolveOptions, models: dict, exclude
                         logger.info("%s: the second analytical start fits better", solved.source)
                         optimizer, result, initial_error = tried
         estimate = problem.read(result)
-        last[0] = estimate  # the start of the next solve, after leaving some out
+        self.last = estimate  # the start of the next solve, after leaving some out
         residuals, whitened, labels, views = problem.residuals(estimate)
         return _Run(problem, graph, result, estimate, residuals, whitened, labels, views, dimension,
                     int(optimizer.iterations()), initial_error, list(left_out), timings)
 
-    rechecked = solve_with_rechecks(
-        dataset, solve, lambda run: Checked([_Label(i, p) for i, p in run.labels], run.whitened, run.dimension),
-        excluded)
-    run = rechecked.run
-    run.excluded = rechecked.excluded
-    return run
+    def check(self, run: _Run) -> Checked:
+        return Checked([_Label(i, p) for i, p in run.labels], run.whitened, run.dimension)
+
+    def finish(self, rechecked: Rechecked[_Run]) -> Calibration:
+        run = rechecked.run
+        run.excluded = rechecked.excluded
+        return _finish(run, self.options)
 
 
 def _finish(run: _Run, options: SolveOptions) -> Calibration:
