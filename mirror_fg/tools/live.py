@@ -100,6 +100,8 @@ class LiveSession:
 
     def __init__(self, capture: Capture, *, target_mm: float | None = None, target_deg: float | None = None,
                  keep_frames: bool = False, reach: Reach | None = None, picture: bool = False):
+        if capture.cameras:
+            raise DatasetError(f"{capture.source}: cameras: a live session calibrates one camera (give camera)")
         if capture.num_mirrors != 1:
             raise DatasetError(f"{capture.source}: num_mirrors is {capture.num_mirrors}: a live session moves one mirror "
                                "(num_mirrors: 1)")
