@@ -356,8 +356,9 @@ def test_camchain_is_written_with_the_result_and_the_ros_files(tmp_path, expect)
     if expect:
         outputs.expect_cameras()
     written = outputs.write(result_dict(rig_calibration(0)))
+    # left estimated its intrinsics: its camera_info too
     assert sorted(p.name for p in written) == ["calib.camchain-sigma.yaml", "calib.camchain.yaml", "calib.json",
-                                               "calib.ros.yaml", "calib.urdf.xml"]
+                                               "calib.left.camera_info.yaml", "calib.ros.yaml", "calib.urdf.xml"]
     assert KalibrCamchain(tmp_path / "calib.camchain.yaml").numCameras() == 3
     # A second run replaces what mirror-fg wrote.
     again = plan_calibration_outputs([tmp_path / "rig.json"], tmp_path / "calib.json")

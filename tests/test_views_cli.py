@@ -72,3 +72,23 @@ def test_intrinsics_estimated_per_camera(case) -> None:
     before = known.covariance if name is None else known.cameras[name].covariance
     assert np.all(np.diag(pose[2]) > np.diag(before) * 0.999)
     assert cal.fit_ratio < 1.5 and cal.converged
+
+
+def test_rig_camera_that_estimates_intrinsics_gets_its_camera_info_and_refuses_incremental(tmp_path) -> None:
+    import yaml
+
+    data, _ = scenes.rig_two_cameras(1)
+    camera = data["cameras"]["right"]
+    camera.update(fx=camera["fx"] * 1.01, estimate=["fx", "fy", "cx", "cy"])
+    (tmp_path / "rig.json").write_text(json.dumps(data))
+    refused = _cli(tmp_path, "calibrate", "rig.json", "-o", "r.json", "--incremental")
+    assert refused.returncode == 2 and "batch" in refused.stderr and len(refused.stderr.strip().splitlines()) == 1
+    with pytest.raises(mirror_fg.DatasetError, match="batch"):
+        mirror_fg.IncrementalCalibrator(mirror_fg.dataset_from_dict(data))
+    done = _cli(tmp_path, "calibrate", "rig.json", "-o", "r.json")
+    assert done.returncode == 0, done.stderr
+    info = yaml.safe_load((tmp_path / "r.right.camera_info.yaml").read_text())
+    result = json.loads((tmp_path / "r.json").read_text())
+    block = result["cameras"]["right"]["camera"]
+    assert info["camera_matrix"]["data"][0] == pytest.approx(block["fx"]) and block["estimated"] == ["fx", "fy", "cx", "cy"]
+    assert not (tmp_path / "r.left.camera_info.yaml").exists()  # left estimated nothing

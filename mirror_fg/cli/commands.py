@@ -177,11 +177,14 @@ def cmd_calibrate(args, out: _Printer) -> int:
     if not args.no_ros and not outputs.ros:
         out.info(f"note: the result goes to a device ({args.output}): no ROS outputs written beside it")
     dataset, reports = _load_input_with_reports(args.input, out, outputs.plan, on_capture=outputs.use_capture)
+    estimating = [c for c in (list(dataset.cameras.values()) if dataset.cameras else [dataset.camera]) if c is not None and c.estimate]
+    if estimating and args.incremental:
+        raise DatasetError(f"{dataset.source}: camera.estimate ({', '.join(estimating[0].estimate)}): estimating "
+                           "intrinsics needs the batch solver; drop --incremental")
     if dataset.camera is not None and dataset.camera.estimate:
-        if args.incremental:
-            raise DatasetError(f"{dataset.source}: camera.estimate ({', '.join(dataset.camera.estimate)}): estimating "
-                               "intrinsics needs the batch solver; drop --incremental")
         outputs.expect_camera()
+    if dataset.cameras is not None:
+        outputs.expect_cameras()  # the camchain files, checked before the solve
     if args.incremental:
         calibration = _run_incremental(dataset, args, out)
     else:

@@ -24,6 +24,7 @@ from mirror_fg.io.ros import (
     check_camera_frame_name,
     check_frame_name,
     camera_info_path,
+    rig_camera_info_path,
     camera_info_text,
     ros_output_paths,
     ros_output_texts,
@@ -87,8 +88,15 @@ class CalibrationOutputs:
             texts.update(camchain_texts(result, self.result_path))
         if self.ros:
             texts.update(ros_output_texts(result, self.result_path, self.base_frame, self.camera_frame))
+            for name, entry in (result.get("cameras") or {}).items():  # each rig camera that estimated
+                block = entry.get("camera") or {}
+                if block.get("estimated"):
+                    path = self.plan.add(rig_camera_info_path(self.result_path, name), f"camera_info YAML of {name}",
+                                         marker=SIDE_FILE_MARKER)
+                    texts[path] = camera_info_text(estimated_camera({"camera": block}, os.fspath(self.result_path)),
+                                                   f"{name}_optical_frame", block.get("sigma3"))
             camera = result.get("camera")
-            if camera is not None and self.camera_info is not None:
+            if camera is not None and self.camera_info is not None and not result.get("cameras"):
                 texts[os.fspath(self.camera_info)] = camera_info_text(
                     estimated_camera(result, os.fspath(self.result_path)), self.camera_frame, camera.get("sigma3"))
         return self.plan.commit(texts)

@@ -48,6 +48,7 @@ __all__ = [
     "DEFAULT_BASE_FRAME",
     "DEFAULT_CAMERA_FRAME",
     "camera_info_text",
+    "rig_camera_info_path",
 ]
 
 DEFAULT_BASE_FRAME = "base_link"
@@ -356,6 +357,15 @@ def camera_info_path(result_path: str | os.PathLike[str]) -> Path:
     """``<stem>.camera_info.yaml`` beside ``result_path``: the camera estimated through the mirrors."""
     p = Path(result_path)
     return p.with_name(f"{p.stem}.camera_info.yaml")
+
+
+def rig_camera_info_path(result_path: str | os.PathLike[str], camera: str) -> Path:
+    """``<stem>.<camera>.camera_info.yaml`` beside ``result_path``: a rig camera estimated through the mirrors
+    (its name as in its frame, ``ros_rig.rig_camera_frame``)."""
+    from mirror_fg.io.ros_rig import rig_camera_frame  # builds on this module
+
+    p = Path(result_path)
+    return p.with_name(f"{p.stem}.{rig_camera_frame(camera).removesuffix('_optical_frame')}.camera_info.yaml")
 
 
 def ros_output_texts(

@@ -79,12 +79,10 @@ class ViewsIncrementalCalibrator:
         self.robust = robust
         self._ds = replace(dataset, images=[])  # the images in the graph
         self._order = {image.id: k for k, image in enumerate(dataset.images)}
-        if points is not None:
-            self._known_points: set[str] | None = set(points)
-        elif dataset.images:
-            self._known_points = set(dataset.reconstruction_point_names)
-        else:
-            self._known_points = None
+        if any(c is not None and c.estimate for c in (list(dataset.cameras.values()) if dataset.cameras else [dataset.camera])):
+            raise DatasetError(f"{dataset.source}: camera.estimate: estimating intrinsics needs the batch solver")
+        self._known_points: set[str] | None = (set(points) if points is not None else
+                                               set(dataset.reconstruction_point_names) if dataset.images else None)
         self.cameras = camera_names(dataset)
         self.fixed = {} if dataset.fiducials else {self.cameras[0]: (np.eye(3), np.zeros(3))}
         self.pose_keys = {name: X(k) for k, name in enumerate(self.cameras) if name not in self.fixed}

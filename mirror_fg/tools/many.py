@@ -79,6 +79,8 @@ def calibrate_one(path: str, out_dir: str, ros: bool = True) -> dict:
         dataset, _ = load_input(path, outputs.plan, on_capture=outputs.use_capture)
         if dataset.camera is not None and dataset.camera.estimate:
             outputs.expect_camera()
+        if dataset.cameras is not None:
+            outputs.expect_cameras()
         calibration = require_converged(calibrate(dataset), dataset.source)
         result = calibration.to_dict()
         outputs.write(result)
