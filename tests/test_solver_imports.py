@@ -45,3 +45,12 @@ def test_the_pixel_problem_loads_without_the_pipeline():
     code = "import sys, mirror_fg.solver.intrinsics; print('mirror_fg.solver.calibrate' in sys.modules)"
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert loaded == "False"
+
+
+def test_the_general_view_model_does_not_import_the_pipeline_entry_back():
+    """calibrate.py imports views_solve.py; views_solve.py reaches the tree problem directly (its rule 2),
+    never calibrate.py (at the top or inside a function)."""
+    calibrate_top, _ = _imports(SOLVER / "calibrate.py")
+    views_top, views_inner = _imports(SOLVER / "views_solve.py")
+    assert "mirror_fg.solver.views_solve" in calibrate_top
+    assert "mirror_fg.solver.calibrate" not in views_top | views_inner

@@ -26,6 +26,7 @@ from mirror_fg.solver.pipeline import run_pipeline
 from mirror_fg.solver.pixel_problem import PixelProblem
 from mirror_fg.solver.rechecks import MAX_RECHECKS  # noqa: F401 (public here as before)
 from mirror_fg.solver.tree_problem import TreeProblem
+from mirror_fg.solver.views_solve import calibrate_views
 
 __all__ = ["as_dataset", "calibrate", "calibrate_with_intrinsics", "Progress", "SolveOptions", "STAGES"]
 
@@ -94,8 +95,6 @@ def calibrate(
         raise TypeError("calibrate(): give the settings either in options= or as separate arguments, not both")
     dataset = as_dataset(dataset)
     if not dataset.is_tree:  # direct views, fixed mirrors, any order, no known target, several cameras
-        from mirror_fg.solver.views_solve import calibrate_views
-
         return calibrate_views(dataset, initial, options)
     if dataset.camera is not None and dataset.camera.estimate:  # intrinsics estimated too (camera.estimate)
         return calibrate_with_intrinsics(dataset, initial=initial, options=options)

@@ -13,7 +13,7 @@ import numpy as np
 
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.io.dataset import Dataset, Image
-from mirror_fg.solver.calibration import Calibration, CameraPose, EstimatedCamera, Exclusion
+from mirror_fg.solver.calibration import POOR_FIT_RATIO, Calibration, CameraPose, EstimatedCamera, Exclusion
 from mirror_fg.solver.consensus import screen, without
 from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, plausible, run_optimizer
 from mirror_fg.solver.options import STAGES, SolveOptions
@@ -22,6 +22,7 @@ from mirror_fg.solver.pipeline import run_pipeline
 from mirror_fg.solver.rechecks import Checked, Rechecked, solve_with_rechecks
 from mirror_fg.solver.rig import rig_transforms
 from mirror_fg.solver.timing import timed
+from mirror_fg.solver.tree_problem import TreeProblem
 from mirror_fg.solver.views import SINGLE_CAMERA, ViewEstimate, ViewProblem, camera_names
 
 __all__ = ["calibrate_views", "ViewsProblem", "tree_start_for", "calibration_of"]
@@ -42,11 +43,9 @@ def tree_start_for(dataset: Dataset):
     """Rule 2 of the propagation for one camera: its images through the whole tree (the largest subtree
     with three placements under every node, then the one of its three best-seen placements of mirror 1)
     or through one mirror alone (>= 3 placements), each solved as the paper's problem by ``calibrate``
-    on their fiducials (analytical solution, then LM with its restarts); the first that fits the noise
-    (``Calibration.fit_ratio`` at most ``calibration.POOR_FIT_RATIO``) gives ``((R, t), {placement: v})``,
-    else None."""
-    from mirror_fg.solver.calibrate import calibrate
-    from mirror_fg.solver.calibration import POOR_FIT_RATIO
+    on their fiducials (``tree_problem.TreeProblem``: analytical solution, then LM with its restarts); the
+    first that fits the noise (``Calibration.fit_ratio`` at most ``calibration.POOR_FIT_RATIO``) gives
+    ``((R, t), {placement: v})``, else None."""
 
     def start(camera_name: str):
         images = [im for im in dataset.images if dataset.cameras is None or im.camera == camera_name]
@@ -82,7 +81,7 @@ def tree_start_for(dataset: Dataset):
                           fiducials=dataset.fiducials, images=sub_images, source=dataset.source,
                           point_sigma={n: s for n, s in dataset.point_sigma.items() if n in dataset.fiducials})
             try:
-                solution = calibrate(sub, options=SolveOptions(compute_covariance=False, diagnose=False))
+                solution = run_pipeline(TreeProblem(None, SolveOptions(compute_covariance=False, diagnose=False)), sub)
             except (DatasetError, SolveError, ValueError, np.linalg.LinAlgError) as error:
                 logger.debug("%s: camera %s: no start from %s: %s", dataset.source, camera_name,
                              "the tree" if mirror is None else f"mirror {mirror} alone", error)
