@@ -70,6 +70,11 @@ class GraphLayout:
             point_keys={name: L(j) for j, name in enumerate(dataset.reconstruction_point_names)},
         )
 
+    @property
+    def keys(self) -> list[int]:
+        """Every unknown's key: the pose, the placements, the points."""
+        return [self.pose_key, *self.mirror_keys.values(), *self.point_keys.values()]
+
     def name_of(self, key: int) -> str:
         """Human name of the unknown behind a key."""
         return unknown_name(key, {self.pose_key: "T_cam_base"}, self.mirror_keys, self.point_keys)

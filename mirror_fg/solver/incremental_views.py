@@ -50,8 +50,9 @@ from mirror_fg.solver.timing import timed
 from mirror_fg.solver.views import (
     ViewEstimate, ViewProblem, camera_names, mirror_vector_at, plane_of, scale_prior, views_of,
 )
+from mirror_fg.solver.marginals import unconstrained_as_solve_error, unconstrained_message
 from mirror_fg.solver.rechecks import MAX_RECHECKS
-from mirror_fg.solver.views_solve import _Label, _named, calibration_of
+from mirror_fg.solver.views_solve import _Label, calibration_of
 
 __all__ = ["ViewsIncrementalCalibrator", "calibrate_views_incremental", "become_views_calibrator"]
 
@@ -169,11 +170,8 @@ class ViewsIncrementalCalibrator:
         problem = self._problem(full)
         estimate = problem.read(values)
         if full:
-            try:
+            with unconstrained_as_solve_error(self._ds.source, lambda error: unconstrained_message(error, problem)):
                 covariances = problem.covariances(self._graph, values, estimate)
-            except RuntimeError as error:
-                raise SolveError(f"{self._ds.source}: the data do not constrain every unknown "
-                                 f"({_named(problem, error)})") from None
             residuals, whitened, labels, views = problem.residuals(estimate)
         else:
             pose_covs = {name: np.zeros((6, 6)) for name in self.fixed}

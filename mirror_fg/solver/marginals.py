@@ -6,6 +6,8 @@ points (base frame) 3x3 in m^2.
 """
 from __future__ import annotations
 
+from typing import Any
+
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from types import SimpleNamespace
@@ -134,10 +136,11 @@ def _marginals_from_gtsam(
     return covariance, mirrors, points
 
 
-def unconstrained_message(error: Exception, layout: GraphLayout) -> str:
-    """Name the unknown GTSAM found unconstrained in an indeterminant linear system."""
+def unconstrained_message(error: Exception, layout: GraphLayout | Any) -> str:
+    """Name the unknown GTSAM found unconstrained in an indeterminant linear system. ``layout``: anything
+    with its unknowns' ``keys`` and ``name_of(key)`` (a GraphLayout, the general model's ViewProblem)."""
     text = str(error)
-    for key in [layout.pose_key, *layout.mirror_keys.values(), *layout.point_keys.values()]:
+    for key in layout.keys:
         if gtsam.DefaultKeyFormatter(key) in text:
             return f"the data do not constrain {layout.name_of(key)} (indeterminant system near it)"
     return "the data leave some unknowns unconstrained (indeterminant linear system)"

@@ -181,7 +181,16 @@ class ViewProblem:
         graph.push_back(scale_prior(self.dataset, self.mirror_keys, self.point_keys))
         return graph
 
+    @property
+    def keys(self) -> list[int]:
+        """Every unknown's key: the camera poses, the placements, the points, the intrinsics vectors."""
+        return [*self.pose_keys.values(), *self.mirror_keys.values(), *self.point_keys.values(),
+                *self.intrinsics_keys.values()]
+
     def name_of(self, key: int) -> str:
+        for name, k in self.intrinsics_keys.items():
+            if k == key:
+                return f"the intrinsics of {'camera ' + repr(name) if self.dataset.cameras is not None else 'the camera'}"
         poses = {k: (f"camera {name!r}" if self.dataset.cameras is not None else "T_cam_base")
                  for name, k in self.pose_keys.items()}
         return unknown_name(key, poses, self.mirror_keys, self.point_keys)

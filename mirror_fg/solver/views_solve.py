@@ -15,6 +15,7 @@ from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.calibration import POOR_FIT_RATIO, Calibration, CameraPose, EstimatedCamera, Exclusion
 from mirror_fg.solver.consensus import screen, without
+from mirror_fg.solver.marginals import unconstrained_as_solve_error, unconstrained_message
 from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, plausible, run_optimizer
 from mirror_fg.solver.options import STAGES, SolveOptions
 from mirror_fg.solver.propagation import Unsolvable, propagate
@@ -240,8 +241,7 @@ class ViewsProblem:
 
         def optimize(first: ViewEstimate):
             return run_optimizer(graph, problem.values(first), params, solved.source,
-                                 lambda error: f"the data do not constrain every unknown ({_named(problem, error)})",
-                                 self._iteration)
+                                 lambda error: unconstrained_message(error, problem), self._iteration)
 
         with timed(timings, "optimize"):
             optimizer, result, initial_error = optimize(begin)
@@ -276,12 +276,9 @@ def _finish(run: _Run, options: SolveOptions) -> Calibration:
     covariances = None
     if options.compute_covariance:
         report(STAGES[2], 0, 1)
-        with timed(run.timings, "marginals"):
-            try:
-                covariances = problem.covariances(run.graph, run.result, run.estimate)
-            except RuntimeError as error:
-                raise SolveError(f"{problem.dataset.source}: the data do not constrain every unknown "
-                                 f"({_named(problem, error)})") from None
+        with timed(run.timings, "marginals"), unconstrained_as_solve_error(
+                problem.dataset.source, lambda error: unconstrained_message(error, problem)):
+            covariances = problem.covariances(run.graph, run.result, run.estimate)
         report(STAGES[2], 1, 1)
     return calibration_of(run.problem, run.estimate, covariances, run.residuals, run.whitened, run.labels, run.views,
                           iterations=run.iterations, initial_error=run.initial_error,
@@ -289,16 +286,6 @@ def _finish(run: _Run, options: SolveOptions) -> Calibration:
                           converged=run.iterations < options.max_iterations,
                           expected=0.5 * max(2 * len(run.whitened) - run.dimension, 0), excluded=run.excluded,
                           timings=run.timings)
-
-
-def _named(problem: ViewProblem, error: Exception) -> str:
-    import gtsam
-
-    text = str(error)
-    for key in [*problem.pose_keys.values(), *problem.mirror_keys.values(), *problem.point_keys.values()]:
-        if gtsam.DefaultKeyFormatter(key) in text:
-            return f"{problem.name_of(key)} is not constrained"
-    return "indeterminant linear system"
 
 
 def calibration_of(problem: ViewProblem, estimate: ViewEstimate, covariances, residuals: np.ndarray,
