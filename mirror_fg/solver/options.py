@@ -57,6 +57,17 @@ class SolveOptions:
         """Whether the graph uses the stacked factors (``graph.build_graph(fast=...)``) rather than the reference ones."""
         return self.linearization is not Linearization.REFERENCE
 
+    def report(self, stage: str, done: int, total: int | None) -> None:
+        """``progress(stage, done, total)`` where there is a progress callback."""
+        if self.progress is not None:
+            self.progress(stage, done, total)
+
+    def iteration(self, number: int, error_before: float, error_after: float) -> None:
+        """The LM iteration hook: the Levenberg-Marquardt stage's progress, then ``on_iteration``."""
+        self.report(STAGES[1], number, self.max_iterations)
+        if self.on_iteration is not None:
+            self.on_iteration(number, error_before, error_after)
+
     def eliminates(self, allowed: bool = True) -> bool:
         """Whether to build the eliminated graph: asked for, no robust kernel (the elimination solves
         the placements by least squares) and ``allowed`` (``lm.ELIMINATE``, the switch tests turn off)."""

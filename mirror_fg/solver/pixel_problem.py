@@ -149,8 +149,7 @@ class PixelProblem:
         logger.info("%s: start of the joint estimate (intrinsics fixed): %d iterations, %.3f s", dataset.source,
                     chosen.start.iterations, self.timings["fixed intrinsics"])
         self.chosen = chosen
-        if self.options.progress is not None:
-            self.options.progress(STAGES[1], 0, self.options.max_iterations)
+        self.options.report(STAGES[1], 0, self.options.max_iterations)
         return chosen.solved, list(chosen.start.excluded)
 
     def solve(self, solved: Dataset, excluded: list[Exclusion]) -> _JointSolution:
@@ -205,7 +204,7 @@ class PixelProblem:
 
     def _calibration(self, chosen: _Start, joint: _JointSolution, excluded: list[Exclusion]) -> Calibration:
         dataset, options, timings = self.dataset, self.options, self.timings
-        report = options.progress if options.progress is not None else (lambda stage, done, total: None)
+        report = options.report
         start, run, measurements = chosen.start, joint.run, joint.measurements
         logger.info("joint Levenberg-Marquardt with intrinsics: %d iterations, %.3f s", run.iterations,
                     timings.get("optimize", 0.0))

@@ -91,8 +91,7 @@ def _solve(
 ) -> tuple[Calibration, list[Measurement], np.ndarray]:
     """One solve of ``dataset`` as it is: the analytical solution, LM with its restarts, marginals; the
     calibration with its measurements and their whitened residual norms (sigmas)."""
-    progress, on_iteration, max_iterations = options.progress, options.on_iteration, options.max_iterations
-    report = progress if progress is not None else (lambda stage, done, total: None)
+    report = options.report
     logger.info("%s: calibrating %d images, %d mirror placements", dataset.source, len(dataset.images),
                 len(dataset.configurations))
     with timed(timings, "analytic"):
@@ -102,13 +101,9 @@ def _solve(
             start = analytic = initial_estimate(dataset, progress=lambda done: report(STAGES[0], done, None), pnp=pnp)
     logger.info("initial estimate: %.3f s", timings["analytic"])
 
-    def iteration(number: int, error_before: float, error_after: float) -> None:
-        report(STAGES[1], number, max_iterations)
-        if on_iteration is not None:
-            on_iteration(number, error_before, error_after)
-
-    report(STAGES[1], 0, max_iterations)
-    run, analytic, restarts = levenberg_marquardt_with_restarts(dataset, start, analytic, options, iteration, timings)
+    report(STAGES[1], 0, options.max_iterations)
+    run, analytic, restarts = levenberg_marquardt_with_restarts(dataset, start, analytic, options, options.iteration,
+                                                                timings)
     logger.info("Levenberg-Marquardt: %d iterations, %d restart(s), %.3f s (build %.3f s)", run.iterations, restarts,
                 timings.get("optimize", 0.0), timings.get("build", 0.0))
     if not run.converged:

@@ -225,12 +225,6 @@ class ViewsProblem:
         self.timings.update({f"start: {k}": v for k, v in fixed.timings.items()})
         return (without(dataset, first.excluded) if first.excluded else dataset), list(first.excluded)
 
-    def _iteration(self, number: int, before: float, after: float) -> None:
-        if self.options.progress is not None:
-            self.options.progress(STAGES[1], number, self.options.max_iterations)
-        if self.options.on_iteration is not None:
-            self.options.on_iteration(number, before, after)
-
     def solve(self, solved: Dataset, left_out: list[Exclusion]) -> _Run:
         options, timings = self.options, self.timings
         problem = ViewProblem(solved, options.robust, self.models)
@@ -241,7 +235,7 @@ class ViewsProblem:
 
         def optimize(first: ViewEstimate):
             return run_optimizer(graph, problem.values(first), params, solved.source,
-                                 lambda error: unconstrained_message(error, problem), self._iteration)
+                                 lambda error: unconstrained_message(error, problem), options.iteration)
 
         with timed(timings, "optimize"):
             optimizer, result, initial_error = optimize(begin)
@@ -271,7 +265,7 @@ class ViewsProblem:
 
 def _finish(run: _Run, options: SolveOptions) -> Calibration:
     """The run's marginals and its :class:`Calibration`."""
-    report = options.progress if options.progress is not None else (lambda stage, done, total: None)
+    report = options.report
     problem = run.problem
     covariances = None
     if options.compute_covariance:
