@@ -24,7 +24,7 @@ in the mirror, more mirror placements.
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 
 import gtsam
@@ -48,7 +48,7 @@ from mirror_fg.solver.marginals import unconstrained_as_solve_error, unconstrain
 __all__ = [
     "WeakIntrinsicsWarning", "IntrinsicsObservability", "intrinsics_observability",
     "corner_sensitivity", "camera_intrinsics", "WEAK_CORNER_PX", "UNOBSERVABLE_RCOND", "UNOBSERVABLE_FRACTION", "MIN_BOARD_VIEWS",
-    "START_SIGMA_FRACTION", "JointRun", "camera_of", "check_supported", "joint_covariances", "joint_problem",
+    "START_SIGMA_FRACTION", "with_start_noise", "JointRun", "camera_of", "check_supported", "joint_covariances", "joint_problem",
     "joint_values", "photograph_start", "pixel_sigmas", "run_joint_lm",
 ]
 
@@ -60,6 +60,17 @@ START_SIGMA_FRACTION = 0.003
 MIN_BOARD_VIEWS = 2
 #: Distortion terms beyond OpenCV's k1, k2, p1, p2, k3 that the pixel factors do not model.
 _MODELLED_DIST = 5
+
+
+def with_start_noise(dataset: Dataset, cameras: Iterable[Camera]) -> Dataset:
+    """``dataset`` with the noise of a fixed-intrinsics start: its pixel sigma (and each ``point_sigma``) at
+    least :data:`START_SIGMA_FRACTION` of the largest image diagonal of ``cameras``. The start intrinsics
+    may be off by many pixels: with the file's sigma the fixed-intrinsics solve would leave out sound
+    measurements as outliers, and its estimate does not depend on a uniform sigma."""
+    diagonal = max(float(np.hypot(camera.width, camera.height)) for camera in cameras)
+    sigma = max(dataset.pixel_sigma, START_SIGMA_FRACTION * diagonal)
+    return replace(dataset, pixel_sigma=sigma,
+                   point_sigma={name: max(value, sigma) for name, value in dataset.point_sigma.items()})
 
 
 def camera_intrinsics(camera: Camera) -> np.ndarray:

@@ -29,8 +29,8 @@ from mirror_fg.solver.calibration import Calibration, EstimatedCamera, Exclusion
 from mirror_fg.solver.consensus import without
 from mirror_fg.solver.graph import Estimate, GraphLayout, InitialEstimate, Measurement, extract_values
 from mirror_fg.solver.intrinsics import (
-    START_SIGMA_FRACTION, JointRun, camera_intrinsics, camera_of, check_supported, joint_covariances, joint_problem,
-    joint_values, photograph_start, pixel_sigmas, run_joint_lm,
+    JointRun, camera_intrinsics, camera_of, check_supported, joint_covariances, joint_problem,
+    joint_values, photograph_start, pixel_sigmas, run_joint_lm, with_start_noise,
 )
 from mirror_fg.solver.intrinsics_observability import unobservable_refusal, warn_weak
 from mirror_fg.solver.options import STAGES, Linearization, SolveOptions
@@ -63,18 +63,17 @@ class _Start:
         return self.start.converged and self.refusal is None
 
 
-def _fixed_start(dataset: Dataset, camera: Camera, sigma: float, model: IntrinsicsModel, options: SolveOptions,
+def _fixed_start(dataset: Dataset, camera: Camera, model: IntrinsicsModel, options: SolveOptions,
                  initial: InitialEstimate | None, fixed_calibrate: Callable[..., Calibration]) -> _Start:
-    """``fixed_calibrate`` (``calibrate``) with the intrinsics fixed at ``camera`` (pixel sigma ``sigma``), the joint problem
+    """``fixed_calibrate`` (``calibrate``) with the intrinsics fixed at ``camera`` (``intrinsics.with_start_noise``), the joint problem
     at its solution and the observability check there (module docstring). Of ``options`` the start takes
     the kernel, the iterations and the progress; no covariance, no diagnosis, the default factors."""
     # diagnose=False: with first-guess intrinsics the fit is often implausible; the split search belongs
     # to the joint solution, not to this start.
-    inflated = {name: max(value, sigma) for name, value in dataset.point_sigma.items()}
     start_options = replace(options, linearization=Linearization.ELIMINATED, compute_covariance=False,
                             on_iteration=None, diagnose=False)
-    start = fixed_calibrate(replace(dataset, camera=camera, pixel_sigma=sigma, point_sigma=inflated), initial=initial,
-                      options=start_options)
+    start = fixed_calibrate(with_start_noise(replace(dataset, camera=camera), [camera]), initial=initial,
+                            options=start_options)
     solved = without(dataset, start.excluded) if start.excluded else dataset
     graph, layout, measurements, pixels = joint_problem(solved, replace(solved, camera=camera), model, options.robust)
     values = joint_values(layout, camera_intrinsics(camera)[model.index], start)
@@ -110,16 +109,12 @@ class PixelProblem:
         self.runs: list[_JointSolution] = []
 
     def _start(self, camera: Camera) -> _Start:
-        return _fixed_start(self.dataset, camera, self.start_sigma, self.model, self.options, self.initial,
-                            self.fixed_calibrate)
+        return _fixed_start(self.dataset, camera, self.model, self.options, self.initial, self.fixed_calibrate)
 
     def screen(self, dataset: Dataset) -> tuple[Dataset, list[Exclusion]]:
         self.dataset = dataset
         camera = self.camera = check_supported(dataset)
         self.model = IntrinsicsModel(camera_intrinsics(camera), camera.estimate)
-        # The start intrinsics may be off by many pixels: with the file's sigma the fixed-intrinsics solve
-        # would leave out sound measurements as outliers. Its estimate does not depend on a uniform sigma.
-        self.start_sigma = max(dataset.pixel_sigma, START_SIGMA_FRACTION * float(np.hypot(camera.width, camera.height)))
         self.given_camera = replace(camera, estimate=(), prior_sigma=())
         attempts: list[_Start] = []
         failure: SolveError | None = None  # the given start's own failure, raised if no start works

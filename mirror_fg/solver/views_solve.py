@@ -182,19 +182,17 @@ def _intrinsics_models(dataset: Dataset) -> dict:
 
 
 def _fixed_intrinsics(dataset: Dataset) -> Dataset:
-    """``dataset`` with every camera's intrinsics fixed at their given values and the start's pixel sigma."""
-    from mirror_fg.solver.intrinsics import START_SIGMA_FRACTION
+    """``dataset`` with every camera's intrinsics fixed at their given values and the start's noise
+    (``intrinsics.with_start_noise``)."""
+    from mirror_fg.solver.intrinsics import with_start_noise
 
     def fixed(camera):
         return None if camera is None else replace(camera, estimate=(), prior_sigma=())
 
     cameras = None if dataset.cameras is None else {n: fixed(c) for n, c in dataset.cameras.items()}
-    every = list((cameras or {SINGLE_CAMERA: dataset.camera}).values())
-    diagonal = max(float(np.hypot(c.width, c.height)) for c in every if c is not None)
-    sigma = max(dataset.pixel_sigma, START_SIGMA_FRACTION * diagonal)
-    return replace(dataset, camera=fixed(dataset.camera) if cameras is None else next(iter(cameras.values())),
-                   cameras=cameras, pixel_sigma=sigma,
-                   point_sigma={n: max(v, sigma) for n, v in dataset.point_sigma.items()})
+    every = [c for c in (cameras or {SINGLE_CAMERA: dataset.camera}).values() if c is not None]
+    return with_start_noise(replace(dataset, camera=fixed(dataset.camera) if cameras is None else every[0],
+                                    cameras=cameras), every)
 
 
 class ViewsProblem:
