@@ -29,7 +29,7 @@ import numpy as np
 from mirror_fg.io.dataset import Dataset, Image, Scale
 from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params
 from mirror_fg.solver.propagation import ViewObs, _Propagator, mirror_vector_in, plane_from_camera, takahashi_start
-from mirror_fg.solver.views import ViewEstimate
+from mirror_fg.solver.views import ViewEstimate, tangent_dimension
 from mirror_fg.solver.views_solve import tree_start_for
 
 __all__ = ["Joining", "joining_views", "determines_new_unknowns", "lm_settings", "refined_new", "scaled_start"]
@@ -119,7 +119,7 @@ def determines_new_unknowns(factors: gtsam.NonlinearFactorGraph, values: gtsam.V
     width = 0
     for key in new_keys:
         columns[key] = width
-        width += _dim(key)
+        width += tangent_dimension(key)
     blocks = []
     for i in range(factors.size()):
         linear = factors.at(i).linearize(values)
@@ -127,9 +127,10 @@ def determines_new_unknowns(factors: gtsam.NonlinearFactorGraph, values: gtsam.V
         row = np.zeros((A.shape[0], width))
         offset = 0
         for key in linear.keys():
+            dim = tangent_dimension(key)
             if key in columns:
-                row[:, columns[key]:columns[key] + _dim(key)] = A[:, offset:offset + _dim(key)]
-            offset += _dim(key)
+                row[:, columns[key]:columns[key] + dim] = A[:, offset:offset + dim]
+            offset += dim
         blocks.append(row)
     J = np.vstack(blocks)
     if J.shape[0] < J.shape[1]:
@@ -153,7 +154,7 @@ def refined_new(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, every
     graph = gtsam.NonlinearFactorGraph(factors)
     start = gtsam.Values()
     for key in sorted(set(factors.keyVector())):
-        if _dim(key) == 6:
+        if tangent_dimension(key) == 6:
             pose = everything.atPose3(key)
             start.insert(key, pose)
             if not values.exists(key):
@@ -174,7 +175,7 @@ def refined_new(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, every
         return values
     refined = gtsam.Values()
     for key in values.keys():
-        if _dim(key) == 6:
+        if tangent_dimension(key) == 6:
             refined.insert(key, result.atPose3(key))
         elif _is_plane(key):
             refined.insert(key, result.atOrientedPlane3(key))
@@ -219,6 +220,3 @@ def _held_plane(key: int, plane: gtsam.OrientedPlane3) -> gtsam.CustomFactor:
     return gtsam.CustomFactor(gtsam.noiseModel.Isotropic.Sigma(3, 1e-9), [key], error)
 
 
-def _dim(key: int) -> int:
-    """A key's tangent dimension: 6 for a camera pose ``X(k)``, 3 for a mirror vector or a point."""
-    return 6 if gtsam.Symbol(key).chr() == ord("x") else 3

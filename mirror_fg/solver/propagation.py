@@ -79,7 +79,8 @@ def _reflection_matrix(plane: tuple[np.ndarray, float]) -> np.ndarray:
     return H
 
 
-def _rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+def _affine(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The 4x4 homogeneous matrix of ``x -> R x + t`` (``R`` a rotation, or a composite with reflections)."""
     H = np.eye(4)
     H[:3, :3], H[:3, 3] = R, t
     return H
@@ -158,13 +159,13 @@ class _Propagator:
         if found is None:
             return False
         j = view.reflections.index(unknown[0])
-        G = _rigid(*found)
+        G = _affine(*found)
         before, after = np.eye(4), np.eye(4)
         for p in view.reflections[:j]:
             before = _reflection_matrix(self.known.planes[p]) @ before
         for p in view.reflections[j + 1:]:
             after = _reflection_matrix(self.known.planes[p]) @ after
-        H = np.linalg.inv(after) @ np.linalg.inv(_rigid(*self.known.poses[view.camera])) @ G @ np.linalg.inv(before)
+        H = np.linalg.inv(after) @ np.linalg.inv(_affine(*self.known.poses[view.camera])) @ G @ np.linalg.inv(before)
         outer = 0.5 * (np.eye(3) - 0.5 * (H[:3, :3] + H[:3, :3].T))  # = n n^T for a reflection
         eigenvalues, eigenvectors = np.linalg.eigh(outer)
         n = eigenvectors[:, -1]

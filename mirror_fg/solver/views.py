@@ -322,7 +322,7 @@ class _GaugeHeld:
         for key in [*problem.pose_keys.values(), *problem.mirror_keys.values(), *problem.point_keys.values(),
                     *problem.intrinsics_keys.values()]:
             ordering.push_back(key)
-            dim = _dimension(values, key)
+            dim = tangent_dimension(key, values)
             self.columns[key] = slice(start, start + dim)
             start += dim
         A, _ = graph.linearize(values).jacobian(ordering)
@@ -363,12 +363,14 @@ class _Block:
         return self.matrix
 
 
-def _dimension(values: gtsam.Values, key: int) -> int:
-    """The tangent dimension of one value (Pose3 6, Point3 3, a Vector its length)."""
+def tangent_dimension(key: int, values: gtsam.Values | None = None) -> int:
+    """The tangent dimension of an unknown by its key: a camera pose ``X`` 6, a plane ``V`` or a point ``L``
+    3, an intrinsics vector ``K`` its length in ``values``."""
     symbol = chr(gtsam.Symbol(key).chr())
     if symbol == "x":
         return 6
     if symbol == "k":
+        assert values is not None, "an intrinsics vector's dimension is its value's length"
         return len(values.atVector(key))
     return 3
 

@@ -127,15 +127,8 @@ def load_views_truth(path: str | Path) -> ViewsTruth:
 
 def plane_in_camera(v: np.ndarray, pose_from: tuple[np.ndarray, np.ndarray],
                     pose_to: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """Mirror vector ``v`` (frame of the camera with T_cam_base ``pose_from``) in another camera's frame.
+    """Mirror vector ``v`` (frame of the camera with T_cam_base ``pose_from``) in another camera's frame:
+    its plane carried into the base frame and out again (``solver.propagation``)."""
+    from mirror_fg.solver.propagation import mirror_vector_in, plane_from_camera
 
-    Plane ``n . x = d`` with ``v = d n``; in the base frame ``n_B = R^T n``, ``d_B = d - n . t``; in the
-    other camera ``n' = R' n_B``, ``d' = d_B + n' . t'`` (eq. 2 on the plane's points).
-    """
-    v = np.asarray(v, dtype=float)
-    d = float(np.linalg.norm(v))
-    n = v / d
-    (R, t), (R2, t2) = pose_from, pose_to
-    n_base, d_base = R.T @ n, d - float(n @ t)
-    n2 = R2 @ n_base
-    return (d_base + float(n2 @ t2)) * n2
+    return mirror_vector_in(plane_from_camera(np.asarray(v, dtype=float), pose_from), pose_to)
