@@ -157,9 +157,6 @@ class Calibration:
     rig: list = field(default_factory=list)
     #: ``{(l, m): camera name}``: the camera frame each mirror vector is in (with ``cameras``), else empty.
     mirror_frames: dict[tuple[int, int], str] = field(default_factory=dict)
-    #: Per residual (parallel to ``residual_labels``): ``(camera name or None, reflections)`` of its view;
-    #: empty where every image follows the mirror tree (``mirror_configs``).
-    residual_views: list[tuple[str | None, tuple[tuple[int, int], ...]]] = field(default_factory=list)
 
     @property
     def T_cam_base(self) -> Transform:

@@ -172,17 +172,17 @@ class ViewsIncrementalCalibrator:
         if full:
             with unconstrained_as_solve_error(self._ds.source, lambda error: unconstrained_message(error, problem)):
                 covariances = problem.covariances(self._graph, values, estimate)
-            residuals, whitened, labels, views = problem.residuals(estimate)
+            residuals, whitened, labels = problem.residuals(estimate)
         else:
             pose_covs = {name: np.zeros((6, 6)) for name in self.fixed}
             for name, key in problem.pose_keys.items():
                 pose_covs[name] = covariance_from_pose3(estimate.poses[name][0], isam.marginalCovariance(key))
             covariances = (pose_covs, None, {}, {}, {})
-            residuals, whitened, labels, views = np.zeros((0, 2)), np.zeros(0), [], []
+            residuals, whitened, labels = np.zeros((0, 2)), np.zeros(0), []
         dimension = values.dim() - problem.constraints
         final_error = float(self._graph.error(values)) if full else float("nan")
         expected = 0.5 * max(len(whitened) * 2 - dimension, 0) if full else 0.0
-        calibration = calibration_of(problem, estimate, covariances, residuals, whitened, labels, views,
+        calibration = calibration_of(problem, estimate, covariances, residuals, whitened, labels,
                                      iterations=self._updates, initial_error=self._initial_error,
                                      final_error=final_error, converged=converged, expected=expected,
                                      excluded=list(self.excluded), timings=dict(self.timings))
@@ -216,7 +216,7 @@ class ViewsIncrementalCalibrator:
         the rest at the estimate, its unknowns that nothing sees any more dropped. Returns what was left
         out (empty: nothing)."""
         problem = self._problem(full=True)
-        _, whitened, labels, _ = problem.residuals(self._estimate)
+        _, whitened, labels = problem.residuals(self._estimate)
         dimension = problem.values(self._estimate).dim() - problem.constraints
         excluded = final_check(problem.dataset, [_Label(i, p) for i, p in labels], whitened, dimension)
         if not excluded:

@@ -196,13 +196,12 @@ class ViewProblem:
         return unknown_name(key, poses, self.mirror_keys, self.point_keys)
 
     # ------------------------------------------------------------------ residuals
-    def residuals(self, estimate: ViewEstimate) -> tuple[np.ndarray, np.ndarray, list[tuple[str, str]], list]:
+    def residuals(self, estimate: ViewEstimate) -> tuple[np.ndarray, np.ndarray, list[tuple[str, str]]]:
         """Per measurement (file order): residuals (N, 2) in pixels with a camera (else normalized), their
-        whitened norms (sigmas), ``(image, point)`` labels and ``(camera, reflections)`` views."""
+        whitened norms (sigmas) and ``(image, point)`` labels."""
         residuals: list[np.ndarray] = []
         whitened: list[np.ndarray] = []
         labels: list[tuple[str, str]] = []
-        views: list[tuple[str | None, tuple[Placement, ...]]] = []
         for image, view, factor in zip(self.dataset.images, self.views, self.factors):
             B = factor.base_points.copy()
             for k, name in enumerate(view.names):
@@ -223,8 +222,7 @@ class ViewProblem:
                     residual = z - view.normalized
             residuals.append(residual)
             labels.extend((image.id, n) for n in view.names)
-            views.extend([(image.camera, view.reflections)] * len(view.names))
-        return np.vstack(residuals), np.concatenate(whitened), labels, views
+        return np.vstack(residuals), np.concatenate(whitened), labels
 
     # ------------------------------------------------------------------ covariances
     def covariances(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, estimate: ViewEstimate):

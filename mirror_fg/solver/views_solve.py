@@ -148,7 +148,6 @@ class _Run:
     residuals: np.ndarray
     whitened: np.ndarray
     labels: list
-    views: list
     dimension: int
     iterations: int
     initial_error: float
@@ -248,8 +247,8 @@ class ViewsProblem:
                         optimizer, result, initial_error = tried
         estimate = problem.read(result)
         self.last = estimate  # the start of the next solve, after leaving some out
-        residuals, whitened, labels, views = problem.residuals(estimate)
-        return _Run(problem, graph, result, estimate, residuals, whitened, labels, views, dimension,
+        residuals, whitened, labels = problem.residuals(estimate)
+        return _Run(problem, graph, result, estimate, residuals, whitened, labels, dimension,
                     int(optimizer.iterations()), initial_error, list(left_out), timings)
 
     def check(self, run: _Run) -> Checked:
@@ -272,7 +271,7 @@ def _finish(run: _Run, options: SolveOptions) -> Calibration:
                 problem.dataset.source, lambda error: unconstrained_message(error, problem)):
             covariances = problem.covariances(run.graph, run.result, run.estimate)
         report(STAGES[2], 1, 1)
-    return calibration_of(run.problem, run.estimate, covariances, run.residuals, run.whitened, run.labels, run.views,
+    return calibration_of(run.problem, run.estimate, covariances, run.residuals, run.whitened, run.labels,
                           iterations=run.iterations, initial_error=run.initial_error,
                           final_error=float(run.graph.error(run.result)),
                           converged=run.iterations < options.max_iterations,
@@ -281,11 +280,11 @@ def _finish(run: _Run, options: SolveOptions) -> Calibration:
 
 
 def calibration_of(problem: ViewProblem, estimate: ViewEstimate, covariances, residuals: np.ndarray,
-                   whitened: np.ndarray, labels: list, views: list, *, iterations: int, initial_error: float,
+                   whitened: np.ndarray, labels: list, *, iterations: int, initial_error: float,
                    final_error: float, converged: bool, expected: float, excluded: list[Exclusion],
                    timings: dict[str, float]) -> Calibration:
     """The :class:`Calibration` of an estimate of ``problem`` (batch or incremental): ``covariances`` as
-    ``ViewProblem.covariances`` gives them (or None), the residuals and their labels and views as
+    ``ViewProblem.covariances`` gives them (or None), the residuals and their labels as
     ``ViewProblem.residuals``, and what the solve reports."""
     from mirror_fg.solver.intrinsics import camera_of
     from mirror_fg.solver.residuals import outliers_of
@@ -326,7 +325,6 @@ def calibration_of(problem: ViewProblem, estimate: ViewEstimate, covariances, re
         excluded=list(excluded), camera=estimated.get(first),
         cameras=cameras, camera_pose_covariance=joint if dataset.cameras is not None else None, rig=rig,
         mirror_frames=dict(problem.owners) if dataset.cameras is not None else {},
-        residual_views=views,
     )
 
 
