@@ -30,6 +30,7 @@ from mirror_fg.core.camera import check_camera
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.values import MAX_INDEX, check_keys, is_index, is_int, short, short_path, type_name
 from mirror_fg.io.camera_files import camera_from_file
+from mirror_fg.io.dataset_fields import check_reflections
 from mirror_fg.io.fileio import MAX_IMAGE_PIXELS, resolve_path
 
 __all__ = [
@@ -154,24 +155,9 @@ def mirror_configs_from(value: Any, num_mirrors: int, where: str) -> tuple[Confi
 
 
 def reflections_from(value: Any, num_mirrors: int, where: str) -> tuple[Placement, ...]:
-    """``reflections``: ``[mirror, config]`` pairs in the order the light meets them; consecutive pairs
-    name different mirrors (a light path cannot meet one plane twice in a row)."""
-    if not isinstance(value, (list, tuple)):
-        raise DatasetError(f"{where}: reflections must be a list of [mirror, config] pairs ([] for a direct view), "
-                           f"got {short(value)}")
-    out: list[Placement] = []
-    for k, pair in enumerate(value):
-        pw = f"{where}: reflections[{k}]"
-        if not isinstance(pair, (list, tuple)) or len(pair) != 2:
-            raise DatasetError(f"{pw} must be a [mirror, config] pair, got {short(pair)}")
-        mirror, config = pair
-        if not is_int(mirror) or not 1 <= mirror <= num_mirrors:
-            raise DatasetError(f"{pw}: mirror {short(mirror)} is not one of 1..{num_mirrors} (num_mirrors)")
-        if out and out[-1][0] == mirror:
-            raise DatasetError(f"{pw}: mirror {int(mirror)} twice in a row (reflections[{k - 1}] is also mirror {int(mirror)}); "
-                               "light cannot meet the same mirror twice in a row")
-        out.append((int(mirror), _config(config, f"{pw}: config")))
-    return tuple(out)
+    """``reflections``: ``[mirror, config]`` pairs in the order the light meets them, checked as a
+    dataset's are (``dataset_fields.check_reflections``), a config also ``each``."""
+    return check_reflections(value, num_mirrors, where, _config)
 
 
 def image_placements(e: Mapping[str, Any], num_mirrors: int, where: str

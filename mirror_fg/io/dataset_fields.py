@@ -5,14 +5,16 @@ Checked here, used by :mod:`mirror_fg.io.dataset` (the format's one reader and w
 """
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from mirror_fg.core.camera import Camera, camera_from_dict, check_camera
 from mirror_fg.core.errors import DatasetError
 import numpy as np
 
-from mirror_fg.core.values import MAX_INDEX, check_extent, check_keys, clip, coordinates, is_index, is_number, short, type_name
+from mirror_fg.core.values import (
+    MAX_INDEX, check_extent, check_keys, clip, coordinates, is_index, is_int, is_number, short, type_name,
+)
 
 __all__ = ["fiducials_from_dict", "check_scale", "image_camera", "dataset_summary", "names_text", "Placement", "check_reflections", "tree_configs", "cameras_from_dict", "scale_from_dict",
            "scale_to_dict", "reflections_to_list"]
@@ -27,31 +29,37 @@ Placement = tuple[int, int]
 MAX_REFLECTIONS = 16
 
 
-def check_reflections(value: Any, num_mirrors: int, prefix: str) -> tuple[Placement, ...]:
+def check_reflections(value: Any, num_mirrors: int, prefix: str,
+                      config: Callable[[Any, str], Any] | None = None) -> tuple[tuple[int, Any], ...]:
     """An image's ``reflections`` as a tuple of placements: each ``[mirror, config]`` with mirror in
-    1..num_mirrors and config a non-negative integer, two consecutive pairs naming different mirrors
-    (a light path meets another mirror between two reflections in one). ``prefix`` names the image."""
-    if isinstance(value, (str, bytes, Mapping)) or not isinstance(value, Iterable):
-        raise DatasetError(f"{prefix}: reflections must be a list of [mirror, config] pairs, got {short(value)}")
-    pairs = list(value)
-    if len(pairs) > MAX_REFLECTIONS:
-        raise DatasetError(f"{prefix}: reflections has {len(pairs)} pairs, at most {MAX_REFLECTIONS} are taken")
-    result: list[Placement] = []
-    for k, pair in enumerate(pairs):
-        if isinstance(pair, (str, bytes, Mapping)) or not isinstance(pair, Iterable) or len(list(pair)) != 2:
-            raise DatasetError(f"{prefix}: reflections[{k}] must be a [mirror, config] pair, got {short(pair)}")
-        mirror, config = list(pair)
-        if not is_index(mirror, 1) or mirror > num_mirrors:
-            raise DatasetError(f"{prefix}: reflections[{k}]: mirror {short(mirror)} is not one of the "
-                               f"{num_mirrors} mirror(s) (num_mirrors); mirrors are numbered from 1")
-        if not is_index(config):
-            raise DatasetError(f"{prefix}: reflections[{k}]: config must be a non-negative integer (at most "
-                               f"{MAX_INDEX}), got {short(config)}")
+    1..num_mirrors, two consecutive pairs naming different mirrors (a light path meets another mirror
+    between two reflections in one). ``prefix`` names the image. ``config(value, where)`` checks one
+    config (default: a non-negative integer; a capture's also takes ``each``)."""
+    if not isinstance(value, (list, tuple)):
+        raise DatasetError(f"{prefix}: reflections must be a list of [mirror, config] pairs ([] for a direct view), "
+                           f"got {short(value)}")
+    if len(value) > MAX_REFLECTIONS:
+        raise DatasetError(f"{prefix}: reflections has {len(value)} pairs, at most {MAX_REFLECTIONS} are taken")
+    result: list[tuple[int, Any]] = []
+    for k, pair in enumerate(value):
+        where = f"{prefix}: reflections[{k}]"
+        if not isinstance(pair, (list, tuple)) or len(pair) != 2:
+            raise DatasetError(f"{where} must be a [mirror, config] pair, got {short(pair)}")
+        mirror, m = pair
+        if not is_int(mirror) or not 1 <= mirror <= num_mirrors:
+            raise DatasetError(f"{where}: mirror {short(mirror)} is not one of 1..{num_mirrors} (num_mirrors)")
         if result and result[-1][0] == mirror:
-            raise DatasetError(f"{prefix}: reflections[{k - 1}] and reflections[{k}] both name mirror {mirror}: "
-                               "light cannot meet one mirror twice in a row")
-        result.append((int(mirror), int(config)))
+            raise DatasetError(f"{where}: mirror {int(mirror)} twice in a row (reflections[{k - 1}] is also mirror "
+                               f"{int(mirror)}); light cannot meet the same mirror twice in a row")
+        result.append((int(mirror), (config or _index)(m, f"{where}: config")))
     return tuple(result)
+
+
+def _index(value: Any, where: str) -> int:
+    """A placement's config: a non-negative integer."""
+    if not is_index(value):
+        raise DatasetError(f"{where} must be a non-negative integer (at most {MAX_INDEX}), got {short(value)}")
+    return int(value)
 
 
 def tree_configs(reflections: tuple[Placement, ...], num_mirrors: int) -> tuple[int, ...]:
