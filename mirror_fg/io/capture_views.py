@@ -30,7 +30,7 @@ from mirror_fg.core.camera import check_camera
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.values import MAX_INDEX, check_keys, is_index, is_int, short, short_path, type_name
 from mirror_fg.io.camera_files import camera_from_file
-from mirror_fg.io.dataset_fields import check_reflections
+from mirror_fg.io.dataset_fields import check_reflections, named_camera
 from mirror_fg.io.fileio import MAX_IMAGE_PIXELS, resolve_path
 
 __all__ = [
@@ -120,18 +120,7 @@ def rig_cameras(value: Any, source: str, base_dir: str) -> tuple[dict[str, dict[
 
 def image_camera(e: Mapping[str, Any], cameras: Mapping[str, Any] | None, where: str) -> str | None:
     """The camera an image names: required and declared with ``cameras``, refused without."""
-    name = e.get("camera")
-    if cameras is None:
-        if name is not None:
-            raise DatasetError(f"{where}: camera {short(name)}: an image names its camera only when the capture "
-                               "declares 'cameras: {name: camera}' (a rig); with one 'camera' leave it out")
-        return None
-    declared = ", ".join(cameras)
-    if name is None:
-        raise DatasetError(f"{where}: missing 'camera' (which camera took it: one of {declared})")
-    if not isinstance(name, str) or name not in cameras:
-        raise DatasetError(f"{where}: camera {short(name)} is not declared under 'cameras' ({declared})")
-    return name
+    return named_camera(e.get("camera"), cameras, where, "capture")
 
 
 # --- placements ---------------------------------------------------------------------------------------

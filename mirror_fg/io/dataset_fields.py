@@ -16,7 +16,7 @@ from mirror_fg.core.values import (
     MAX_INDEX, check_extent, check_keys, clip, coordinates, is_index, is_int, is_number, short, type_name,
 )
 
-__all__ = ["fiducials_from_dict", "check_scale", "image_camera", "dataset_summary", "names_text", "Placement", "check_reflections", "tree_configs", "cameras_from_dict", "scale_from_dict",
+__all__ = ["fiducials_from_dict", "check_scale", "image_camera", "named_camera", "dataset_summary", "names_text", "Placement", "check_reflections", "tree_configs", "cameras_from_dict", "scale_from_dict",
            "scale_to_dict", "reflections_to_list"]
 
 #: Fiducials all within this fraction of their extent from one line are collinear.
@@ -183,19 +183,26 @@ def check_scale(ds: Any, scale: Any) -> None:
             raise DatasetError(f"{ds.source}: scale: no image observes point {short(name)}")
 
 
-def image_camera(ds: Any, name: Any, prefix: str) -> Camera | None:
-    """The camera an image names (``camera``, a dataset with ``cameras``), else the dataset's camera."""
-    if ds.cameras is None:
+def named_camera(name: Any, cameras: Mapping[str, Any] | None, where: str, what: str = "dataset") -> str | None:
+    """The camera an image of a dataset or capture (``what``) names: required and declared with ``cameras``,
+    refused without; None for one ``camera``."""
+    if cameras is None:
         if name is not None:
-            raise DatasetError(f"{prefix}: camera {short(name)}: this dataset has one camera (give cameras: "
-                               "{name: camera} to name them)")
-        return ds.camera
+            raise DatasetError(f"{where}: camera {short(name)}: an image names its camera only when the {what} "
+                               "declares 'cameras: {name: camera}' (a rig); with one 'camera' leave it out")
+        return None
+    declared = ", ".join(cameras)
     if name is None:
-        raise DatasetError(f"{prefix}: missing 'camera' (one of {', '.join(short(n) for n in ds.cameras)})")
-    if not isinstance(name, str) or name not in ds.cameras:
-        raise DatasetError(f"{prefix}: camera {short(name)} is not declared in cameras "
-                           f"({', '.join(short(n) for n in ds.cameras)})")
-    return ds.cameras[name]
+        raise DatasetError(f"{where}: missing 'camera' (which camera took it: one of {declared})")
+    if not isinstance(name, str) or name not in cameras:
+        raise DatasetError(f"{where}: camera {short(name)} is not declared under 'cameras' ({declared})")
+    return name
+
+
+def image_camera(ds: Any, name: Any, prefix: str) -> Camera | None:
+    """The camera that took an image of ``ds`` naming ``name`` (:func:`named_camera`)."""
+    named = named_camera(name, ds.cameras, prefix)
+    return ds.camera if named is None else ds.cameras[named]
 
 
 def dataset_summary(ds: Any) -> list[tuple[str, str]]:
