@@ -89,6 +89,36 @@ def latency_mode(counts: list[int], placements: int, sigma: float, seed: int) ->
     return figures
 
 
+def rig_mode(shared: int, own: int, seed: int) -> None:
+    """The general view model's stream: a three-camera rig with two hand-held mirrors (``simulate --kind
+    mixed --cameras 3 --shared K --own N,N,N``) in file order; per-image update latency after the start,
+    and the median of the last 100 updates against the first 100 (does an update cost grow with the
+    images in the graph?)."""
+    from mirror_fg.tools.simulate_rig import simulate_rig_mixed
+
+    from mirror_fg.io.dataset import dataset_from_dict
+
+    ds = dataset_from_dict(simulate_rig_mixed(3, own=[own] * 3, shared=shared, seed=seed)[0])
+    calibrator = IncrementalCalibrator(ds)
+    latency, first = [], None
+    for n, image in enumerate(ds.images, start=1):
+        start = time.perf_counter()
+        estimate = calibrator.add_image(image)
+        if estimate is not None:
+            if first is None:
+                first = n
+            else:
+                latency.append(time.perf_counter() - start)
+    if first is None:
+        raise SystemExit("the rig stream never started")
+    ms = np.asarray(latency) * 1e3
+    print(f"rig stream: {len(ds.images)} images, 3 cameras; first estimate at image {first}")
+    print(f"  per image after the start   median {np.median(ms):6.1f} ms   p95 {np.percentile(ms, 95):6.1f} ms   "
+          f"max {ms.max():6.1f} ms")
+    print(f"  first 100 median {np.median(ms[:100]):6.1f} ms   last 100 median {np.median(ms[-100:]):6.1f} ms   "
+          f"ratio {np.median(ms[-100:]) / np.median(ms[:100]):.2f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--images", type=int, default=300)
@@ -100,7 +130,13 @@ def main() -> None:
     parser.add_argument("--batch-every-image", action="store_true", help="time the batch solve at every image count")
     parser.add_argument("--latency", type=int, nargs="*", metavar="N",
                         help="only the add_image latency p50/p95 over streams of N images (default 1000 10000)")
+    parser.add_argument("--rig", type=int, nargs="?", const=20, metavar="K",
+                        help="only the general model's stream: a three-camera rig, K shared and K own photographs "
+                             "per camera (default 20: 480 images)")
     args = parser.parse_args()
+    if args.rig is not None:
+        rig_mode(args.rig, args.rig, args.seed)
+        return
     if args.latency is not None:
         latency_mode(args.latency or [1000, 10000], args.placements, args.sigma, args.seed)
         return

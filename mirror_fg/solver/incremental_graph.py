@@ -39,7 +39,7 @@ from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.analytic import AnalyticSolution
 from mirror_fg.solver.calibration import Calibration, Exclusion
 from mirror_fg.solver.graph import GraphLayout, Measurement, measurement_sigmas
-from mirror_fg.solver.incremental_state import GraphState, PlacementBlock, RelinearizeThresholds
+from mirror_fg.solver.incremental_state import GraphState, PlacementBlock, RelinearizeThresholds, new_isam2
 from mirror_fg.solver.incremental_values import (
     MIN_PNP_FIDUCIALS, REFINE_ITERATIONS, PlacementInitialiser, initialise_points, refine_alone,
 )
@@ -312,13 +312,7 @@ class IncrementalGraph:
         return float(np.sqrt(max(quadratic, 0.0)))
 
     def new_isam2(self) -> gtsam.ISAM2:
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(self._thresholds.threshold_map())
-        params.relinearizeSkip = 1
-        # Full back-substitution on every update (wildfire 0): cheap next to the Python factors, and
-        # the estimate never lags the linear solution.
-        params.setOptimizationParams(gtsam.ISAM2GaussNewtonParams(0.0))
-        return gtsam.ISAM2(params)
+        return new_isam2(self._thresholds)
 
     def _all_factors(self) -> gtsam.NonlinearFactorGraph:
         """Every factor of the graph (stacked ones, then the blocks'); the blocks pending as new."""
