@@ -36,8 +36,8 @@ def _stream(ds: Dataset) -> IncrementalCalibrator:
 def _reference(calibrator: IncrementalCalibrator, values: gtsam.Values):
     """The per-measurement graph of every measurement in the calibrator's graph (its own keys) and its
     values: ``values`` plus every eliminated placement at its block's optimum there."""
-    g = calibrator._g
-    ds = calibrator._ds
+    g = calibrator.backend.state
+    ds = calibrator.dataset
     full = gtsam.Values(values)
     for block in g.blocks:
         for config, v in block.evaluator.mirror_vectors(values).items():
@@ -56,7 +56,7 @@ def _ordering(keys) -> gtsam.Ordering:
 
 
 def _check_against_reference(calibrator: IncrementalCalibrator) -> None:
-    g = calibrator._g
+    g = calibrator.backend.state
     isam = g.isam
     values = isam.getLinearizationPoint()  # what iSAM2's linear factors were made at
     kept = [g.layout.pose_key, *g.kept.values(), *g.layout.point_keys.values()]
@@ -84,7 +84,7 @@ def test_isam2_graph_is_the_schur_complement_of_the_reference(num_mirrors, num_p
     ds, _ = simulate_base_case(num_images=num_images, num_points=num_points, num_mirrors=num_mirrors,
                                mirror1_placements=3, seed=2)
     calibrator = _stream(ds)
-    g = calibrator._g
+    g = calibrator.backend.state
     assert len(g.kept) == sum(1 for l, _ in g.layout.mirror_keys if l < num_mirrors)
     # merged along the way: far fewer factors than images, and every placement in exactly one block
     parents = {block.parent for block in g.blocks}
@@ -126,7 +126,7 @@ def test_placement_under_a_second_parent_becomes_an_unknown():
     again = Image("again", configs, measure(truth, ds.camera, ds.fiducials, configs, 1.0, rng))
     ds.images.append(again)
     calibrator = _stream(ds)
-    g = calibrator._g
+    g = calibrator.backend.state
     assert (2, shared) in g.kept and (2, shared) not in g.block_of
     assert all((2, shared) not in block.placements for block in g.blocks)
     _check_against_reference(calibrator)

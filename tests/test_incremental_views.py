@@ -17,6 +17,7 @@ from mirror_fg.cli import main
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.io.dataset import dataset_from_dict
 from mirror_fg.solver.incremental import IncrementalCalibrator, calibrate_incremental
+from mirror_fg.solver.incremental_tree import TreeIncrementalCalibrator
 from mirror_fg.solver.incremental_views import ViewsIncrementalCalibrator
 from mirror_fg.solver.incremental_views_start import determines_new_unknowns
 from mirror_fg.solver.views import ViewEstimate, ViewProblem
@@ -109,7 +110,7 @@ def test_calibrator_waits_for_the_start_and_takes_the_rest_later() -> None:
     raw = _late(mixed())
     dataset = _dataset(raw, "mixed")
     calibrator = IncrementalCalibrator(dataset)
-    assert isinstance(calibrator, ViewsIncrementalCalibrator)
+    assert isinstance(calibrator.backend, ViewsIncrementalCalibrator)
     results = [calibrator.add_image(image) for image in dataset.images]
     singles = [k for k, im in enumerate(dataset.images) if len(im.reflections) == 1]
     start = singles[2]
@@ -134,7 +135,7 @@ def test_tree_data_still_take_the_tree_calibrator() -> None:
     tree = dict(raw, images=[im for im in raw["images"] if len(im["reflections"]) == 1])
     dataset = _dataset(dict(tree, num_mirrors=1), "tree")
     assert dataset.is_tree
-    assert type(IncrementalCalibrator(dataset)) is IncrementalCalibrator
+    assert type(IncrementalCalibrator(dataset).backend) is TreeIncrementalCalibrator
 
 
 def test_an_image_nothing_else_completes_keeps_waiting() -> None:
@@ -226,10 +227,10 @@ def test_a_calibrator_built_without_images_turns_to_the_view_model_at_the_first_
     raw = _late(mixed())
     dataset = _dataset(raw, "mixed")
     calibrator = IncrementalCalibrator(replace(dataset, images=[]))
-    assert type(calibrator) is IncrementalCalibrator
+    assert type(calibrator.backend) is TreeIncrementalCalibrator
     assert calibrator.add_image(raw["images"][0]) is None  # ((1, 0), (2, 0)): the tree's order
     results = [calibrator.add_image(image) for image in raw["images"][1:]]
-    assert isinstance(calibrator, ViewsIncrementalCalibrator)
+    assert isinstance(calibrator.backend, ViewsIncrementalCalibrator)
     assert results[-1] is not None and calibrator.num_images == len(raw["images"])
     assert_matches_batch(calibrator.calibration(full=True), mirror_fg.calibrate(dataset))
 

@@ -58,7 +58,7 @@ from mirror_fg.solver.marginals import unconstrained_as_solve_error, unconstrain
 from mirror_fg.solver.rechecks import MAX_RECHECKS
 from mirror_fg.solver.views_solve import _Label, calibration_of
 
-__all__ = ["ViewsIncrementalCalibrator", "calibrate_views_incremental", "become_views_calibrator"]
+__all__ = ["ViewsIncrementalCalibrator", "calibrate_views_incremental"]
 
 logger = logging.getLogger("mirror_fg")
 
@@ -69,8 +69,8 @@ SETTLE_UPDATES = 1
 
 
 class ViewsIncrementalCalibrator:
-    """Incremental calibration of a general dataset (module docstring); the public face of
-    ``incremental.IncrementalCalibrator``: ``add_image``, ``calibration``, ``marginal_covariance``,
+    """Incremental calibration of a general dataset (module docstring); the backend of
+    ``incremental.IncrementalCalibrator`` off the tree: ``add_image``, ``calibration``, ``marginal_covariance``,
     ``status``, ``started``, ``settled``, ``num_images``, ``waiting_images``, ``excluded`` (no
     ``suggest_next``). ``points``, ``robust`` and ``thresholds`` (iSAM2's relinearisation,
     ``incremental_state.new_isam2``) as there; ``seed`` is taken for the same signature and not used (the
@@ -121,6 +121,11 @@ class ViewsIncrementalCalibrator:
     @property
     def settled(self) -> bool:
         return self.started
+
+    @property
+    def dataset(self) -> Dataset:
+        """The calibration's cameras, fiducials and noise, with the images in the graph."""
+        return self._ds
 
     @property
     def num_images(self) -> int:
@@ -417,20 +422,6 @@ class ViewsIncrementalCalibrator:
         if full:
             self._full_problem = problem
         return problem
-
-
-def become_views_calibrator(calibrator: Any, images: list[Image], options: dict) -> Calibration | None:
-    """A tree calibrator (``incremental.IncrementalCalibrator``, built on a dataset without images) given
-    an image off the tree becomes a :class:`ViewsIncrementalCalibrator` (the same object) fed every image
-    it was given, in order; returns what the last ``add_image`` returns."""
-    dataset = replace(calibrator._ds, images=[])
-    calibrator.__class__ = ViewsIncrementalCalibrator
-    calibrator.__dict__.clear()
-    ViewsIncrementalCalibrator.__init__(calibrator, dataset, **options)
-    result = None
-    for image in images:
-        result = calibrator.add_image(image)
-    return result
 
 
 def _median_fit(view_factors: list[ViewFactor], values: gtsam.Values) -> float:
