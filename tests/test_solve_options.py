@@ -92,3 +92,38 @@ def test_bad_settings_are_refused(scene):
         SolveOptions().robust = "huber"  # type: ignore[misc]
     with pytest.raises(TypeError, match="options="):
         calibrate(scene, robust="huber", options=SolveOptions())
+
+
+def test_the_users_options_reach_every_nested_solve(monkeypatch):
+    """Rule 2's solve inside the general model's start and the consistency checks' group solves take the
+    user's kernel and iteration limit (``SolveOptions.nested``), never a fresh default; no progress or
+    iteration hook of the user's is called by them."""
+    from mirror_fg.io.dataset import dataset_from_dict
+    from mirror_fg.solver import consistency, views_solve
+    from mirror_fg.tools.simulate_views import simulate_mixed
+
+    seen: list[SolveOptions] = []
+    real_pipeline, real_lm = views_solve.run_pipeline, consistency.levenberg_marquardt
+
+    def pipeline(problem, dataset):
+        seen.append(problem.options)
+        return real_pipeline(problem, dataset)
+
+    def lm(dataset, start, options, *rest):
+        seen.append(options)
+        return real_lm(dataset, start, options, *rest)
+
+    monkeypatch.setattr(views_solve, "run_pipeline", pipeline)
+    monkeypatch.setattr(consistency, "levenberg_marquardt", lm)
+    dataset = dataset_from_dict(simulate_mixed([4, 4], seed=3)[0])
+    iterations: list[int] = []
+    options = SolveOptions(robust="huber", max_iterations=77, on_iteration=lambda k, *_: iterations.append(k))
+    calibrate(dataset, options=options)
+    nested = [o for o in seen if o is not options]
+    assert nested, "no nested solve ran: the scene does not exercise rule 2"
+    assert all(o.robust == "huber" and o.max_iterations == 77 for o in nested)
+    assert all(o.on_iteration is None and o.progress is None and not o.compute_covariance for o in nested)
+    seen.clear()
+    tree, _ = simulate_base_case(num_images=120, num_points=0, mirror1_placements=6, seed=4)
+    calibrate(tree, options=options)  # the diagnosis solves groups of images alone (consistency.fit_group)
+    assert seen and all(o.robust == "huber" and o.max_iterations == 77 and o.on_iteration is None for o in seen)

@@ -76,15 +76,17 @@ class GroupFit:
 
 
 def fit_group(
-    dataset: Dataset, images: list[Image], pnp: PnPCandidates | None = None, covariance: bool = False
+    dataset: Dataset, images: list[Image], pnp: PnPCandidates | None = None, covariance: bool = False,
+    options: SolveOptions | None = None,
 ) -> GroupFit | None:
     """``images`` of ``dataset`` solved alone, or None where they cannot be (too few placements, ...).
     ``pnp``: PnP candidates already computed for some of the images (``consensus.screen``);
-    ``covariance``: also the pose covariance (:class:`GroupFit`)."""
+    ``covariance``: also the pose covariance (:class:`GroupFit`); ``options``: the calibration's
+    (``SolveOptions.nested``: its kernel and iteration limit; the defaults where None)."""
     group = replace(dataset, images=images)
     try:
         start = initial_estimate(group, pnp=pnp)
-        run = levenberg_marquardt(group, start, SolveOptions(), None, {})
+        run = levenberg_marquardt(group, start, (options or SolveOptions()).nested(), None, {})
         pose_covariance = run.covariances(group)[0] if covariance and run.converged else None
     except (DatasetError, SolveError, RuntimeError, np.linalg.LinAlgError):
         return None
@@ -117,38 +119,43 @@ def describe_split(dataset: Dataset, groups: list[list[int]], fits: list[GroupFi
     return Inconsistency(ids, rotation_deg, position_mm, message)
 
 
-def _split_at(dataset: Dataset, k: int, pnp: PnPCandidates | None) -> tuple[float, list[GroupFit]] | None:
-    fits = [fit_group(dataset, dataset.images[:k], pnp), fit_group(dataset, dataset.images[k:], pnp)]
+def _split_at(dataset: Dataset, k: int, pnp: PnPCandidates | None,
+              options: SolveOptions | None) -> tuple[float, list[GroupFit]] | None:
+    fits = [fit_group(dataset, dataset.images[:k], pnp, options=options),
+            fit_group(dataset, dataset.images[k:], pnp, options=options)]
     if fits[0] is None or fits[1] is None:
         return None
     return fits[0].final_error + fits[1].final_error, [fits[0], fits[1]]
 
 
 def diagnose_inconsistency(
-    dataset: Dataset, calibration: Calibration, pnp: PnPCandidates | None = None
+    dataset: Dataset, calibration: Calibration, pnp: PnPCandidates | None = None,
+    options: SolveOptions | None = None,
 ) -> Inconsistency | None:
     """What the data contradict, most specific first: where the final cost is implausible, a split in
     capture order into groups each consistent alone (:func:`diagnose_split`), else two images of one
     placement that see different mirrors (:func:`placement_disagreement`); whatever the cost, a camera
     that moved between placements of mirror 1 (:func:`moved_camera_split`). One rule for batch and
-    incremental results."""
+    incremental results. ``options``: the calibration's, for the groups' solves (:func:`fit_group`)."""
     found = None
     if not calibration.cost_plausible:
-        found = diagnose_split(dataset, calibration, pnp) or placement_disagreement(dataset, calibration)
-    return found or moved_camera_split(dataset, calibration.R_cam_base, pnp)
+        found = diagnose_split(dataset, calibration, pnp, options) or placement_disagreement(dataset, calibration)
+    return found or moved_camera_split(dataset, calibration.R_cam_base, pnp, options)
 
 
-def diagnose_split(dataset: Dataset, calibration: Calibration, pnp: PnPCandidates | None = None) -> Inconsistency | None:
+def diagnose_split(dataset: Dataset, calibration: Calibration, pnp: PnPCandidates | None = None,
+                   options: SolveOptions | None = None) -> Inconsistency | None:
     """Where the calibration's final cost is implausible: the split of the images in capture order into
     two groups each consistent alone (the lowest total cost of the two solves), or None when there is
     no such split."""
     if calibration.cost_plausible:
         return None
-    return split_in_capture_order(dataset, calibration.final_error, pnp)
+    return split_in_capture_order(dataset, calibration.final_error, pnp, options)
 
 
 def split_in_capture_order(
-    dataset: Dataset, whole_error: float = float("nan"), pnp: PnPCandidates | None = None
+    dataset: Dataset, whole_error: float = float("nan"), pnp: PnPCandidates | None = None,
+    options: SolveOptions | None = None,
 ) -> Inconsistency | None:
     """The split of the images in capture order into two groups each consistent alone (the lowest total
     cost of the two solves), or None when there is no such split. ``whole_error``: the whole capture's
@@ -161,7 +168,7 @@ def split_in_capture_order(
     def best_of(indices) -> int | None:
         for k in indices:
             if k not in tried:
-                tried[k] = _split_at(dataset, int(k), pnp)
+                tried[k] = _split_at(dataset, int(k), pnp, options)
         solved = [k for k in tried if tried[k] is not None]
         return min(solved, key=lambda k: tried[k][0]) if solved else None  # type: ignore[index]
 
@@ -184,14 +191,15 @@ def split_in_capture_order(
     return describe_split(dataset, [list(range(best)), list(range(best, n))], fits)
 
 
-def misfits_split(dataset: Dataset, in_graph: list[Image], misfits: list[Image]) -> Inconsistency | None:
+def misfits_split(dataset: Dataset, in_graph: list[Image], misfits: list[Image],
+                  options: SolveOptions | None = None) -> Inconsistency | None:
     """Where the images an incremental calibration refused as inconsistent with its estimate (``misfits``,
     at least three) fit one ``T_cam_base`` of their own, and those in its graph (``in_graph``) theirs, the
     two groups named as the batch names a split."""
     if len(misfits) < 3:
         return None
     index = {image.id: i for i, image in enumerate(dataset.images)}
-    fits = [fit_group(dataset, in_graph), fit_group(dataset, misfits)]
+    fits = [fit_group(dataset, in_graph, options=options), fit_group(dataset, misfits, options=options)]
     if fits[0] is None or fits[1] is None or not (fits[0].plausible and fits[1].plausible):
         return None
     groups = [sorted(index[image.id] for image in in_graph), sorted(index[image.id] for image in misfits)]
@@ -240,7 +248,8 @@ def _solvable_boundaries(dataset: Dataset) -> list[int]:
 
 
 def moved_camera_split(
-    dataset: Dataset, R_reference: np.ndarray, pnp: PnPCandidates | None = None
+    dataset: Dataset, R_reference: np.ndarray, pnp: PnPCandidates | None = None,
+    options: SolveOptions | None = None,
 ) -> Inconsistency | None:
     """A split of the images in capture order at a boundary between placements of mirror 1 whose two
     sides, each solved alone with its covariance, disagree beyond chance: the largest chi-square of
@@ -258,7 +267,7 @@ def moved_camera_split(
     worst: tuple[float, int, list[GroupFit]] | None = None
     for k in tested:
         sides = [complete_tree(dataset.images[:k], dataset.num_mirrors), complete_tree(dataset.images[k:], dataset.num_mirrors)]
-        fits = [fit for fit in (fit_group(dataset, side, pnp, covariance=True) for side in sides)
+        fits = [fit for fit in (fit_group(dataset, side, pnp, covariance=True, options=options) for side in sides)
                 if fit is not None and fit.covariance is not None]
         if len(fits) < 2:
             continue

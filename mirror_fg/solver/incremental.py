@@ -32,6 +32,7 @@ from mirror_fg.solver.consistency import diagnose_inconsistency, misfits_split
 from mirror_fg.solver.incremental_state import RelinearizeThresholds
 from mirror_fg.solver.incremental_tree import LeavesTheTree, TreeIncrementalCalibrator
 from mirror_fg.solver.incremental_views import ViewsIncrementalCalibrator, calibrate_views_incremental
+from mirror_fg.solver.options import SolveOptions
 from mirror_fg.solver.placement_tree import complete_tree
 
 if TYPE_CHECKING:
@@ -208,6 +209,8 @@ def calibrate_incremental(
     if calibration.converged:
         order = {image.id: i for i, image in enumerate(dataset.images)}
         in_graph = sorted((im for im in calibrator.dataset.images if im.id in order), key=lambda im: order[im.id])
-        calibration.inconsistency = (misfits_split(dataset, in_graph, calibrator.misfits)
-                                     or diagnose_inconsistency(replace(dataset, images=in_graph), calibration))
+        options = SolveOptions(robust=robust)
+        calibration.inconsistency = (misfits_split(dataset, in_graph, calibrator.misfits, options)
+                                     or diagnose_inconsistency(replace(dataset, images=in_graph), calibration,
+                                                               options=options))
     return require_converged(calibration, dataset.source, "iSAM2", accept_poor_fit=accept_poor_fit)

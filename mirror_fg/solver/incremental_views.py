@@ -54,6 +54,7 @@ from mirror_fg.solver.timing import timed
 from mirror_fg.solver.views import (
     ViewEstimate, ViewProblem, camera_names, mirror_vector_at, plane_of, scale_prior, views_of,
 )
+from mirror_fg.solver.options import SolveOptions
 from mirror_fg.solver.marginals import unconstrained_as_solve_error, unconstrained_message
 from mirror_fg.solver.rechecks import MAX_RECHECKS
 from mirror_fg.solver.views_solve import _Label, calibration_of
@@ -81,6 +82,8 @@ class ViewsIncrementalCalibrator:
         check_kernel(robust)
         self.robust = robust
         self.thresholds = thresholds if thresholds is not None else RelinearizeThresholds()
+        #: What reaches the batch solves the start runs (rule 2 of the propagation): the kernel.
+        self.options = SolveOptions(robust=robust, compute_covariance=False, diagnose=False)
         self._ds = replace(dataset, images=[])  # the images in the graph
         self._order = {image.id: k for k, image in enumerate(dataset.images)}
         if any(c is not None and c.estimate for c in (list(dataset.cameras.values()) if dataset.cameras else [dataset.camera])):
@@ -283,7 +286,7 @@ class ViewsIncrementalCalibrator:
         if not self._waiting:
             return
         joining = joining_views(self._ds, self._waiting, self._estimate, self.owners, self.cameras, self.fixed,
-                                self._views)
+                                self._views, self.options)
         if not joining.indices:
             return
         new = ViewEstimate(joining.poses, joining.mirror_vectors, joining.points)

@@ -28,6 +28,7 @@ import numpy as np
 
 from mirror_fg.io.dataset import Dataset, Image, Scale
 from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params
+from mirror_fg.solver.options import SolveOptions
 from mirror_fg.solver.propagation import ViewObs, _Propagator, mirror_vector_in, plane_from_camera, takahashi_start
 from mirror_fg.solver.views import ViewEstimate, tangent_dimension
 from mirror_fg.solver.views_solve import tree_start_for
@@ -55,11 +56,13 @@ class Joining:
 
 def joining_views(dataset: Dataset, waiting: list[tuple[Image, ViewObs]], estimate: ViewEstimate,
                   owners: dict[tuple[int, int], str], cameras: list[str],
-                  fixed: dict[str, tuple[np.ndarray, np.ndarray]], graph_views: list[ViewObs]) -> Joining:
+                  fixed: dict[str, tuple[np.ndarray, np.ndarray]], graph_views: list[ViewObs],
+                  options: SolveOptions) -> Joining:
     """The waiting images whose every unknown the propagation can start (module docstring);
-    ``graph_views``: the views of the images in the graph (rule 5 solves them with the waiting ones)."""
+    ``graph_views``: the views of the images in the graph (rule 5 solves them with the waiting ones);
+    ``options``: the calibrator's (they reach rule 2's solves)."""
     views = [view for _, view in waiting]
-    tree_start = tree_start_for(replace(dataset, images=[image for image, _ in waiting]))
+    tree_start = tree_start_for(replace(dataset, images=[image for image, _ in waiting]), options)
     propagator = _Propagator(views, dataset.fiducials, cameras, fixed, tree_start)
     known = propagator.known
     known.poses.update(estimate.poses)

@@ -8,7 +8,7 @@ them (``factors/eliminated.py``) where the data allow it, else stacked (see :met
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import Enum
 
 from mirror_fg.factors.robust import check_kernel
@@ -67,6 +67,12 @@ class SolveOptions:
         self.report(STAGES[1], number, self.max_iterations)
         if self.on_iteration is not None:
             self.on_iteration(number, error_before, error_after)
+
+    def nested(self) -> "SolveOptions":
+        """These options for a solve run inside another (a start, a consistency check): the user's kernel,
+        linearisation and iteration limit, without covariances, diagnosis, progress or iteration hook
+        (those belong to the solve the user asked for)."""
+        return replace(self, compute_covariance=False, diagnose=False, on_iteration=None, progress=None)
 
     def eliminates(self, allowed: bool = True) -> bool:
         """Whether to build the eliminated graph: asked for, no robust kernel (the elimination solves

@@ -72,7 +72,7 @@ class TreeProblem:
         calibration.excluded = list(rechecked.excluded)
         if self.options.diagnose:
             with timed(self.timings, "consistency"):
-                calibration.inconsistency = diagnose_inconsistency(solved, calibration, self.pnp)
+                calibration.inconsistency = diagnose_inconsistency(solved, calibration, self.pnp, self.options)
             if calibration.inconsistency is not None:
                 logger.warning("%s: %s", solved.source, calibration.inconsistency.message)
         return calibration

@@ -40,13 +40,14 @@ class _Label:
     point: str
 
 
-def tree_start_for(dataset: Dataset):
+def tree_start_for(dataset: Dataset, options: SolveOptions):
     """Rule 2 of the propagation for one camera: its images through the whole tree (the largest subtree
     with three placements under every node, then the one of its three best-seen placements of mirror 1)
     or through one mirror alone (>= 3 placements), each solved as the paper's problem by ``calibrate``
     on their fiducials (``tree_problem.TreeProblem``: analytical solution, then LM with its restarts); the
     first that fits the noise (``Calibration.fit_ratio`` at most ``calibration.POOR_FIT_RATIO``) gives
-    ``((R, t), {placement: v})``, else None."""
+    ``((R, t), {placement: v})``, else None. ``options``: the user's (``SolveOptions.nested``)."""
+    nested = options.nested()
 
     def start(camera_name: str):
         images = [im for im in dataset.images if dataset.cameras is None or im.camera == camera_name]
@@ -82,7 +83,7 @@ def tree_start_for(dataset: Dataset):
                           fiducials=dataset.fiducials, images=sub_images, source=dataset.source,
                           point_sigma={n: s for n, s in dataset.point_sigma.items() if n in dataset.fiducials})
             try:
-                solution = run_pipeline(TreeProblem(None, SolveOptions(compute_covariance=False, diagnose=False)), sub)
+                solution = run_pipeline(TreeProblem(None, nested), sub)
             except (DatasetError, SolveError, ValueError, np.linalg.LinAlgError) as error:
                 logger.debug("%s: camera %s: no start from %s: %s", dataset.source, camera_name,
                              "the tree" if mirror is None else f"mirror {mirror} alone", error)
@@ -97,10 +98,10 @@ def tree_start_for(dataset: Dataset):
     return start
 
 
-def _other_start(problem: ViewProblem) -> ViewEstimate | None:
+def _other_start(problem: ViewProblem, options: SolveOptions) -> ViewEstimate | None:
     """The analytical start with rule 2 first for every camera, or None where it cannot be formed."""
     try:
-        return _start(problem, None, tree_first=True)
+        return _start(problem, None, options, tree_first=True)
     except SolveError:
         return None
 
@@ -120,9 +121,9 @@ def _solvable_subtree(images: list[Image], children: int = 3) -> list[Image]:
         images = kept
 
 
-def _start(problem: ViewProblem, initial, tree_first: bool = False) -> ViewEstimate:
+def _start(problem: ViewProblem, initial, options: SolveOptions, tree_first: bool = False) -> ViewEstimate:
     """The analytical start, or ``initial`` (a :class:`ViewEstimate`, or a single-camera estimate with
-    ``R_cam_base``, ``t_cam_base``, ``mirror_vectors``, ``points``)."""
+    ``R_cam_base``, ``t_cam_base``, ``mirror_vectors``, ``points``). ``options`` reach rule 2's solves."""
     if isinstance(initial, ViewEstimate):
         return initial
     if initial is not None:
@@ -130,7 +131,7 @@ def _start(problem: ViewProblem, initial, tree_first: bool = False) -> ViewEstim
         return ViewEstimate({problem.cameras[0]: pose}, dict(initial.mirror_vectors), dict(initial.points))
     dataset = problem.dataset
     try:
-        known = propagate(problem.views, dataset.fiducials, problem.cameras, problem.fixed, tree_start_for(dataset),
+        known = propagate(problem.views, dataset.fiducials, problem.cameras, problem.fixed, tree_start_for(dataset, options),
                           dataset.scale, tree_first)
     except Unsolvable as error:
         raise Unsolvable(f"{dataset.source}: {error}") from None
@@ -226,7 +227,7 @@ class ViewsProblem:
         options, timings = self.options, self.timings
         problem = ViewProblem(solved, options.robust, self.models)
         with timed(timings, "analytic"):
-            begin = _start(problem, self.last)
+            begin = _start(problem, self.last, options)
         graph = problem.graph()
         params = lm_params(options.max_iterations, cost_scale(solved), GENERAL_LAMBDA_UPPER_BOUND)
 
@@ -239,7 +240,7 @@ class ViewsProblem:
             dimension = result.dim() - problem.constraints
             if self.analytic and self.last is None and not plausible(graph.error(result),
                                                                      0.5 * max(problem.size - dimension, 0)):
-                other = _other_start(problem)  # the analytical start ended implausibly: try the other one
+                other = _other_start(problem, options)  # the analytical start ended implausibly: try the other one
                 if other is not None:
                     tried = optimize(other)
                     if graph.error(tried[1]) < graph.error(result):
