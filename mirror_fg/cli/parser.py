@@ -284,6 +284,9 @@ def build_parser() -> argparse.ArgumentParser:
     pat.add_argument("--square-mm", type=_POSITIVE, help="square (tag spacing) on the screen, mm (default 40)")
     pat.add_argument("-o", "--output", required=True, type=Path, help="pattern PNG to write")
     _add_common(pat)
+    from mirror_fg.cli.verify_cmd import add_parser as add_verify
+
+    add_verify(sub, _add_common, EPILOG, _POSITIVE)
     return parser
 
 
