@@ -8,12 +8,14 @@ Pose3 tangent ``[w, nu]`` (right perturbation) is used inside, converted at the 
 
 The model is the general view model (``solver/views.py``, one ``factors/views.py`` factor per image): the
 target, the reconstruction points and the intrinsics are the stored ones (they cannot have moved; the
-points are held at their stored positions), every mirror placement of the new data is a new unknown
-(started by ``solver/propagation.py``'s rule 3 from the stored pose). For camera ``c``:
+points are held at their stored positions; intrinsics the result estimated are unknowns under their
+stored covariance, in both fits), every mirror placement of the new data is a new unknown (started by
+``solver/propagation.py``'s rule 3 from the stored pose). For camera ``c``:
 
 - ``cost_free``: the new images with every camera free;
 - ``cost_held``: the same with camera ``c`` under a prior at its stored transform with its stored
-  covariance ``S``;
+  covariance ``S`` (jointly with its estimated intrinsics, their stored cross-covariance, where the result
+  estimated them: the pose's error and theirs are correlated);
 - ``d2 = 2 (cost_held - cost_free)``; under "not moved" (linearised) ``d2 ~ chi2_k``, ``p = 1 - chi2_k(d2)``.
 
 ``k``: the new data's information ``N`` about the pose after marginalising the placements and the other
@@ -47,6 +49,7 @@ from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_param
 from mirror_fg.solver.marginals import unconstrained_message
 from mirror_fg.solver.propagation import Unsolvable, propagate
 from mirror_fg.solver.views import SINGLE_CAMERA, ViewProblem, camera_names, tangent_dimension
+from mirror_fg.solver.verify_priors import StoredIntrinsics, joint_prior, stored_intrinsics
 
 __all__ = ["Verification", "CameraVerdict", "verify", "MOVED", "NOT_MOVED", "CANNOT_TELL", "POWER", "stored_cameras",
            "detectable_noncentrality"]
@@ -177,9 +180,11 @@ def _stored_intrinsics(result: Mapping[str, Any], name: str, given, source: str)
     return found
 
 
-def _verification_dataset(result: Mapping[str, Any], dataset: Dataset, source: str) -> Dataset:
-    """``dataset`` with the stored intrinsics (fixed) and the stored reconstruction points as known points;
-    one line (DatasetError) where the result and the data cannot be from one set-up."""
+def _verification_dataset(result: Mapping[str, Any], dataset: Dataset,
+                          source: str) -> tuple[Dataset, dict[str, StoredIntrinsics]]:
+    """``dataset`` with the stored intrinsics (their values; none left to estimate) and the stored
+    reconstruction points as known points, and the intrinsics the result estimated with their stored
+    covariances; one line (DatasetError) where the result and the data cannot be from one set-up."""
     stored = stored_cameras(result)
     names = camera_names(dataset)
     unknown = [n for n in names if n not in stored]
@@ -214,7 +219,13 @@ def _verification_dataset(result: Mapping[str, Any], dataset: Dataset, source: s
     else:
         cameras, camera = None, fixed(_stored_intrinsics(result, SINGLE_CAMERA, dataset.camera, source))
     used = {n: points[n] for n in dataset.reconstruction_point_names}
-    return replace(dataset, camera=camera, cameras=cameras, fiducials={**dataset.fiducials, **used})
+    verification = replace(dataset, camera=camera, cameras=cameras, fiducials={**dataset.fiducials, **used})
+    intrinsics = {}
+    for name in names:
+        found = stored_intrinsics(result, name, verification.cameras[name] if verification.cameras else camera, source)
+        if found is not None:
+            intrinsics[name] = found
+    return verification, intrinsics
 
 
 # --------------------------------------------------------------------------------------------------
@@ -224,9 +235,13 @@ def _verification_dataset(result: Mapping[str, Any], dataset: Dataset, source: s
 class _Fits:
     """The new data's graph and the priors of the test, and LM on them."""
 
-    def __init__(self, dataset: Dataset, stored: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]):
-        self.problem = ViewProblem(dataset)
+    def __init__(self, dataset: Dataset, stored: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
+                 intrinsics: dict[str, StoredIntrinsics]):
+        self.problem = ViewProblem(dataset, intrinsics={n: i.model for n, i in intrinsics.items()})
+        self.intrinsics = intrinsics
         self.data = self.problem.graph()
+        for name, stored_k in intrinsics.items():  # in every fit: the intrinsics cannot have moved
+            self.data.add(stored_k.marginal_prior(self.problem.intrinsics_keys[name]))
         self.stored = stored
         self.params = lm_params(MAX_ITERATIONS, cost_scale(dataset), GENERAL_LAMBDA_UPPER_BOUND)
         self.source = dataset.source
@@ -244,11 +259,17 @@ class _Fits:
             raise DatasetError(f"{self.source}: {error}") from None
         return problem.values(problem.estimate_from(known))
 
-    def prior(self, name: str, information: np.ndarray | None = None) -> gtsam.PriorFactorPose3:
-        """Camera ``name`` at its stored transform: with its stored covariance, or ``information`` (tangent)."""
-        noise = (gtsam.noiseModel.Gaussian.Covariance(self.stored_tangent[name]) if information is None
-                 else gtsam.noiseModel.Gaussian.Information(information))
-        return gtsam.PriorFactorPose3(self.problem.pose_keys[name], self.stored_pose[name], noise)
+    def prior(self, name: str, information: np.ndarray | None = None) -> gtsam.NonlinearFactor:
+        """Camera ``name`` at its stored transform: with its stored covariance (and, where the result
+        estimated them, its intrinsics' cross-covariance), or ``information`` (tangent)."""
+        key = self.problem.pose_keys[name]
+        if information is not None:
+            return gtsam.PriorFactorPose3(key, self.stored_pose[name], gtsam.noiseModel.Gaussian.Information(information))
+        if name in self.intrinsics:
+            return joint_prior(key, self.problem.intrinsics_keys[name], self.stored_pose[name], self.intrinsics[name],
+                               self.stored_tangent[name])
+        return gtsam.PriorFactorPose3(key, self.stored_pose[name],
+                                      gtsam.noiseModel.Gaussian.Covariance(self.stored_tangent[name]))
 
     def fit(self, priors: list, starts: list[gtsam.Values]) -> tuple[gtsam.Values, float]:
         """LM on the data and ``priors`` from each start: the lowest ``(values, cost)``."""
@@ -317,9 +338,10 @@ def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.0
         raise DatasetError(f"alpha must be between 0 and 1, got {alpha}")
     if hasattr(result, "to_dict"):
         result = result.to_dict()
-    verification_data = _verification_dataset(result, dataset, source)
+    verification_data, intrinsics = _verification_dataset(result, dataset, source)
     stored_all = stored_cameras(result)
-    fits = _Fits(verification_data, {n: c for n, c in stored_all.items() if n in camera_names(dataset)})  # type: ignore[misc]
+    fits = _Fits(verification_data, {n: c for n, c in stored_all.items() if n in camera_names(dataset)},  # type: ignore[misc]
+                 intrinsics)
     problem = fits.problem
     tested = list(problem.pose_keys)
     start = fits.start()
@@ -393,7 +415,15 @@ def _fused(fits: _Fits, held: gtsam.Values, tested: list[str]) -> dict[str, tupl
         R = estimate.rotation().matrix()
         rotations[name] = R
         c = columns[fits.problem.pose_keys[name]]
-        H[c, c] += np.linalg.inv(covariance_to_pose3(R, fits.stored[name][2]))
+        if name in fits.intrinsics:  # the pose given the intrinsics (their marginal is in the data graph)
+            k = columns[fits.problem.intrinsics_keys[name]]
+            B, conditional = fits.intrinsics[name].conditional(covariance_to_pose3(R, fits.stored[name][2]), R)
+            E = np.zeros((6, H.shape[0]))
+            E[:, c] = np.eye(6)
+            E[:, k] = -B
+            H += E.T @ np.linalg.inv(conditional) @ E
+        else:
+            H[c, c] += np.linalg.inv(covariance_to_pose3(R, fits.stored[name][2]))
     covariance = np.linalg.pinv(H, rcond=1e-14, hermitian=True)
     for name in tested:
         estimate = held.atPose3(fits.problem.pose_keys[name])

@@ -58,8 +58,11 @@ def moved_data(new: Dataset, truth: GroundTruth, move: np.ndarray, pixel_sigma: 
 
 
 def power_study(trials: int = 200, seed: int = 0, alpha: float = 0.01, move_sigmas: float = 3.0,
-                stored_images: int = 20, new_images: int = 3, pixel_sigma: float = 1.0) -> PowerFigures:
-    """The study of the module docstring; every trial has its own scene, stored data and noise."""
+                stored_images: int = 20, new_images: int = 3, pixel_sigma: float = 1.0,
+                estimate: tuple[str, ...] = ()) -> PowerFigures:
+    """The study of the module docstring; every trial has its own scene, stored data and noise.
+    ``estimate``: intrinsics the stored calibration estimates (``camera.estimate``; verify then holds them
+    under their stored covariance, correlated with the pose's)."""
     rng = np.random.default_rng(seed)
     false_alarms = detections = 0
     still: dict[str, int] = {}
@@ -69,6 +72,9 @@ def power_study(trials: int = 200, seed: int = 0, alpha: float = 0.01, move_sigm
         scene_seed = int(rng.integers(0, 2**31 - 1))
         stored_data, _ = simulate_base_case(num_images=stored_images, num_mirrors=1, num_fiducials=4,
                                             pixel_sigma=pixel_sigma, seed=scene_seed)
+        if estimate:
+            assert stored_data.camera is not None
+            stored_data = replace(stored_data, camera=replace(stored_data.camera, estimate=estimate))
         stored = calibrate(stored_data)
         new, truth = simulate_base_case(num_images=new_images, num_mirrors=1, num_fiducials=4, pixel_sigma=pixel_sigma,
                                         mirror1_placements=1, seed=scene_seed + 1)
