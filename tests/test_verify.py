@@ -198,3 +198,35 @@ def test_takahashi_fiducials_shifted_say_moved(takahashi_dir):
 def test_takahashi_unmoved_never_moved(takahashi_dir):
     stored, new = _takahashi(takahashi_dir)
     assert verify(stored, new).cameras["camera"].verdict in (NOT_MOVED, CANNOT_TELL)
+
+
+def test_data_that_do_not_fit_the_stored_target_are_refused(tmp_path, capsys):
+    """Reconstruction points of another scene (another seed) under the same names: not even a free camera
+    fits them, so the result and the data are not of one set-up (exit 2), never a `moved`."""
+    stored_data, _ = simulate_base_case(num_images=20, num_mirrors=1, num_fiducials=4, num_points=5, seed=1)
+    other, _ = simulate_base_case(num_images=3, num_mirrors=1, num_fiducials=4, num_points=5, mirror1_placements=1,
+                                  seed=2)
+    write_result(tmp_path / "r.json", calibrate(stored_data).to_dict())
+    save_dataset(tmp_path / "d.json", other)
+    assert main(["verify", str(tmp_path / "r.json"), str(tmp_path / "d.json")]) == 2
+    assert "different set-ups" in capsys.readouterr().err
+
+
+def test_readme_section_runs(tmp_path):
+    """The README's "Has it moved?" commands run from a clone and say what the README prints."""
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = text.split("## Has it moved?", 1)[1].split("\n## ", 1)[0]
+    (block,) = re.findall(r"```bash\n(.*?)\n```", section, flags=re.S)
+    commands = [line for line in block.splitlines() if line.startswith("mirror-fg ")]
+    program = f"{sys.executable} -c 'import sys; from mirror_fg.cli import main; sys.exit(main())'"
+    for command in commands:
+        run = subprocess.run(command.replace("mirror-fg ", f"{program} ", 1), shell=True, cwd=tmp_path,
+                             capture_output=True, text=True, timeout=120)
+        assert run.returncode == 0, (command, run.stderr[-2000:])
+    assert "NOT MOVED" in run.stdout and "p = 0.0187" in run.stdout
+    assert (tmp_path / "verification.json").exists() and (tmp_path / "updated.result.json").exists()
