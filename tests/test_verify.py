@@ -230,3 +230,20 @@ def test_readme_section_runs(tmp_path):
         assert run.returncode == 0, (command, run.stderr[-2000:])
     assert "NOT MOVED" in run.stdout and "p = 0.0187" in run.stdout
     assert (tmp_path / "verification.json").exists() and (tmp_path / "updated.result.json").exists()
+
+
+def test_rig_each_camera_tested():
+    """A rig: each camera has its own verdict; a camera without new images cannot tell, and says so."""
+    from mirror_fg.io.dataset import dataset_from_dict
+    from mirror_fg.tools.simulate_rig import simulate_rig_tree
+
+    stored_dict, _ = simulate_rig_tree(num_mirrors=1, own=[20, 20], shared=4, num_fiducials=4, seed=1)
+    stored = calibrate(dataset_from_dict(stored_dict))
+    new_dict, _ = simulate_rig_tree(num_mirrors=1, own=[3, 3], shared=0, num_fiducials=4, seed=2)
+    answer = verify(stored, dataset_from_dict(new_dict), tolerance_mm=1000.0, tolerance_deg=50.0)
+    assert [(v.name, v.dof, v.verdict) for v in answer.cameras.values()] == [("cam0", 6, NOT_MOVED),
+                                                                           ("cam1", 6, NOT_MOVED)]
+    only_cam0 = dict(new_dict, images=[im for im in new_dict["images"] if im["camera"] == "cam0"])
+    answer = verify(stored, dataset_from_dict(only_cam0), tolerance_mm=1000.0, tolerance_deg=50.0)
+    assert answer.cameras["cam0"].verdict == NOT_MOVED
+    assert answer.cameras["cam1"].verdict == CANNOT_TELL and "no new image" in answer.cameras["cam1"].advice
