@@ -251,6 +251,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="a folder source ends after this many seconds without a new image (default 30)")
     liv.add_argument("--hold", action="store_true", help="with --serve: keep the page up after the source ends, until Ctrl-C")
     liv.add_argument("--no-ros", action="store_true", help="do not write the ROS files beside the result")
+    liv.add_argument("--verify", type=Path, metavar="RESULT", help="has it moved? test each new placement against RESULT")
     _add_common(liv)
 
     rep = sub.add_parser("report", help="HTML + PDF report of a result",

@@ -104,3 +104,44 @@ def verification_lines(verification) -> list[str]:
             lines.append(f"  {v.advice}")
     return lines
 
+
+
+def live_verifier(args, session, out: _Printer):
+    """``live --verify RESULT``: the verifier of a live session (``tools/live_verify.py``), or None without it."""
+    if getattr(args, "verify", None) is None:
+        return None
+    from mirror_fg.core.errors import DatasetError
+    from mirror_fg.io.result import load_result
+    from mirror_fg.tools.live_verify import LiveVerifier
+
+    if args.output is not None:
+        raise DatasetError("live: --verify tests the frames against RESULT and calibrates nothing: drop -o (or run "
+                           "without --verify to calibrate)")
+    return LiveVerifier(load_result(args.verify), session, source=os.fspath(args.verify))
+
+
+def live_verify_frame(verifier, record, out: _Printer, quiet: bool) -> None:
+    """After an added frame: the verdict of the placements so far, one line (none with ``quiet``)."""
+    if verifier is None or record.status != "added":
+        return
+    answer = verifier.update()
+    if quiet:
+        return
+    if answer is None:
+        out.info(f"[frame {record.frame}] verify: waiting: {verifier.waiting}")
+        return
+    for v in answer.cameras.values():
+        seen = (f"smallest move seen {math.degrees(v.detectable_rad):.3g} deg, {1e3 * v.detectable_m:.3g} mm"
+                if math.isfinite(v.detectable_rad) else "some directions unseen")
+        out.info(f"[frame {record.frame}] verify: {v.name}: {v.verdict} (p = {v.p_value:.3g}, {v.dof} of 6 seen; {seen})")
+
+
+def live_verify_end(verifier, out: _Printer) -> int:
+    """At the end of a ``live --verify`` session: the verdict's lines and its exit status (5 without a
+    verdict: nothing could be tested)."""
+    if verifier.last is None:
+        out.info(f"verify: cannot tell: {verifier.waiting}")
+        return 5
+    for line in verification_lines(verifier.last):
+        out.info(line)
+    return verifier.last.exit_code
