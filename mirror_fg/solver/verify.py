@@ -47,6 +47,7 @@ from mirror_fg.io.dataset import Dataset
 from mirror_fg.io.result import estimated_camera, pose
 from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, plausible, run_optimizer
 from mirror_fg.solver.marginals import unconstrained_message
+from mirror_fg.solver.options import SolveOptions
 from mirror_fg.solver.propagation import Unsolvable, propagate
 from mirror_fg.solver.views import SINGLE_CAMERA, ViewProblem, camera_names, tangent_dimension
 from mirror_fg.solver.verify_priors import StoredIntrinsics, joint_prior, stored_intrinsics
@@ -194,9 +195,13 @@ def _verification_dataset(result: Mapping[str, Any], dataset: Dataset,
         raise DatasetError(f"{source}: {what} is not in the result (its cameras: {have}): the result and the data "
                            "are from different set-ups")
     for name in names:
-        if stored[name][2] is None:
+        covariance = stored[name][2]
+        if covariance is None:
             raise DatasetError(f"{source}: camera {name!r} has no covariance_cam_base: verify needs the stored "
                                "uncertainty (calibrate again)")
+        if not np.all(np.isfinite(covariance)) or np.linalg.eigvalsh(0.5 * (covariance + covariance.T))[0] <= 0:
+            raise DatasetError(f"{source}: camera {name!r}: covariance_cam_base is not positive definite (a camera "
+                               "whose frame is the base frame cannot have moved against it)")
     if not dataset.fiducials:
         raise DatasetError(f"{dataset.source}: no fiducials: verify needs the known target the result was made with")
     units = (result.get("residuals") or {}).get("units")
@@ -236,14 +241,14 @@ class _Fits:
     """The new data's graph and the priors of the test, and LM on them."""
 
     def __init__(self, dataset: Dataset, stored: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
-                 intrinsics: dict[str, StoredIntrinsics]):
+                 intrinsics: dict[str, StoredIntrinsics], max_iterations: int = MAX_ITERATIONS):
         self.problem = ViewProblem(dataset, intrinsics={n: i.model for n, i in intrinsics.items()})
         self.intrinsics = intrinsics
         self.data = self.problem.graph()
         for name, stored_k in intrinsics.items():  # in every fit: the intrinsics cannot have moved
             self.data.add(stored_k.marginal_prior(self.problem.intrinsics_keys[name]))
         self.stored = stored
-        self.params = lm_params(MAX_ITERATIONS, cost_scale(dataset), GENERAL_LAMBDA_UPPER_BOUND)
+        self.params = lm_params(max_iterations, cost_scale(dataset), GENERAL_LAMBDA_UPPER_BOUND)
         self.source = dataset.source
         self.stored_pose = {n: gtsam.Pose3(gtsam.Rot3(R), t) for n, (R, t, _) in stored.items()}
         #: The stored covariance in GTSAM's tangent at the stored pose.
@@ -330,9 +335,10 @@ def _free_information(lam: np.ndarray, U: np.ndarray, L: np.ndarray) -> np.ndarr
 
 
 def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.01, tolerance_mm: float = 2.0,
-           tolerance_deg: float = 0.2, source: str = "result") -> Verification:
+           tolerance_deg: float = 0.2, source: str = "result", options: SolveOptions | None = None) -> Verification:
     """Whether each camera of ``dataset``'s images is still where ``result`` (a validated result@1
     dictionary, or a :class:`~mirror_fg.solver.calibration.Calibration`) puts it (module docstring).
+    ``source`` names the result in messages; ``options``: its ``max_iterations`` bounds each LM fit.
     DatasetError (exit 2) where the result and the data cannot be from one set-up."""
     if not 0.0 < alpha < 1.0:
         raise DatasetError(f"alpha must be between 0 and 1, got {alpha}")
@@ -341,7 +347,7 @@ def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.0
     verification_data, intrinsics = _verification_dataset(result, dataset, source)
     stored_all = stored_cameras(result)
     fits = _Fits(verification_data, {n: c for n, c in stored_all.items() if n in camera_names(dataset)},  # type: ignore[misc]
-                 intrinsics)
+                 intrinsics, options.max_iterations if options is not None else MAX_ITERATIONS)
     problem = fits.problem
     tested = list(problem.pose_keys)
     start = fits.start()
