@@ -23,13 +23,15 @@ from mirror_fg.cli.commands import (
     cmd_simulate,
 )
 from mirror_fg.cli.parser import build_parser
+from mirror_fg.cli.verify_cmd import cmd_verify
 from mirror_fg.cli.printing import EXIT_INTERNAL, _error_line, _one_line, _Printer
 from mirror_fg.core.errors import MirrorFgError
 
 __all__ = ["main", "build_parser"]
 
 COMMANDS = {"live": cmd_live, "pattern": cmd_pattern, "plan": cmd_plan, "simulate": cmd_simulate,
-            "calibrate": cmd_calibrate, "calibrate-many": cmd_calibrate_many, "detect": cmd_detect, "report": cmd_report}
+            "calibrate": cmd_calibrate, "calibrate-many": cmd_calibrate_many, "detect": cmd_detect, "report": cmd_report,
+            "verify": cmd_verify}
 
 
 class _Notes(logging.Handler):

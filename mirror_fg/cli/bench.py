@@ -72,6 +72,7 @@ def cmd_live(args, out: _Printer) -> int:
     from mirror_fg.solver.calibration import require_converged
     from mirror_fg.tools.live import LiveSession, run
     from mirror_fg.tools.live_sources import open_source
+    from mirror_fg.cli.verify_cmd import live_verifier, live_verify_end, live_verify_frame
 
     source_path = os.fspath(args.capture)
     outputs = (plan_calibration_outputs([source_path], args.output, ros=not args.no_ros)
@@ -85,6 +86,7 @@ def cmd_live(args, out: _Printer) -> int:
     capture = capture_from_file_data(data, source_path, media=False)
     session = LiveSession(capture, target_mm=args.target_mm, target_deg=args.target_deg,
                           keep_frames=args.save is not None, picture=args.serve is not None)
+    verifier = live_verifier(args, session, out)
     source = open_source(args.source, idle_s=args.idle)
     server = None
     if args.serve is not None:
@@ -98,6 +100,7 @@ def cmd_live(args, out: _Printer) -> int:
         lines = sys.stdout if os.fspath(args.json_lines) == "-" else open(args.json_lines, "w")
 
     def on_record(record) -> None:
+        live_verify_frame(verifier, record, out, quiet=lines is sys.stdout)
         if lines is not None:
             lines.write(record.to_json() + "\n")
             lines.flush()
@@ -137,6 +140,8 @@ def cmd_live(args, out: _Printer) -> int:
     written = []
     if args.save is not None:
         written += session.save(os.fspath(args.save), data)
+    if verifier is not None:
+        return live_verify_end(verifier, out)
     calibration = require_converged(session.result(), capture.source)
     result = calibration.to_dict()
     if outputs is not None:

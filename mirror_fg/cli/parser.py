@@ -251,6 +251,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="a folder source ends after this many seconds without a new image (default 30)")
     liv.add_argument("--hold", action="store_true", help="with --serve: keep the page up after the source ends, until Ctrl-C")
     liv.add_argument("--no-ros", action="store_true", help="do not write the ROS files beside the result")
+    liv.add_argument("--verify", type=Path, metavar="RESULT", help="has it moved? test each new placement against RESULT")
     _add_common(liv)
 
     rep = sub.add_parser("report", help="HTML + PDF report of a result",
@@ -284,6 +285,9 @@ def build_parser() -> argparse.ArgumentParser:
     pat.add_argument("--square-mm", type=_POSITIVE, help="square (tag spacing) on the screen, mm (default 40)")
     pat.add_argument("-o", "--output", required=True, type=Path, help="pattern PNG to write")
     _add_common(pat)
+    from mirror_fg.cli.verify_cmd import add_parser as add_verify
+
+    add_verify(sub, _add_common, EPILOG, _POSITIVE)
     return parser
 
 
