@@ -78,14 +78,14 @@ def _pixel_grid(camera: Any) -> tuple[np.ndarray, np.ndarray, tuple[float, float
 def largest_sigma3_map(T_base_cam: Transform, covariance_base_cam: np.ndarray, normalized: np.ndarray,
                        depth_m: float) -> np.ndarray:
     """The 3-sigma along the worst direction (mm) of each point ``depth (x, y, 1)`` in {B}."""
-    from mirror_fg.solver.point_error import point_jacobian
-
     points = depth_m * np.column_stack([normalized, np.ones(len(normalized))])
-    out = np.empty(len(points))
-    for k, p in enumerate(points):
-        J = point_jacobian(T_base_cam.R, p)
-        out[k] = 3000.0 * math.sqrt(max(float(np.linalg.eigvalsh(J @ covariance_base_cam @ J.T)[-1]), 0.0))
-    return out
+    a = points @ np.asarray(T_base_cam.R, float).T  # R p_cam: the lever arm of a rotation error
+    J = np.zeros((len(points), 3, 6))  # solver/point_error.point_jacobian of every point: [-[a]x, I]
+    J[:, 0, 1], J[:, 0, 2], J[:, 1, 0] = a[:, 2], -a[:, 1], -a[:, 2]
+    J[:, 1, 2], J[:, 2, 0], J[:, 2, 1] = a[:, 0], a[:, 1], -a[:, 0]
+    J[:, :, 3:] = np.eye(3)
+    C = J @ np.asarray(covariance_base_cam, float) @ J.transpose(0, 2, 1)
+    return 3000.0 * np.sqrt(np.clip(np.linalg.eigvalsh(C)[:, -1], 0.0, None))
 
 
 def figure_point_error_map(result: Mapping[str, Any], camera: Any) -> Figure:
