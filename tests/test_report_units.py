@@ -85,3 +85,23 @@ def test_report_section_with_and_without_the_dataset(calibrated):
     alone = units_blocks(result, None)  # no dataset, no validation in the result: the map only, and a note
     assert [b.kind for b in alone].count("figure") == 1
     assert any("no held-out validation" in b.text for b in alone)
+
+
+def test_the_readme_example_runs_and_prints_what_it_shows(tmp_path):
+    """README's "How far off will my grasp be?" command, run as written (from the repository root, the
+    output moved to a temporary folder): the lines it shows come out, figures and all."""
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    section = (repo / "README.md").read_text().split("### How far off will my grasp be?", 1)[1].split("\n#", 1)[0]
+    command = re.search(r"```bash\n(.*?)\n```", section, re.S).group(1)
+    shown = re.search(r"```text\n(.*?)\n```", section, re.S).group(1).splitlines()
+    command = command.replace("mirror-fg ", f"{sys.executable} -m mirror_fg ").replace("out/", f"{tmp_path}/")
+    run = subprocess.run(command, shell=True, cwd=repo, capture_output=True, text=True, timeout=120,
+                         env={"PYTHONPATH": str(repo), "PATH": "/usr/bin:/bin"})
+    assert run.returncode == 0, run.stderr
+    for line in shown:
+        assert line in run.stdout.splitlines()
