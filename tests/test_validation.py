@@ -170,3 +170,38 @@ def test_an_offset_the_images_own_mirror_can_mimic_is_mostly_absorbed():
     bad, image_id = _one_point_off(dataset, 77, "F1", (6.0, 0.0))
     validation = validate_calibration(bad, calibrate(bad, diagnose=False))
     assert validation.ratios[validation.images.index(image_id)] < 2.0
+
+
+def test_held_out_ratio_matches_the_brute_force_on_a_rig():
+    from mirror_fg.tools.simulate_rig import simulate_rig_mixed
+
+    dataset = dataset_from_dict(simulate_rig_mixed(2, seed=1)[0])
+    calibration = calibrate(dataset, diagnose=False)
+    validation = validate_calibration(dataset, calibration)
+    cameras = {dataset.images[[im.id for im in dataset.images].index(i)].camera for i in validation.images}
+    assert cameras == {"cam0", "cam1"}
+    for image_id in (validation.images[0], validation.images[len(validation.images) // 2], validation.images[-1]):
+        k = validation.images.index(image_id)
+        assert validation.ratios[k] == pytest.approx(brute_force_ratio(dataset, calibration, image_id), rel=0.05)
+
+
+def test_estimated_intrinsics_widen_what_each_image_is_expected_to_cost():
+    """With fx, fy, cx, cy estimated, the held-out unknowns include them: each image's expected cost is
+    at least that with the intrinsics taken as known (same estimate), and the ratio stays near 1."""
+    import warnings
+
+    from mirror_fg.solver.validation import estimate_of_calibration, validate
+
+    dataset, _ = simulate_base_case(num_images=100, seed=3, num_fiducials=4)
+    dataset = replace(dataset, camera=replace(dataset.camera, estimate=("fx", "fy", "cx", "cy")))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # weakly determined intrinsics: the point of this test
+        calibration = calibrate(dataset, diagnose=False)
+    estimate, estimated = estimate_of_calibration(calibration)
+    assert list(estimated) == ["camera"]
+    with_intrinsics = validate(dataset, estimate, [], estimated)
+    known = validate(replace(dataset, camera=estimated["camera"]), estimate, [])
+    assert with_intrinsics.images == known.images
+    assert np.all(with_intrinsics.expected >= known.expected - 1e-9)
+    assert np.sum(with_intrinsics.expected) > np.sum(known.expected) + 1.0
+    assert 0.8 <= with_intrinsics.ratio <= 1.25
