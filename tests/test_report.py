@@ -175,7 +175,7 @@ def _assert_self_contained(text: str) -> list[str]:
 def test_report_html_content(report):
     text = report["html"].read_text(encoding="utf-8")
     sources = _assert_self_contained(text)
-    assert len(sources) == 6  # histogram, per-image, per-point, radial, scene, correlation
+    assert len(sources) == 8  # histogram, per-image, per-point, radial, scene, correlation, error map, validation
     flagged = re.search(r"<ul id='flagged-images'>(.*?)</ul>", text, re.S)
     assert flagged and OUTLIER_IMAGE in flagged.group(1)
     assert "img003" not in flagged.group(1)

@@ -31,7 +31,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.views import SINGLE_CAMERA, ViewEstimate, ViewProblem, camera_names, tangent_dimension
 
 __all__ = ["MAX_IMAGES", "Validation", "validate", "validate_calibration", "validate_result_file", "image_ratios",
@@ -141,8 +141,8 @@ def validate(dataset: Dataset, estimate: ViewEstimate, excluded: Sequence[tuple[
     their owner cameras' frames, points in {B}); ``excluded``: ``(image, point or None)`` the solve left
     out (a whole image is not held out: it was not used; a point is, in its image's cost);
     ``estimated_cameras``: ``{camera: Camera as estimated}`` where intrinsics were estimated."""
-    ids, costs, expected, skipped = image_ratios(dataset, estimate, excluded, estimated_cameras, limit)
-    costs, expected = np.asarray(costs, float), np.asarray(expected, float)
+    ids, cost_list, expected_list, skipped = image_ratios(dataset, estimate, excluded, estimated_cameras, limit)
+    costs, expected = np.asarray(cost_list, float), np.asarray(expected_list, float)
     ratios = np.sqrt(costs / expected) if len(costs) else np.zeros(0)
     return Validation(tuple(ids), ratios, costs, expected, tuple(skipped))
 
@@ -154,13 +154,13 @@ def _problem(dataset: Dataset, estimate: ViewEstimate, excluded: Sequence[tuple[
     from mirror_fg.factors.intrinsics import IntrinsicsModel
     from mirror_fg.solver.intrinsics import camera_intrinsics
 
-    images_out = {image for image, point in excluded if point is None}
+    images_out = {image_id for image_id, point in excluded if point is None}
     points_out: dict[str, set[str]] = {}
-    for image, point in excluded:
+    for image_id, point in excluded:
         if point is not None:
-            points_out.setdefault(image, set()).add(point)
+            points_out.setdefault(image_id, set()).add(point)
     known = set(dataset.fiducials) | set(estimate.points)
-    images = []
+    images: list[Image] = []
     for image in dataset.images:
         if image.id in images_out or not all(p in estimate.mirror_vectors for p in image.reflections):
             continue
@@ -173,16 +173,17 @@ def _problem(dataset: Dataset, estimate: ViewEstimate, excluded: Sequence[tuple[
     theta: dict[str, np.ndarray] = {}
     given = dataset.cameras if dataset.cameras is not None else {SINGLE_CAMERA: dataset.camera}
     for name, camera in (estimated_cameras or {}).items():
-        if name in given and given[name] is not None and given[name].estimate:
-            models[name] = IntrinsicsModel(camera_intrinsics(given[name]), given[name].estimate)
+        start = given.get(name)
+        if start is not None and start.estimate:
+            models[name] = IntrinsicsModel(camera_intrinsics(start), start.estimate)
             theta[name] = camera_intrinsics(camera)
     problem = ViewProblem(used, None, models)
     names = camera_names(used)
     poses = {n: estimate.poses[n] for n in names if n in estimate.poses}
     values = problem.values(ViewEstimate(poses, estimate.mirror_vectors, estimate.points, theta or None))
     masks = []
-    for image, view in zip(used.images, problem.views):
-        out = points_out.get(image.id, set())
+    for used_image, view in zip(used.images, problem.views):
+        out = points_out.get(used_image.id, set())
         masks.append(np.repeat([n not in out for n in view.names], 2))
     return used, problem, values, masks
 
@@ -243,22 +244,22 @@ def image_ratios(dataset: Dataset, estimate: ViewEstimate, excluded: Sequence[tu
         A_a, b_a = V_a.T @ J_a[:, shared_cols], V_a.T @ r_a
         information[np.ix_(index, index)] += A_a.T @ A_a
         gradient[index] += A_a.T @ b_a
-        reduced.append((np.array(index, dtype=int), A_f, b_f, A_a, b_a))
+        reduced.append((np.array(index, dtype=int), A_f, b_f, A_a, b_a))  # index: global columns
     for prior in priors:
         gaussian = prior.linearize(values)
         A, b = gaussian.jacobian()
-        index = [i for key in gaussian.keys() for i in range(offset[key], offset[key] + dims[key])]
-        information[np.ix_(index, index)] += A.T @ A
-        gradient[index] += A.T @ (-b)
+        columns = [i for key in gaussian.keys() for i in range(offset[key], offset[key] + dims[key])]
+        information[np.ix_(columns, columns)] += A.T @ A
+        gradient[columns] += A.T @ (-b)
     covariance = np.linalg.pinv(information, hermitian=True) if size else np.zeros((0, 0))
     step = -covariance @ gradient  # one Gauss-Newton step of the full system: its optimum
     ids, costs, expected, skipped = [], [], [], []
     for k in sampled(len(used.images), limit):
-        index, A_f, b_f, A_a, b_a = reduced[k]
+        at, A_f, b_f, A_a, b_a = reduced[k]
         image_id = used.images[k].id
-        Sigma = covariance[np.ix_(index, index)]
-        b_f = b_f + A_f @ step[index]
-        b_a = b_a + A_a @ step[index]
+        Sigma = covariance[np.ix_(at, at)]
+        b_f = b_f + A_f @ step[at]
+        b_a = b_a + A_a @ step[at]
         M_aa, M_fa, M_ff = A_a @ Sigma @ A_a.T, A_f @ Sigma @ A_a.T, A_f @ Sigma @ A_f.T
         W = np.eye(len(b_a)) - M_aa
         if len(b_a) and np.min(np.linalg.eigvalsh(0.5 * (W + W.T))) < _SINGULAR:
