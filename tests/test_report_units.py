@@ -105,3 +105,25 @@ def test_the_readme_example_runs_and_prints_what_it_shows(tmp_path):
     assert run.returncode == 0, run.stderr
     for line in shown:
         assert line in run.stdout.splitlines()
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda r: r["at"][0].update(point_cam=[0, 1]), "at[0].point_cam: expected 3 numbers"),
+    (lambda r: r["at"][0].update(covariance=[[1, 0, 0]]), "at[0].covariance: expected 3 rows"),
+    (lambda r: r["validation"].update(ratio="x"), "validation.ratio"),
+    (lambda r: r["validation"].update(worst={"image": ""}), "validation.worst.image"),
+])
+def test_a_malformed_at_or_validation_is_refused_by_name(calibrated, edit, words):
+    """A result file's ``at`` and ``validation`` are checked like its other keys (one line naming the key)."""
+    from mirror_fg.core.errors import DatasetError
+    from mirror_fg.io.result import validate_result
+
+    folder, path = calibrated
+    out = folder / "r3.json"
+    if not out.exists():
+        assert main(["calibrate", str(path), "-o", str(out), "--no-ros", "-q", "--at", "0,0,0.6", "--validate"]) == 0
+    result = load_result(out)
+    assert validate_result(result, "r3.json") == result
+    edit(result)
+    with pytest.raises(DatasetError, match=words.replace("[", r"\[").replace("]", r"\]")):
+        validate_result(result, "r3.json")

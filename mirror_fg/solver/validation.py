@@ -190,7 +190,7 @@ def _problem(dataset: Dataset, estimate: ViewEstimate, excluded: Sequence[tuple[
 
 def _complement(J_local: np.ndarray, rows: int) -> np.ndarray:
     """An orthonormal basis (rows, k) of the complement of ``J_local``'s column space (all rows if none)."""
-    if J_local.shape[1] == 0:
+    if J_local.shape[1] == 0 or rows == 0:
         return np.eye(rows)
     U, s, _ = np.linalg.svd(J_local, full_matrices=True)
     rank = int(np.sum(s > max(s[0], 1e-300) * 1e-10)) if len(s) else 0
