@@ -175,7 +175,7 @@ def _assert_self_contained(text: str) -> list[str]:
 def test_report_html_content(report):
     text = report["html"].read_text(encoding="utf-8")
     sources = _assert_self_contained(text)
-    assert len(sources) == 6  # histogram, per-image, per-point, radial, scene, correlation
+    assert len(sources) == 8  # histogram, per-image, per-point, radial, scene, correlation, error map, validation
     flagged = re.search(r"<ul id='flagged-images'>(.*?)</ul>", text, re.S)
     assert flagged and OUTLIER_IMAGE in flagged.group(1)
     assert "img003" not in flagged.group(1)
@@ -289,8 +289,8 @@ def test_report_renders_in_chromium(report, tmp_path):
     dom = run.stdout
     assert "<html" in dom, f"no DOM dumped; chromium said: {run.stderr[-2000:]}"
     sources = _IMG_SRC.findall(dom)
-    assert len(sources) == 6 and all(s.startswith("data:image/png;base64,") for s in sources)
-    assert re.search(r"images=6 loaded=6", dom), re.findall(r"<p id=\"probe\">.*?</p>", dom)
+    assert len(sources) == 8 and all(s.startswith("data:image/png;base64,") for s in sources)  # with the error map, validation
+    assert re.search(r"images=8 loaded=8", dom), re.findall(r"<p id=\"probe\">.*?</p>", dom)
 
 
 def test_report_pdf_pages_render(report, tmp_path):
@@ -357,7 +357,7 @@ def _check_pipeline_report(ds, result, out: Path, render: bool) -> None:
     if render:
         paths = write_report(result, ds, out / "report", progress=False)
         text = paths["html"].read_text(encoding="utf-8")
-        assert len(_assert_self_contained(text)) == 6
+        assert len(_assert_self_contained(text)) == 8  # with the error map and the validation
         assert paths["pdf"].read_bytes().startswith(b"%PDF")
 
 

@@ -15,7 +15,7 @@ from mirror_fg.tools.residuals import compute_residuals
 
 from test_report import make_scene
 
-FIGURES = 6  # the scene's report: histogram, per image, per point, radial, 3D scene, correlation
+FIGURES = 8  # the scene's report: histogram, per image, per point, radial, 3D scene, correlation, error map, validation
 
 
 @pytest.fixture(scope="module")

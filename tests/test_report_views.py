@@ -178,7 +178,7 @@ def test_rig_report_groups_by_order_and_camera_and_ties_the_cameras(rig_report):
     for heading in ("Residuals by reflection order", "Residuals per camera", "3D scene", "Reflection orders: RMS, count, largest",
                     "Cameras: RMS, count, largest", "Mirror placements and the cameras that saw them"):
         assert heading in headings, heading
-    assert len(re.findall(r"data:image/png;base64,", page)) == 8
+    assert len(re.findall(r"data:image/png;base64,", page)) == 10  # with the error map and the validation
     orders = re.search(r"<table class='summary' id='orders'>(.*?)</table>", page).group(1)
     assert [re.search(r"(\d+) measurements", row).group(1) for row in orders.split("<tr>")[1:]] == ["20", "80", "80"]
     assert "left – right: 2 shared placement(s)" in page
@@ -281,7 +281,7 @@ def test_tree_report_has_no_view_sections(tmp_path):
     page = write_report(result, ds, tmp_path, progress=False)["html"].read_text(encoding="utf-8")
     for absent in ("id='orders'", "id='placements'", "id='no-target'", "Residuals by reflection order"):
         assert absent not in page
-    assert len(re.findall(r"data:image/png;base64,", page)) == 6
+    assert len(re.findall(r"data:image/png;base64,", page)) == 8  # with the error map and the validation
 
 
 def test_rig_without_a_target_marks_the_first_camera_as_the_base_frame(tmp_path):

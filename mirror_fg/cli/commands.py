@@ -194,6 +194,11 @@ def cmd_calibrate(args, out: _Printer) -> int:
             out.info(f"LM ended in a local minimum from the analytical solution; restarted from {calibration.restarts} "
                      "runner-up P3P hypothesis(es) and kept the lowest cost")
         require_converged(calibration, dataset.source, accept_poor_fit=args.accept_poor_fit)
+    if getattr(args, "validate", False):  # before the detection exclusions: those images are not in the dataset
+        from mirror_fg.solver.validation import validate_calibration
+
+        calibration.validation = validate_calibration(dataset, calibration)
+    calibration.at_points = list(getattr(args, "at", None) or [])
     calibration.excluded = _detection_exclusions(reports) + list(calibration.excluded)
     result = calibration.to_dict()
     written = outputs.write(result)

@@ -56,6 +56,16 @@ def _distance_range(text: str) -> tuple[float, ...]:
     return values
 
 
+def _point(text: str) -> tuple[float, float, float]:
+    """``X,Y,Z``, metres (``calibrate --at``)."""
+    from mirror_fg.solver.point_error import parse_point
+
+    try:
+        return parse_point(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
 def _intrinsic_names(text: str) -> tuple[str, ...]:
     """An argparse type: comma-separated distinct intrinsic names (``camera.estimate``)."""
     from mirror_fg.core.camera import INTRINSIC_NAMES
@@ -151,6 +161,12 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--accept-poor-fit", action="store_true",
                      help="write the result even when the fit is more than 3x worse than the noise model allows "
                      "(RMS whitened residual; refused by default: exit 3 with the likely causes)")
+    cal.add_argument("--at", action="append", type=_point, default=[], metavar="X,Y,Z",
+                     help="a point the camera measures (metres, camera frame, e.g. a grasp 0,0,0.6): its 3-sigma in the "
+                     "base frame from T_base_cam's covariance, in the result ('at') and printed; repeatable")
+    cal.add_argument("--validate", action="store_true",
+                     help="hold each image out in turn (up to 200) and compare its residuals with what the others' "
+                     "covariance predicts: ratio near 1 when the noise model and the bounds hold ('validation')")
     _add_common(cal)
 
     many = sub.add_parser("calibrate-many", help="calibrate many datasets or captures (a fleet) on Dask",

@@ -189,6 +189,12 @@ def result_dict(calibration: CalibrationLike) -> dict:
     if cameras is not None:  # several cameras (docs/formats.md "Several cameras"); absent, the file is as before
         result["cameras"] = camera_entries(cameras)
         result["rig"] = rig_entries(cameras, list(getattr(c, "rig", None) or []))
+    if getattr(c, "at_points", None):  # the error at the user's points (docs/formats.md "The answer in the user's units")
+        from mirror_fg.solver.point_error import at_entries, calibration_poses
+
+        result["at"] = at_entries(calibration_poses(c), c.at_points)
+    if getattr(c, "validation", None) is not None:
+        result["validation"] = c.validation.to_dict()
     return result
 
 

@@ -20,6 +20,7 @@ from mirror_fg.io.result_checks import (
     _Invalid,
     _list_of,
     _mapping,
+    _matrix,
     _number,
     _sigma3,
     _statistic,
@@ -155,6 +156,18 @@ _RIG: tuple[dict[str, Checker], dict[str, Checker]] = (
 )
 
 
+#: The error at a point (docs/formats.md "The answer in the user's units"); covariance 3 x 3, m^2.
+_AT: tuple[dict[str, Checker], dict[str, Checker]] = (
+    {"point_cam": _vector3, "point_base": _vector3},
+    {"covariance": lambda x, p: _matrix(x, 3, p).tolist(), "sigma3_mm": _sigma3, "camera": _text},
+)
+#: The held-out validation: images held out, the RMS of their ratios, the worst.
+_VALIDATION: tuple[dict[str, Checker], dict[str, Checker]] = (
+    {"images": lambda x, p: _integer(x, p, 0), "ratio": _statistic},
+    {"worst": lambda x, p: _fields(x, p, {"image": _text, "ratio": _statistic}, {}), "not_held_out": _list_of(_text)},
+)
+
+
 #: Top-level keys a reader uses, each optional except ``T_cam_base`` (:data:`REQUIRED`).
 OPTIONAL: dict[str, Checker] = {
     "T_base_cam": _transform,
@@ -174,4 +187,6 @@ OPTIONAL: dict[str, Checker] = {
     "cameras": _cameras,  # several cameras (docs/formats.md "Several cameras"); tied together by result_poses
     "rig": _list_of(lambda e, p: _fields(e, p, *_RIG)),
     "screen": check_screen_block,  # a screen capture's screen (io.screen_result)
+    "at": _list_of(lambda e, p: _fields(e, p, *_AT)),
+    "validation": lambda x, p: _fields(x, p, *_VALIDATION),
 }

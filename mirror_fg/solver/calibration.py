@@ -7,6 +7,7 @@ Frames and units as docs/formats.md: ``T_cam_base = (R, t)`` maps base points in
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -157,6 +158,10 @@ class Calibration:
     rig: list = field(default_factory=list)
     #: ``{(l, m): camera name}``: the camera frame each mirror vector is in (with ``cameras``), else empty.
     mirror_frames: dict[tuple[int, int], str] = field(default_factory=dict)
+    #: Points (metres, camera frame) whose error in the base frame the result gives (``at``, ``calibrate --at``).
+    at_points: list[tuple[float, float, float]] = field(default_factory=list)
+    #: The held-out validation (``solver/validation.py``, ``calibrate --validate``), else None.
+    validation: Any = None
 
     @property
     def T_cam_base(self) -> Transform:
@@ -182,6 +187,25 @@ class Calibration:
         if self.covariance is None:
             return None
         return self.T_cam_base.inverse_covariance(self.covariance)
+
+    def point_error(self, point_cam, camera: str | None = None):
+        """The error at ``point_cam`` (metres, camera frame; e.g. a grasp the camera measures) in the base
+        frame, from :attr:`covariance_base_cam` alone (first order, docs/formats.md "The answer in the
+        user's units"): a :class:`~mirror_fg.solver.point_error.PointError` with ``covariance`` (3, 3, m^2,
+        base axes) and ``sigma3_mm``. ``camera``: the camera of a rig whose frame ``point_cam`` is in (default
+        the first). ValueError without a covariance, for an unknown camera or a malformed point."""
+        from mirror_fg.solver.point_error import point_error
+
+        T, covariance = self.T_base_cam, self.covariance_base_cam
+        if camera is not None or self.cameras:
+            name = camera if camera is not None else next(iter(self.cameras or {}), None)
+            if not self.cameras or name not in self.cameras:
+                known = ", ".join(self.cameras or {}) or "none: one camera"
+                raise ValueError(f"point_error: no camera {name!r} (cameras: {known})")
+            T, covariance = self.cameras[name].T_base_cam, self.cameras[name].covariance_base_cam
+        if covariance is None:
+            raise ValueError("point_error: the calibration has no covariance (calibrate with compute_covariance=True)")
+        return point_error(T, covariance, point_cam)
 
     @property
     def cost_plausible(self) -> bool:

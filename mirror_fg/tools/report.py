@@ -50,6 +50,7 @@ from mirror_fg.tools.report_figures import (
 )
 from mirror_fg.tools.report_pages import Block, RenderedFigure, html_page, pdf_document
 from mirror_fg.tools.report_scene import figure_views_scene, pose_is_estimated
+from mirror_fg.tools.report_units import units_blocks
 from mirror_fg.tools.report_views import ViewResiduals, figure_cameras, figure_orders, view_residuals
 from mirror_fg.tools.residuals import OUTLIER_FACTOR, Residuals, residuals_of_valid_result
 from mirror_fg.tools.summary import (
@@ -440,6 +441,7 @@ def _blocks(result: Mapping[str, Any], dataset: Dataset | None, summary: _Summar
         blocks += [Block("h2", "Notes"), Block("list", items=notes, css="note")]
     for heading, fig, caption in figures:
         blocks += [Block("h2", heading), Block("figure", caption, figure=fig)]
+    blocks += units_blocks(result, dataset)  # error at a point, its map, held-out validation (report_units.py)
     link = ros["camera_link"]
     blocks += [
         Block("h2", "ROS"),

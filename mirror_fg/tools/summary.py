@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from mirror_fg.io.result import base_cam_sigma3, transforms, validate_result
+from mirror_fg.tools.report_units import units_lines
 
 __all__ = ["summary_lines", "rig_lines", "frame_convention", "cost_warning", "verdict_line", "noise_note", "unknown_count",
            "NOISE_BAND", "RMS_DEFINITION", "MAX_OUTLIER_LINES"]
@@ -91,6 +92,7 @@ def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, increment
     lines += _transform_lines(result["T_cam_base"], R_cb, t_cb, full=verbose)
     lines.append(_bounds(result.get("sigma3_cam_base"), "camera", "base origin"))
     lines += frame_convention()
+    lines += units_lines(result)  # the error at the user's points, the held-out validation (report_units.py)
     if result.get("camera") is not None:
         lines += camera_lines(result["camera"], result.get("covariance_cam_base"))
     if result.get("cameras"):
