@@ -165,23 +165,26 @@ def noise_band(dof: float, confidence: float = NOISE_CONFIDENCE) -> tuple[float,
     return min(low, NOISE_BAND[0]), max(high, NOISE_BAND[1])
 
 
-def _band_words(band: tuple[float, float], dof: float) -> str:
-    return (f"a correct pixel_sigma gives {band[0]:.2f}-{band[1]:.2f} × with {dof:.0f} spare measurements, "
+def _band_words(band: tuple[float, float], dof: float, coordinates: float | None = None) -> str:
+    of = f" of {coordinates:.0f} measured coordinates" if coordinates is not None else " measured coordinates"
+    return (f"a correct pixel_sigma gives {band[0]:.2f}-{band[1]:.2f} × with {dof:.0f} spare{of}, "
             f"{100 * NOISE_CONFIDENCE:.0f} % of the time")
 
 
-def noise_note(ratio: float, sigma: float, units: str, dof: float = float("nan")) -> str:
+def noise_note(ratio: float, sigma: float, units: str, dof: float = float("nan"),
+               coordinates: float | None = None) -> str:
     """'' when ``ratio`` (the residuals' size over what ``sigma`` predicts) is inside :func:`noise_band`
-    of ``dof``; else what it means for ``pixel_sigma`` and the bounds, with the band and its confidence."""
+    of ``dof``; else what it means for ``pixel_sigma`` and the bounds, with the band and its confidence
+    (``coordinates``: the measured coordinates 2N, for the words)."""
     band = noise_band(dof)
     fits = f"the residuals fit σ ≈ {sigma * ratio:.2g} {units}"
     if ratio < band[0]:
         return (f"pixel_sigma {sigma:.3g} {units} is too large: {fits}, so the 3-sigma bounds are about "
-                f"{1 / ratio:.1f} × too wide (set pixel_sigma to your detector's accuracy; {_band_words(band, dof)})")
+                f"{1 / ratio:.1f} × too wide (set pixel_sigma to your detector's accuracy; {_band_words(band, dof, coordinates)})")
     if ratio > band[1]:
         return (f"the residuals are {ratio:.1f} × what pixel_sigma {sigma:.3g} {units} predicts ({fits}): outliers, "
                 f"a wrong camera model or too small a pixel_sigma; the 3-sigma bounds are too narrow "
-                f"({_band_words(band, dof)})")
+                f"({_band_words(band, dof, coordinates)})")
     return ""
 
 
@@ -291,8 +294,8 @@ def weak_geometry(result: Mapping[str, Any]) -> str | None:
     if spare is not None:
         measurements = spare + _unknown_count(result)
         if measurements > 0 and spare / measurements < MIN_MEAN_REDUNDANCY:
-            reasons.append(f"only {spare:.0f} spare of {measurements:.0f} measurements (a wrong one can be neither "
-                           "seen nor told apart)")
+            reasons.append(f"only {spare:.0f} spare of {measurements:.0f} measured coordinates (a wrong one can be "
+                           "neither seen nor told apart)")
     return f"{WEAK_GEOMETRY}: " + "; ".join(reasons) if reasons else None
 
 
@@ -324,10 +327,10 @@ def judge(result: Mapping[str, Any], dataset: Dataset | None = None, *, residual
     fit_words = ""
     if fit is not None:
         ratio, sigma, dof = fit
-        band = noise_band(dof)
+        coordinates = dof + _unknown_count(result)
         fit_words = (f"residuals {ratio:.2f} × their predicted size under pixel_sigma {sigma:.3g} {units} "
-                     f"({_band_words(band, dof)})")
-        note = noise_note(ratio, sigma, units, dof)
+                     f"({_band_words(noise_band(dof), dof, coordinates)}; {_unknown_count(result)} unknowns)")
+        note = noise_note(ratio, sigma, units, dof, coordinates)
         if note:
             problems.append(Finding("noise", "pixel_sigma does not fit the residuals", note))
         else:
