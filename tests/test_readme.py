@@ -58,3 +58,74 @@ def test_readme_setup_examples_run(tmp_path):
     assert list(rig["cameras"]) == ["cam0", "cam1"] and len(rig["rig"]) == 1
     assert "cam1_optical_frame" in (tmp_path / "rig.result.urdf.xml").read_text()
     assert "T_cn_cnm1" in (tmp_path / "rig.result.camchain.yaml").read_text()
+
+
+def _mirror_fg_cli(args: list[str], cwd: Path) -> str:
+    """``mirror-fg ARGS`` run in ``cwd`` (this checkout's mirror_fg, as the README runs it), its stdout."""
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-c", "import sys; from mirror_fg.cli import main; sys.exit(main())", *args],
+                         cwd=cwd, capture_output=True, text=True, timeout=300,
+                         env={**__import__("os").environ, "PYTHONPATH": str(REPO)})
+    assert run.returncode == 0, (args, run.stderr[-2000:])
+    return run.stdout
+
+
+def _text_blocks(text: str) -> list[list[str]]:
+    return [block.splitlines() for block in re.findall(r"```text\n(.*?)\n```", text, flags=re.S)]
+
+
+def test_readme_takahashi_verdict_is_what_calibrate_prints_and_stores(tmp_path):
+    """The README quotes the real photographs' verdict: the console prints it, the result stores it, and the
+    report's headline is that verdict's (the report said "Check before use" while the console said
+    "looks right")."""
+    import json
+
+    text = (REPO / "README.md").read_text()
+    section = text.split("Real photographs (Takahashi et al., CVPR 2012", 1)[1].split("\n## ", 1)[0]
+    (command,) = re.findall(r"```bash\n(mirror-fg calibrate .*?)\n```", section)
+    (quoted,) = [line for block in _text_blocks(section) for line in block if line.startswith("verdict:")]
+    out = _mirror_fg_cli(command.split()[1:-2] + ["-o", str(tmp_path / "takahashi.json")], REPO)
+    (printed,) = [line for line in out.splitlines() if line.startswith("verdict:")]
+    assert printed == quoted
+    verdict = json.loads((tmp_path / "takahashi.json").read_text())["verdict"]
+    assert verdict["console"] == printed and verdict["level"] == "check"
+    assert verdict["headline"] == "Check before use: residuals grow towards the image edge (distortion)"
+
+
+def _guide() -> str:
+    return (REPO / "docs" / "gaze_guide.md").read_text()
+
+
+def test_gaze_guide_and_readme_screen_figures_are_what_the_tool_prints(tmp_path):
+    """docs/gaze_guide.md section 3 quotes `mirror-fg calibrate` on `scripts/render_screen.py`'s capture, at its
+    pixel_sigma 0.3 and at the 0.07 px the verdict says the residuals fit; the README quotes the same bounds,
+    and the guide's Python example prints what it says."""
+    import subprocess
+    import sys
+
+    subprocess.run([sys.executable, str(REPO / "scripts" / "render_screen.py"), "--out", str(tmp_path)], check=True,
+                   capture_output=True, timeout=300, env={**__import__("os").environ, "PYTHONPATH": str(REPO)})
+    section = _guide().split("## 3. ", 1)[1].split("\n## ", 1)[0]
+    first, second = _text_blocks(section)[:2]
+    capture = tmp_path / "capture.yaml"
+    assert "pixel_sigma: 0.3\n" in capture.read_text()
+    printed = _mirror_fg_cli(["calibrate", "capture.yaml", "-o", "result.json"], tmp_path).splitlines()
+    for line in first:
+        if line != "...":
+            assert line in printed, (line, printed)
+    example = re.search(r"```python\n(import json\n.*?)```", _guide(), re.S).group(1)
+    run = subprocess.run([sys.executable, "-c", example], cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                         env={**__import__("os").environ, "PYTHONPATH": str(REPO)})
+    expected = re.search(r"prints, for the result above,\n\n```text\n(.*?)\n```", _guide(), re.S).group(1)
+    assert run.stdout.strip() == expected.strip(), run.stderr[-1000:]
+    capture.write_text(capture.read_text().replace("pixel_sigma: 0.3\n", "pixel_sigma: 0.07\n"))
+    again = _mirror_fg_cli(["calibrate", "capture.yaml", "-o", "result.json"], tmp_path).splitlines()
+    for line in second:
+        assert line in again, (line, again)
+    readme = (REPO / "README.md").read_text().split("## Gaze tracking", 1)[1].split("\n## ", 1)[0]
+    bounds = re.findall(r"\[([0-9., ]+)\] deg and \[([0-9., ]+)\] mm", " ".join(readme.split()))
+    assert len(bounds) == 2
+    for (deg, mm), lines in zip(bounds, (printed, again)):
+        assert any(f"rotation ±[{deg}] deg, base origin ±[{mm}] mm" in line for line in lines), (deg, mm)

@@ -380,8 +380,11 @@ def _pattern(result: Mapping[str, Any], dataset: Dataset, residuals: Residuals, 
 
     if not (math.isfinite(residuals.rms) and np.any(residuals.valid)):
         return
-    flagged = residuals.flagged_images()
-    images = f"{len(flagged)} image(s) above {OUTLIER_FACTOR:g} × the median image RMS"
+    # An image is a problem when it is far worse than the others *and* worse than the noise model allows
+    # (sqrt(2) sigma): three times a median far below the noise is still noise.
+    flagged = {k: v for k, v in residuals.flagged_images().items() if v > residuals.expected_rms}
+    images = (f"{len(flagged)} image(s) above {OUTLIER_FACTOR:g} × the median image RMS and the noise model's "
+              f"√2·σ = {residuals.expected_rms:.3g} {residuals.units}")
     if flagged:
         names = ", ".join(list(flagged)[:5]) + (" ..." if len(flagged) > 5 else "")
         problems.append(Finding("images", f"{len(flagged)} image(s) much worse than the others",
