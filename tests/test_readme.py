@@ -129,3 +129,74 @@ def test_gaze_guide_and_readme_screen_figures_are_what_the_tool_prints(tmp_path)
     assert len(bounds) == 2
     for (deg, mm), lines in zip(bounds, (printed, again)):
         assert any(f"rotation ±[{deg}] deg, base origin ±[{mm}] mm" in line for line in lines), (deg, mm)
+
+
+_OPTION = re.compile(r"(?<![\w-])(--?[a-zA-Z][\w-]*)")
+
+
+def _synopsis() -> dict[str, set[str]]:
+    """Each command's options in the README's synopsis (its lines and their indented continuations), and
+    the options every command takes under ``"*"``."""
+    text = (REPO / "README.md").read_text()
+    block = re.search(r"## Command line\n\n```\n(.*?)\n```", text, re.S).group(1)
+    options: dict[str, set[str]] = {"*": set()}
+    command = None
+    for line in block.splitlines():
+        if line.startswith("mirror-fg "):
+            command = line.split()[1]
+            line = line.split(None, 2)[2] if len(line.split()) > 2 else ""
+        elif line.startswith("every command"):
+            command = "*"
+        options.setdefault(command, set()).update(_OPTION.findall(line))
+    return options
+
+
+def _readme_invocations() -> list[tuple[str, list[str]]]:
+    """``(command, options)`` of every ``mirror-fg COMMAND ...`` in the README's bash examples and inline code."""
+    text = (REPO / "README.md").read_text()
+    snippets = re.findall(r"```bash\n(.*?)\n```", text, flags=re.S) + re.findall(r"`(mirror-fg [^`]+)`", text)
+    found = []
+    for snippet in snippets:
+        for line in snippet.splitlines():
+            line = line.split("#", 1)[0]
+            for part in re.split(r"&&|;|\|\|", line):
+                words = part.split()
+                if len(words) >= 2 and words[0] == "mirror-fg" and not words[1].startswith(("-", ".")):
+                    found.append((words[1], _OPTION.findall(" ".join(words[2:]))))
+    return found
+
+
+def _parser_options() -> dict[str, list[list[str]]]:
+    import argparse
+
+    from mirror_fg.cli.parser import build_parser
+
+    (sub,) = [a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)]
+    return {name: [a.option_strings for a in parser._actions if a.option_strings] for name, parser in sub.choices.items()}
+
+
+def test_every_option_the_readme_uses_is_in_its_synopsis_and_its_parser():
+    synopsis, parser = _synopsis(), _parser_options()
+    invocations = _readme_invocations()
+    assert len(invocations) > 20 and {"plan", "simulate", "calibrate"} <= {c for c, _ in invocations}
+    for command, options in invocations:
+        known = {o for strings in parser[command] for o in strings}
+        for option in options:
+            assert option in known, f"README runs mirror-fg {command} {option}, which its parser does not take"
+            assert option in synopsis.get(command, set()) | synopsis["*"], \
+                f"README runs mirror-fg {command} {option}, which the synopsis does not list"
+
+
+def test_the_synopsis_lists_every_option_of_every_command():
+    synopsis, parser = _synopsis(), _parser_options()
+    assert set(parser) <= set(synopsis)
+    for command, actions in parser.items():
+        for strings in actions:
+            assert set(strings) & (synopsis[command] | synopsis["*"]), f"synopsis lacks mirror-fg {command} {strings}"
+
+
+def test_the_setup_says_to_activate_the_environment_before_bare_commands():
+    text = (REPO / "README.md").read_text()
+    section = text.split("## Set up on a fresh machine", 1)[1].split("\n## ", 1)[0]
+    assert "`. .venv/bin/activate`" in section
+    assert text.index(". .venv/bin/activate") < text.index("\nmirror-fg calibrate examples/takahashi2012")
