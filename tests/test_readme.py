@@ -34,6 +34,7 @@ def test_readme_python_example_runs(tmp_path, monkeypatch):
     exec(compile(code, "README.md", "exec"), namespace)
     assert (tmp_path / "result.json").exists()
     assert namespace["final"].covariance.shape == (6, 6)
+    assert namespace["verdict"].level == "good" and namespace["verdict"].line.startswith("verdict: looks right")
 
 
 def test_readme_setup_examples_run(tmp_path):
