@@ -14,6 +14,7 @@ in normalized units). Every fiducial and reconstruction point is seen in every i
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from typing import Any
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -206,14 +207,14 @@ def plan(setup: PlanSetup | None = None, draws: int = 5, seed: int = 0, **kwargs
         bounds.append(cramer_rao_bound(dataset, truth, sigma_normalized=sigma_normalized))
         if setup.estimate:
             intrinsic_bounds.append(intrinsics_cramer_rao_bound(dataset, truth, setup.estimate, sigma_px=sigma_sim_px))
-    pose_bounds = intrinsic_bounds if setup.estimate else bounds
+    pose_bounds: list[Any] = intrinsic_bounds if setup.estimate else bounds  # each with its pose_covariance
     pose = np.mean([b.pose_covariance for b in pose_bounds], axis=0)
     sigma3 = 3.0 * np.sqrt(np.diag(pose))
     per_draw = np.array([3.0 * np.sqrt(np.diag(b.pose_covariance)) for b in pose_bounds])
     rot_range = (np.degrees(per_draw[:, :3].min(axis=0)), np.degrees(per_draw[:, :3].max(axis=0)))
     pos_range = (1000.0 * per_draw[:, 3:].min(axis=0), 1000.0 * per_draw[:, 3:].max(axis=0))
     # T_base_cam (the camera's pose on the robot, base axes), each draw's at its own truth, as calibrate prints it.
-    base_cam = [T.inverse_covariance(b.pose_covariance) for T, b in zip(poses, pose_bounds)]
+    base_cam = [T.inverse_covariance(np.asarray(b.pose_covariance)) for T, b in zip(poses, pose_bounds)]
     base_cov = np.mean(base_cam, axis=0)
     base_sigma3 = 3.0 * np.sqrt(np.diag(base_cov))
     base_draws = np.array([3.0 * np.sqrt(np.diag(P)) for P in base_cam])

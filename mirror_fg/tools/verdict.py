@@ -155,7 +155,7 @@ def noise_band(dof: float, confidence: float = NOISE_CONFIDENCE) -> tuple[float,
     """The range of ``sqrt(chi2 / dof)`` (the residuals over their predicted size) that a correct
     ``pixel_sigma`` stays within with probability ``confidence``: the two-sided chi-square interval with
     ``dof`` spare measurements, widened to :data:`NOISE_BAND` where it is narrower."""
-    from scipy.special import chdtri  # the chi-square quantile from the upper tail (lighter than scipy.stats)
+    from scipy.special import chdtri  # type: ignore[import-untyped]  # the upper-tail chi-square quantile (lighter than scipy.stats)
 
     if not (dof > 0 and math.isfinite(dof)):
         return NOISE_BAND
