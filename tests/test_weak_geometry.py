@@ -106,3 +106,13 @@ def test_the_band_is_the_chi_square_interval_where_that_is_wider():
     assert low == pytest.approx(np.sqrt(chi2.ppf(0.005, 3) / 3), rel=1e-9)
     assert high == pytest.approx(np.sqrt(chi2.ppf(0.995, 3) / 3), rel=1e-9)
     assert noise_band(10_000) == (0.5, 2.0)  # never narrower than a factor 2 either way
+
+
+def test_bounds_that_are_not_numbers_are_never_called_right(takahashi_dir, tmp_path, capsys):
+    """A result whose 3-sigma bounds are nan (a degenerate scale) is a CHECK, whatever else it holds."""
+    from mirror_fg.tools.verdict import judge
+
+    _, _, result = _calibrate(takahashi_dir / "dataset_3p.json", tmp_path / "r.json", capsys)
+    result["points"] = {"P0": {"xyz": [0.1, 0.0, 0.5], "sigma3_mm": [float("nan"), 1.0, 1.0]}}
+    verdict = judge(result)
+    assert verdict.level == "check" and any(p.check == "bounds" for p in verdict.problems), verdict.line

@@ -62,7 +62,7 @@ WEAK_GEOMETRY = "weak geometry: the data barely determine the answer; add placem
 
 @dataclass(frozen=True)
 class Finding:
-    """One problem: ``check`` (a stable key: ``converged``, ``cost``, ``noise``, ``weak_geometry``,
+    """One problem: ``check`` (a stable key: ``converged``, ``cost``, ``noise``, ``bounds``, ``weak_geometry``,
     ``inconsistency``, ``images``, ``distortion``), ``title`` (a few words for the report's headline) and
     ``text`` (what it is and what to do)."""
 
@@ -338,6 +338,10 @@ def judge(result: Mapping[str, Any], dataset: Dataset | None = None, *, residual
     warning = cost_warning(opt)
     if warning and not any(p.check == "noise" for p in problems):
         problems.append(Finding("cost", "final cost implausible", warning))
+    if not _finite_bounds(result):
+        problems.append(Finding("bounds", "the bounds are not numbers",
+                                "some 3-sigma bounds are not finite (nan or inf): the solve did not determine the answer; "
+                                "check the lengths' units (metres) and the scale"))
     weak = weak_geometry(result)
     if weak:
         problems.append(Finding("weak_geometry", "weak geometry (the data barely determine the answer)", weak))
@@ -353,6 +357,18 @@ def judge(result: Mapping[str, Any], dataset: Dataset | None = None, *, residual
     if problems:
         return Verdict(CHECK, tuple(problems), tuple(facts), fit_words)
     return Verdict(GOOD if fit is not None else UNKNOWN, (), tuple(facts), fit_words)
+
+
+def _finite_bounds(result: Mapping[str, Any]) -> bool:
+    """Whether every 3-sigma bound the result holds (poses, mirrors, points) is a finite number."""
+    values: list[Any] = []
+    for key in ("sigma3_cam_base", "sigma3_base_cam"):
+        values += [v for part in (result.get(key) or {}).values() for v in (part or [])]
+    for entry in (result.get("cameras") or {}).values():
+        values += [v for part in (entry.get("sigma3_base_cam") or {}).values() for v in (part or [])]
+    values += [v for e in result.get("mirrors") or [] for v in (e.get("sigma3_mm") or [])]
+    values += [v for e in (result.get("points") or {}).values() for v in (e.get("sigma3_mm") or [])]
+    return all(isinstance(v, (int, float)) and math.isfinite(v) for v in values)
 
 
 def _residuals(result: Mapping[str, Any], dataset: Dataset) -> Residuals | None:
