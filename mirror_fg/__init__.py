@@ -38,6 +38,7 @@ _PUBLIC = {
     "calibrate_incremental": "mirror_fg.solver.incremental",
     "dataset_from_dict": "mirror_fg.io.dataset",
     "initial_estimate": "mirror_fg.solver.initial",
+    "judge": "mirror_fg.tools.verdict",
     "load_dataset": "mirror_fg.io.dataset",
     "load_result": "mirror_fg.io.result",
     "save_dataset": "mirror_fg.io.dataset",
@@ -98,5 +99,6 @@ if _TYPE_CHECKING:  # the names as static analysers and IDEs see them
     from mirror_fg.solver.incremental import IncrementalCalibrator, calibrate_incremental  # noqa: F401 - re-exported
     from mirror_fg.solver.initial import initial_estimate  # noqa: F401 - re-exported
     from mirror_fg.solver.options import SolveOptions  # noqa: F401 - re-exported
+    from mirror_fg.tools.verdict import judge  # noqa: F401 - re-exported
 
     __version__: str

@@ -33,7 +33,7 @@ from mirror_fg.tools.simulate import simulate_base_case
 
 
 def pose_sigmas(batch, estimate) -> np.ndarray:
-    """Per-axis ``|estimate - batch| / sigma_batch`` in SPEC's ``[dtheta, dt]``."""
+    """Per-axis ``|estimate - batch| / sigma_batch`` in docs/formats.md's ``[dtheta, dt]``."""
     difference = pose_error(estimate.R_cam_base, estimate.t_cam_base, batch.R_cam_base, batch.t_cam_base)
     return np.abs(difference) / np.sqrt(np.diag(batch.covariance))
 

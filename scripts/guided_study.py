@@ -69,7 +69,7 @@ def with_placement(dataset: Dataset, truth: Values, under: tuple, v: np.ndarray,
 
 
 def position_bound_mm(dataset: Dataset, values, covariance_cam_base: np.ndarray | None = None) -> float:
-    """Largest 3-sigma of ``T_base_cam``'s position (mm): from a SPEC covariance of ``T_cam_base`` when
+    """Largest 3-sigma of ``T_base_cam``'s position (mm): from a docs/formats.md covariance of ``T_cam_base`` when
     given, else the Cramér-Rao bound at ``values``."""
     if covariance_cam_base is None:
         covariance_cam_base = cramer_rao_bound(dataset, values).pose_covariance

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Inspect the uncertainty of a calibration result (mirror-fg/result@1).
 
-Prints the 6x6 camera-to-base covariance (SPEC: ``[dtheta (rad), dt (m)]``, camera axes) as standard
+Prints the 6x6 camera-to-base covariance (docs/formats.md: ``[dtheta (rad), dt (m)]``, camera axes) as standard
 deviations and a correlation matrix, the 3-sigma bounds of every mirror placement and reconstruction
 point, and names the least-constrained direction (the eigenvector of the smallest information, with
 rotations weighed at ``--lever-arm`` metres). Draws a PNG of the correlation matrix and the 3-sigma
@@ -51,7 +51,7 @@ def report(result: dict, lever_arm_m: float = 1.0, source: str = "result") -> tu
     """The printed text, and the weakest direction. ``source`` names the file in errors."""
     covariance = covariance_of(result, source)
     sigma = np.sqrt(np.diag(covariance))
-    lines = ["T_cam_base (Cp = R Bp + t; camera axes x right, y down, z forward), covariance in SPEC's "
+    lines = ["T_cam_base (Cp = R Bp + t; camera axes x right, y down, z forward), covariance in docs/formats.md's "
              "[dtheta, dt] (R_true = Exp(dtheta) R_est, t_true = t_est + dt):"]
     lines.append("  1-sigma  rotation [" + ", ".join(f"{np.degrees(s):.4f}" for s in sigma[:3]) + "] deg,  position ["
                  + ", ".join(f"{1000 * s:.3f}" for s in sigma[3:]) + "] mm")

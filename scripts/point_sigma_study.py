@@ -7,7 +7,7 @@ with detect.py's tracker (:class:`~mirror_fg.vision.tracking.PointTracker`: KLT,
 the feature; or plain KLT) and its sigma is the tracker's (:meth:`PointTracker.sigma`). Fiducials are
 their true pixels plus Gaussian noise (``--fiducial-noise``, as tests/test_tracking_refine.py's study),
 weighed with ``pixel_sigma``. Prints, per scene and point, the largest per-axis error in sigmas
-(SPEC's 3-sigma convention) and the error in mm, before -> after.
+(docs/formats.md's 3-sigma convention) and the error in mm, before -> after.
 
     python scripts/point_sigma_study.py [--seeds 0 1 2 3 4 5] [--tracker refined|klt]
 """

@@ -22,7 +22,7 @@ PUBLIC = {
     "__version__", "AnalyticSolution", "Calibration", "Camera", "Dataset", "DatasetError", "Image",
     "IncrementalCalibrator", "MirrorFgError", "SolveError", "SolveOptions", "Transform", "calibrate", "calibrate_incremental",
     "dataset_from_dict", "initial_estimate", "load_capture", "load_dataset", "load_result", "save_dataset",
-    "solve_analytic", "write_result",
+    "solve_analytic", "write_result", "judge",
 }
 HEAVY = ("matplotlib", "dask", "distributed", "scipy", "cv2", "gtsam", "yaml", "tqdm", "PIL", "numpy")
 

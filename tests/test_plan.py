@@ -71,7 +71,7 @@ def test_custom_fiducial_layout_and_printout():
     result = plan(PlanSetup(num_images=30, fiducials=tag), draws=2)
     assert result.visible_fraction == pytest.approx(1.0)
     text = format_plan(result)
-    assert "3-sigma bounds on T_cam_base" in text and "4 given fiducials" in text
+    assert "T_base_cam  the camera's pose on the robot" in text and "4 given fiducials" in text
     assert "weakest" in text and " deg" in text and " mm" in text
     assert json.loads(json.dumps(result.to_dict()))["setup"]["fiducials"]["C2"] == [0.2, 0.2, 0.0]
     far = {name: np.add(p, [3.0, 0.0, 0.0]) for name, p in tag.items()}  # off to the side of the robot

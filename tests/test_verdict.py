@@ -1,5 +1,5 @@
-"""The console's one-line verdict (mirror_fg.tools.summary.verdict_line, issue 27): a pixel_sigma far
-from the measurements' real noise is named, with the sigma the residuals fit."""
+"""The one verdict (mirror_fg.tools.verdict): a pixel_sigma far from the measurements' real noise is named,
+with the sigma the residuals fit; the console, the result and the report say the same."""
 from __future__ import annotations
 
 import dataclasses
@@ -67,3 +67,24 @@ def test_a_robust_solve_is_judged_by_the_datasets_sigma(takahashi_dir, tmp_path,
     measurements = sum(len(im["observations"]) for im in json.loads((takahashi_dir / "dataset.json").read_text())["images"])
     predicted = 0.5 * math.sqrt(2 * expected / measurements)  # sqrt(2) sigma, one degree of freedom less per unknown
     assert f"residuals {rms / predicted:.2f} ×" in line
+
+
+def test_the_report_and_its_console_block_say_the_one_verdict(takahashi_dir, tmp_path):
+    """A result from the Python API carries no verdict: the report judges it once, and its headline and the
+    console summary it shows agree (the headline said "Check before use: ... distortion" while the console
+    block said "looks right")."""
+    from mirror_fg.tools.report import write_report
+    from mirror_fg.tools.verdict import judge
+
+    ds = mirror_fg.load_dataset(takahashi_dir / "dataset.json")
+    result = mirror_fg.calibrate(ds).to_dict()
+    assert "verdict" not in result
+    verdict = judge(result, ds)
+    paths = write_report(result, ds, tmp_path, progress=False)
+    page = paths["html"].read_text(encoding="utf-8")
+    headline = re.search(r"<div class='verdict (\w+)'><strong>(.*?)</strong>", page, re.S).group(2)
+    assert headline == verdict.headline == "Check before use: residuals grow towards the image edge (distortion)"
+    import html
+
+    console = [line.removesuffix("</pre>") for line in html.unescape(page).splitlines() if line.startswith("verdict:")]
+    assert console == [verdict.line] and console[0].startswith("verdict: CHECK:") and "distortion" in console[0]

@@ -170,6 +170,7 @@ def cmd_calibrate(args, out: _Printer) -> int:
     from mirror_fg.io.calibration_files import plan_calibration_outputs
     from mirror_fg.solver.calibrate import calibrate
     from mirror_fg.solver.calibration import require_converged
+    from mirror_fg.tools.verdict import with_verdict
 
     start = time.perf_counter()
     outputs = plan_calibration_outputs([args.input], args.output, ros=not args.no_ros,
@@ -200,7 +201,7 @@ def cmd_calibrate(args, out: _Printer) -> int:
         calibration.validation = validate_calibration(dataset, calibration)
     calibration.at_points = list(getattr(args, "at", None) or [])
     calibration.excluded = _detection_exclusions(reports) + list(calibration.excluded)
-    result = calibration.to_dict()
+    result = with_verdict(calibration.to_dict(), dataset)  # the one verdict: printed, stored, the report's
     written = outputs.write(result)
     _print_transform_summary(out, result, time.perf_counter() - start, args.incremental,
                              pixel_sigma=None if dataset.point_sigma else dataset.pixel_sigma)

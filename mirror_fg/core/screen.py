@@ -8,7 +8,7 @@ active area, x to the right along the pixel rows, y down, z into the screen, met
 result's ``T_cam_base``: ``Cp = R s + t``.
 
 Uncertainty: first-order propagation of the pose covariance ``P`` (6 x 6, ``[dtheta, dt]`` with
-``R_true = Exp(dtheta) R``, ``t_true = t + dt``, camera axes: the SPEC convention). A point on the
+``R_true = Exp(dtheta) R``, ``t_true = t + dt``, camera axes: the docs/formats.md convention). A point on the
 screen moves by ``dp = -[R s]x dtheta + dt``; a ray's hit by the Jacobian in :meth:`Screen.pixel_of_ray`.
 """
 from __future__ import annotations
@@ -48,7 +48,7 @@ class ScreenHit:
 @dataclass(frozen=True)
 class Screen:
     """A screen of ``width_px`` x ``height_px`` pixels, ``width_mm`` x ``height_mm`` active area, at
-    ``T_cam_screen`` (camera <- screen), with the pose's ``covariance`` (6 x 6, SPEC convention) or None."""
+    ``T_cam_screen`` (camera <- screen), with the pose's ``covariance`` (6 x 6, docs/formats.md convention) or None."""
 
     width_px: int
     height_px: int

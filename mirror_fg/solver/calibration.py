@@ -88,7 +88,7 @@ class EstimatedCamera:
 class CameraPose:
     """One camera of a dataset with several cameras (``cameras``, docs/formats.md "Several cameras").
 
-    ``R_cam_base``, ``t_cam_base``: camera <- base. ``covariance``: its (6, 6) marginal in SPEC's
+    ``R_cam_base``, ``t_cam_base``: camera <- base. ``covariance``: its (6, 6) marginal in docs/formats.md's
     convention (the joint estimate's), None without covariances. ``camera``: the intrinsics as used (as
     estimated where the camera estimated them); ``estimated``: set where it estimated intrinsics."""
 
@@ -118,7 +118,7 @@ class Calibration:
     """Result of a calibration: MLE, its covariance, the analytical solution it started from.
 
     ``R_cam_base``, ``t_cam_base``: camera <- base (``Cp = R Bp + t``; metres). ``covariance``: 6x6 in
-    SPEC's convention ``[dtheta (rad), dt (m)]``, ``R_true = Exp(dtheta) R_est``, ``t_true = t_est + dt``.
+    docs/formats.md's convention ``[dtheta (rad), dt (m)]``, ``R_true = Exp(dtheta) R_est``, ``t_true = t_est + dt``.
     ``mirror_vectors``/``mirror_covariances``: per configuration ``(l, m)``, camera frame, metres / m^2.
     ``points``/``point_covariances``: reconstruction points, base frame, metres / m^2. ``residuals``:
     per measurement (N, 2), pixels when the dataset has a camera, else normalized units.
@@ -151,7 +151,7 @@ class Calibration:
     camera: EstimatedCamera | None = None
     #: Every camera of a dataset with ``cameras`` (in its order; the first is the top-level pose), else None.
     cameras: dict[str, CameraPose] | None = None
-    #: The joint covariance (6C, 6C) of every camera's ``T_cam_base`` in ``cameras`` order, SPEC's
+    #: The joint covariance (6C, 6C) of every camera's ``T_cam_base`` in ``cameras`` order, docs/formats.md's
     #: convention per (6, 6) block; None without covariances or without ``cameras``.
     camera_pose_covariance: np.ndarray | None = None
     #: Kalibr's ``T_cn_cnm1`` chain of ``cameras`` (``solver/rig.py``), empty with one camera.

@@ -61,7 +61,7 @@ MAX_IMAGES_PER_PLACEMENT = 8
 
 class GroupFit:
     """One group of images solved alone: its ``T_cam_base``, final cost and whether the cost is plausible;
-    ``covariance``: of the pose (SPEC's ``[dtheta, dt]``) where asked for, scaled up by the group's own
+    ``covariance``: of the pose (docs/formats.md's ``[dtheta, dt]``) where asked for, scaled up by the group's own
     cost over its expected value when that is above 1 (a model that fits less well than its sigma)."""
 
     def __init__(self, R: np.ndarray, t: np.ndarray, final_error: float, plausible: bool,
@@ -207,7 +207,7 @@ def misfits_split(dataset: Dataset, in_graph: list[Image], misfits: list[Image],
 
 
 def _pose_mahalanobis(fits: list[GroupFit], R_reference: np.ndarray) -> float:
-    """Squared Mahalanobis distance of two independent fits' ``T_cam_base`` (SPEC's ``[dtheta, dt]``, their
+    """Squared Mahalanobis distance of two independent fits' ``T_cam_base`` (docs/formats.md's ``[dtheta, dt]``, their
     covariances added): chi-square with 6 degrees of freedom where both see one pose.
 
     Each rotation is taken as ``R_k = Exp(dtheta_k) R_reference`` (the whole capture's estimate) and the

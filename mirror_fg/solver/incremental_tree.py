@@ -253,7 +253,7 @@ class TreeIncrementalCalibrator:
     def marginal_covariance(self, unknown: tuple[int, int] | str | None = None) -> np.ndarray:
         """Marginal covariance from iSAM2's Bayes tree, on demand (at the linearisation point).
 
-        ``None``: ``T_cam_base``, 6x6 in SPEC's convention ``[dtheta (rad), dt (m)]`` with ``R_true =
+        ``None``: ``T_cam_base``, 6x6 in docs/formats.md's convention ``[dtheta (rad), dt (m)]`` with ``R_true =
         Exp(dtheta) R_est``, ``t_true = t_est + dt``. ``(l, m)``: the mirror vector of that configuration,
         3x3, m^2, camera frame. A point name: that reconstruction point, 3x3, m^2, base frame. An
         eliminated placement (not an iSAM2 unknown) gets the whole graph's marginal at the estimate, a

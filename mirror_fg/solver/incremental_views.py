@@ -202,7 +202,7 @@ class ViewsIncrementalCalibrator:
         return calibration
 
     def marginal_covariance(self, unknown: tuple[int, int] | str | None = None) -> np.ndarray:
-        """iSAM2's marginal covariance: ``None`` the first camera's pose (6x6, SPEC's convention; zero
+        """iSAM2's marginal covariance: ``None`` the first camera's pose (6x6, docs/formats.md's convention; zero
         where it is fixed), a camera name its pose, ``(l, m)`` a mirror vector (owner frame), a point."""
         if not self.started:
             raise SolveError(f"{self._ds.source}: no estimate yet: {self.status}")

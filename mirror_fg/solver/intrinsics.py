@@ -197,13 +197,13 @@ def photograph_start(dataset: Dataset, camera: Camera) -> Camera | None:
 
 def joint_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, layout: GraphLayout, R: np.ndarray,
                  source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, dict]:
-    """Pose (SPEC convention, intrinsics marginalised), intrinsics (k, k), their cross-covariance with
-    the pose (k, 6, SPEC convention), mirror and point covariances, from ``gtsam.Marginals``."""
+    """Pose (docs/formats.md convention, intrinsics marginalised), intrinsics (k, k), their cross-covariance with
+    the pose (k, 6, docs/formats.md convention), mirror and point covariances, from ``gtsam.Marginals``."""
     with unconstrained_as_solve_error(source, lambda error: _unconstrained(error, layout)):
         marginals = gtsam.Marginals(graph, values)
         joint = marginals.jointMarginalCovariance([layout.pose_key, intrinsics_key()]).fullMatrix()
     to_spec = np.zeros((6, 6))
-    to_spec[:3, :3] = R  # dtheta = R w, dt = R nu (SPEC's uncertainty convention)
+    to_spec[:3, :3] = R  # dtheta = R w, dt = R nu (docs/formats.md's uncertainty convention)
     to_spec[3:, 3:] = R
     pose = covariance_from_pose3(R, joint[:6, :6])
     intrinsics = joint[6:, 6:]

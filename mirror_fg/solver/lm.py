@@ -171,7 +171,7 @@ class LMRun:
         return extract_values(self.result, self.layout, self.evaluator)
 
     def covariances(self, dataset: Dataset) -> tuple[np.ndarray, dict, dict]:
-        """Pose (SPEC convention), mirror and point covariances at the result (``marginals.py``)."""
+        """Pose (docs/formats.md convention), mirror and point covariances at the result (``marginals.py``)."""
         if self.evaluator is not None:
             return eliminated_covariances(dataset, self.evaluator, self.result, self.layout)
         return marginal_covariances(self.graph, self.result, self.layout, dataset.source)

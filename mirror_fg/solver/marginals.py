@@ -27,7 +27,7 @@ __all__ = ["marginal_covariances", "eliminated_covariances", "unconstrained_mess
 def marginal_covariances(
     graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, layout: GraphLayout, source: str
 ) -> tuple[np.ndarray, dict, dict]:
-    """Pose covariance (SPEC convention), mirror and point covariances at ``values``.
+    """Pose covariance (docs/formats.md convention), mirror and point covariances at ``values``.
 
     The information matrix ``J^T J`` of the linearised graph is split into the last mirror's
     placements, which never share a measurement (so their block is block-diagonal), and everything

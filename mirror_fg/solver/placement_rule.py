@@ -1,4 +1,4 @@
-"""The analytical solution's placement rule in the user's words (SPEC "Frames and symbols"; paper Sect. 5).
+"""The analytical solution's placement rule in the user's words (docs/formats.md "Frames and symbols"; paper Sect. 5).
 
 Every placement of mirrors 1..l-1 needs at least three different placements of mirror l seen with it
 (the paper's ternary tree, Fig. 3, with >= 3 children per node); the root needs three of mirror 1.
@@ -43,7 +43,7 @@ def too_few_placements(source: str, configs: Sequence[tuple[int, ...]], prefix: 
     listed = ", ".join(str(m) for m in placed[:8]) + (", ..." if count > 8 else "")
     under = ""
     if prefix:
-        pairs = ", ".join(f"({l + 1}, {m})" for l, m in enumerate(prefix))  # SPEC: placement m of mirror l is (l, m)
+        pairs = ", ".join(f"({l + 1}, {m})" for l, m in enumerate(prefix))  # docs/formats.md: placement m of mirror l is (l, m)
         words = " and ".join(f"mirror {l + 1} at placement {m}" for l, m in enumerate(prefix))
         under = f"under placement {pairs} ({words}), "
     line = (f"{source}: {under}mirror {level} needs at least {_WORDS[MIN_PLACEMENTS]} placements, you gave {gave}"

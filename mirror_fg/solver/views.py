@@ -227,7 +227,7 @@ class ViewProblem:
     # ------------------------------------------------------------------ covariances
     def covariances(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, estimate: ViewEstimate):
         """``(pose covariances {camera: 6x6}, joint (6C, 6C), mirrors {p: 3x3}, points {name: 3x3})`` in
-        SPEC's conventions; a fixed camera's blocks are zero."""
+        docs/formats.md's conventions; a fixed camera's blocks are zero."""
         marginals = gtsam.Marginals(graph, values) if self.dataset.scale is None else _GaugeHeld(self, graph, values)
         keys = list(self.pose_keys.values())
         joint = np.zeros((6 * len(self.cameras), 6 * len(self.cameras)))

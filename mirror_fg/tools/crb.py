@@ -202,7 +202,7 @@ def _invert(information: np.ndarray, index: UnknownIndex, source: str) -> np.nda
 class CramerRaoBound:
     """Inverse Fisher information at the truth: the smallest covariance an unbiased estimator can reach.
 
-    ``pose_covariance``: 6x6 in SPEC's ``[dtheta (rad), dt (m)]`` (camera axes). ``mirror_covariances``
+    ``pose_covariance``: 6x6 in docs/formats.md's ``[dtheta (rad), dt (m)]`` (camera axes). ``mirror_covariances``
     (camera frame, m^2) and ``point_covariances`` (base frame, m^2) per unknown. ``covariance``: the full
     inverse in the stacked state of :class:`UnknownIndex` (pose block in GTSAM's ``[w, nu]``).
     """
@@ -236,13 +236,13 @@ class CramerRaoBound:
         That estimator, ``x_true + I^-1 J^T Sigma^-1 (z - h(x_true))``, is efficient by construction: its
         covariance is this bound. Comparing the MLE's error with it, on the same noise, measures the
         MLE's efficiency without the Monte Carlo sampling error. Needs ``with_score=True``. Returns the
-        pose error ``[dtheta, dt]`` (6,) in SPEC's convention and the point errors (base frame, metres).
+        pose error ``[dtheta, dt]`` (6,) in docs/formats.md's convention and the point errors (base frame, metres).
         """
         if self._first_order_step is None:
             raise ValueError("first_order_errors: build the bound with with_score=True")
         step = self._first_order_step
         R = self.R_cam_base
-        pose = -np.concatenate([R @ step[:3], R @ step[3:6]])  # estimate = truth (+) step; SPEC: true - est
+        pose = -np.concatenate([R @ step[:3], R @ step[3:6]])  # estimate = truth (+) step; docs/formats.md: true - est
         index = self.linearization.index
         points = {name: -step[start : start + 3] for name, start in index.points.items()}
         return pose, points
@@ -275,7 +275,7 @@ def cramer_rao_bound(
 
 
 def pose_error(R_true: np.ndarray, t_true: np.ndarray, R_est: np.ndarray, t_est: np.ndarray) -> np.ndarray:
-    """SPEC's ``[dtheta (rad), dt (m)]`` with ``R_true = Exp(dtheta) R_est``, ``t_true = t_est + dt``."""
+    """docs/formats.md's ``[dtheta (rad), dt (m)]`` with ``R_true = Exp(dtheta) R_est``, ``t_true = t_est + dt``."""
     dtheta = gtsam.Rot3.Logmap(gtsam.Rot3(np.asarray(R_true, dtype=float) @ np.asarray(R_est, dtype=float).T))
     return np.concatenate([np.asarray(dtheta, dtype=float), np.asarray(t_true, float) - np.asarray(t_est, float)])
 
@@ -365,7 +365,7 @@ def nees_band(num_runs: int, dof: int = POSE_DIM, confidence: float = 0.95) -> t
 
 @dataclass
 class WeakestDirection:
-    """Least-constrained direction of a 6x6 SPEC pose covariance (eigenvector of the smallest information).
+    """Least-constrained direction of a 6x6 docs/formats.md pose covariance (eigenvector of the smallest information).
 
     Rotations are scaled by ``lever_arm_m`` (a rotation of 1 mrad moves a point that far away by
     ``lever_arm_m`` mm) so that both halves are in metres. ``vector``: unit eigenvector in the scaled
@@ -410,7 +410,7 @@ class IntrinsicsBound:
     """Cramér-Rao bound with the intrinsics ``names`` (INTRINSIC_NAMES order) estimated too.
 
     ``covariance``: (k, k) over the intrinsics (px^2 for fx, fy, cx, cy; unitless for k1..).
-    ``pose_covariance``: 6x6 SPEC ``[dtheta (rad), dt (m)]`` of ``T_cam_base`` with the intrinsics'
+    ``pose_covariance``: 6x6 docs/formats.md ``[dtheta (rad), dt (m)]`` of ``T_cam_base`` with the intrinsics'
     uncertainty included. ``cross``: (k, 6) between the intrinsics and that pose error.
     """
 

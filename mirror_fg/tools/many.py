@@ -70,6 +70,7 @@ def calibrate_one(path: str, out_dir: str, ros: bool = True) -> dict:
     from mirror_fg.io.calibration_files import plan_calibration_outputs
     from mirror_fg.solver.calibrate import calibrate
     from mirror_fg.solver.calibration import require_converged
+    from mirror_fg.tools.verdict import with_verdict
     from mirror_fg.vision.detect import load_input
 
     row: dict[str, Any] = {"input": os.fspath(path), "status": "failed", "reason": "", "result": None}
@@ -82,7 +83,7 @@ def calibrate_one(path: str, out_dir: str, ros: bool = True) -> dict:
         if dataset.cameras is not None:
             outputs.expect_cameras()
         calibration = require_converged(calibrate(dataset), dataset.source)
-        result = calibration.to_dict()
+        result = with_verdict(calibration.to_dict(), dataset)  # the one verdict, as calibrate stores it
         outputs.write(result)
         sigma3, sigma3_base = result["sigma3_cam_base"], result["sigma3_base_cam"]
         if sigma3 is None or sigma3_base is None:  # calibrate() computes the covariance

@@ -14,12 +14,14 @@ in normalized units). Every fiducial and reconstruction point is seen in every i
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from typing import Any
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from mirror_fg.core.errors import DatasetError
+from mirror_fg.core.errors import DatasetError, SolveError
+from mirror_fg.core.transform import Transform
 from mirror_fg.core.geometry import apply_transform
 from mirror_fg.io.dataset import Dataset, Image, fiducials_from_dict
 from mirror_fg.io.fileio import load_structured
@@ -75,9 +77,11 @@ class PlanSetup:
 class PlanResult:
     """Cramér-Rao bounds of a setup.
 
-    ``pose_covariance``: 6x6 SPEC ``[dtheta (rad), dt (m)]``, mean over draws. ``sigma3_rotation_deg``,
-    ``sigma3_position_mm``: 3-sigma bounds (camera axes) from it; ``..._range``: (min, max) over draws per
-    axis. ``point_sigma3_mm_worst``: 3-sigma of the least-constrained reconstruction point, worst axis,
+    ``pose_covariance``: 6x6 of ``T_cam_base`` in docs/formats.md's ``[dtheta (rad), dt (m)]`` (camera axes),
+    mean over draws. ``sigma3_rotation_deg``, ``sigma3_position_mm``: 3-sigma bounds (camera axes) from it;
+    ``..._range``: (min, max) over draws per axis. ``covariance_base_cam``, ``sigma3_base_cam_rotation_deg``,
+    ``sigma3_base_cam_position_mm``, ``sigma3_base_cam_range``: the same of ``T_base_cam`` (the camera's pose
+    on the robot; base axes), each draw's converted at its own truth. ``point_sigma3_mm_worst``: 3-sigma of the least-constrained reconstruction point, worst axis,
     mean over draws (None without points). ``visible_fraction``: images whose given fiducials all stay in
     view (1.0 for the default layouts). ``weakest``: least-constrained direction of ``pose_covariance``.
     With ``setup.estimate``: the pose bounds include the intrinsics' uncertainty, ``intrinsics_sigma3``
@@ -98,6 +102,11 @@ class PlanResult:
     bounds: list[CramerRaoBound] = field(default_factory=list, repr=False)
     intrinsics_sigma3: dict[str, float] | None = None
     sigma3_position_mm_fixed_intrinsics: np.ndarray | None = None
+    covariance_base_cam: np.ndarray | None = None
+    sigma3_base_cam_rotation_deg: np.ndarray | None = None
+    sigma3_base_cam_position_mm: np.ndarray | None = None
+    #: ((rotation min, rotation max), (position min, max)) over draws per axis, degrees and millimetres.
+    sigma3_base_cam_range: tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
 
     def to_dict(self) -> dict:
         """Plain data (JSON-able)."""
@@ -108,6 +117,11 @@ class PlanResult:
             "covariance_cam_base": self.pose_covariance.tolist(),
             "sigma3_cam_base": {"rotation_deg": self.sigma3_rotation_deg.tolist(),
                                 "position_mm": self.sigma3_position_mm.tolist()},
+            **({"covariance_base_cam": self.covariance_base_cam.tolist(),
+                "sigma3_base_cam": {"rotation_deg": self.sigma3_base_cam_rotation_deg.tolist(),
+                                    "position_mm": self.sigma3_base_cam_position_mm.tolist()}}
+               if self.covariance_base_cam is not None and self.sigma3_base_cam_rotation_deg is not None
+               and self.sigma3_base_cam_position_mm is not None else {}),
             "sigma3_range": {"rotation_deg": [a.tolist() for a in self.sigma3_rotation_deg_range],
                              "position_mm": [a.tolist() for a in self.sigma3_position_mm_range]},
             "point_sigma3_mm_worst": self.point_sigma3_mm_worst,
@@ -161,13 +175,20 @@ def plan(setup: PlanSetup | None = None, draws: int = 5, seed: int = 0, **kwargs
     if unknown or len(set(setup.estimate)) != len(setup.estimate):
         raise DatasetError(f"plan: estimate must name distinct intrinsics of {', '.join(INTRINSIC_NAMES)}, "
                            f"got {', '.join(setup.estimate)}")
+    count = len(setup.fiducials) if setup.fiducials is not None else setup.num_fiducials
+    pinhole = [n for n in ("fx", "fy", "cx", "cy") if n in setup.estimate]
+    if pinhole and count < 4:  # calibrate's refusal (solver/intrinsics.py check_supported), before any data
+        raise SolveError(f"plan: camera.estimate: the photographs would not determine {', '.join(pinhole)}: "
+                         f"{count} fiducials per image (any focal length and centre fit 3 points exactly), and "
+                         "calibrate refuses it; give 4 or more fiducials (--fiducials 4, or a board's corners with "
+                         "--fiducials-file), or leave them out of --estimate")
     focal = setup.focal_px if setup.focal_px is not None else default_camera().fx
     sigma_normalized = setup.pixel_sigma / focal
     # The simulator's camera (fx = fy = 800 px) with the same normalized noise: its intrinsics' bounds
     # scale to a focal_px camera by focal / 800 (fx, fy, cx, cy), distortion terms unchanged.
     sigma_sim_px = sigma_normalized * default_camera().fx
     to_focal = focal / default_camera().fx
-    bounds, visible_fractions, intrinsic_bounds = [], [], []
+    bounds, visible_fractions, intrinsic_bounds, poses = [], [], [], []
     for draw in range(draws):
         try:
             dataset, truth = simulate_base_case(
@@ -182,15 +203,23 @@ def plan(setup: PlanSetup | None = None, draws: int = 5, seed: int = 0, **kwargs
         if setup.fiducials is not None:
             dataset, fraction = _with_fiducials(dataset, truth, setup.fiducials)
         visible_fractions.append(fraction)
+        poses.append(Transform(truth.R_cam_base, truth.t_cam_base))
         bounds.append(cramer_rao_bound(dataset, truth, sigma_normalized=sigma_normalized))
         if setup.estimate:
             intrinsic_bounds.append(intrinsics_cramer_rao_bound(dataset, truth, setup.estimate, sigma_px=sigma_sim_px))
-    pose_bounds = intrinsic_bounds if setup.estimate else bounds
+    pose_bounds: list[Any] = intrinsic_bounds if setup.estimate else bounds  # each with its pose_covariance
     pose = np.mean([b.pose_covariance for b in pose_bounds], axis=0)
     sigma3 = 3.0 * np.sqrt(np.diag(pose))
     per_draw = np.array([3.0 * np.sqrt(np.diag(b.pose_covariance)) for b in pose_bounds])
     rot_range = (np.degrees(per_draw[:, :3].min(axis=0)), np.degrees(per_draw[:, :3].max(axis=0)))
     pos_range = (1000.0 * per_draw[:, 3:].min(axis=0), 1000.0 * per_draw[:, 3:].max(axis=0))
+    # T_base_cam (the camera's pose on the robot, base axes), each draw's at its own truth, as calibrate prints it.
+    base_cam = [T.inverse_covariance(np.asarray(b.pose_covariance)) for T, b in zip(poses, pose_bounds)]
+    base_cov = np.mean(base_cam, axis=0)
+    base_sigma3 = 3.0 * np.sqrt(np.diag(base_cov))
+    base_draws = np.array([3.0 * np.sqrt(np.diag(P)) for P in base_cam])
+    base_range = ((np.degrees(base_draws[:, :3].min(axis=0)), np.degrees(base_draws[:, :3].max(axis=0))),
+                  (1000.0 * base_draws[:, 3:].min(axis=0), 1000.0 * base_draws[:, 3:].max(axis=0)))
     point_worst = None
     if setup.num_points:
         worst_var = [max(float(np.max(np.diag(P))) for P in b.point_covariances.values()) for b in bounds]
@@ -202,6 +231,8 @@ def plan(setup: PlanSetup | None = None, draws: int = 5, seed: int = 0, **kwargs
         point_sigma3_mm_worst=point_worst, visible_fraction=float(np.mean(visible_fractions)),
         weakest=weakest_direction(pose), bounds=bounds,
         **_intrinsics_fields(setup, intrinsic_bounds, bounds, to_focal),
+        covariance_base_cam=base_cov, sigma3_base_cam_rotation_deg=np.degrees(base_sigma3[:3]),
+        sigma3_base_cam_position_mm=1000.0 * base_sigma3[3:], sigma3_base_cam_range=base_range,
     )
 
 
@@ -224,27 +255,28 @@ def format_plan(result: PlanResult) -> str:
     def triple(values, fmt):
         return "[" + ", ".join(format(float(v), fmt) for v in values) + "]"
 
-    lo_r, hi_r = result.sigma3_rotation_deg_range
-    lo_p, hi_p = result.sigma3_position_mm_range
-    lines = [
-        f"setup: {result.setup.describe()}",
-        f"Cramér-Rao 3-sigma bounds on T_cam_base (camera axes x right, y down, z forward; "
-        f"mean over {result.draws} random mirror placement draw(s)):",
-        f"  rotation  {triple(result.sigma3_rotation_deg, '.3f')} deg   "
-        f"(draws: {triple(lo_r, '.3f')} .. {triple(hi_r, '.3f')})",
-        f"  position  {triple(result.sigma3_position_mm, '.2f')} mm    "
-        f"(draws: {triple(lo_p, '.2f')} .. {triple(hi_p, '.2f')})",
+    lines = [f"setup: {result.setup.describe()}",
+             f"Cramér-Rao 3-sigma bounds (mean over {result.draws} random mirror placement draw(s)):"]
+    if (result.sigma3_base_cam_rotation_deg is not None and result.sigma3_base_cam_position_mm is not None
+            and result.sigma3_base_cam_range is not None):
+        (lo_r, hi_r), (lo_p, hi_p) = result.sigma3_base_cam_range
+        lines += [
+            "T_base_cam  the camera's pose on the robot; bounds about and along the base axes (as calibrate prints):",
+            f"  rotation  {triple(result.sigma3_base_cam_rotation_deg, '.3f')} deg   "
+            f"(draws: {triple(lo_r, '.3f')} .. {triple(hi_r, '.3f')})",
+            f"  camera position  {triple(result.sigma3_base_cam_position_mm, '.2f')} mm    "
+            f"(draws: {triple(lo_p, '.2f')} .. {triple(hi_p, '.2f')})",
+        ]
+    lines += [
+        f"T_cam_base  its inverse; bounds about and along the camera axes (x right, y down, z forward): rotation "
+        f"±{triple(result.sigma3_rotation_deg, '.3f')} deg, base origin ±{triple(result.sigma3_position_mm, '.2f')} mm",
         f"  weakest direction: {result.weakest.text}",
     ]
     if result.intrinsics_sigma3 is not None and result.sigma3_position_mm_fixed_intrinsics is not None:
         lines.append("  intrinsics (3-sigma): " + ", ".join(
             f"{n} {v:.3g}{' px' if n in ('fx', 'fy', 'cx', 'cy') else ''}" for n, v in result.intrinsics_sigma3.items()))
-        lines.append(f"  (T_cam_base bounds above include the intrinsics' uncertainty; with them known exactly the "
-                     f"position would be {triple(result.sigma3_position_mm_fixed_intrinsics, '.2f')} mm)")
-        count = len(result.setup.fiducials) if result.setup.fiducials is not None else result.setup.num_fiducials
-        if count < 4 and any(n in result.setup.estimate for n in ("fx", "fy", "cx", "cy")):
-            lines.append("  warning: calibrate refuses fx, fy, cx, cy from photographs of fewer than 4 fiducials "
-                         "(any focal length and centre fit 3 points exactly): use a board")
+        lines.append(f"  (the bounds above include the intrinsics' uncertainty; with them known exactly T_cam_base's base "
+                     f"origin would be ±{triple(result.sigma3_position_mm_fixed_intrinsics, '.2f')} mm)")
     if result.point_sigma3_mm_worst is not None:
         lines.append(f"  least-constrained reconstruction point: 3-sigma {result.point_sigma3_mm_worst:.2f} mm (worst axis)")
     if result.visible_fraction < 1.0:

@@ -100,7 +100,9 @@ def format_views_plan(result: ViewsPlan) -> str:
         return "[" + ", ".join(format(float(x), fmt) for x in values) + "]"
 
     lines = [f"setup: {result.description} ({result.images} images per draw, {result.draws} draws)",
-             "3-sigma bounds (Cramér-Rao, at the truth; quadratic mean over draws):"]
+             "3-sigma bounds (Cramér-Rao, at the truth; quadratic mean over draws); T_base_cam is each camera's pose "
+             "on the robot, its bounds about and along the base axes (as calibrate prints), a rig transform's about "
+             "and along its 'to' camera's axes:"]
     for name, (rot, pos) in result.cameras.items():
         lines.append(f"  {name}: T_base_cam rotation ±{triple(rot, '.3f')} deg, position ±{triple(pos, '.2f')} mm")
     for name, (rot, pos) in result.rig.items():

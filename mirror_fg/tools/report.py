@@ -28,18 +28,23 @@ import numpy as np
 
 from mirror_fg.core.transform import Transform, rotation_angle
 from mirror_fg.io.output import OutputPlan
-from mirror_fg.io.result import base_cam_sigma3, pose, pose_covariance, transforms, validate_result
-from mirror_fg.io.ros import DEFAULT_BASE_FRAME, DEFAULT_CAMERA_FRAME, check_frame_name, ros_outputs
-from mirror_fg.tools.report_diagnostics import figure_radial, figure_tracks, image_centre, radial_verdict
-from mirror_fg.tools.report_general import (
-    base_is_first_camera,
-    camera_input_rows,
-    console_lines,
-    dataset_line,
-    no_target_text,
-    rig_ros_blocks,
-    view_blocks,
-    view_unknown_count,
+from mirror_fg.io.result import (
+    base_cam_sigma3,
+    pose,
+    pose_covariance,
+    transforms,
+    validate_result,
+)
+from mirror_fg.io.ros import (
+    DEFAULT_BASE_FRAME,
+    DEFAULT_CAMERA_FRAME,
+    check_frame_name,
+    ros_outputs,
+)
+from mirror_fg.tools.report_diagnostics import (
+    figure_radial,
+    figure_tracks,
+    image_centre,
 )
 from mirror_fg.tools.report_figures import (
     figure_correlation,
@@ -48,18 +53,31 @@ from mirror_fg.tools.report_figures import (
     figure_per_point,
     figure_scene,
 )
+from mirror_fg.tools.report_general import (
+    base_is_first_camera,
+    camera_input_rows,
+    console_lines,
+    dataset_line,
+    no_target_text,
+    rig_ros_blocks,
+    view_blocks,
+)
 from mirror_fg.tools.report_pages import Block, RenderedFigure, html_page, pdf_document
 from mirror_fg.tools.report_scene import figure_views_scene, pose_is_estimated
 from mirror_fg.tools.report_units import units_blocks
-from mirror_fg.tools.report_views import ViewResiduals, figure_cameras, figure_orders, view_residuals
-from mirror_fg.tools.residuals import OUTLIER_FACTOR, Residuals, residuals_of_valid_result
-from mirror_fg.tools.summary import (
-    RMS_DEFINITION,
-    camera_lines,
-    cost_warning,
-    noise_note,
-    unknown_count,
+from mirror_fg.tools.report_views import (
+    ViewResiduals,
+    figure_cameras,
+    figure_orders,
+    view_residuals,
 )
+from mirror_fg.tools.residuals import (
+    OUTLIER_FACTOR,
+    Residuals,
+    residuals_of_valid_result,
+)
+from mirror_fg.tools.summary import RMS_DEFINITION, camera_lines
+from mirror_fg.tools.verdict import Verdict, judge, stored_verdict
 
 if TYPE_CHECKING:
     from mirror_fg.io.dataset import Dataset
@@ -95,6 +113,7 @@ class _Summary:
     notes: list[str]
     headline: str = ""  # the at-a-glance assessment
     reasons: list[str] = field(default_factory=list)  # one bullet each, problems first
+    judged: Verdict | None = None  # the one verdict (tools/verdict.py): the headline's, the console block's
 
 
 def _summary(
@@ -163,64 +182,10 @@ def _summary(
                      f"reconstruction points, σ = {_fmt(dataset.pixel_sigma)} {units}"))
     if fixed:
         notes.append(no_target_text(result, dataset))
-    problems, facts = _verdict(result, dataset, residuals, opt)
-    good = not problems
-    reasons = [text for _, text in problems] + facts
-    if problems:
-        headline = "Check before use: " + "; ".join(title for title, _ in problems)
-    else:
-        headline = "Looks right: converged, and the residuals are what the noise model predicts" if facts else \
-            "No optimizer or residual information in the result"
-    verdict = "; ".join([headline, *reasons])
-    return _Summary(rows=rows, verdict=verdict, good=good, notes=notes, headline=headline, reasons=reasons)
-
-
-def _verdict(result: Mapping[str, Any], dataset: Dataset | None, residuals: Residuals | None,
-             opt: Mapping[str, Any]) -> tuple[list[tuple[str, str]], list[str]]:
-    """What is wrong, as ``(short title, what it is and what to do)``, and the facts that were checked;
-    the result looks right when nothing is wrong."""
-    problems: list[tuple[str, str]] = []
-    facts: list[str] = []
-    if opt.get("converged") is False:
-        problems.append(("not converged", "the optimizer did NOT converge"))
-    elif opt.get("converged"):
-        facts.append("optimizer converged")
-    warning = cost_warning(opt)
-    if warning:
-        problems.append(("final cost implausible", warning))
-    if result.get("inconsistency") is not None:
-        problems.append(("parts of the capture disagree", result["inconsistency"]["message"]))
-    excluded = result.get("excluded") or []
-    if excluded:
-        facts.append(f"{len(excluded)} image(s) or measurement(s) left out of the solve (listed below)")
-    if residuals is not None and dataset is not None and math.isfinite(residuals.rms) and residuals.sigma > 0:
-        ratio = residuals.rms / residuals.expected_rms
-        # At the MLE the residuals lose one degree of freedom per unknown: E[RMS^2] = 2 sigma^2 (1 - p / 2N).
-        coordinates = 2 * int(np.sum(residuals.valid))
-        unknowns = unknown_count(result) if dataset.is_tree else view_unknown_count(result, dataset)
-        expected = math.sqrt(max(1.0 - unknowns / coordinates, 0.0)) if coordinates else 1.0
-        flagged = residuals.flagged_images()
-        rms = (f"RMS {residuals.rms:.3g} {residuals.units} = {ratio:.2f} × √2·σ ({expected:.2f} × expected from "
-               f"{coordinates} coordinates and {unknowns} unknowns when the noise model holds)")
-        note = noise_note(ratio / expected, residuals.sigma, residuals.units) if expected > 0.0 else \
-            "more unknowns than measured coordinates"
-        if note:
-            problems.append(("pixel_sigma does not fit the residuals", f"{rms}: {note}"))
-        else:
-            facts.append(rms)
-        images = f"{len(flagged)} image(s) above {OUTLIER_FACTOR:g} × the median image RMS"
-        if flagged:
-            problems.append((f"{len(flagged)} image(s) much worse than the others", images + " (listed below)"))
-        else:
-            facts.append(images)
-        profile = residuals.radial_profile(image_centre(dataset))
-        if profile is not None and profile.significant:
-            estimated = (result.get("camera") or {}).get("estimated") or ()
-            problems.append(("residuals grow towards the image edge (distortion)",
-                             radial_verdict(profile, residuals.units, estimated)))
-        elif profile is not None:
-            facts.append(radial_verdict(profile, residuals.units))
-    return problems, facts
+    verdict = stored_verdict(result) or judge(result, dataset, residuals=residuals)
+    reasons = verdict.reasons
+    return _Summary(rows=rows, verdict="; ".join([verdict.headline, *reasons]), good=verdict.good, notes=notes,
+                    headline=verdict.headline, reasons=reasons, judged=verdict)
 
 
 def _inputs(result: Mapping[str, Any], dataset: Dataset | None, source: str, extra: Mapping[str, str] | None,
@@ -409,7 +374,7 @@ def _blocks(result: Mapping[str, Any], dataset: Dataset | None, summary: _Summar
     if base_is_first_camera(result, dataset):
         blocks.append(Block("p", no_target_text(result, dataset), id="no-target", css="flagged"))
     blocks += [Block("p", _FRAMES, id="frames"), Block("h2", "Console summary (mirror-fg calibrate)"),
-               Block("pre", "\n".join(console_lines(result, dataset))),
+               Block("pre", "\n".join(console_lines(result, dataset, summary.judged))),
                Block("h2", "Inputs"), Block("table", rows=inputs, id="inputs")]
     if dataset is not None and not dataset.is_tree or result.get("cameras"):
         blocks += view_blocks(result, dataset, residuals if isinstance(residuals, ViewResiduals) else None, base_frame)

@@ -1,5 +1,5 @@
 """Diagnostic figures of the calibration report: the residual against the distance from the image centre,
-and the tracked points' paths and residuals over time (issues 17, 18).
+and the tracked points' paths and residuals over time.
 
 Residuals as in :mod:`mirror_fg.tools.residuals` (pixels, or normalized units without a camera; RMS as
 result@1's ``rms_px``). Tracks are :class:`mirror_fg.vision.tracking.Track` (history of

@@ -86,12 +86,13 @@ def console_result(result: Mapping[str, Any], dataset: Dataset | None) -> Mappin
     return {k: v for k, v in result.items() if k not in _BOUND_KEYS}
 
 
-def console_lines(result: Mapping[str, Any], dataset: Dataset | None) -> list[str]:
+def console_lines(result: Mapping[str, Any], dataset: Dataset | None, verdict: Any = None) -> list[str]:
     """The console summary (:func:`mirror_fg.tools.summary.summary_lines`) of :func:`console_result`, its
-    missing bounds said to be not estimated where the pose is the base frame itself."""
+    missing bounds said to be not estimated where the pose is the base frame itself; ``verdict``: the
+    report's (:class:`mirror_fg.tools.verdict.Verdict`), so that its line is the headline's verdict."""
     from mirror_fg.tools.summary import summary_lines
 
-    lines = summary_lines(console_result(result, dataset))
+    lines = summary_lines(console_result(result, dataset), verdict=verdict)
     if base_is_first_camera(result, dataset):
         lines = [line.replace("not computed (the result has no covariance)",
                               "not estimated (the base frame is this camera's frame: no known target)") for line in lines]

@@ -16,7 +16,7 @@ the updated pose covariance from the current one without a new inverse:
 A placement counts only if every fiducial is seen through it (on the mirror's reflective side, in
 front of the camera, inside the image with a margin). Candidates cover the reachable set evenly: mirror
 distances ``|v|`` in ``distance_m``, normals within ``max_tilt_deg`` of the optical axis (a Fibonacci
-spiral on that spherical cap). Suggestions follow SPEC's ``mirror-fg/suggestions@1``.
+spiral on that spherical cap). Suggestions follow docs/formats.md's ``mirror-fg/suggestions@1``.
 """
 from __future__ import annotations
 

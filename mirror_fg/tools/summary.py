@@ -18,6 +18,14 @@ import numpy as np
 
 from mirror_fg.io.result import base_cam_sigma3, transforms, validate_result
 from mirror_fg.tools.report_units import units_lines
+from mirror_fg.tools.verdict import (
+    NOISE_BAND,
+    Verdict,
+    cost_warning,
+    judge,
+    noise_note,
+    stored_verdict,
+)
 
 __all__ = ["summary_lines", "rig_lines", "frame_convention", "cost_warning", "verdict_line", "noise_note", "unknown_count",
            "NOISE_BAND", "RMS_DEFINITION", "MAX_OUTLIER_LINES"]
@@ -26,11 +34,6 @@ __all__ = ["summary_lines", "rig_lines", "frame_convention", "cost_warning", "ve
 RMS_DEFINITION = "of each measurement's reprojection-error length, ≈ √2·σ expected"
 #: Outliers listed without ``verbose`` (all with it).
 MAX_OUTLIER_LINES = 20
-#: The noise model holds when the residuals are within this factor band of the size it predicts
-#: (sqrt(final cost / expected cost), i.e. RMS / (sqrt(2) sigma sqrt(1 - p / 2N))): outside it the
-#: 3-sigma bounds are too wide (below) or too narrow (above) by about that factor. The console's verdict
-#: and the report's use the same band.
-NOISE_BAND = (0.5, 2.0)
 
 
 def frame_convention() -> list[str]:
@@ -66,15 +69,17 @@ def _transform_lines(entry: Mapping[str, Any], R: np.ndarray, t: np.ndarray, ful
 
 
 def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, incremental: bool = False,
-                  source: str = "result", pixel_sigma: float | None = None) -> list[str]:
+                  source: str = "result", pixel_sigma: float | None = None, verdict: Verdict | None = None) -> list[str]:
     """The summary of a result@1 dictionary as lines of text (no trailing newlines).
 
     ``verbose``: also the full ``T_cam_base`` rotation, the costs and every outlier (else the first
     MAX_OUTLIER_LINES). ``incremental``: the iteration count is of iSAM2 updates, not LM iterations.
-    ``pixel_sigma``: the dataset's, for the verdict (:func:`verdict_line`).
+    ``verdict``: the one verdict to print (the report passes its own), else the one the result carries,
+    else judged from the result alone (``pixel_sigma``: the dataset's; :mod:`mirror_fg.tools.verdict`).
     ``result`` is validated first (DatasetError naming ``source``).
     """
     result = validate_result(result, source)
+    line = (verdict or stored_verdict(result) or judge(result, pixel_sigma=pixel_sigma)).line
     (R_cb, t_cb), (R_bc, t_bc) = transforms(result)
     if without_target(result):
         lines = ["no known target: the base frame is the camera frame (T_cam_base is the identity, not estimated) "
@@ -83,7 +88,7 @@ def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, increment
         lines += _residual_lines(result.get("residuals") or {}, verbose)
         lines += excluded_lines(result.get("excluded") or [], verbose)
         lines += _optimizer_lines(result.get("optimizer") or {}, verbose, incremental)
-        lines.append(verdict_line(result, pixel_sigma))
+        lines.append(line)
         return lines
     lines = ["T_base_cam  the camera's pose on the robot: p_base = R p_cam + t (tf/URDF parent base, child camera)"]
     lines += _transform_lines(result.get("T_base_cam") or {}, R_bc, t_bc, full=True)
@@ -102,7 +107,7 @@ def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, increment
     if result.get("inconsistency") is not None:
         lines.append(f"warning: {result['inconsistency']['message']}")
     lines += _optimizer_lines(result.get("optimizer") or {}, verbose, incremental)
-    lines.append(verdict_line(result, pixel_sigma))
+    lines.append(line)
     return lines
 
 
@@ -174,64 +179,10 @@ def rig_lines(result: Mapping[str, Any]) -> list[str]:
     return lines
 
 
-def noise_note(ratio: float, sigma: float, units: str) -> str:
-    """'' when ``ratio`` (the residuals' size over what ``sigma`` predicts) is inside NOISE_BAND; else
-    what it means for ``pixel_sigma`` and the bounds."""
-    fits = f"the residuals fit σ ≈ {sigma * ratio:.2g} {units}"
-    if ratio < NOISE_BAND[0]:
-        return (f"pixel_sigma {sigma:.3g} {units} is too large: {fits}, so the 3-sigma bounds are about "
-                f"{1 / ratio:.1f} × too wide (set pixel_sigma to your detector's accuracy)")
-    if ratio > NOISE_BAND[1]:
-        return (f"the residuals are {ratio:.1f} × what pixel_sigma {sigma:.3g} {units} predicts ({fits}): outliers, "
-                "a wrong camera model or too small a pixel_sigma; the 3-sigma bounds are too narrow")
-    return ""
-
-
-def _noise_fit(result: Mapping[str, Any], pixel_sigma: float | None = None) -> tuple[float, float] | None:
-    """(residuals over their predicted size, the pixel_sigma used), or None.
-
-    With N measurements and p unknowns the expected cost is (2N - p) / 2, so N = expected + p / 2 and
-    the predicted RMS is sigma sqrt(2 expected / N) (sqrt(2) sigma less one degree of freedom per
-    unknown). Without ``pixel_sigma`` it is read from the plain final cost, final = N RMS^2 / (2 sigma^2),
-    i.e. ratio = sqrt(final / expected): not after a robust kernel, whose cost is smaller.
-    """
-    opt, res = result.get("optimizer") or {}, result.get("residuals") or {}
-    final, expected, rms = opt.get("final_error"), opt.get("expected_final_error"), res.get("rms_px")
-    if not all(isinstance(x, (int, float)) and math.isfinite(x) and x > 0 for x in (expected, rms)):
-        return None
-    expected, rms = float(expected), float(rms)  # type: ignore[arg-type]  # checked above (all() does not narrow)
-    measurements = expected + unknown_count(result) / 2
-    if pixel_sigma is not None and pixel_sigma > 0:
-        return rms / (pixel_sigma * math.sqrt(2 * expected / measurements)), float(pixel_sigma)
-    if not (isinstance(final, (int, float)) and math.isfinite(final) and final > 0):
-        return None
-    final = float(final)
-    return math.sqrt(final / expected), rms * math.sqrt(measurements / (2 * final))
-
-
 def verdict_line(result: Mapping[str, Any], pixel_sigma: float | None = None) -> str:
-    """One line: does the result look right from what it holds (convergence, residuals against the noise
-    model of ``pixel_sigma``, else of the sigma its costs imply; consistency), and if not, what to do. The
-    report's verdict also judges the residuals' pattern."""
-    opt = result.get("optimizer") or {}
-    units = "px" if (result.get("residuals") or {}).get("units", "px") == "px" else "(normalized)"
-    problems = []
-    if opt.get("converged") is False:
-        problems.append("the optimizer did not converge")
-    fit = _noise_fit(result, pixel_sigma)
-    note = noise_note(*fit, units) if fit is not None else ""
-    if note:
-        problems.append(note)
-    elif cost_warning(opt):
-        problems.append("the final cost is implausible (the warning above)")
-    if result.get("inconsistency") is not None:
-        problems.append("parts of the capture disagree (the warning above)")
-    if problems:
-        return "verdict: CHECK: " + "; ".join(problems)
-    if fit is None:
-        return "verdict: no cost to judge the noise model by (the report has the residuals)"
-    return (f"verdict: looks right: residuals {fit[0]:.2f} × their predicted size under pixel_sigma {fit[1]:.3g} {units}"
-            " (the report also checks their pattern)")
+    """The console's one ``verdict:`` line: the verdict the result carries (``calibrate`` stores it), else
+    :func:`mirror_fg.tools.verdict.judge`'s from what the result holds (``pixel_sigma``: the dataset's)."""
+    return (stored_verdict(result) or judge(result, pixel_sigma=pixel_sigma)).line
 
 
 #: Intrinsics printed in pixels (the others, distortion terms, are unitless).
@@ -329,19 +280,6 @@ def _optimizer_lines(opt: Mapping[str, Any], verbose: bool, incremental: bool) -
                      f"expected at the optimum {_num(opt.get('expected_final_error'))}")
     warning = cost_warning(opt)
     return lines + ([f"warning: {warning}"] if warning else [])
-
-
-def cost_warning(opt: Mapping[str, Any]) -> str | None:
-    """Why the optimizer's final cost is implausible (far above its expected value at the optimum), or None."""
-    final, expected = opt.get("final_error"), opt.get("expected_final_error")
-    if final is None or expected is None or not (math.isfinite(final) and math.isfinite(expected)):
-        return None
-    from mirror_fg.solver.lm import plausible
-
-    if plausible(final, expected):
-        return None
-    return (f"final cost {final:.4g} is far above its expected {expected:.4g} at the optimum: a local minimum, "
-            "outliers (try --robust) or a pixel_sigma that is too small")
 
 
 def _num(x: Any) -> str:

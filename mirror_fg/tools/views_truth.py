@@ -1,5 +1,5 @@
 """Ground truth of simulations with views of any reflection order and several cameras
-(``mirror-fg/truth@1``, extended compatibly: SPEC "Views of any reflection order, and several cameras").
+(``mirror-fg/truth@1``, extended compatibly: docs/formats.md "Views of any reflection order, and several cameras").
 
 A single-camera truth file is the one :mod:`mirror_fg.tools.simulate` writes. A rig's adds
 ``cameras: {name: {"T_cam_base": {"R", "t"}}}`` (dataset order) and, per mirror placement, ``camera``:
@@ -40,7 +40,7 @@ class ViewsTruth:
     ``poses``: ``{camera: (R, t)}`` camera-to-base transforms (eq. 2) in the dataset's camera order; the
     one key is None for a single-camera dataset. ``mirror_vectors[(l, m)]`` (metres) is in the frame of
     ``mirror_cameras[(l, m)]``: the first camera (in ``poses`` order) with an image of that placement
-    (SPEC "Result", ``mirrors[].camera``). ``points``: base-frame reconstruction points.
+    (docs/formats.md "Result", ``mirrors[].camera``). ``points``: base-frame reconstruction points.
     """
 
     poses: dict[Camera_name, tuple[np.ndarray, np.ndarray]]
