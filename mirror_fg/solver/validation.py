@@ -28,7 +28,6 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
-import gtsam
 import numpy as np
 
 from mirror_fg.io.dataset import Dataset, Image

@@ -57,7 +57,7 @@ def units_lines(result: Mapping[str, Any]) -> list[str]:
                      f"(1 when the noise model and the bounds hold)"
                      + (f", worst image {worst['image']} at {worst['ratio']:.3g}" if worst else ""))
         if validation.get("not_held_out"):
-            lines.append(f"  not held out (the others alone leave an unknown undetermined): "
+            lines.append("  not held out (the others alone leave an unknown undetermined): "
                          + ", ".join(validation["not_held_out"][:10]))
     return lines
 
