@@ -151,6 +151,9 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--accept-poor-fit", action="store_true",
                      help="write the result even when the fit is more than 3x worse than the noise model allows "
                      "(RMS whitened residual; refused by default: exit 3 with the likely causes)")
+    cal.add_argument("--viewing-distance", type=_POSITIVE, default=0.6, metavar="M",
+                     help="screen targets: the eye's distance in front of the screen for the gaze-point error, "
+                     "metres (default 0.6)")
     _add_common(cal)
 
     many = sub.add_parser("calibrate-many", help="calibrate many datasets or captures (a fleet) on Dask",
