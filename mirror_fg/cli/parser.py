@@ -5,6 +5,7 @@ import argparse
 import math
 from pathlib import Path
 
+from mirror_fg.cli.export_cmd import add_export_parser
 from mirror_fg.factors.robust import KERNELS, ROBUST_K
 
 EPILOG = """exit status: 0 success, 2 bad input (the message names the file, image or point),
@@ -287,6 +288,7 @@ def build_parser() -> argparse.ArgumentParser:
     pat.add_argument("--square-mm", type=_POSITIVE, help="square (tag spacing) on the screen, mm (default 40)")
     pat.add_argument("-o", "--output", required=True, type=Path, help="pattern PNG to write")
     _add_common(pat)
+    add_export_parser(sub, EPILOG, _add_common)
     return parser
 
 
