@@ -59,6 +59,17 @@ def webcam_above(width_m: float, gap_m: float = 0.012, tilt_deg: float = 6.0) ->
     return R, -R @ centre
 
 
+def two_screens(width_m: float, gap_m: float = 0.02, turn_deg: float = 25.0) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``{"left": (R, t), "right": (R, t)}`` of ``T_cam_screen``: the webcam's monitor (:func:`webcam_above`)
+    and a second one of the same size ``gap_m`` right of it (as the viewer sees them), turned ``turn_deg``
+    about its left edge towards the viewer (its x axis leaves the first screen's plane towards the viewer)."""
+    R, t = webcam_above(width_m)
+    c, s = np.cos(np.radians(turn_deg)), np.sin(np.radians(turn_deg))
+    R_left_right = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])  # x -> (c, 0, -s): towards -z, the viewer
+    t_left_right = np.array([width_m + gap_m, 0.0, 0.0])
+    return {"left": (R, t), "right": (R @ R_left_right, R @ t_left_right + t)}
+
+
 @dataclass(frozen=True)
 class Mirror:
     """A rectangular mirror ``size_m`` (w, h) centred at ``centre`` (camera frame) with unit normal ``normal``

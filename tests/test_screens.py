@@ -1,0 +1,146 @@
+"""Several screens in one graph (``mirror_fg.solver.screens``; docs/formats.md, "The answer in the user's
+units"): two monitors side by side seen by one webcam through a hand-held mirror.
+
+Fast tests: the screens' corners projected through the mirrors by scripts/render_screen.py's own geometry
+(its homography of a screen through the reflected camera) with Gaussian pixel noise; the second monitor
+stands right of the first, turned 25 degrees towards the viewer. The goal test renders the photographs
+(``render_screen.py --screens 2``) and runs ``mirror-fg calibrate`` on its capture.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from conftest import load_script, pose_difference
+from mirror_fg.core.camera import Camera
+from mirror_fg.core.transform import Transform
+from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.io.screen_target import screen_target_from_dict
+from mirror_fg.solver.screens import calibrate_screens, relative_pose
+
+SCREEN_PX = (1920, 1080)
+PIXEL_SIGMA = 0.3
+
+
+@pytest.fixture(scope="module")
+def scene():
+    render = load_script("render_screen")
+    from mirror_fg.tools.pattern import design_pattern, screen_mm_from_diagonal
+
+    mm = screen_mm_from_diagonal(*SCREEN_PX, 24.0)
+    target = screen_target_from_dict(design_pattern(*SCREEN_PX, *mm).to_dict(), "test")
+    poses = render.two_screens(mm[0] / 1000)
+    camera = Camera(*(render.WEBCAM[k] for k in ("width", "height", "fx", "fy", "cx", "cy")))
+    mirrors = {name: render.placements(R, t, mm[0] / 1000, mm[1] / 1000) for name, (R, t) in poses.items()}
+    return {"render": render, "mm": mm, "target": target, "poses": poses, "camera": camera, "mirrors": mirrors}
+
+
+def observe(scene, name: str, mirror, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Screen ``name``'s pattern corners through ``mirror``, with noise; only those inside the image."""
+    render, fiducials = scene["render"], scene["target"].target_points()
+    R, t = scene["poses"][name]
+    names = list(fiducials)
+    pixels = render.project(render.screen_homography(R, t, mirror), np.array([fiducials[n][:2] for n in names]))
+    pixels = pixels + rng.normal(0.0, PIXEL_SIGMA, pixels.shape)
+    inside = (pixels[:, 0] > 0) & (pixels[:, 0] < 639) & (pixels[:, 1] > 0) & (pixels[:, 1] < 479)
+    return {n: p for n, p, keep in zip(names, pixels, inside) if keep}
+
+
+def datasets_of(scene, rng: np.random.Generator, shared: bool = False) -> dict[str, Dataset]:
+    """One dataset per screen: six placements each (labels 0-5 and 6-11), and with ``shared`` two more
+    photographs of one placement (12) aimed between the screens, each seeing both."""
+    render = scene["render"]
+    images: dict[str, list[Image]] = {"left": [], "right": []}
+    label = 0
+    for name in ("left", "right"):
+        for mirror in scene["mirrors"][name]:
+            images[name].append(Image(id=f"{name}{label}", mirror_configs=(label,), observations=observe(scene, name, mirror, rng)))
+            label += 1
+    if shared:
+        R, t = scene["poses"]["left"]
+        junction = R @ np.array([scene["mm"][0] / 1000 + 0.01, scene["mm"][1] / 2000, 0.0]) + t
+        mirror = render.aim_mirror(0.30, (320, 240), junction)
+        for name in ("left", "right"):
+            images[name].append(Image(id=f"{name}-both", mirror_configs=(label,), observations=observe(scene, name, mirror, rng)))
+    fiducials = scene["target"].target_points()
+    return {name: Dataset(1, scene["camera"], PIXEL_SIGMA, fiducials, imgs, source=f"sim {name}")
+            for name, imgs in images.items()}
+
+
+def test_two_screens_in_one_graph_hold_their_truths_and_relative_pose(scene):
+    cal = calibrate_screens(datasets_of(scene, np.random.default_rng(1)))
+    assert cal.names == ["left", "right"]
+    for name in cal.names:
+        R, t = scene["poses"][name]
+        error = pose_difference(R, t, cal.poses[name].R, cal.poses[name].t)
+        bound = 3 * np.sqrt(np.diag(cal.covariance(name)))
+        assert np.all(np.abs(error) <= bound), (name, error, bound)
+        # the joint solve equals each screen's own where they share nothing (independent placements)
+        alone = cal.alone[name]
+        np.testing.assert_allclose(cal.poses[name].t, alone.t_cam_base, atol=1e-6)
+        np.testing.assert_allclose(cal.covariance(name), alone.covariance, rtol=1e-3, atol=1e-14)
+    (R_l, t_l), (R_r, t_r) = scene["poses"]["left"], scene["poses"]["right"]
+    T, C = cal.relative("left", "right")
+    true = Transform(R_l, t_l).inverse() @ Transform(R_r, t_r)
+    e = pose_difference(true.R, true.t, T.R, T.t)
+    assert e @ np.linalg.solve(C, e) < chi2.ppf(0.9973, 6)  # within "3 sigma" in 6 dof
+    # no placement in common: the joint covariance has no cross terms, the relative pose's is the two propagated
+    np.testing.assert_allclose(cal.joint_covariance[:6, 6:], 0.0, atol=1e-3 * np.abs(cal.joint_covariance).max())
+
+
+def test_relative_pose_covariance_is_the_first_order_propagation(scene):
+    """Against central differences of ``T_to_from`` under the uncertainty convention's perturbations."""
+    import cv2
+
+    (Ra, ta), (Rb, tb) = scene["poses"]["left"], scene["poses"]["right"]
+    A = np.random.default_rng(2).normal(size=(12, 12))
+    joint = A @ A.T * 1e-6
+    T, C = relative_pose(Transform(Ra, ta), Transform(Rb, tb), joint)
+
+    def rel(xi):
+        Ra2, ta2 = cv2.Rodrigues(xi[:3])[0] @ Ra, ta + xi[3:6]
+        Rb2, tb2 = cv2.Rodrigues(xi[6:9])[0] @ Rb, tb + xi[9:]
+        T2 = Transform(Ra2, ta2).inverse() @ Transform(Rb2, tb2)
+        return pose_difference(T.R, T.t, T2.R, T2.t)
+
+    h = 1e-6
+    J = np.column_stack([(rel(h * e) - rel(-h * e)) / (2 * h) for e in np.eye(12)])
+    np.testing.assert_allclose(C, J @ joint @ J.T, rtol=1e-5, atol=1e-15)
+
+
+def test_a_placement_seen_with_both_screens_ties_them(scene):
+    """Two photographs of one mirror placement, one per screen, tie the screens together beyond each
+    alone: its relative pose is tighter than theirs combined, and the truth is within its bounds."""
+    rng = np.random.default_rng(3)
+    cal = calibrate_screens(datasets_of(scene, rng, shared=True))
+    assert (1, 12) in cal.mirror_vectors
+    T, C = cal.relative("left", "right")
+    independent = np.zeros((12, 12))
+    independent[:6, :6], independent[6:, 6:] = cal.alone["left"].covariance, cal.alone["right"].covariance
+    _, C_alone = relative_pose(Transform(cal.alone["left"].R_cam_base, cal.alone["left"].t_cam_base),
+                               Transform(cal.alone["right"].R_cam_base, cal.alone["right"].t_cam_base), independent)
+    assert np.trace(C) < np.trace(C_alone)
+    (R_l, t_l), (R_r, t_r) = scene["poses"]["left"], scene["poses"]["right"]
+    true = Transform(R_l, t_l).inverse() @ Transform(R_r, t_r)
+    e = pose_difference(true.R, true.t, T.R, T.t)
+    assert e @ np.linalg.solve(C, e) < chi2.ppf(0.9973, 6)
+
+
+def test_relative_pose_nees_over_runs(scene):
+    """The relative pose's covariance holds the truth: mean NEES over 12 runs within chi-square's band."""
+    (R_l, t_l), (R_r, t_r) = scene["poses"]["left"], scene["poses"]["right"]
+    true = Transform(R_l, t_l).inverse() @ Transform(R_r, t_r)
+    rng = np.random.default_rng(11)
+    nees = []
+    for _ in range(12):
+        cal = calibrate_screens(datasets_of(scene, rng, shared=True))
+        T, C = cal.relative("left", "right")
+        e = pose_difference(true.R, true.t, T.R, T.t)
+        nees.append(e @ np.linalg.solve(C, e))
+    band = chi2.ppf([0.0005, 0.9995], 6 * 12) / 12
+    assert band[0] < np.mean(nees) < band[1], (np.mean(nees), band)
