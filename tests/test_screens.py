@@ -3,7 +3,7 @@ units"): two monitors side by side seen by one webcam through a hand-held mirror
 
 Fast tests: the screens' corners projected through the mirrors by scripts/render_screen.py's own geometry
 (its homography of a screen through the reflected camera) with Gaussian pixel noise; the second monitor
-stands right of the first, turned 25 degrees towards the viewer. The goal test renders the photographs
+stands right of the first, turned 35 degrees towards the viewer. The goal test renders the photographs
 (``render_screen.py --screens 2``) and runs ``mirror-fg calibrate`` on its capture.
 """
 from __future__ import annotations
@@ -36,7 +36,8 @@ def scene():
     target = screen_target_from_dict(design_pattern(*SCREEN_PX, *mm).to_dict(), "test")
     poses = render.two_screens(mm[0] / 1000)
     camera = Camera(*(render.WEBCAM[k] for k in ("width", "height", "fx", "fy", "cx", "cy")))
-    mirrors = {name: render.placements(R, t, mm[0] / 1000, mm[1] / 1000) for name, (R, t) in poses.items()}
+    mirrors = {name: (render.placements if name == "left" else render.side_placements)(R, t, mm[0] / 1000, mm[1] / 1000)
+               for name, (R, t) in poses.items()}
     return {"render": render, "mm": mm, "target": target, "poses": poses, "camera": camera, "mirrors": mirrors}
 
 
@@ -144,3 +145,91 @@ def test_relative_pose_nees_over_runs(scene):
         nees.append(e @ np.linalg.solve(C, e))
     band = chi2.ppf([0.0005, 0.9995], 6 * 12) / 12
     assert band[0] < np.mean(nees) < band[1], (np.mean(nees), band)
+
+
+# --- the goal: two rendered monitors side by side, through mirror-fg calibrate -------------------------------
+
+
+def run_cli(*args: str, cwd: Path) -> int:
+    from mirror_fg.cli import main
+
+    here = os.getcwd()
+    try:
+        os.chdir(cwd)
+        return main(list(args))
+    except SystemExit as stop:
+        return int(stop.code)
+    finally:
+        os.chdir(here)
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    """``scripts/render_screen.py --screens 2``: twelve photographs (six per monitor), its capture and truth."""
+    import subprocess
+    import sys
+
+    from conftest import REPO
+
+    folder = tmp_path_factory.mktemp("two_screens")
+    done = subprocess.run([sys.executable, str(REPO / "scripts" / "render_screen.py"), "--out", str(folder),
+                           "--screens", "2"], env={**os.environ, "PYTHONPATH": str(REPO)}, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    return folder
+
+
+def test_two_rendered_monitors_are_each_within_3_mm_and_0_3_deg_and_their_relative_pose_within_3_sigma(rendered, capsys):
+    from mirror_fg.io.result import load_result
+
+    assert run_cli("calibrate", "capture.yaml", "-o", "result.json", cwd=rendered) == 0
+    printed = capsys.readouterr().out
+    assert "screen left: T_cam_screen" in printed and "screen left in screen right's frame" in printed
+    result = load_result(rendered / "result.json")  # a valid result@1
+    truth = json.loads((rendered / "truth.json").read_text())["screens"]
+    assert list(result["screens"]) == ["left", "right"]
+    for name, block in result["screens"].items():
+        R, t = np.array(block["T_cam_screen"]["R"]), np.array(block["T_cam_screen"]["t"])
+        error = pose_difference(np.array(truth[name]["R"]), np.array(truth[name]["t"]), R, t)
+        print(f"{name}: error {np.degrees(error[:3]).round(3)} deg, {(1000 * error[3:]).round(2)} mm; 3-sigma "
+              f"{np.round(block['sigma3']['rotation_deg'], 3)} deg, {np.round(block['sigma3']['position_mm'], 2)} mm")
+        assert np.all(np.abs(np.degrees(error[:3])) < 0.3) and np.all(np.abs(error[3:]) < 0.003), (name, error)
+        assert np.all(np.abs(error) <= 3 * np.sqrt(np.diag(block["covariance"]))), name
+        # each screen block is that screen's: its corners are those of its own T_cam_screen
+        w, h = block["width_mm"] / 1000, block["height_mm"] / 1000
+        np.testing.assert_allclose(block["corners_cam"], [R @ c + t for c in ([0, 0, 0], [w, 0, 0], [w, h, 0], [0, h, 0])],
+                                   atol=1e-12)
+        assert "sigma3_on_screen_mm" in block
+    # the first screen is the top level (single-screen readers)
+    np.testing.assert_allclose(result["T_cam_base"]["t"], result["screens"]["left"]["T_cam_screen"]["t"], atol=1e-12)
+    assert result["screen"]["corners_cam"] == result["screens"]["left"]["corners_cam"]
+    (pair,) = result["screen_pairs"]
+    assert (pair["from"], pair["to"]) == ("left", "right")
+    T = Transform(np.array(truth["right"]["R"]), np.array(truth["right"]["t"])).inverse() @ \
+        Transform(np.array(truth["left"]["R"]), np.array(truth["left"]["t"]))  # left's points into right's frame
+    e = pose_difference(T.R, T.t, np.array(pair["T"]["R"]), np.array(pair["T"]["t"]))
+    nees = e @ np.linalg.solve(np.array(pair["covariance"]), e)
+    print(f"relative pose: error {np.degrees(e[:3]).round(3)} deg, {(1000 * e[3:]).round(2)} mm, NEES {nees:.2f}")
+    assert nees < chi2.ppf(0.9973, 6)
+    joint = np.array(result["screens_joint_covariance"])
+    np.testing.assert_allclose(joint[6:, 6:], result["screens"]["right"]["covariance"], rtol=1e-12)
+
+
+@pytest.mark.parametrize("change, words", [
+    (lambda c: c["images"][3].pop("screen"), "images[3]: screen must name one of the screens (left, right), got None"),
+    (lambda c: c["images"][0].update(screen="middle"), "images[0]: screen must name one of the screens"),
+    (lambda c: c.update(target=c["screens"]["left"]), "target: not with screens (give either target or screens)"),
+    (lambda c: c["screens"].pop("right"), "screens: expected a mapping of two or more"),
+    (lambda c: c["screens"]["right"].update(width_mm=0), "screens: right: width_mm must be a number > 0"),
+])
+def test_a_capture_with_screens_refuses_what_it_cannot_use_in_one_line(rendered, tmp_path, capsys, change, words):
+    import yaml
+
+    capture = yaml.safe_load((rendered / "capture.yaml").read_text())
+    for entry in capture["images"]:
+        entry["file"] = str(rendered / entry["file"])
+    change(capture)
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(capture))
+    assert run_cli("calibrate", "bad.yaml", "-o", "r.json", cwd=tmp_path) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0], err
+    assert not (tmp_path / "r.json").exists()

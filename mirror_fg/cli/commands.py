@@ -171,6 +171,11 @@ def cmd_calibrate(args, out: _Printer) -> int:
     from mirror_fg.solver.calibrate import calibrate
     from mirror_fg.solver.calibration import require_converged
 
+    from mirror_fg.cli.screens_cmd import calibrate_screens_input
+
+    status = calibrate_screens_input(args, out)  # a capture with several screens (docs/formats.md)
+    if status is not None:
+        return status
     start = time.perf_counter()
     outputs = plan_calibration_outputs([args.input], args.output, ros=not args.no_ros,
                                        base_frame=args.base_frame, camera_frame=args.camera_frame)
