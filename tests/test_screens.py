@@ -233,3 +233,24 @@ def test_a_capture_with_screens_refuses_what_it_cannot_use_in_one_line(rendered,
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and words in err[0], err
     assert not (tmp_path / "r.json").exists()
+
+
+def test_export_writes_the_screen_it_is_asked_for(rendered, capsys):
+    import cv2
+
+    from mirror_fg.io.result import load_result
+
+    if not (rendered / "result.json").exists():
+        assert run_cli("calibrate", "capture.yaml", "-o", "result.json", "-q", cwd=rendered) == 0
+    right = load_result(rendered / "result.json")["screens"]["right"]
+    assert run_cli("export", "result.json", "--to", "eth-xgaze", "--screen", "right", "-o", "right.xml", "-q",
+                   cwd=rendered) == 0
+    fs = cv2.FileStorage(str(rendered / "right.xml"), cv2.FILE_STORAGE_READ)
+    np.testing.assert_allclose(fs.getNode("screen_rotation").mat(), right["T_cam_screen"]["R"], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(fs.getNode("screen_translation").mat().ravel(), 1000 * np.array(right["T_cam_screen"]["t"]),
+                               rtol=0, atol=1e-9)
+    np.testing.assert_allclose(fs.getNode("screen_sigma3_translation_mm").mat().ravel(), right["sigma3"]["position_mm"])
+    fs.release()
+    capsys.readouterr()
+    assert run_cli("export", "result.json", "--to", "opengaze", "--screen", "middle", "-o", "m.yml", cwd=rendered) == 2
+    assert "--screen middle: no such screen in the result (its screens: left, right)" in capsys.readouterr().err

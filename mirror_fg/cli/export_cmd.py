@@ -21,6 +21,8 @@ def add_export_parser(sub, epilog: str, add_common) -> None:  # noqa: ANN001 - a
     exp.add_argument("result", type=Path, help="result@1 file with a 'screen' block")
     exp.add_argument("--to", required=True, choices=list(FORMATS), help="the tool's format")
     exp.add_argument("-o", "--output", required=True, type=Path, help="the file to write")
+    exp.add_argument("--screen", metavar="NAME",
+                     help="a result of several screens: the screen to write (default: the first, the top level)")
     exp.add_argument("--camera", type=Path,
                      help="few-shot-gaze: the camera's intrinsics (an OpenCV calibration YAML, ROS camera_info or "
                      "Kalibr camchain) where the result holds none")
@@ -31,7 +33,7 @@ def cmd_export(args, out: _Printer) -> int:
     import os
 
     from mirror_fg.io.camera_files import camera_from_file
-    from mirror_fg.io.gaze_export import MARKER, export_text
+    from mirror_fg.io.gaze_export import MARKER, export_text, one_screen
     from mirror_fg.io.output import OutputPlan
     from mirror_fg.io.result import load_result
 
@@ -39,6 +41,8 @@ def cmd_export(args, out: _Printer) -> int:
     plan = OutputPlan(inputs=inputs)
     target = plan.add(args.output, f"{args.to} file", marker=MARKER.encode())
     result = load_result(args.result)
+    if args.screen is not None:
+        result = one_screen(result, args.screen, os.fspath(args.result))
     camera = camera_from_file(os.fspath(args.camera), None, f"--camera {args.camera}") if args.camera else None
     written = plan.commit({target: export_text(result, args.to, os.fspath(args.result), camera)})
     out.info(f"wrote {', '.join(str(p) for p in written)} ({args.to})")

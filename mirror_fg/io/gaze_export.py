@@ -35,7 +35,7 @@ import numpy as np
 
 from mirror_fg.core.errors import DatasetError
 
-__all__ = ["FORMATS", "export_text", "screen_pose_mm"]
+__all__ = ["FORMATS", "export_text", "screen_pose_mm", "one_screen"]
 
 #: The formats and what each holds (the command's help).
 FORMATS = {
@@ -55,6 +55,19 @@ def screen_pose_mm(result: Mapping[str, Any], source: str) -> tuple[np.ndarray, 
                            "(calibrate a capture whose target is kind: screen)")
     T = result["T_cam_base"]
     return np.array(T["R"], dtype=float), 1000.0 * np.array(T["t"], dtype=float), dict(block)
+
+
+def one_screen(result: Mapping[str, Any], name: str, source: str) -> dict[str, Any]:
+    """The result as if screen ``name`` of its ``screens`` (a capture with several screens) were its only
+    screen: ``T_cam_base`` its ``T_cam_screen``, its block as ``screen`` and its bounds; DatasetError if absent."""
+    screens = result.get("screens")
+    if not isinstance(screens, Mapping) or name not in screens:
+        have = ", ".join(screens) if isinstance(screens, Mapping) else "none (one screen: drop --screen)"
+        raise DatasetError(f"{source}: --screen {name}: no such screen in the result (its screens: {have})")
+    block = dict(screens[name])
+    pose, sigma3 = block.pop("T_cam_screen"), block.pop("sigma3", None)
+    block.pop("covariance", None)
+    return {**result, "T_cam_base": pose, "screen": block, "sigma3_cam_base": sigma3}
 
 
 def export_text(result: Mapping[str, Any], fmt: str, source: str, camera: Mapping[str, Any] | None = None) -> str | bytes:
