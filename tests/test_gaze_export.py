@@ -73,6 +73,8 @@ def _pixels() -> np.ndarray:
 def test_opengaze_file_is_read_by_filestorage_as_opengaze_reads_it(screen_result):
     folder, screen = screen_result["folder"], screen_result["screen"]
     assert run_cli("export", "result.json", "--to", "opengaze", "-o", "monitor.yml", cwd=folder) == 0
+    text = (folder / "monitor.yml").read_text()
+    assert text.startswith("%YAML:1.0\n#") and "---" not in text  # the header of OpenGaze's own monitor files
     fs = cv2.FileStorage(str(folder / "monitor.yml"), cv2.FILE_STORAGE_READ)
     W, H = fs.getNode("monitor_W").real(), fs.getNode("monitor_H").real()
     R, T = fs.getNode("monitor_R").mat(), fs.getNode("monitor_T").mat()

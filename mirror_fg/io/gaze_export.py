@@ -95,7 +95,9 @@ def _opengaze(R: np.ndarray, t_mm: np.ndarray, block: Mapping[str, Any]) -> str:
     fs.write("monitor_H", float(block["height_mm"]))
     fs.write("monitor_R", R.astype(np.float32))  # OpenGaze multiplies them with Vec3f: CV_32F
     fs.write("monitor_T", t_mm.reshape(3, 1).astype(np.float32))
-    return fs.releaseAndGetString()
+    lines = fs.releaseAndGetString().split("\n")
+    # the header of OpenGaze's own files: OpenCV 3 reads only "%YAML:1.x" (newer OpenCV writes "%YAML 1.2", "---")
+    return "\n".join(["%YAML:1.0", *(line for line in lines[1:] if line != "---")])
 
 
 def _few_shot_gaze(R: np.ndarray, t_mm: np.ndarray, block: Mapping[str, Any],
