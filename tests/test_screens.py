@@ -254,3 +254,20 @@ def test_export_writes_the_screen_it_is_asked_for(rendered, capsys):
     capsys.readouterr()
     assert run_cli("export", "result.json", "--to", "opengaze", "--screen", "middle", "-o", "m.yml", cwd=rendered) == 2
     assert "--screen middle: no such screen in the result (its screens: left, right)" in capsys.readouterr().err
+
+
+def test_report_draws_each_screens_gaze_error(rendered):
+    from mirror_fg.io.result import load_result
+    from mirror_fg.tools.report_screen import figure_gaze, gaze_screens
+
+    if not (rendered / "result.json").exists():
+        assert run_cli("calibrate", "capture.yaml", "-o", "result.json", "-q", cwd=rendered) == 0
+    result = load_result(rendered / "result.json")
+    assert gaze_screens(result) == ["left", "right"]
+    figure = figure_gaze(result, "right")
+    assert "screen right" in figure.axes[0].get_title()
+    centre = result["screens"]["right"]["sigma3_on_screen_mm"]["centre"]
+    assert f"±{centre[0]:.1f}, {centre[1]:.1f} mm" in figure.axes[0].texts[0].get_text()
+    assert run_cli("report", "result.json", "-o", "report", "-q", cwd=rendered) == 0
+    page = (rendered / "report" / "report.html").read_text()
+    assert "Gaze point error over the screen left" in page and "Gaze point error over the screen right" in page

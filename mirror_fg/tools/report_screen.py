@@ -15,7 +15,7 @@ from mirror_fg.tools.report_figures import new_figure
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-__all__ = ["figure_gaze", "has_gaze_error"]
+__all__ = ["figure_gaze", "has_gaze_error", "gaze_screens"]
 
 #: Points of each drawn ellipse.
 _ELLIPSE_POINTS = 90
@@ -26,6 +26,14 @@ def has_gaze_error(result: Mapping[str, Any]) -> bool:
     return isinstance(result.get("screen"), Mapping) and result.get("covariance_cam_base") is not None
 
 
+def gaze_screens(result: Mapping[str, Any]) -> list[str | None]:
+    """The screens to draw: each of ``screens`` by name (several screens), else ``[None]`` (the one
+    ``screen``), else none."""
+    if isinstance(result.get("screens"), Mapping):
+        return list(result["screens"])
+    return [None] if has_gaze_error(result) else []
+
+
 def ellipse_mm(covariance_mm: np.ndarray, scale: float) -> np.ndarray:
     """(K, 2) points of the 3-sigma ellipse of a 2 x 2 covariance (mm^2), magnified ``scale`` times."""
     values, vectors = np.linalg.eigh(covariance_mm)
@@ -34,9 +42,14 @@ def ellipse_mm(covariance_mm: np.ndarray, scale: float) -> np.ndarray:
     return scale * 3.0 * circle * np.sqrt(np.clip(values, 0.0, None)) @ vectors.T
 
 
-def figure_gaze(result: Mapping[str, Any]) -> Figure | None:
+def figure_gaze(result: Mapping[str, Any], name: str | None = None) -> Figure | None:
     """The screen's active area (mm) with the 3-sigma ellipse of the gaze point at its centre and corners,
-    magnified to a tenth of the screen's height, each labelled in mm and degrees."""
+    magnified to a tenth of the screen's height, each labelled in mm and degrees; ``name``: that screen of
+    a result with several."""
+    if name is not None:
+        from mirror_fg.io.gaze_export import one_screen
+
+        result = {**one_screen(result, name, "result"), "covariance_cam_base": result["screens"][name]["covariance"]}
     if not has_gaze_error(result):
         return None
     screen = Screen.from_result(result)
@@ -63,6 +76,6 @@ def figure_gaze(result: Mapping[str, Any]) -> Figure | None:
     ax.set_aspect("equal")
     ax.set_xlabel("screen x (mm)")
     ax.set_ylabel("screen y (mm)")
-    ax.set_title(f"Gaze point 3σ on the screen, eye {100 * distance:.0f} cm in front of its centre "
+    ax.set_title(f"Gaze point 3σ on {'the screen' if name is None else 'screen ' + name}, eye {100 * distance:.0f} cm in front of its centre "
                  f"(ellipses × {scale:.0f})", fontsize=10)
     return fig
