@@ -206,6 +206,6 @@ def test_report_draws_the_gaze_error_over_the_screen(setup, tmp_path):
     labels = [text.get_text() for text in figure.axes[0].texts]
     centre = result["screen"]["sigma3_on_screen_mm"]["centre"]
     assert f"±{centre[0]:.1f}, {centre[1]:.1f} mm" in labels[0] and len(labels) == 5
-    assert run_cli("report", "result.json", "capture.yaml", "-o", "report", "-q", cwd=tmp_path) == 0
+    assert run_cli("report", "result.json", "-o", "report", "-q", cwd=tmp_path) == 0
     assert "Gaze point error over the screen" in (tmp_path / "report" / "report.html").read_text()
     assert figure_gaze({k: v for k, v in result.items() if k != "screen"}) is None
