@@ -235,6 +235,12 @@ def test_a_capture_with_screens_refuses_what_it_cannot_use_in_one_line(rendered,
     assert not (tmp_path / "r.json").exists()
 
 
+def test_several_screens_refuse_incremental(rendered, capsys):
+    assert run_cli("calibrate", "capture.yaml", "-o", "inc.json", "--incremental", cwd=rendered) == 2
+    assert "screens: several screens are calibrated in one batch; drop --incremental" in capsys.readouterr().err
+    assert not (rendered / "inc.json").exists()
+
+
 def test_export_writes_the_screen_it_is_asked_for(rendered, capsys):
     import cv2
 

@@ -38,6 +38,10 @@ def _calibrate(args, out: _Printer, data: dict, source: str) -> int:
     from mirror_fg.solver.screens import calibrate_screens
     from mirror_fg.vision.detect import detect_capture
 
+    from mirror_fg.core.errors import DatasetError
+
+    if args.incremental:
+        raise DatasetError(f"{source}: screens: several screens are calibrated in one batch; drop --incremental")
     start = time.perf_counter()
     plan = OutputPlan(inputs=[source])
     target_path = plan.add(args.output, "result")
@@ -65,9 +69,8 @@ def _calibrate(args, out: _Printer, data: dict, source: str) -> int:
 
 
 def _as_dicts(exclusions: list) -> list[dict]:
-    import dataclasses
-
-    return [dataclasses.asdict(e) if dataclasses.is_dataclass(e) else dict(e) for e in exclusions]
+    """result@1 ``excluded`` entries of :class:`~mirror_fg.solver.calibration.Exclusion` values."""
+    return [{"image": e.image, "point": e.point, "reason": e.reason, "sigmas": e.sigmas} for e in exclusions]
 
 
 def _print_screens(out: _Printer, result: dict, viewing_distance: float, gaze_summary_lines) -> None:  # noqa: ANN001
