@@ -140,8 +140,11 @@ def test_few_shot_gaze_pickle_is_read_by_the_demos_loader(screen_result, tmp_pat
                            "distortion_coefficients: {rows: 1, cols: 5, data: [0.01, -0.02, 0, 0, 0]}\n")
     assert run_cli("export", "result.json", "--to", "few-shot-gaze", "-o", "calib_cam0.pkl", "--camera",
                    str(camera_file), cwd=folder) == 0
+    raw = (folder / "calib_cam0.pkl").read_bytes()
+    assert b"numpy._core" not in raw and b"numpy.core" not in raw  # any NumPy, 1 or 2, reads it
     with open(folder / "calib_cam0.pkl", "rb") as handle:
         calib = pickle.load(handle)  # run_demo.py: cam_calib = pickle.load(open("calib_cam%d.pkl" % cam_idx, "rb"))
+    assert isinstance(calib["mtx"], np.ndarray) and calib["mtx"].dtype == np.float64
     assert calib["mtx"].shape == (3, 3) and calib["dist"].shape == (1, 5)
     np.testing.assert_array_equal(calib["mtx"], [[520.0, 0, 319.5], [0, 520.0, 239.5], [0, 0, 1]])
     np.testing.assert_array_equal(calib["dist"], [[0.01, -0.02, 0, 0, 0]])
@@ -150,6 +153,10 @@ def test_few_shot_gaze_pickle_is_read_by_the_demos_loader(screen_result, tmp_pat
     for pixel in _pixels():
         np.testing.assert_allclose(_few_shot_monitor_to_camera(calib, *pixel), 1000.0 * screen.camera_point(pixel),
                                    rtol=0, atol=1e-9)
+    # its own file is replaced on a second export; a stranger's is not
+    assert run_cli("export", "result.json", "--to", "few-shot-gaze", "-o", "calib_cam0.pkl", cwd=folder) == 0
+    (folder / "theirs.pkl").write_bytes(pickle.dumps({"mtx": np.eye(3)}))
+    assert run_cli("export", "result.json", "--to", "few-shot-gaze", "-o", "theirs.pkl", cwd=folder) == 2
     # without intrinsics (none in the result, no --camera): the monitor alone; the demo calibrates the camera
     assert run_cli("export", "result.json", "--to", "few-shot-gaze", "-o", "calib_cam1.pkl", cwd=folder) == 0
     with open(folder / "calib_cam1.pkl", "rb") as handle:

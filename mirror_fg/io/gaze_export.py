@@ -24,9 +24,11 @@ rows, y down, z into the screen). Each tool's conventions, as its own code reads
   millimetres in the camera frame (OpenCV axes), which is ``monitor_R [x w_mm / w_pixels, y h_mm /
   h_pixels, 0] + monitor_T``. ``mtx`` and ``dist`` are written where the result holds the camera
   (intrinsics estimated) or ``camera`` is given; without them the demo would calibrate the camera itself.
+  Pickle protocol 2, arrays as ``numpy.array(list)`` (readable by NumPy 1 and 2 alike).
 """
 from __future__ import annotations
 
+import io
 import pickle
 from collections.abc import Mapping
 from typing import Any
@@ -114,4 +116,16 @@ def _few_shot_gaze(R: np.ndarray, t_mm: np.ndarray, block: Mapping[str, Any],
         given = np.asarray(camera.get("dist") or [], dtype=float)[:5]
         dist[:len(given)] = given
         calib["dist"] = dist.reshape(1, 5)
-    return pickle.dumps(calib, protocol=4)
+    buffer = io.BytesIO()
+    _PortablePickler(buffer, protocol=2).dump(calib)
+    return buffer.getvalue()
+
+
+class _PortablePickler(pickle.Pickler):
+    """Arrays pickled as ``numpy.array(nested list)``: any NumPy reads them (an ndarray's own pickle names
+    ``numpy._core`` under NumPy 2, which NumPy 1 may not have); float64 values come back exact."""
+
+    def reducer_override(self, obj: Any) -> Any:
+        if isinstance(obj, np.ndarray):
+            return np.array, (obj.tolist(),)
+        return NotImplemented
