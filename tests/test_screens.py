@@ -277,3 +277,15 @@ def test_report_draws_each_screens_gaze_error(rendered):
     assert run_cli("report", "result.json", "-o", "report", "-q", cwd=rendered) == 0
     page = (rendered / "report" / "report.html").read_text()
     assert "Gaze point error over the screen left" in page and "Gaze point error over the screen right" in page
+
+
+def test_other_commands_say_how_a_capture_of_several_screens_is_used(rendered, capsys):
+    for args in (["detect", "capture.yaml", "-o", "d.json"], ["report", "capture.yaml", "-o", "rep"]):
+        if args[0] == "report":
+            if not (rendered / "result.json").exists():
+                assert run_cli("calibrate", "capture.yaml", "-o", "result.json", "-q", cwd=rendered) == 0
+            args = ["report", "result.json", "capture.yaml", "-o", "rep"]
+        capsys.readouterr()
+        assert run_cli(*args, cwd=rendered) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "screens: a capture of several screens is calibrated by mirror-fg calibrate" in err[0]
