@@ -170,7 +170,6 @@ def cmd_calibrate(args, out: _Printer) -> int:
     from mirror_fg.io.calibration_files import plan_calibration_outputs
     from mirror_fg.solver.calibrate import calibrate
     from mirror_fg.solver.calibration import require_converged
-
     from mirror_fg.cli.screens_cmd import calibrate_screens_input
 
     status = calibrate_screens_input(args, out)  # a capture with several screens (docs/formats.md)
