@@ -100,7 +100,8 @@ def test_opengaze_file_is_read_by_filestorage_as_opengaze_reads_it(screen_result
 
 
 def test_opengaze_conventions_are_those_of_its_own_example_file(screen_result):
-    """OpenGaze's example ``monitor_laptop.yml`` (a 310 x 174 mm laptop screen under its webcam): ``monitor_R``
+    """OpenGaze's example ``content/calib/monitor_laptop.yml`` (as copied in zkf1997/GazeEstimator; a 310 x 174 mm
+    laptop screen under its webcam): ``monitor_R``
     about diag(-1, 1, -1) and ``monitor_T`` [149.9, 29.6, -18.9] mm, the top-left corner about W / 2 to the
     camera's right and below it. The simulated webcam sits centred above its screen too: same signs, and
     ``monitor_T`` is in millimetres."""
