@@ -32,7 +32,7 @@ from gtsam.symbol_shorthand import V, X
 
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.transform import Transform
-from mirror_fg.factors.views import ViewFactor, plane_of, vector_of_plane, view_model
+from mirror_fg.factors.views import ViewFactor, plane_of, vector_of_plane
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.calibration import Calibration
@@ -197,16 +197,3 @@ def calibrate_screens(datasets: Mapping[str, Dataset], alone: Mapping[str, Calib
 def _index(dataset: Dataset, image_id: str) -> int:
     return next(k for k, image in enumerate(dataset.images) if image.id == image_id)
 
-
-def predicted_pixels(calibration: ScreensCalibration, dataset: Dataset, screen: str) -> dict[str, np.ndarray]:
-    """Every image's predicted pixels (N, 2) of screen ``screen`` at the joint estimate (for tests, reports)."""
-    T = calibration.poses[screen]
-    out = {}
-    for image in dataset.images:
-        names = [n for n in image.observations if n in dataset.fiducials]
-        B = np.array([dataset.fiducials[n] for n in names]).T
-        owners = {p: screen for p in image.reflections}
-        z = view_model(screen, image.reflections, {screen: (T.R, T.t)}, calibration.mirror_vectors, owners, B)[0]
-        assert dataset.camera is not None
-        out[image.id] = dataset.camera.distort(z.T)
-    return out
