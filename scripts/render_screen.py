@@ -16,6 +16,9 @@ photograph through one mirror is. Written independently of mirror_fg's geometry 
 
 ``python scripts/render_screen.py --out DIR`` writes a pattern for a 24-inch 1920 x 1080 monitor, six
 photographs, ``capture.yaml`` and ``truth.json`` (the true ``T_cam_screen`` and mirror vectors).
+``--screens 2``: two such monitors side by side (:func:`two_screens`), six photographs of each (mirror
+placements 0-5 aimed at the left one, 6-11 at the right one: :func:`side_placements`), a capture with ``screens: {left, right}``
+and each image's ``screen``, and ``truth.json`` with ``screens: {name: T_cam_screen}``.
 """
 from __future__ import annotations
 
@@ -57,6 +60,17 @@ def webcam_above(width_m: float, gap_m: float = 0.012, tilt_deg: float = 6.0) ->
     centre = np.array([width_m / 2, -gap_m, -0.008])
     R = R_screen_cam.T
     return R, -R @ centre
+
+
+def two_screens(width_m: float, gap_m: float = 0.02, turn_deg: float = 35.0) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``{"left": (R, t), "right": (R, t)}`` of ``T_cam_screen``: the webcam's monitor (:func:`webcam_above`)
+    and a second one of the same size ``gap_m`` right of it (as the viewer sees them), turned ``turn_deg``
+    about its left edge towards the viewer (its x axis leaves the first screen's plane towards the viewer)."""
+    R, t = webcam_above(width_m)
+    c, s = np.cos(np.radians(turn_deg)), np.sin(np.radians(turn_deg))
+    R_left_right = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])  # x -> (c, 0, -s): towards -z, the viewer
+    t_left_right = np.array([width_m + gap_m, 0.0, 0.0])
+    return {"left": (R, t), "right": (R @ R_left_right, R @ t_left_right + t)}
 
 
 @dataclass(frozen=True)
@@ -142,10 +156,28 @@ def placements(R: np.ndarray, t: np.ndarray, width_m: float, height_m: float) ->
     ]
 
 
+def side_placements(R: np.ndarray, t: np.ndarray, width_m: float, height_m: float) -> list[Mirror]:
+    """Six placements 0.22-0.33 m in front of the webcam, on the left of its image (towards a second monitor
+    right of the first, as the viewer sees them), each aimed at a part of that monitor ``(R, t)``: a mirror
+    straight ahead shows it too far and too oblique for its markers to decode."""
+    def on_screen(fx: float, fy: float) -> np.ndarray:
+        return R @ np.array([fx * width_m, fy * height_m, 0.0]) + t
+
+    return [
+        aim_mirror(0.22, (130, 250), on_screen(0.50, 0.50)),
+        aim_mirror(0.26, (100, 200), on_screen(0.45, 0.55)),
+        aim_mirror(0.30, (160, 280), on_screen(0.55, 0.45)),
+        aim_mirror(0.24, (180, 220), on_screen(0.40, 0.50)),
+        aim_mirror(0.28, (120, 300), on_screen(0.60, 0.60)),
+        aim_mirror(0.33, (140, 190), on_screen(0.50, 0.40)),
+    ]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--screens", type=int, choices=[1, 2], default=1, help="one monitor, or two side by side")
     args = parser.parse_args()
     import yaml
 
@@ -157,6 +189,9 @@ def main() -> None:
     R, t = webcam_above(width_mm / 1000)
     rng = np.random.default_rng(args.seed)
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.screens == 2:
+        write_two_screens(args.out, screen, png, (width_mm, height_mm), rng)
+        return
     images = []
     mirrors = placements(R, t, width_mm / 1000, height_mm / 1000)
     for k, mirror in enumerate(mirrors):
@@ -168,6 +203,28 @@ def main() -> None:
     truth = {"T_cam_screen": {"R": R.tolist(), "t": t.tolist()}, "mirrors": [m.v.tolist() for m in mirrors]}
     (args.out / "truth.json").write_text(json.dumps(truth, indent=2))
     print(f"wrote {len(images)} photographs, capture.yaml and truth.json to {args.out}")
+
+
+def write_two_screens(out: Path, screen, png: np.ndarray, mm: tuple[float, float], rng: np.random.Generator) -> None:
+    """Two monitors showing the same pattern (:func:`two_screens`), six photographs of each, the capture
+    with ``screens`` and the truth (module docstring)."""
+    import yaml
+
+    poses = two_screens(mm[0] / 1000)
+    images, truth_mirrors, label = [], [], 0
+    for name, (R, t) in poses.items():
+        for mirror in (placements if name == "left" else side_placements)(R, t, mm[0] / 1000, mm[1] / 1000):
+            cv2.imwrite(str(out / f"{name}{label}.png"), render(png, mm, R, t, mirror, rng))
+            images.append({"file": f"{name}{label}.png", "mirror_configs": [label], "screen": name})
+            truth_mirrors.append(mirror.v.tolist())
+            label += 1
+    capture = {"format": "mirror-fg/capture@1", "num_mirrors": 1, "camera": WEBCAM, "pixel_sigma": 0.3,
+               "screens": {name: screen.to_dict() for name in poses}, "images": images}
+    (out / "capture.yaml").write_text(yaml.safe_dump(capture, default_flow_style=None, sort_keys=False))
+    truth = {"screens": {name: {"R": R.tolist(), "t": t.tolist()} for name, (R, t) in poses.items()},
+             "mirrors": truth_mirrors}
+    (out / "truth.json").write_text(json.dumps(truth, indent=2))
+    print(f"wrote {len(images)} photographs of two screens, capture.yaml and truth.json to {out}")
 
 
 if __name__ == "__main__":

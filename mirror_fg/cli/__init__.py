@@ -14,6 +14,7 @@ import traceback
 import warnings
 
 from mirror_fg.cli.bench import cmd_live, cmd_pattern
+from mirror_fg.cli.export_cmd import cmd_export
 from mirror_fg.cli.commands import (
     cmd_calibrate,
     cmd_calibrate_many,
@@ -31,7 +32,8 @@ __all__ = ["main", "build_parser"]
 
 COMMANDS = {"live": cmd_live, "pattern": cmd_pattern, "plan": cmd_plan, "simulate": cmd_simulate,
             "calibrate": cmd_calibrate, "calibrate-many": cmd_calibrate_many, "detect": cmd_detect, "report": cmd_report,
-            "verify": cmd_verify}
+            "verify": cmd_verify,
+            "export": cmd_export}
 
 
 class _Notes(logging.Handler):

@@ -171,12 +171,17 @@ def cmd_calibrate(args, out: _Printer) -> int:
     from mirror_fg.solver.calibrate import calibrate
     from mirror_fg.solver.calibration import require_converged
     from mirror_fg.tools.verdict import with_verdict
+    from mirror_fg.cli.screens_cmd import calibrate_screens_input
 
+    status = calibrate_screens_input(args, out)  # a capture with several screens (docs/formats.md)
+    if status is not None:
+        return status
     start = time.perf_counter()
     outputs = plan_calibration_outputs([args.input], args.output, ros=not args.no_ros,
                                        base_frame=args.base_frame, camera_frame=args.camera_frame)
     if not args.no_ros and not outputs.ros:
         out.info(f"note: the result goes to a device ({args.output}): no ROS outputs written beside it")
+    outputs.viewing_distance_m = args.viewing_distance
     dataset, reports = _load_input_with_reports(args.input, out, outputs.plan, on_capture=outputs.use_capture)
     estimating = [c for c in (list(dataset.cameras.values()) if dataset.cameras else [dataset.camera]) if c is not None and c.estimate]
     if estimating and args.incremental:
@@ -205,6 +210,12 @@ def cmd_calibrate(args, out: _Printer) -> int:
     written = outputs.write(result)
     _print_transform_summary(out, result, time.perf_counter() - start, args.incremental,
                              pixel_sigma=None if dataset.point_sigma else dataset.pixel_sigma)
+    if outputs.screen is not None:  # the gaze point's error (docs/formats.md, "The answer in the user's units")
+        from mirror_fg.core.gaze_error import gaze_summary_lines
+        from mirror_fg.io.screen_result import screen_block
+
+        for line in gaze_summary_lines(screen_block(outputs.screen, result, args.viewing_distance)):
+            out.info(line)
     if calibration.timings:
         out.detail("stage timings: " + ", ".join(f"{stage} {seconds:.3f} s" for stage, seconds in calibration.timings.items()))
     out.info("wrote " + ", ".join(str(p) for p in written))

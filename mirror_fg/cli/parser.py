@@ -5,6 +5,7 @@ import argparse
 import math
 from pathlib import Path
 
+from mirror_fg.cli.export_cmd import add_export_parser
 from mirror_fg.factors.robust import KERNELS, ROBUST_K
 
 EPILOG = """exit status: 0 success, 2 bad input (the message names the file, image or point),
@@ -167,6 +168,9 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--validate", action="store_true",
                      help="hold each image out in turn (up to 200) and compare its residuals with what the others' "
                      "covariance predicts: ratio near 1 when the noise model and the bounds hold ('validation')")
+    cal.add_argument("--viewing-distance", type=_POSITIVE, default=0.6, metavar="M",
+                     help="screen targets: the eye's distance in front of the screen for the gaze-point error, "
+                     "metres (default 0.6)")
     _add_common(cal)
 
     many = sub.add_parser("calibrate-many", help="calibrate many datasets or captures (a fleet) on Dask",
@@ -304,6 +308,7 @@ def build_parser() -> argparse.ArgumentParser:
     from mirror_fg.cli.verify_cmd import add_parser as add_verify
 
     add_verify(sub, _add_common, EPILOG, _POSITIVE)
+    add_export_parser(sub, EPILOG, _add_common)
     return parser
 
 

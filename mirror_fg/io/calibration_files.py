@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from mirror_fg.core.errors import DatasetError
+from mirror_fg.core.gaze_error import DEFAULT_VIEWING_DISTANCE_M
 from mirror_fg.io.camchain import camchain_paths, camchain_texts
 from mirror_fg.io.output import OutputPlan
 from mirror_fg.io.result import estimated_camera, result_text
@@ -46,6 +47,7 @@ class CalibrationOutputs:
         self.camera_info: Path | None = None
         self.screen: Any = None  # the ScreenTarget of a screen capture: the result gets its screen block
         self.screen_xml: str | None = None
+        self.viewing_distance_m = DEFAULT_VIEWING_DISTANCE_M  # the eye of the screen block's gaze error
         self.camchain: tuple[str, str] | None = None
 
     def expect_cameras(self) -> None:
@@ -79,7 +81,7 @@ class CalibrationOutputs:
         with ``cameras`` (each with its intrinsics) gets the Kalibr camchain and its standard deviations."""
         texts = {}
         if self.screen is not None:
-            result = {**result, "screen": screen_block(self.screen, result)}
+            result = {**result, "screen": screen_block(self.screen, result, self.viewing_distance_m)}
             if self.screen_xml is not None:
                 texts[self.screen_xml] = screen_xml_text(result)
         texts = {self.result_path: result_text(result, self.result_path), **texts}

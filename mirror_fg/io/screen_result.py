@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from mirror_fg.core.gaze_error import DEFAULT_VIEWING_DISTANCE_M, gaze_block
 from mirror_fg.core.screen import Screen
 from mirror_fg.core.transform import Transform
 from mirror_fg.io.result_checks import _child, _fields, _integer, _Invalid, _number, _vector, _vector3
@@ -46,9 +47,12 @@ def screen_of(target: ScreenTarget, result: Mapping[str, Any]) -> Screen:
                   None if cov is None else np.array(cov, dtype=float))
 
 
-def screen_block(target: ScreenTarget, result: Mapping[str, Any]) -> dict[str, Any]:
-    """The result@1 ``screen`` block of a result calibrated with the screen target ``target``."""
-    return screen_of(target, result).to_dict()
+def screen_block(target: ScreenTarget, result: Mapping[str, Any],
+                 viewing_distance_m: float = DEFAULT_VIEWING_DISTANCE_M) -> dict[str, Any]:
+    """The result@1 ``screen`` block of a result calibrated with the screen target ``target``, with the gaze
+    point's error for an eye ``viewing_distance_m`` in front of the screen (:mod:`mirror_fg.core.gaze_error`)."""
+    screen = screen_of(target, result)
+    return {**screen.to_dict(), **gaze_block(screen, viewing_distance_m)}
 
 
 def check_screen_block(value: Any, path: str) -> dict[Any, Any]:

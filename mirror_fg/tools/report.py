@@ -63,6 +63,7 @@ from mirror_fg.tools.report_general import (
     view_blocks,
 )
 from mirror_fg.tools.report_pages import Block, RenderedFigure, html_page, pdf_document
+from mirror_fg.tools.report_screen import figure_gaze, gaze_screens
 from mirror_fg.tools.report_scene import figure_views_scene, pose_is_estimated
 from mirror_fg.tools.report_units import units_blocks
 from mirror_fg.tools.report_views import (
@@ -349,6 +350,13 @@ def _figures(
                         "about the camera axes (R_true = Exp(dθ) R), [x, y, z] translation (t_true = t + dt).")
     else:
         notes.append("The result carries no covariance: no correlation matrix.")
+    for screen_name in gaze_screens(result):
+        add("Gaze point error over the screen" + ("" if screen_name is None else f" {screen_name}"), figure_gaze,
+            result, screen_name,
+            caption="The screen's active area (mm, as the viewer sees it) with the 3σ ellipse of the point a gaze "
+                    "ray hits, at the centre and the corners, for an eye on the normal through the centre at the "
+                    "result's viewing distance (the ray known in the camera frame, the screen's pose uncertain); "
+                    "each labelled with its 3σ along screen x and y in mm and in degrees at the eye.")
     if tracks:
         add("Tracked points", figure_tracks, tracks, dataset,
             caption="Each track:'s path on the image (refined positions thick, KLT's thin), the refinement's "
