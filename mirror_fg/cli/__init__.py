@@ -14,6 +14,7 @@ import traceback
 import warnings
 
 from mirror_fg.cli.bench import cmd_live, cmd_pattern
+from mirror_fg.cli.history_cmd import cmd_history
 from mirror_fg.cli.commands import (
     cmd_calibrate,
     cmd_calibrate_many,
@@ -29,7 +30,8 @@ from mirror_fg.core.errors import MirrorFgError
 __all__ = ["main", "build_parser"]
 
 COMMANDS = {"live": cmd_live, "pattern": cmd_pattern, "plan": cmd_plan, "simulate": cmd_simulate,
-            "calibrate": cmd_calibrate, "calibrate-many": cmd_calibrate_many, "detect": cmd_detect, "report": cmd_report}
+            "calibrate": cmd_calibrate, "calibrate-many": cmd_calibrate_many, "detect": cmd_detect, "report": cmd_report,
+            "history": cmd_history}
 
 
 class _Notes(logging.Handler):

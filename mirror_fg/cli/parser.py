@@ -6,6 +6,8 @@ import math
 from pathlib import Path
 
 from mirror_fg.factors.robust import KERNELS, ROBUST_K
+from mirror_fg.cli.history_cmd import add_history_parser
+from mirror_fg.registry.cli import add_registry_arguments
 
 EPILOG = """exit status: 0 success, 2 bad input (the message names the file, image or point),
 3 could not solve (degenerate data, no convergence), 1 internal error. Output files are written
@@ -151,6 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--accept-poor-fit", action="store_true",
                      help="write the result even when the fit is more than 3x worse than the noise model allows "
                      "(RMS whitened residual; refused by default: exit 3 with the likely causes)")
+    add_registry_arguments(cal)
     _add_common(cal)
 
     many = sub.add_parser("calibrate-many", help="calibrate many datasets or captures (a fleet) on Dask",
@@ -169,6 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
     many.add_argument("--dask", action="store_true",
                       help="use a local Dask cluster even for a small job (default: a job of less than about "
                       "3 s of work runs in this process, which is faster than starting a cluster)")
+    add_registry_arguments(many, per_input=True)
     _add_common(many)
 
     det = sub.add_parser("detect", help="detect fiducials in photographs or a video (capture@1 -> dataset@1)",
@@ -251,6 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="a folder source ends after this many seconds without a new image (default 30)")
     liv.add_argument("--hold", action="store_true", help="with --serve: keep the page up after the source ends, until Ctrl-C")
     liv.add_argument("--no-ros", action="store_true", help="do not write the ROS files beside the result")
+    add_registry_arguments(liv)
     _add_common(liv)
 
     rep = sub.add_parser("report", help="HTML + PDF report of a result",
@@ -284,6 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
     pat.add_argument("--square-mm", type=_POSITIVE, help="square (tag spacing) on the screen, mm (default 40)")
     pat.add_argument("-o", "--output", required=True, type=Path, help="pattern PNG to write")
     _add_common(pat)
+    add_history_parser(sub, _add_common)
     return parser
 
 

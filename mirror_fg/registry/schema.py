@@ -20,10 +20,8 @@ from sqlalchemy.exc import ArgumentError
 from mirror_fg.core.errors import DatasetError
 
 __all__ = ["RegistryError", "registry_url", "make_engine", "ensure_schema", "head_revision", "database_revision",
-           "MIGRATIONS", "ENV_VAR"]
+           "MIGRATIONS"]
 
-#: The environment variable that gives the registry's URL when ``--registry`` is not given.
-ENV_VAR = "MIRROR_FG_REGISTRY"
 MIGRATIONS = Path(__file__).resolve().parent / "migrations"
 #: Seconds a SQLite writer waits for another's lock before the retry loop (store.py) takes over.
 SQLITE_BUSY_TIMEOUT_S = 30.0

@@ -22,7 +22,6 @@ from sqlalchemy.orm import Session
 from mirror_fg.registry.models import CameraRecord, Run
 from mirror_fg.registry.records import CameraRow, HistoryRecord, camera_rows, document_kind, input_sha256
 from mirror_fg.registry.schema import (
-    ENV_VAR,
     RegistryError,
     database_revision,
     describe,
@@ -31,7 +30,7 @@ from mirror_fg.registry.schema import (
     check_revision,
 )
 
-__all__ = ["Registry", "RegistryError", "ENV_VAR"]
+__all__ = ["Registry", "RegistryError"]
 
 #: Seconds a SQLite writer keeps retrying a locked database (after each busy timeout) before it gives up.
 LOCKED_RETRY_S = 120.0
@@ -156,6 +155,16 @@ class Registry:
                 return None if record is None else _history_record(record, record.run, with_document=True)
 
         return self._guard("cannot read the latest record", lambda: self._retry(read))
+
+    def robots(self) -> list[str]:
+        """The robots with records, in name order."""
+        def read() -> list[str]:
+            if not self._readable():
+                return []
+            with self.engine.connect() as connection:
+                return list(connection.scalars(select(Run.robot).distinct().order_by(Run.robot)))
+
+        return self._guard("cannot read the robots", lambda: self._retry(read))
 
     def document(self, run_id: int) -> Any:
         """The whole document a run recorded (None: no such run)."""
