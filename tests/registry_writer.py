@@ -1,7 +1,7 @@
 """A registry writer process for the load and kill tests: ``python registry_writer.py URL WRITER COUNT [CAMERAS]
 [--slow]`` records COUNT runs tagged ``WRITER-i`` (a rig of CAMERAS cameras); ``--slow`` prints a line after each
-run's camera rows are inserted (inside the run's transaction, before its commit) and pauses there, for 30 s
-from the third run on, so that a test can kill it mid-run."""
+insert of a run's camera rows (inside the run's transaction, before its commit) and pauses there, for 30 s
+in the third run, so that a test can kill it mid-run."""
 from __future__ import annotations
 
 import sys
@@ -28,9 +28,11 @@ def main() -> None:
 
         @event.listens_for(registry.engine, "after_cursor_execute")
         def inserted(conn, cursor, statement, parameters, context, executemany):  # noqa: ANN001
-            if statement.lstrip().upper().startswith("INSERT INTO RECORDS"):
+            words = statement.split()
+            if words[:3] == ["INSERT", "INTO", "runs"]:
                 runs.append(1)
-                print(f"inserted the camera rows of run {len(runs)}", flush=True)
+            elif words[:3] == ["INSERT", "INTO", "records"]:
+                print(f"inserted camera rows of run {len(runs)}", flush=True)
                 time.sleep(0.05 if len(runs) < 3 else 30)
 
     for i in range(count):

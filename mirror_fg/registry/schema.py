@@ -133,7 +133,7 @@ def check_revision(revision: str | None, url: str) -> None:
     """A RegistryError when ``revision`` is one this code does not know (a newer mirror-fg made the schema)."""
     if not _known(revision):
         raise RegistryError(f"registry {describe(url)}: its schema (revision {revision}) is newer than this "
-                            f"mirror-fg knows (up to {head_revision()}); upgrade mirror-fg")
+                            f"mirror-fg knows (up to {head_revision()}), upgrade mirror-fg")
 
 
 def ensure_schema(engine: Engine, url: str) -> None:

@@ -111,8 +111,8 @@ class Registry:
         """``work()`` with every database failure as one RegistryError line naming the registry."""
         try:
             return work()
-        except RegistryError:
-            raise
+        except RegistryError as error:  # the schema's or the document's own line
+            raise RegistryError(f"{error}; {what}") from None
         except (SQLAlchemyError, OSError) as error:
             raise RegistryError(f"registry {describe(self.url)}: {what} ({_reason(error)})") from None
 
