@@ -166,7 +166,9 @@ def _figure_camera(camera: str, records: Sequence[HistoryRecord], changes: Seque
     mine = [r for r in records if r.camera == camera]
     calibrations = _calibrations(mine, camera)
     rotations = dict(zip((r.id for r in calibrations), rotation_from_first_deg(calibrations)))
-    flagged = {c.after.id for c in changes if c.camera == camera}
+    flagged = {(c.after.id, row, axis) for c in changes if c.camera == camera for row, (values, bounds) in
+               enumerate(((c.position_mm, c.position_sigma3_mm), (c.rotation_deg, c.rotation_sigma3_deg)))
+               for axis in range(3) if abs(values[axis]) > bounds[axis]}  # the axes that changed
     fig = new_figure(11.0, 5.2)
     axes = fig.subplots(2, 3, sharex=True)
     times = [r.time for r in calibrations]
@@ -175,7 +177,7 @@ def _figure_camera(camera: str, records: Sequence[HistoryRecord], changes: Seque
                  [r.sigma3_position_mm[column] for r in calibrations], f"position {name} (mm)"),  # type: ignore[index]
                 (axes[1][column], [float(rotations[r.id][column]) for r in calibrations],  # type: ignore[index]
                  [r.sigma3_rotation_deg[column] for r in calibrations], f"rotation {name} from first (deg)"))  # type: ignore[index]
-        for ax, values, sigma3, label in rows:
+        for row, (ax, values, sigma3, label) in enumerate(rows):
             v, s = np.array(values), np.array(sigma3)
             if len(times):
                 ax.fill_between(times, v - s, v + s, color="#90caf9", alpha=0.45, linewidth=0, step=None,
@@ -184,7 +186,7 @@ def _figure_camera(camera: str, records: Sequence[HistoryRecord], changes: Seque
                 for r, y in zip(calibrations, v):
                     if r.verdict == "check":
                         ax.plot([r.time], [y], "x", color=VERDICT_COLOURS["check"], markersize=7)
-                    if r.id in flagged:
+                    if (r.id, row, column) in flagged:
                         ax.plot([r.time], [y], "o", markerfacecolor="none", markeredgecolor="#c62828",
                                 markersize=10, markeredgewidth=1.5)
             for r in mine:
@@ -218,7 +220,7 @@ def history_html(robot: str, records: Sequence[HistoryRecord], changes: Sequence
                             "3-sigma", good=True))
     blocks.append(Block("note", text="Each camera's T_base_cam (base axes): position in mm, rotation as the rotation "
                         "vector from its first calibration in degrees; blue band: each calibration's 3-sigma; red "
-                        "ring: a change beyond the combined 3-sigma of two consecutive calibrations; red x: a "
+                        "ring: an axis that changed beyond the combined 3-sigma of two consecutive calibrations; red x: a "
                         "calibration whose verdict says check; dashed lines: verifications (red moved, green not "
                         "moved, orange cannot tell)."))
     for camera in cameras:
