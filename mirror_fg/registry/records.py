@@ -28,7 +28,7 @@ VERIFICATION_FORMAT = "mirror-fg/verification@1"
 SINGLE_CAMERA = "camera"
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class CameraRow:
     """The query columns of one camera of a document (None where the document has no pose)."""
 
@@ -40,7 +40,7 @@ class CameraRow:
     sigma3_rotation_deg: tuple[float, float, float] | None
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class HistoryRecord(CameraRow):
     """One stored record: a camera of a run, with its run's identity (``document`` only from ``latest``)."""
 
