@@ -38,21 +38,27 @@ def pose_difference(R_ref, t_ref, R, t) -> np.ndarray:
 
 
 @pytest.fixture(scope="session")
-def postgres_cluster():
-    """A throwaway PostgreSQL server (tests/postgres_cluster.py) for the whole session; skipped, saying why, where
-    the server binaries are missing or it cannot start (.ci/run installs Debian's postgresql)."""
+def postgres_cluster(request):
+    """A throwaway PostgreSQL server (tests/postgres_cluster.py) for the whole session; skipped, saying why on the
+    terminal, where the server binaries are missing or it cannot start (.ci/run installs Debian's postgresql)."""
     from postgres_cluster import PostgresCluster, find_binaries
+
+    def skip(reason: str) -> None:
+        terminal = request.config.pluginmanager.get_plugin("terminalreporter")
+        capture = request.config.pluginmanager.get_plugin("capturemanager")
+        if terminal is not None and capture is not None:  # past the capture: CI's log shows these tests did not run
+            with capture.global_and_fixture_disabled():
+                terminal.write_line(f"SKIPPED the PostgreSQL registry tests: {reason}", yellow=True, bold=True)
+        pytest.skip(reason)
 
     bindir = find_binaries()
     if bindir is None:
-        print("\nSKIP PostgreSQL registry tests: no PostgreSQL server binaries (initdb, pg_ctl): apt-get install postgresql")
-        pytest.skip("no PostgreSQL server binaries (initdb, pg_ctl): apt-get install postgresql")
+        skip("no PostgreSQL server binaries (initdb, pg_ctl): apt-get install postgresql")
     cluster = PostgresCluster(bindir)
     try:
         cluster.start()
     except Exception as error:  # noqa: BLE001 - any reason it cannot start is a skip with that reason
         cluster.stop()
-        print(f"\nSKIP PostgreSQL registry tests: the server did not start: {error}")
-        pytest.skip(f"PostgreSQL did not start: {error}")
+        skip(f"the PostgreSQL server did not start: {error}")
     yield cluster
     cluster.stop()
