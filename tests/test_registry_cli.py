@@ -163,3 +163,20 @@ def test_history_prints_plots_and_tables(tmp_path):
                         (["arm"], "needs a registry")):
         bad = run_cli("history", *args, *(["--registry", url] if words != "needs a registry" else []))
         assert bad.returncode == 2 and words in bad.stderr and len(bad.stderr.splitlines()) == 1, bad.stderr
+
+
+def test_readme_registry_commands_run(tmp_path):
+    """The README's registry example, verbatim: two calibrations recorded, their history written."""
+    import re
+
+    readme = (REPO / "README.md").read_text()
+    section = readme.split("### Registry:", 1)[1].split("\n## ", 1)[0]
+    [commands] = re.findall(r"```bash\n(.*?)\n```", section, flags=re.S)
+    mirror_fg = f"{sys.executable} -c 'import sys; from mirror_fg.cli import main; sys.exit(main())'"
+    environment = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
+    done = subprocess.run(commands.replace("mirror-fg ", f"{mirror_fg} "), shell=True, cwd=tmp_path, env=environment,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "<img" in (tmp_path / "history.html").read_text()
+    with Registry(f"sqlite:///{tmp_path / 'registry.db'}") as registry:
+        assert len(registry.history("arm-1")) == 2
