@@ -92,8 +92,8 @@ def flag_changes(records: Sequence[HistoryRecord]) -> list[Change]:
         for before, after in zip(calibrations, calibrations[1:]):
             position = 1000.0 * (np.array(after.t_m) - np.array(before.t_m))
             rotation = _quaternion_log_deg(_quaternion_delta(after.q_xyzw, before.q_xyzw))  # type: ignore[arg-type]
-            position_sigma3 = np.hypot(before.sigma3_position_mm, after.sigma3_position_mm)
-            rotation_sigma3 = np.hypot(before.sigma3_rotation_deg, after.sigma3_rotation_deg)
+            position_sigma3 = np.hypot(np.array(before.sigma3_position_mm), np.array(after.sigma3_position_mm))
+            rotation_sigma3 = np.hypot(np.array(before.sigma3_rotation_deg), np.array(after.sigma3_rotation_deg))
             if np.any(np.abs(position) > position_sigma3) or np.any(np.abs(rotation) > rotation_sigma3):
                 changes.append(Change(camera, before, after, tuple(position.tolist()), tuple(rotation.tolist()),
                                       tuple(position_sigma3.tolist()), tuple(rotation_sigma3.tolist())))

@@ -88,7 +88,11 @@ class Registry:
                 stored = [_history_record(r, run) for r in run.records]
             return stored
 
-        return self._guard("the record was not stored", lambda: (self._migrate(), self._retry(write))[1])
+        def migrate_and_write() -> list[HistoryRecord]:
+            self._migrate()
+            return self._retry(write)
+
+        return self._guard("the record was not stored", migrate_and_write)
 
     def _migrate(self) -> None:
         if not self._migrated:
@@ -262,6 +266,6 @@ def _reason(error: BaseException) -> str:
     if isinstance(error, DBAPIError) and error.orig is not None:
         error = error.orig
     elif isinstance(error, SQLAlchemyError) and getattr(error, "orig", None) is not None:
-        error = error.orig  # type: ignore[assignment]
+        error = getattr(error, "orig")
     text = str(error).strip().splitlines()
     return " ".join(text[0].split())[:200] if text else type(error).__name__
