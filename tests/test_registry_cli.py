@@ -139,9 +139,10 @@ def test_live_records_its_result(tmp_path):
         assert registry.latest("bench").document == json.loads((tmp_path / "live.json").read_text())
 
 
-def test_history_prints_plots_and_tables(tmp_path):
+def test_history_prints_plots_and_tables(tmp_path, capsys, monkeypatch):
     from datetime import datetime, timedelta, timezone
 
+    monkeypatch.delenv("MIRROR_FG_REGISTRY", raising=False)
     url = f"sqlite:///{tmp_path / 'h.db'}"
     t0 = datetime(2026, 3, 1, tzinfo=timezone.utc)
     with Registry(url) as registry:
@@ -150,19 +151,23 @@ def test_history_prints_plots_and_tables(tmp_path):
             registry.record("arm", result_document(cameras=rig), time=t0 + timedelta(days=7 * day))
         registry.record("arm", verification_document({"left": "moved", "right": "not moved"}),
                         time=t0 + timedelta(days=25))
-    done = run_cli("history", "arm", "--registry", url)
-    assert done.returncode == 0, done.stderr
-    assert [line.split(":")[1].strip() for line in done.stdout.splitlines() if line.startswith("CHANGED")] == ["left between run 3 (2026-03-15 00"]
+    assert main(["history", "arm", "--registry", url]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert [line.split(":")[1].strip() for line in printed if line.startswith("CHANGED")] == ["left between run 3 (2026-03-15 00"]
     html, table = tmp_path / "history.html", tmp_path / "history.csv"
-    assert run_cli("history", "arm", "--registry", url, "-o", str(html)).returncode == 0
+    assert main(["history", "arm", "--registry", url, "-o", str(html), "-q"]) == 0
     page = html.read_text()
     assert page.count("<img") == 2 and "1 change(s) beyond the combined 3-sigma" in page
-    only = run_cli("history", "arm", "--camera", "right", "--registry", url, "-o", str(table), env={})
-    assert only.returncode == 0 and len(table.read_text().splitlines()) == 1 + 6
+    monkeypatch.setenv("MIRROR_FG_REGISTRY", url)  # the URL from the environment
+    assert main(["history", "arm", "--camera", "right", "-o", str(table), "-q"]) == 0
+    assert len(table.read_text().splitlines()) == 1 + 6
+    monkeypatch.delenv("MIRROR_FG_REGISTRY")
+    capsys.readouterr()
     for args, words in ((["nobody"], "robots there: arm"), (["arm", "-o", str(tmp_path / "h.pdf")], ".html"),
                         (["arm"], "needs a registry")):
-        bad = run_cli("history", *args, *(["--registry", url] if words != "needs a registry" else []))
-        assert bad.returncode == 2 and words in bad.stderr and len(bad.stderr.splitlines()) == 1, bad.stderr
+        status = main(["history", *args, *(["--registry", url] if words != "needs a registry" else [])])
+        err = capsys.readouterr().err
+        assert status == 2 and words in err and len(err.splitlines()) == 1, err
 
 
 def test_readme_registry_commands_run(tmp_path):
