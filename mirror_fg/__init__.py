@@ -31,6 +31,7 @@ _PUBLIC = {
     "Image": "mirror_fg.io.dataset",
     "IncrementalCalibrator": "mirror_fg.solver.incremental",
     "MirrorFgError": "mirror_fg.core.errors",
+    "Registry": "mirror_fg.registry.store",
     "SolveError": "mirror_fg.core.errors",
     "SolveOptions": "mirror_fg.solver.options",
     "Transform": "mirror_fg.core.transform",
@@ -93,6 +94,7 @@ if _TYPE_CHECKING:  # the names as static analysers and IDEs see them
     from mirror_fg.core.transform import Transform  # noqa: F401 - re-exported
     from mirror_fg.io.dataset import Dataset, Image, dataset_from_dict, load_dataset, save_dataset  # noqa: F401 - re-exported
     from mirror_fg.io.result import load_result, write_result  # noqa: F401 - re-exported
+    from mirror_fg.registry.store import Registry  # noqa: F401 - re-exported
     from mirror_fg.solver.analytic import AnalyticSolution, solve_analytic  # noqa: F401 - re-exported
     from mirror_fg.solver.calibrate import calibrate  # noqa: F401 - re-exported
     from mirror_fg.solver.calibration import Calibration  # noqa: F401 - re-exported

@@ -20,11 +20,12 @@ CAPTURE = REPO / "tests" / "data" / "capture" / "takahashi.yaml"
 
 PUBLIC = {
     "__version__", "AnalyticSolution", "Calibration", "Camera", "Dataset", "DatasetError", "Image",
-    "IncrementalCalibrator", "MirrorFgError", "SolveError", "SolveOptions", "Transform", "calibrate", "calibrate_incremental",
+    "IncrementalCalibrator", "MirrorFgError", "Registry", "SolveError", "SolveOptions", "Transform", "calibrate", "calibrate_incremental",
     "dataset_from_dict", "initial_estimate", "load_capture", "load_dataset", "load_result", "save_dataset",
     "solve_analytic", "write_result", "judge",
 }
-HEAVY = ("matplotlib", "dask", "distributed", "scipy", "cv2", "gtsam", "yaml", "tqdm", "PIL", "numpy")
+HEAVY = ("matplotlib", "dask", "distributed", "scipy", "cv2", "gtsam", "yaml", "tqdm", "PIL", "numpy", "sqlalchemy",
+         "alembic", "psycopg")
 
 
 def _modules_after(code: str) -> set[str]:

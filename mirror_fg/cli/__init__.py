@@ -15,6 +15,7 @@ import warnings
 
 from mirror_fg.cli.bench import cmd_live, cmd_pattern
 from mirror_fg.cli.export_cmd import cmd_export
+from mirror_fg.cli.history_cmd import cmd_history
 from mirror_fg.cli.commands import (
     cmd_calibrate,
     cmd_calibrate_many,
@@ -33,7 +34,8 @@ __all__ = ["main", "build_parser"]
 COMMANDS = {"live": cmd_live, "pattern": cmd_pattern, "plan": cmd_plan, "simulate": cmd_simulate,
             "calibrate": cmd_calibrate, "calibrate-many": cmd_calibrate_many, "detect": cmd_detect, "report": cmd_report,
             "verify": cmd_verify,
-            "export": cmd_export}
+            "export": cmd_export,
+            "history": cmd_history}
 
 
 class _Notes(logging.Handler):

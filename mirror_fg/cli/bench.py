@@ -69,11 +69,13 @@ def cmd_live(args, out: _Printer) -> int:
     from mirror_fg.io.capture import capture_from_file_data
     from mirror_fg.io.fileio import load_structured
     from mirror_fg.io.output import OutputPlan
+    from mirror_fg.registry.cli import record_document, registry_target
     from mirror_fg.solver.calibration import require_converged
     from mirror_fg.tools.live import LiveSession, run
     from mirror_fg.tools.live_sources import open_source
     from mirror_fg.cli.verify_cmd import live_verifier, live_verify_end, live_verify_frame
 
+    registry = registry_target(args)
     source_path = os.fspath(args.capture)
     outputs = (plan_calibration_outputs([source_path], args.output, ros=not args.no_ros)
                if args.output is not None else None)
@@ -149,6 +151,7 @@ def cmd_live(args, out: _Printer) -> int:
     _print_transform_summary(out, result, figures["seconds"], incremental=True)
     if written:
         out.info(f"wrote {len(written)} file(s): " + ", ".join(written[-3:]) + (" ..." if len(written) > 3 else ""))
+    record_document(registry, result, source_path, args.output, out)
     return EXIT_OK
 
 

@@ -169,6 +169,7 @@ def _simulate_counts(text: str, option: str, count: int) -> list[int]:
 def cmd_calibrate(args, out: _Printer) -> int:
     from mirror_fg.io.calibration_files import plan_calibration_outputs
     from mirror_fg.solver.calibrate import calibrate
+    from mirror_fg.registry.cli import record_document, registry_target
     from mirror_fg.solver.calibration import require_converged
     from mirror_fg.tools.verdict import with_verdict
     from mirror_fg.cli.screens_cmd import calibrate_screens_input
@@ -177,6 +178,7 @@ def cmd_calibrate(args, out: _Printer) -> int:
     if status is not None:
         return status
     start = time.perf_counter()
+    registry = registry_target(args)
     outputs = plan_calibration_outputs([args.input], args.output, ros=not args.no_ros,
                                        base_frame=args.base_frame, camera_frame=args.camera_frame)
     if not args.no_ros and not outputs.ros:
@@ -219,6 +221,7 @@ def cmd_calibrate(args, out: _Printer) -> int:
     if calibration.timings:
         out.detail("stage timings: " + ", ".join(f"{stage} {seconds:.3f} s" for stage, seconds in calibration.timings.items()))
     out.info("wrote " + ", ".join(str(p) for p in written))
+    record_document(registry, result, args.input, args.output, out)
     return EXIT_OK
 
 
@@ -255,11 +258,13 @@ class _StageBars:
 
 
 def cmd_calibrate_many(args, out: _Printer) -> int:
+    from mirror_fg.registry.cli import registry_target
     from mirror_fg.tools.many import calibrate_many
 
+    registry = registry_target(args, per_input=True)
     rows = calibrate_many(args.inputs, args.output, scheduler=args.scheduler, workers=args.workers,
                           progress=out.progress, connect_timeout=args.connect_timeout,
-                          in_process=False if args.dask else None)
+                          in_process=False if args.dask else None, registry=registry)
     failed = [row for row in rows if row["status"] != "ok"]
     out.info(f"{len(rows) - len(failed)} of {len(rows)} calibrated into {args.output}")
     out.info("  camera position: 3-sigma of T_base_cam's translation along the base axes, mm; RMS: rms_px")
@@ -273,6 +278,19 @@ def cmd_calibrate_many(args, out: _Printer) -> int:
     if failed:
         _error_line(f"mirror-fg: error: {len(failed)} of {len(rows)} input(s) failed (listed above)")
         return 2
+    return _registry_status(registry, rows, out)
+
+
+def _registry_status(registry, rows: list[dict], out: _Printer) -> int:
+    """calibrate-many's records (stored by each input's worker): a note, or exit 2 naming what was not stored."""
+    if registry is None:
+        return EXIT_OK
+    lost = [row for row in rows if row.get("registry_error")]
+    if lost:
+        _error_line(f"mirror-fg: error: {len(lost)} of {len(rows)} record(s) not stored (the result files are "
+                    f"written): {_one_line(lost[0]['registry_error'])}")
+        return 2
+    out.info(f"recorded {len(rows)} run(s) in the registry")
     return EXIT_OK
 
 

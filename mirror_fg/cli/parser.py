@@ -7,6 +7,8 @@ from pathlib import Path
 
 from mirror_fg.cli.export_cmd import add_export_parser
 from mirror_fg.factors.robust import KERNELS, ROBUST_K
+from mirror_fg.cli.history_cmd import add_history_parser
+from mirror_fg.registry.cli import add_registry_arguments
 
 EPILOG = """exit status: 0 success, 2 bad input (the message names the file, image or point),
 3 could not solve (degenerate data, no convergence), 1 internal error. Output files are written
@@ -171,6 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--viewing-distance", type=_POSITIVE, default=0.6, metavar="M",
                      help="screen targets: the eye's distance in front of the screen for the gaze-point error, "
                      "metres (default 0.6)")
+    add_registry_arguments(cal)
     _add_common(cal)
 
     many = sub.add_parser("calibrate-many", help="calibrate many datasets or captures (a fleet) on Dask",
@@ -189,6 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
     many.add_argument("--dask", action="store_true",
                       help="use a local Dask cluster even for a small job (default: a job of less than about "
                       "3 s of work runs in this process, which is faster than starting a cluster)")
+    add_registry_arguments(many, per_input=True)
     _add_common(many)
 
     det = sub.add_parser("detect", help="detect fiducials in photographs or a video (capture@1 -> dataset@1)",
@@ -272,6 +276,7 @@ def build_parser() -> argparse.ArgumentParser:
     liv.add_argument("--hold", action="store_true", help="with --serve: keep the page up after the source ends, until Ctrl-C")
     liv.add_argument("--no-ros", action="store_true", help="do not write the ROS files beside the result")
     liv.add_argument("--verify", type=Path, metavar="RESULT", help="has it moved? test each new placement against RESULT")
+    add_registry_arguments(liv)
     _add_common(liv)
 
     rep = sub.add_parser("report", help="HTML + PDF report of a result",
@@ -309,6 +314,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_verify(sub, _add_common, EPILOG, _POSITIVE)
     add_export_parser(sub, EPILOG, _add_common)
+    add_history_parser(sub, _add_common)
     return parser
 
 

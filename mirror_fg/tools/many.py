@@ -63,9 +63,12 @@ def result_path_for(path: str | os.PathLike[str], out_dir: str | os.PathLike[str
     return Path(out_dir) / (Path(path).stem + ".result.json")
 
 
-def calibrate_one(path: str, out_dir: str, ros: bool = True) -> dict:
+def calibrate_one(path: str, out_dir: str, ros: bool = True, registry: str | None = None,
+                  robot: str | None = None) -> dict:
     """Calibrate one input and write its result: a row ``{input, status, reason, result, ...}``, never
-    an exception (a failure is ``status: "failed"`` with the reason)."""
+    an exception (a failure is ``status: "failed"`` with the reason). ``registry``: also record it there for
+    ``robot`` (None: the input's stem), from this worker, after the file is written; a record not stored is
+    the row's ``registry_error`` (the result stays ``ok``)."""
     from mirror_fg.core.errors import MirrorFgError, SolveError
     from mirror_fg.io.calibration_files import plan_calibration_outputs
     from mirror_fg.solver.calibrate import calibrate
@@ -95,6 +98,9 @@ def calibrate_one(path: str, out_dir: str, ros: bool = True) -> dict:
                    sigma3_rotation_deg=sigma3["rotation_deg"],
                    sigma3_base_cam=sigma3_base,  # the camera's pose on the robot, base axes
                    rms=result["residuals"]["rms_px"], iterations=calibration.iterations)
+        from mirror_fg.registry.cli import record_row
+
+        row["registry_error"] = record_row(registry, robot, result, path, os.fspath(target))
     except MirrorFgError as error:
         row["reason"] = str(error)
     except Exception as error:  # one bad input must not stop the others: report it, go on
@@ -111,12 +117,14 @@ def calibrate_many(
     progress: bool = True,
     connect_timeout: float = CONNECT_TIMEOUT_S,
     in_process: bool | None = None,
+    registry: Any = None,
 ) -> list[dict]:
     """Calibrate every input (dataset@1 or capture@1 files) into ``out_dir``, on a local Dask cluster of
     ``workers`` processes or the scheduler at ``scheduler`` (a DatasetError naming it if none answers within
     ``connect_timeout`` seconds); rows in the order of ``inputs`` (:func:`calibrate_one`: ``input``, ``status``
     ok/failed, ``reason``, ``result`` path, key figures). in_process: run here instead of on a local cluster
-    (None: when :func:`runs_in_process` says it is faster; ignored with a ``scheduler``)."""
+    (None: when :func:`runs_in_process` says it is faster; ignored with a ``scheduler``). registry: a
+    ``registry.cli.RegistryTarget`` each worker records its run in (the row's ``registry_error`` if not stored)."""
     targets: dict[Path, str] = {}
     for path in inputs:  # two inputs must not write one result
         target = result_path_for(path, out_dir)
@@ -128,6 +136,8 @@ def calibrate_many(
     created = not os.path.isdir(out_dir)
     os.makedirs(out_dir, exist_ok=True)
     todo = [{"path": os.fspath(p), "out_dir": os.fspath(out_dir)} for p in inputs]
+    if registry is not None:
+        todo = [dict(item, registry=registry.url, robot=registry.robot) for item in todo]
     if in_process is None:
         in_process = runs_in_process(inputs, workers)
     jobs = 1 if in_process else workers
