@@ -185,3 +185,29 @@ def test_readme_registry_commands_run(tmp_path):
     assert "<img" in (tmp_path / "history.html").read_text()
     with Registry(f"sqlite:///{tmp_path / 'registry.db'}") as registry:
         assert len(registry.history("arm-1")) == 2
+
+
+def test_verify_records_its_verification(tmp_path):
+    """``verify --registry URL --robot ID`` records the verification@1 (kind verification, the verdict) after
+    its files, under the camera name the calibration was recorded under."""
+    url = f"sqlite:///{tmp_path / 'r.db'}"
+    stored, today = tmp_path / "stored.json", tmp_path / "today.json"
+    assert main(["simulate", "--mirrors", "1", "--images", "30", "--fiducials", "4", "--sigma", "0.1", "--seed", "1",
+                 "-o", str(stored), "-q"]) == 0
+    assert main(["simulate", "--mirrors", "1", "--images", "6", "--fiducials", "4", "--sigma", "0.1", "--seed", "2",
+                 "-o", str(today), "-q"]) == 0
+    result = tmp_path / "stored.result.json"
+    done = run_cli("calibrate", str(stored), "-o", str(result), "--no-ros", "--registry", url, "--robot", "cell-3")
+    assert done.returncode == 0, done.stderr
+    out = tmp_path / "verification.json"
+    checked = run_cli("verify", str(result), str(today), "-o", str(out), "--tolerance-mm", "10", "--tolerance-deg", "1",
+                      "--registry", url, "--robot", "cell-3")
+    assert checked.returncode in (0, 5), checked.stderr
+    with Registry(url) as registry:
+        calibration, verification = registry.history("cell-3")
+    written = json.loads(out.read_text())
+    assert (calibration.kind, verification.kind) == ("calibration", "verification")
+    assert verification.camera == calibration.camera
+    assert verification.verdict == written["cameras"][verification.camera]["verdict"]
+    # no URL, no robot: nothing is recorded and nothing is asked
+    assert run_cli("verify", str(result), str(today), "--tolerance-mm", "10", "--tolerance-deg", "1").returncode in (0, 5)

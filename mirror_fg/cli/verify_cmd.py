@@ -9,6 +9,7 @@ import os
 from pathlib import Path
 
 from mirror_fg.cli.printing import _Printer
+from mirror_fg.registry.cli import add_registry_arguments
 
 __all__ = ["add_parser", "cmd_verify"]
 
@@ -31,6 +32,7 @@ def add_parser(sub, common, epilog: str, positive) -> None:
     ver.add_argument("-o", "--output", type=Path, help="write the verification (verification@1 JSON) here")
     ver.add_argument("--update", type=Path, metavar="OUT",
                      help="where nothing moved: write the stored estimate combined with the new images (result@1)")
+    add_registry_arguments(ver)
     common(ver)
 
 
@@ -49,8 +51,10 @@ def cmd_verify(args, out: _Printer) -> int:
     from mirror_fg.io.output import OutputPlan
     from mirror_fg.io.result import load_result, result_text
     from mirror_fg.io.verification import check_updatable, updated_result, verification_text
+    from mirror_fg.registry.cli import record_document, registry_target
     from mirror_fg.solver.verify import MOVED, verify
 
+    target = registry_target(args)  # checked before any work
     plan = OutputPlan(inputs=[os.fspath(args.result), os.fspath(args.data)])
     if args.output is not None:
         plan.add(args.output, "verification")
@@ -63,9 +67,9 @@ def cmd_verify(args, out: _Printer) -> int:
     verification = verify(result, dataset, alpha=args.alpha, tolerance_mm=args.tolerance_mm,
                           tolerance_deg=args.tolerance_deg, source=os.fspath(args.result))
     contents = {}
+    document = verification.to_dict(os.fspath(args.result), os.fspath(args.data))
     if args.output is not None:
-        contents[os.fspath(args.output)] = verification_text(
-            verification.to_dict(os.fspath(args.result), os.fspath(args.data)))
+        contents[os.fspath(args.output)] = verification_text(document)
     if args.update is not None and verification.verdict != MOVED:
         (fused,) = verification.fused.values()
         updated = updated_result(result, fused, os.fspath(args.result), os.fspath(args.data), len(dataset.images))
@@ -79,6 +83,7 @@ def cmd_verify(args, out: _Printer) -> int:
     if args.update is not None:
         out.info(f"wrote {args.update}" if verification.verdict != MOVED
                  else f"not written: {args.update} (a camera moved: calibrate again)")
+    record_document(target, document, args.data, args.output, out)  # after the files: a failure costs none
     return verification.exit_code
 
 
