@@ -157,6 +157,9 @@ class Calibration:
     rig: list = field(default_factory=list)
     #: ``{(l, m): camera name}``: the camera frame each mirror vector is in (with ``cameras``), else empty.
     mirror_frames: dict[tuple[int, int], str] = field(default_factory=dict)
+    #: A robot arm's result@1 entries (``mounts``, ``joint_offsets``; ``solver/robot_solve.py``), else None:
+    #: then ``T_cam_base`` is the camera mount's inverse and the mirror vectors are in the base link's frame.
+    robot: dict | None = None
 
     @property
     def T_cam_base(self) -> Transform:
