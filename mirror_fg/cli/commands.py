@@ -67,6 +67,9 @@ def _print_detection_report(out: _Printer, reports) -> None:
 def cmd_simulate(args, out: _Printer) -> int:
     from mirror_fg.tools.simulate import simulation_outputs
 
+    if getattr(args, "robot", None) is not None:  # a robot arm (cli/robot_cmd.py)
+        from mirror_fg.cli.robot_cmd import simulate_robot
+        return simulate_robot(args, out)
     _check_simulate_options(args)
     plan = simulation_outputs(args.output)  # checked before the work
     if args.kind == "tree" and args.cameras is None:

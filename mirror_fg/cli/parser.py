@@ -6,6 +6,7 @@ import math
 from pathlib import Path
 
 from mirror_fg.factors.robust import KERNELS, ROBUST_K
+from mirror_fg.cli.robot_cmd import add_robot_arguments
 
 EPILOG = """exit status: 0 success, 2 bad input (the message names the file, image or point),
 3 could not solve (degenerate data, no convergence), 1 internal error. Output files are written
@@ -128,6 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --cameras: photographs only each camera sees, one number for all or one per camera "
                      "(default 30 tree, 4 mixed)")
     sim.add_argument("--seed", type=_COUNT0, default=0, help="random seed (default 0)")
+    add_robot_arguments(sim)
     _add_common(sim)
 
     cal = sub.add_parser("calibrate", help="analytical solution + MLE from a dataset or capture file",

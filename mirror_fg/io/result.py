@@ -189,6 +189,11 @@ def result_dict(calibration: CalibrationLike) -> dict:
     if cameras is not None:  # several cameras (docs/formats.md "Several cameras"); absent, the file is as before
         result["cameras"] = camera_entries(cameras)
         result["rig"] = rig_entries(cameras, list(getattr(c, "rig", None) or []))
+    robot = getattr(c, "robot", None)
+    if robot:  # a robot arm (docs/formats.md "Robot arms"): mounts, joint offsets, planes in the base link's frame
+        result.update({k: robot[k] for k in ("mounts", "joint_offsets") if k in robot})
+        for entry in result["mirrors"]:
+            entry["frame"] = robot["mirror_frame"]
     return result
 
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import shutil
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -22,7 +21,7 @@ from mirror_fg.core.camera import Camera, camera_to_dict
 from mirror_fg.factors.robot import compose, inverse
 from mirror_fg.robot import arm_urdf
 
-__all__ = ["ArmTruth", "simulate_arm", "write_arm_simulation", "NOMINAL", "TOOL_LINK", "truth_to_dict"]
+__all__ = ["ArmTruth", "simulate_arm", "write_arm_simulation", "arm_outputs", "NOMINAL", "TOOL_LINK", "truth_to_dict"]
 
 #: Nominal joint values (radians) of each test arm: the tool held in front of the base, pointing forward.
 NOMINAL = {
@@ -183,15 +182,30 @@ def truth_to_dict(truth: ArmTruth) -> dict:
     }
 
 
-def write_arm_simulation(path: str, dataset: dict, truth: ArmTruth) -> tuple[str, str]:
-    """Write the dataset, ``<stem>.truth.json`` and the arm's URDF beside them; returns (truth, urdf) paths."""
-    from mirror_fg.io.output import atomic_write
+def arm_outputs(path: str, robot: str):
+    """The checked outputs of :func:`write_arm_simulation` (DatasetError before any work where one cannot be
+    written): the dataset, ``<stem>.truth.json`` and the arm's URDF beside them."""
+    from mirror_fg.io.output import OutputPlan
+    from mirror_fg.tools.simulate import truth_path
 
-    folder = os.path.dirname(os.path.abspath(path))
-    urdf = os.path.join(folder, dataset["robot"]["urdf"])
-    shutil.copyfile(arm_urdf(truth.robot), urdf)
-    stem = path[:-5] if path.endswith(".json") else path
-    truth_path = f"{stem}.truth.json"
-    atomic_write(path, json.dumps(dataset, indent=1) + "\n")
-    atomic_write(truth_path, json.dumps(truth_to_dict(truth), indent=1) + "\n")
-    return truth_path, urdf
+    plan = OutputPlan()
+    plan.add(path, "dataset")
+    plan.add(truth_path(path), "ground truth")
+    plan.add(os.path.join(os.path.dirname(os.path.abspath(path)), f"{robot}.urdf"), "URDF")
+    return plan
+
+
+def write_arm_simulation(path: str, dataset: dict, truth: ArmTruth, plan=None) -> tuple[str, str]:
+    """Write the dataset, ``<stem>.truth.json`` and the arm's URDF beside them, all-or-nothing; returns the
+    truth's and the URDF's paths."""
+    from mirror_fg.tools.simulate import truth_path
+
+    path = os.fspath(path)
+    plan = plan if plan is not None else arm_outputs(path, truth.robot)
+    urdf = os.path.join(os.path.dirname(os.path.abspath(path)), dataset["robot"]["urdf"])
+    with open(arm_urdf(truth.robot), encoding="utf-8") as handle:
+        urdf_text = handle.read()
+    truth_file = os.fspath(truth_path(path))
+    plan.commit({path: json.dumps(dataset, indent=1) + "\n", truth_file: json.dumps(truth_to_dict(truth), indent=1) + "\n",
+                 urdf: urdf_text})
+    return truth_file, urdf
