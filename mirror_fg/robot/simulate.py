@@ -64,11 +64,13 @@ def _reflect(x: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int = 3, arm_poses: int = 8,
                  pixel_sigma: float = 0.5, joint_offsets_deg: dict[str, float] | None = None,
-                 seed: int = 0, spread_rad: float = 0.25, estimate_offsets: bool = True):
+                 seed: int = 0, spread_rad: float = 0.25, estimate_offsets: bool = True,
+                 moving: tuple[str, ...] | None = None):
     """A dataset@1 dictionary (its ``robot.urdf`` the arm's file name) and its :class:`ArmTruth`.
 
     ``arm_poses`` images per placement; ``joint_offsets_deg``: true encoder offsets, recorded joints are
-    ``q_true - delta`` (and, with ``estimate_offsets``, the dataset asks for them)."""
+    ``q_true - delta`` (and, with ``estimate_offsets``, the dataset asks for them). ``moving``: the joints
+    that move between arm poses (default all; one wrist joint alone is the degenerate motion)."""
     from mirror_fg.robot.kinematics import load_kinematics
 
     rng = np.random.default_rng(seed)
@@ -116,7 +118,10 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
             tries += 1
             if tries > 2000:
                 raise RuntimeError(f"no visible arm pose for placement {k} after 2000 tries")
-            q = q0 + rng.uniform(-spread_rad, spread_rad, len(q0))
+            step = rng.uniform(-spread_rad, spread_rad, len(q0))
+            if moving is not None:
+                step *= np.array([n in moving for n in names], float)
+            q = q0 + step
             info = [kin.joints[n] for n in names]
             if any(i.lower is not None and not i.lower <= x <= i.upper for i, x in zip(info, q)):
                 continue

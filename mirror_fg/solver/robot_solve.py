@@ -98,6 +98,38 @@ def _points(problem: RobotProblem, estimate: RobotEstimate) -> dict[str, np.ndar
     return {name: triangulate(*zip(*maps[name])) for name in problem.point_names}
 
 
+#: Smallest second singular value, relative to the first, of the arm's rotations (axis times angle, link axes)
+#: below which they turn about one axis only (0.02: about one degree off the axis per radian turned).
+ONE_AXIS_RATIO = 0.02
+
+
+def check_rotation_axes(problem: RobotProblem) -> None:
+    """Before any solve: a mount on a moving link whose every arm pose turns that link about one axis
+    leaves its translation along the axis undetermined (``A X = Z B`` with parallel rotation axes):
+    SolveError (exit 3) naming the mount, the axis in the link's axes and the motion to add."""
+    from scipy.spatial.transform import Rotation
+
+    kin = problem.kinematics
+    for role in problem.mount_keys:
+        link = problem.links[role]
+        if link == kin.base_link:
+            continue
+        rotations = [kin.placements(image.joints, [link])[link][0][:3, :3] for image in problem.dataset.images]
+        turns = np.array([Rotation.from_matrix(rotations[0].T @ R).as_rotvec() for R in rotations[1:]])
+        if len(turns) == 0:
+            continue
+        s, vt = np.linalg.svd(turns, full_matrices=False)[1:]
+        if s[0] > 0 and s[1] > ONE_AXIS_RATIO * s[0]:
+            continue
+        axis = np.round(vt[0] * np.sign(vt[0][np.argmax(np.abs(vt[0]))]), 2) + 0.0
+        frame = "T_link_cam" if role == "camera" else "T_link_target"
+        raise SolveError(
+            f"{problem.dataset.source}: the {role} mount's position ({frame}) along the axis "
+            f"[{axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f}] of link {link!r} is not determined: every arm pose turns "
+            f"{link!r} about that one axis; add arm poses that rotate it about another axis (tilt the wrist or move "
+            "another joint), with at least two clearly different rotation axes")
+
+
 def _check_motion(problem: RobotProblem, information: np.ndarray, columns: dict, estimate: RobotEstimate) -> None:
     """A mount's translation along the one axis all arm poses rotate about is not determined (the
     hand-eye problem's known degeneracy): SolveError (exit 3) naming the direction and the motion to add."""
@@ -138,6 +170,7 @@ def calibrate_robot(dataset: Dataset, initial: RobotEstimate | None = None,
 
     options = options or SolveOptions()
     problem = RobotProblem(dataset, options.robust)
+    check_rotation_axes(problem)
     begin = initial if initial is not None else start_estimate(problem)
     graph = problem.graph()
     params = lm_params(options.max_iterations, cost_scale(dataset), GENERAL_LAMBDA_UPPER_BOUND)

@@ -71,8 +71,13 @@ def arm_start(images, eye_to_hand: bool, source: str):
         virtual, arm = zip(*usable[p])
         if eye_to_hand:
             arm = [(S @ R @ S, S @ t) for R, t in arm]  # S F S
-        out = cv2.calibrateRobotWorldHandEye([R for R, _ in virtual], [t.reshape(3, 1) for _, t in virtual],
-                                             [R for R, _ in arm], [t.reshape(3, 1) for _, t in arm])
+        try:
+            out = cv2.calibrateRobotWorldHandEye([R for R, _ in virtual], [t.reshape(3, 1) for _, t in virtual],
+                                                 [R for R, _ in arm], [t.reshape(3, 1) for _, t in arm])
+        except cv2.error as error:
+            message = str(error).strip().splitlines()[-1] if str(error).strip() else "failed"
+            raise SolveError(f"{source}: mirror {p[0]} placement {p[1]}: no hand-eye start from its {len(arm)} arm poses "
+                             f"({message}): give arm poses with rotations about different axes") from None
         X = (out[2], out[3].ravel())
         Z = inverse((out[0], out[1].ravel()))  # OpenCV returns base2world = Z^-1
         if eye_to_hand:  # X = M_c^-1 H S: the map x_B -> M_c^-1 H x_B is (R_X S, t_X)
