@@ -110,3 +110,20 @@ def test_monte_carlo_truth_within_3_sigma(tmp_path, robot, eye_in_hand) -> None:
         # 3 sigma: the 0.27 % two-sided tail per degree of freedom, allowing for the runs' chance
         assert np.mean(np.array(nees[key]) > chi2.ppf(0.9973, dof)) <= 0.06, key
     print(robot, eye_in_hand, {k: round(float(np.mean(v)), 3) for k, v in nees.items()})
+
+
+def test_the_readme_arm_example_runs_and_holds_the_truth(tmp_path) -> None:
+    from conftest import REPO
+
+    example = REPO / "examples" / "arm6" / "arm6_mirror.json"
+    assert "mirror-fg calibrate examples/arm6/arm6_mirror.json" in (REPO / "README.md").read_text()
+    out = tmp_path / "arm.json"
+    assert main(["calibrate", str(example), "-o", str(out), "-q"]) == 0
+    result = json.loads(out.read_text())
+    truth = json.loads(example.with_name("arm6_mirror.truth.json").read_text())
+    for role, key in KEYS.items():
+        entry = result["mounts"][role]
+        true_pose = tuple(np.array(truth["mounts"][role][key][k]) for k in ("R", "t"))
+        delta = _error(entry[key], true_pose)
+        bounds = np.concatenate([np.radians(entry["sigma3"]["rotation_deg"]), np.array(entry["sigma3"]["position_mm"]) / 1000])
+        assert np.all(np.abs(delta) < bounds), (role, delta / bounds)
