@@ -62,15 +62,33 @@ def _reflect(x: np.ndarray, v: np.ndarray) -> np.ndarray:
     return x - 2.0 * np.outer(v, s)
 
 
+def _seen_in_mirror(poses, x_B: np.ndarray, v_B: np.ndarray) -> bool:
+    """Whether the camera sees the board's front through the plane of ``v_B`` ({B}): both on one side of it,
+    the board facing it, every point ahead of the camera."""
+    n_B = v_B / np.linalg.norm(v_B)
+    d_B = float(np.linalg.norm(v_B))
+    side_target = n_B @ x_B - d_B  # signed distances to the plane
+    side_camera = float(n_B @ poses["camera"][1] - d_B)
+    if abs(side_camera) < 0.1 or np.any(side_target * side_camera < 0.05 ** 2):
+        return False  # the target or the camera at the mirror, or on its two sides
+    toward_mirror = -np.sign(side_camera) * n_B
+    if -poses["target"][0][:, 2] @ toward_mirror < 0.2:  # the board's front (-z_target) faces the mirror
+        return False
+    R, t = inverse(poses["camera"])
+    return bool(np.all((R @ _reflect(x_B, v_B) + t[:, None])[2] >= 0.2))
+
+
 def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int = 3, arm_poses: int = 8,
                  pixel_sigma: float = 0.5, joint_offsets_deg: dict[str, float] | None = None,
                  seed: int = 0, spread_rad: float = 0.25, estimate_offsets: bool = True,
-                 moving: tuple[str, ...] | None = None):
+                 moving: tuple[str, ...] | None = None, direct: bool = False):
     """A dataset@1 dictionary (its ``robot.urdf`` the arm's file name) and its :class:`ArmTruth`.
 
     ``arm_poses`` images per placement; ``joint_offsets_deg``: true encoder offsets, recorded joints are
     ``q_true - delta`` (and, with ``estimate_offsets``, the dataset asks for them). ``moving``: the joints
-    that move between arm poses (default all; one wrist joint alone is the degenerate motion)."""
+    that move between arm poses (default all; one wrist joint alone is the degenerate motion). ``direct``:
+    no mirror, the camera sees the board 0.9 m ahead (a direct-view hand-eye calibration, for comparison):
+    ``arm_poses`` images in all."""
     from mirror_fg.robot.kinematics import load_kinematics
 
     rng = np.random.default_rng(seed)
@@ -82,6 +100,8 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
     F0 = (F0[:3, :3], F0[:3, 3])
     # in the camera's frame: the target beside the camera facing the mirrors (pattern normal -z_target)
     T_cam_target = (_rot([0, 1, 0], math.pi), np.array([0.12, 0.0, 0.02]))
+    if direct:  # the board's front (-z_target) faces the camera
+        T_cam_target = (np.eye(3), np.array([0.0, 0.0, 0.9]))
     if eye_in_hand:  # camera 6 cm off the flange, looking along the tool's z
         mount_cam = (_rot([0, 0, 1], 0.3) @ _rot([1, 0, 0], 0.05), np.array([0.05, -0.03, 0.06]))
         C = compose(F0, mount_cam)
@@ -111,8 +131,8 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
     board = _board()
     points = np.array(list(board.values())).T
     images, truth_joints = [], []
-    for k in range(placements):
-        v_B = mirror_vectors[(1, k)]
+    for k in range(1 if direct else placements):
+        v_B = None if direct else mirror_vectors[(1, k)]
         found, tries = 0, 0
         while found < arm_poses:
             tries += 1
@@ -131,20 +151,17 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
                 T = F[link][0]
                 poses[role] = compose((T[:3, :3], T[:3, 3]), mount)
             x_B = poses["target"][0] @ points + poses["target"][1][:, None]
-            n_B = v_B / np.linalg.norm(v_B)
-            d_B = float(np.linalg.norm(v_B))
-            side_target = n_B @ x_B - d_B  # signed distances to the plane
-            side_camera = float(n_B @ poses["camera"][1] - d_B)
-            if abs(side_camera) < 0.1 or np.any(side_target * side_camera < 0.05 ** 2):
-                continue  # the target or the camera at the mirror, or on its two sides
-            toward_mirror = -np.sign(side_camera) * n_B
-            if -poses["target"][0][:, 2] @ toward_mirror < 0.2:  # the board's front (-z_target) faces the mirror
+            if v_B is None:
+                R, t = inverse(poses["camera"])
+                x_cam = R @ x_B + t[:, None]
+                facing = -poses["target"][0][:, 2] @ (poses["camera"][1] - poses["target"][1])
+                if np.any(x_cam[2] < 0.2) or facing <= 0.2 * np.linalg.norm(poses["camera"][1] - poses["target"][1]):
+                    continue
+            elif not _seen_in_mirror(poses, x_B, v_B):
                 continue
-            virtual = _reflect(x_B, v_B)  # eq. (3)
-            R, t = inverse(poses["camera"])
-            x_cam = R @ virtual + t[:, None]
-            if np.any(x_cam[2] < 0.2):
-                continue
+            else:
+                R, t = inverse(poses["camera"])
+                x_cam = R @ _reflect(x_B, v_B) + t[:, None]  # eq. (3)
             pix = (CAMERA.K @ (x_cam / x_cam[2]))[:2].T
             if not CAMERA.contains(pix).all() or np.any((pix < 20) | (pix > [CAMERA.width - 20, CAMERA.height - 20])):
                 continue
@@ -152,7 +169,7 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
             recorded = {n: float(x - delta.get(n, 0.0)) for n, x in zip(names, q)}
             if any(i.lower is not None and not i.lower <= recorded[n] <= i.upper for n, i in zip(names, info)):
                 continue
-            images.append({"id": f"p{k}_{found:03d}", "mirror_configs": [k],
+            images.append({"id": f"p{k}_{found:03d}", **({"reflections": []} if direct else {"mirror_configs": [k]}),
                            "joints": recorded,
                            "observations": {name: [float(u), float(w)] for name, (u, w) in zip(board, pix)}})
             truth_joints.append(q)
@@ -168,7 +185,7 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
         "robot": robot_entry, "mounts": {"camera": {"link": link_c}, "target": {"link": link_t}},
         "images": images,
     }
-    return dataset, ArmTruth(robot, mounts, mirror_vectors, delta)
+    return dataset, ArmTruth(robot, mounts, {} if direct else mirror_vectors, delta)
 
 
 def _pose_dict(pose) -> dict:
