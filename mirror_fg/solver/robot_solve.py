@@ -107,7 +107,7 @@ def check_rotation_axes(problem: RobotProblem) -> None:
     """Before any solve: a mount on a moving link whose every arm pose turns that link about one axis
     leaves its translation along the axis undetermined (``A X = Z B`` with parallel rotation axes):
     SolveError (exit 3) naming the mount, the axis in the link's axes and the motion to add."""
-    from scipy.spatial.transform import Rotation
+    import cv2
 
     kin = problem.kinematics
     for role in problem.mount_keys:
@@ -115,7 +115,7 @@ def check_rotation_axes(problem: RobotProblem) -> None:
         if link == kin.base_link:
             continue
         rotations = [kin.placements(image.joints, [link])[link][0][:3, :3] for image in problem.dataset.images]
-        turns = np.array([Rotation.from_matrix(rotations[0].T @ R).as_rotvec() for R in rotations[1:]])
+        turns = np.array([cv2.Rodrigues(rotations[0].T @ R)[0].ravel() for R in rotations[1:]])
         if len(turns) == 0:
             continue
         s, vt = np.linalg.svd(turns, full_matrices=False)[1:]

@@ -27,6 +27,9 @@ __all__ = ["arm_start", "triangulate", "MIN_POSES"]
 
 #: Arm poses per placement that OpenCV's robot-world hand-eye solver needs (distinct rotations).
 MIN_POSES = 3
+#: Images per placement a start uses at most (evenly spread over the file's order): a start, refined by
+#: LM over every image; the PnP of each image is most of its cost.
+MAX_START_IMAGES = 12
 S = np.diag([1.0, 1.0, -1.0])
 
 
@@ -52,7 +55,14 @@ def arm_start(images, eye_to_hand: bool, source: str):
     """``(M_c, M_t, {placement: v_B})`` from ``images``: ``(placement, target points (N, 3), normalized
     (N, 2), T_B_camlink (4x4), T_B_targetlink (4x4))`` of the images seen through one mirror."""
     groups: dict = {}
-    for placement, points, normalized, F_c, F_t in images:
+    by_placement: dict = {}
+    for entry in images:
+        by_placement.setdefault(entry[0], []).append(entry)
+    chosen = []
+    for group in by_placement.values():
+        keep = np.unique(np.linspace(0, len(group) - 1, min(len(group), MAX_START_IMAGES)).round().astype(int))
+        chosen += [group[k] for k in keep]
+    for placement, points, normalized, F_c, F_t in chosen:
         if len(points) < 4:
             continue
         found = _best_map(points, normalized)

@@ -87,6 +87,10 @@ class RobotProblem:
         of the camera's and the target's links in {B} and their Jacobians in the offsets."""
         kin, offsets, links = self.kinematics, self.offsets, self.links
         unique = list(dict.fromkeys(links.values()))
+        if not offsets:  # nothing moves the joints: the placements once
+            out = kin.placements(joints, unique)
+            fixed = (out[links["camera"]], out[links["target"]])
+            return lambda delta: fixed
 
         def fk(delta: np.ndarray):
             q = dict(joints)
