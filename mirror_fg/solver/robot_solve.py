@@ -7,6 +7,7 @@ mounts and joint offsets (``Calibration.robot``).
 """
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -16,13 +17,16 @@ from mirror_fg.core.transform import rotation_to_quaternion_xyzw
 from mirror_fg.factors.robot import compose
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.calibration import Calibration
-from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, run_optimizer
+from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, plausible, run_optimizer
 from mirror_fg.solver.options import STAGES, SolveOptions
 from mirror_fg.solver.robot_start import arm_start, triangulate
 from mirror_fg.solver.robot_views import RobotEstimate, RobotProblem, camera_base_pose
 
 __all__ = ["calibrate_robot", "start_estimate", "UNDETERMINED_RATIO"]
 
+logger = logging.getLogger("mirror_fg")
+#: Starts tried at most where LM from the first ends implausibly (the first, then triples of placements).
+MAX_STARTS = 8
 #: Smallest eigenvalue of the information, relative to its largest over the unknown's own scale, below which
 #: a direction is taken as undetermined (a well-posed arm scene measures 1e-9 and more).
 UNDETERMINED_RATIO = 1e-12
@@ -46,9 +50,9 @@ def _affine(pose) -> np.ndarray:
     return T
 
 
-def start_estimate(problem: RobotProblem) -> RobotEstimate:
-    """The analytical start (``robot_start.arm_start``), joint offsets at zero, reconstruction points
-    triangulated through it."""
+def start_estimate(problem: RobotProblem, max_starts: int = 1) -> list[RobotEstimate]:
+    """The analytical starts (``robot_start.arm_start``; the first, and restarts), joint offsets at zero,
+    reconstruction points triangulated through each."""
     dataset, kin = problem.dataset, problem.kinematics
     links = problem.links
     base = kin.base_link
@@ -69,16 +73,18 @@ def start_estimate(problem: RobotProblem) -> RobotEstimate:
         placed.append((image.reflections[0], np.array([dataset.fiducials[n] for n in names]).reshape(-1, 3),
                        np.array([normalized[n] for n in names]).reshape(-1, 2), F[links["camera"]][0],
                        F[links["target"]][0]))
-    M_c, M_t, planes = arm_start(placed, eye_to_hand, dataset.source)
-    mounts = {"camera": M_c, "target": M_t, **problem.known}
-    missing = [p for p in problem.placements if p not in planes]
-    if missing:
-        raise SolveError(f"{dataset.source}: mirror {missing[0][0]} placement {missing[0][1]} has no start: each "
-                         f"placement needs 3 or more arm poses seen through it alone")
-    estimate = RobotEstimate(mounts, planes, {}, np.zeros(len(problem.offsets)))
-    if problem.point_names:
-        estimate.points = _points(problem, estimate)
-    return estimate
+    estimates = []
+    for M_c, M_t, planes in arm_start(placed, eye_to_hand, dataset.source, max_starts):
+        mounts = {"camera": M_c, "target": M_t, **problem.known}
+        missing = [p for p in problem.placements if p not in planes]
+        if missing:
+            raise SolveError(f"{dataset.source}: mirror {missing[0][0]} placement {missing[0][1]} has no start: each "
+                             f"placement needs 3 or more arm poses seen through it alone")
+        estimate = RobotEstimate(mounts, planes, {}, np.zeros(len(problem.offsets)))
+        if problem.point_names:
+            estimate.points = _points(problem, estimate)
+        estimates.append(estimate)
+    return estimates
 
 
 def _points(problem: RobotProblem, estimate: RobotEstimate) -> dict[str, np.ndarray]:
@@ -171,11 +177,23 @@ def calibrate_robot(dataset: Dataset, initial: RobotEstimate | None = None,
     options = options or SolveOptions()
     problem = RobotProblem(dataset, options.robust)
     check_rotation_axes(problem)
-    begin = initial if initial is not None else start_estimate(problem)
     graph = problem.graph()
     params = lm_params(options.max_iterations, cost_scale(dataset), GENERAL_LAMBDA_UPPER_BOUND)
-    optimizer, result, initial_error = run_optimizer(graph, problem.values(begin), params, dataset.source,
-                                                     lambda error: str(error), options.iteration)
+    expected = 0.5 * max(problem.size - problem.dimension(), 0)
+
+    def optimize(begin: RobotEstimate):
+        return run_optimizer(graph, problem.values(begin), params, dataset.source, lambda error: str(error),
+                             options.iteration)
+
+    optimizer, result, initial_error = optimize(initial if initial is not None else start_estimate(problem)[0])
+    if initial is None and not plausible(graph.error(result), expected):  # restarts: one triple of placements each
+        for begin in start_estimate(problem, MAX_STARTS)[1:]:
+            tried = optimize(begin)
+            if graph.error(tried[1]) < graph.error(result):
+                logger.info("%s: a restart from another triple of placements fits better", dataset.source)
+                optimizer, result, initial_error = tried
+            if plausible(graph.error(result), expected):
+                break
     estimate = problem.read(result)
     information, columns = problem.information(graph, result)
     _check_motion(problem, information, columns, estimate)

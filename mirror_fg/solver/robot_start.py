@@ -13,6 +13,8 @@ the planes.
 """
 from __future__ import annotations
 
+from itertools import combinations
+
 import cv2
 import numpy as np
 
@@ -51,9 +53,11 @@ def _mean_pose(poses):
     return R, np.mean([p[1] for p in poses], axis=0)
 
 
-def arm_start(images, eye_to_hand: bool, source: str):
-    """``(M_c, M_t, {placement: v_B})`` from ``images``: ``(placement, target points (N, 3), normalized
-    (N, 2), T_B_camlink (4x4), T_B_targetlink (4x4))`` of the images seen through one mirror."""
+def arm_start(images, eye_to_hand: bool, source: str, max_starts: int = 1) -> list:
+    """Up to ``max_starts`` starts ``(M_c, M_t, {placement: v_B})`` from ``images``: ``(placement, target
+    points (N, 3), normalized (N, 2), T_B_camlink (4x4), T_B_targetlink (4x4))`` of the images seen through
+    one mirror. The first peels every placement at once; the others (restarts) one triple of placements each,
+    the rest's planes then from their own virtual maps."""
     groups: dict = {}
     by_placement: dict = {}
     for entry in images:
@@ -97,15 +101,31 @@ def arm_start(images, eye_to_hand: bool, source: str):
             Zi = inverse(Z)
             maps.append((k, S @ Zi[0], S @ Zi[1]))
             moving.append(inverse(X))  # M_c = X^-1
-    node = solve_children(maps, len(placements), 1.0)  # eqs. (13)-(18)
-    Y_inv = (project_to_orthogonal(node.A_parent, 1.0), node.b_parent)  # {B} -> the fixed one's frame
-    planes = {}
-    for k, p in enumerate(placements):
-        n, d = plane_from_camera(node.mirror_vectors[k], Y_inv)
-        planes[p] = d * n
-    Y = inverse(Y_inv)
-    mount = _mean_pose(moving)
-    return (Y, mount, planes) if eye_to_hand else (mount, Y, planes)
+    triples = [None, *combinations(range(len(placements)), 3)] if len(placements) > 3 else [None]
+    starts = []
+    for subset in triples[:max_starts]:
+        chosen_maps = maps if subset is None else [(i, maps[k][1], maps[k][2]) for i, k in enumerate(subset)]
+        node = solve_children(chosen_maps, len(chosen_maps), 1.0)  # eqs. (13)-(18)
+        Y_inv = (project_to_orthogonal(node.A_parent, 1.0), node.b_parent)  # {B} -> the fixed one's frame
+        planes = {}
+        for k, p in enumerate(placements):
+            planes[p] = _plane_of_map(maps[k][1], maps[k][2], Y_inv)
+        Y = inverse(Y_inv)
+        mount = _mean_pose(moving)
+        starts.append((Y, mount, planes) if eye_to_hand else (mount, Y, planes))
+    return starts
+
+
+def _plane_of_map(A: np.ndarray, b: np.ndarray, Y_inv) -> np.ndarray:
+    """The plane in {B} (its ``v = d n``) of a placement's virtual map ``x -> A x + b`` = ``Y^-1 H`` given
+    ``Y^-1``: in Y's frame ``A = M R``, ``b = M t + 2 v`` (eqs. 3, 13), ``M``'s -1 eigenvector the normal."""
+    R, t = Y_inv
+    M = A @ R.T
+    normal = np.linalg.eigh(0.5 * (M + M.T))[1][:, 0]  # eigenvalue -1
+    v = 0.5 * (b - M @ t)
+    v = float(normal @ v) * normal
+    n, d = plane_from_camera(v, Y_inv)
+    return d * n
 
 
 def triangulate(maps, normalized) -> np.ndarray:
