@@ -412,6 +412,9 @@ def cmd_plan(args, out: _Printer) -> int:
         setup_from_files,
     )
 
+    if args.robot is not None or args.joint_candidates is not None:  # a robot arm (cli/robot_cmd.py)
+        from mirror_fg.cli.robot_cmd import plan_robot
+        return plan_robot(args, out)
     if args.next_data is not None:
         from mirror_fg.cli.bench import plan_next  # the bench commands build on these
 

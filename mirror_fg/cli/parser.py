@@ -6,7 +6,7 @@ import math
 from pathlib import Path
 
 from mirror_fg.factors.robust import KERNELS, ROBUST_K
-from mirror_fg.cli.robot_cmd import add_robot_arguments
+from mirror_fg.cli.robot_cmd import add_robot_arguments, add_robot_plan_arguments
 
 EPILOG = """exit status: 0 success, 2 bad input (the message names the file, image or point),
 3 could not solve (degenerate data, no convergence), 1 internal error. Output files are written
@@ -230,6 +230,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --next: largest reachable tilt of the mirror from the optical axis, degrees "
                           "(default: the largest used so far + 10, at most 60)")
     pln.add_argument("-o", "--output", type=Path, help="with --next: write the suggestions (suggestions@1 JSON) here")
+    add_robot_plan_arguments(pln)
     _add_common(pln)
 
     liv = sub.add_parser("live", help="calibrate while the mirror is moved: camera, video or folder, with suggestions",

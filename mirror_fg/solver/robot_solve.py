@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 
+import gtsam
 import numpy as np
 
 from mirror_fg.core.errors import SolveError
@@ -22,7 +24,7 @@ from mirror_fg.solver.options import STAGES, SolveOptions
 from mirror_fg.solver.robot_start import arm_start, triangulate
 from mirror_fg.solver.robot_views import RobotEstimate, RobotProblem, camera_base_pose
 
-__all__ = ["calibrate_robot", "start_estimate", "UNDETERMINED_RATIO"]
+__all__ = ["calibrate_robot", "solve_robot", "RobotSolution", "start_estimate", "UNDETERMINED_RATIO"]
 
 logger = logging.getLogger("mirror_fg")
 #: Starts tried at most where LM from the first ends implausibly (the first, then triples of placements).
@@ -167,13 +169,25 @@ def _key_at(columns: dict, index: int) -> int:
     return next(k for k, c in columns.items() if c.start <= index < c.stop)
 
 
-def calibrate_robot(dataset: Dataset, initial: RobotEstimate | None = None,
-                    options: SolveOptions | None = None) -> Calibration:
-    """The MLE of an arm's mounts, planes, points and joint offsets, and their covariances (module
-    docstring). ``initial``: start there instead of the analytical start (e.g. the truth)."""
-    from mirror_fg.solver.residuals import outliers_of
-    from mirror_fg.solver.views_solve import _Label
+@dataclass
+class RobotSolution:
+    """One solve: the problem, its graph, the values LM ended with and their estimate, the Fisher information
+    (keys in ``problem.keys`` order, ``columns`` each key's), LM's iterations and first cost."""
 
+    problem: RobotProblem
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+    estimate: RobotEstimate
+    information: np.ndarray
+    columns: dict
+    iterations: int
+    initial_error: float
+
+
+def solve_robot(dataset: Dataset, initial: RobotEstimate | None = None,
+                options: SolveOptions | None = None) -> RobotSolution:
+    """The MLE (module docstring) from the analytical start with its restarts, or from ``initial``; its
+    motion checked (SolveError where the data cannot determine a mount)."""
     options = options or SolveOptions()
     problem = RobotProblem(dataset, options.robust)
     check_rotation_axes(problem)
@@ -197,6 +211,21 @@ def calibrate_robot(dataset: Dataset, initial: RobotEstimate | None = None,
     estimate = problem.read(result)
     information, columns = problem.information(graph, result)
     _check_motion(problem, information, columns, estimate)
+    return RobotSolution(problem, graph, result, estimate, information, columns, int(optimizer.iterations()),
+                         initial_error)
+
+
+def calibrate_robot(dataset: Dataset, initial: RobotEstimate | None = None,
+                    options: SolveOptions | None = None) -> Calibration:
+    """The MLE of an arm's mounts, planes, points and joint offsets, and their covariances (module
+    docstring). ``initial``: start there instead of the analytical start (e.g. the truth)."""
+    from mirror_fg.solver.residuals import outliers_of
+    from mirror_fg.solver.views_solve import _Label
+
+    options = options or SolveOptions()
+    solution = solve_robot(dataset, initial, options)
+    problem, graph, result, estimate = solution.problem, solution.graph, solution.values, solution.estimate
+    information, columns, initial_error = solution.information, solution.columns, solution.initial_error
     covariances = None
     if options.compute_covariance:
         options.report(STAGES[2], 0, 1)
@@ -209,7 +238,7 @@ def calibrate_robot(dataset: Dataset, initial: RobotEstimate | None = None,
         c = columns[problem.mount_keys["camera"]]
         pose3_cov = np.linalg.inv(information)[c, c]
     (R, t), P = camera_base_pose(estimate.mounts["camera"], pose3_cov)
-    iterations = int(optimizer.iterations())
+    iterations = solution.iterations
     return Calibration(
         R_cam_base=R, t_cam_base=t, covariance=P,
         mirror_vectors=estimate.mirror_vectors, mirror_covariances=covariances["mirrors"] if covariances else {},
