@@ -25,7 +25,7 @@ INSTALL_HINT = "robot arms need Pinocchio: pip install 'mirror-fg[robot]'"
 def require_pinocchio():
     """The ``pinocchio`` module, or a one-line DatasetError (exit 2) saying how to install it."""
     try:
-        import pinocchio
+        import pinocchio  # type: ignore[import-untyped]
     except ImportError:
         raise DatasetError(INSTALL_HINT) from None
     return pinocchio
@@ -59,10 +59,10 @@ class Kinematics:
         self.data = self.model.createData()
         bodies = [f.name for f in self.model.frames if f.type == pin.FrameType.BODY]
         self.links = set(bodies)
-        self.root = bodies[0] if bodies else None
-        self.base_link = base_link if base_link is not None else self.root
-        if self.base_link not in self.links:
-            raise DatasetError(f"{urdf_path}: base_link {self.base_link!r} is not a link of the URDF")
+        chosen = base_link if base_link is not None else (bodies[0] if bodies else None)
+        if chosen is None or chosen not in self.links:
+            raise DatasetError(f"{urdf_path}: base_link {chosen!r} is not a link of the URDF")
+        self.base_link: str = chosen
         self.joints: dict[str, JointInfo] = {}
         for jid in range(1, self.model.njoints):
             joint = self.model.joints[jid]

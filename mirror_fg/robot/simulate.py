@@ -44,7 +44,7 @@ class ArmTruth:
     joint_offsets: dict[str, float] = field(default_factory=dict)
 
 
-def _rot(axis: np.ndarray, angle: float) -> np.ndarray:
+def _rot(axis, angle: float) -> np.ndarray:
     axis = np.asarray(axis, float) / np.linalg.norm(axis)
     K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
     return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
@@ -143,7 +143,7 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
                 step *= np.array([n in moving for n in names], float)
             q = q0 + step
             info = [kin.joints[n] for n in names]
-            if any(i.lower is not None and not i.lower <= x <= i.upper for i, x in zip(info, q)):
+            if any(i.lower is not None and i.upper is not None and not i.lower <= x <= i.upper for i, x in zip(info, q)):
                 continue
             F = kin.placements(dict(zip(names, q)), list({tool, kin.base_link}))
             poses = {}
@@ -167,7 +167,8 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
                 continue
             pix = pix + rng.normal(0.0, pixel_sigma, pix.shape)
             recorded = {n: float(x - delta.get(n, 0.0)) for n, x in zip(names, q)}
-            if any(i.lower is not None and not i.lower <= recorded[n] <= i.upper for n, i in zip(names, info)):
+            if any(i.lower is not None and i.upper is not None and not i.lower <= recorded[n] <= i.upper
+                   for n, i in zip(names, info)):
                 continue
             images.append({"id": f"p{k}_{found:03d}", **({"reflections": []} if direct else {"mirror_configs": [k]}),
                            "joints": recorded,

@@ -82,9 +82,8 @@ def arm_start(images, eye_to_hand: bool, source: str, max_starts: int = 1) -> li
     maps, moving = [], []
     placements = sorted(usable)
     for k, p in enumerate(placements):
-        virtual, arm = zip(*usable[p])
-        if eye_to_hand:
-            arm = [(S @ R @ S, S @ t) for R, t in arm]  # S F S
+        virtual, recorded = zip(*usable[p])
+        arm = [(S @ R @ S, S @ t) for R, t in recorded] if eye_to_hand else list(recorded)  # S F S
         try:
             out = cv2.calibrateRobotWorldHandEye([R for R, _ in virtual], [t.reshape(3, 1) for _, t in virtual],
                                                  [R for R, _ in arm], [t.reshape(3, 1) for _, t in arm])

@@ -50,7 +50,11 @@ class RobotProblem:
         setup = self.setup = dataset.robot
         self.kinematics = setup.kinematics
         self.links = {role: setup.mounts[role].link for role in ROLES}
-        self.known = {role: setup.mounts[role].known for role in ROLES if setup.mounts[role].known is not None}
+        self.known: dict[str, Pose] = {}
+        for role in ROLES:
+            known = setup.mounts[role].known
+            if known is not None:
+                self.known[role] = known
         self.mount_keys = {role: M(k) for k, role in enumerate(ROLES) if role not in self.known}
         self.placements = sorted({p for im in dataset.images for p in im.reflections})
         self.mirror_keys = {p: V(i) for i, p in enumerate(self.placements)}
@@ -158,7 +162,9 @@ class RobotProblem:
     def residuals(self, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray, list[tuple[str, str]]]:
         """Per measurement (file order): residuals (N, 2) in pixels with a camera (else normalized), whitened
         norms and ``(image, point)`` labels."""
-        residuals, whitened, labels = [], [], []
+        residuals: list[np.ndarray] = []
+        whitened: list[np.ndarray] = []
+        labels: list[tuple[str, str]] = []
         for image, factor, observed in zip(self.dataset.images, self.factors, self.normalized):
             z = factor.predict(values)
             whitened.append(np.linalg.norm((z - observed) / factor.sigmas, axis=0))
