@@ -17,13 +17,13 @@ import math
 import os
 from dataclasses import dataclass
 
-import gtsam
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.factors.robot import RobotViewFactor
 
-__all__ = ["arm_bounds", "rank_joint_candidates", "load_joint_candidates", "Candidate"]
+__all__ = ["arm_bounds", "rank_joint_candidates", "load_joint_candidates", "Candidate", "candidate_jacobian",
+           "mount_bounds"]
 
 
 def _sigma3(covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -114,47 +114,55 @@ def _seen(factor: RobotViewFactor, values: gtsam.Values, placement, mirror: np.n
     return bool(camera.contains(camera.distort((x_cam[:2] / x_cam[2]).T)).all())
 
 
+def candidate_jacobian(solution, dataset, joints: dict[str, float], placement) -> np.ndarray | None:
+    """The whitened Jacobian (2N, unknowns; ``solution.columns``) of one more image at ``joints`` through
+    ``placement`` at the solution, or None where its target would not be seen (:func:`_seen`)."""
+    from mirror_fg.io.point_sigma import normalized_sigmas
+
+    problem, values = solution.problem, solution.values
+    names = list(dataset.fiducials)
+    points = np.array([dataset.fiducials[n] for n in names]).T
+    sigmas = normalized_sigmas(dataset.camera, dataset.pixel_sigma, dataset.point_sigma, names).T
+    factor = RobotViewFactor((placement,), problem.mount_keys, problem.known, problem.mirror_keys,
+                             problem.forward(joints), problem.offset_key, len(problem.offsets), points,
+                             [-1] * len(names), np.zeros((2, len(names))), sigmas)
+    if not _seen(factor, values, placement, solution.estimate.mirror_vectors[placement], dataset.camera):
+        return None
+    A = factor.factor().linearize(values).jacobian()[0]  # whitened by the noise model, as the information
+    J = np.zeros((A.shape[0], solution.information.shape[0]))
+    start = 0
+    for key in factor.keys:
+        c = solution.columns[key]
+        J[:, c] = A[:, start:start + (c.stop - c.start)]
+        start += c.stop - c.start
+    return J
+
+
+def mount_bounds(solution, information: np.ndarray, role: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(rotation 3-sigma deg, position 3-sigma mm)`` of a mount under ``information``."""
+    from mirror_fg.core.transform import covariance_from_pose3
+
+    c = solution.columns[solution.problem.mount_keys[role]]
+    return _sigma3(covariance_from_pose3(solution.estimate.mounts[role][0], np.linalg.inv(information)[c, c]))
+
+
 def rank_joint_candidates(dataset, candidates: list[dict[str, float]], solution=None) -> tuple[list[Candidate], dict]:
     """The candidates ranked (module docstring), best first, and the ranked mount's current 3-sigma
-    ``{"mount", "position_mm", "rotation_deg"}``. ``solution``: a ``robot_solve.RobotSolution`` of
-    ``dataset`` (solved here when None)."""
-    from mirror_fg.io.point_sigma import normalized_sigmas
+    ``{"mount", "placement", "position_mm", "rotation_deg"}``. ``solution``: a ``robot_solve.RobotSolution``
+    of ``dataset`` (solved here when None)."""
     from mirror_fg.solver.robot_solve import solve_robot
 
     solution = solution if solution is not None else solve_robot(dataset)
-    problem, values = solution.problem, solution.values
+    problem = solution.problem
     role = "camera" if "camera" in problem.mount_keys else next(iter(problem.mount_keys))
-    mount_key = problem.mount_keys[role]
-    R_mount = solution.estimate.mounts[role][0]
     placement = dataset.images[-1].reflections[-1] if dataset.images[-1].reflections else problem.placements[-1]
-    names = list(dataset.fiducials)
-    points = np.array([dataset.fiducials[n] for n in names]).T
-    camera = dataset.camera
-    sigmas = normalized_sigmas(camera, dataset.pixel_sigma, dataset.point_sigma, names).T
-
-    def bounds(information: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        from mirror_fg.core.transform import covariance_from_pose3
-        c = solution.columns[mount_key]
-        return _sigma3(covariance_from_pose3(R_mount, np.linalg.inv(information)[c, c]))
-
-    now_rotation, now_position = bounds(solution.information)
+    now_rotation, now_position = mount_bounds(solution, solution.information, role)
     ranked = []
     for row, joints in enumerate(candidates, start=1):
-        factor = RobotViewFactor((placement,), problem.mount_keys, problem.known, problem.mirror_keys,
-                                 problem.forward(joints), problem.offset_key, len(problem.offsets), points,
-                                 [-1] * len(names), np.zeros((2, len(names))), sigmas)
-        if not _seen(factor, values, placement, solution.estimate.mirror_vectors[placement], camera):
+        J = candidate_jacobian(solution, dataset, joints, placement)
+        if J is None:
             continue
-        factor.observed = factor.predict(values)  # noise-free: the information, not the fit
-        linear = factor.factor().linearize(values)
-        A = linear.jacobian()[0]
-        J = np.zeros((A.shape[0], solution.information.shape[0]))
-        start = 0
-        for key in factor.keys:
-            c = solution.columns[key]
-            J[:, c] = A[:, start:start + (c.stop - c.start)]
-            start += c.stop - c.start
-        rotation, position = bounds(solution.information + J.T @ J)
+        rotation, position = mount_bounds(solution, solution.information + J.T @ J, role)
         ranked.append(Candidate(row, joints, position, rotation))
     ranked.sort(key=lambda c: float(np.linalg.norm(c.position_mm)))
     return ranked, {"mount": role, "placement": placement, "position_mm": now_position, "rotation_deg": now_rotation}
