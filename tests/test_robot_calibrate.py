@@ -127,3 +127,19 @@ def test_the_readme_arm_example_runs_and_holds_the_truth(tmp_path) -> None:
         delta = _error(entry[key], true_pose)
         bounds = np.concatenate([np.radians(entry["sigma3"]["rotation_deg"]), np.array(entry["sigma3"]["position_mm"]) / 1000])
         assert np.all(np.abs(delta) < bounds), (role, delta / bounds)
+
+
+def test_report_of_an_arm_predicts_through_the_kinematics(tmp_path) -> None:
+    from conftest import REPO
+    from mirror_fg.tools.report_robot import figure_arm, robot_residuals
+
+    example = REPO / "examples" / "arm6" / "arm6_mirror.json"
+    out = tmp_path / "arm.json"
+    assert main(["calibrate", str(example), "-o", str(out), "-q"]) == 0
+    result = json.loads(out.read_text())
+    residuals = robot_residuals(result, load_dataset(example), str(out))
+    assert residuals.rms == pytest.approx(result["residuals"]["rms_px"], rel=1e-6)
+    figure = figure_arm(result, load_dataset(example))
+    assert "arm poses in base_link" in figure.axes[0].get_title()
+    assert main(["report", str(out), str(example), "-o", str(tmp_path / "report")]) == 0
+    assert "Arm, camera, mirrors and target" in (tmp_path / "report" / "report.html").read_text()

@@ -90,6 +90,18 @@ class Kinematics:
         """The movable joints between ``base_link`` and ``link`` (names, root to tip)."""
         return [self.model.names[j] for j in sorted(self._path_joints(link))]
 
+    def chain_links(self, link: str) -> list[str]:
+        """The links from ``base_link`` to ``link``, one per joint between them (for drawing the arm)."""
+        out = [self.base_link]
+        for jid in sorted(self._path_joints(link)):
+            child = next((f.name for f in self.model.frames
+                          if f.type == self.pin.FrameType.BODY and f.parentJoint == jid), None)
+            if child is not None and child not in out:
+                out.append(child)
+        if link not in out:
+            out.append(link)
+        return out
+
     def unrecordable(self, link: str) -> list[str]:
         """Joints between ``base_link`` and ``link`` that carry no single joint value (floating, planar):
         such a link is not connected to the base through recorded joints."""
