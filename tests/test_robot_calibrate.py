@@ -143,3 +143,13 @@ def test_report_of_an_arm_predicts_through_the_kinematics(tmp_path) -> None:
     assert "arm poses in base_link" in figure.axes[0].get_title()
     assert main(["report", str(out), str(example), "-o", str(tmp_path / "report")]) == 0
     assert "Arm, camera, mirrors and target" in (tmp_path / "report" / "report.html").read_text()
+
+
+def test_the_summary_names_each_mount_on_its_link(tmp_path, capsys) -> None:
+    from conftest import REPO
+
+    example = REPO / "examples" / "arm6" / "arm6_mirror.json"
+    assert main(["calibrate", str(example), "-o", str(tmp_path / "arm.json"), "--no-ros"]) == 0
+    out = capsys.readouterr().out
+    assert "T_link_cam  the camera on link base_link" in out and "T_link_target  the target on link tool0" in out
+    assert "3-sigma bounds in tool0 axes" in out

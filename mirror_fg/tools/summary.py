@@ -91,6 +91,9 @@ def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, increment
     lines += _transform_lines(result["T_cam_base"], R_cb, t_cb, full=verbose)
     lines.append(_bounds(result.get("sigma3_cam_base"), "camera", "base origin"))
     lines += frame_convention()
+    if result.get("mounts"):  # a robot arm: T_base_cam is the camera's mount on its link
+        from mirror_fg.tools.robot_summary import mount_lines
+        lines += mount_lines(result)
     if result.get("camera") is not None:
         lines += camera_lines(result["camera"], result.get("covariance_cam_base"))
     if result.get("cameras"):
