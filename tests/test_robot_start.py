@@ -53,3 +53,21 @@ def test_a_start_that_ends_badly_is_followed_by_restarts(tmp_path, monkeypatch, 
     assert result.final_error < result.expected_final_error + 10 * np.sqrt(result.expected_final_error)
     t_true = truth.mounts["target"][1][1]
     assert np.allclose(result.robot["mounts"]["target"]["T_link_target"]["t"], t_true, atol=3e-3)
+
+
+def test_a_gross_corner_is_left_out_and_named(tmp_path) -> None:
+    import json
+
+    from mirror_fg.solver.calibrate import calibrate
+
+    dataset, truth = simulate_arm("arm6", False, placements=3, arm_poses=5, pixel_sigma=0.5, seed=9)
+    dataset["images"][4]["observations"]["F7"][0] += 25.0
+    path = tmp_path / "arm.json"
+    write_arm_simulation(str(path), dataset, truth)
+    result = calibrate(load_dataset(path))
+    assert [(e.image, e.point) for e in result.excluded] == [("p0_004", "F7")]
+    del dataset["images"][4]["observations"]["F7"]
+    path.write_text(json.dumps(dataset))
+    clean = calibrate(load_dataset(path))
+    for role, key in (("camera", "T_link_cam"), ("target", "T_link_target")):
+        assert np.allclose(result.robot["mounts"][role][key]["t"], clean.robot["mounts"][role][key]["t"], atol=1e-7)

@@ -18,7 +18,9 @@ from mirror_fg.core.errors import SolveError
 from mirror_fg.core.transform import rotation_to_quaternion_xyzw
 from mirror_fg.factors.robot import compose
 from mirror_fg.io.dataset import Dataset
-from mirror_fg.solver.calibration import Calibration
+from mirror_fg.solver.calibration import Calibration, Exclusion
+from mirror_fg.solver.pipeline import run_pipeline
+from mirror_fg.solver.rechecks import Checked, Rechecked
 from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, plausible, run_optimizer
 from mirror_fg.solver.options import STAGES, SolveOptions
 from mirror_fg.solver.robot_start import arm_start, triangulate
@@ -218,14 +220,48 @@ def solve_robot(dataset: Dataset, initial: RobotEstimate | None = None,
 def calibrate_robot(dataset: Dataset, initial: RobotEstimate | None = None,
                     options: SolveOptions | None = None) -> Calibration:
     """The MLE of an arm's mounts, planes, points and joint offsets, and their covariances (module
-    docstring). ``initial``: start there instead of the analytical start (e.g. the truth)."""
+    docstring), through ``calibrate()``'s pipeline (``pipeline.py``: screen -> solve -> final check ->
+    finish). ``initial``: start there instead of the analytical start (e.g. the truth)."""
+    return run_pipeline(RobotPipelineProblem(initial, options or SolveOptions()), dataset)
+
+
+class RobotPipelineProblem:
+    """The arm in ``calibrate()``'s pipeline: screen (``consensus.screen``: each image's own PnP fit, wrong
+    corner orders and gross corners left out), solve (:func:`solve_robot`; after leaving some out, from the
+    last estimate), the final check's measurements, finish (covariances and the :class:`Calibration`)."""
+
+    def __init__(self, initial: RobotEstimate | None, options: SolveOptions):
+        self.last, self.options = initial, options
+
+    def screen(self, dataset: Dataset) -> tuple[Dataset, list[Exclusion]]:
+        from mirror_fg.solver.consensus import screen
+
+        screened, excluded, _ = screen(dataset)
+        return screened, excluded
+
+    def solve(self, solved: Dataset, left_out: list[Exclusion]) -> RobotSolution:
+        solution = solve_robot(solved, self.last, self.options)
+        self.last = solution.estimate
+        return solution
+
+    def check(self, run: RobotSolution) -> Checked:
+        from mirror_fg.solver.views_solve import _Label
+
+        _, whitened, labels = run.problem.residuals(run.values)
+        return Checked([_Label(i, p) for i, p in labels], whitened, run.problem.dimension())
+
+    def finish(self, rechecked: Rechecked[RobotSolution]) -> Calibration:
+        return _calibration(rechecked.run, self.options, rechecked.excluded)
+
+
+def _calibration(solution: RobotSolution, options: SolveOptions, excluded: list[Exclusion]) -> Calibration:
+    """The :class:`Calibration` of a solve, with its covariances where asked."""
     from mirror_fg.solver.residuals import outliers_of
     from mirror_fg.solver.views_solve import _Label
 
-    options = options or SolveOptions()
-    solution = solve_robot(dataset, initial, options)
     problem, graph, result, estimate = solution.problem, solution.graph, solution.values, solution.estimate
     information, columns, initial_error = solution.information, solution.columns, solution.initial_error
+    dataset = problem.dataset
     covariances = None
     if options.compute_covariance:
         options.report(STAGES[2], 0, 1)
@@ -247,7 +283,7 @@ def calibrate_robot(dataset: Dataset, initial: RobotEstimate | None = None,
         converged=iterations < options.max_iterations, residuals=residuals, residual_labels=labels,
         residual_units="px" if dataset.camera is not None else "normalized",
         outliers=outliers_of([_Label(i, p) for i, p in labels], whitened),
-        expected_final_error=0.5 * max(2 * len(whitened) - dimension, 0),
+        expected_final_error=0.5 * max(2 * len(whitened) - dimension, 0), excluded=list(excluded),
         robot=robot_entries(problem, estimate, covariances),
     )
 
