@@ -6,11 +6,12 @@ Frames: {B} the robot's base link; the camera's pose in {B} is ``C = F_c(q) M_c`
 ``D = F_t(q) M_t`` (``F`` a link's placement by forward kinematics at the joint values ``q + delta``,
 ``M`` the mount ``T_link_cam`` / ``T_link_target``); target points ``Tp`` (metres, target frame) are seen
 through mirror planes fixed in {B}. The view model (eqs. 2, 3, 9) takes the pose of the target in the
-camera, ``T = C^-1 D``, and the planes in {B}, whose pose in the target's terms is ``D`` (a plane's owner
-frame in ``view_model``).
+camera, ``T = C^-1 D``, and each plane ``n . x = d`` carried into the camera's frame:
+``n_c = R_C^T n``, ``d_c = d - n . t_C``, ``v_c = d_c n_c``.
 
 Jacobians, chained from the view model's (GTSAM's right perturbation ``T Exp(xi)``, ``xi = [w, nu]``):
-``C Exp(a)`` gives ``T Exp(-Ad(T^-1) a)``; ``D Exp(b)`` gives ``T Exp(b)`` and ``D Exp(b)``; a joint
+``C Exp(a)`` gives ``T Exp(-Ad(T^-1) a)`` and moves ``v_c`` by ``d_c [n_c]x w - n_c n_c^T nu``;
+``D Exp(b)`` gives ``T Exp(b)``; a joint
 offset ``delta`` moves ``F(q) Exp(J delta)`` (``J`` the link's frame Jacobian from the kinematics, never
 written here), so ``a = Ad(M_c^-1) J_c delta`` and ``b = Ad(M_t^-1) J_t delta``. Unknowns: the unknown
 mounts (Pose3), the planes (OrientedPlane3 in {B}), reconstruction points (Point3, target frame) and the
@@ -27,10 +28,10 @@ import numpy as np
 from mirror_fg.factors.robust import ROBUST_K, check_kernel, robust_row_scales
 from mirror_fg.factors.views import ViewSlots, vector_of_plane, view_model
 
-__all__ = ["RobotViewFactor", "adjoint", "compose", "inverse", "CAMERA", "BASE"]
+__all__ = ["RobotViewFactor", "adjoint", "compose", "inverse", "CAMERA"]
 
-#: Names of the two poses handed to ``view_model``: the camera (target -> camera) and {B} (target -> {B}).
-CAMERA, BASE = "camera", "{B}"
+#: The name of the pose handed to ``view_model``: the target in the camera (target -> camera).
+CAMERA = "camera"
 
 Pose = tuple[np.ndarray, np.ndarray]
 #: ``fk(delta) -> ((T_B_camlink 4x4, J_c 6xK), (T_B_targetlink 4x4, J_t 6xK))`` at ``q + delta``.
@@ -83,8 +84,7 @@ class RobotViewFactor:
         self.known = dict(known_mounts)
         placements = list(dict.fromkeys(self.reflections))
         self.mirror_keys = {p: mirror_keys[p] for p in placements}
-        self.slots = ViewSlots({CAMERA: 0, BASE: 6}, {p: 12 + 3 * k for k, p in enumerate(placements)},
-                               12 + 3 * len(placements))
+        self.slots = ViewSlots({CAMERA: 0}, {p: 6 + 3 * k for k, p in enumerate(placements)}, 6 + 3 * len(placements))
         self.fk, self.offset_key, self.num_offsets = fk, offset_key, num_offsets
         self.target_points = np.array(target_points, dtype=float)
         self.landmark_keys = np.asarray(landmark_keys, dtype=np.int64)
@@ -124,15 +124,29 @@ class RobotViewFactor:
         state, mirrors, B, _ = self._state(values)
         return self._model(state, mirrors, B)[0]
 
-    def _model(self, state, mirrors, B, slots=None, mirror_jacobians=None):
-        poses = {CAMERA: state["T"], BASE: state["D"]}
-        owners = {p: BASE for p in self.mirror_keys}
-        return view_model(CAMERA, self.reflections, poses, mirrors, owners, B, slots, mirror_jacobians)
+    def _model(self, state, mirrors, B, slots=None):
+        """The view model with the planes in the camera's frame (module docstring); with ``slots`` also each
+        camera-frame vector's derivatives in the {B} vector and in C's perturbation."""
+        R_C, t_C = state["C"]
+        in_camera, d_u, d_a = {}, {}, {}
+        for p, u in mirrors.items():
+            d = float(np.linalg.norm(u))
+            n = u / d
+            n_c = R_C.T @ n
+            d_c = d - float(n @ t_C)
+            in_camera[p] = d_c * n_c
+            if slots is not None:
+                along = np.eye(3) - np.outer(n, n)  # dn/du = along / d
+                d_u[p] = R_C.T @ ((d_c / d) * along + np.outer(n, n - along @ t_C / d))
+                d_a[p] = np.hstack([d_c * _skew(n_c), -np.outer(n_c, n_c)])
+        owners = {p: CAMERA for p in self.mirror_keys}
+        z, dz, dzB = view_model(CAMERA, self.reflections, {CAMERA: state["T"]}, in_camera, owners, B, slots)
+        return z, dz, dzB, d_u, d_a
 
     def error(self, this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[np.ndarray] | None) -> np.ndarray:
         state, mirrors, B, mirror_jacobians = self._state(values)
         slots = self.slots if jacobians is not None else None
-        z, dz, dzB = self._model(state, mirrors, B, slots, mirror_jacobians)
+        z, dz, dzB, d_u, d_a = self._model(state, mirrors, B, slots)
         residual = z - self.observed
         scale = np.ones(residual.shape[1])
         if self.robust is not None:
@@ -145,16 +159,19 @@ class RobotViewFactor:
         assert dz is not None and dzB is not None
         rows = 2 * residual.shape[1]
         J = np.transpose(dz * scale, (2, 0, 1)).reshape(rows, self.slots.size)  # measurement-major
-        dT, dD = J[:, 0:6], J[:, 6:12]
+        dT = J[:, 0:6]
+        dC = dT @ -adjoint(inverse(state["T"]))  # in C's perturbation: through T, and the planes' transfer
+        for p in self.mirror_keys:
+            c = self.slots.mirror_cols[p]
+            dC = dC + J[:, c:c + 3] @ d_a[p]
         mounts = state["mounts"]
-        minus_ad_T_inv = -adjoint(inverse(state["T"]))
         k = 0
         for role in self.mount_keys:
-            jacobians[k] = dT @ minus_ad_T_inv if role == "camera" else dT + dD
+            jacobians[k] = dC if role == "camera" else dT
             k += 1
         for p in self.mirror_keys:
             c = self.slots.mirror_cols[p]
-            jacobians[k] = np.ascontiguousarray(J[:, c:c + 3])
+            jacobians[k] = J[:, c:c + 3] @ d_u[p] @ mirror_jacobians[p]
             k += 1
         JB = np.transpose(dzB * scale, (2, 0, 1))  # (N, 2, 3)
         for key in self.unique_landmarks:
@@ -166,7 +183,7 @@ class RobotViewFactor:
         if self.offset_key is not None:
             a = adjoint(inverse(mounts["camera"])) @ state["J_c"]  # C's perturbation per offset
             b = adjoint(inverse(mounts["target"])) @ state["J_t"]  # D's
-            jacobians[k] = dT @ (minus_ad_T_inv @ a + b) + dD @ b
+            jacobians[k] = dC @ a + dT @ b
         return error
 
     def factor(self) -> gtsam.CustomFactor:
