@@ -97,3 +97,10 @@ def test_the_simulated_data_load_and_round_trip(tmp_path, arm_data) -> None:
     again = dataset_to_dict(ds)
     assert again["robot"] == arm_data[0]["robot"] and again["mounts"] == arm_data[0]["mounts"]
     assert [im["joints"] for im in again["images"]] == [im["joints"] for im in arm_data[0]["images"]]
+
+
+def test_incremental_refuses_an_arm_in_one_line(tmp_path, arm_data, capsys) -> None:
+    path = _write(tmp_path, arm_data, lambda d, t: None)
+    assert main(["calibrate", str(path), "-o", str(tmp_path / "r.json"), "--incremental", "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "drop --incremental" in err, err

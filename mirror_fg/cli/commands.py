@@ -181,6 +181,8 @@ def cmd_calibrate(args, out: _Printer) -> int:
         out.info(f"note: the result goes to a device ({args.output}): no ROS outputs written beside it")
     dataset, reports = _load_input_with_reports(args.input, out, outputs.plan, on_capture=outputs.use_capture)
     estimating = [c for c in (list(dataset.cameras.values()) if dataset.cameras else [dataset.camera]) if c is not None and c.estimate]
+    if dataset.robot is not None and args.incremental:  # a robot arm: the batch solver only
+        raise DatasetError(f"{dataset.source}: robot: a robot arm's data need the batch solver; drop --incremental")
     if estimating and args.incremental:
         raise DatasetError(f"{dataset.source}: camera.estimate ({', '.join(estimating[0].estimate)}): estimating "
                            "intrinsics needs the batch solver; drop --incremental")
