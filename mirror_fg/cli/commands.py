@@ -414,7 +414,7 @@ def cmd_plan(args, out: _Printer) -> int:
         setup_from_files,
     )
 
-    if args.robot is not None or args.joint_candidates is not None:  # a robot arm (cli/robot_cmd.py)
+    if getattr(args, "robot", None) is not None or getattr(args, "joint_candidates", None) is not None:  # an arm
         from mirror_fg.cli.robot_cmd import plan_robot
         return plan_robot(args, out)
     if args.next_data is not None:
