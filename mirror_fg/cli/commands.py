@@ -67,6 +67,9 @@ def _print_detection_report(out: _Printer, reports) -> None:
 def cmd_simulate(args, out: _Printer) -> int:
     from mirror_fg.tools.simulate import simulation_outputs
 
+    if getattr(args, "robot", None) is not None:  # a robot arm (cli/robot_cmd.py)
+        from mirror_fg.cli.robot_cmd import simulate_robot
+        return simulate_robot(args, out)
     _check_simulate_options(args)
     plan = simulation_outputs(args.output)  # checked before the work
     if args.kind == "tree" and args.cameras is None:
@@ -186,6 +189,8 @@ def cmd_calibrate(args, out: _Printer) -> int:
     outputs.viewing_distance_m = args.viewing_distance
     dataset, reports = _load_input_with_reports(args.input, out, outputs.plan, on_capture=outputs.use_capture)
     estimating = [c for c in (list(dataset.cameras.values()) if dataset.cameras else [dataset.camera]) if c is not None and c.estimate]
+    if dataset.robot is not None and args.incremental:  # a robot arm: the batch solver only
+        raise DatasetError(f"{dataset.source}: robot: a robot arm's data need the batch solver; drop --incremental")
     if estimating and args.incremental:
         raise DatasetError(f"{dataset.source}: camera.estimate ({', '.join(estimating[0].estimate)}): estimating "
                            "intrinsics needs the batch solver; drop --incremental")
@@ -444,6 +449,9 @@ def cmd_plan(args, out: _Printer) -> int:
         setup_from_files,
     )
 
+    if getattr(args, "robot", None) is not None or getattr(args, "joint_candidates", None) is not None:  # an arm
+        from mirror_fg.cli.robot_cmd import plan_robot
+        return plan_robot(args, out)
     if args.next_data is not None:
         from mirror_fg.cli.bench import plan_next  # the bench commands build on these
 

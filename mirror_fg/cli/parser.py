@@ -9,6 +9,7 @@ from mirror_fg.cli.export_cmd import add_export_parser
 from mirror_fg.factors.robust import KERNELS, ROBUST_K
 from mirror_fg.cli.history_cmd import add_history_parser
 from mirror_fg.registry.cli import add_registry_arguments
+from mirror_fg.cli.robot_cmd import add_robot_arguments, add_robot_plan_arguments
 
 EPILOG = """exit status: 0 success, 2 bad input (the message names the file, image or point),
 3 could not solve (degenerate data, no convergence), 1 internal error. Output files are written
@@ -141,6 +142,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --cameras: photographs only each camera sees, one number for all or one per camera "
                      "(default 30 tree, 4 mixed)")
     sim.add_argument("--seed", type=_COUNT0, default=0, help="random seed (default 0)")
+    add_robot_arguments(sim)
     _add_common(sim)
 
     cal = sub.add_parser("calibrate", help="analytical solution + MLE from a dataset or capture file",
@@ -252,6 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --next: largest reachable tilt of the mirror from the optical axis, degrees "
                           "(default: the largest used so far + 10, at most 60)")
     pln.add_argument("-o", "--output", type=Path, help="with --next: write the suggestions (suggestions@1 JSON) here")
+    add_robot_plan_arguments(pln)
     _add_common(pln)
 
     liv = sub.add_parser("live", help="calibrate while the mirror is moved: camera, video or folder, with suggestions",

@@ -63,6 +63,7 @@ from typing import Any
 
 import numpy as np
 
+from mirror_fg.io.robot_capture import capture_robot_fields
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.capture_views import (
     EACH, Config, Placement, ViewEntry, camera_entry, image_camera, image_placements, image_views, is_mirrored,
@@ -204,6 +205,8 @@ class Capture:
     cameras: dict[str, dict[str, Any]] | None = None
     #: The calibration file of each rig camera read from one.
     camera_files: dict[str, str] = field(default_factory=dict)
+    #: A robot arm's ``robot``, ``mounts`` and joint rows (:mod:`mirror_fg.io.robot_capture`), else None.
+    robot: dict[str, Any] | None = None
 
     def input_files(self) -> list[str]:
         """Absolute paths of every file this capture reads, once each: the capture file, the camera file,
@@ -276,7 +279,7 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".", me
         raise DatasetError(f"{source}: screens: a capture of several screens is calibrated by mirror-fg calibrate from "
                            "a file (not standard input; not detect, report or calibrate-many: report from the result alone)")
     check_keys(d, ("format", "num_mirrors", "camera", "cameras", "pixel_sigma", "target", "T_base_target", "images",
-                   "video", "track"), source)
+                   "video", "track", "robot", "mounts", "joints"), source)
 
     num_mirrors = d.get("num_mirrors")
     if not is_int(num_mirrors) or num_mirrors < 1:
@@ -327,6 +330,7 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".", me
         camera_files=camera_files,
     )
 
+    cap.robot = capture_robot_fields(d, source, base_dir)
     if not media:
         return cap
     has_images, has_video = d.get("images") is not None, d.get("video") is not None

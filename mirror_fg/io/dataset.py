@@ -23,6 +23,7 @@ from mirror_fg.io.dataset_fields import (
     scale_to_dict, tree_configs,
 )
 from mirror_fg.io.output import atomic_write, json_text
+from mirror_fg.io.robot_fields import RobotSetup, image_joints, joints_to_dict, robot_from_dict, robot_to_dict
 from mirror_fg.io.point_sigma import measurement_sigma, point_sigma_from_dict, point_sigma_to_dict
 from mirror_fg.core.values import (
     MAX_INDEX, check_format, check_keys, coordinates, is_index, is_int, short, type_name,
@@ -47,8 +48,8 @@ __all__ = [
 ]
 
 _DATASET_KEYS = ("format", "num_mirrors", "camera", "cameras", "pixel_sigma", "point_sigma", "fiducials", "scale",
-                 "images")
-_IMAGE_KEYS = ("id", "mirror_configs", "reflections", "camera", "observations")
+                 "images", "robot", "mounts")
+_IMAGE_KEYS = ("id", "mirror_configs", "reflections", "camera", "observations", "joints")
 
 
 @dataclass
@@ -69,6 +70,8 @@ class Image:
     reflections: tuple[tuple[int, int], ...] = ()
     #: The name of the camera that took it (a dataset with ``cameras``), else None.
     camera: str | None = None
+    #: The arm's joint values in this image (a dataset with a ``robot``; ``io/robot_fields.py``), else None.
+    joints: dict[str, float] | None = None
     #: ``observations`` in normalized image coordinates, computed once where the image is validated for
     #: a dataset (:func:`validate_image`); None for an image built by hand. Read through
     #: :meth:`Dataset.normalized`, which also checks that they still belong to ``observations``.
@@ -88,7 +91,7 @@ class Image:
         ones they were computed from (so :meth:`Dataset.normalized` still checks them)."""
         kept = [n for n in self.observations if n in names]
         image = Image(self.id, mirror_configs, {n: self.observations[n] for n in kept},
-                      reflections=() if mirror_configs else self.reflections, camera=self.camera)
+                      reflections=() if mirror_configs else self.reflections, camera=self.camera, joints=self.joints)
         if self.normalized is not None and self.normalized_from is not None and list(self.normalized) == list(self.observations):
             rows = [k for k, n in enumerate(self.normalized) if n in names]
             image.normalized = {n: self.normalized[n] for n in kept}
@@ -129,6 +132,8 @@ class Dataset:
     cameras: dict[str, Camera] | None = None
     #: What fixes the scale of a dataset without fiducials (``scale``), else None.
     scale: Scale | None = None
+    #: The robot the camera or the target rides (``robot``, ``mounts``: ``io/robot_fields.py``), else None.
+    robot: RobotSetup | None = None
 
     def __repr__(self) -> str:
         """One bounded line (a dataclass repr would print every observation)."""
@@ -181,7 +186,7 @@ class Dataset:
         """Whether this is the paper's problem: one camera, a known target, and every image seeing the
         points through mirrors 1..num_mirrors in that order (``mirror_configs``). Anything else is solved
         by the general view model (:mod:`mirror_fg.solver.views`)."""
-        return (self.cameras is None and bool(self.fiducials) and self.scale is None
+        return (self.cameras is None and bool(self.fiducials) and self.scale is None and self.robot is None
                 and all(len(image.mirror_configs) == self.num_mirrors for image in self.images))
 
     @property
@@ -273,6 +278,7 @@ def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Datase
         source=source,
         cameras=cameras,
         scale=scale,
+        robot=robot_from_dict(d, source),
     )
     if scale is not None and ds.fiducials:
         raise DatasetError(f"{source}: scale is for data without a known target (fiducials: {{}}); the fiducials "
@@ -292,6 +298,8 @@ def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Datase
                 f"and images[{index}])"
             )
         first_index[image.id] = index
+        image.joints = image_joints(ds.robot, entry.get("joints") if isinstance(entry, Mapping) else entry.joints,
+                                    f"{source}: image {image.id!r}")
         ds.images.append(image)
     if unstarted is not None:
         _start_camera(ds, unstarted)
@@ -473,6 +481,7 @@ def dataset_to_dict(ds: Dataset) -> dict[str, Any]:
         **({"point_sigma": point_sigma} if point_sigma else {}),
         "fiducials": {name: [float(x) for x in p] for name, p in ds.fiducials.items()},
         **({"scale": scale_to_dict(scale.distance, scale.placement, scale.points)} if scale is not None else {}),
+        **robot_to_dict(ds.robot),
         "images": [_image_dict(image, ds.num_mirrors) for image in ds.images],
     }
 
@@ -487,6 +496,7 @@ def _image_dict(image: Image, num_mirrors: int) -> dict[str, Any]:
         **({"camera": image.camera} if image.camera is not None else {}),
         **placements,
         "observations": {name: [float(x) for x in z] for name, z in image.observations.items()},
+        **joints_to_dict(image.joints),
     }
 
 

@@ -195,6 +195,11 @@ def result_dict(calibration: CalibrationLike) -> dict:
         result["at"] = at_entries(calibration_poses(c), c.at_points)
     if getattr(c, "validation", None) is not None:
         result["validation"] = c.validation.to_dict()
+    robot = getattr(c, "robot", None)
+    if robot:  # a robot arm (docs/formats.md "Robot arms"): mounts, joint offsets, planes in the base link's frame
+        result.update({k: robot[k] for k in ("mounts", "joint_offsets") if k in robot})
+        for entry in result["mirrors"]:
+            entry["frame"] = robot["mirror_frame"]
     return result
 
 

@@ -381,6 +381,9 @@ def ros_output_texts(
     Nothing is written (the caller writes all its outputs together). Raises DatasetError naming
     ``result_path`` on a malformed result, ValueError on a bad frame name.
     """
+    mounts = result.get("mounts") or {}
+    if "camera" in mounts and base_frame == DEFAULT_BASE_FRAME:  # a robot arm: T_base_cam is on the camera's link
+        base_frame = mounts["camera"]["link"]
     content = ros_outputs(result, base_frame, camera_frame, source=os.fspath(result_path), link_frame=link_frame)
     yaml_path, urdf_path = ros_output_paths(result_path)
     source = " ".join(Path(result_path).name.split())  # one line in a comment
@@ -404,6 +407,12 @@ def ros_output_texts(
         f"     {link} (x forward), use the two joints under camera_link.urdf_joints in the .ros.yaml. -->\n"
         + urdf_robot(content["urdf_joint"], base_frame, camera_frame)
     )
+    if "target" in mounts:  # the target's estimated mount too (docs/formats.md "Robot arms")
+        target = mounts["target"]
+        R_lt, t_lt = (np.asarray(target["T_link_target"][k], dtype=float) for k in ("R", "t"))
+        links = {base_frame, camera_frame}
+        extra = "".join(f"  <link name={quoteattr(f)}/>\n" for f in (target["link"], "calibration_target") if f not in links)
+        urdf = urdf.replace("</robot>\n", extra + urdf_joint(R_lt, t_lt, target["link"], "calibration_target") + "</robot>\n")
     return {os.fspath(yaml_path): _yaml_text(content, header), os.fspath(urdf_path): urdf}
 
 

@@ -94,6 +94,9 @@ def calibrate(
     elif separate != (None, True, 100, None, True, None, True):
         raise TypeError("calibrate(): give the settings either in options= or as separate arguments, not both")
     dataset = as_dataset(dataset)
+    if dataset.robot is not None:  # a robot arm (docs/formats.md "Robot arms"): mounts from joint states
+        from mirror_fg.solver.robot_solve import calibrate_robot
+        return calibrate_robot(dataset, initial, options)  # type: ignore[arg-type]
     if not dataset.is_tree:  # direct views, fixed mirrors, any order, no known target, several cameras
         return calibrate_views(dataset, initial, options)
     if dataset.camera is not None and dataset.camera.estimate:  # intrinsics estimated too (camera.estimate)

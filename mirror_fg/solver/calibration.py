@@ -162,6 +162,9 @@ class Calibration:
     at_points: list[tuple[float, float, float]] = field(default_factory=list)
     #: The held-out validation (``solver/validation.py``, ``calibrate --validate``), else None.
     validation: Any = None
+    #: A robot arm's result@1 entries (``mounts``, ``joint_offsets``; ``solver/robot_solve.py``), else None:
+    #: then ``T_cam_base`` is the camera mount's inverse and the mirror vectors are in the base link's frame.
+    robot: dict | None = None
 
     @property
     def T_cam_base(self) -> Transform:

@@ -262,7 +262,10 @@ def write_report(
     with tqdm(total=9, desc="report", unit="step", disable=not progress, file=sys.stderr, leave=False) as bar:
         view_notes: list[str] = []
         residuals: Residuals | None = None
-        if dataset is not None and not dataset.is_tree:  # any reflection order, several cameras, no target
+        if dataset is not None and dataset.robot is not None:  # a robot arm (tools/report_robot.py)
+            from mirror_fg.tools.report_robot import robot_residuals
+            residuals = robot_residuals(result, dataset, source)
+        elif dataset is not None and not dataset.is_tree:  # any reflection order, several cameras, no target
             residuals, view_notes = view_residuals(result, dataset, source)
         elif dataset is not None:
             residuals = residuals_of_valid_result(result, dataset, source)
@@ -327,7 +330,13 @@ def _figures(
                             "point, with the RMS of each ring. Growth towards the edge is the signature of a wrong "
                             "or missing distortion model.")
         bar.update()
-    if dataset is not None and not dataset.is_tree or result.get("cameras"):
+    if dataset is not None and dataset.robot is not None:  # a robot arm (tools/report_robot.py)
+        from mirror_fg.tools.report_robot import figure_arm
+        add("Arm, camera, mirrors and target", figure_arm, result, dataset,
+            caption="The arm at some of its poses (each link's origin joined in the URDF's order; base link {B}, "
+                    "metres), the camera's axes (x red, y green, z blue) and the target's points (orange) where "
+                    "the calibrated mounts put them, and each mirror placement as a square on its plane in {B}.")
+    elif dataset is not None and not dataset.is_tree or result.get("cameras"):
         add("3D scene", figure_views_scene, result, dataset,
             caption="Base frame {B} (x red, y green, z blue); every camera's frustum and axes at its T_base_cam with "
                     "its 3σ position ellipsoid (all magnified by the one factor in the title); each mirror placement "

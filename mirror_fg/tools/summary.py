@@ -98,6 +98,9 @@ def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, increment
     lines.append(_bounds(result.get("sigma3_cam_base"), "camera", "base origin"))
     lines += frame_convention()
     lines += units_lines(result)  # the error at the user's points, the held-out validation (report_units.py)
+    if result.get("mounts"):  # a robot arm: T_base_cam is the camera's mount on its link
+        from mirror_fg.tools.robot_summary import mount_lines
+        lines += mount_lines(result)
     if result.get("camera") is not None:
         lines += camera_lines(result["camera"], result.get("covariance_cam_base"))
     if result.get("cameras"):

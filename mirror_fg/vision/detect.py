@@ -33,6 +33,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from mirror_fg.io.robot_capture import add_robot_fields
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.capture import CAPTURE_FORMAT, Capture, ImageEntry, capture_from_file_data, open_video
 from mirror_fg.io.capture_views import is_mirrored
@@ -185,6 +186,7 @@ def detect_capture(
                            + _size_hint(capture, reports))
     point_sigma = tracked_point_sigma(capture, tracker.tracks, (n for out in outputs for n in out.points))
     data = dataset_dict(capture, DatasetParts(cameras, outputs, point_sigma or {}))
+    add_robot_fields(data, capture)  # a robot arm's joint states (docs/formats.md "Robot arms")
     dataset = dataset_from_dict(data, source=capture.source)
     if isinstance(capture.target, ChessboardTarget) and capture.target.symmetric:
         dataset = _label_symmetric(dataset, capture, reports)

@@ -1,0 +1,234 @@
+"""Simulated robot-arm scenes (docs/formats.md, "Robot arms: joint states and mounts"): a camera and a
+target, one of them on the arm's tool link, the other on its base; mirror placements fixed in {B}; the
+camera sees the target only through the mirrors.
+
+Frames: {B} the URDF's base link; the scene is laid out in the camera's frame at a nominal arm pose (the
+target beside the camera, facing the mirrors about 0.5 m ahead, as a person holds a board beside their
+face), then carried into {B} through the arm's forward kinematics there. Arm poses are the nominal one
+perturbed (every joint, uniform within ``spread_rad``), kept where every target point is seen through
+the mirror in front of the camera. Metres, radians, pixels.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mirror_fg.core.camera import Camera, camera_to_dict
+from mirror_fg.factors.robot import compose, inverse
+from mirror_fg.robot import arm_urdf
+
+__all__ = ["ArmTruth", "simulate_arm", "write_arm_simulation", "arm_outputs", "NOMINAL", "TOOL_LINK", "truth_to_dict"]
+
+#: Nominal joint values (radians) of each test arm: the tool held in front of the base, pointing forward.
+NOMINAL = {
+    "arm6": [0.0, -1.2, 1.6, -0.4, 1.5708, 0.0],
+    "panda": [0.0, -0.3, 0.0, -2.2, 0.0, 1.9, 0.785],
+}
+#: The tool link of each test arm.
+TOOL_LINK = {"arm6": "tool0", "panda": "panda_hand"}
+CAMERA = Camera(width=1024, height=768, fx=800.0, fy=800.0, cx=512.0, cy=384.0)
+
+
+@dataclass
+class ArmTruth:
+    """The true unknowns: mounts ``{"camera"|"target": (link, (R, t))}``, mirror vectors in {B}
+    ``{(l, m): v}``, joint offsets ``{joint: radians}`` (``q_true = q_recorded + delta``)."""
+
+    robot: str
+    mounts: dict[str, tuple[str, tuple[np.ndarray, np.ndarray]]]
+    mirror_vectors: dict[tuple[int, int], np.ndarray]
+    joint_offsets: dict[str, float] = field(default_factory=dict)
+
+
+def _rot(axis, angle: float) -> np.ndarray:
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+
+
+def _board(rows: int = 5, cols: int = 6, square: float = 0.03) -> dict[str, np.ndarray]:
+    """A chessboard's inner corners, target frame (z = 0, centred)."""
+    return {f"F{r * cols + c}": np.array([(c - (cols - 1) / 2) * square, (r - (rows - 1) / 2) * square, 0.0])
+            for r in range(rows) for c in range(cols)}
+
+
+def _reflect(x: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """eq. (3): the reflection of points x (3, N) in the plane of mirror vector v (same frame)."""
+    s = (v @ x) / (v @ v) - 1.0
+    return x - 2.0 * np.outer(v, s)
+
+
+def _seen_in_mirror(poses, x_B: np.ndarray, v_B: np.ndarray) -> bool:
+    """Whether the camera sees the board's front through the plane of ``v_B`` ({B}): both on one side of it,
+    the board facing it, every point ahead of the camera."""
+    n_B = v_B / np.linalg.norm(v_B)
+    d_B = float(np.linalg.norm(v_B))
+    side_target = n_B @ x_B - d_B  # signed distances to the plane
+    side_camera = float(n_B @ poses["camera"][1] - d_B)
+    if abs(side_camera) < 0.1 or np.any(side_target * side_camera < 0.05 ** 2):
+        return False  # the target or the camera at the mirror, or on its two sides
+    toward_mirror = -np.sign(side_camera) * n_B
+    if -poses["target"][0][:, 2] @ toward_mirror < 0.2:  # the board's front (-z_target) faces the mirror
+        return False
+    R, t = inverse(poses["camera"])
+    return bool(np.all((R @ _reflect(x_B, v_B) + t[:, None])[2] >= 0.2))
+
+
+def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int = 3, arm_poses: int = 8,
+                 pixel_sigma: float = 0.5, joint_offsets_deg: dict[str, float] | None = None,
+                 seed: int = 0, spread_rad: float = 0.25, estimate_offsets: bool = True,
+                 moving: tuple[str, ...] | None = None, direct: bool = False):
+    """A dataset@1 dictionary (its ``robot.urdf`` the arm's file name) and its :class:`ArmTruth`.
+
+    ``arm_poses`` images per placement; ``joint_offsets_deg``: true encoder offsets, recorded joints are
+    ``q_true - delta`` (and, with ``estimate_offsets``, the dataset asks for them). ``moving``: the joints
+    that move between arm poses (default all; one wrist joint alone is the degenerate motion). ``direct``:
+    no mirror, the camera sees the board 0.9 m ahead (a direct-view hand-eye calibration, for comparison):
+    ``arm_poses`` images in all."""
+    from mirror_fg.robot.kinematics import load_kinematics
+
+    rng = np.random.default_rng(seed)
+    kin = load_kinematics(arm_urdf(robot))
+    names = kin.chain(TOOL_LINK[robot])
+    q0 = np.array(NOMINAL[robot], float)
+    tool = TOOL_LINK[robot]
+    F0 = kin.placements(dict(zip(names, q0)), [tool])[tool][0]
+    F0 = (F0[:3, :3], F0[:3, 3])
+    # in the camera's frame: the target beside the camera facing the mirrors (pattern normal -z_target)
+    T_cam_target = (_rot([0, 1, 0], math.pi), np.array([0.12, 0.0, 0.02]))
+    if direct:  # the board's front (-z_target) faces the camera
+        T_cam_target = (np.eye(3), np.array([0.0, 0.0, 0.9]))
+    if eye_in_hand:  # camera 6 cm off the flange, looking along the tool's z
+        mount_cam = (_rot([0, 0, 1], 0.3) @ _rot([1, 0, 0], 0.05), np.array([0.05, -0.03, 0.06]))
+        C = compose(F0, mount_cam)
+        D = compose(C, T_cam_target)
+        mounts = {"camera": (tool, mount_cam), "target": (kin.base_link, D)}
+    else:  # the board 4 cm off the flange, facing along the tool's z
+        mount_target = (_rot([0, 0, 1], -0.4) @ _rot([0, 1, 0], math.pi), np.array([0.02, 0.01, 0.04]))
+        D = compose(F0, mount_target)
+        C = compose(D, inverse(T_cam_target))
+        mounts = {"camera": (kin.base_link, C), "target": (tool, mount_target)}
+    # mirror placements, camera frame at the nominal pose: 0.45-0.6 m ahead, tilted 6-14 degrees
+    mirrors_cam = []
+    for k in range(placements):
+        angle = 2 * math.pi * k / placements + rng.uniform(-0.3, 0.3)
+        tilt = math.radians(rng.uniform(6, 14))
+        n = np.array([math.sin(tilt) * math.cos(angle), math.sin(tilt) * math.sin(angle), -math.cos(tilt)])
+        d = rng.uniform(0.45, 0.6)
+        mirrors_cam.append(-d * n)  # v = d n with n from the camera towards the plane
+    R_C, t_C = C
+    mirror_vectors = {}
+    for k, v in enumerate(mirrors_cam):  # the plane n.x = d carried into {B}
+        n, d = v / np.linalg.norm(v), float(np.linalg.norm(v))
+        n_B = R_C @ n
+        d_B = d + float(n_B @ t_C)
+        mirror_vectors[(1, k)] = d_B * n_B
+    delta = {n: math.radians(x) for n, x in (joint_offsets_deg or {}).items()}
+    board = _board()
+    points = np.array(list(board.values())).T
+    images, truth_joints = [], []
+    for k in range(1 if direct else placements):
+        v_B = None if direct else mirror_vectors[(1, k)]
+        found, tries = 0, 0
+        while found < arm_poses:
+            tries += 1
+            if tries > 2000:
+                raise RuntimeError(f"no visible arm pose for placement {k} after 2000 tries")
+            step = rng.uniform(-spread_rad, spread_rad, len(q0))
+            if moving is not None:
+                step *= np.array([n in moving for n in names], float)
+            q = q0 + step
+            info = [kin.joints[n] for n in names]
+            if any(i.lower is not None and i.upper is not None and not i.lower <= x <= i.upper for i, x in zip(info, q)):
+                continue
+            F = kin.placements(dict(zip(names, q)), list({tool, kin.base_link}))
+            poses = {}
+            for role, (link, mount) in mounts.items():
+                T = F[link][0]
+                poses[role] = compose((T[:3, :3], T[:3, 3]), mount)
+            x_B = poses["target"][0] @ points + poses["target"][1][:, None]
+            if v_B is None:
+                R, t = inverse(poses["camera"])
+                x_cam = R @ x_B + t[:, None]
+                facing = -poses["target"][0][:, 2] @ (poses["camera"][1] - poses["target"][1])
+                if np.any(x_cam[2] < 0.2) or facing <= 0.2 * np.linalg.norm(poses["camera"][1] - poses["target"][1]):
+                    continue
+            elif not _seen_in_mirror(poses, x_B, v_B):
+                continue
+            else:
+                R, t = inverse(poses["camera"])
+                x_cam = R @ _reflect(x_B, v_B) + t[:, None]  # eq. (3)
+            pix = (CAMERA.K @ (x_cam / x_cam[2]))[:2].T
+            if not CAMERA.contains(pix).all() or np.any((pix < 20) | (pix > [CAMERA.width - 20, CAMERA.height - 20])):
+                continue
+            pix = pix + rng.normal(0.0, pixel_sigma, pix.shape)
+            recorded = {n: float(x - delta.get(n, 0.0)) for n, x in zip(names, q)}
+            if any(i.lower is not None and i.upper is not None and not i.lower <= recorded[n] <= i.upper
+                   for n, i in zip(names, info)):
+                continue
+            images.append({"id": f"p{k}_{found:03d}", **({"reflections": []} if direct else {"mirror_configs": [k]}),
+                           "joints": recorded,
+                           "observations": {name: [float(u), float(w)] for name, (u, w) in zip(board, pix)}})
+            truth_joints.append(q)
+            found += 1
+    robot_entry: dict = {"urdf": f"{robot}.urdf", "base_link": kin.base_link}
+    if delta and estimate_offsets:
+        robot_entry["joint_offsets"] = {"estimate": list(delta), "prior_sigma_deg": 2.0}
+    link_c, _ = mounts["camera"]
+    link_t, _ = mounts["target"]
+    dataset = {
+        "format": "mirror-fg/dataset@1", "num_mirrors": 1, "camera": camera_to_dict(CAMERA),
+        "pixel_sigma": pixel_sigma, "fiducials": {n: [float(x) for x in p] for n, p in board.items()},
+        "robot": robot_entry, "mounts": {"camera": {"link": link_c}, "target": {"link": link_t}},
+        "images": images,
+    }
+    return dataset, ArmTruth(robot, mounts, {} if direct else mirror_vectors, delta)
+
+
+def _pose_dict(pose) -> dict:
+    return {"R": np.asarray(pose[0], float).tolist(), "t": np.asarray(pose[1], float).tolist()}
+
+
+def truth_to_dict(truth: ArmTruth) -> dict:
+    """``mirror-fg/truth@1`` of an arm: mounts, planes in {B}, joint offsets (degrees)."""
+    keys = {"camera": "T_link_cam", "target": "T_link_target"}
+    return {
+        "format": "mirror-fg/truth@1", "robot": truth.robot,
+        "mounts": {role: {"link": link, keys[role]: _pose_dict(pose)} for role, (link, pose) in truth.mounts.items()},
+        "mirrors": [{"mirror": l, "config": m, "v": np.asarray(v, float).tolist(), "frame": "base_link"}
+                    for (l, m), v in sorted(truth.mirror_vectors.items())],
+        "joint_offsets": {n: {"offset_deg": math.degrees(x)} for n, x in truth.joint_offsets.items()},
+    }
+
+
+def arm_outputs(path: str, robot: str):
+    """The checked outputs of :func:`write_arm_simulation` (DatasetError before any work where one cannot be
+    written): the dataset, ``<stem>.truth.json`` and the arm's URDF beside them."""
+    from mirror_fg.io.output import OutputPlan
+    from mirror_fg.tools.simulate import truth_path
+
+    plan = OutputPlan()
+    plan.add(path, "dataset")
+    plan.add(truth_path(path), "ground truth")
+    plan.add(os.path.join(os.path.dirname(os.path.abspath(path)), f"{robot}.urdf"), "URDF")
+    return plan
+
+
+def write_arm_simulation(path: str, dataset: dict, truth: ArmTruth, plan=None) -> tuple[str, str]:
+    """Write the dataset, ``<stem>.truth.json`` and the arm's URDF beside them, all-or-nothing; returns the
+    truth's and the URDF's paths."""
+    from mirror_fg.tools.simulate import truth_path
+
+    path = os.fspath(path)
+    plan = plan if plan is not None else arm_outputs(path, truth.robot)
+    urdf = os.path.join(os.path.dirname(os.path.abspath(path)), dataset["robot"]["urdf"])
+    with open(arm_urdf(truth.robot), encoding="utf-8") as handle:
+        urdf_text = handle.read()
+    truth_file = os.fspath(truth_path(path))
+    plan.commit({path: json.dumps(dataset, indent=1) + "\n", truth_file: json.dumps(truth_to_dict(truth), indent=1) + "\n",
+                 urdf: urdf_text})
+    return truth_file, urdf

@@ -1,0 +1,222 @@
+"""The general view model with a robot arm (docs/formats.md, "Robot arms: joint states and mounts"): which
+key holds which unknown, the graph of every image (``factors/robot.py``: the view model of
+``factors/views.py`` with each image's camera and target poses from forward kinematics), the estimate read
+back and the covariances.
+
+Frames: {B} the robot's base link. Unknowns: the unknown mounts ``M(0)`` (camera, ``T_link_cam``) and
+``M(1)`` (target, ``T_link_target``) as Pose3; one ``OrientedPlane3`` ``V(i)`` per placement, fixed in {B}
+while the arm moves; ``L(j)`` reconstruction points (target frame, metres); ``O(0)`` the estimated joint
+offsets (radians, metres for prismatic joints; ``q_true = q_recorded + delta``) with their zero-mean
+Gaussian prior. Covariances leave in the uncertainty convention (docs/formats.md), each mount's about and
+along its link's axes.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import L, M, O, V
+
+from mirror_fg.core.transform import covariance_from_pose3
+from mirror_fg.factors.robot import RobotViewFactor, adjoint, inverse
+from mirror_fg.factors.views import plane_of, vector_of_plane
+from mirror_fg.io.dataset import Dataset
+from mirror_fg.io.point_sigma import normalized_sigmas
+
+__all__ = ["RobotProblem", "RobotEstimate", "ROLES", "camera_base_pose"]
+
+ROLES = ("camera", "target")
+Pose = tuple[np.ndarray, np.ndarray]
+
+
+@dataclass
+class RobotEstimate:
+    """Values of every unknown: ``mounts`` (both, known ones as given), mirror vectors in {B}, points
+    (target frame), joint offsets (in ``RobotSetup.offsets`` order)."""
+
+    mounts: dict[str, Pose]
+    mirror_vectors: dict[tuple[int, int], np.ndarray]
+    points: dict[str, np.ndarray] = field(default_factory=dict)
+    offsets: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+class RobotProblem:
+    """Keys, graph, estimate and covariances of an arm's dataset (module docstring)."""
+
+    def __init__(self, dataset: Dataset, robust: str | None = None):
+        assert dataset.robot is not None
+        self.dataset = dataset
+        setup = self.setup = dataset.robot
+        self.kinematics = setup.kinematics
+        self.links = {role: setup.mounts[role].link for role in ROLES}
+        self.known: dict[str, Pose] = {}
+        for role in ROLES:
+            known = setup.mounts[role].known
+            if known is not None:
+                self.known[role] = known
+        self.mount_keys = {role: M(k) for k, role in enumerate(ROLES) if role not in self.known}
+        self.placements = sorted({p for im in dataset.images for p in im.reflections})
+        self.mirror_keys = {p: V(i) for i, p in enumerate(self.placements)}
+        self.point_names = dataset.reconstruction_point_names
+        self.point_keys = {name: L(j) for j, name in enumerate(self.point_names)}
+        self.offsets = tuple(setup.offsets)
+        self.offset_key = O(0) if self.offsets else None
+        self.factors: list[RobotViewFactor] = []
+        self.normalized: list[np.ndarray] = []
+        for image in dataset.images:
+            names = list(image.observations)
+            normalized = dataset.normalized(image)
+            observed = np.array([normalized[n] for n in names], float).reshape(-1, 2).T
+            self.normalized.append(observed)
+            sigmas = normalized_sigmas(dataset.camera_of(image), dataset.pixel_sigma, dataset.point_sigma, names).T
+            points = np.full((3, len(names)), np.nan)
+            landmarks = []
+            for k, name in enumerate(names):
+                if name in dataset.fiducials:
+                    points[:, k] = dataset.fiducials[name]
+                    landmarks.append(-1)
+                else:
+                    landmarks.append(self.point_keys[name])
+            assert image.joints is not None
+            self.factors.append(RobotViewFactor(
+                image.reflections, self.mount_keys, self.known, self.mirror_keys, self.forward(image.joints),
+                self.offset_key, len(self.offsets), points, landmarks, observed, sigmas, robust))
+        #: Number of residual rows (2 per measurement).
+        self.size = sum(2 * len(im.observations) for im in dataset.images)
+        self.constraints = 0
+
+    def forward(self, joints: dict[str, float]):
+        """The image's forward kinematics for ``factors/robot.py``: at ``joints + delta``, the placements
+        of the camera's and the target's links in {B} and their Jacobians in the offsets."""
+        kin, offsets, links = self.kinematics, self.offsets, self.links
+        unique = list(dict.fromkeys(links.values()))
+        if not offsets:  # nothing moves the joints: the placements once
+            out = kin.placements(joints, unique)
+            fixed = (out[links["camera"]], out[links["target"]])
+            return lambda delta: fixed
+
+        def fk(delta: np.ndarray):
+            q = dict(joints)
+            for name, d in zip(offsets, delta):
+                q[name] += float(d)
+            out = kin.placements(q, unique, list(offsets))
+            return out[links["camera"]], out[links["target"]]
+        return fk
+
+    # ------------------------------------------------------------------ values
+    def values(self, estimate: RobotEstimate) -> gtsam.Values:
+        values = gtsam.Values()
+        for role, key in self.mount_keys.items():
+            R, t = estimate.mounts[role]
+            values.insert(key, gtsam.Pose3(gtsam.Rot3(R), np.asarray(t, float)))
+        for p, key in self.mirror_keys.items():
+            values.insert(key, plane_of(estimate.mirror_vectors[p]))
+        for name, key in self.point_keys.items():
+            values.insert(key, np.asarray(estimate.points[name], float))
+        if self.offset_key is not None:
+            values.insert(self.offset_key, np.asarray(estimate.offsets, float).reshape(len(self.offsets)))
+        return values
+
+    def read(self, values: gtsam.Values) -> RobotEstimate:
+        mounts = dict(self.known)
+        for role, key in self.mount_keys.items():
+            pose = values.atPose3(key)
+            mounts[role] = (pose.rotation().matrix(), np.asarray(pose.translation(), float))
+        return RobotEstimate(
+            mounts, {p: vector_of_plane(values.atOrientedPlane3(k))[0] for p, k in self.mirror_keys.items()},
+            {n: np.asarray(values.atPoint3(k), float) for n, k in self.point_keys.items()},
+            np.asarray(values.atVector(self.offset_key), float) if self.offset_key is not None else np.zeros(0))
+
+    def graph(self) -> gtsam.NonlinearFactorGraph:
+        graph = gtsam.NonlinearFactorGraph()
+        for factor in self.factors:
+            graph.add(factor.factor())
+        if self.offset_key is not None:  # the encoders' zero: a zero-mean prior of the given sigma
+            sigmas = np.array([self.setup.offset_sigma[n] for n in self.offsets])
+            graph.add(gtsam.PriorFactorVector(self.offset_key, np.zeros(len(sigmas)),
+                                              gtsam.noiseModel.Diagonal.Sigmas(sigmas)))
+        return graph
+
+    @property
+    def keys(self) -> list[int]:
+        return [*self.mount_keys.values(), *self.mirror_keys.values(), *self.point_keys.values(),
+                *([self.offset_key] if self.offset_key is not None else [])]
+
+    def name_of(self, key: int) -> str:
+        for role, k in self.mount_keys.items():
+            if k == key:
+                return f"the {role} mount T_link_{'cam' if role == 'camera' else 'target'}"
+        for p, k in self.mirror_keys.items():
+            if k == key:
+                return f"mirror {p[0]} placement {p[1]}"
+        for name, k in self.point_keys.items():
+            if k == key:
+                return f"point {name!r}"
+        return "the joint offsets"
+
+    def dimension(self) -> int:
+        return 6 * len(self.mount_keys) + 3 * len(self.mirror_keys) + 3 * len(self.point_keys) + len(self.offsets)
+
+    # ------------------------------------------------------------------ residuals
+    def residuals(self, values: gtsam.Values) -> tuple[np.ndarray, np.ndarray, list[tuple[str, str]]]:
+        """Per measurement (file order): residuals (N, 2) in pixels with a camera (else normalized), whitened
+        norms and ``(image, point)`` labels."""
+        residuals: list[np.ndarray] = []
+        whitened: list[np.ndarray] = []
+        labels: list[tuple[str, str]] = []
+        for image, factor, observed in zip(self.dataset.images, self.factors, self.normalized):
+            z = factor.predict(values)
+            whitened.append(np.linalg.norm((z - observed) / factor.sigmas, axis=0))
+            camera = self.dataset.camera_of(image)
+            names = list(image.observations)
+            if camera is not None:
+                raw = np.array([image.observations[n] for n in names], float).reshape(-1, 2)
+                residuals.append(camera.distort(z.T) - raw)
+            else:
+                residuals.append((z - observed).T)
+            labels.extend((image.id, n) for n in names)
+        return np.vstack(residuals), np.concatenate(whitened), labels
+
+    # ------------------------------------------------------------------ covariances
+    def information(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> tuple[np.ndarray, dict]:
+        """The Fisher information (dense, the keys in :attr:`keys` order) and each key's columns."""
+        ordering = gtsam.Ordering()
+        columns, start = {}, 0
+        for key in self.keys:
+            ordering.push_back(key)
+            dim = 6 if key in self.mount_keys.values() else (len(self.offsets) if key == self.offset_key else 3)
+            columns[key] = slice(start, start + dim)
+            start += dim
+        A, _ = graph.linearize(values).jacobian(ordering)
+        return A.T @ A, columns
+
+    def covariances(self, covariance: np.ndarray, columns: dict, estimate: RobotEstimate) -> dict:
+        """``{"mounts": {role: 6x6}, "mirrors": {p: 3x3 of v}, "points": {...}, "offsets": KxK}`` from the
+        joint covariance in the keys' tangents (mounts: uncertainty convention, link axes)."""
+        out: dict = {"mounts": {}, "mirrors": {}, "points": {}, "offsets": None}
+        for role, key in self.mount_keys.items():
+            c = columns[key]
+            out["mounts"][role] = covariance_from_pose3(estimate.mounts[role][0], covariance[c, c])
+        for p, key in self.mirror_keys.items():
+            J = vector_of_plane(plane_of(estimate.mirror_vectors[p]))[1]
+            c = columns[key]
+            out["mirrors"][p] = J @ covariance[c, c] @ J.T
+        for name, key in self.point_keys.items():
+            c = columns[key]
+            out["points"][name] = covariance[c, c].copy()
+        if self.offset_key is not None:
+            c = columns[self.offset_key]
+            out["offsets"] = covariance[c, c].copy()
+        return out
+
+
+def camera_base_pose(mount: Pose, pose3_covariance: np.ndarray | None) -> tuple[Pose, np.ndarray | None]:
+    """``T_cam_link`` (the inverse of the camera mount) and its covariance in the uncertainty convention,
+    from the mount's Pose3 tangent covariance: ``T Exp(xi)`` inverts to ``T^-1 Exp(-Ad(T) xi)``."""
+    inv = inverse(mount)
+    if pose3_covariance is None:
+        return inv, None
+    Ad = adjoint(mount)
+    return inv, covariance_from_pose3(inv[0], Ad @ pose3_covariance @ Ad.T)
+
