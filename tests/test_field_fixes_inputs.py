@@ -1,0 +1,171 @@
+"""Inputs a user types wrong, refused where they meet the tool: lengths in the wrong unit, non-physical
+values, sizes that would exhaust memory, side files of an earlier run, a rig camera no image names,
+mislabelled rig images, and messages in the user's words. Each test runs the command line and fails on
+the code before its fix."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mirror_fg.cli import main
+
+
+def run(argv: list[str], capsys) -> tuple[int, str, str]:
+    """The command line's status, stdout and stderr."""
+    status = main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    return status, captured.out, captured.err
+
+
+def one_error_line(err: str) -> str:
+    """The one ``mirror-fg: ...`` line a refusal prints (and nothing else on stderr)."""
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def target_free(tmp_path_factory) -> tuple[dict, dict]:
+    """A simulated kaleidoscope without a known target: its dataset and truth as plain dicts."""
+    folder = tmp_path_factory.mktemp("kaleidoscope")
+    assert main(["simulate", "--kind", "kaleidoscope", "--no-target", "--points", "6", "-o",
+                 str(folder / "k.json")]) == 0
+    return (json.loads((folder / "k.json").read_text()), json.loads((folder / "k.truth.json").read_text()))
+
+
+def with_point_scale(target_free, distance: float, tmp_path: Path) -> Path:
+    dataset = json.loads(json.dumps(target_free[0]))
+    dataset["scale"] = {"points": ["P0", "P1"], "distance": distance}
+    path = tmp_path / "data.json"
+    path.write_text(json.dumps(dataset))
+    return path
+
+
+def true_point_distance(target_free) -> float:
+    points = target_free[1]["points"]
+    return float(np.linalg.norm(np.subtract(points["P0"], points["P1"])))
+
+
+# -- lengths in the wrong unit, non-physical lengths --------------------------------------------------
+
+
+@pytest.mark.parametrize("factor", [1000.0, 100.0], ids=["millimetres", "centimetres"])
+def test_target_free_scale_in_the_wrong_unit_is_refused(target_free, factor, tmp_path, capsys):
+    path = with_point_scale(target_free, true_point_distance(target_free) * factor, tmp_path)
+    status, out, err = run(["calibrate", path, "-o", tmp_path / "r.json"], capsys)
+    assert status == 2, out + err
+    line = one_error_line(err)
+    assert "data.json" in line and "metres" in line
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_target_free_scale_in_metres_still_solves(target_free, tmp_path, capsys):
+    path = with_point_scale(target_free, true_point_distance(target_free), tmp_path)
+    status, out, err = run(["calibrate", path, "-o", tmp_path / "r.json"], capsys)
+    assert status == 0, out + err
+    result = json.loads((tmp_path / "r.json").read_text())
+    assert all(np.isfinite(p["sigma3_mm"]).all() for p in result["points"].values())
+
+
+@pytest.mark.parametrize("distance", [1e-100, 1e-300, 0.0, -0.02], ids=["1e-100", "1e-300", "zero", "negative"])
+def test_non_physical_scale_distance_is_refused_at_load(target_free, distance, tmp_path, capsys):
+    path = with_point_scale(target_free, distance, tmp_path)
+    status, out, err = run(["calibrate", path, "-o", tmp_path / "r.json"], capsys)
+    assert status == 2, out + err
+    line = one_error_line(err)
+    assert "scale: distance" in line and "metres" in line
+    assert "warning" not in err and not (tmp_path / "r.json").exists()
+
+
+def test_nan_bounds_are_never_written_as_a_success(target_free, tmp_path, capsys, monkeypatch):
+    """Whatever made them (a degenerate solve), NaN bounds exit 3 with one line and write nothing."""
+    import mirror_fg.solver.calibrate as calibrate_module
+
+    solve = calibrate_module.calibrate
+
+    def degenerate(dataset, **options):
+        calibration = solve(dataset, **options)
+        key = next(iter(calibration.point_covariances))
+        calibration.point_covariances[key] = np.full((3, 3), np.nan)
+        return calibration
+
+    monkeypatch.setattr(calibrate_module, "calibrate", degenerate)
+    path = with_point_scale(target_free, true_point_distance(target_free), tmp_path)
+    status, out, err = run(["calibrate", path, "-o", tmp_path / "r.json"], capsys)
+    assert status == 3, out + err
+    line = one_error_line(err)
+    assert "point P" in line and "NaN" in line and "not written" in line
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_mirror_absurdly_far_is_refused(target_free, tmp_path, capsys, monkeypatch):
+    """After solving: a mirror hundreds of metres away is no success, whichever length caused it."""
+    import mirror_fg.solver.calibrate as calibrate_module
+
+    solve = calibrate_module.calibrate
+
+    def far(dataset, **options):
+        calibration = solve(dataset, **options)
+        key = next(iter(calibration.mirror_vectors))
+        calibration.mirror_vectors[key] = calibration.mirror_vectors[key] * 1000.0
+        return calibration
+
+    monkeypatch.setattr(calibrate_module, "calibrate", far)
+    path = with_point_scale(target_free, true_point_distance(target_free), tmp_path)
+    status, out, err = run(["calibrate", path, "-o", tmp_path / "r.json"], capsys)
+    assert status == 2, out + err
+    line = one_error_line(err)
+    assert "mirror 1 placement 0" in line and "m from the camera" in line and "metres" in line
+    assert not (tmp_path / "r.json").exists()
+
+
+# -- sizes bounded before anything is allocated -------------------------------------------------------
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--screen", "100000x100000", "--diagonal", "15"], "--screen 100000x100000 is not a plausible screen"),
+    (["--screen", "1920x1080", "--diagonal", "1e-9"], "--diagonal 1e-09 in"),
+    (["--screen", "1920x1080", "--screen-mm", "0.527x0.296"], "0.527 m = 527 mm"),
+    (["--screen", "1920x1080", "--screen-mm", "527000x296000"], "at most 10000 mm"),
+], ids=["8-GB-screen", "nanometre-diagonal", "metres-as-mm", "micrometres-as-mm"])
+def test_pattern_refuses_implausible_sizes_before_drawing(argv, words, tmp_path, capsys):
+    status, out, err = run(["pattern", *argv, "-o", tmp_path / "p.png"], capsys)
+    assert status == 2, out + err
+    line = one_error_line(err)
+    assert words in line, line
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_screen_target_in_metres_is_refused(tmp_path, capsys):
+    """A capture's screen target whose width_mm / height_mm were typed in metres."""
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "a.png"), np.zeros((48, 64), np.uint8))
+    screen = {"kind": "screen", "width_px": 1920, "height_px": 1080, "width_mm": 0.527, "height_mm": 0.296,
+              "pattern": {"kind": "chessboard", "cols": 5, "rows": 4, "square_px": 100, "origin_px": [0, 0]}}
+    capture = {"format": "mirror-fg/capture@1", "num_mirrors": 1,
+               "camera": {"model": "pinhole", "width": 64, "height": 48, "fx": 50.0, "fy": 50.0, "cx": 31.5, "cy": 23.5},
+               "target": screen, "images": [{"file": "a.png", "mirror_configs": [0]}]}
+    (tmp_path / "c.json").write_text(json.dumps(capture))
+    status, out, err = run(["calibrate", tmp_path / "c.json", "-o", tmp_path / "r.json"], capsys)
+    assert status == 2, out + err
+    line = one_error_line(err)
+    assert "c.json" in line and "width_mm" in line and "millimetres" in line
+
+
+def test_target_square_of_no_size_is_refused(tmp_path, capsys):
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "a.png"), np.zeros((48, 64), np.uint8))
+    capture = {"format": "mirror-fg/capture@1", "num_mirrors": 1,
+               "camera": {"model": "pinhole", "width": 64, "height": 48, "fx": 50.0, "fy": 50.0, "cx": 31.5, "cy": 23.5},
+               "target": {"kind": "chessboard", "cols": 4, "rows": 3, "square": 1e-9},
+               "images": [{"file": "a.png", "mirror_configs": [0]}]}
+    (tmp_path / "c.json").write_text(json.dumps(capture))
+    status, out, err = run(["calibrate", tmp_path / "c.json", "-o", tmp_path / "r.json"], capsys)
+    assert status == 2, out + err
+    line = one_error_line(err)
+    assert "square" in line and "not a plausible" in line
