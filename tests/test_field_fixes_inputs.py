@@ -169,3 +169,38 @@ def test_target_square_of_no_size_is_refused(tmp_path, capsys):
     assert status == 2, out + err
     line = one_error_line(err)
     assert "square" in line and "not a plausible" in line
+
+
+# -- a rig camera no image names -----------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory) -> tuple[Path, dict]:
+    """A simulated two-camera rig: its file and its dataset as a dict."""
+    folder = tmp_path_factory.mktemp("rig")
+    assert main(["simulate", "--cameras", "2", "-o", str(folder / "rig.json")]) == 0
+    return folder / "rig.json", json.loads((folder / "rig.json").read_text())
+
+
+def test_rig_camera_without_images_is_refused_by_name(rig, tmp_path, capsys):
+    dataset = json.loads(json.dumps(rig[1]))
+    dataset["cameras"]["spare"] = dict(next(iter(dataset["cameras"].values())))
+    (tmp_path / "rig.json").write_text(json.dumps(dataset))
+    status, out, err = run(["calibrate", tmp_path / "rig.json", "-o", tmp_path / "r.json"], capsys)
+    assert status == 2, out + err
+    line = one_error_line(err)
+    assert "rig.json" in line and "'spare'" in line and "no image names it" in line
+
+
+def test_capture_rig_camera_without_images_is_refused_by_name(tmp_path, capsys):
+    camera = {"model": "pinhole", "width": 640, "height": 480, "fx": 500.0, "fy": 500.0, "cx": 319.5, "cy": 239.5}
+    observations = {"F0": [100.0, 100.0], "F1": [200.0, 110.0], "F2": [110.0, 200.0], "F3": [210.0, 205.0]}
+    capture = {"format": "mirror-fg/capture@1", "num_mirrors": 1, "cameras": {"left": camera, "right": camera},
+               "target": {"kind": "points", "fiducials": {"F0": [0, 0, 0], "F1": [0.1, 0, 0], "F2": [0, 0.1, 0],
+                                                        "F3": [0.1, 0.1, 0]}},
+               "images": [{"id": "l0", "camera": "left", "mirror_configs": [0], "observations": observations}]}
+    (tmp_path / "cap.json").write_text(json.dumps(capture))
+    status, out, err = run(["calibrate", tmp_path / "cap.json", "-o", tmp_path / "r.json"], capsys)
+    assert status == 2, out + err
+    line = one_error_line(err)
+    assert "cap.json" in line and "'right'" in line and "no image names it" in line

@@ -16,7 +16,7 @@ from mirror_fg.core.values import (
     MAX_INDEX, MAX_TARGET_EXTENT_M, MIN_LENGTH_M, check_extent, check_keys, clip, coordinates, is_index, is_int, is_number, short, type_name,
 )
 
-__all__ = ["fiducials_from_dict", "check_scale", "image_camera", "named_camera", "dataset_summary", "names_text", "Placement", "check_reflections", "tree_configs", "cameras_from_dict", "scale_from_dict",
+__all__ = ["fiducials_from_dict", "check_scale", "image_camera", "named_camera", "check_cameras_named", "dataset_summary", "names_text", "Placement", "check_reflections", "tree_configs", "cameras_from_dict", "scale_from_dict",
            "scale_to_dict", "reflections_to_list"]
 
 #: Fiducials all within this fraction of their extent from one line are collinear.
@@ -208,6 +208,20 @@ def named_camera(name: Any, cameras: Mapping[str, Any] | None, where: str, what:
     if not isinstance(name, str) or name not in cameras:
         raise DatasetError(f"{where}: camera {short(name)} is not declared under 'cameras' ({declared})")
     return name
+
+
+def check_cameras_named(cameras: Mapping[str, Any] | None, named: Any, source: str, why: str = "") -> None:
+    """Refuse a camera declared under ``cameras`` that no image names (``named``: the images' camera names):
+    it has no data, so its pose cannot be estimated. ``why`` adds where its images may have gone."""
+    if cameras is None:
+        return
+    used = set(named)
+    unused = [name for name in cameras if name not in used]
+    if unused:
+        which = ", ".join(repr(clip(n, 30)) for n in unused[:4]) + (" ..." if len(unused) > 4 else "")
+        camera = "camera" if len(unused) == 1 else "cameras"
+        raise DatasetError(f"{source}: {camera} {which} declared under 'cameras' but no image names it{why}: "
+                           "remove it from 'cameras' or add its images")
 
 
 def image_camera(ds: Any, name: Any, prefix: str) -> Camera | None:
