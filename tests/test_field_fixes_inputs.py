@@ -204,3 +204,59 @@ def test_capture_rig_camera_without_images_is_refused_by_name(tmp_path, capsys):
     assert status == 2, out + err
     line = one_error_line(err)
     assert "cap.json" in line and "'right'" in line and "no image names it" in line
+
+
+# -- messages in the user's words ----------------------------------------------------------------------
+
+
+def test_calibrate_of_a_result_says_it_is_a_result(target_free, tmp_path, capsys):
+    path = with_point_scale(target_free, true_point_distance(target_free), tmp_path)
+    assert main(["calibrate", str(path), "-o", str(tmp_path / "r.json")]) == 0
+    capsys.readouterr()
+    status, out, err = run(["calibrate", tmp_path / "r.json", "-o", tmp_path / "again.json"], capsys)
+    assert status == 2, out + err
+    line = one_error_line(err)
+    assert "r.json: this is a result" in line and "calibrate takes a dataset or capture" in line, line
+    assert "unknown format" not in line
+
+
+@pytest.mark.parametrize("name, header, kind", [
+    ("photo.jpg", b"\xff\xd8\xff\xe0\x00\x10JFIF\x00\x01\x01\xff", "a JPEG image"),
+    ("photo.png", b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR\xff", "a PNG image"),
+])
+def test_calibrate_of_a_photo_says_it_wants_a_capture(name, header, kind, tmp_path, capsys):
+    (tmp_path / name).write_bytes(header + bytes(range(256)))
+    status, out, err = run(["calibrate", tmp_path / name, "-o", tmp_path / "r.json"], capsys)
+    assert status == 2, out + err
+    line = one_error_line(err)
+    assert f"{name}: is {kind}" in line and "capture file" in line and "docs/capture_guide.md" in line, line
+    assert "UTF-8" not in line
+
+
+def test_missing_image_says_where_it_looked(tmp_path, capsys):
+    import shutil
+    import tempfile
+
+    # a short folder: the command line elides a path longer than 80 characters in the middle
+    folder = Path(tempfile.mkdtemp(prefix="mfg"))
+    try:
+        _check_missing_image_message(folder, tmp_path, capsys)
+    finally:
+        shutil.rmtree(folder)
+
+
+def _check_missing_image_message(folder: Path, tmp_path: Path, capsys) -> None:
+    capture = {"format": "mirror-fg/capture@1", "num_mirrors": 1,
+               "camera": {"model": "pinhole", "width": 64, "height": 48, "fx": 50.0, "fy": 50.0, "cx": 31.5, "cy": 23.5},
+               "target": {"kind": "chessboard", "cols": 4, "rows": 3, "square": 0.03},
+               "images": [{"file": "shots/a.png", "mirror_configs": [0]}]}
+    (folder / "c.json").write_text(json.dumps(capture))
+    status, out, err = run(["calibrate", folder / "c.json", "-o", tmp_path / "r.json"], capsys)
+    assert status == 2, out + err
+    line = one_error_line(err)
+    assert "image file not found" in line and str(folder / "shots" / "a.png") in line and "capture's folder" in line
+    capture["images"].append({"file": "shots/b.png", "mirror_configs": [1]})
+    (folder / "c.json").write_text(json.dumps(capture))
+    status, out, err = run(["calibrate", folder / "c.json", "-o", tmp_path / "r.json"], capsys)
+    line = one_error_line(err)
+    assert status == 2 and "2 image files not found" in line and f"looked in {folder}" in line, line
