@@ -260,3 +260,61 @@ def _check_missing_image_message(folder: Path, tmp_path: Path, capsys) -> None:
     status, out, err = run(["calibrate", folder / "c.json", "-o", tmp_path / "r.json"], capsys)
     line = one_error_line(err)
     assert status == 2 and "2 image files not found" in line and f"looked in {folder}" in line, line
+
+
+# -- side files of an earlier run under the same name, target-free outputs ----------------------------
+
+
+def test_earlier_rig_side_files_are_removed_and_a_strangers_file_is_named(target_free, tmp_path, capsys):
+    """A one-camera result written over a rig's name: the rig's camchain, its standard deviations and its
+    cameras' camera_info files (mirror-fg's) go; a file mirror-fg did not write is left, with a warning."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "r.json").write_text(json.dumps({"format": "mirror-fg/result@1", "cameras": {"left": {}, "right": {}}}))
+    ours = {"r.camchain.yaml": "# Kalibr camchain written by mirror-fg from r.json\ncam0: {}\n",
+            "r.camchain-sigma.yaml": "# Standard deviations of the mirror-fg camchain of r.json\n",
+            "r.left.camera_info.yaml": "# camera_info of the camera estimated through the mirrors by mirror-fg\n",
+            "r.camera_info.yaml": "# camera_info of the camera estimated through the mirrors by mirror-fg\n"}
+    for name, text in ours.items():
+        (out / name).write_text(text)
+    (out / "r.right.camera_info.yaml").write_text("image_width: 640\n")  # the user's own
+    path = with_point_scale(target_free, true_point_distance(target_free), tmp_path)
+    status, stdout, err = run(["calibrate", path, "-o", out / "r.json"], capsys)
+    assert status == 0, stdout + err
+    assert sorted(p.name for p in out.iterdir()) == ["r.json", "r.right.camera_info.yaml"]
+    for name in ours:
+        assert f"removed {out / name}" in stdout
+    assert f"warning: {out / 'r.right.camera_info.yaml'} is not from this run" in stdout
+    assert (out / "r.right.camera_info.yaml").read_text() == "image_width: 640\n"
+
+
+def test_earlier_side_file_that_is_an_input_is_kept(target_free, tmp_path, capsys):
+    """A side file of the earlier run that this run reads (a camera file, say) is never removed."""
+    from mirror_fg.io.calibration_files import plan_calibration_outputs
+
+    path = with_point_scale(target_free, true_point_distance(target_free), tmp_path)
+    assert main(["calibrate", str(path), "-o", str(tmp_path / "a.json")]) == 0
+    result = json.loads((tmp_path / "a.json").read_text())
+    side = tmp_path / "r.camera_info.yaml"
+    side.write_text("# camera_info of the camera estimated through the mirrors by mirror-fg\n")
+    outputs = plan_calibration_outputs([path, side], tmp_path / "r.json")
+    outputs.write(result)
+    assert side.exists() and (tmp_path / "r.json").exists()
+    assert not any(str(side) in note for note in outputs.notes)
+
+
+def test_target_free_run_writes_no_identity_ros_files(target_free, tmp_path, capsys):
+    path = with_point_scale(target_free, true_point_distance(target_free), tmp_path)
+    status, out, err = run(["calibrate", path, "-o", tmp_path / "r.json"], capsys)
+    assert status == 0, out + err
+    assert not (tmp_path / "r.ros.yaml").exists() and not (tmp_path / "r.urdf.xml").exists()
+    assert "note: no ROS/URDF files: without a known target" in out
+
+
+def test_calibrate_many_says_the_base_is_the_camera_without_a_target(target_free, tmp_path, capsys):
+    path = with_point_scale(target_free, true_point_distance(target_free), tmp_path)
+    status, out, err = run(["calibrate-many", path, "-o", tmp_path / "fleet"], capsys)
+    assert status == 0, out + err
+    row = next(line for line in out.splitlines() if "data.json" in line)
+    assert "base = camera (no target)" in row and "[0.0, 0.0, 0.0]" not in row, row
+    assert sorted(p.name for p in (tmp_path / "fleet").iterdir()) == ["data.result.json"]
