@@ -318,3 +318,37 @@ def test_calibrate_many_says_the_base_is_the_camera_without_a_target(target_free
     row = next(line for line in out.splitlines() if "data.json" in line)
     assert "base = camera (no target)" in row and "[0.0, 0.0, 0.0]" not in row, row
     assert sorted(p.name for p in (tmp_path / "fleet").iterdir()) == ["data.result.json"]
+
+
+# -- the analytical start of the general model --------------------------------------------------------
+
+
+def _rotation_deg(Ra, Rb) -> float:
+    cos = (np.trace(np.asarray(Ra).T @ np.asarray(Rb)) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+@pytest.mark.parametrize("cameras", [None, "2"], ids=["one-camera", "rig"])
+def test_general_result_carries_the_propagation_start(cameras, tmp_path, capsys):
+    """docs/formats.md promises the analytical solution's T_cam_base in every result: for the general model
+    it is the propagation's start (per camera for a rig), near the truth but not the MLE itself."""
+    argv = ["simulate", "--kind", "mixed", "-o", tmp_path / "d.json"] + (["--cameras", cameras] if cameras else [])
+    assert run(argv, capsys)[0] == 0
+    status, out, err = run(["calibrate", tmp_path / "d.json", "-o", tmp_path / "r.json"], capsys)
+    assert status == 0, out + err
+    result = json.loads((tmp_path / "r.json").read_text())
+    truth = json.loads((tmp_path / "d.truth.json").read_text())
+    analytic = result["analytic"]
+    assert analytic is not None
+    starts = analytic["cameras"] if cameras else {None: analytic}
+    truths = truth["cameras"] if cameras else {None: truth}
+    if cameras:
+        assert list(starts) == list(result["cameras"]) == list(truths)
+        assert starts[next(iter(starts))]["T_cam_base"] == analytic["T_cam_base"]
+    for name, start in starts.items():
+        R, t = np.array(start["T_cam_base"]["R"]), np.array(start["T_cam_base"]["t"])
+        true = truths[name]["T_cam_base"]
+        # a start (noisy PnP and propagation), far closer to the truth than to the identity (~25 deg away)
+        assert _rotation_deg(R, true["R"]) < 10.0 and np.linalg.norm(t - np.array(true["t"])) < 0.1, name
+    final = np.array(result["T_cam_base"]["t"])
+    assert not np.allclose(np.array(analytic["T_cam_base"]["t"]), final, atol=1e-9)  # the start, not the MLE
