@@ -385,3 +385,19 @@ def test_rig_images_relabelled_as_another_camera_are_named(rig, tmp_path, capsys
     line = one_error_line(err)
     assert f"'{moved[0]['id']}'" in line and "mislabelled" in line and "camera 'cam1' has no image there" in line, line
     assert "plane" not in line
+
+
+def test_target_free_rig_says_the_first_cameras_entries_are_no_calibration(target_free, tmp_path, capsys):
+    """Two cameras without a known target (here coincident, seeing the same views): the ROS files are
+    written for the second camera's pose relative to the first, with a note that the first's is the identity."""
+    dataset = json.loads(json.dumps(target_free[0]))
+    dataset["scale"] = {"points": ["P0", "P1"], "distance": true_point_distance(target_free)}
+    camera = dataset.pop("camera")
+    dataset["cameras"] = {"a": camera, "b": camera}
+    dataset["images"] = [dict(image, camera=name, id=f"{image['id']}_{name}")
+                         for image in dataset["images"] for name in ("a", "b")]
+    (tmp_path / "rig.json").write_text(json.dumps(dataset))
+    status, out, err = run(["calibrate", tmp_path / "rig.json", "-o", tmp_path / "r.json"], capsys)
+    assert status == 0, out + err
+    assert (tmp_path / "r.ros.yaml").exists()
+    assert "base frame is camera a's own frame" in out and "identity by definition" in out

@@ -103,11 +103,16 @@ class CalibrationOutputs:
         if self.side_files and result.get("cameras") and all(e.get("camera") for e in result["cameras"].values()):
             self.expect_cameras()
             texts.update(camchain_texts(result, self.result_path))
-        if self.ros and base_is_camera(result) and not result.get("cameras"):
+        if self.ros and base_is_camera(result) and len(result.get("cameras") or {}) < 2:
             self.notes.append("note: no ROS/URDF files: without a known target the base frame is the camera's own "
                               "frame, so there is no camera-to-base transform to publish (the identity is no calibration)")
         elif self.ros:
             texts.update(ros_output_texts(result, self.result_path, self.base_frame, self.camera_frame))
+            if base_is_camera(result):  # a rig without a known target: the others are relative to the first
+                first = next(iter(result["cameras"]))
+                self.notes.append(f"note: without a known target the base frame is camera {first}'s own frame: its "
+                                  "entries in the ROS/URDF files are the identity by definition (no calibration); the "
+                                  "other cameras' are their poses relative to it")
             for name, entry in (result.get("cameras") or {}).items():  # each rig camera that estimated
                 block = entry.get("camera") or {}
                 if block.get("estimated"):
