@@ -10,6 +10,7 @@ from __future__ import annotations
 import difflib
 import math
 import numbers
+import os
 import reprlib
 from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING, Any
@@ -31,6 +32,7 @@ __all__ = [
     "short",
     "clip",
     "short_path",
+    "absolute_path",
     "check_format",
     "check_keys",
     "check_name",
@@ -240,6 +242,13 @@ def clip(text: str, limit: int = NAME_LIMIT) -> str:
     """One line of at most ``limit`` characters."""
     text = " ".join(text.split())
     return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def absolute_path(path: str) -> str:
+    """The absolute ``path`` for a message on one line ("where it looked"): each folder or file name in it
+    quoted up to :data:`NAME_LIMIT` characters, at most the last eight of them."""
+    parts = [clip(part) for part in os.path.abspath(path).split(os.sep)]
+    return os.sep.join(parts) if len(parts) <= 9 else "..." + os.sep + os.sep.join(parts[-8:])
 
 
 def short_path(path: str) -> str:

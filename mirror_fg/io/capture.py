@@ -73,7 +73,7 @@ from mirror_fg.io.fileio import load_structured, open_video, resolve_path, video
 from mirror_fg.io.observations import observations_from
 from mirror_fg.io.target import PointsTarget, TagTarget, Target, pose_from_dict, target_from_dict
 from mirror_fg.io.point_sigma import measurement_sigma
-from mirror_fg.core.values import NAME_LIMIT, check_format, check_keys, finite, is_int, short, short_path, type_name, vector
+from mirror_fg.core.values import absolute_path, check_format, check_keys, finite, is_int, short, short_path, type_name, vector
 
 __all__ = [
     "CAPTURE_FORMAT",
@@ -360,7 +360,7 @@ def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
     points_target = isinstance(cap.target, PointsTarget)
     entries: list[ImageEntry] = []
     seen: dict[str, str] = {}
-    missing: list[str] = []  # every image file not found, named together after the loop
+    missing: list[tuple[str, str]] = []  # every image file not found (where, path), named together after the loop
     for index, e in enumerate(value):
         where = f"{source}: images[{index}]"
         if not isinstance(e, Mapping):
@@ -418,9 +418,9 @@ def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
                 seen[view.id] = view.label
         entries.append(ImageEntry(image_id, path, configs or (), observations, where, label, obs_path,
                                   reflections=reflections, views=views, camera=camera_name))
-    folder = _absolute(base_dir)
+    folder = absolute_path(base_dir)
     if len(missing) == 1:
-        raise DatasetError(f"{missing[0][0]}: image file not found (looked for {_absolute(missing[0][1])}"
+        raise DatasetError(f"{missing[0][0]}: image file not found (looked for {absolute_path(missing[0][1])}"
                            f"; a relative path is taken from the capture's folder, {folder})")
     if missing:
         more = f" and {len(missing) - 4} more" if len(missing) > 4 else ""
@@ -430,12 +430,6 @@ def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
     if entries:
         check_cameras_named(cap.cameras, (entry.camera for entry in entries), source)
     return entries
-
-
-def _absolute(path: str) -> str:
-    """The absolute ``path`` for a message on one line (the end kept where it is very long)."""
-    shown = " ".join(os.path.abspath(path).split())
-    return shown if len(shown) <= 4 * NAME_LIMIT else "..." + shown[-(4 * NAME_LIMIT - 3):]
 
 
 def _video(v: Any, cap: Capture, base_dir: str) -> VideoSpec:

@@ -114,12 +114,12 @@ def screen_target_from_dict(t: Mapping[str, Any], where: str) -> ScreenTarget:
     """The ``screen`` target ``t`` (``where`` starts every message); DatasetError on any problem."""
     check_keys(t, _SCREEN_KEYS, where)
     width_px, height_px = (_count(t, key, 1, where, " (screen pixels)") for key in ("width_px", "height_px"))
-    for key, value in (("width_px", width_px), ("height_px", height_px)):
-        if value > MAX_SCREEN_PX:
-            raise DatasetError(f"{where}: {key} {value} is not a plausible screen (at most {MAX_SCREEN_PX} pixels a side)")
+    for key, pixels in (("width_px", width_px), ("height_px", height_px)):
+        if pixels > MAX_SCREEN_PX:
+            raise DatasetError(f"{where}: {key} {pixels} is not a plausible screen (at most {MAX_SCREEN_PX} pixels a side)")
     width_mm, height_mm = (_length(t, key, where, "millimetres of the active area") for key in ("width_mm", "height_mm"))
-    for key, value in (("width_mm", width_mm), ("height_mm", height_mm)):
-        check_screen_mm(value, f"{where}: {key}")
+    for key, mm in (("width_mm", width_mm), ("height_mm", height_mm)):
+        check_screen_mm(mm, f"{where}: {key}")
     p = t.get("pattern")
     pw = f"{where}: pattern"
     if not isinstance(p, Mapping):

@@ -32,7 +32,7 @@ def check_camera_labels(dataset) -> None:
     groups: dict[tuple, list] = {}
     for image in dataset.images:
         groups.setdefault((image.camera, tuple(image.reflections)), []).append(image)
-    placements_of = {name: set() for name in dataset.cameras}
+    placements_of: dict[str, set[tuple]] = {name: set() for name in dataset.cameras}
     for camera, reflections in groups:
         placements_of[camera].add(reflections)
     for (camera, reflections), images in groups.items():
