@@ -401,3 +401,19 @@ def test_target_free_rig_says_the_first_cameras_entries_are_no_calibration(targe
     assert status == 0, out + err
     assert (tmp_path / "r.ros.yaml").exists()
     assert "base frame is camera a's own frame" in out and "identity by definition" in out
+
+
+def test_rig_images_of_own_placements_relabelled_are_named(rig, tmp_path, capsys):
+    """Relabelled images of placements only their true camera sees: the start fails, and says which images
+    look mislabelled before the plane it could not start."""
+    dataset = json.loads(json.dumps(rig[1]))
+    own = [im for im in dataset["images"] if im["camera"] == "cam1" and (im.get("mirror_configs") or [0])[0] >= 3][:2]
+    assert len(own) == 2
+    for image in own:
+        image["camera"] = "cam0"
+    (tmp_path / "rig.json").write_text(json.dumps(dataset))
+    status, out, err = run(["calibrate", tmp_path / "rig.json", "-o", tmp_path / "r.json"], capsys)
+    assert status == 3, out + err
+    line = one_error_line(err)
+    assert all(f"image '{im['id']}' is the only image of camera 'cam0'" in line for im in own), line
+    assert "name the wrong camera?" in line and line.index("wrong camera") < line.index("plane")

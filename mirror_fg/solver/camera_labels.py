@@ -14,7 +14,7 @@ import numpy as np
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.values import clip
 
-__all__ = ["check_camera_labels", "LABEL_CONFLICT_SIGMAS"]
+__all__ = ["check_camera_labels", "lone_image_hint", "LABEL_CONFLICT_SIGMAS"]
 
 #: Two images of one camera and one placement sequence disagree when the RMS distance between their
 #: pixels of the same points exceeds this many noise sigmas (the difference of two measurements has
@@ -64,3 +64,30 @@ def _refuse(dataset, camera: str, reflections: tuple, first, second, rms: float,
         f"{dataset.source}: images {clip(first.id, 40)!r} and {clip(second.id, 40)!r} look mislabelled: both say camera "
         f"{clip(camera, 30)!r} through {where}, yet see the same points {rms:.3g} px apart (RMS; noise allows a few "
         f"px): one of them names the wrong camera (or placements){hint}")
+
+
+def lone_image_hint(dataset) -> str:
+    """Where a rig cannot be started: the images that look as if they name the wrong camera, as the start
+    of a message ("" where none does). An image is suspect when it is its camera's only image through a
+    placement that another camera sees in two or more images (a placement is one mirror plane: the
+    other camera's images of it were taken with it; this one alone cannot place it)."""
+    if dataset.cameras is None or len(dataset.cameras) < 2:
+        return ""
+    seen: dict[tuple, dict[str, list]] = {}
+    for image in dataset.images:
+        for placement in set(image.reflections):
+            seen.setdefault(placement, {}).setdefault(image.camera, []).append(image)
+    suspects: dict[str, tuple] = {}
+    for (l, m), by_camera in seen.items():
+        for camera, images in by_camera.items():
+            others = {name: len(group) for name, group in by_camera.items() if name != camera and len(group) >= 2}
+            if len(images) == 1 and others:
+                other = max(others, key=lambda name: others[name])
+                suspects.setdefault(images[0].id, (camera, l, m, other, others[other]))
+    if not suspects:
+        return ""
+    parts = [f"image {clip(image_id, 40)!r} is the only image of camera {clip(camera, 30)!r} through mirror {l} "
+             f"placement {m}, which camera {clip(other, 30)!r} sees in {count}"
+             for image_id, (camera, l, m, other, count) in list(suspects.items())[:3]]
+    more = f" (and {len(suspects) - 3} more)" if len(suspects) > 3 else ""
+    return "; ".join(parts) + more + ": do these images name the wrong camera?"

@@ -14,6 +14,7 @@ import numpy as np
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.analytic import AnalyticSolution
+from mirror_fg.solver.camera_labels import lone_image_hint
 from mirror_fg.solver.calibration import POOR_FIT_RATIO, Calibration, CameraPose, EstimatedCamera, Exclusion
 from mirror_fg.solver.consensus import screen, without
 from mirror_fg.solver.marginals import unconstrained_as_solve_error, unconstrained_message
@@ -134,7 +135,9 @@ def _start(problem: ViewProblem, initial, tree_first: bool = False) -> ViewEstim
         known = propagate(problem.views, dataset.fiducials, problem.cameras, problem.fixed, tree_start_for(dataset),
                           dataset.scale, tree_first)
     except Unsolvable as error:
-        raise Unsolvable(f"{dataset.source}: {error}") from None
+        labels = lone_image_hint(dataset)  # a rig image naming the wrong camera leaves its plane unsolvable
+        raise Unsolvable(f"{dataset.source}: {labels} (the start fails: {error})" if labels else
+                         f"{dataset.source}: {error}") from None
     return problem.estimate_from(known)
 
 
