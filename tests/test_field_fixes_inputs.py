@@ -130,7 +130,8 @@ def test_mirror_absurdly_far_is_refused(target_free, tmp_path, capsys, monkeypat
     (["--screen", "1920x1080", "--diagonal", "1e-9"], "--diagonal 1e-09 in"),
     (["--screen", "1920x1080", "--screen-mm", "0.527x0.296"], "0.527 m = 527 mm"),
     (["--screen", "1920x1080", "--screen-mm", "527000x296000"], "at most 10000 mm"),
-], ids=["8-GB-screen", "nanometre-diagonal", "metres-as-mm", "micrometres-as-mm"])
+    (["--screen", "1920x1080", "--screen-mm", "527x296", "--square-mm", "1e300"], "--square-mm 1e+300 is larger than"),
+], ids=["8-GB-screen", "nanometre-diagonal", "metres-as-mm", "micrometres-as-mm", "square-larger-than-screen"])
 def test_pattern_refuses_implausible_sizes_before_drawing(argv, words, tmp_path, capsys):
     status, out, err = run(["pattern", *argv, "-o", tmp_path / "p.png"], capsys)
     assert status == 2, out + err

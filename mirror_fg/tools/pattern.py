@@ -76,6 +76,9 @@ def design_pattern(width_px: int, height_px: int, width_mm: float, height_mm: fl
     want_mm = min(SQUARE_MM, min(width_mm, height_mm) / FILL_SQUARES) if square_mm is None else square_mm
     if not (math.isfinite(want_mm) and want_mm > 0):
         raise DatasetError(f"pattern: the square must be more than 0 mm, got {want_mm:g} mm")
+    if square_mm is not None and not square_mm <= min(width_mm, height_mm):
+        raise DatasetError(f"pattern: --square-mm {square_mm:.6g} is larger than the screen ({width_mm:.6g} x "
+                           f"{height_mm:.6g} mm): the square is in millimetres on the screen")
     px_per_mm = min(width_px / width_mm, height_px / height_mm)
     import cv2
 
