@@ -250,6 +250,16 @@ def test_gaze_file_beside_the_result_gives_screen_pixels_in_camera_millimetres(s
         np.testing.assert_allclose(mm, 1000 * screen.camera_point(pixel), atol=1e-9)
 
 
+def test_screen_from_result_takes_the_result_file_too(scene, calibrated):
+    """A path (str or Path) is read as the result@1 file; anything but a path or a dict is refused in words."""
+    for path in (scene["folder"] / "result.json", str(scene["folder"] / "result.json")):
+        screen = Screen.from_result(path)
+        np.testing.assert_allclose(screen.T_cam_screen.t, Screen.from_result(calibrated).T_cam_screen.t, atol=0)
+        assert (screen.width_px, screen.height_px) == SCREEN_PX
+    with pytest.raises(TypeError, match="a result@1 dictionary or the path of its file, got int"):
+        Screen.from_result(3)
+
+
 # --- gaze rays -----------------------------------------------------------------------------------------
 
 

@@ -226,6 +226,8 @@ def cmd_calibrate(args, out: _Printer) -> int:
     if calibration.timings:
         out.detail("stage timings: " + ", ".join(f"{stage} {seconds:.3f} s" for stage, seconds in calibration.timings.items()))
     out.info("wrote " + ", ".join(str(p) for p in written))
+    for note in outputs.notes:  # side files left out or removed (io.calibration_files)
+        out.info(note)
     record_document(registry, result, args.input, args.output, out)
     return EXIT_OK
 
@@ -273,13 +275,14 @@ def cmd_calibrate_many(args, out: _Printer) -> int:
     failed = [row for row in rows if row["status"] != "ok"]
     out.info(f"{len(rows) - len(failed)} of {len(rows)} calibrated into {args.output}")
     out.info("  camera position: 3-sigma of T_base_cam's translation along the base axes, mm; RMS: rms_px")
-    out.info(f"  {'input':40s} {'status':7s} {'camera position':24s} {'RMS':>7s}  result or reason")
+    out.info(f"  {'input':40s} {'status':7s} {'camera position':25s} {'RMS':>7s}  result or reason")
     for row in rows:
         if row["status"] == "ok":
-            sigma = "[" + ", ".join(f"{x:.1f}" for x in row["sigma3_base_cam"]["position_mm"]) + "]"
-            out.info(f"  {row['input'][-40:]:40s} {'ok':7s} {sigma:24s} {row['rms']:7.3f}  {row['result']}")
+            sigma = ("base = camera (no target)" if row.get("base_is_camera") else
+                     "[" + ", ".join(f"{x:.1f}" for x in row["sigma3_base_cam"]["position_mm"]) + "]")
+            out.info(f"  {row['input'][-40:]:40s} {'ok':7s} {sigma:25s} {row['rms']:7.3f}  {row['result']}")
         else:
-            out.info(f"  {row['input'][-40:]:40s} {'FAILED':7s} {'':24s} {'':>7s}  {_one_line(row['reason'])}")
+            out.info(f"  {row['input'][-40:]:40s} {'FAILED':7s} {'':25s} {'':>7s}  {_one_line(row['reason'])}")
     if failed:
         _error_line(f"mirror-fg: error: {len(failed)} of {len(rows)} input(s) failed (listed above)")
         return 2

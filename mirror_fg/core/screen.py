@@ -13,6 +13,7 @@ screen moves by ``dp = -[R s]x dtheta + dt``; a ray's hit by the Jacobian in :me
 """
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -58,8 +59,17 @@ class Screen:
     covariance: np.ndarray | None = None
 
     @classmethod
-    def from_result(cls, result: Mapping[str, Any]) -> Screen:
-        """From a result@1 dictionary of a screen capture (its ``screen`` block and ``T_cam_base``)."""
+    def from_result(cls, result: Mapping[str, Any] | str | os.PathLike[str]) -> Screen:
+        """From a result@1 of a screen capture (its ``screen`` block and ``T_cam_base``): its dictionary, or
+        the path of its file (read and validated by ``mirror_fg.io.result.load_result``). TypeError for
+        anything else, ValueError (DatasetError for a file) for a result without a screen."""
+        if isinstance(result, (str, os.PathLike)):
+            from mirror_fg.io.result import load_result  # the format's one reader; core needs no io otherwise
+
+            result = load_result(result)
+        if not isinstance(result, Mapping):
+            raise TypeError(f"Screen.from_result takes a result@1 dictionary or the path of its file, got "
+                            f"{type(result).__name__}")
         block = result.get("screen")
         if not isinstance(block, Mapping):
             raise ValueError("the result has no 'screen' block (it is not from a capture with a screen target)")

@@ -10,6 +10,7 @@ from __future__ import annotations
 import difflib
 import math
 import numbers
+import os
 import reprlib
 from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING, Any
@@ -31,6 +32,7 @@ __all__ = [
     "short",
     "clip",
     "short_path",
+    "absolute_path",
     "check_format",
     "check_keys",
     "check_name",
@@ -41,6 +43,7 @@ __all__ = [
     "check_extent",
     "MAX_TARGET_EXTENT_M",
     "MAX_FEATURE_SIZE_M",
+    "MIN_LENGTH_M",
     "NAME_LIMIT",
 ]
 
@@ -56,6 +59,9 @@ MAX_INDEX = 2**31 - 1
 MAX_TARGET_EXTENT_M = 5.0
 #: Largest chessboard square, marker or tag edge (metres) accepted, for the same reason.
 MAX_FEATURE_SIZE_M = 1.0
+#: Smallest length (metres) a user may type for a size or distance: nothing a camera resolves through a
+#: mirror is shorter than a tenth of a millimetre, and a length of 1e-100 m leaves only NaN downstream.
+MIN_LENGTH_M = 1e-4
 
 
 # --------------------------------------------------------------------------------------------------
@@ -135,12 +141,16 @@ def named_vectors(value: Mapping[Any, Any], n: int, where: str, what: str) -> di
     return out
 
 
-def check_size(size_m: float, limit_m: float, where: str, quantity: str, noun: str) -> None:
+def check_size(size_m: float, limit_m: float, where: str, quantity: str, noun: str,
+               smallest_m: float | None = MIN_LENGTH_M) -> None:
     """Refuse a size (metres) above ``limit_m`` with one line naming the unit: most often millimetres
-    typed into a metres field (``square: 27.5``)."""
+    typed into a metres field (``square: 27.5``); and one below ``smallest_m`` (no camera resolves it)."""
     if size_m > limit_m:
         raise DatasetError(f"{where}: {quantity} {size_m:g} m is not a plausible {noun} (at most {limit_m:g} m); "
                            f"sizes are in metres ({size_m:g} mm = {size_m / 1000:g})")
+    if smallest_m is not None and size_m < smallest_m:
+        raise DatasetError(f"{where}: {quantity} {size_m:g} m is not a plausible {noun} (at least {smallest_m:g} m); "
+                           "sizes are in metres")
 
 
 def check_extent(points: Iterable[np.ndarray], where: str, noun: str) -> None:
@@ -148,7 +158,7 @@ def check_extent(points: Iterable[np.ndarray], where: str, noun: str) -> None:
     xyz = np.array(list(points), dtype=float).reshape(-1, 3)
     if len(xyz):
         extent = float(np.linalg.norm(xyz.max(axis=0) - xyz.min(axis=0)))
-        check_size(extent, MAX_TARGET_EXTENT_M, where, "extent", noun)
+        check_size(extent, MAX_TARGET_EXTENT_M, where, "extent", noun, smallest_m=None)  # collinear: checked apart
 
 
 # --------------------------------------------------------------------------------------------------
@@ -232,6 +242,13 @@ def clip(text: str, limit: int = NAME_LIMIT) -> str:
     """One line of at most ``limit`` characters."""
     text = " ".join(text.split())
     return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def absolute_path(path: str) -> str:
+    """The absolute ``path`` for a message on one line ("where it looked"): each folder or file name in it
+    quoted up to :data:`NAME_LIMIT` characters, at most the last eight of them."""
+    parts = [clip(part) for part in os.path.abspath(path).split(os.sep)]
+    return os.sep.join(parts) if len(parts) <= 9 else "..." + os.sep + os.sep.join(parts[-8:])
 
 
 def short_path(path: str) -> str:

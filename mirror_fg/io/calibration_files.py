@@ -13,11 +13,14 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.gaze_error import DEFAULT_VIEWING_DISTANCE_M
 from mirror_fg.io.camchain import camchain_paths, camchain_texts
-from mirror_fg.io.output import OutputPlan
-from mirror_fg.io.result import estimated_camera, result_text
+from mirror_fg.io.fileio import load_structured
+from mirror_fg.io.output import OutputPlan, same_file
+from mirror_fg.io.result import RESULT_FORMAT, estimated_camera, result_text
 from mirror_fg.io.screen_result import screen_block, screen_xml_path, screen_xml_text
 from mirror_fg.io.ros import (
     DEFAULT_BASE_FRAME,
@@ -31,10 +34,20 @@ from mirror_fg.io.ros import (
     ros_output_texts,
 )
 
-__all__ = ["CalibrationOutputs", "plan_calibration_outputs"]
+__all__ = ["CalibrationOutputs", "plan_calibration_outputs", "base_is_camera"]
 
 #: What the side files mirror-fg writes carry in their first lines (so a stranger's file is never replaced).
 SIDE_FILE_MARKER = b"mirror-fg"
+
+
+def base_is_camera(result: Mapping[str, Any]) -> bool:
+    """Whether the result is of data without a known target (``fiducials: {}``, docs/formats.md): the base
+    frame is then the (first) camera's own frame, its ``T_cam_base`` exactly the identity with an exactly
+    zero covariance (not estimated), so there is no camera-to-base calibration to publish for it."""
+    cov, T = result.get("covariance_cam_base"), result["T_cam_base"]
+    return bool(cov is not None and not np.any(np.asarray(cov, dtype=float))
+                and np.array_equal(np.asarray(T["R"], dtype=float), np.eye(3))
+                and not np.any(np.asarray(T["t"], dtype=float)))
 
 
 class CalibrationOutputs:
@@ -49,6 +62,10 @@ class CalibrationOutputs:
         self.screen_xml: str | None = None
         self.viewing_distance_m = DEFAULT_VIEWING_DISTANCE_M  # the eye of the screen block's gaze error
         self.camchain: tuple[str, str] | None = None
+        #: What :meth:`write` left out or removed, one line each for the user.
+        self.notes: list[str] = []
+        #: Side files an earlier run may have written under this name (:func:`_earlier_side_files`).
+        self.earlier_side_files: list[Path] = []
 
     def expect_cameras(self) -> None:
         """The dataset has several cameras: plan (check now, before the solve) ``<stem>.camchain.yaml`` and
@@ -88,8 +105,16 @@ class CalibrationOutputs:
         if self.side_files and result.get("cameras") and all(e.get("camera") for e in result["cameras"].values()):
             self.expect_cameras()
             texts.update(camchain_texts(result, self.result_path))
-        if self.ros:
+        if self.ros and base_is_camera(result) and len(result.get("cameras") or {}) < 2:
+            self.notes.append("note: no ROS/URDF files: without a known target the base frame is the camera's own "
+                              "frame, so there is no camera-to-base transform to publish (the identity is no calibration)")
+        elif self.ros:
             texts.update(ros_output_texts(result, self.result_path, self.base_frame, self.camera_frame))
+            if base_is_camera(result):  # a rig without a known target: the others are relative to the first
+                first = next(iter(result["cameras"]))
+                self.notes.append(f"note: without a known target the base frame is camera {first}'s own frame: its "
+                                  "entries in the ROS/URDF files are the identity by definition (no calibration); the "
+                                  "other cameras' are their poses relative to it")
             for name, entry in (result.get("cameras") or {}).items():  # each rig camera that estimated
                 block = entry.get("camera") or {}
                 if block.get("estimated"):
@@ -101,7 +126,65 @@ class CalibrationOutputs:
             if camera is not None and self.camera_info is not None and not result.get("cameras"):
                 texts[os.fspath(self.camera_info)] = camera_info_text(
                     estimated_camera(result, os.fspath(self.result_path)), self.camera_frame, camera.get("sigma3"))
-        return self.plan.commit(texts)
+        written = self.plan.commit(texts)
+        if self.side_files:
+            self._remove_stale(texts)
+        return written
+
+    def _remove_stale(self, texts: Mapping[str, Any]) -> None:
+        """Remove the side files an earlier mirror-fg run wrote under this result's name that this run did not
+        write (they would contradict the new result: a rig's camchain beside a one-camera result, the
+        camera_info of intrinsics no longer estimated); a file there that mirror-fg did not write is left, with
+        a warning naming it. Inputs of this run are never touched."""
+        written = {os.path.realpath(p) for p in texts}
+        for path in dict.fromkeys(os.fspath(p) for p in self.earlier_side_files):
+            if os.path.realpath(path) in written or not os.path.lexists(path):
+                continue
+            if any(same_file(path, source) for source in self.plan.inputs):
+                continue
+            if os.path.islink(path) or not os.path.isfile(path) or SIDE_FILE_MARKER not in _head(path):
+                self.notes.append(f"warning: {path} is not from this run (it was not written by mirror-fg, or is not "
+                                  "a regular file): left as it is; it does not belong to the new result")
+                continue
+            try:
+                os.remove(path)
+            except OSError as error:
+                self.notes.append(f"warning: {path} is from an earlier run under this name and contradicts the new "
+                                  f"result, but could not be removed: {error.strerror or error}")
+                continue
+            self.notes.append(f"removed {path}: an earlier run's side file under this name that the new result "
+                              "does not have")
+
+
+def _head(path: str, size: int = 512) -> bytes:
+    try:
+        with open(path, "rb") as handle:
+            return handle.read(size)
+    except OSError:
+        return b""
+
+
+def _earlier_side_files(result_path: str) -> list[Path]:
+    """The side files a mirror-fg run may have written beside ``result_path``: the fixed names (ROS YAML,
+    URDF, camera_info, camchain and its standard deviations, screen XML) and, where the result there now
+    names its cameras, each rig camera's camera_info (read before this run replaces the result)."""
+    paths = [*ros_output_paths(result_path), camera_info_path(result_path), *camchain_paths(result_path),
+             Path(screen_xml_path(result_path))]
+    if os.path.isfile(result_path) and os.path.getsize(result_path) <= _EARLIER_RESULT_BYTES:
+        try:
+            earlier = load_structured(result_path)
+        except DatasetError:
+            earlier = None
+        cameras = earlier.get("cameras") if isinstance(earlier, Mapping) and earlier.get("format") == RESULT_FORMAT else None
+        if isinstance(cameras, Mapping):
+            for name in cameras:
+                if isinstance(name, str) and name:
+                    paths.append(rig_camera_info_path(result_path, name))
+    return paths
+
+
+#: An earlier result larger than this is not read for its cameras' names (a result of a rig is kilobytes).
+_EARLIER_RESULT_BYTES = 64 * 1024 * 1024
 
 
 def plan_calibration_outputs(
@@ -126,4 +209,7 @@ def plan_calibration_outputs(
         yaml_path, urdf_path = ros_output_paths(target)
         plan.add(yaml_path, "ROS YAML", marker=SIDE_FILE_MARKER)
         plan.add(urdf_path, "URDF", marker=SIDE_FILE_MARKER)
-    return CalibrationOutputs(plan, target, ros, base_frame, camera_frame, side_files=not plan.is_device(target))
+    outputs = CalibrationOutputs(plan, target, ros, base_frame, camera_frame, side_files=not plan.is_device(target))
+    if outputs.side_files:
+        outputs.earlier_side_files = _earlier_side_files(target)
+    return outputs

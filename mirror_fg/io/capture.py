@@ -69,11 +69,12 @@ from mirror_fg.io.capture_views import (
     EACH, Config, Placement, ViewEntry, camera_entry, image_camera, image_placements, image_views, is_mirrored,
     rig_cameras,
 )
+from mirror_fg.io.dataset_fields import check_cameras_named
 from mirror_fg.io.fileio import load_structured, open_video, resolve_path, video_frame_count
 from mirror_fg.io.observations import observations_from
 from mirror_fg.io.target import PointsTarget, TagTarget, Target, pose_from_dict, target_from_dict
 from mirror_fg.io.point_sigma import measurement_sigma
-from mirror_fg.core.values import check_format, check_keys, finite, is_int, short, short_path, type_name, vector
+from mirror_fg.core.values import absolute_path, check_format, check_keys, finite, is_int, short, short_path, type_name, vector
 
 __all__ = [
     "CAPTURE_FORMAT",
@@ -366,7 +367,7 @@ def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
     points_target = isinstance(cap.target, PointsTarget)
     entries: list[ImageEntry] = []
     seen: dict[str, str] = {}
-    missing: list[str] = []  # every image file not found, named together after the loop
+    missing: list[tuple[str, str]] = []  # every image file not found (where, path), named together after the loop
     for index, e in enumerate(value):
         where = f"{source}: images[{index}]"
         if not isinstance(e, Mapping):
@@ -380,7 +381,7 @@ def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
             where = f"{source}: images[{index}] ({short_path(file)})"
             path = resolve_path(file, base_dir)
             if not os.path.isfile(path):
-                missing.append(where)
+                missing.append((where, path))
         elif not points_target:
             raise DatasetError(f"{where}: missing 'file' (the image)")
         camera_name = image_camera(e, cap.cameras, where)
@@ -424,12 +425,17 @@ def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
                 seen[view.id] = view.label
         entries.append(ImageEntry(image_id, path, configs or (), observations, where, label, obs_path,
                                   reflections=reflections, views=views, camera=camera_name))
+    folder = absolute_path(base_dir)
     if len(missing) == 1:
-        raise DatasetError(f"{missing[0]}: image file not found")
+        raise DatasetError(f"{missing[0][0]}: image file not found (looked for {absolute_path(missing[0][1])}"
+                           f"; a relative path is taken from the capture's folder, {folder})")
     if missing:
         more = f" and {len(missing) - 4} more" if len(missing) > 4 else ""
-        named = ", ".join(m.removeprefix(f"{source}: ") for m in missing[:4])
-        raise DatasetError(f"{source}: {len(missing)} image files not found: {named}{more}")
+        named = ", ".join(m.removeprefix(f"{source}: ") for m, _ in missing[:4])
+        raise DatasetError(f"{source}: {len(missing)} image files not found: {named}{more} (looked in {folder}: a "
+                           "relative path is taken from the capture's folder)")
+    if entries:
+        check_cameras_named(cap.cameras, (entry.camera for entry in entries), source)
     return entries
 
 

@@ -13,10 +13,10 @@ from mirror_fg.core.errors import DatasetError
 import numpy as np
 
 from mirror_fg.core.values import (
-    MAX_INDEX, check_extent, check_keys, clip, coordinates, is_index, is_int, is_number, short, type_name,
+    MAX_INDEX, MAX_TARGET_EXTENT_M, MIN_LENGTH_M, check_extent, check_keys, clip, coordinates, is_index, is_int, is_number, short, type_name,
 )
 
-__all__ = ["fiducials_from_dict", "check_scale", "image_camera", "named_camera", "dataset_summary", "names_text", "Placement", "check_reflections", "tree_configs", "cameras_from_dict", "scale_from_dict",
+__all__ = ["fiducials_from_dict", "check_scale", "image_camera", "named_camera", "check_cameras_named", "dataset_summary", "names_text", "Placement", "check_reflections", "tree_configs", "cameras_from_dict", "scale_from_dict",
            "scale_to_dict", "reflections_to_list"]
 
 #: Fiducials all within this fraction of their extent from one line are collinear.
@@ -100,15 +100,18 @@ def cameras_from_dict(value: Any, source: str) -> dict[str, Camera]:
 
 def scale_from_dict(value: Any, source: str) -> tuple[float, Placement | None, tuple[str, str] | None]:
     """``scale`` as ``(distance, placement, points)``: ``{mirror, config, distance}`` (the length of that
-    placement's mirror vector) or ``{points: [a, b], distance}``, distance metres > 0."""
+    placement's mirror vector) or ``{points: [a, b], distance}``, distance metres from
+    :data:`MIN_LENGTH_M` to :data:`MAX_TARGET_EXTENT_M` (a mirror or two points the camera sees are within a
+    few metres of it: a distance typed in millimetres or centimetres would put them hundreds of metres away)."""
     where = f"{source}: scale"
     if not isinstance(value, Mapping):
         raise DatasetError(f"{where}: expected {{mirror, config, distance}} or {{points: [a, b], distance}}, "
                            f"got {short(value)}")
     check_keys(value, ("mirror", "config", "points", "distance"), where)
     distance: Any = value.get("distance")
-    if not is_number(distance) or not 0.0 < float(distance) <= 100.0:
-        raise DatasetError(f"{where}: distance must be a length in metres (> 0, at most 100), got {short(distance)}")
+    if not is_number(distance) or not MIN_LENGTH_M <= float(distance) <= MAX_TARGET_EXTENT_M:
+        raise DatasetError(f"{where}: distance must be a length in metres (from {MIN_LENGTH_M:g} to "
+                           f"{MAX_TARGET_EXTENT_M:g}), got {short(distance)}{_unit_hint(distance)}")
     if "points" in value:
         if "mirror" in value or "config" in value:
             raise DatasetError(f"{where}: give either points or mirror and config, not both")
@@ -123,6 +126,14 @@ def scale_from_dict(value: Any, source: str) -> tuple[float, Placement | None, t
         raise DatasetError(f"{where}: give mirror (from 1) and config (from 0) of the placement whose mirror "
                            f"distance is known, or points; got mirror {short(mirror)}, config {short(config)}")
     return float(distance), (int(mirror), int(config)), None
+
+
+def _unit_hint(value: Any) -> str:
+    """``" (millimetres? 21.9 mm = 0.0219 m)"`` for a length too large to be metres, else ``""``."""
+    if not is_number(value) or not MAX_TARGET_EXTENT_M < float(value) < 1e7:
+        return ""
+    return (f": lengths are in metres ({float(value):g} mm = {float(value) / 1000:g} m, "
+            f"{float(value):g} cm = {float(value) / 100:g} m)")
 
 
 def scale_to_dict(distance: float, placement: Placement | None, points: tuple[str, str] | None) -> dict[str, Any]:
@@ -197,6 +208,20 @@ def named_camera(name: Any, cameras: Mapping[str, Any] | None, where: str, what:
     if not isinstance(name, str) or name not in cameras:
         raise DatasetError(f"{where}: camera {short(name)} is not declared under 'cameras' ({declared})")
     return name
+
+
+def check_cameras_named(cameras: Mapping[str, Any] | None, named: Any, source: str, why: str = "") -> None:
+    """Refuse a camera declared under ``cameras`` that no image names (``named``: the images' camera names):
+    it has no data, so its pose cannot be estimated. ``why`` adds where its images may have gone."""
+    if cameras is None:
+        return
+    used = set(named)
+    unused = [name for name in cameras if name not in used]
+    if unused:
+        which = ", ".join(repr(clip(n, 30)) for n in unused[:4]) + (" ..." if len(unused) > 4 else "")
+        camera = "camera" if len(unused) == 1 else "cameras"
+        raise DatasetError(f"{source}: {camera} {which} declared under 'cameras' but no image names it{why}: "
+                           "remove it from 'cameras' or add its images")
 
 
 def image_camera(ds: Any, name: Any, prefix: str) -> Camera | None:

@@ -45,6 +45,8 @@ __all__ = [
     "INT_LIMIT",
     "read_input",
     "read_text",
+    "NotTextError",
+    "media_kind",
     "parse_json",
     "parse_yaml",
     "parse_structured",
@@ -101,14 +103,41 @@ def _read_bounded(handle: Any, source: str, limit: int) -> bytes:
     return data
 
 
+class NotTextError(DatasetError):
+    """A file read as text (JSON / YAML) that is not: ``kind`` names it where it is a photograph or a
+    video ("a JPEG image"), else None. Exit 2."""
+
+    def __init__(self, message: str, kind: str | None = None):
+        super().__init__(message)
+        self.kind = kind
+
+
+#: The first bytes of the image and video files a user may give where a text file is wanted.
+_MEDIA_MAGIC = (
+    (0, b"\xff\xd8\xff", "a JPEG image"), (0, b"\x89PNG\r\n\x1a\n", "a PNG image"), (0, b"GIF8", "a GIF image"),
+    (0, b"BM", "a BMP image"), (0, b"II*\x00", "a TIFF image"), (0, b"MM\x00*", "a TIFF image"),
+    (8, b"WEBP", "a WebP image"), (8, b"AVI ", "an AVI video"), (4, b"ftyp", "a video (MP4/MOV) or HEIC photo"),
+    (0, b"\x1a\x45\xdf\xa3", "a video (MKV/WebM)"),
+)
+
+
+def media_kind(raw: bytes) -> str | None:
+    """"a JPEG image", "a video (MP4/MOV) ..." where ``raw`` starts as such a file does, else None."""
+    return next((kind for offset, magic, kind in _MEDIA_MAGIC if raw[offset:offset + len(magic)] == magic), None)
+
+
 def read_text(path: str | os.PathLike[str], limit: int = MAX_INPUT_BYTES) -> str:
-    """The UTF-8 text of ``path`` (a BOM is dropped), read once; DatasetError naming the file otherwise."""
+    """The UTF-8 text of ``path`` (a BOM is dropped), read once; DatasetError naming the file otherwise
+    (:class:`NotTextError`, saying so where it is a photograph or a video)."""
     source = os.fspath(path)
     raw = read_input(source, limit)
     try:
         return raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
-        raise DatasetError(f"{source}: not UTF-8 text (byte {exc.start})") from None
+        kind = media_kind(raw)
+        if kind is not None:
+            raise NotTextError(f"{source}: is {kind}, not a text file (JSON or YAML)", kind) from None
+        raise NotTextError(f"{source}: not UTF-8 text (byte {exc.start})") from None
 
 
 # A JSON string, written so that matching it needs no memory per character: the old form

@@ -122,6 +122,18 @@ class CalibrationLike(Protocol):
     def residual_norms(self) -> np.ndarray: ...
 
 
+def analytic_entry(analytic: Any) -> dict[str, Any] | None:
+    """The result's ``analytic``: the analytical solution's (or the propagation's start's) ``T_cam_base``, and
+    with several cameras every camera's under ``cameras`` (docs/formats.md); None without one."""
+    if analytic is None:
+        return None
+    entry: dict[str, Any] = {"T_cam_base": transform_entry(analytic.R_cam_base, analytic.t_cam_base)}
+    poses = getattr(analytic, "camera_poses", None)
+    if poses:
+        entry["cameras"] = {name: {"T_cam_base": transform_entry(R, t)} for name, (R, t) in poses.items()}
+    return entry
+
+
 def result_dict(calibration: CalibrationLike) -> dict:
     """The ``mirror-fg/result@1`` dictionary of ``calibration`` (docs/formats.md)."""
 
@@ -141,9 +153,7 @@ def result_dict(calibration: CalibrationLike) -> dict:
         "covariance_base_cam": None if P_bc is None else P_bc.tolist(),
         "sigma3_base_cam": sigma3_pose(P_bc),
         "covariance_base_cam_ros": None if P_bc is None else ros_pose_covariance(P_bc).tolist(),
-        "analytic": None
-        if c.analytic is None
-        else {"T_cam_base": transform(c.analytic.R_cam_base, c.analytic.t_cam_base)},
+        "analytic": analytic_entry(c.analytic),
         "mirrors": [
             {
                 "mirror": l,

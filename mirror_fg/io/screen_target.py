@@ -44,7 +44,16 @@ from mirror_fg.io.target import (
     tag_dictionary,
 )
 
-__all__ = ["ScreenTarget", "screen_target_from_dict", "PATTERN_KINDS"]
+__all__ = ["ScreenTarget", "screen_target_from_dict", "PATTERN_KINDS", "check_screen_mm", "MAX_SCREEN_PX",
+           "MIN_SCREEN_MM", "MAX_SCREEN_MM"]
+
+#: Most pixels on a side of a screen accepted (16K displays have 15360): a larger count is a typing
+#: mistake, and ``mirror-fg pattern`` would allocate an image of that size.
+MAX_SCREEN_PX = 16384
+#: Smallest and largest side of a screen's active area accepted (millimetres): a watch face to a video
+#: wall. ``0.6`` is a size typed in metres; ``600000`` one typed in micrometres.
+MIN_SCREEN_MM = 5.0
+MAX_SCREEN_MM = 10000.0
 
 PATTERN_KINDS = ("charuco", "chessboard", "apriltag")
 _SCREEN_KEYS = ("kind", "width_px", "height_px", "width_mm", "height_mm", "pattern")
@@ -105,7 +114,12 @@ def screen_target_from_dict(t: Mapping[str, Any], where: str) -> ScreenTarget:
     """The ``screen`` target ``t`` (``where`` starts every message); DatasetError on any problem."""
     check_keys(t, _SCREEN_KEYS, where)
     width_px, height_px = (_count(t, key, 1, where, " (screen pixels)") for key in ("width_px", "height_px"))
+    for key, pixels in (("width_px", width_px), ("height_px", height_px)):
+        if pixels > MAX_SCREEN_PX:
+            raise DatasetError(f"{where}: {key} {pixels} is not a plausible screen (at most {MAX_SCREEN_PX} pixels a side)")
     width_mm, height_mm = (_length(t, key, where, "millimetres of the active area") for key in ("width_mm", "height_mm"))
+    for key, mm in (("width_mm", width_mm), ("height_mm", height_mm)):
+        check_screen_mm(mm, f"{where}: {key}")
     p = t.get("pattern")
     pw = f"{where}: pattern"
     if not isinstance(p, Mapping):
@@ -158,6 +172,18 @@ def screen_target_from_dict(t: Mapping[str, Any], where: str) -> ScreenTarget:
                           (float(offset[0]), float(offset[1])), y_sign)
     _check_fits(screen, pw)
     return screen
+
+
+def check_screen_mm(value: float, where: str) -> None:
+    """Refuse a screen side (millimetres) outside :data:`MIN_SCREEN_MM` .. :data:`MAX_SCREEN_MM`: below it
+    the size was most likely typed in metres (``0.6`` for 600 mm), above it in micrometres or by mistake."""
+    if value < MIN_SCREEN_MM:
+        metres = (f" ({value:g} m = {value * 1000:g} mm)" if value * 1000 >= MIN_SCREEN_MM else "")
+        raise DatasetError(f"{where}: {value:g} mm is not a plausible screen side (at least {MIN_SCREEN_MM:g} mm); "
+                           f"screen sizes are in millimetres{metres}")
+    if value > MAX_SCREEN_MM:
+        raise DatasetError(f"{where}: {value:g} mm is not a plausible screen side (at most {MAX_SCREEN_MM:g} mm, "
+                           f"{MAX_SCREEN_MM / 1000:g} m); screen sizes are in millimetres")
 
 
 def _origin(value: Any, where: str) -> np.ndarray:

@@ -50,6 +50,8 @@ class AnalyticSolution:
     ``(l, m) -> v`` (camera frame, metres). ``points``: reconstruction points, base frame, metres.
     ``image_transforms``: the PnP ``(A_Nv, b_Nv)`` chosen for each image that had one.
     ``alternatives``: the root's runner-up hypotheses (other P3P choices), best first, without points.
+    ``camera_poses``: with several cameras, every camera's start ``name -> (R_cam_base, t_cam_base)``
+    (the first is ``R_cam_base``, ``t_cam_base``); empty for one camera.
     """
 
     R_cam_base: np.ndarray
@@ -58,6 +60,7 @@ class AnalyticSolution:
     points: dict[str, np.ndarray] = field(default_factory=dict)
     image_transforms: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     alternatives: list[AnalyticSolution] = field(default_factory=list, repr=False)
+    camera_poses: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
     def __repr__(self) -> str:
         """One bounded line (a dataclass repr printed every image's PnP transform: 54,000 characters)."""

@@ -19,6 +19,7 @@ from typing import Any
 
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.dataset import Dataset, dataset_from_dict
+from mirror_fg.solver.camera_labels import check_camera_labels
 from mirror_fg.solver.calibration import Calibration
 from mirror_fg.solver.graph import InitialEstimate
 from mirror_fg.solver.options import STAGES, Linearization, Progress, SolveOptions
@@ -98,6 +99,7 @@ def calibrate(
         from mirror_fg.solver.robot_solve import calibrate_robot
         return calibrate_robot(dataset, initial, options)  # type: ignore[arg-type]
     if not dataset.is_tree:  # direct views, fixed mirrors, any order, no known target, several cameras
+        check_camera_labels(dataset)  # a rig image naming the wrong camera, before any plane is started
         return calibrate_views(dataset, initial, options)
     if dataset.camera is not None and dataset.camera.estimate:  # intrinsics estimated too (camera.estimate)
         return calibrate_with_intrinsics(dataset, initial=initial, options=options)

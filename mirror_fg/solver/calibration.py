@@ -305,15 +305,20 @@ def require_converged(
     above :data:`POOR_FIT_RATIO`) unless ``accept_poor_fit``: the message names the likely cause (the
     images it found inconsistent, else wrong labels, pixel_sigma, distortion, a moved camera).
     DatasetError when ``T_cam_base`` puts the base more than :data:`MAX_BASE_DISTANCE_M` from the camera
-    (sizes in millimetres where metres are expected).
+    or a mirror or point is as far (sizes in millimetres where metres are expected); SolveError when an
+    estimate or bound is NaN or infinite (``result_guard``).
     """
+    from mirror_fg.solver.result_guard import check_finite, check_within_reach
+
     if not calibration.converged:
         raise SolveError(f"{source}: {solver} did not converge in {calibration.iterations} iterations "
                          "(stalled); the result was not written")
+    check_finite(calibration, source)
     distance = float(np.linalg.norm(calibration.t_cam_base))
     if distance > MAX_BASE_DISTANCE_M:
         raise DatasetError(f"{source}: T_cam_base puts the base {distance:.3g} m from the camera: are the target's "
                            f"sizes in metres? (more than {MAX_BASE_DISTANCE_M:g} m is refused)")
+    check_within_reach(calibration, source)
     ratio = calibration.fit_ratio
     if not accept_poor_fit and ratio > POOR_FIT_RATIO:
         cause = (calibration.inconsistency.message if calibration.inconsistency is not None else

@@ -175,17 +175,29 @@ class _Propagator:
         return True
 
     def tree_for_camera(self, camera: str) -> bool:  # rule 2
-        if camera in self.known.poses or camera in self.tried_tree or self.tree_start is None:
+        """Rule 2 for ``camera``: its pose where unknown, and the planes of its own placements. A camera
+        whose pose another rule found (rule 1 through shared placements) still needs it where its views
+        hold two or more unknown placements each (its own mirror's placements under the tree): rule 3
+        takes one at a time. Mirror vectors are camera-frame, so those planes are placed with the known
+        pose and the tree's own pose is not used."""
+        if camera in self.tried_tree or self.tree_start is None:
+            return False
+        if camera in self.known.poses and not any(
+                view.camera == camera and any(p not in self.known.planes for p in view.reflections)
+                for view in self.views):
             return False
         self.tried_tree.add(camera)
         found = self.tree_start(camera)
         if found is None:
             return False
-        pose, mirror_vectors = found
-        self.known.poses[camera] = pose
+        tree_pose, mirror_vectors = found
+        added = camera not in self.known.poses
+        pose = self.known.poses.setdefault(camera, tree_pose)
         for p, v in mirror_vectors.items():
-            self.known.planes.setdefault(p, plane_from_camera(v, pose))
-        return True
+            if p not in self.known.planes:
+                self.known.planes[p] = plane_from_camera(v, pose)
+                added = True
+        return added
 
     def _ray_in_base(self, view: ViewObs, k: int) -> tuple[np.ndarray, np.ndarray]:
         """The ray of observation k carried back to the real point's side of every mirror (base frame)."""

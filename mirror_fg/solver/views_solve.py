@@ -13,6 +13,8 @@ import numpy as np
 
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.solver.analytic import AnalyticSolution
+from mirror_fg.solver.camera_labels import lone_image_hint
 from mirror_fg.solver.calibration import POOR_FIT_RATIO, Calibration, CameraPose, EstimatedCamera, Exclusion
 from mirror_fg.solver.consensus import screen, without
 from mirror_fg.solver.marginals import unconstrained_as_solve_error, unconstrained_message
@@ -134,7 +136,9 @@ def _start(problem: ViewProblem, initial, options: SolveOptions, tree_first: boo
         known = propagate(problem.views, dataset.fiducials, problem.cameras, problem.fixed, tree_start_for(dataset, options),
                           dataset.scale, tree_first)
     except Unsolvable as error:
-        raise Unsolvable(f"{dataset.source}: {error}") from None
+        labels = lone_image_hint(dataset)  # a rig image naming the wrong camera leaves its plane unsolvable
+        raise Unsolvable(f"{dataset.source}: {labels} (the start fails: {error})" if labels else
+                         f"{dataset.source}: {error}") from None
     return problem.estimate_from(known)
 
 
@@ -211,6 +215,8 @@ class ViewsProblem:
         self.analytic = initial is None
         self.last: ViewEstimate | None = initial
         self.timings: dict[str, float] = {}
+        #: The analytical start LM began from (propagation's), for the result's ``analytic``; None from ``initial``.
+        self.analytic_start: ViewEstimate | None = None
 
     def screen(self, dataset: Dataset) -> tuple[Dataset, list[Exclusion]]:
         if not self.models:
@@ -220,6 +226,7 @@ class ViewsProblem:
         screened, excluded = fixed.screen(_fixed_intrinsics(dataset))
         first = solve_with_rechecks(screened, fixed.solve, fixed.check, excluded)
         self.last, self.analytic = first.run.estimate, False
+        self.analytic_start = fixed.analytic_start  # the start of the solve with the given intrinsics
         self.timings.update({f"start: {k}": v for k, v in fixed.timings.items()})
         return (without(dataset, first.excluded) if first.excluded else dataset), list(first.excluded)
 
@@ -235,6 +242,8 @@ class ViewsProblem:
             return run_optimizer(graph, problem.values(first), params, solved.source,
                                  lambda error: unconstrained_message(error, problem), options.iteration)
 
+        if self.analytic and self.last is None:
+            self.analytic_start = begin
         with timed(timings, "optimize"):
             optimizer, result, initial_error = optimize(begin)
             dimension = result.dim() - problem.constraints
@@ -246,6 +255,7 @@ class ViewsProblem:
                     if graph.error(tried[1]) < graph.error(result):
                         logger.info("%s: the second analytical start fits better", solved.source)
                         optimizer, result, initial_error = tried
+                        self.analytic_start = other
         estimate = problem.read(result)
         self.last = estimate  # the start of the next solve, after leaving some out
         residuals, whitened, labels = problem.residuals(estimate)
@@ -258,7 +268,24 @@ class ViewsProblem:
     def finish(self, rechecked: Rechecked[_Run]) -> Calibration:
         run = rechecked.run
         run.excluded = rechecked.excluded
-        return _finish(run, self.options)
+        calibration = _finish(run, self.options)
+        calibration.analytic = analytic_of(self.analytic_start, run.problem)
+        return calibration
+
+
+def analytic_of(start: ViewEstimate | None, problem: ViewProblem) -> AnalyticSolution | None:
+    """The analytical start (propagation's, docs/formats.md "Views of any reflection order") as the result's
+    ``analytic``: the first camera's ``T_cam_base``, the mirrors and points, and every camera's pose."""
+    if start is None:
+        return None
+    first = problem.cameras[0]
+    if first not in start.poses:
+        return None
+    R, t = start.poses[first]
+    poses = ({name: (np.asarray(R_c, float), np.asarray(t_c, float)) for name, (R_c, t_c) in start.poses.items()}
+             if problem.dataset.cameras is not None else {})
+    return AnalyticSolution(np.asarray(R, float), np.asarray(t, float), dict(start.mirror_vectors),
+                            dict(start.points), camera_poses=poses)
 
 
 def _finish(run: _Run, options: SolveOptions) -> Calibration:

@@ -92,6 +92,7 @@ def calibrate_one(path: str, out_dir: str, ros: bool = True, registry: str | Non
         if sigma3 is None or sigma3_base is None:  # calibrate() computes the covariance
             raise SolveError(f"{dataset.source}: no covariance in the calibration")
         row.update(status="ok", result=os.fspath(target), images=len(dataset.images),
+                   base_is_camera=not dataset.fiducials,  # no known target: T_cam_base is the identity, not estimated
                    t_cam_base=[float(x) for x in calibration.t_cam_base],
                    t_base_cam=result["T_base_cam"]["t"],
                    sigma3_position_mm=sigma3["position_mm"],  # T_cam_base, camera axes

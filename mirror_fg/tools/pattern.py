@@ -26,7 +26,9 @@ from typing import Any
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.io.screen_target import PATTERN_KINDS, ScreenTarget, screen_target_from_dict
+from mirror_fg.io.screen_target import (
+    MAX_SCREEN_PX, PATTERN_KINDS, ScreenTarget, check_screen_mm, screen_target_from_dict,
+)
 
 __all__ = ["SQUARE_MM", "PatternFiles", "design_pattern", "draw_pattern", "screen_mm_from_diagonal",
            "pattern_files", "pattern_texts", "html_page", "write_pattern", "pattern_summary"]
@@ -65,15 +67,18 @@ def design_pattern(width_px: int, height_px: int, width_mm: float, height_mm: fl
     for a screen of no size or a pattern that does not fit."""
     if kind not in PATTERN_KINDS:
         raise DatasetError(f"pattern: kind must be one of {', '.join(PATTERN_KINDS)}, got {kind!r}")
-    if not (width_px >= 1 and height_px >= 1):
-        raise DatasetError(f"pattern: the screen must have at least 1 x 1 pixels, got {width_px} x {height_px}")
+    _check_screen_px(width_px, height_px)
     for what, mm in (("width", width_mm), ("height", height_mm)):
         if not (math.isfinite(mm) and mm > 0):
             raise DatasetError(f"pattern: the screen's {what} must be more than 0 mm, got {mm:g} mm")
+        check_screen_mm(mm, f"pattern: the screen's {what}")
     # default: SQUARE_MM, smaller on a small screen so that the corners still span it (a laptop's)
     want_mm = min(SQUARE_MM, min(width_mm, height_mm) / FILL_SQUARES) if square_mm is None else square_mm
     if not (math.isfinite(want_mm) and want_mm > 0):
         raise DatasetError(f"pattern: the square must be more than 0 mm, got {want_mm:g} mm")
+    if square_mm is not None and not square_mm <= min(width_mm, height_mm):
+        raise DatasetError(f"pattern: --square-mm {square_mm:.6g} is larger than the screen ({width_mm:.6g} x "
+                           f"{height_mm:.6g} mm): the square is in millimetres on the screen")
     px_per_mm = min(width_px / width_mm, height_px / height_mm)
     import cv2
 
@@ -220,12 +225,13 @@ def write_pattern(png_path: str | os.PathLike[str], screen_px: tuple[int, int], 
     from mirror_fg.io.output import OutputPlan
 
     width_px, height_px = screen_px
-    if width_px < 1 or height_px < 1:
-        raise DatasetError(f"pattern: the screen must have at least 1 x 1 pixels, got {width_px} x {height_px}")
+    _check_screen_px(width_px, height_px)  # before anything is allocated: an image of these pixels is drawn
     if screen_mm is None:
         if diagonal_in is None:
             raise DatasetError("pattern: give the screen's size in mm or its diagonal in inches")
         screen_mm = screen_mm_from_diagonal(width_px, height_px, diagonal_in)
+        for what, mm in (("width", screen_mm[0]), ("height", screen_mm[1])):
+            check_screen_mm(mm, f"pattern: --diagonal {diagonal_in:g} in gives the screen's {what}")
     files = pattern_files(png_path)
     plan = OutputPlan()
     plan.add(files.png, "pattern PNG")
@@ -234,6 +240,16 @@ def write_pattern(png_path: str | os.PathLike[str], screen_px: tuple[int, int], 
     screen = design_pattern(width_px, height_px, screen_mm[0], screen_mm[1], kind, square_mm)
     plan.commit(pattern_texts(screen, files))
     return screen, files
+
+
+def _check_screen_px(width_px: int, height_px: int) -> None:
+    """Refuse a screen of no pixels or more than :data:`MAX_SCREEN_PX` a side (a typing mistake: drawing
+    100000 x 100000 pixels would take 10 GB)."""
+    if not (width_px >= 1 and height_px >= 1):
+        raise DatasetError(f"pattern: the screen must have at least 1 x 1 pixels, got {width_px} x {height_px}")
+    if width_px > MAX_SCREEN_PX or height_px > MAX_SCREEN_PX:
+        raise DatasetError(f"pattern: --screen {width_px}x{height_px} is not a plausible screen (at most {MAX_SCREEN_PX} "
+                           "pixels a side): give its native resolution, e.g. 1920x1080")
 
 
 def pattern_summary(screen: ScreenTarget, files: PatternFiles) -> list[str]:

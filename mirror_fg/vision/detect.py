@@ -38,8 +38,9 @@ from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.capture import CAPTURE_FORMAT, Capture, ImageEntry, capture_from_file_data, open_video
 from mirror_fg.io.capture_views import is_mirrored
 from mirror_fg.io.dataset import Dataset, dataset_from_dict
-from mirror_fg.io.fileio import MAX_IMAGE_PIXELS, load_structured, native_stderr
+from mirror_fg.io.fileio import MAX_IMAGE_PIXELS, NotTextError, load_structured, native_stderr
 from mirror_fg.io.output import OutputPlan
+from mirror_fg.io.result import RESULT_FORMAT
 from mirror_fg.io.target import CharucoTarget, ChessboardTarget, PointsTarget, TagTarget
 from mirror_fg.core.values import short_path
 from mirror_fg.vision.detectors import (
@@ -475,8 +476,19 @@ def load_input(
     capture is a DatasetError. ``on_capture``: called with the capture once read, before detection (e.g.
     to plan the outputs its target needs: a screen's)."""
     source = os.fspath(path)
-    data = load_structured(source)
+    try:
+        data = load_structured(source)
+    except NotTextError as error:
+        if error.kind is None:
+            raise
+        raise DatasetError(f"{source}: is {error.kind}, not a capture: give the capture file (capture@1, YAML or "
+                           "JSON) that lists the images, their mirror placements and the target (docs/capture_guide.md)"
+                           ) from None
     fmt = data.get("format") if isinstance(data, dict) else None
+    if fmt == RESULT_FORMAT:
+        takes = "detect takes a capture" if capture_only else "calibrate takes a dataset or capture"
+        raise DatasetError(f"{source}: this is a result (mirror-fg/result@1), written by calibrate; {takes} "
+                           "(docs/formats.md)")
     if fmt == CAPTURE_FORMAT:
         capture = capture_from_file_data(data, source)
         plan.add_inputs(capture.input_files())
