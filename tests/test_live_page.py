@@ -1,7 +1,9 @@
 """The live page (tools/live_page.html) in headless Chromium, fed by the real server with a stub state:
 what a user sees once done with only ``--target-mm``, and the labels against the target lines."""
+import os
 import re
 import shutil
+import signal
 import subprocess
 from dataclasses import dataclass, field
 
@@ -14,7 +16,26 @@ from mirror_fg.tools.live_server import LiveServer
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                   "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--hide-scrollbars"]
+                  "--hide-scrollbars", "--disable-breakpad", "--disable-crash-reporter"]
+
+
+def chromium(*args: str, timeout: float = 90) -> str:
+    """Run headless Chromium in a process group of its own; its standard output. Every process of the group
+    (renderers, zygotes, crash handlers) is killed when it returns or times out: none outlives the test to
+    keep polling a page or loading the machine under the tests that follow."""
+    proc = subprocess.Popen([CHROMIUM, *CHROMIUM_FLAGS, *args], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                            text=True, start_new_session=True)
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+        return out
+    except subprocess.TimeoutExpired:
+        return ""
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        proc.wait()
 pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="headless Chromium not installed (apt-get install chromium)")
 
 WORDS = "tilt it 20 deg towards the upper right of the image, keep it ~0.50 m away"
@@ -43,12 +64,10 @@ def page(tmp_path, state: StubState) -> tuple[str, np.ndarray]:
     server = LiveServer(0, lambda: state)
     server.start()
     try:
-        profile = tmp_path / "profile"
-        common = [CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "--virtual-time-budget=1500",
-                  "--window-size=1280,900"]
-        dom = subprocess.run([*common, "--dump-dom", server.url], capture_output=True, text=True, timeout=90).stdout
+        common = [f"--user-data-dir={tmp_path / 'profile'}", "--virtual-time-budget=1500", "--window-size=1280,900"]
+        dom = chromium(*common, "--dump-dom", server.url)
         shot = tmp_path / "page.png"
-        subprocess.run([*common, f"--screenshot={shot}", server.url], capture_output=True, timeout=90)
+        chromium(*common, f"--screenshot={shot}", server.url)
         return dom, np.asarray(Image.open(shot).convert("RGB")).astype(int)
     finally:
         server.stop()
