@@ -45,7 +45,7 @@ def run_cli(*args, cwd, timeout=180):
 def within_3_sigma(result: dict, s) -> np.ndarray:
     """Each pose component's error against the truth in units of its own sigma."""
     T = result["T_cam_base"]
-    error = pose_difference(s.R_cam_base, s.t_cam_base, T["R"], T["t"])  # estimate minus truth, SPEC convention
+    error = pose_difference(s.R_cam_base, s.t_cam_base, T["R"], T["t"])  # estimate minus truth (docs/formats.md convention)
     return np.abs(error) / np.sqrt(np.diag(np.array(result["covariance_cam_base"])))
 
 

@@ -37,3 +37,33 @@ def test_a_statistic_beyond_the_6_dof_threshold_is_a_move_within_its_stated_p_va
     assert found is not None and len(found.groups) == 2
     p_value = float(re.search(r"chi-square\(6\) p = ([0-9.e+-]+)", found.message).group(1))
     assert p_value <= MOVE_SIGNIFICANCE
+
+
+@pytest.fixture(scope="module")
+def many_boundaries():
+    """Every image a placement of mirror 1: MAX_MOVE_SPLITS boundaries are tested."""
+    from test_consensus import board_scene
+
+    dataset, truth = board_scene(1, num_images=24, seed=2)
+    solvable = consistency._solvable_boundaries(dataset)
+    tested = [solvable[i] for i in consistency.spread_subset(len(solvable), MAX_MOVE_SPLITS).tolist()]
+    assert len(tested) == MAX_MOVE_SPLITS >= 2
+    return dataset, truth, tested
+
+
+def test_the_threshold_grows_with_the_boundaries_tested(monkeypatch, many_boundaries):
+    """Bonferroni: with 3 boundaries tested, a statistic above the one-test threshold but below the
+    three-test one is chance."""
+    dataset, truth, tested = many_boundaries
+    statistic = 0.5 * (chi2.isf(MOVE_SIGNIFICANCE, 6) + chi2.isf(MOVE_SIGNIFICANCE / len(tested), 6))
+    assert split_with_statistic(monkeypatch, (dataset, truth), statistic) is None
+
+
+def test_the_split_named_is_the_boundary_of_the_largest_disagreement(monkeypatch, many_boundaries):
+    dataset, truth, tested = many_boundaries
+    large = chi2.isf(MOVE_SIGNIFICANCE / len(tested), 6) * 2.0
+    statistics = iter([5.0, large, 7.0])  # the boundaries in the order they are tested
+    monkeypatch.setattr(consistency, "_pose_mahalanobis", lambda fits, R_reference: next(statistics))
+    found = consistency.moved_camera_split(dataset, truth.R_cam_base)
+    assert found is not None
+    assert [len(group) for group in found.groups] == [tested[1], len(dataset.images) - tested[1]]
