@@ -19,7 +19,7 @@ CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic
                   "--hide-scrollbars", "--disable-breakpad", "--disable-crash-reporter"]
 
 
-def chromium(*args: str, timeout: float = 90) -> str:
+def chromium(*args: str, timeout: float = 240) -> str:
     """Run headless Chromium in a process group of its own; its standard output. Every process of the group
     (renderers, zygotes, crash handlers) is killed when it returns or times out: none outlives the test to
     keep polling a page or loading the machine under the tests that follow."""
