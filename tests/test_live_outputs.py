@@ -152,3 +152,9 @@ def test_after_a_sigkill_detect_names_the_saved_folder_incomplete(session_dir, t
     # Each frame the capture names was written whole before the capture named it.
     data = yaml.safe_load((tmp_path / "saved" / "capture.yaml").read_text())
     assert all(cv2.imread(str(tmp_path / "saved" / image["file"])) is not None for image in data["images"])
+
+
+def test_live_help_points_at_the_documentation_a_user_has(tmp_path):
+    proc = run_cli("live", "-h", cwd=tmp_path)
+    assert proc.returncode == 0 and "SPEC" not in proc.stdout
+    assert "docs/formats.md" in " ".join(proc.stdout.split())
