@@ -272,9 +272,10 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".", me
     camera, pixel_sigma, target and T_base_target only; images, video and track are not read (planning
     before the photographs exist)."""
     check_format(d, CAPTURE_FORMAT, source)
-    if "incomplete" in d:  # a `live --save` folder whose session has not finished (docs/formats.md#live-sessions-mirror-fg-live)
+    if "incomplete" in d:  # a `live --save` session not finished (docs/formats.md#live-sessions-mirror-fg-live)
         said = d["incomplete"]
-        raise DatasetError(f"{source}: incomplete: " + (" ".join(said.split())[:240] if isinstance(said, str) else short(said)))
+        said = " ".join(said.split())[:240] if isinstance(said, str) else short(said)
+        raise DatasetError(f"{source}: incomplete: {said}")
     check_keys(d, ("format", "num_mirrors", "camera", "cameras", "pixel_sigma", "target", "T_base_target", "images",
                    "video", "track"), source)
 
