@@ -22,6 +22,7 @@ from conftest import load_script, pose_difference
 from mirror_fg.io.capture import capture_from_dict
 from mirror_fg.tools.live import LiveSession, run
 from mirror_fg.tools.live_sources import FolderSource, VideoFileSource
+from test_live_page import CHROMIUM, chromium  # Chromium in a process group of its own
 
 render = load_script("render_live")
 STATUSES = {"added", "skipped", "not found", "refused"}
@@ -44,7 +45,7 @@ def run_cli(*args, cwd, timeout=180):
 def within_3_sigma(result: dict, s) -> np.ndarray:
     """Each pose component's error against the truth in units of its own sigma."""
     T = result["T_cam_base"]
-    error = pose_difference(s.R_cam_base, s.t_cam_base, T["R"], T["t"])  # estimate minus truth, SPEC convention
+    error = pose_difference(s.R_cam_base, s.t_cam_base, T["R"], T["t"])  # estimate minus truth (docs/formats.md convention)
     return np.abs(error) / np.sqrt(np.diag(np.array(result["covariance_cam_base"])))
 
 
@@ -144,12 +145,6 @@ def test_live_refusals(session_dir, args, words):
     assert proc.returncode == 2 and words in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
 
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--hide-scrollbars"]
-
-
 @pytest.mark.skipif(CHROMIUM is None, reason="headless Chromium not installed (apt-get install chromium)")
 def test_web_page_shows_the_picture_the_bars_and_the_suggestion(session_dir, tmp_path):
     from PIL import Image
@@ -170,14 +165,18 @@ def test_web_page_shows_the_picture_the_bars_and_the_suggestion(session_dir, tmp
             ended = "until Ctrl-C" in line
         assert url and ended, proc.stderr.read() if proc.poll() is not None else "no page"
         profile = tmp_path / "profile"
-        dom = subprocess.run([CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "--virtual-time-budget=1500",
-                              "--dump-dom", url], capture_output=True, text=True, timeout=90).stdout
-        assert 'class="bar"' in dom and "mm" in dom and "tilt it" in dom  # bars and the suggestion in words
-        assert 'class="placement"' in dom and 'class="suggested"' in dom  # the polar plot
+        dom = chromium(f"--user-data-dir={profile}", "--virtual-time-budget=1500", "--dump-dom", url)
+        polar = dom[dom.index('<svg id="polar"'):]
+        polar = polar[:polar.index("</svg>")]  # as drawn (the script in the DOM names the classes too)
+        assert '<div class="bar">' in dom and "mm" in dom and 'class="placement"' in polar  # bars, the polar plot
+        if 'id="stop" class="shown"' in dom:  # done: no placement is suggested any more
+            assert "none needed" in dom and "tilt it" not in dom and 'class="suggested"' not in polar
+        else:  # the suggestion in words and on the polar plot
+            assert "tilt it" in dom and 'class="suggested"' in polar
         assert "/frame.jpg?seq=" in dom
         shot = tmp_path / "page.png"
-        subprocess.run([CHROMIUM, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "--virtual-time-budget=1500",
-                        "--window-size=1280,900", f"--screenshot={shot}", url], capture_output=True, timeout=90)
+        chromium(f"--user-data-dir={profile}", "--virtual-time-budget=1500", "--window-size=1280,900",
+                 f"--screenshot={shot}", url)
         picture = np.asarray(Image.open(shot).convert("RGB")).astype(int)
         left = picture[80:500, 20:700]  # the live picture's panel
         assert len(np.unique(left.reshape(-1, 3), axis=0)) > 50  # a photograph, not an empty panel

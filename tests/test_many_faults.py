@@ -150,17 +150,28 @@ def test_an_http_server_port_times_out_with_one_line(inputs, tmp_path):
 
 # --- workers that die ---------------------------------------------------------------------------------------
 
+#: What a command run as a user runs it inherits from this test process: nothing else (not what earlier tests
+#: or this process's imports put in its environment, e.g. Dask or OpenCV settings).
+_USER_ENVIRONMENT = ("PATH", "HOME", "USER", "LANG", "LC_ALL", "TMPDIR", "TZ")
+
+
+def clean_environment(**settings: str) -> dict[str, str]:
+    """A user's environment for a command run as a subprocess: the basics, the repository, ``settings``."""
+    env = {name: os.environ[name] for name in _USER_ENVIRONMENT if name in os.environ}
+    return {**env, "PYTHONPATH": str(REPO), **settings}
+
+
 def test_an_input_whose_worker_keeps_dying_is_a_failed_row(inputs, tmp_path):
     """The command as a user runs it (a subprocess: distributed's own log lines would reach its stderr), on a
     local cluster whose workers die on the ``crash`` input until Dask gives that input up."""
     preload = tmp_path / "crash_on_input.py"
     preload.write_text(CRASH_ON_INPUT)
     out = tmp_path / "out"
-    env = {**os.environ, "PYTHONPATH": str(REPO), "DASK_DISTRIBUTED__WORKER__PRELOAD": json.dumps([str(preload)]),
-           "DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": str(ALLOWED_FAILURES)}
     done = subprocess.run([sys.executable, "-m", "mirror_fg", "calibrate-many", *map(str, (
-        inputs["robot1"], inputs["crash"], inputs["robot2"])), "-o", str(out), "--dask"], env=env,
-        capture_output=True, text=True, timeout=300, check=False)
+        inputs["robot1"], inputs["crash"], inputs["robot2"])), "-o", str(out), "--dask"],
+        env=clean_environment(DASK_DISTRIBUTED__WORKER__PRELOAD=json.dumps([str(preload)]),
+                              DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES=str(ALLOWED_FAILURES)),
+        cwd=tmp_path, start_new_session=True, capture_output=True, text=True, timeout=300, check=False)
     assert done.returncode == 2, done.stderr
     deaths = ALLOWED_FAILURES + 1  # then Dask gives the task up
     assert "2 of 3 calibrated" in done.stdout

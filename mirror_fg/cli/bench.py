@@ -62,33 +62,37 @@ def plan_next(args, out: _Printer) -> int:
 
 
 def cmd_live(args, out: _Printer) -> int:
-    """``live``: the session loop of tools/live.py between a frame source, the outputs and the page."""
+    """``live``: the session loop of tools/live.py between a frame source, the outputs and the page.
+
+    Every output is checked against every input and each other before the first frame
+    (tools/live_save.py); ``--save`` writes each used frame as it is added. Ctrl-C, SIGTERM and SIGHUP
+    end the session as the source's end does: the saved capture is finished and the result written."""
     import signal
 
-    from mirror_fg.io.calibration_files import plan_calibration_outputs
     from mirror_fg.io.capture import capture_from_file_data
     from mirror_fg.io.fileio import load_structured
-    from mirror_fg.io.output import OutputPlan
     from mirror_fg.registry.cli import record_document, registry_target
     from mirror_fg.solver.calibration import require_converged
     from mirror_fg.tools.live import LiveSession, run
+    from mirror_fg.tools.live_save import SessionFolder, plan_live_outputs
     from mirror_fg.tools.live_sources import open_source
     from mirror_fg.cli.verify_cmd import live_verifier, live_verify_end, live_verify_frame
 
     registry = registry_target(args)
     source_path = os.fspath(args.capture)
-    outputs = (plan_calibration_outputs([source_path], args.output, ros=not args.no_ros)
-               if args.output is not None else None)
-    streams = OutputPlan(inputs=[source_path])  # the JSON lines are checked like any output, then streamed
-    if args.json_lines is not None and os.fspath(args.json_lines) != "-":
-        streams.add(args.json_lines, "JSON lines")
-    if args.save is not None and args.save.exists() and any(args.save.iterdir()):
-        raise DatasetError(f"--save {args.save}: the folder exists and is not empty (nothing is written over)")
     data = load_structured(source_path, source_path)
     capture = capture_from_file_data(data, source_path, media=False)
+    outputs = plan_live_outputs(source_path, args.source, capture.input_files(),
+                                None if args.output is None else os.fspath(args.output),
+                                None if args.json_lines is None else os.fspath(args.json_lines),
+                                None if args.save is None else os.fspath(args.save), ros=not args.no_ros)
+    folder: SessionFolder | None = None
     session = LiveSession(capture, target_mm=args.target_mm, target_deg=args.target_deg,
-                          keep_frames=args.save is not None, picture=args.serve is not None)
+                          on_added=lambda frame, gray: folder.add(frame, gray) if folder is not None else None,
+                          picture=args.serve is not None)
     verifier = live_verifier(args, session, out)
+    if args.save is not None:
+        folder = SessionFolder(os.fspath(args.save), data, session.camera_dict)
     source = open_source(args.source, idle_s=args.idle)
     server = None
     if args.serve is not None:
@@ -97,15 +101,11 @@ def cmd_live(args, out: _Printer) -> int:
         server = LiveServer(args.serve, lambda: session.state)
         server.start()
         out.info(f"serving the live page on {server.url}")
-    lines = None
-    if args.json_lines is not None:
-        lines = sys.stdout if os.fspath(args.json_lines) == "-" else open(args.json_lines, "w")
 
     def on_record(record) -> None:
-        live_verify_frame(verifier, record, out, quiet=lines is sys.stdout)
-        if lines is not None:
-            lines.write(record.to_json() + "\n")
-            lines.flush()
+        live_verify_frame(verifier, record, out, quiet=outputs.stream is sys.stdout)
+        if outputs.stream is not None:
+            outputs.write_line(record.to_json())
         elif record.status == "added":
             bounds = ("" if record.sigma3_base_cam is None else " 3-sigma pos ["
                       + ", ".join(f"{x:.1f}" for x in record.sigma3_base_cam["position_mm"]) + "] mm")
@@ -118,36 +118,45 @@ def cmd_live(args, out: _Printer) -> int:
         interrupted.append(signum)
         source.stop()
 
-    previous = signal.signal(signal.SIGINT, stop)
+    caught = [s for s in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)) if s is not None]
+    previous = {signum: signal.signal(signum, stop) for signum in caught}
+    written: list[str] = []
     try:
+        outputs.open_lines()
         figures = run(session, source, on_record=on_record, stop_when_done=args.stop_when_done)
         out.info(f"{session.summary()}; {figures['fps']:.1f} frames/s, {figures['dropped']} dropped, "
                  f"{figures['unreadable']} unreadable")
+        if interrupted:
+            out.info(f"stopped by {signal.Signals(interrupted[0]).name}")
         if server is not None and args.hold and not interrupted:
             out.info(f"source ended; the page stays up on {server.url} until Ctrl-C")
             import threading
 
             held = threading.Event()
-            signal.signal(signal.SIGINT, lambda *a: held.set())
+            for signum in caught:
+                signal.signal(signum, lambda *a: held.set())
             while not held.wait(0.2):
                 pass
     finally:
-        signal.signal(signal.SIGINT, previous)
         if server is not None:
             server.stop()
-        if lines is not None and lines is not sys.stdout:
-            lines.close()
+        outputs.close_lines()
+        try:
+            if folder is not None:  # on any end, an error's too: the frames so far stay usable
+                written += folder.finish()
+        finally:
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
     if session.done:
         out.info("done: every bound is below its target")
-    written = []
-    if args.save is not None:
-        written += session.save(os.fspath(args.save), data)
     if verifier is not None:
+        if written:
+            out.info(f"wrote {len(written)} file(s): " + ", ".join(written[-3:]) + (" ..." if len(written) > 3 else ""))
         return live_verify_end(verifier, out)
     calibration = require_converged(session.result(), capture.source)
     result = calibration.to_dict()
-    if outputs is not None:
-        written += [os.fspath(p) for p in outputs.write(result)]
+    if outputs.calibration is not None:
+        written += [os.fspath(p) for p in outputs.calibration.write(result)]
     _print_transform_summary(out, result, figures["seconds"], incremental=True)
     if written:
         out.info(f"wrote {len(written)} file(s): " + ", ".join(written[-3:]) + (" ..." if len(written) > 3 else ""))

@@ -267,7 +267,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="a camera index (0, 1, ...), a video file (read as fast as it is processed) or a folder "
                           "another program fills with images")
     liv.add_argument("-o", "--output", type=Path, help="result file written at the end (as calibrate writes it)")
-    liv.add_argument("--json-lines", type=Path, help="one JSON object per frame (SPEC's fields); - for standard output")
+    liv.add_argument("--json-lines", type=Path,
+                     help="one JSON object per frame (fields: docs/formats.md, 'Live sessions'); - for standard output")
     liv.add_argument("--serve", type=_number(int, 0, 65535), metavar="PORT",
                      help="a local web page on 127.0.0.1:PORT with the picture, the bounds and the suggestion (0: any free port)")
     liv.add_argument("--target-mm", type=_POSITIVE, help="done when every 3-sigma of the camera's position is below this")

@@ -276,6 +276,10 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".", me
     camera, pixel_sigma, target and T_base_target only; images, video and track are not read (planning
     before the photographs exist)."""
     check_format(d, CAPTURE_FORMAT, source)
+    if "incomplete" in d:  # a `live --save` session not finished (docs/formats.md#live-sessions-mirror-fg-live)
+        said = d["incomplete"]
+        said = " ".join(said.split())[:240] if isinstance(said, str) else short(said)
+        raise DatasetError(f"{source}: incomplete: {said}")
     if isinstance(d, Mapping) and "screens" in d:  # several screens: mirror_fg.io.screens_capture
         raise DatasetError(f"{source}: screens: a capture of several screens is calibrated by mirror-fg calibrate from "
                            "a file (not standard input; not detect, report or calibrate-many: report from the result alone)")

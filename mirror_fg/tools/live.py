@@ -1,4 +1,4 @@
-"""Live sessions (``mirror-fg live``): calibrate while the user moves the mirror (SPEC "Live sessions").
+"""Live sessions (``mirror-fg live``): calibrate while the user moves the mirror (docs/formats.md, "Live sessions").
 
 Per frame: detect the target (mirror-imaged, as ``detect``), then judge the frame:
 
@@ -20,10 +20,9 @@ what the estimate waits for; degenerate motion (every placement tilted about one
 from __future__ import annotations
 
 import json
-import os
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Callable
 
 import cv2
 import numpy as np
@@ -62,7 +61,7 @@ ONE_AXIS = ("every placement so far is tilted about one axis (the mirror normals
 
 @dataclass
 class FrameRecord:
-    """One JSON line of ``--json-lines`` (SPEC "Live sessions")."""
+    """One JSON line of ``--json-lines`` (docs/formats.md, "Live sessions")."""
 
     frame: int
     t: float
@@ -83,7 +82,6 @@ class FrameRecord:
 class _Added:
     frame: int
     points: dict[str, np.ndarray]
-    gray: np.ndarray | None
 
 
 @dataclass
@@ -99,7 +97,8 @@ class LiveSession:
     """One mirror moved by hand in front of one camera (``num_mirrors`` 1), calibrated as frames arrive."""
 
     def __init__(self, capture: Capture, *, target_mm: float | None = None, target_deg: float | None = None,
-                 keep_frames: bool = False, reach: Reach | None = None, picture: bool = False):
+                 on_added: Callable[[int, np.ndarray], None] | None = None, reach: Reach | None = None,
+                 picture: bool = False):
         if capture.cameras:
             raise DatasetError(f"{capture.source}: cameras: a live session calibrates one camera (give camera)")
         if capture.num_mirrors != 1:
@@ -111,7 +110,7 @@ class LiveSession:
         # The target read as not mirror-imaged: its printed face turned away from the mirror (from behind).
         self.behind = _Detector(replace(capture, num_mirrors=2), self.camera_dict)
         self.target_mm, self.target_deg = target_mm, target_deg
-        self.keep_frames, self.reach, self.picture = keep_frames, reach, picture
+        self.on_added, self.reach, self.picture = on_added, reach, picture
         self.fiducials = capture.fiducials()
         self.calibrator: IncrementalCalibrator | None = None  # made at the first frame (its size)
         self.added: list[_Added] = []
@@ -197,7 +196,9 @@ class LiveSession:
         refusals = [e for e in self.calibrator.excluded[refused_before:] if e.image == image_id and e.point is None]
         if refusals:
             return "refused", refusals[0].reason, points
-        self.added.append(_Added(index, points, gray if self.keep_frames else None))
+        self.added.append(_Added(index, points))
+        if self.on_added is not None:  # e.g. --save: the frame is written now, not at the end
+            self.on_added(index, gray)
         self.sharpness.append(sharp)
         view = self._virtual_view(points)
         if view is not None:
@@ -318,31 +319,6 @@ class LiveSession:
     def summary(self) -> str:
         counts = ", ".join(f"{n} {status}" for status, n in sorted(self.counts.items()))
         return f"{sum(self.counts.values())} frames: {counts}; {len(self.added)} placements"
-
-    def save(self, folder: str, capture_data: dict[str, Any]) -> list[str]:
-        """The added frames (PNG) and a capture@1 repeating the session offline; the paths written."""
-        os.makedirs(folder, exist_ok=True)
-        import yaml
-
-        written = []
-        images = []
-        for k, added in enumerate(self.added):
-            name = f"frame{added.frame:06d}.png"
-            path = os.path.join(folder, name)
-            if added.gray is None or not cv2.imwrite(path, added.gray):
-                raise DatasetError(f"--save {folder}: cannot write {name}")
-            written.append(path)
-            images.append({"file": name, "mirror_configs": [k]})
-        data = {key: value for key, value in capture_data.items() if key not in ("images", "video", "track")}
-        data["camera"] = self.camera_dict
-        data["images"] = images
-        path = os.path.join(folder, "capture.yaml")
-        with open(path, "w") as handle:
-            handle.write("# Written by mirror-fg live: the frames it used, one placement each.\n")
-            yaml.safe_dump(data, handle, sort_keys=False)
-        written.append(path)
-        return written
-
 
 def _tilt(mirror_vector: np.ndarray) -> tuple[float, float]:
     """Tilt from the optical axis and azimuth in the image (degrees) of a mirror vector (camera frame)."""

@@ -8,6 +8,12 @@ Served on 127.0.0.1 only, from a thread with its own event loop, so the frame lo
 - ``/events``: server-sent events, the newest JSON status (one event per response, EventSource
   reconnecting at once: at most ~20 a second);
 - ``/frame.jpg``: the newest picture (JPEG, at most ~10 new ones a second).
+
+Every route answers only requests addressed to this server by its loopback name: a ``Host`` other than
+``127.0.0.1:PORT``, ``localhost:PORT`` or ``[::1]:PORT`` gets 421 and an ``Origin`` other than
+``http://`` one of those gets 403, so a web site whose name is rebound to 127.0.0.1 (DNS rebinding)
+cannot read the picture or the status from the user's browser. Nothing else is protected: any program
+running on this machine can read the page, which has no login.
 """
 from __future__ import annotations
 
@@ -20,12 +26,28 @@ from typing import Any, Callable
 
 from mirror_fg.core.errors import DatasetError
 
-__all__ = ["LiveServer"]
+__all__ = ["LiveServer", "allowed_hosts", "refusal"]
 
 #: How often an event request looks for a new state, and how long it waits for one (seconds).
 EVENT_PERIOD_S, EVENT_WAIT_S = 0.05, 0.25
 #: The browser reconnects this soon after each event (milliseconds).
 RETRY_MS = 50
+
+
+def allowed_hosts(port: int) -> frozenset[str]:
+    """The ``Host`` values of a request addressed to this server on ``port`` by its loopback name."""
+    return frozenset(f"{name}:{port}" for name in ("127.0.0.1", "localhost", "[::1]"))
+
+
+def refusal(host: str | None, origin: str | None, port: int) -> tuple[int, str] | None:
+    """``(status, reason)`` to refuse a request with this ``Host`` and ``Origin`` header, None to serve it:
+    421 for another host name (a rebound DNS name), 403 for a page of another origin."""
+    hosts = allowed_hosts(port)
+    if (host or "").lower() not in hosts:
+        return 421, "this page answers only to 127.0.0.1, localhost or [::1] on its port"
+    if origin is not None and origin.lower() not in {f"http://{h}" for h in hosts}:
+        return 403, "requests from other web pages are refused"
+    return None
 
 
 class LiveServer:
@@ -68,14 +90,30 @@ class LiveServer:
         import tornado.web
 
         state = self.state
+        assert self.port is not None
+        port = self.port
         page = resources.files("mirror_fg.tools").joinpath("live_page.html").read_bytes()
 
-        class Page(tornado.web.RequestHandler):
+        class Local(tornado.web.RequestHandler):
+            """Every route: only for this server's loopback names (DNS rebinding, see the module header)."""
+
+            def prepare(self) -> None:
+                refused = refusal(self.request.headers.get("Host"), self.request.headers.get("Origin"), port)
+                if refused is not None:
+                    self.set_status(refused[0])
+                    self.set_header("Content-Type", "text/plain; charset=utf-8")
+                    self.finish(refused[1] + "\n")
+
+        class Missing(Local):
+            def get(self) -> None:
+                raise tornado.web.HTTPError(404)
+
+        class Page(Local):
             def get(self) -> None:
                 self.set_header("Content-Type", "text/html; charset=utf-8")
                 self.write(page)
 
-        class Frame(tornado.web.RequestHandler):
+        class Frame(Local):
             def get(self) -> None:
                 jpeg = getattr(state(), "jpeg", b"")
                 if not jpeg:
@@ -85,7 +123,7 @@ class LiveServer:
                 self.set_header("Cache-Control", "no-store")
                 self.write(jpeg)
 
-        class Events(tornado.web.RequestHandler):
+        class Events(Local):
             """One event per response: the newest state once it differs from the client's Last-Event-ID
             (waiting up to EVENT_WAIT_S for it), then the stream ends and EventSource reconnects after
             ``retry`` ms. Short responses keep no request pending (a headless browser's virtual time
@@ -111,7 +149,8 @@ class LiveServer:
         try:
             self._loop = asyncio.new_event_loop()
             asyncio.set_event_loop(self._loop)
-            app = tornado.web.Application([("/", Page), ("/frame.jpg", Frame), ("/events", Events)])
+            app = tornado.web.Application([("/", Page), ("/frame.jpg", Frame), ("/events", Events)],
+                                          default_handler_class=Missing)
             self._server = tornado.httpserver.HTTPServer(app)
             self._server.add_sockets([sock])
         except Exception as error:  # noqa: BLE001 - reported to start() as one line
