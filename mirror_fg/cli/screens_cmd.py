@@ -17,10 +17,13 @@ def calibrate_screens_input(args, out: _Printer) -> int | None:
     source = os.fspath(args.input)
     if source == "-" or not os.path.isfile(source) or os.path.abspath(source).startswith(("/dev/", "/proc/")):
         return None
-    from mirror_fg.io.fileio import load_structured
+    from mirror_fg.io.fileio import NotTextError, load_structured
     from mirror_fg.io.screens_capture import is_screens_capture
 
-    data = load_structured(source)
+    try:
+        data = load_structured(source)
+    except NotTextError:  # a photograph or a video given as the input: the ordinary path says what to give
+        return None
     if not is_screens_capture(data):
         return None
     return _calibrate(args, out, data, source)

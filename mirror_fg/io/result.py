@@ -199,16 +199,19 @@ def result_dict(calibration: CalibrationLike) -> dict:
     if cameras is not None:  # several cameras (docs/formats.md "Several cameras"); absent, the file is as before
         result["cameras"] = camera_entries(cameras)
         result["rig"] = rig_entries(cameras, list(getattr(c, "rig", None) or []))
-    if getattr(c, "at_points", None):  # the error at the user's points (docs/formats.md "The answer in the user's units")
+    at_points = getattr(c, "at_points", None)
+    if at_points:  # the error at the user's points (docs/formats.md "The answer in the user's units")
         from mirror_fg.solver.point_error import at_entries, calibration_poses
 
-        result["at"] = at_entries(calibration_poses(c), c.at_points)
-    if getattr(c, "validation", None) is not None:
-        result["validation"] = c.validation.to_dict()
+        result["at"] = at_entries(calibration_poses(c), at_points)
+    validation = getattr(c, "validation", None)
+    if validation is not None:
+        result["validation"] = validation.to_dict()
     robot = getattr(c, "robot", None)
     if robot:  # a robot arm (docs/formats.md "Robot arms"): mounts, joint offsets, planes in the base link's frame
         result.update({k: robot[k] for k in ("mounts", "joint_offsets") if k in robot})
-        for entry in result["mirrors"]:
+        mirrors: list[dict[str, Any]] = result["mirrors"]  # type: ignore[assignment]
+        for entry in mirrors:
             entry["frame"] = robot["mirror_frame"]
     return result
 
