@@ -371,7 +371,7 @@ def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
         where = f"{source}: images[{index}]"
         if not isinstance(e, Mapping):
             raise DatasetError(f"{where}: expected {{file, mirror_configs}}, got {type_name(e)}")
-        check_keys(e, ("file", "mirror_configs", "reflections", "views", "camera", "observations", "id"), where)
+        check_keys(e, ("file", "mirror_configs", "reflections", "views", "camera", "observations", "id", "time"), where)
         file = e.get("file")
         path = None
         if file is not None:
