@@ -86,10 +86,20 @@ def cmd_live(args, out: _Printer) -> int:
         raise DatasetError(f"--save {args.save}: the folder exists and is not empty (nothing is written over)")
     data = load_structured(source_path, source_path)
     capture = capture_from_file_data(data, source_path, media=False)
-    session = LiveSession(capture, target_mm=args.target_mm, target_deg=args.target_deg,
-                          keep_frames=args.save is not None, picture=args.serve is not None)
+    if capture.robot is not None:  # an arm: joint states from the capture's growing CSV (tools/live_joints.py)
+        from mirror_fg.tools.live_joints import LiveArmSession
+
+        for flag, given in (("--serve", args.serve), ("--save", args.save), ("--verify", getattr(args, "verify", None))):
+            if given is not None:
+                raise DatasetError(f"live: {flag} is not available with a robot arm's capture yet; drop it")
+        session = LiveArmSession(capture, target_mm=args.target_mm, target_deg=args.target_deg)
+    else:
+        session = LiveSession(capture, target_mm=args.target_mm, target_deg=args.target_deg,
+                              keep_frames=args.save is not None, picture=args.serve is not None)
     verifier = live_verifier(args, session, out)
     source = open_source(args.source, idle_s=args.idle)
+    if capture.robot is not None:
+        session.source = source  # each frame's name or time, matched to the joint states
     server = None
     if args.serve is not None:
         from mirror_fg.tools.live_server import LiveServer

@@ -330,7 +330,7 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".", me
         camera_files=camera_files,
     )
 
-    cap.robot = capture_robot_fields(d, source, base_dir)
+    cap.robot = capture_robot_fields(d, source, base_dir, read=media)
     if not media:
         return cap
     has_images, has_video = d.get("images") is not None, d.get("video") is not None

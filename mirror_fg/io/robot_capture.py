@@ -20,9 +20,10 @@ from mirror_fg.io.joint_table import DEFAULT_MAX_DT, JointTable, parse_header, p
 __all__ = ["capture_robot_fields", "add_robot_fields", "read_joint_table", "video_fps"]
 
 
-def capture_robot_fields(d: Mapping[str, Any], source: str, base_dir: str) -> dict[str, Any] | None:
-    """``{"robot", "mounts", "rows": {image file name: {joint: value}}, "file"}`` of a capture, or None
-    without ``robot``. The URDF path is made absolute (relative to the capture file)."""
+def capture_robot_fields(d: Mapping[str, Any], source: str, base_dir: str, read: bool = True) -> dict[str, Any] | None:
+    """``{"robot", "mounts", "table", "rows": {image file name: {joint: value}}, "file", "path", "max_dt",
+    "times"}`` of a capture, or None without ``robot``. The URDF path is made absolute (relative to the capture
+    file). ``read=False``: the CSV is not read (a live session reads it as it grows; ``table`` None)."""
     robot, mounts, joints = d.get("robot"), d.get("mounts"), d.get("joints")
     if robot is None:
         for key, value in (("mounts", mounts), ("joints", joints)):
@@ -45,8 +46,9 @@ def capture_robot_fields(d: Mapping[str, Any], source: str, base_dir: str) -> di
     if isinstance(max_dt, bool) or not isinstance(max_dt, (int, float)) or not math.isfinite(max_dt) or max_dt <= 0:
         raise DatasetError(f"{source}: joints.max_dt must be a number of seconds > 0, got {short(max_dt)}")
     path = name if os.path.isabs(name) else os.path.join(base_dir, name)
-    table = read_joint_table(path, name, source)
-    return {"robot": robot, "mounts": mounts, "table": table, "rows": table.by_image, "file": name,
+    table = read_joint_table(path, name, source) if read else None
+    return {"robot": robot, "mounts": mounts, "table": table, "rows": table.by_image if table else {}, "file": name,
+            "path": path,
             "max_dt": float(max_dt), "times": _image_times(d.get("images"), source)}
 
 
