@@ -85,9 +85,9 @@ class JointStream:
             cells = dict(zip(self._columns, row))
             self.table.add(*parse_row(cells, self.table.key, self.table.joints, self.name, self._line), self._line)
 
-    def _ready(self, key: str | float) -> bool:
+    def _ready(self, key: str | float | None) -> bool:
         table = self.table
-        if table is None:
+        if table is None or key is None:
             return False
         if table.key == "image":
             return isinstance(key, str) and key in table.by_image
@@ -96,7 +96,7 @@ class JointStream:
     def lookup(self, key: str | float | None, image: str) -> tuple[dict[str, float] | None, str]:
         """``(joints, "")`` of the frame named or timed ``key``, or ``(None, note)`` where it has none
         (waiting up to ``wait_s`` for its row)."""
-        deadline = time.monotonic() + self.wait_s
+        deadline = time.monotonic() + (self.wait_s if key is not None else 0.0)  # nothing to wait for without a key
         self.poll()
         while not self._ready(key) and time.monotonic() < deadline:
             time.sleep(POLL_S)
@@ -161,7 +161,7 @@ class LiveArmSession:
         self.images: list[dict[str, Any]] = []
         self.placement = 0
         self.previous: tuple[dict[str, float], dict[str, np.ndarray]] | None = None
-        self.calibration = None
+        self.calibration: Any = None
         self.sigma3: dict | None = None
         self.counts: dict[str, int] = {}
         self.done = False
