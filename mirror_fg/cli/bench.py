@@ -87,13 +87,23 @@ def cmd_live(args, out: _Printer) -> int:
                                 None if args.json_lines is None else os.fspath(args.json_lines),
                                 None if args.save is None else os.fspath(args.save), ros=not args.no_ros)
     folder: SessionFolder | None = None
-    session = LiveSession(capture, target_mm=args.target_mm, target_deg=args.target_deg,
-                          on_added=lambda frame, gray: folder.add(frame, gray) if folder is not None else None,
-                          picture=args.serve is not None)
+    if capture.robot is not None:  # an arm: joint states from the capture's growing CSV (tools/live_joints.py)
+        from mirror_fg.tools.live_joints import LiveArmSession
+
+        for flag, given in (("--serve", args.serve), ("--save", args.save), ("--verify", getattr(args, "verify", None))):
+            if given is not None:
+                raise DatasetError(f"live: {flag} is not available with a robot arm's capture yet; drop it")
+        session = LiveArmSession(capture, target_mm=args.target_mm, target_deg=args.target_deg)
+    else:
+        session = LiveSession(capture, target_mm=args.target_mm, target_deg=args.target_deg,
+                              on_added=lambda frame, gray: folder.add(frame, gray) if folder is not None else None,
+                              picture=args.serve is not None)
     verifier = live_verifier(args, session, out)
     if args.save is not None:
         folder = SessionFolder(os.fspath(args.save), data, session.camera_dict)
     source = open_source(args.source, idle_s=args.idle)
+    if capture.robot is not None:
+        session.source = source  # each frame's name or time, matched to the joint states
     server = None
     if args.serve is not None:
         from mirror_fg.tools.live_server import LiveServer

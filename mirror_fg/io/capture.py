@@ -335,7 +335,7 @@ def capture_from_dict(d: Any, source: str = "<capture>", base_dir: str = ".", me
         camera_files=camera_files,
     )
 
-    cap.robot = capture_robot_fields(d, source, base_dir)
+    cap.robot = capture_robot_fields(d, source, base_dir, read=media)
     if not media:
         return cap
     has_images, has_video = d.get("images") is not None, d.get("video") is not None
@@ -376,7 +376,7 @@ def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
         where = f"{source}: images[{index}]"
         if not isinstance(e, Mapping):
             raise DatasetError(f"{where}: expected {{file, mirror_configs}}, got {type_name(e)}")
-        check_keys(e, ("file", "mirror_configs", "reflections", "views", "camera", "observations", "id"), where)
+        check_keys(e, ("file", "mirror_configs", "reflections", "views", "camera", "observations", "id", "time"), where)
         file = e.get("file")
         path = None
         if file is not None:

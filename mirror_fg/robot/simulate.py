@@ -3,8 +3,9 @@ target, one of them on the arm's tool link, the other on its base; mirror placem
 camera sees the target only through the mirrors.
 
 Frames: {B} the URDF's base link; the scene is laid out in the camera's frame at a nominal arm pose (the
-target beside the camera, facing the mirrors about 0.5 m ahead, as a person holds a board beside their
-face), then carried into {B} through the arm's forward kinematics there. Arm poses are the nominal one
+target facing the mirrors about 0.5 m ahead: eye-in-hand, beside the camera, as a person holds a board beside their
+face; eye-to-hand, the board on the tool 0.3 m in front of the camera and 0.15 m to its side), then
+carried into {B} through the arm's forward kinematics there. Arm poses are the nominal one
 perturbed (every joint, uniform within ``spread_rad``), kept where every target point is seen through
 the mirror in front of the camera. Metres, radians, pixels.
 """
@@ -81,14 +82,14 @@ def _seen_in_mirror(poses, x_B: np.ndarray, v_B: np.ndarray) -> bool:
 def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int = 3, arm_poses: int = 8,
                  pixel_sigma: float = 0.5, joint_offsets_deg: dict[str, float] | None = None,
                  seed: int = 0, spread_rad: float = 0.25, estimate_offsets: bool = True,
-                 moving: tuple[str, ...] | None = None, direct: bool = False):
+                 moving: tuple[str, ...] | None = None, direct: bool = False, direct_distance: float = 0.9):
     """A dataset@1 dictionary (its ``robot.urdf`` the arm's file name) and its :class:`ArmTruth`.
 
     ``arm_poses`` images per placement; ``joint_offsets_deg``: true encoder offsets, recorded joints are
     ``q_true - delta`` (and, with ``estimate_offsets``, the dataset asks for them). ``moving``: the joints
     that move between arm poses (default all; one wrist joint alone is the degenerate motion). ``direct``:
-    no mirror, the camera sees the board 0.9 m ahead (a direct-view hand-eye calibration, for comparison):
-    ``arm_poses`` images in all."""
+    no mirror, the camera sees the board ``direct_distance`` metres ahead (a direct-view hand-eye calibration,
+    for comparison): ``arm_poses`` images in all."""
     from mirror_fg.robot.kinematics import load_kinematics
 
     rng = np.random.default_rng(seed)
@@ -98,10 +99,12 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
     tool = TOOL_LINK[robot]
     F0 = kin.placements(dict(zip(names, q0)), [tool])[tool][0]
     F0 = (F0[:3, :3], F0[:3, 3])
-    # in the camera's frame: the target beside the camera facing the mirrors (pattern normal -z_target)
-    T_cam_target = (_rot([0, 1, 0], math.pi), np.array([0.12, 0.0, 0.02]))
+    # in the camera's frame at the nominal pose, the board facing the mirrors (pattern normal -z_target):
+    # eye-in-hand, the fixed board beside the wrist camera; eye-to-hand, the board on the tool held 0.3 m in
+    # front of the camera and 0.15 m to its side (clear of its view of the mirror), as a user sets it up
+    T_cam_target = (_rot([0, 1, 0], math.pi), np.array([0.12, 0.0, 0.02] if eye_in_hand else [0.15, 0.0, 0.30]))
     if direct:  # the board's front (-z_target) faces the camera
-        T_cam_target = (np.eye(3), np.array([0.0, 0.0, 0.9]))
+        T_cam_target = (np.eye(3), np.array([0.0, 0.0, direct_distance]))
     if eye_in_hand:  # camera 6 cm off the flange, looking along the tool's z
         mount_cam = (_rot([0, 0, 1], 0.3) @ _rot([1, 0, 0], 0.05), np.array([0.05, -0.03, 0.06]))
         C = compose(F0, mount_cam)

@@ -191,13 +191,29 @@ class Calibration:
             return None
         return self.T_cam_base.inverse_covariance(self.covariance)
 
-    def point_error(self, point_cam, camera: str | None = None):
+    def point_error(self, point_cam, camera: str | None = None, *, link: str | None = None, joints=None):
         """The error at ``point_cam`` (metres, camera frame; e.g. a grasp the camera measures) in the base
         frame, from :attr:`covariance_base_cam` alone (first order, docs/formats.md "The answer in the
         user's units"): a :class:`~mirror_fg.solver.point_error.PointError` with ``covariance`` (3, 3, m^2,
         base axes) and ``sigma3_mm``. ``camera``: the camera of a rig whose frame ``point_cam`` is in (default
-        the first). ValueError without a covariance, for an unknown camera or a malformed point."""
+        the first). ValueError without a covariance, for an unknown camera or a malformed point.
+
+        An arm (``calibrate_robot``): ``link=NAME, joints={joint: value}`` takes ``point_cam`` as a point fixed
+        on that link (metres, the link's frame; e.g. a grasp point on the tool flange) with the arm at those
+        recorded joint values, and gives the miss between where the camera sees it and where the arm puts it,
+        from the camera mount's and the joint offsets' joint covariance (``solver/link_point_error.py``)."""
         from mirror_fg.solver.point_error import point_error
+
+        if link is not None or joints is not None:
+            model = (self.robot or {}).get("link_error")
+            if model is None:
+                raise ValueError("point_error: link and joints need an arm's calibration with covariances "
+                                 "(calibrate_robot, compute_covariance=True)")
+            if link is None or joints is None:
+                raise ValueError("point_error: give both link (a link name) and joints ({joint: value})")
+            from mirror_fg.solver.link_point_error import link_point_error
+
+            return link_point_error(model, point_cam, link, joints)
 
         T, covariance = self.T_base_cam, self.covariance_base_cam
         if camera is not None or self.cameras:

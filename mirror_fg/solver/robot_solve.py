@@ -284,8 +284,28 @@ def _calibration(solution: RobotSolution, options: SolveOptions, excluded: list[
         residual_units="px" if dataset.camera is not None else "normalized",
         outliers=outliers_of([_Label(i, p) for i, p in labels], whitened),
         expected_final_error=0.5 * max(2 * len(whitened) - dimension, 0), excluded=list(excluded),
-        robot=robot_entries(problem, estimate, covariances),
+        robot={**robot_entries(problem, estimate, covariances),
+               **({"link_error": _link_error_model(problem, estimate, information, columns)} if covariances else {})},
     )
+
+
+def _link_error_model(problem: RobotProblem, estimate: RobotEstimate, information: np.ndarray, columns: dict):
+    """The joint covariance of the camera mount (Pose3 tangent) and the joint offsets, for the error at a
+    point on a link (``solver/link_point_error.py``; not written to result@1)."""
+    from mirror_fg.solver.link_point_error import LinkErrorModel
+
+    covariance = np.linalg.inv(information)
+    index = np.full(6, -1)
+    if "camera" in problem.mount_keys:
+        index = np.arange(columns[problem.mount_keys["camera"]].start, columns[problem.mount_keys["camera"]].stop)
+    if problem.offset_key is not None:
+        c = columns[problem.offset_key]
+        index = np.concatenate([index, np.arange(c.start, c.stop)])
+    S = np.zeros((len(index), len(index)))
+    known = index >= 0
+    S[np.ix_(known, known)] = covariance[np.ix_(index[known], index[known])]
+    return LinkErrorModel(problem.kinematics, problem.links["camera"], estimate.mounts["camera"], tuple(problem.offsets),
+                          np.asarray(estimate.offsets, float).copy(), S)
 
 
 def _sigma3(covariance: np.ndarray) -> dict:

@@ -105,6 +105,9 @@ class CameraSource(FrameSource):
         self._ready = threading.Condition()
         self._count = 0
         self._ended = False
+        self._slot_time = 0.0
+        #: Wall-clock time (seconds since the epoch) the frame last yielded was read at (joint states by time).
+        self.frame_time = 0.0
         self._thread = threading.Thread(target=self._read, name="mirror-fg camera", daemon=True)
         self._thread.start()
 
@@ -119,7 +122,7 @@ class CameraSource(FrameSource):
                     return
                 if self._slot is not None:
                     self.dropped += 1  # the consumer did not take the previous frame in time
-                self._slot = (self._count, _gray(image))
+                self._slot, self._slot_time = (self._count, _gray(image)), time.time()
                 self._count += 1
                 self._ready.notify_all()
 
@@ -130,7 +133,7 @@ class CameraSource(FrameSource):
                     self._ready.wait(0.2)
                 if self._slot is None:
                     return
-                item, self._slot = self._slot, None
+                item, self._slot, self.frame_time = self._slot, None, self._slot_time
             yield item
 
     def close(self) -> None:
@@ -145,6 +148,8 @@ class FolderSource(FrameSource):
         self.folder = folder
         self.idle_s = idle_s
         self.description = f"folder {folder}"
+        #: The file name of the frame last yielded (joint states by image name).
+        self.frame_name = ""
 
     def frames(self) -> Iterator[tuple[int, np.ndarray]]:
         seen: set[str] = set()
@@ -171,6 +176,7 @@ class FolderSource(FrameSource):
                     self.unreadable += 1
                     index += 1
                     continue
+                self.frame_name = os.path.basename(path)
                 yield index, image
                 index += 1
             if not fresh:
