@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import sys
+from typing import Any
 
 from mirror_fg.cli.commands import _load_input, _print_transform_summary
 from mirror_fg.cli.printing import EXIT_OK, _Printer
@@ -87,6 +88,7 @@ def cmd_live(args, out: _Printer) -> int:
                                 None if args.json_lines is None else os.fspath(args.json_lines),
                                 None if args.save is None else os.fspath(args.save), ros=not args.no_ros)
     folder: SessionFolder | None = None
+    session: Any  # a LiveSession, or an arm's LiveArmSession (the same loop drives both)
     if capture.robot is not None:  # an arm: joint states from the capture's growing CSV (tools/live_joints.py)
         from mirror_fg.tools.live_joints import LiveArmSession
 
