@@ -102,8 +102,15 @@ def _verdict(value: Any) -> str | None:
 def _calibration_verdict(document: Mapping[str, Any]) -> str | None:
     """The console's verdict on a result (``looks right``, ``check``; None when there is no cost to judge)."""
     from mirror_fg.tools.summary import verdict_line
+    from mirror_fg.tools.verdict import stored_verdict
 
-    line = verdict_line(document)
+    stored = stored_verdict(document)  # the one verdict calibrate stored, as printed
+    if stored is not None:
+        return {"good": "looks right", "check": "check"}.get(stored.level)
+    try:
+        line = verdict_line(document)
+    except (KeyError, TypeError, ValueError):  # a result without what the verdict reads: no verdict to store
+        return None
     if line.startswith("verdict: looks right"):
         return "looks right"
     if line.startswith("verdict: CHECK"):
