@@ -525,7 +525,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     log_path = args.out / "runs.jsonl"
     points = sweep_points(args.sigmas, args.distances)
-    print(time_estimate(points, args.runs, args.images, args.jobs), file=sys.stderr, flush=True)
+    print(time_estimate(points, args.runs, args.images, args.jobs), flush=True)  # on stdout: stderr is for the one-line error
     start = time.perf_counter()
     records = run_sweep(
         points, args.runs, args.images, args.points, args.jobs, log_path,

@@ -15,7 +15,7 @@ def test_the_paper_size_run_warns_of_hours_and_names_the_time_budget(tmp_path):
                           "--time-budget", "0", "--out", str(tmp_path), "--no-progress"],
                          capture_output=True, text=True, timeout=300, env={**os.environ, "PYTHONPATH": str(REPO)})
     assert run.returncode == 0, run.stderr[-2000:]
-    first = run.stderr.splitlines()[0]
+    first = run.stdout.splitlines()[0]
     assert "1300 runs (13 sweep points x 100) on 1 worker(s): about 4.0 h" in first, first
     assert "--time-budget MIN" in first
     assert "0 runs in the log" in run.stdout  # the budget of 0 minutes started none

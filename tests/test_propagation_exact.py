@@ -12,6 +12,7 @@ from mirror_fg.io.dataset import dataset_from_dict
 from mirror_fg.solver.propagation import propagate
 from mirror_fg.solver.views import ViewProblem
 from mirror_fg.solver.views_solve import tree_start_for
+from mirror_fg.solver.options import SolveOptions
 
 TOLERANCE = 1e-6  # metres, and for unit normals
 
@@ -19,7 +20,7 @@ TOLERANCE = 1e-6  # metres, and for unit normals
 def start(data: dict):
     dataset = dataset_from_dict(data)
     problem = ViewProblem(dataset)
-    return propagate(problem.views, dataset.fiducials, problem.cameras, problem.fixed, tree_start_for(dataset),
+    return propagate(problem.views, dataset.fiducials, problem.cameras, problem.fixed, tree_start_for(dataset, SolveOptions()),
                      dataset.scale)
 
 
