@@ -9,7 +9,7 @@ from datetime import datetime, timedelta, timezone
 
 import pytest
 from registry_docs import result_document, verification_document
-from sqlalchemy import create_engine, inspect, text
+from sqlalchemy import inspect, text
 
 from mirror_fg.registry import Registry, RegistryError
 from mirror_fg.registry.history import flag_changes, history_csv, history_html, history_lines

@@ -4,7 +4,6 @@ truth within 3 sigma over a Monte Carlo (NEES in its band); one rotation axis on
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest
