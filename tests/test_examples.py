@@ -11,7 +11,7 @@ from mirror_fg.io.capture import load_capture
 from mirror_fg.io.dataset import load_dataset
 
 REAL = REPO / "examples" / "takahashi2012"
-DOCUMENTS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md")), *sorted((REPO / "tests" / "data" / "capture").rglob("*.yaml"))]
+DOCUMENTS = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md")), *sorted((REPO / "tests" / "data" / "capture").rglob("*.yaml"))]
 
 
 def test_real_photographs_ship_with_their_licence():

@@ -1,4 +1,6 @@
-"""The README's set-up commands stay true: CI runs the test command verbatim, the example exists."""
+"""The README's set-up commands stay true: CI runs the test command verbatim, the example exists; the
+command-line synopsis (docs/cli.md) lists every option of every command, and every command the README and
+the site's pages show uses only options its parser and the synopsis know."""
 import re
 from pathlib import Path
 
@@ -83,10 +85,13 @@ def test_readme_takahashi_verdict_is_what_calibrate_prints_and_stores(tmp_path):
     "looks right")."""
     import json
 
-    text = (REPO / "README.md").read_text()
-    section = text.split("Real photographs (Takahashi et al., CVPR 2012", 1)[1].split("\n## ", 1)[0]
-    (command,) = re.findall(r"```bash\n(mirror-fg calibrate .*?)\n```", section)
-    (quoted,) = [line for block in _text_blocks(section) for line in block if line.startswith("verdict:")]
+    quotes = []
+    for document in (REPO / "README.md", REPO / "docs" / "cli.md"):
+        section = document.read_text().split("Real photographs (Takahashi et al., CVPR 2012", 1)[1].split("\n## ", 1)[0]
+        (command,) = re.findall(r"```bash\n(mirror-fg calibrate .*?)\n```", section)
+        quotes += [line for block in _text_blocks(section) for line in block if line.startswith("verdict:")]
+    quoted = quotes[0]
+    assert quotes == [quoted, quoted], "README.md and docs/cli.md quote different verdicts"
     out = _mirror_fg_cli(command.split()[1:-2] + ["-o", str(tmp_path / "takahashi.json")], REPO)
     (printed,) = [line for line in out.splitlines() if line.startswith("verdict:")]
     assert printed == quoted
@@ -101,7 +106,7 @@ def _guide() -> str:
 
 def test_gaze_guide_and_readme_screen_figures_are_what_the_tool_prints(tmp_path):
     """docs/gaze_guide.md section 3 quotes `mirror-fg calibrate` on `scripts/render_screen.py`'s capture, at its
-    pixel_sigma 0.3 and at the 0.07 px the verdict says the residuals fit; the README quotes the same bounds,
+    pixel_sigma 0.3 and at the 0.07 px the verdict says the residuals fit; docs/setups/screen.md quotes the same bounds,
     and the guide's Python example prints what it says."""
     import subprocess
     import sys
@@ -125,7 +130,7 @@ def test_gaze_guide_and_readme_screen_figures_are_what_the_tool_prints(tmp_path)
     again = _mirror_fg_cli(["calibrate", "capture.yaml", "-o", "result.json"], tmp_path).splitlines()
     for line in second:
         assert line in again, (line, again)
-    readme = (REPO / "README.md").read_text().split("## Gaze tracking", 1)[1].split("\n## ", 1)[0]
+    readme = (REPO / "docs" / "setups" / "screen.md").read_text()
     bounds = re.findall(r"\[([0-9., ]+)\] deg and \[([0-9., ]+)\] mm", " ".join(readme.split()))
     assert len(bounds) == 2
     for (deg, mm), lines in zip(bounds, (printed, again)):
@@ -136,10 +141,10 @@ _OPTION = re.compile(r"(?<![\w-])(--?[a-zA-Z][\w-]*)")
 
 
 def _synopsis() -> dict[str, set[str]]:
-    """Each command's options in the README's synopsis (its lines and their indented continuations), and
-    the options every command takes under ``"*"``."""
-    text = (REPO / "README.md").read_text()
-    block = re.search(r"## Command line\n\n```\n(.*?)\n```", text, re.S).group(1)
+    """Each command's options in the synopsis on docs/cli.md (its lines and their indented continuations),
+    and the options every command takes under ``"*"``."""
+    text = (REPO / "docs" / "cli.md").read_text()
+    block = re.search(r"## Synopsis\n\n```text\n(.*?)\n```", text, re.S).group(1)
     options: dict[str, set[str]] = {"*": set()}
     command = None
     for line in block.splitlines():
@@ -153,16 +158,17 @@ def _synopsis() -> dict[str, set[str]]:
 
 
 def _readme_invocations() -> list[tuple[str, list[str]]]:
-    """``(command, options)`` of every ``mirror-fg COMMAND ...`` in the README's bash examples and inline code."""
-    text = (REPO / "README.md").read_text()
-    snippets = re.findall(r"```bash\n(.*?)\n```", text, flags=re.S) + re.findall(r"`(mirror-fg [^`]+)`", text)
+    """``(command, options)`` of every ``mirror-fg COMMAND ...`` in the shell examples (bash and console)
+    and inline code of the README and the site's pages."""
+    text = "\n".join(page.read_text() for page in [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))])
+    snippets = re.findall(r"```(?:bash|console)\n(.*?)\n```", text, flags=re.S) + re.findall(r"`(mirror-fg [^`]+)`", text)
     found = []
     for snippet in snippets:
         for line in snippet.splitlines():
             line = line.split("#", 1)[0]
             for part in re.split(r"&&|;|\|\|", line):
                 words = part.split()
-                if len(words) >= 2 and words[0] == "mirror-fg" and not words[1].startswith(("-", ".")):
+                if len(words) >= 2 and words[0] == "mirror-fg" and not words[1].startswith(("-", ".")) and not words[1].isupper():
                     found.append((words[1], _OPTION.findall(" ".join(words[2:]))))
     return found
 
@@ -183,9 +189,9 @@ def test_every_option_the_readme_uses_is_in_its_synopsis_and_its_parser():
     for command, options in invocations:
         known = {o for strings in parser[command] for o in strings}
         for option in options:
-            assert option in known, f"README runs mirror-fg {command} {option}, which its parser does not take"
+            assert option in known, f"the docs run mirror-fg {command} {option}, which its parser does not take"
             assert option in synopsis.get(command, set()) | synopsis["*"], \
-                f"README runs mirror-fg {command} {option}, which the synopsis does not list"
+                f"the docs run mirror-fg {command} {option}, which the synopsis does not list"
 
 
 def test_the_synopsis_lists_every_option_of_every_command():

@@ -88,7 +88,7 @@ def test_report_section_with_and_without_the_dataset(calibrated):
 
 
 def test_the_readme_example_runs_and_prints_what_it_shows(tmp_path):
-    """README's "How far off will my grasp be?" command, run as written (from the repository root, the
+    """docs/reports.md's "How far off will my grasp be?" command, run as written (from the repository root, the
     output moved to a temporary folder): the lines it shows come out, figures and all."""
     import re
     import subprocess
@@ -96,7 +96,7 @@ def test_the_readme_example_runs_and_prints_what_it_shows(tmp_path):
     from pathlib import Path
 
     repo = Path(__file__).resolve().parents[1]
-    section = (repo / "README.md").read_text().split("### How far off will my grasp be?", 1)[1].split("\n#", 1)[0]
+    section = (repo / "docs" / "reports.md").read_text().split("## How far off will my grasp be?", 1)[1].split("\n#", 1)[0]
     command = re.search(r"```bash\n(.*?)\n```", section, re.S).group(1)
     shown = re.search(r"```text\n(.*?)\n```", section, re.S).group(1).splitlines()
     command = command.replace("mirror-fg ", f"{sys.executable} -m mirror_fg ").replace("out/", f"{tmp_path}/")
