@@ -377,6 +377,10 @@ def _residuals(result: Mapping[str, Any], dataset: Dataset) -> Residuals | None:
     from mirror_fg.core.errors import DatasetError
 
     try:
+        if getattr(dataset, "robot", None) is not None:  # an arm: predicted through the kinematics
+            from mirror_fg.tools.report_robot import robot_residuals
+
+            return robot_residuals(result, dataset, "result")
         if not dataset.is_tree:
             from mirror_fg.tools.report_views import view_residuals
 
