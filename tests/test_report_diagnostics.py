@@ -100,7 +100,7 @@ def test_report_draws_tracks_and_echoes_inputs(tmp_path):
     paths = write_report(result, ds, tmp_path, progress=False, tracks=tracks, source="calib.json",
                          inputs={"capture file": "capture.yaml"})
     page = paths["html"].read_text(encoding="utf-8")
-    assert len(re.findall(r"<img ", page)) == 7 and "<h2>Tracked points</h2>" in page
+    assert len(re.findall(r"<img ", page)) == 9 and "<h2>Tracked points</h2>" in page  # 7 + the error map and the held-out ratios
     inputs = re.search(r"<table class='summary' id='inputs'>(.*?)</table>", page, re.S).group(1)
     for expected in ("calib.json", "&lt;test scene&gt;", "pinhole 1024×768", "4 fiducials", "capture.yaml",
                      mirror_fg.__version__, "UTC"):

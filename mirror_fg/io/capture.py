@@ -69,7 +69,6 @@ from mirror_fg.io.capture_views import (
     EACH, Config, Placement, ViewEntry, camera_entry, image_camera, image_placements, image_views, is_mirrored,
     rig_cameras,
 )
-from mirror_fg.io.dataset_fields import check_cameras_named
 from mirror_fg.io.fileio import load_structured, open_video, resolve_path, video_frame_count
 from mirror_fg.io.observations import observations_from
 from mirror_fg.io.target import PointsTarget, TagTarget, Target, pose_from_dict, target_from_dict
@@ -438,8 +437,6 @@ def _images(value: Any, cap: Capture, base_dir: str) -> list[ImageEntry]:
         named = ", ".join(m.removeprefix(f"{source}: ") for m, _ in missing[:4])
         raise DatasetError(f"{source}: {len(missing)} image files not found: {named}{more} (looked in {folder}: a "
                            "relative path is taken from the capture's folder)")
-    if entries:
-        check_cameras_named(cap.cameras, (entry.camera for entry in entries), source)
     return entries
 
 

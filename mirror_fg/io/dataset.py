@@ -19,7 +19,7 @@ import numpy as np
 from mirror_fg.core.camera import Camera, camera_from_dict, camera_to_dict, check_camera, initial_intrinsics
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.dataset_fields import (
-    COLLINEAR_TOL, check_cameras_named, check_scale, dataset_summary, image_camera, cameras_from_dict, check_reflections, fiducials_from_dict, reflections_to_list, scale_from_dict,
+    COLLINEAR_TOL, check_scale, dataset_summary, image_camera, cameras_from_dict, check_reflections, fiducials_from_dict, reflections_to_list, scale_from_dict,
     scale_to_dict, tree_configs,
 )
 from mirror_fg.io.output import atomic_write, json_text
@@ -301,7 +301,6 @@ def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Datase
         image.joints = image_joints(ds.robot, entry.get("joints") if isinstance(entry, Mapping) else entry.joints,
                                     f"{source}: image {image.id!r}")
         ds.images.append(image)
-    check_cameras_named(ds.cameras, (image.camera for image in ds.images), source)
     if unstarted is not None:
         _start_camera(ds, unstarted)
     if scale is not None:

@@ -18,6 +18,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from mirror_fg.core.errors import DatasetError
+from mirror_fg.io.dataset_fields import check_cameras_named
 from mirror_fg.io.dataset import Dataset, dataset_from_dict
 from mirror_fg.solver.camera_labels import check_camera_labels
 from mirror_fg.solver.calibration import Calibration
@@ -95,6 +96,9 @@ def calibrate(
     elif separate != (None, True, 100, None, True, None, True):
         raise TypeError("calibrate(): give the settings either in options= or as separate arguments, not both")
     dataset = as_dataset(dataset)
+    # A rig camera no image names has nothing to estimate it from (a dataset of new images for verify may
+    # leave cameras out: the check is the calibration's, not the file's).
+    check_cameras_named(dataset.cameras, (image.camera for image in dataset.images), dataset.source)
     if dataset.robot is not None:  # a robot arm (docs/formats.md "Robot arms"): mounts from joint states
         from mirror_fg.solver.robot_solve import calibrate_robot
         return calibrate_robot(dataset, initial, options)  # type: ignore[arg-type]

@@ -25,6 +25,7 @@ import numpy as np
 
 from mirror_fg.core.errors import SolveError
 from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.io.dataset_fields import check_cameras_named
 from mirror_fg.solver.analytic import AnalyticSolution
 from mirror_fg.solver.calibrate import as_dataset
 from mirror_fg.solver.calibration import Calibration, Exclusion, require_converged
@@ -189,6 +190,7 @@ def calibrate_incremental(
     refused as inconsistent with the estimate are asked whether they fit a pose of their own.
     """
     dataset = as_dataset(dataset)
+    check_cameras_named(dataset.cameras, (image.camera for image in dataset.images), dataset.source)
     if not dataset.is_tree:  # the general view model (incremental_views.py)
         return calibrate_views_incremental(dataset, robust=robust, on_estimate=on_estimate, on_wait=on_wait,
                                            accept_poor_fit=accept_poor_fit)
