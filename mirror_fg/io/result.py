@@ -195,6 +195,8 @@ def result_dict(calibration: CalibrationLike) -> dict:
         result["at"] = at_entries(calibration_poses(c), c.at_points)
     if getattr(c, "validation", None) is not None:
         result["validation"] = c.validation.to_dict()
+    if getattr(c, "dispersion", None) is not None:  # docs/formats.md "Has it moved?"
+        result["dispersion"] = c.dispersion.to_dict()
     return result
 
 

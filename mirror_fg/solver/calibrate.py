@@ -20,6 +20,7 @@ from typing import Any
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.dataset import Dataset, dataset_from_dict
 from mirror_fg.solver.calibration import Calibration
+from mirror_fg.solver.dispersion import dispersion_of_calibration
 from mirror_fg.solver.graph import InitialEstimate
 from mirror_fg.solver.options import STAGES, Linearization, Progress, SolveOptions
 from mirror_fg.solver.pipeline import run_pipeline
@@ -95,10 +96,14 @@ def calibrate(
         raise TypeError("calibrate(): give the settings either in options= or as separate arguments, not both")
     dataset = as_dataset(dataset)
     if not dataset.is_tree:  # direct views, fixed mirrors, any order, no known target, several cameras
-        return calibrate_views(dataset, initial, options)
-    if dataset.camera is not None and dataset.camera.estimate:  # intrinsics estimated too (camera.estimate)
-        return calibrate_with_intrinsics(dataset, initial=initial, options=options)
-    return run_pipeline(TreeProblem(initial, options), dataset)
+        calibration = calibrate_views(dataset, initial, options)
+    elif dataset.camera is not None and dataset.camera.estimate:  # intrinsics estimated too (camera.estimate)
+        calibration = calibrate_with_intrinsics(dataset, initial=initial, options=options)
+    else:
+        calibration = run_pipeline(TreeProblem(initial, options), dataset)
+    if options.compute_covariance and calibration.covariance is not None:  # what verify divides its test by
+        calibration.dispersion = dispersion_of_calibration(dataset, calibration)
+    return calibration
 
 
 def calibrate_with_intrinsics(

@@ -162,6 +162,8 @@ class Calibration:
     at_points: list[tuple[float, float, float]] = field(default_factory=list)
     #: The held-out validation (``solver/validation.py``, ``calibrate --validate``), else None.
     validation: Any = None
+    #: The images' agreement with each other (``solver/dispersion.py``), else None.
+    dispersion: Any = None
 
     @property
     def T_cam_base(self) -> Transform:
