@@ -290,7 +290,7 @@ def test_readme_section_runs(tmp_path):
     from pathlib import Path
 
     text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    section = text.split("## Has it moved?", 1)[1].split("\n## ", 1)[0]
+    section = text.split("## Has it moved?", 1)[1].split("\n## ", 1)[0].split("\n### ", 1)[0]
     (block,) = re.findall(r"```bash\n(.*?)\n```", section, flags=re.S)
     commands = [line for line in block.splitlines() if line.startswith("mirror-fg ")]
     program = f"{sys.executable} -c 'import sys; from mirror_fg.cli import main; sys.exit(main())'"

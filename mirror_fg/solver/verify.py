@@ -33,10 +33,10 @@ Bounds too narrow for the data (``solver/dispersion.py``): a per-image systemati
 unmodelled distortion) moves each image's virtual camera while its own mirror placement hides it from the
 residuals, so ``S`` and ``N^-1`` are too small by a factor the residuals do not show. Where the result
 stores its images' agreement with each other, ``dispersion`` (``s2 = B / nu``, ``nu`` degrees of freedom;
-about 1 when the noise model holds), both are scaled by it and the test is an F-test, the noise level
-estimated from the image-level redundancy: ``F = d2 / (k s2)``, ``p = 1 - F_{k,nu}(F)``; ``C = s2 (S +
-N^-1)`` and ``lambda*`` the non-centrality of power 0.9 of ``F_{k,nu}`` (``k s2`` times it bounds the
-detectable ``d2``). Where ``nu = 0`` (every stored image was needed to determine the solution: its
+about 1 when the noise model holds), both are scaled by ``f = max(1, s2)`` and the test is an F-test, the
+noise level estimated from the image-level redundancy: ``F = d2 / (k f)``, ``p = 1 - F_{k,nu}(F)`` (exact
+size alpha where ``s2 >= 1``, below it otherwise: the bounds are only ever widened); ``C = f (S + N^-1)``
+and ``lambda*`` the non-centrality of power 0.9 of ``F_{k,nu}`` (times ``f`` in ``d2``). Where ``nu = 0`` (every stored image was needed to determine the solution: its
 bounds cannot be checked) the test is the chi-square one and `not moved` becomes `cannot tell`; a
 result without ``dispersion`` (written before it existed) is tested with the chi-square as stored.
 """
@@ -99,8 +99,8 @@ class CameraVerdict:
     detectable_rad: float
     detectable_m: float
     advice: str
-    #: ``s2`` the test divided by (1.0 where the result stores none) and its degrees of freedom ``nu`` (None
-    #: where the result stores none: the chi-square test).
+    #: The result's dispersion ``s2`` (the test divides by ``max(1, s2)``; NaN where ``nu = 0``, 1.0 where
+    #: the result stores none) and its degrees of freedom ``nu`` (None where it stores none: chi-square).
     dispersion: float = 1.0
     dispersion_dof: float | None = None
 
@@ -400,7 +400,8 @@ def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.0
                            "the data are from different set-ups, or the target or its points moved")
     dispersion = stored_dispersion(result)
     checked = dispersion is not None and dispersion[1] > 0.5 and math.isfinite(dispersion[0]) and dispersion[0] > 0
-    scale, nu = (dispersion[0], dispersion[1]) if checked else (1.0, None)  # type: ignore[index]
+    # only ever widened: bounds narrower than the noise model gives are not trusted (s2 < 1 is chance)
+    scale, nu = (max(1.0, dispersion[0]), dispersion[1]) if checked else (1.0, None)  # type: ignore[index]
     ncp = {k: detectable_noncentrality(k, alpha, denominator_dof=nu) for k in range(1, 7)}
     verdicts: dict[str, CameraVerdict] = {}
     for name in camera_names(dataset):
@@ -421,7 +422,7 @@ def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.0
         answer = _verdict(name, d2, dof, p, free, fits, ncp.get(dof, math.inf), alpha, tolerance_mm, tolerance_deg,
                           scale)
         if dispersion is not None:
-            answer = replace(answer, dispersion=scale, dispersion_dof=dispersion[1])
+            answer = replace(answer, dispersion=dispersion[0], dispersion_dof=dispersion[1])
             if not checked and answer.verdict == NOT_MOVED:  # nu = 0: the stored bounds cannot be checked
                 answer = replace(answer, verdict=CANNOT_TELL, advice=UNCHECKED)
         verdicts[name] = answer
