@@ -298,7 +298,7 @@ def test_readme_section_runs(tmp_path):
         run = subprocess.run(command.replace("mirror-fg ", f"{program} ", 1), shell=True, cwd=tmp_path,
                              capture_output=True, text=True, timeout=120)
         assert run.returncode == 0, (command, run.stderr[-2000:])
-    assert "NOT MOVED" in run.stdout and "p = 0.0187" in run.stdout
+    assert "NOT MOVED" in run.stdout and "p = 0.0243" in run.stdout
     assert (tmp_path / "verification.json").exists() and (tmp_path / "updated.result.json").exists()
 
 
