@@ -169,8 +169,9 @@ _VALIDATION: tuple[dict[str, Checker], dict[str, Checker]] = (
 
 #: The images' agreement with each other (solver/dispersion.py): B / nu, nu, B, images counted.
 _DISPERSION: tuple[dict[str, Checker], dict[str, Checker]] = (
-    {"dof": _statistic, "cost": _statistic, "images": lambda x, p: _integer(x, p, 0)},
-    {"factor": _statistic},
+    {"dof": lambda x, p: _number(x, p, minimum=0.0), "cost": lambda x, p: _number(x, p, minimum=0.0),
+     "images": lambda x, p: _integer(x, p, 0)},
+    {"factor": lambda x, p: _number(x, p, minimum=0.0)},
 )
 
 #: Top-level keys a reader uses, each optional except ``T_cam_base`` (:data:`REQUIRED`).
