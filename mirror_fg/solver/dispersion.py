@@ -74,8 +74,8 @@ def image_dispersion(dataset: Dataset, estimate: ViewEstimate, excluded: Sequenc
         offset[key] = size
         size += tangent_dimension(key, values)
     own_keys = set(problem.pose_keys.values()) | set(problem.mirror_keys.values())
-    information = np.zeros((size, size))
-    parts = []  # per image: its global columns, U_i^T J_i
+    blocks: list[tuple[np.ndarray, np.ndarray]] = []  # (global columns, information block): H, sparse
+    parts = []  # per image: its block's index, U_i^T J_i
     cost = 0.0
     rank_sum = 0
     for factor, mask in zip(problem.factors, masks):
@@ -89,21 +89,59 @@ def image_dispersion(dataset: Dataset, estimate: ViewEstimate, excluded: Sequenc
             if key in own_keys:
                 own += list(range(at, at + dim))
             at += dim
-        information[np.ix_(columns, columns)] += A.T @ A
+        blocks.append((np.array(columns, dtype=int), A.T @ A))
         if not own or not len(r):
             continue
         U = _range(A[:, own])
         rank_sum += U.shape[1]
         cost += float(np.sum((U.T @ r) ** 2))
-        parts.append((np.array(columns, dtype=int), U.T @ A))
+        parts.append((len(blocks) - 1, U.T @ A))
     for k in range(len(problem.factors), graph.size()):  # priors (intrinsics, scale): in Sigma only
         gaussian = graph.at(k).linearize(values)
         A, _ = gaussian.jacobian()
         columns = [i for key in gaussian.keys() for i in range(offset[key], offset[key] + tangent_dimension(key, values))]
-        information[np.ix_(columns, columns)] += A.T @ A
-    covariance = np.linalg.pinv(information, hermitian=True)
-    explained = sum(float(np.sum((UJ @ covariance[np.ix_(c, c)]) * UJ)) for c, UJ in parts)
-    return Dispersion(cost, max(rank_sum - explained, 0.0), len(parts))
+        blocks.append((np.array(columns, dtype=int), A.T @ A))
+    return Dispersion(cost, max(rank_sum - _explained(blocks, parts, size), 0.0), len(parts))
+
+
+def _explained(blocks: list[tuple[np.ndarray, np.ndarray]], parts: list[tuple[int, np.ndarray]], size: int) -> float:
+    """``sum_i tr(Sigma_cc G_i)`` over each image's columns ``c``, without inverting the whole information:
+    the columns only one block touches (a placement one image sees) are eliminated block by block (Schur
+    complement), the rest (pose, intrinsics, points, shared placements) inverted densely; ``blocks``: each
+    factor's columns and information, ``parts``: an image's block and ``U_i^T J_i``."""
+    touches = np.zeros(size, dtype=int)
+    for columns, _ in blocks:
+        touches[columns] += 1
+    shared = np.flatnonzero(touches > 1)
+    where = np.full(size, -1)
+    where[shared] = np.arange(len(shared))
+    H_ss = np.zeros((len(shared), len(shared)))
+    eliminated = []  # per block: its shared columns (positions in H_ss), local positions in the block, K, H_ll^-1
+    for columns, H in blocks:
+        local = touches[columns] == 1
+        s_at = where[columns[~local]]
+        H_ss[np.ix_(s_at, s_at)] += H[np.ix_(~local, ~local)]
+        if not np.any(local):
+            eliminated.append((s_at, local, np.zeros((0, len(s_at))), np.zeros((0, 0))))
+            continue
+        H_ll_inv = np.linalg.pinv(H[np.ix_(local, local)], hermitian=True)
+        K = H_ll_inv @ H[np.ix_(local, ~local)]  # H_ll^-1 H_ls
+        H_ss[np.ix_(s_at, s_at)] -= H[np.ix_(~local, local)] @ K
+        eliminated.append((s_at, local, K, H_ll_inv))
+    Sigma_ss = np.linalg.pinv(0.5 * (H_ss + H_ss.T), hermitian=True) if len(shared) else np.zeros((0, 0))
+    total = 0.0
+    for index, UJ in parts:
+        columns = blocks[index][0]
+        s_at, local, K, H_ll_inv = eliminated[index]
+        S = Sigma_ss[np.ix_(s_at, s_at)]
+        Sigma = np.zeros((len(columns), len(columns)))
+        Sigma[np.ix_(~local, ~local)] = S
+        if np.any(local):
+            Sigma[np.ix_(~local, local)] = -S @ K.T
+            Sigma[np.ix_(local, ~local)] = -K @ S
+            Sigma[np.ix_(local, local)] = H_ll_inv + K @ S @ K.T
+        total += float(np.sum((UJ @ Sigma) * UJ))
+    return total
 
 
 def _range(J: np.ndarray) -> np.ndarray:
