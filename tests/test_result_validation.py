@@ -96,7 +96,7 @@ ACCEPTED = {
         r"points", rf"points\.{_ANY}\.sigma3_mm", r"optimizer(\.\w+)?", r"residuals(\.\w+)?",
         r"excluded", r"excluded\[\d+\]\.(point|sigmas)", r"inconsistency", r"inconsistency\.(rotation_deg|position_mm)",
         r"camera", r"camera\.(model|width|height|dist|sigma3|covariance|cross_covariance_cam_base)",
-        r"camera\.sigma3\.\w+",
+        r"camera\.sigma3\.\w+", r"dispersion(\.factor)?",
     ],
     "nan": [  # statistics that could not be computed
         r"sigma3_(cam_base|base_cam)\.\w+\[\d\]", r"mirrors\[\d+\]\.sigma3_mm\[\d\]", rf"points\.{_ANY}\.sigma3_mm\[\d\]",

@@ -105,6 +105,10 @@ def verification_lines(verification) -> list[str]:
                          f"{verification.tolerance_mm:g} mm)")
         else:
             lines.append("  smallest move seen: none in every direction (some directions unseen)")
+        if v.dispersion_dof is not None and math.isfinite(v.dispersion):
+            lines.append(f"  the stored images agree to {v.dispersion:.3g}x their noise model's variance "
+                         f"({v.dispersion_dof:.0f} degrees of freedom): bounds x{max(1.0, v.dispersion) ** 0.5:.3g}, "
+                         "F-test")
         if v.advice:
             lines.append(f"  {v.advice}")
     return lines

@@ -213,6 +213,9 @@ def result_dict(calibration: CalibrationLike) -> dict:
         mirrors: list[dict[str, Any]] = result["mirrors"]  # type: ignore[assignment]
         for entry in mirrors:
             entry["frame"] = robot["mirror_frame"]
+    dispersion = getattr(c, "dispersion", None)
+    if dispersion is not None:  # docs/formats.md "Has it moved?"
+        result["dispersion"] = dispersion.to_dict()
     return result
 
 

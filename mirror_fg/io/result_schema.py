@@ -167,6 +167,12 @@ _VALIDATION: tuple[dict[str, Checker], dict[str, Checker]] = (
     {"worst": lambda x, p: _fields(x, p, {"image": _text, "ratio": _statistic}, {}), "not_held_out": _list_of(_text)},
 )
 
+#: The images' agreement with each other (solver/dispersion.py): B / nu, nu, B, images counted.
+_DISPERSION: tuple[dict[str, Checker], dict[str, Checker]] = (
+    {"dof": lambda x, p: _number(x, p, minimum=0.0), "cost": lambda x, p: _number(x, p, minimum=0.0),
+     "images": lambda x, p: _integer(x, p, 0)},
+    {"factor": lambda x, p: _number(x, p, minimum=0.0)},
+)
 
 #: Top-level keys a reader uses, each optional except ``T_cam_base`` (:data:`REQUIRED`).
 OPTIONAL: dict[str, Checker] = {
@@ -189,4 +195,5 @@ OPTIONAL: dict[str, Checker] = {
     "screen": check_screen_block,  # a screen capture's screen (io.screen_result)
     "at": _list_of(lambda e, p: _fields(e, p, *_AT)),
     "validation": lambda x, p: _fields(x, p, *_VALIDATION),
+    "dispersion": lambda x, p: _fields(x, p, *_DISPERSION),
 }

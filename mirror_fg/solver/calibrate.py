@@ -22,6 +22,7 @@ from mirror_fg.io.dataset_fields import check_cameras_named
 from mirror_fg.io.dataset import Dataset, dataset_from_dict
 from mirror_fg.solver.camera_labels import check_camera_labels
 from mirror_fg.solver.calibration import Calibration
+from mirror_fg.solver.dispersion import dispersion_of_calibration
 from mirror_fg.solver.graph import InitialEstimate
 from mirror_fg.solver.options import STAGES, Linearization, Progress, SolveOptions
 from mirror_fg.solver.pipeline import run_pipeline
@@ -104,10 +105,14 @@ def calibrate(
         return calibrate_robot(dataset, initial, options)  # type: ignore[arg-type]
     if not dataset.is_tree:  # direct views, fixed mirrors, any order, no known target, several cameras
         check_camera_labels(dataset)  # a rig image naming the wrong camera, before any plane is started
-        return calibrate_views(dataset, initial, options)
-    if dataset.camera is not None and dataset.camera.estimate:  # intrinsics estimated too (camera.estimate)
-        return calibrate_with_intrinsics(dataset, initial=initial, options=options)
-    return run_pipeline(TreeProblem(initial, options), dataset)
+        calibration = calibrate_views(dataset, initial, options)
+    elif dataset.camera is not None and dataset.camera.estimate:  # intrinsics estimated too (camera.estimate)
+        calibration = calibrate_with_intrinsics(dataset, initial=initial, options=options)
+    else:
+        calibration = run_pipeline(TreeProblem(initial, options), dataset)
+    if options.compute_covariance and calibration.covariance is not None:  # what verify divides its test by
+        calibration.dispersion = dispersion_of_calibration(dataset, calibration)
+    return calibration
 
 
 def calibrate_with_intrinsics(

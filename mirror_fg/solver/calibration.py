@@ -165,6 +165,8 @@ class Calibration:
     #: A robot arm's result@1 entries (``mounts``, ``joint_offsets``; ``solver/robot_solve.py``), else None:
     #: then ``T_cam_base`` is the camera mount's inverse and the mirror vectors are in the base link's frame.
     robot: dict | None = None
+    #: The images' agreement with each other (``solver/dispersion.py``), else None.
+    dispersion: Any = None
 
     @property
     def T_cam_base(self) -> Transform:

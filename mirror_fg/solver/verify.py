@@ -28,6 +28,17 @@ smallest move detectable at ``alpha`` with power 0.9 has non-centrality ``lambda
 (``P(ncx2_k(lambda*) > chi2_k^-1(1 - alpha)) = 0.9``); in the worst direction it is
 ``sqrt(lambda* max eig C_rr)`` in rotation and ``sqrt(lambda* max eig C_tt)`` in position (infinite
 where ``k < 6``).
+
+Bounds too narrow for the data (``solver/dispersion.py``): a per-image systematic error (corner bias,
+unmodelled distortion) moves each image's virtual camera while its own mirror placement hides it from the
+residuals, so ``S`` and ``N^-1`` are too small by a factor the residuals do not show. Where the result
+stores its images' agreement with each other, ``dispersion`` (``s2 = B / nu``, ``nu`` degrees of freedom;
+about 1 when the noise model holds), both are scaled by ``f = max(1, s2)`` and the test is an F-test, the
+noise level estimated from the image-level redundancy: ``F = d2 / (k f)``, ``p = 1 - F_{k,nu}(F)`` (exact
+size alpha where ``s2 >= 1``, below it otherwise: the bounds are only ever widened); ``C = f (S + N^-1)``
+and ``lambda*`` the non-centrality of power 0.9 of ``F_{k,nu}`` (times ``f`` in ``d2``). Where ``nu = 0`` (every stored image was needed to determine the solution: its
+bounds cannot be checked) the test is the chi-square one and `not moved` becomes `cannot tell`; a
+result without ``dispersion`` (written before it existed) is tested with the chi-square as stored.
 """
 from __future__ import annotations
 
@@ -56,6 +67,9 @@ __all__ = ["Verification", "CameraVerdict", "verify", "MOVED", "NOT_MOVED", "CAN
            "detectable_noncentrality"]
 
 MOVED, NOT_MOVED, CANNOT_TELL = "moved", "not moved", "cannot tell"
+#: The advice of a `cannot tell` whose stored bounds could not be checked (dispersion with nu = 0).
+UNCHECKED = ("the stored result's images cannot be checked against each other (each was needed to determine it), "
+             "so its bounds may be too narrow: calibrate again with more placements")
 #: The power at which the detectable move is stated.
 POWER = 0.9
 #: A direction of the pose whose new-data information is below this fraction of the stored information
@@ -85,6 +99,10 @@ class CameraVerdict:
     detectable_rad: float
     detectable_m: float
     advice: str
+    #: The result's dispersion ``s2`` (the test divides by ``max(1, s2)``; NaN where ``nu = 0``, 1.0 where
+    #: the result stores none) and its degrees of freedom ``nu`` (None where it stores none: chi-square).
+    dispersion: float = 1.0
+    dispersion_dof: float | None = None
 
     @property
     def exit_code(self) -> int:
@@ -101,7 +119,9 @@ class CameraVerdict:
                 "move": move, "sigma3": sigma3,
                 "detectable": {"rotation_deg": _finite(math.degrees(self.detectable_rad)),
                                "position_mm": _finite(1e3 * self.detectable_m)},
-                "advice": self.advice or None}
+                "advice": self.advice or None,
+                "dispersion": None if self.dispersion_dof is None else {"factor": self.dispersion,
+                                                                        "dof": self.dispersion_dof}}
 
 
 @dataclass(frozen=True)
@@ -136,13 +156,21 @@ def _finite(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
-def detectable_noncentrality(dof: int, alpha: float, power: float = POWER) -> float:
+def detectable_noncentrality(dof: int, alpha: float, power: float = POWER, denominator_dof: float | None = None
+                              ) -> float:
     """The non-centrality ``lambda*`` at which a chi-square test of ``dof`` degrees of freedom at level
-    ``alpha`` rejects with probability ``power`` (non-central chi-square)."""
-    critical = stats.chi2.isf(alpha, dof)
+    ``alpha`` rejects with probability ``power`` (non-central chi-square); with ``denominator_dof`` ``nu``,
+    an F-test of ``(dof, nu)`` degrees of freedom (non-central F)."""
+    if denominator_dof is None:
+        critical = stats.chi2.isf(alpha, dof)
 
-    def shortfall(ncp: float) -> float:
-        return float(stats.ncx2.sf(critical, dof, ncp)) - power
+        def shortfall(ncp: float) -> float:
+            return float(stats.ncx2.sf(critical, dof, ncp)) - power
+    else:
+        critical = stats.f.isf(alpha, dof, denominator_dof)
+
+        def shortfall(ncp: float) -> float:
+            return float(stats.ncf.sf(critical, dof, denominator_dof, ncp)) - power
 
     high = 1.0
     while shortfall(high) < 0:
@@ -152,6 +180,16 @@ def detectable_noncentrality(dof: int, alpha: float, power: float = POWER) -> fl
 
 # --------------------------------------------------------------------------------------------------
 # The stored result
+
+
+def stored_dispersion(result: Mapping[str, Any]) -> tuple[float, float] | None:
+    """``(s2, nu)`` of the result's ``dispersion`` (``s2`` NaN where ``nu`` is 0), None without one."""
+    block = result.get("dispersion")
+    if not block:
+        return None
+    dof = float(block["dof"])
+    factor = block.get("factor")
+    return (float(factor) if factor is not None and dof > 0.5 else math.nan), dof
 
 
 def stored_cameras(result: Mapping[str, Any]) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
@@ -360,7 +398,11 @@ def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.0
         raise DatasetError(f"{dataset.source}: the new images do not fit {source}'s target and points even with the "
                            f"camera free (cost {fits.data.error(free):.3g}, expected about {expected:.3g}): the result and "
                            "the data are from different set-ups, or the target or its points moved")
-    ncp = {k: detectable_noncentrality(k, alpha) for k in range(1, 7)}
+    dispersion = stored_dispersion(result)
+    checked = dispersion is not None and dispersion[1] > 0.5 and math.isfinite(dispersion[0]) and dispersion[0] > 0
+    # only ever widened: bounds narrower than the noise model gives are not trusted (s2 < 1 is chance)
+    scale, nu = (max(1.0, dispersion[0]), dispersion[1]) if checked else (1.0, None)  # type: ignore[index]
+    ncp = {k: detectable_noncentrality(k, alpha, denominator_dof=nu) for k in range(1, 7)}
     verdicts: dict[str, CameraVerdict] = {}
     for name in camera_names(dataset):
         if name not in problem.pose_keys:
@@ -371,16 +413,27 @@ def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.0
         _, cost_held = fits.fit(priors, [held_all, free])
         d2 = max(0.0, 2.0 * (cost_held - cost_free))
         dof = int(np.sum(seen[name][0] > SEEN))
-        p = float(stats.chi2.sf(d2, dof)) if dof > 0 else 1.0
-        verdicts[name] = _verdict(name, d2, dof, p, free, fits, ncp.get(dof, math.inf), alpha, tolerance_mm,
-                                  tolerance_deg)
+        if dof == 0:
+            p = 1.0
+        elif nu is not None:  # the F-test: d2 / k over the image-level variance factor (module docstring)
+            p = float(stats.f.sf(d2 / (dof * scale), dof, nu))
+        else:
+            p = float(stats.chi2.sf(d2, dof))
+        answer = _verdict(name, d2, dof, p, free, fits, ncp.get(dof, math.inf), alpha, tolerance_mm, tolerance_deg,
+                          scale)
+        if dispersion is not None:
+            answer = replace(answer, dispersion=dispersion[0], dispersion_dof=dispersion[1])
+            if not checked and answer.verdict == NOT_MOVED:  # nu = 0: the stored bounds cannot be checked
+                answer = replace(answer, verdict=CANNOT_TELL, advice=UNCHECKED)
+        verdicts[name] = answer
     fused = _fused(fits, held_all, tested)
     return Verification(verdicts, alpha, tolerance_mm, tolerance_deg, fused)
 
 
 def _verdict(name: str, d2: float, dof: int, p: float, free: gtsam.Values, fits: _Fits, ncp: float, alpha: float,
-             tolerance_mm: float, tolerance_deg: float) -> CameraVerdict:
+             tolerance_mm: float, tolerance_deg: float, scale: float = 1.0) -> CameraVerdict:
     R_s, t_s, S = fits.stored[name]
+    ncp = ncp * scale  # the detectable d2 in the stored units: the test divides d2 by scale
     move = combined = None
     detectable_rad = detectable_m = math.inf
     if dof == 6:
@@ -392,6 +445,7 @@ def _verdict(name: str, d2: float, dof: int, p: float, free: gtsam.Values, fits:
         combined = S + 0.5 * (new + new.T)
         detectable_rad = math.sqrt(ncp * float(np.linalg.eigvalsh(combined[:3, :3])[-1]))
         detectable_m = math.sqrt(ncp * float(np.linalg.eigvalsh(combined[3:, 3:])[-1]))
+        combined = scale * combined  # the bounds the images' agreement supports
     if p < alpha:
         verdict, advice = MOVED, ""
     elif math.degrees(detectable_rad) <= tolerance_deg and 1e3 * detectable_m <= tolerance_mm:
