@@ -15,8 +15,9 @@ VERIFY_FAST = tuple(f"tests/test_verify.py::{t}" for t in (
     "test_power_fast", "test_estimated_intrinsics_fast", "test_cannot_tell_whenever_the_detectable_move_exceeds_the_tolerance",
     "test_update_narrows_every_bound", "test_cli_not_moved_writes_verification_and_update",
     "test_cli_moved_and_cannot_tell_exit_codes"))
-REGISTRY = ("tests/test_registry.py", "tests/test_registry_cli.py")
+REGISTRY = ("tests/test_registry.py", "tests/test_registry_cli.py", "tests/test_registry_mutants.py")
 ROBOT_FACTOR = ("tests/test_robot_factor.py",)
+ROBOT_KIN = ("tests/test_robot_kinematics.py",)
 ROBOT_INPUTS = ("tests/test_robot_inputs.py",)
 ROBOT_AXES = ("tests/test_robot_calibrate.py::test_one_rotation_axis_is_said_in_words_exit_3",)
 ROBOT_MLE = ("tests/test_robot_mle.py", "tests/test_robot_start.py")
@@ -133,12 +134,12 @@ def groups(Mutant: Any) -> dict[str, list]:
         M(factor, "d_c = d - float(n @ t_C)", "d_c = d + float(n @ t_C)", ROBOT_FACTOR,
           "a mirror plane moved to the camera with the wrong sign"),
         M(kin, "out[link] = (np.asarray(bMl.homogeneous, float), np.vstack([J[3:], J[:3]]))  # [v, w] -> [w, nu]",
-          "out[link] = (np.asarray(bMl.homogeneous, float), J)  # [v, w] -> [w, nu]", ROBOT_FACTOR,
+          "out[link] = (np.asarray(bMl.homogeneous, float), J)  # [v, w] -> [w, nu]", ROBOT_FACTOR + ROBOT_KIN,
           "Pinocchio's [v, w] Jacobian taken as GTSAM's [w, nu]"),
-        M(kin, "J = J - bMl.inverse().action @ J_base", "J = J - bMl.action @ J_base", ROBOT_FACTOR,
+        M(kin, "J = J - bMl.inverse().action @ J_base", "J = J - bMl.action @ J_base", ROBOT_FACTOR + ROBOT_KIN,
           "the moving base's velocity carried the wrong way"),
         M(kin, "q[info.index_q:info.index_q + 2] = np.cos(value), np.sin(value)",
-          "q[info.index_q:info.index_q + 2] = np.sin(value), np.cos(value)", ROBOT_FACTOR + ROBOT_MLE[1:],
+          "q[info.index_q:info.index_q + 2] = np.sin(value), np.cos(value)", ROBOT_FACTOR + ROBOT_KIN,
           "a continuous joint's angle as (sin, cos)"),
         M("mirror_fg/io/robot_fields.py",
           "if info.lower is not None and not info.lower - LIMIT_SLACK <= x <= info.upper + LIMIT_SLACK:",
