@@ -19,7 +19,7 @@ REGISTRY = ("tests/test_registry.py", "tests/test_registry_cli.py", "tests/test_
 ROBOT_FACTOR = ("tests/test_robot_factor.py",)
 ROBOT_KIN = ("tests/test_robot_kinematics.py",)
 ROBOT_INPUTS = ("tests/test_robot_inputs.py",)
-ROBOT_AXES = ("tests/test_robot_calibrate.py::test_one_rotation_axis_is_said_in_words_exit_3",)
+ROBOT_AXES = ("tests/test_robot_axes.py", "tests/test_robot_calibrate.py::test_one_rotation_axis_is_said_in_words_exit_3")
 ROBOT_MLE = ("tests/test_robot_mle.py", "tests/test_robot_start.py")
 POINT = ("tests/test_point_error.py",)
 GAZE = ("tests/test_gaze_error.py", "tests/test_gaze_export.py")
@@ -149,7 +149,7 @@ def groups(Mutant: Any) -> dict[str, list]:
           "setup.offset_sigma[n] = sigmas[\"prior_sigma_mm\"] / 1000.0 if prismatic else sigmas[\"prior_sigma_deg\"]",
           ROBOT_INPUTS + ("tests/test_robot_mle.py",), "the joint offsets' prior sigma in degrees taken as radians"),
         M("mirror_fg/solver/robot_solve.py", "if s[0] > 0 and s[1] > ONE_AXIS_RATIO * s[0]:",
-          "if s[0] > 0 and s[2] > ONE_AXIS_RATIO * s[0]:", ROBOT_AXES + ("tests/test_robot_mle.py",),
+          "if s[0] > 0 and s[2] > ONE_AXIS_RATIO * s[0]:", ROBOT_AXES,
           "the one-axis check on the third singular value (a planar motion refused)"),
         M("mirror_fg/solver/robot_solve.py", "ONE_AXIS_RATIO = 0.02", "ONE_AXIS_RATIO = 0.0002", ROBOT_AXES,
           "the one-axis threshold a hundred times lower"),
