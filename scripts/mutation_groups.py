@@ -14,7 +14,7 @@ VERIFY_FAST = tuple(f"tests/test_verify.py::{t}" for t in (
     "test_degrees_of_freedom_seen", "test_detectable_noncentrality_against_monte_carlo", "test_verdicts_follow_the_tolerance",
     "test_power_fast", "test_estimated_intrinsics_fast", "test_cannot_tell_whenever_the_detectable_move_exceeds_the_tolerance",
     "test_update_narrows_every_bound", "test_cli_not_moved_writes_verification_and_update",
-    "test_cli_moved_and_cannot_tell_exit_codes"))
+    "test_cli_moved_and_cannot_tell_exit_codes")) + ("tests/test_verify_mutants.py",)
 REGISTRY = ("tests/test_registry.py", "tests/test_registry_cli.py", "tests/test_registry_mutants.py")
 ROBOT_FACTOR = ("tests/test_robot_factor.py",)
 ROBOT_KIN = ("tests/test_robot_kinematics.py",)
@@ -186,7 +186,7 @@ def groups(Mutant: Any) -> dict[str, list]:
         M("mirror_fg/solver/validation.py", "step = -covariance @ gradient  # one Gauss-Newton step",
           "step = covariance @ gradient  # one Gauss-Newton step", VALIDATION, "the Gauss-Newton step uphill"),
         M("mirror_fg/solver/screens.py", "(measurements - unknowns) / 2.0,", "(measurements - unknowns),",
-          ("tests/test_screens.py",), "the screens' expected cost twice the chi-square's half"),
+          ("tests/test_screens.py", "tests/test_units_mutants.py"), "the screens' expected cost twice the chi-square's half"),
     ]
     out["verdict"] = [
         M("mirror_fg/tools/verdict.py", "low = math.sqrt(float(chdtri(dof, 1.0 - tail)) / dof)",
