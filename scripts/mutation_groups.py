@@ -154,7 +154,7 @@ def groups(Mutant: Any) -> dict[str, list]:
         M("mirror_fg/solver/robot_solve.py", "ONE_AXIS_RATIO = 0.02", "ONE_AXIS_RATIO = 0.0002", ROBOT_AXES,
           "the one-axis threshold a hundred times lower"),
         M("mirror_fg/solver/robot_views.py", "return inv, covariance_from_pose3(inv[0], Ad @ pose3_covariance @ Ad.T)",
-          "return inv, covariance_from_pose3(inv[0], Ad.T @ pose3_covariance @ Ad)", ("tests/test_robot_mle.py",),
+          "return inv, covariance_from_pose3(inv[0], Ad.T @ pose3_covariance @ Ad)", ("tests/test_robot_axes.py", "tests/test_robot_mle.py"),
           "the mount's covariance carried by the transposed adjoint"),
     ]
     out["units"] = [

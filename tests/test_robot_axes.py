@@ -1,7 +1,7 @@
 """The one-rotation-axis check before an arm's solve (solver/robot_solve.py ``check_rotation_axes``) on given
 link rotations: turns about one axis (within about a degree per radian) are refused with exit 3, turns
 about two clearly different axes are enough (hand-eye needs two, not three), a mount on the base link is
-never checked."""
+never checked; and the camera mount's covariance carried to ``T_cam_link``."""
 from __future__ import annotations
 
 from types import SimpleNamespace
@@ -49,3 +49,27 @@ def test_turns_about_two_axes_are_enough():
 
 def test_a_mount_on_the_base_link_is_not_checked():
     check_rotation_axes(_problem([np.eye(3)] * 4, link="base_link"))
+
+
+def test_the_camera_mount_s_covariance_inverts_as_the_first_order_propagation():
+    """``camera_base_pose``: the covariance of ``T_cam_link`` (uncertainty convention ``R' = Exp(dtheta) R``,
+    ``t' = t + dt``) from the mount's Pose3 tangent one, against central differences of the inversion."""
+    import gtsam
+
+    from mirror_fg.solver.robot_views import camera_base_pose
+
+    R, t = _rotation([0.3, -1.1, 0.5]), np.array([0.05, -0.12, 0.3])
+    A = np.random.default_rng(4).normal(size=(6, 6))
+    P = A @ A.T * 1e-4
+    (R_inv, t_inv), covariance = camera_base_pose((R, t), P)
+    mount = gtsam.Pose3(gtsam.Rot3(R), t)
+    J = np.zeros((6, 6))
+    h = 1e-6
+    for k in range(6):
+        ends = []
+        for sign in (1.0, -1.0):
+            moved = mount.compose(gtsam.Pose3.Expmap(sign * h * np.eye(6)[k])).inverse()
+            ends.append(np.concatenate([gtsam.Rot3.Logmap(gtsam.Rot3(moved.rotation().matrix() @ R_inv.T)),
+                                        moved.translation() - t_inv]))
+        J[:, k] = (ends[0] - ends[1]) / (2 * h)
+    np.testing.assert_allclose(covariance, J @ P @ J.T, atol=1e-9)
