@@ -27,3 +27,30 @@ def test_the_statistic_is_the_move_s_mahalanobis_distance():
     assert answer.dof == 6
     distance = float(answer.move @ np.linalg.solve(answer.covariance, answer.move))
     assert 0.8 < answer.mahalanobis2 / distance < 1.25, (answer.mahalanobis2, distance)
+
+
+def test_the_update_writes_the_base_camera_covariance_of_the_inverse():
+    """``--update``'s covariance_base_cam is the fused covariance_cam_base carried through the inversion
+    (uncertainty convention ``R' = Exp(dtheta) R``, ``t' = t + dt``), against central differences."""
+    import gtsam
+    import numpy as np
+
+    from mirror_fg.io.verification import updated_result
+
+    stored, _, _ = _scene()
+    result = stored.to_dict()
+    R, t, P = np.array(result["T_cam_base"]["R"]), np.array(result["T_cam_base"]["t"]), 0.5 * np.array(result["covariance_cam_base"])
+    out = updated_result(result, (R, t, P), "stored.json", "new.json", 3)
+    R_bc, t_bc = R.T, -R.T @ t
+    J = np.zeros((6, 6))
+    h = 1e-6
+    for k in range(6):
+        ends = []
+        for sign in (1.0, -1.0):
+            step = sign * h * np.eye(6)[k]
+            R_moved = gtsam.Rot3.Expmap(step[:3]).matrix() @ R
+            t_moved = t + step[3:]
+            ends.append(np.concatenate([gtsam.Rot3.Logmap(gtsam.Rot3(R_moved.T @ R_bc.T)), -R_moved.T @ t_moved - t_bc]))
+        J[:, k] = (ends[0] - ends[1]) / (2 * h)
+    np.testing.assert_allclose(out["covariance_cam_base"], P, rtol=1e-12)
+    np.testing.assert_allclose(out["covariance_base_cam"], J @ P @ J.T, rtol=1e-5, atol=1e-12 * np.abs(P).max())
