@@ -25,7 +25,7 @@ POINT = ("tests/test_point_error.py",)
 GAZE = ("tests/test_gaze_error.py", "tests/test_gaze_export.py")
 SCREEN = ("tests/test_screen.py",)
 VALIDATION = ("tests/test_validation.py", "tests/test_units_mutants.py::test_validation_from_an_estimate_near_the_optimum_equals_the_optimum_s")
-VERDICT = ("tests/test_verdict.py",)
+VERDICT = ("tests/test_verdict.py", "tests/test_verdict_mutants.py")
 INCREMENTAL = ("tests/test_incremental_views.py",)
 TREE = ("tests/test_incremental.py",)
 
