@@ -54,3 +54,19 @@ def test_the_update_writes_the_base_camera_covariance_of_the_inverse():
         J[:, k] = (ends[0] - ends[1]) / (2 * h)
     np.testing.assert_allclose(out["covariance_cam_base"], P, rtol=1e-12)
     np.testing.assert_allclose(out["covariance_base_cam"], J @ P @ J.T, rtol=1e-5, atol=1e-12 * np.abs(P).max())
+
+
+def test_the_move_is_new_minus_stored():
+    """Noise-free new images of the camera moved by 0.5 deg about x and 4 mm along y: the move (new minus
+    stored, ``R_new = Exp(dtheta) R_stored``, ``t_new = t_stored + dt``) is that move within the stored
+    estimate's own error."""
+    import numpy as np
+
+    from mirror_fg.tools.verify_study import moved_data
+
+    stored, new, truth = _scene()
+    shift = np.array([np.radians(0.5), 0.0, 0.0, 0.0, 0.004, 0.0])
+    still = verify(stored, moved_data(new, truth, np.zeros(6), 0.0, None)).cameras["camera"]
+    moved = verify(stored, moved_data(new, truth, shift, 0.0, None)).cameras["camera"]
+    # the stored estimate's error cancels in the difference of the two moves (first order)
+    np.testing.assert_allclose(moved.move - still.move, shift, atol=2e-4)
