@@ -12,7 +12,7 @@ import numpy as np
 
 from mirror_fg.core.geometry import FLIP_Y, apply_transform, project, so3_exp_many
 
-__all__ = ["pnp_candidates", "pnp_candidates_many", "pnp_minima"]
+__all__ = ["pnp_candidates", "pnp_candidates_many", "pnp_minima", "lowest_reprojection"]
 
 #: Two refined poses are the same minimum when their rotations (entries) and translations (relative)
 #: differ by less than this (LM stops up to ~1e-4 apart in a shallow twin's valley); a planar target's twin
@@ -232,3 +232,17 @@ def pnp_candidates_many(
             candidates = [(FLIP_Y @ R_k, FLIP_Y @ t_k) for R_k, t_k in candidates]  # eq. (12)
         results[i] = candidates
     return results
+
+
+def lowest_reprojection(candidates, points: np.ndarray, normalized: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The candidate map ``(A, b)`` (eq. 5) that puts ``points`` in front of the camera and reprojects them
+    closest to ``normalized`` (squared error, eq. 10), or None where none is in front."""
+    best, best_error = None, np.inf
+    for A, b in candidates:
+        x = points @ A.T + b
+        if np.any(x[:, 2] <= 0):
+            continue
+        error = float(np.sum((x[:, :2] / x[:, 2:3] - normalized) ** 2))
+        if error < best_error:
+            best, best_error = (A, b), error
+    return best

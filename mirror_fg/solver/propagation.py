@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mirror_fg.core.errors import SolveError
-from mirror_fg.solver.pnp import pnp_candidates
+from mirror_fg.solver.pnp import lowest_reprojection, pnp_candidates
 
 __all__ = ["ViewObs", "Propagation", "Unsolvable", "propagate", "mirror_vector_in", "plane_from_camera"]
 
@@ -108,15 +108,7 @@ def _best_pnp(points: np.ndarray, normalized: np.ndarray, parity: int) -> tuple[
         candidates = pnp_candidates(points, normalized, parity)
     except Exception:  # degenerate geometry: OpenCV refuses it
         return None
-    best, best_error = None, np.inf
-    for A, b in candidates:
-        x = points @ A.T + b
-        if np.any(x[:, 2] <= 0):
-            continue
-        error = float(np.sum((x[:, :2] / x[:, 2:3] - normalized) ** 2))
-        if error < best_error:
-            best, best_error = (A, b), error
-    return best
+    return lowest_reprojection(candidates, points, normalized)
 
 
 class _Propagator:

@@ -22,7 +22,7 @@ from mirror_fg.core.errors import SolveError
 from mirror_fg.core.geometry import project_to_orthogonal
 from mirror_fg.factors.robot import inverse
 from mirror_fg.solver.peeling import solve_children
-from mirror_fg.solver.pnp import pnp_candidates
+from mirror_fg.solver.pnp import lowest_reprojection, pnp_candidates
 from mirror_fg.solver.propagation import plane_from_camera
 
 __all__ = ["arm_start", "triangulate", "MIN_POSES"]
@@ -37,15 +37,7 @@ S = np.diag([1.0, 1.0, -1.0])
 
 def _best_map(points: np.ndarray, normalized: np.ndarray):
     """The improper map ``(A, b)`` target -> camera through one mirror of lowest reprojection error."""
-    best, best_error = None, np.inf
-    for A, b in pnp_candidates(points, normalized, 1):
-        x = points @ A.T + b
-        if np.any(x[:, 2] <= 0):
-            continue
-        error = float(np.sum((x[:, :2] / x[:, 2:3] - normalized) ** 2))
-        if error < best_error:
-            best, best_error = (A, b), error
-    return best
+    return lowest_reprojection(pnp_candidates(points, normalized, 1), points, normalized)
 
 
 def _mean_pose(poses):
