@@ -21,6 +21,7 @@ arrive as a callable.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -95,7 +96,7 @@ class RobotViewFactor:
         self.keys = [*self.mount_keys.values(), *self.mirror_keys.values(), *self.unique_landmarks,
                      *([offset_key] if offset_key is not None else [])]
 
-    def poses(self, values: gtsam.Values) -> dict[str, object]:
+    def poses(self, values: gtsam.Values) -> dict[str, Any]:
         """The image's state at ``values``: mounts, link placements and Jacobians, C, D, T (module docstring)."""
         mounts = dict(self.known)
         for role, key in self.mount_keys.items():
