@@ -18,7 +18,8 @@ from mirror_fg.solver.consensus import screen, without
 from mirror_fg.solver.marginals import unconstrained_as_solve_error, unconstrained_message
 from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, plausible, run_optimizer
 from mirror_fg.solver.options import STAGES, SolveOptions
-from mirror_fg.solver.propagation import Unsolvable, propagate
+from mirror_fg.solver.placement_consensus import fiducial_names
+from mirror_fg.solver.propagation import KnownPnP, Unsolvable, propagate
 from mirror_fg.solver.pipeline import run_pipeline
 from mirror_fg.solver.rechecks import Checked, Rechecked, solve_with_rechecks
 from mirror_fg.solver.rig import rig_transforms
@@ -98,10 +99,10 @@ def tree_start_for(dataset: Dataset, options: SolveOptions):
     return start
 
 
-def _other_start(problem: ViewProblem, options: SolveOptions) -> ViewEstimate | None:
+def _other_start(problem: ViewProblem, options: SolveOptions, known_pnp: KnownPnP | None = None) -> ViewEstimate | None:
     """The analytical start with rule 2 first for every camera, or None where it cannot be formed."""
     try:
-        return _start(problem, None, options, tree_first=True)
+        return _start(problem, None, options, tree_first=True, known_pnp=known_pnp)
     except SolveError:
         return None
 
@@ -121,9 +122,11 @@ def _solvable_subtree(images: list[Image], children: int = 3) -> list[Image]:
         images = kept
 
 
-def _start(problem: ViewProblem, initial, options: SolveOptions, tree_first: bool = False) -> ViewEstimate:
+def _start(problem: ViewProblem, initial, options: SolveOptions, tree_first: bool = False,
+           known_pnp: KnownPnP | None = None) -> ViewEstimate:
     """The analytical start, or ``initial`` (a :class:`ViewEstimate`, or a single-camera estimate with
-    ``R_cam_base``, ``t_cam_base``, ``mirror_vectors``, ``points``). ``options`` reach rule 2's solves."""
+    ``R_cam_base``, ``t_cam_base``, ``mirror_vectors``, ``points``). ``options`` reach rule 2's solves;
+    ``known_pnp``: the screen's PnP candidates (``propagation.propagate``)."""
     if isinstance(initial, ViewEstimate):
         return initial
     if initial is not None:
@@ -132,7 +135,7 @@ def _start(problem: ViewProblem, initial, options: SolveOptions, tree_first: boo
     dataset = problem.dataset
     try:
         known = propagate(problem.views, dataset.fiducials, problem.cameras, problem.fixed, tree_start_for(dataset, options),
-                          dataset.scale, tree_first)
+                          dataset.scale, tree_first, known_pnp)
     except Unsolvable as error:
         raise Unsolvable(f"{dataset.source}: {error}") from None
     return problem.estimate_from(known)
@@ -211,10 +214,16 @@ class ViewsProblem:
         self.analytic = initial is None
         self.last: ViewEstimate | None = initial
         self.timings: dict[str, float] = {}
+        #: The screen's PnP candidates of the images it left untouched, with the fiducials they are of:
+        #: the propagation's rules 1 and 3 use them instead of solving the same PnP again.
+        self.known_pnp: KnownPnP = {}
 
     def screen(self, dataset: Dataset) -> tuple[Dataset, list[Exclusion]]:
         if not self.models:
-            screened, excluded, _ = screen(dataset)
+            screened, excluded, candidates = screen(dataset)
+            by_id = {image.id: image for image in screened.images}
+            self.known_pnp = {image_id: (tuple(fiducial_names(screened, by_id[image_id])), poses)
+                              for image_id, poses in candidates.items() if image_id in by_id}
             return screened, excluded
         fixed = ViewsProblem(self.last, replace(self.options, compute_covariance=False))
         screened, excluded = fixed.screen(_fixed_intrinsics(dataset))
@@ -227,7 +236,7 @@ class ViewsProblem:
         options, timings = self.options, self.timings
         problem = ViewProblem(solved, options.robust, self.models)
         with timed(timings, "analytic"):
-            begin = _start(problem, self.last, options)
+            begin = _start(problem, self.last, options, known_pnp=self.known_pnp)
         graph = problem.graph()
         params = lm_params(options.max_iterations, cost_scale(solved), GENERAL_LAMBDA_UPPER_BOUND)
 
@@ -240,7 +249,7 @@ class ViewsProblem:
             dimension = result.dim() - problem.constraints
             if self.analytic and self.last is None and not plausible(graph.error(result),
                                                                      0.5 * max(problem.size - dimension, 0)):
-                other = _other_start(problem, options)  # the analytical start ended implausibly: try the other one
+                other = _other_start(problem, options, self.known_pnp)  # the analytical start ended implausibly: try the other one
                 if other is not None:
                     tried = optimize(other)
                     if graph.error(tried[1]) < graph.error(result):
