@@ -200,10 +200,11 @@ def check_images(dataset: Dataset) -> ImageChecks:
     excluded: list[Exclusion] = []
     candidates: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     three: list[tuple[str, tuple[np.ndarray, np.ndarray]]] = []
+    tree = dataset.is_tree  # once: it looks at every image
     for image in dataset.images:
         names = fiducial_names(dataset, image)
         if len(names) == 3:
-            if not dataset.is_tree:  # P3P's candidates feed only the tree's analytical solution
+            if not tree:  # P3P's candidates feed only the tree's analytical solution
                 continue
             normalized = dataset.normalized(image)
             three.append((image.id, (np.array([dataset.fiducials[n] for n in names]),
