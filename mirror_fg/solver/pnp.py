@@ -10,7 +10,7 @@ from itertools import combinations, islice
 import cv2
 import numpy as np
 
-from mirror_fg.core.geometry import FLIP_Y, apply_transform, project, so3_exp_many
+from mirror_fg.core.geometry import FLIP_Y, so3_exp_many
 
 __all__ = ["pnp_candidates", "pnp_candidates_many", "pnp_minima"]
 
@@ -23,11 +23,15 @@ SAME_BASIN = 1e-3
 _PNP_CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
 
 
-def _reprojection_rms(R: np.ndarray, t: np.ndarray, base_points: np.ndarray, normalized: np.ndarray) -> float:
-    camera_points = apply_transform(R, t, base_points)
-    if np.any(camera_points[:, 2] <= 0):
-        return np.inf
-    return float(np.sqrt(np.mean(np.sum((project(camera_points) - normalized) ** 2, axis=1))))
+def _reprojection_rms_many(R: np.ndarray, t: np.ndarray, base_points: np.ndarray, normalized: np.ndarray) -> np.ndarray:
+    """RMS reprojection error (normalized coordinates) of base points (N, 3) under each pose ``(R[k], t[k])``
+    (eqs. 2, 9); inf where a point is behind the camera."""
+    camera_points = np.asarray(base_points, dtype=float) @ np.transpose(R, (0, 2, 1)) + t[:, None, :]
+    depth = camera_points[..., 2]
+    behind = np.any(depth <= 0, axis=1)
+    projected = camera_points[..., :2] / camera_points[..., 2:3]
+    rms = np.sqrt(np.mean(np.sum((projected - normalized) ** 2, axis=2), axis=1))
+    return np.where(behind, np.inf, rms)
 
 
 def _pnp_rotation_candidates(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -85,7 +89,7 @@ def _pnp_minima(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[n
         refined_t.append(np.asarray(tvec, dtype=np.float64).reshape(3))
     R_ref = so3_exp_many(np.array(refined_r))
     t_ref = np.array(refined_t)
-    errors = [_reprojection_rms(R_ref[k], t_ref[k], base_points, normalized) for k in range(len(chosen))]
+    errors = _reprojection_rms_many(R_ref, t_ref, base_points, normalized).tolist()
     finite = [k for k in range(len(chosen)) if np.isfinite(errors[k])]
     order = sorted(finite, key=lambda k: errors[k])  # stable: as the list of (error, R, t) sorted by error
     if not order:
