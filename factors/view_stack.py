@@ -36,6 +36,11 @@ from mirror_fg.factors.views import ViewFactor, vector_of_plane
 __all__ = ["stackable", "stacked_view_factors", "ViewStackEvaluator"]
 
 Placement = tuple[int, int]
+#: Placements of one stacked factor at most: the views of a few photographs (their own placements) in one
+#: factor. Each Python factor call copies the whole ``Values`` (module docstring), so fewer, larger factors
+#: cost less per iteration, while a factor's placements are eliminated together (a dense block of this
+#: many planes and the camera poses: small).
+PLACEMENTS_PER_FACTOR = 16
 
 
 def stackable(factor: ViewFactor) -> bool:
@@ -166,7 +171,7 @@ class ViewStackEvaluator:
     """Every stackable view's factor evaluated together (module docstring); ``factors``: one
     ``gtsam.CustomFactor`` per set of placements (hand them to a graph)."""
 
-    def __init__(self, view_factors: Sequence[ViewFactor]):
+    def __init__(self, view_factors: Sequence[ViewFactor], placements_per_factor: int = 1):
         first = view_factors[0]
         self.fixed = dict(first.fixed)
         for f in view_factors:
@@ -176,10 +181,19 @@ class ViewStackEvaluator:
         for f in view_factors:
             self.pose_keys.update(f.pose_keys)
             self.mirror_keys.update(f.mirror_keys)
-        # stacks: views with the same placements, in the order first seen
-        stacks: dict[tuple, list[int]] = {}
+        # stacks: views with the same placements, in the order first seen; consecutive ones merged up to
+        # ``placements_per_factor`` placements (fewer factor calls, each of which copies the Values)
+        same: dict[tuple, list[int]] = {}
         for i, f in enumerate(view_factors):
-            stacks.setdefault(tuple(sorted(f.mirror_keys)), []).append(i)
+            same.setdefault(tuple(sorted(f.mirror_keys)), []).append(i)
+        merged: list[tuple[set, list[int]]] = []
+        for placements, members in same.items():
+            if merged and len(merged[-1][0] | set(placements)) <= placements_per_factor:
+                merged[-1][0].update(placements)
+                merged[-1][1].extend(members)
+            else:
+                merged.append((set(placements), list(members)))
+        stacks = {k: members for k, (_, members) in enumerate(merged)}
         shapes: dict[tuple, list[int]] = {}
         for i, f in enumerate(view_factors):
             placements = list(dict.fromkeys(f.reflections))
@@ -323,5 +337,5 @@ def stacked_view_factors(view_factors: Sequence[ViewFactor]) -> list[gtsam.Custo
     stack = [f for f in view_factors if stackable(f)]
     factors = [f.factor() for f in view_factors if not stackable(f)]
     if stack:
-        factors.extend(ViewStackEvaluator(stack).factors)
+        factors.extend(ViewStackEvaluator(stack, PLACEMENTS_PER_FACTOR).factors)
     return factors
