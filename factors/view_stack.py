@@ -9,10 +9,11 @@ calls cost O(images x unknowns) per iteration. Here
   pattern of repeated placements and as many points. A group's model (``views.view_model`` written with
   a leading axis over its views) is one numpy pass; its placements' vectors and their plane Jacobians
   (``views.vector_of_plane``) are per view, its poses shared;
-* views are **stacked** into one ``gtsam.CustomFactor`` per set of placements they see (a photograph's
-  views through its own placements, by every camera): such a factor's keys are those placements and the
-  camera poses, the ones its views already tie together, so the stack adds no fill-in to elimination (a
-  stack over many placements would: GTSAM would treat them jointly);
+* views are **stacked** by the set of placements they see (a photograph's views through its own
+  placements, by every camera), and a few consecutive sets into one ``gtsam.CustomFactor`` (at most
+  :data:`PLACEMENTS_PER_FACTOR` placements): a factor's keys are those placements and the camera poses,
+  so elimination treats at most that many planes jointly (a stack over many placements would make it
+  dense), while the factor calls, each of which copies the whole ``Values``, are fewer;
 * the first factor called at new values evaluates every group (errors, and Jacobians when asked) into
   preallocated buffers; the others check that their own variables are bit for bit those of the batch
   (a stale result is never returned) and return views of them. Not thread-safe (GTSAM calls Python
