@@ -4,6 +4,7 @@
     python scripts/benchmark.py [--repeats 5] [--slow-repeats 3] [--quick] [--profile] [--json out.json]
     python scripts/benchmark.py --scaling [--scaling-max 10000]   # time per stage and memory, 1k..100k images
     python scripts/benchmark.py --startup [--peer DIR]   # --version, calibrate's start-up, beside Takahashi 2012
+    python scripts/benchmark.py --rig   # three-camera rig, 480 and 4,800 images, beside the tree at 4,800
 
 Problems (simulator, Sect. 7): two mirrors, 3 fiducials, 1 px; (a) 900 images, mirror 1 in three
 placements of 300, mirror 2 moving every image; (b) 200 images with 60 reconstruction points.
@@ -462,6 +463,56 @@ def task_scaling(case: str, repeats: int) -> dict:
             "iterations": cal.iterations, "converged": bool(cal.converged), "peak_mb": _peak_mb()}
 
 
+def task_rig(case: str, repeats: int) -> dict:
+    """One calibrate() of the three-camera rig with two hand-held mirrors (``case`` ``rig:K``: K shared
+    photographs and K own per camera, 16 K images of 4 fiducials) or of the paper's tree (``tree:N``: N
+    images, 3 fiducials, as ``--scaling``): wall time, stage times and measurements."""
+    from mirror_fg import calibrate
+    from mirror_fg.io.dataset import dataset_from_dict
+    from mirror_fg.tools.simulate import simulate_base_case
+    from mirror_fg.tools.simulate_rig import simulate_rig_mixed
+
+    kind, count = case.split(":")
+    if kind == "rig":
+        dataset = dataset_from_dict(simulate_rig_mixed(3, own=[int(count)] * 3, shared=int(count), seed=0)[0])
+    else:
+        dataset, _ = simulate_base_case(num_images=int(count), num_points=0, mirror1_placements=3, **COMMON)
+    measurements = sum(len(image.observations) for image in dataset.images)
+    walls = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        cal = calibrate(dataset)
+        walls.append(time.perf_counter() - start)
+    return {"images": len(dataset.images), "measurements": measurements, "wall": float(np.median(walls)),
+            **cal.timings, "iterations": cal.iterations}
+
+
+#: ``--rig``: the rig's sizes (shared and own photographs per camera: 480 and 4,800 images) and the tree's.
+RIG_CASES = ("rig:20", "rig:200", "tree:4800")
+RIG_GOALS = {"rig 4,800 / 480 images": 12.0, "rig / tree cost per measurement": 2.0}
+
+
+def rig_table(repeats: int) -> list[tuple[str, str, bool]]:
+    """``--rig``: the three-camera rig (``simulate --kind mixed --cameras 3 --shared K --own K,K,K``) at 480
+    and 4,800 images and the tree at 4,800, each in its own process, back to back; the goals' ratios."""
+    print(f"rig: 3 cameras, two hand-held mirrors, 4 fiducials, 1 px; the tree: 2 mirrors, 3 fiducials; "
+          f"load average {os.getloadavg()[0]:.2f}")
+    rows = {}
+    for case in RIG_CASES:
+        row = _run("rig", case, repeats)
+        rows[case] = row
+        stages = " ".join(f"{k} {row.get(k, 0.0):.2f}" for k in ("pnp", "screen", "analytic", "build", "optimize", "marginals")
+                          if k in row)
+        print(f"{case:>10s} {row['images']:6d} images {row['measurements']:7d} measurements  {row['wall']:8.2f} s  "
+              f"({stages}; LM it {row['iterations']})", flush=True)
+    growth = rows["rig:200"]["wall"] / rows["rig:20"]["wall"]
+    per_measurement = ((rows["rig:200"]["wall"] / rows["rig:200"]["measurements"])
+                       / (rows["tree:4800"]["wall"] / rows["tree:4800"]["measurements"]))
+    return [("rig 4,800 / 480 images", f"{growth:.1f}x", growth <= RIG_GOALS["rig 4,800 / 480 images"]),
+            ("rig / tree cost per measurement", f"{per_measurement:.2f}x",
+             per_measurement <= RIG_GOALS["rig / tree cost per measurement"])]
+
+
 #: Image counts of ``--scaling`` (2 mirrors, 3 fiducials).
 SCALING_SIZES = (1_000, 3_000, 10_000, 30_000, 100_000)
 
@@ -674,6 +725,7 @@ TASKS = {
     "oracle": task_oracle,
     "peer": task_peer,
     "loop": task_loop,
+    "rig": task_rig,
 }
 
 
@@ -717,6 +769,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="only the start-up figures (mirror-fg --version, calibrate) and the peer comparison")
     parser.add_argument("--peer", metavar="DIR",
                         help=f"a checkout (or git directory) of {PEER} for --startup's side-by-side figures")
+    parser.add_argument("--rig", action="store_true",
+                        help="only the three-camera rig at 480 and 4,800 images beside the tree at 4,800 (goals' ratios)")
     parser.add_argument("--worker", nargs=3, metavar=("TASK", "CASE", "REPEATS"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
@@ -730,6 +784,12 @@ def main(argv: list[str] | None = None) -> int:
                 json.dump({"scaling": rows}, f, indent=1)
         return 0
     repeats, slow = (1, 1) if args.quick else (args.repeats, args.slow_repeats)
+    if args.rig:
+        rows = rig_table(1)
+        print("\nGoals")
+        for goal, value, met in rows:
+            print(f"   {'met    ' if met else 'NOT met'}  {goal:55s} {value}")
+        return 0
     if args.startup:
         rows = startup_report(args.peer, repeats)
         print("\nGoals")

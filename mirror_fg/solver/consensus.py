@@ -32,7 +32,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import logging
 from collections import defaultdict
@@ -110,15 +110,18 @@ def _ransac_inliers(points: np.ndarray, observed: np.ndarray, num_mirrors: int, 
 
 
 def _check_pnp(
-    dataset: Dataset, image: Image, names: list[str]
-) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[Exclusion], Exclusion | None]:
+    dataset: Dataset, image: Image, names: list[str], minima: list[tuple[np.ndarray, np.ndarray]] | None = None,
+) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[Exclusion], Exclusion | None, list[tuple[np.ndarray, np.ndarray]]]:
     """Per-image check: its PnP candidates (empty if left out: the best fit first, then a planar target's
-    twin where the image cannot tell them apart), the fiducials left out, or the image left out."""
+    twin where the image cannot tell them apart), the fiducials left out, or the image left out, and the
+    PnP minima it judged (``minima``: those, when already found for these fiducials and observations)."""
     points = np.array([dataset.fiducials[n] for n in names])
     normalized = dataset.normalized(image)
     observed = np.array([normalized[n] for n in names])
     parity = len(image.reflections)  # eq. (11): an odd number of reflections flips the image
-    minima = pnp_minima(points, observed, parity)
+    if minima is None:
+        minima = pnp_minima(points, observed, parity)
+    found = minima
     errors = _whitened_errors(dataset, *minima[0], points, observed) if minima else np.full(len(names), np.inf)
     if np.all(errors <= PNP_POINT_SIGMAS):
         best_cost = float(np.sum(errors**2))
@@ -127,7 +130,7 @@ def _check_pnp(
             twin_errors = _whitened_errors(dataset, *twin, points, observed)
             if np.all(twin_errors <= PNP_POINT_SIGMAS) and float(np.sum(twin_errors**2)) - best_cost < TWIN_COST_GAP:
                 twins.append(twin)
-        return [minima[0], *twins], [], None
+        return [minima[0], *twins], [], None, found
     finite = errors[np.isfinite(errors)]
     rms = float(np.sqrt(np.mean(finite**2))) if len(finite) else float("inf")
     threshold = PNP_POINT_SIGMAS * float(np.mean(dataset.normalized_sigma))
@@ -143,13 +146,13 @@ def _check_pnp(
         reason = (f"PnP reprojection {rms * dataset.pixel_sigma:.3g} {_unit(dataset)} RMS over its {len(names)} "
                   "fiducials (board order wrong?)" if np.isfinite(rms)
                   else "PnP found no pose with every fiducial in front of the camera")
-        return [], [], Exclusion(image.id, reason, None, rms)
+        return [], [], Exclusion(image.id, reason, None, rms), found
     points_out = [
         Exclusion(image.id, f"{errors[i] * dataset.pixel_sigma:.3g} {_unit(dataset)} from the PnP fit of the image's "
                             "other fiducials (wrong detection?)", names[i], float(errors[i]))
         for i in bad
     ]
-    return [pose], points_out, None
+    return [pose], points_out, None, found
 
 
 def _board_normal(dataset: Dataset) -> np.ndarray | None:
@@ -191,19 +194,29 @@ class ImageChecks:
 
     candidates: dict[str, list[tuple[np.ndarray, np.ndarray]]]
     excluded: list[Exclusion]
+    #: ``{image_id: (fiducial names, PnP minima)}`` of the images with >= 4 fiducials (``pnp.pnp_minima``,
+    #: before the check judged them): another check of the same photographs (the same cameras and
+    #: parity) takes them instead of solving again (:func:`check_images`' ``known``).
+    minima: dict[str, tuple[tuple[str, ...], list[tuple[np.ndarray, np.ndarray]]]] = field(default_factory=dict)
 
 
-def check_images(dataset: Dataset) -> ImageChecks:
+def check_images(dataset: Dataset, known: dict[str, tuple[tuple[str, ...], list[tuple[np.ndarray, np.ndarray]]]] | None = None
+                 ) -> ImageChecks:
     """Each image's PnP and its check (module docstring, step 1): with >= 4 fiducials the PnP fit (gross
     fiducials, wrong corner orders left out; a planar target's twin kept as a candidate), with three
-    P3P's candidates (all images at once, nothing to check), with fewer nothing."""
+    P3P's candidates (all images at once, nothing to check), with fewer nothing. ``known``: another
+    check's :attr:`ImageChecks.minima` of the same photographs seen by the same cameras with the same
+    parity: an image with those very fiducials is judged from them instead of solving its PnP again."""
+    known = known or {}
+    minima: dict[str, tuple[tuple[str, ...], list[tuple[np.ndarray, np.ndarray]]]] = {}
     excluded: list[Exclusion] = []
     candidates: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     three: list[tuple[str, tuple[np.ndarray, np.ndarray]]] = []
+    tree = dataset.is_tree  # once: it looks at every image
     for image in dataset.images:
         names = fiducial_names(dataset, image)
         if len(names) == 3:
-            if not dataset.is_tree:  # P3P's candidates feed only the tree's analytical solution
+            if not tree:  # P3P's candidates feed only the tree's analytical solution
                 continue
             normalized = dataset.normalized(image)
             three.append((image.id, (np.array([dataset.fiducials[n] for n in names]),
@@ -211,7 +224,10 @@ def check_images(dataset: Dataset) -> ImageChecks:
             continue
         if len(names) < 3:
             continue
-        poses, points_out, image_out = _check_pnp(dataset, image, names)
+        found = known.get(image.id)
+        poses, points_out, image_out, minima_of_image = _check_pnp(
+            dataset, image, names, found[1] if found is not None and found[0] == tuple(names) else None)
+        minima[image.id] = (tuple(names), minima_of_image)
         if image_out is not None:
             excluded.append(image_out)
             continue
@@ -220,7 +236,7 @@ def check_images(dataset: Dataset) -> ImageChecks:
     for (image_id, _), poses in zip(three, pnp_candidates_many([problem for _, problem in three], dataset.num_mirrors)):
         if poses:
             candidates[image_id] = poses
-    return ImageChecks(candidates, excluded)
+    return ImageChecks(candidates, excluded, minima)
 
 
 def screen(dataset: Dataset, seed: int = 0, checked: ImageChecks | None = None) -> tuple[Dataset, list[Exclusion], PnPCandidates]:
@@ -329,7 +345,7 @@ def check_image(
         normalized = dataset.normalized(image)
         return image, pnp_candidates(np.array([dataset.fiducials[n] for n in names]),
                                      np.array([normalized[n] for n in names]), dataset.num_mirrors), []
-    poses, points_out, image_out = _check_pnp(dataset, image, names)
+    poses, points_out, image_out, _ = _check_pnp(dataset, image, names)
     if image_out is not None:
         return None, [], [image_out]
     if points_out:

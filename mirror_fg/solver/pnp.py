@@ -10,7 +10,7 @@ from itertools import combinations, islice
 import cv2
 import numpy as np
 
-from mirror_fg.core.geometry import FLIP_Y, apply_transform, project, so3_exp_many
+from mirror_fg.core.geometry import FLIP_Y, so3_exp_many
 
 __all__ = ["pnp_candidates", "pnp_candidates_many", "pnp_minima", "lowest_reprojection"]
 
@@ -23,17 +23,15 @@ SAME_BASIN = 1e-3
 _PNP_CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
 
 
-def _reprojection_rms(R: np.ndarray, t: np.ndarray, base_points: np.ndarray, normalized: np.ndarray) -> float:
-    camera_points = apply_transform(R, t, base_points)
-    if np.any(camera_points[:, 2] <= 0):
-        return np.inf
-    return float(np.sqrt(np.mean(np.sum((project(camera_points) - normalized) ** 2, axis=1))))
-
-
-def _pose_from_rvec(rvec: np.ndarray, tvec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(R, t)`` of OpenCV's ``(rvec, tvec)`` (``so3_exp_many``: the rotations of many poses at once
-    are the same numbers as one's)."""
-    return so3_exp_many(rvec)[0], np.asarray(tvec, dtype=np.float64).reshape(3)
+def _reprojection_rms_many(R: np.ndarray, t: np.ndarray, base_points: np.ndarray, normalized: np.ndarray) -> np.ndarray:
+    """RMS reprojection error (normalized coordinates) of base points (N, 3) under each pose ``(R[k], t[k])``
+    (eqs. 2, 9); inf where a point is behind the camera."""
+    camera_points = np.asarray(base_points, dtype=float) @ np.transpose(R, (0, 2, 1)) + t[:, None, :]
+    depth = camera_points[..., 2]
+    behind = np.any(depth <= 0, axis=1)
+    projected = camera_points[..., :2] / camera_points[..., 2:3]
+    rms = np.sqrt(np.mean(np.sum((projected - normalized) ** 2, axis=2), axis=1))
+    return np.where(behind, np.inf, rms)
 
 
 def _pnp_rotation_candidates(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -46,11 +44,14 @@ def _pnp_rotation_candidates(base_points: np.ndarray, normalized: np.ndarray) ->
 
 def _pnp_minima(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     """The distinct local minima (R, t) of the reprojection error of >= 4 points (eq. 10), lowest first:
-    the starts of several solvers, each refined by LM (SQPnP alone can be wrong, STYLE.md)."""
+    the starts of several solvers, each refined by LM (SQPnP alone can be wrong, STYLE.md). The rotations
+    of all starts, and of all refined poses, are formed at once (``so3_exp_many``), and which start lies
+    in which basin is decided from one table of distances (:func:`_near_table`)."""
     obj = np.ascontiguousarray(base_points, dtype=np.float64).reshape(-1, 1, 3)
     img = np.ascontiguousarray(normalized, dtype=np.float64).reshape(-1, 1, 2)
-    K = np.eye(3)
-    poses: list[tuple[np.ndarray, np.ndarray]] = []
+    K = _IDENTITY
+    rvecs_all: list[np.ndarray] = []
+    tvecs_all: list[np.ndarray] = []
     flags = [cv2.SOLVEPNP_SQPNP, cv2.SOLVEPNP_EPNP, cv2.SOLVEPNP_ITERATIVE]
     centered = base_points - base_points.mean(axis=0)
     if np.linalg.svd(centered, compute_uv=False)[2] < 1e-9 * max(1.0, np.abs(centered).max()):
@@ -61,59 +62,61 @@ def _pnp_minima(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[n
         except cv2.error:
             continue
         if ok:
-            poses.extend(_pose_from_rvec(r, t) for r, t in zip(rvecs, tvecs))
+            rvecs_all.extend(rvecs)
+            tvecs_all.extend(tvecs)
     for triple in islice(combinations(range(len(base_points)), 3), 4):  # not list(): C(70, 3) tuples cost 3 ms
         try:
             count, rvecs, tvecs = cv2.solveP3P(obj[list(triple)], img[list(triple)], K, None, flags=cv2.SOLVEPNP_P3P)
         except cv2.error:
             continue
-        poses.extend(_pose_from_rvec(rvecs[i], tvecs[i]) for i in range(count))
+        rvecs_all.extend(rvecs[:count])
+        tvecs_all.extend(tvecs[:count])
+    if not rvecs_all:
+        return []
+    R_starts = so3_exp_many(np.array([np.asarray(r, dtype=np.float64).reshape(3) for r in rvecs_all]))
+    t_starts = np.array([np.asarray(t, dtype=np.float64).reshape(3) for t in tvecs_all])
     # Starts of one basin (the solvers agree on a clear view) are refined once, from the first of them.
-    refined: list[tuple[float, np.ndarray, np.ndarray]] = []
-    chosen = _Poses()
-    for R, t in poses:
-        if chosen.near(R, t, SAME_BASIN):
-            continue
-        chosen.add(R, t)
-        rvec = cv2.Rodrigues(R)[0]
-        tvec = t.reshape(3, 1).copy()
+    chosen = _first_of_each(R_starts, t_starts, SAME_BASIN)
+    refined_r, refined_t = [], []
+    for k in chosen:
+        rvec = cv2.Rodrigues(R_starts[k])[0]
+        tvec = t_starts[k].reshape(3, 1).copy()
         try:
             rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, None, rvec, tvec, criteria=_PNP_CRITERIA)
         except cv2.error:
             pass
-        R_ref, t_ref = _pose_from_rvec(rvec, tvec)
-        error = _reprojection_rms(R_ref, t_ref, base_points, normalized)
-        if np.isfinite(error):
-            refined.append((error, R_ref, t_ref))
-    refined.sort(key=lambda entry: entry[0])
-    minima = _Poses()
-    for _, R, t in refined:  # the same minimum reached from several starts once
-        if not minima.near(R, t, SAME_MINIMUM):
-            minima.add(R, t)
-    return minima.poses
+        refined_r.append(np.asarray(rvec, dtype=np.float64).reshape(3))
+        refined_t.append(np.asarray(tvec, dtype=np.float64).reshape(3))
+    R_ref = so3_exp_many(np.array(refined_r))
+    t_ref = np.array(refined_t)
+    errors = _reprojection_rms_many(R_ref, t_ref, base_points, normalized).tolist()
+    finite = [k for k in range(len(chosen)) if np.isfinite(errors[k])]
+    order = sorted(finite, key=lambda k: errors[k])  # stable: as the list of (error, R, t) sorted by error
+    if not order:
+        return []
+    R_sorted, t_sorted = R_ref[order], t_ref[order]
+    # the same minimum reached from several starts once
+    return [(R_sorted[k], t_sorted[k]) for k in _first_of_each(R_sorted, t_sorted, SAME_MINIMUM)]
 
 
-class _Poses:
-    """Poses kept so far, and whether a pose is near one of them: rotations (entries) and translations
-    (relative) both within a tolerance."""
+def _first_of_each(R: np.ndarray, t: np.ndarray, tolerance: float) -> list[int]:
+    """Indices of the poses ``(R[k], t[k])`` kept when each is kept unless it is near one kept before it
+    (rotations within ``tolerance`` entry-wise, translations within ``tolerance`` relative to its own)."""
+    near = _near_table(R, t, tolerance)
+    kept: list[int] = []
+    for k in range(len(R)):
+        if not any(near[k][j] for j in kept):
+            kept.append(k)
+    return kept
 
-    def __init__(self) -> None:
-        self.poses: list[tuple[np.ndarray, np.ndarray]] = []
-        self._R = np.zeros((0, 3, 3))
-        self._t = np.zeros((0, 3))
 
-    def add(self, R: np.ndarray, t: np.ndarray) -> None:
-        self.poses.append((R, t))
-        self._R = np.concatenate([self._R, R[None]])
-        self._t = np.concatenate([self._t, t[None]])
-
-    def near(self, R: np.ndarray, t: np.ndarray, tolerance: float) -> bool:
-        if not self.poses:
-            return False
-        scale = max(float(np.linalg.norm(t)), 1e-12)
-        close = (np.abs(self._R - R).max(axis=(1, 2)) <= tolerance) & (
-            np.linalg.norm(self._t - t, axis=1) <= tolerance * scale)
-        return bool(close.any())
+def _near_table(R: np.ndarray, t: np.ndarray, tolerance: float) -> list[list[bool]]:
+    """``near[k][j]``: pose k is within ``tolerance`` of pose j (rotation entries; translation relative to
+    pose k's) -- all pairs at once."""
+    scale = np.array([max(float(np.linalg.norm(t_k)), 1e-12) for t_k in t])
+    rotation = np.abs(R[:, None] - R[None, :]).max(axis=(2, 3))
+    translation = np.linalg.norm(t[:, None] - t[None, :], axis=2)
+    return ((rotation <= tolerance) & (translation <= tolerance * scale[:, None])).tolist()
 
 
 def pnp_minima(base_points: np.ndarray, normalized: np.ndarray, num_mirrors: int) -> list[tuple[np.ndarray, np.ndarray]]:

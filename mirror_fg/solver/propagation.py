@@ -30,7 +30,7 @@ import numpy as np
 from mirror_fg.core.errors import SolveError
 from mirror_fg.solver.pnp import lowest_reprojection, pnp_candidates
 
-__all__ = ["ViewObs", "Propagation", "Unsolvable", "propagate", "mirror_vector_in", "plane_from_camera"]
+__all__ = ["ViewObs", "Propagation", "KnownPnP", "Unsolvable", "propagate", "mirror_vector_in", "plane_from_camera"]
 
 Placement = tuple[int, int]
 #: Points PnP needs for one unique pose (three give up to four).
@@ -102,19 +102,28 @@ def mirror_vector_in(plane: tuple[np.ndarray, float], pose: tuple[np.ndarray, np
     return (d + float(n_c @ t)) * n_c
 
 
-def _best_pnp(points: np.ndarray, normalized: np.ndarray, parity: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """The PnP composite map (A, b) of lowest reprojection error, or None."""
-    try:
-        candidates = pnp_candidates(points, normalized, parity)
-    except Exception:  # degenerate geometry: OpenCV refuses it
-        return None
+#: PnP candidates ``(A, b)`` already found for an image (``consensus.screen``'s), with the point names
+#: they were found from, in order: ``{image_id: (names, candidates)}``.
+KnownPnP = dict[str, tuple[tuple[str, ...], list[tuple[np.ndarray, np.ndarray]]]]
+
+
+def _best_pnp(points: np.ndarray, normalized: np.ndarray, parity: int,
+              candidates: list[tuple[np.ndarray, np.ndarray]] | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The PnP composite map (A, b) of lowest reprojection error, or None. ``candidates``: the PnP of
+    these very points and observations, found before (then not solved again)."""
+    if candidates is None:
+        try:
+            candidates = pnp_candidates(points, normalized, parity)
+        except Exception:  # degenerate geometry: OpenCV refuses it
+            return None
     return lowest_reprojection(candidates, points, normalized)
 
 
 class _Propagator:
     def __init__(self, views: list[ViewObs], fiducials: dict[str, np.ndarray], cameras: list[str],
-                 fixed: dict[str, tuple[np.ndarray, np.ndarray]], tree_start):
+                 fixed: dict[str, tuple[np.ndarray, np.ndarray]], tree_start, known_pnp: KnownPnP | None = None):
         self.views, self.cameras, self.tree_start = views, cameras, tree_start
+        self.known_pnp = known_pnp or {}
         self.known = Propagation(poses=dict(fixed), points={n: np.asarray(p, float) for n, p in fiducials.items()})
         self.tried_tree: set[str] = set()
 
@@ -122,6 +131,16 @@ class _Propagator:
         rows = [k for k, n in enumerate(view.names) if n in self.known.points]
         points = np.array([self.known.points[view.names[k]] for k in rows]).reshape(-1, 3)
         return points, view.normalized[rows]
+
+    def _found_pnp(self, view: ViewObs) -> list[tuple[np.ndarray, np.ndarray]] | None:
+        """The view's PnP candidates found before, where they are of the same points (its known ones, in
+        order; rules 1 and 3 on the view's own points), else None."""
+        found = self.known_pnp.get(view.image_id)
+        if found is None:
+            return None
+        names, candidates = found
+        known = tuple(n for n in view.names if n in self.known.points)
+        return candidates if known == names else None
 
     def pose_from_view(self, view: ViewObs) -> bool:  # rule 1
         if view.camera in self.known.poses or any(p not in self.known.planes for p in view.reflections):
@@ -132,7 +151,7 @@ class _Propagator:
         virtual = points
         for p in view.reflections:
             virtual = _reflect(virtual, self.known.planes[p])
-        found = _best_pnp(virtual, z, 0)
+        found = _best_pnp(virtual, z, 0, None if view.reflections else self._found_pnp(view))
         if found is None:
             return False
         self.known.poses[view.camera] = found
@@ -147,7 +166,7 @@ class _Propagator:
         points, z = self._known_points(view)
         if len(points) < MIN_PNP_POINTS:
             return False
-        found = _best_pnp(points, z, len(view.reflections))
+        found = _best_pnp(points, z, len(view.reflections), self._found_pnp(view))
         if found is None:
             return False
         j = view.reflections.index(unknown[0])
@@ -310,15 +329,17 @@ def takahashi_start(views: list[ViewObs], camera: str, scale) -> Propagation | N
 
 def propagate(views: list[ViewObs], fiducials: dict[str, np.ndarray], cameras: list[str],
               fixed: dict[str, tuple[np.ndarray, np.ndarray]], tree_start=None, scale=None,
-              tree_first: bool = False) -> Propagation:
+              tree_first: bool = False, known_pnp: KnownPnP | None = None) -> Propagation:
     """Every pose, plane and point found by the rules of the module docstring; raises
     :class:`Unsolvable` naming the first camera, placement or point left unknown and what would solve it.
 
     ``fixed``: poses known beforehand (the first camera without a known target). ``tree_start(camera)``:
     rule 2 for one camera, ``((R, t), {placement: v})`` or None. ``tree_first``: rule 2 for every camera
     before the others (by default rule 2 only where the others are stuck: a direct view's PnP is the
-    better start where there is one), the second start ``calibrate`` tries when the first ends implausibly."""
-    propagator = _Propagator(views, fiducials, cameras, fixed, tree_start)
+    better start where there is one), the second start ``calibrate`` tries when the first ends implausibly.
+    ``known_pnp``: images' PnP candidates already found (``consensus.screen``'s), used by rules 1 and 3
+    where a view's known points are the ones they were found from."""
+    propagator = _Propagator(views, fiducials, cameras, fixed, tree_start, known_pnp)
     if not fiducials:
         first = cameras[0]
         seeded = takahashi_start(views, first, scale)

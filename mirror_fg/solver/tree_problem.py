@@ -39,15 +39,17 @@ TreeRun = tuple[Calibration, list[Measurement], np.ndarray]
 class TreeProblem:
     """The paper's problem (module docstring); ``initial`` starts LM instead of the analytical solution."""
 
-    def __init__(self, initial: InitialEstimate | None, options: SolveOptions):
+    def __init__(self, initial: InitialEstimate | None, options: SolveOptions, known_minima: dict | None = None):
+        """``known_minima``: another check's PnP minima of the same photographs (``consensus.ImageChecks.minima``)."""
         self.initial, self.options = initial, options
+        self.known_minima = known_minima
         self.timings: dict[str, float] = {}
         self.pnp: PnPCandidates = {}
         self.screened = 0
 
     def screen(self, dataset: Dataset) -> tuple[Dataset, list[Exclusion]]:
         with timed(self.timings, "pnp"):
-            checked = check_images(dataset)  # Sect. 4.1 per image, checked; the initial estimate starts from it
+            checked = check_images(dataset, self.known_minima)  # Sect. 4.1 per image, checked; the initial estimate starts from it
         with timed(self.timings, "consensus"):
             solved, excluded, self.pnp = screen(dataset, checked=checked)  # what disagrees with the rest, named
         self.screened = len(excluded)

@@ -25,6 +25,7 @@ from gtsam.symbol_shorthand import K, L, V, X
 from mirror_fg.core.camera import Camera
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_prior_factor, predict_pixels
+from mirror_fg.factors.view_stack import stacked_view_factors
 from mirror_fg.factors.views import ViewFactor, plane_of, vector_of_plane, view_model
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.io.point_sigma import normalized_sigmas
@@ -168,10 +169,13 @@ class ViewProblem:
                             {n: np.asarray(values.atPoint3(k), float) for n, k in self.point_keys.items()}, theta or None)
 
     # ------------------------------------------------------------------ graph
-    def graph(self) -> gtsam.NonlinearFactorGraph:
+    def graph(self, stacked: bool = True) -> gtsam.NonlinearFactorGraph:
+        """Every view's factor (``stacked``: evaluated together, one factor per set of placements,
+        ``factors/view_stack.py``; else one ``ViewFactor`` per image), the intrinsics priors and the
+        scale prior."""
         graph = gtsam.NonlinearFactorGraph()
-        for factor in self.factors:
-            graph.add(factor.factor())
+        for factor in (stacked_view_factors(self.factors) if stacked else [f.factor() for f in self.factors]):
+            graph.add(factor)
         for name, key in self.intrinsics_keys.items():
             camera = self.dataset.cameras[name] if self.dataset.cameras is not None else self.dataset.camera
             assert camera is not None  # it estimates intrinsics

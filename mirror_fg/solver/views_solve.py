@@ -16,11 +16,12 @@ from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.analytic import AnalyticSolution
 from mirror_fg.solver.camera_labels import lone_image_hint
 from mirror_fg.solver.calibration import POOR_FIT_RATIO, Calibration, CameraPose, EstimatedCamera, Exclusion
-from mirror_fg.solver.consensus import screen, without
+from mirror_fg.solver.consensus import check_images, screen, without
 from mirror_fg.solver.marginals import unconstrained_as_solve_error, unconstrained_message
 from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, plausible, run_optimizer
 from mirror_fg.solver.options import STAGES, SolveOptions
-from mirror_fg.solver.propagation import Unsolvable, propagate
+from mirror_fg.solver.placement_consensus import fiducial_names
+from mirror_fg.solver.propagation import KnownPnP, Unsolvable, propagate
 from mirror_fg.solver.pipeline import run_pipeline
 from mirror_fg.solver.rechecks import Checked, Rechecked, solve_with_rechecks
 from mirror_fg.solver.rig import rig_transforms
@@ -42,13 +43,15 @@ class _Label:
     point: str
 
 
-def tree_start_for(dataset: Dataset, options: SolveOptions):
+def tree_start_for(dataset: Dataset, options: SolveOptions, minima: dict | None = None):
     """Rule 2 of the propagation for one camera: its images through the whole tree (the largest subtree
     with three placements under every node, then the one of its three best-seen placements of mirror 1)
     or through one mirror alone (>= 3 placements), each solved as the paper's problem by ``calibrate``
     on their fiducials (``tree_problem.TreeProblem``: analytical solution, then LM with its restarts); the
     first that fits the noise (``Calibration.fit_ratio`` at most ``calibration.POOR_FIT_RATIO``) gives
-    ``((R, t), {placement: v})``, else None. ``options``: the user's (``SolveOptions.nested``)."""
+    ``((R, t), {placement: v})``, else None. ``options``: the user's (``SolveOptions.nested``);
+    ``minima``: the screen's PnP minima (``consensus.ImageChecks.minima``), which rule 2's checks of the
+    same images take instead of solving again (the same camera, fiducials and parity)."""
     nested = options.nested()
 
     def start(camera_name: str):
@@ -85,7 +88,7 @@ def tree_start_for(dataset: Dataset, options: SolveOptions):
                           fiducials=dataset.fiducials, images=sub_images, source=dataset.source,
                           point_sigma={n: s for n, s in dataset.point_sigma.items() if n in dataset.fiducials})
             try:
-                solution = run_pipeline(TreeProblem(None, nested), sub)
+                solution = run_pipeline(TreeProblem(None, nested, minima), sub)
             except (DatasetError, SolveError, ValueError, np.linalg.LinAlgError) as error:
                 logger.debug("%s: camera %s: no start from %s: %s", dataset.source, camera_name,
                              "the tree" if mirror is None else f"mirror {mirror} alone", error)
@@ -100,10 +103,11 @@ def tree_start_for(dataset: Dataset, options: SolveOptions):
     return start
 
 
-def _other_start(problem: ViewProblem, options: SolveOptions) -> ViewEstimate | None:
+def _other_start(problem: ViewProblem, options: SolveOptions, known_pnp: KnownPnP | None = None,
+                 minima: dict | None = None) -> ViewEstimate | None:
     """The analytical start with rule 2 first for every camera, or None where it cannot be formed."""
     try:
-        return _start(problem, None, options, tree_first=True)
+        return _start(problem, None, options, tree_first=True, known_pnp=known_pnp, minima=minima)
     except SolveError:
         return None
 
@@ -123,9 +127,12 @@ def _solvable_subtree(images: list[Image], children: int = 3) -> list[Image]:
         images = kept
 
 
-def _start(problem: ViewProblem, initial, options: SolveOptions, tree_first: bool = False) -> ViewEstimate:
+def _start(problem: ViewProblem, initial, options: SolveOptions, tree_first: bool = False,
+           known_pnp: KnownPnP | None = None, minima: dict | None = None) -> ViewEstimate:
     """The analytical start, or ``initial`` (a :class:`ViewEstimate`, or a single-camera estimate with
-    ``R_cam_base``, ``t_cam_base``, ``mirror_vectors``, ``points``). ``options`` reach rule 2's solves."""
+    ``R_cam_base``, ``t_cam_base``, ``mirror_vectors``, ``points``). ``options`` reach rule 2's solves;
+    ``known_pnp``: the screen's PnP candidates (``propagation.propagate``), ``minima`` its PnP minima
+    (:func:`tree_start_for`)."""
     if isinstance(initial, ViewEstimate):
         return initial
     if initial is not None:
@@ -133,8 +140,9 @@ def _start(problem: ViewProblem, initial, options: SolveOptions, tree_first: boo
         return ViewEstimate({problem.cameras[0]: pose}, dict(initial.mirror_vectors), dict(initial.points))
     dataset = problem.dataset
     try:
-        known = propagate(problem.views, dataset.fiducials, problem.cameras, problem.fixed, tree_start_for(dataset, options),
-                          dataset.scale, tree_first)
+        known = propagate(problem.views, dataset.fiducials, problem.cameras, problem.fixed,
+                          tree_start_for(dataset, options, minima),
+                          dataset.scale, tree_first, known_pnp)
     except Unsolvable as error:
         labels = lone_image_hint(dataset)  # a rig image naming the wrong camera leaves its plane unsolvable
         raise Unsolvable(f"{dataset.source}: {labels} (the start fails: {error})" if labels else
@@ -217,10 +225,21 @@ class ViewsProblem:
         self.timings: dict[str, float] = {}
         #: The analytical start LM began from (propagation's), for the result's ``analytic``; None from ``initial``.
         self.analytic_start: ViewEstimate | None = None
+        #: The screen's PnP candidates of the images it left untouched, with the fiducials they are of:
+        #: the propagation's rules 1 and 3 use them instead of solving the same PnP again.
+        self.known_pnp: KnownPnP = {}
+        #: The screen's PnP minima of every image (``consensus.ImageChecks.minima``): rule 2's checks of
+        #: the same photographs take them.
+        self.minima: dict = {}
 
     def screen(self, dataset: Dataset) -> tuple[Dataset, list[Exclusion]]:
         if not self.models:
-            screened, excluded, _ = screen(dataset)
+            checked = check_images(dataset)
+            self.minima = checked.minima
+            screened, excluded, candidates = screen(dataset, checked=checked)
+            by_id = {image.id: image for image in screened.images}
+            self.known_pnp = {image_id: (tuple(fiducial_names(screened, by_id[image_id])), poses)
+                              for image_id, poses in candidates.items() if image_id in by_id}
             return screened, excluded
         fixed = ViewsProblem(self.last, replace(self.options, compute_covariance=False))
         screened, excluded = fixed.screen(_fixed_intrinsics(dataset))
@@ -234,7 +253,7 @@ class ViewsProblem:
         options, timings = self.options, self.timings
         problem = ViewProblem(solved, options.robust, self.models)
         with timed(timings, "analytic"):
-            begin = _start(problem, self.last, options)
+            begin = _start(problem, self.last, options, known_pnp=self.known_pnp, minima=self.minima)
         graph = problem.graph()
         params = lm_params(options.max_iterations, cost_scale(solved), GENERAL_LAMBDA_UPPER_BOUND)
 
@@ -249,7 +268,7 @@ class ViewsProblem:
             dimension = result.dim() - problem.constraints
             if self.analytic and self.last is None and not plausible(graph.error(result),
                                                                      0.5 * max(problem.size - dimension, 0)):
-                other = _other_start(problem, options)  # the analytical start ended implausibly: try the other one
+                other = _other_start(problem, options, self.known_pnp, self.minima)  # the analytical start ended implausibly: try the other one
                 if other is not None:
                     tried = optimize(other)
                     if graph.error(tried[1]) < graph.error(result):

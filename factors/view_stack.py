@@ -1,0 +1,342 @@
+"""The general view factors (``views.py``) evaluated together: one vectorised pass over every view of the
+same shape, and one factor per set of placements (Hesch et al., eqs. 2, 3, 9; the model of ``views.py``).
+
+Why: a Python factor costs a call per image per LM iteration, and inside GTSAM's optimizers every Python
+factor call first copies the whole ``Values`` (``batched.py``'s docstring), so per-image ``ViewFactor``
+calls cost O(images x unknowns) per iteration. Here
+
+* views are **grouped by shape**: the same camera, the same owner camera at each reflection, the same
+  pattern of repeated placements and as many points. A group's model (``views.view_model`` written with
+  a leading axis over its views) is one numpy pass; its placements' vectors and their plane Jacobians
+  (``views.vector_of_plane``) are per view, its poses shared;
+* views are **stacked** by the set of placements they see (a photograph's views through its own
+  placements, by every camera), and a few consecutive sets into one ``gtsam.CustomFactor`` (at most
+  :data:`PLACEMENTS_PER_FACTOR` placements): a factor's keys are those placements and the camera poses,
+  so elimination treats at most that many planes jointly (a stack over many placements would make it
+  dense), while the factor calls, each of which copies the whole ``Values``, are fewer;
+* the first factor called at new values evaluates every group (errors, and Jacobians when asked) into
+  preallocated buffers; the others check that their own variables are bit for bit those of the batch
+  (a stale result is never returned) and return views of them. Not thread-safe (GTSAM calls Python
+  factors one at a time).
+
+Each view's rows, whitening and robust kernel are those of its ``ViewFactor`` (per measurement, as
+``batched.py`` does): a stack's error is its views' errors one after the other. Views with reconstruction
+points or estimated intrinsics stay ``ViewFactor`` s. ``tests/test_view_stack.py`` checks errors,
+Jacobians and whole calibrations against the per-view factors.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import gtsam
+import numpy as np
+
+from mirror_fg.factors.robust import robust_row_scales
+from mirror_fg.factors.views import ViewFactor, vector_of_plane
+
+__all__ = ["stackable", "stacked_view_factors", "ViewStackEvaluator"]
+
+Placement = tuple[int, int]
+#: Placements of one stacked factor at most: the views of a few photographs (their own placements) in one
+#: factor. Each Python factor call copies the whole ``Values`` (module docstring), so fewer, larger factors
+#: cost less per iteration, while a factor's placements are eliminated together (a dense block of this
+#: many planes and the camera poses: small).
+PLACEMENTS_PER_FACTOR = 16
+
+
+def stackable(factor: ViewFactor) -> bool:
+    """Whether a view's factor can be evaluated in a stack: fiducials only, intrinsics known."""
+    return factor.intrinsics is None and not factor.unique_landmarks
+
+
+def _skew_rows(a: np.ndarray) -> np.ndarray:
+    """[a]x of each row of ``a`` (b, 3): (b, 3, 3)."""
+    S = np.zeros((len(a), 3, 3))
+    S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -a[:, 2], a[:, 1], -a[:, 0]
+    S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = a[:, 2], -a[:, 1], a[:, 0]
+    return S
+
+
+def _skew(a: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+
+
+class _Group:
+    """Views of one shape (module docstring): their factors, base points (b, 3, N), observations and
+    sigmas (b, 2, N), and where their rows and Jacobian entries go in the evaluator's buffers."""
+
+    def __init__(self, factors: list[ViewFactor]):
+        first = factors[0]
+        self.camera = first.camera
+        placements = list(dict.fromkeys(first.reflections))
+        self.steps = [(first.owners[p], placements.index(p)) for p in first.reflections]
+        self.slots = first.slots
+        self.pose_cols = dict(first.slots.pose_cols)
+        self.placement_count = len(placements)
+        self.factors = factors
+        self.placements = [list(dict.fromkeys(f.reflections)) for f in factors]  # (b, U) per view
+        self.base = np.array([f.base_points for f in factors])
+        self.observed = np.array([f.observed for f in factors])
+        self.sigmas = np.array([f.sigmas for f in factors])
+        self.robust, self.robust_k = first.robust, first.robust_k
+        self.error_rows: np.ndarray | None = None  # (b, 2N) indices into the error buffers
+        self.jacobian_entries: np.ndarray | None = None  # (b, 2N, P) indices into the Jacobian buffer
+
+    def model(self, poses: dict[str, tuple[np.ndarray, np.ndarray]], vectors: dict[Placement, np.ndarray],
+              plane_jacobians: dict[Placement, np.ndarray], jacobians: bool):
+        """``views.view_model`` of every view at once: predictions (b, 2, N) and, when asked, ``dz``
+        (b, 2, P, N) in the views' local coordinates (the same layout as each ``ViewFactor``'s)."""
+        R_c, t_c = poses[self.camera]
+        B = self.base
+        b, _, n = B.shape
+        x = np.einsum("ij,bjn->bin", R_c, B) + t_c[None, :, None]  # eq. (2)
+        size = self.slots.size
+        dx = None
+        if jacobians:
+            dx = np.zeros((b, 3, size, n))
+            if self.camera in self.pose_cols:
+                c = self.pose_cols[self.camera]
+                S = np.zeros((b, 3, 3, n))
+                S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -B[:, 2], B[:, 1], -B[:, 0]
+                S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = B[:, 2], -B[:, 1], B[:, 0]
+                dx[:, :, c:c + 3, :] = -np.einsum("ij,bjkn->bikn", R_c, S)  # d(R Exp(w) B)/dw = -R [B]x
+                dx[:, :, c + 3:c + 6, :] = R_c[None, :, :, None]  # d(t + R nu)/dnu = R
+        v_all = np.array([[vectors[p] for p in ps] for ps in self.placements])  # (b, U, 3)
+        J_all = np.array([[plane_jacobians[p] for p in ps] for ps in self.placements]) if jacobians else None
+        offset = 6 * len(self.pose_cols)
+        for owner, u in self.steps:
+            v_o = v_all[:, u]
+            col = offset + 3 * u
+            dv = None
+            if owner == self.camera:
+                v = v_o
+                if jacobians:
+                    dv = np.zeros((b, 3, size))
+                    dv[:, :, col:col + 3] = J_all[:, u]
+            else:
+                v, parts = self._transfer(v_o, poses[self.camera], poses[owner], jacobians)
+                if jacobians:
+                    dv_v, dv_wc, dv_nc, dv_wo, dv_no = parts
+                    dv = np.zeros((b, 3, size))
+                    dv[:, :, col:col + 3] = dv_v @ J_all[:, u]
+                    for who, dw, dn in ((self.camera, dv_wc, dv_nc), (owner, dv_wo, dv_no)):
+                        if who in self.pose_cols:
+                            c = self.pose_cols[who]
+                            dv[:, :, c:c + 3] += dw
+                            dv[:, :, c + 3:c + 6] += dn
+            vv = np.einsum("bi,bi->b", v, v)
+            vx = np.einsum("bi,bin->bn", v, x)
+            s = vx / vv[:, None] - 1.0
+            if jacobians:
+                vdv = np.einsum("bi,bip->bp", v, dv)
+                ds = (np.einsum("bi,bipn->bpn", v, dx) + np.einsum("bin,bip->bpn", x, dv)) / vv[:, None, None]
+                ds -= 2.0 * vdv[:, :, None] * vx[:, None, :] / (vv**2)[:, None, None]
+                dx = dx - 2.0 * v[:, :, None, None] * ds[:, None] - 2.0 * dv[:, :, :, None] * s[:, None, None, :]
+            x = x - 2.0 * v[:, :, None] * s[:, None, :]  # eq. (3): M x + 2 v
+        z = x[:, :2] / x[:, 2:3]  # eq. (9)
+        if not jacobians:
+            return z, None
+        dz = (dx[:, :2] - z[:, :, None, :] * dx[:, 2][:, None]) / x[:, 2][:, None, None, :]
+        return z, dz
+
+    @staticmethod
+    def _transfer(v_owner: np.ndarray, pose_c, pose_o, jacobians: bool):
+        """``views.transfer_mirror_vector`` of many vectors (b, 3) between the same two cameras."""
+        (R_c, t_c), (R_o, t_o) = pose_c, pose_o
+        a = v_owner @ R_o  # R_o^T v_o, per row
+        b_ = R_o.T @ t_o
+        u = a @ R_c.T  # R_co v_o
+        t_co = t_c - R_c @ b_
+        dd = np.einsum("bi,bi->b", v_owner, v_owner)
+        ut = u @ t_co
+        g = 1.0 + ut / dd
+        if not jacobians:
+            return u * g[:, None], None
+        R_co = R_c @ R_o.T
+        Ra = np.einsum("ij,bjk->bik", R_c, _skew_rows(a))
+        Rb = R_c @ _skew(b_)
+        zero = np.zeros((3, 3))
+        du = {"v": R_co, "wc": -Ra, "nc": zero, "wo": Ra, "no": zero}
+        dt = {"v": zero, "wc": Rb, "nc": R_c, "wo": -Rb, "no": -R_c}
+        out = []
+        for name in ("v", "wc", "nc", "wo", "no"):
+            d_u = np.broadcast_to(du[name], (len(u), 3, 3))
+            dg = (np.einsum("i,bij->bj", t_co, d_u) + np.einsum("bi,ij->bj", u, dt[name])) / dd[:, None]
+            if name == "v":
+                dg = dg - (ut * 2.0 / dd**2)[:, None] * v_owner
+            out.append(g[:, None, None] * d_u + u[:, :, None] * dg[:, None, :])
+        return u * g[:, None], out
+
+
+class ViewStackEvaluator:
+    """Every stackable view's factor evaluated together (module docstring); ``factors``: one
+    ``gtsam.CustomFactor`` per set of placements (hand them to a graph)."""
+
+    def __init__(self, view_factors: Sequence[ViewFactor], placements_per_factor: int = 1):
+        first = view_factors[0]
+        self.fixed = dict(first.fixed)
+        for f in view_factors:
+            self.fixed.update(f.fixed)
+        self.pose_keys: dict[str, int] = {}
+        self.mirror_keys: dict[Placement, int] = {}
+        for f in view_factors:
+            self.pose_keys.update(f.pose_keys)
+            self.mirror_keys.update(f.mirror_keys)
+        # stacks: views with the same placements, in the order first seen; consecutive ones merged up to
+        # ``placements_per_factor`` placements (fewer factor calls, each of which copies the Values)
+        same: dict[tuple, list[int]] = {}
+        for i, f in enumerate(view_factors):
+            same.setdefault(tuple(sorted(f.mirror_keys)), []).append(i)
+        merged: list[tuple[set, list[int]]] = []
+        for placements, members in same.items():
+            if merged and len(merged[-1][0] | set(placements)) <= placements_per_factor:
+                merged[-1][0].update(placements)
+                merged[-1][1].extend(members)
+            else:
+                merged.append((set(placements), list(members)))
+        stacks = {k: members for k, (_, members) in enumerate(merged)}
+        shapes: dict[tuple, list[int]] = {}
+        for i, f in enumerate(view_factors):
+            placements = list(dict.fromkeys(f.reflections))
+            shape = (f.camera, tuple((f.owners[p], placements.index(p)) for p in f.reflections),
+                     tuple(f.pose_keys), f.base_points.shape[1], f.robust, f.robust_k)
+            shapes.setdefault(shape, []).append(i)
+        self.groups = [_Group([view_factors[i] for i in members]) for members in shapes.values()]
+        where = {}  # view index -> (group, row in group)
+        for g, members in enumerate(shapes.values()):
+            for r, i in enumerate(members):
+                where[i] = (g, r)
+        # buffers: each stack's rows consecutive; each stack's key blocks (rows, dim) consecutive
+        err_size = sum(2 * f.base_points.shape[1] for f in view_factors)
+        self._err = np.zeros(err_size)
+        self._err_lin = np.zeros(err_size) if first.robust is not None else self._err
+        error_rows = [np.zeros((len(g.factors), 2 * g.base.shape[2]), dtype=np.intp) for g in self.groups]
+        entries = [np.zeros((len(g.factors), 2 * g.base.shape[2], g.slots.size), dtype=np.intp) for g in self.groups]
+        self._stack_keys: list[list[int]] = []
+        self._stack_rows: list[slice] = []
+        self._stack_blocks: list[list[tuple[int, int]]] = []  # (offset, dim) of each key's block
+        row0, jac0 = 0, 0
+        self.factors: list[gtsam.CustomFactor] = []
+        for members in stacks.values():
+            views = [view_factors[i] for i in members]
+            pose_keys = list(dict.fromkeys(k for f in views for k in f.pose_keys.values()))
+            mirror_keys = list(dict.fromkeys(k for f in views for k in f.mirror_keys.values()))
+            keys = pose_keys + mirror_keys
+            dims = [6] * len(pose_keys) + [3] * len(mirror_keys)
+            rows = sum(2 * f.base_points.shape[1] for f in views)
+            blocks, offset = [], jac0
+            for dim in dims:
+                blocks.append((offset, dim))
+                offset += rows * dim
+            block_of = dict(zip(keys, blocks))
+            r = row0
+            for i, f in zip(members, views):
+                g, gr = where[i]
+                m = 2 * f.base_points.shape[1]
+                error_rows[g][gr] = np.arange(r, r + m)
+                local = np.arange(m)[:, None]
+                for name, key in f.pose_keys.items():
+                    off, dim = block_of[key]
+                    c = f.slots.pose_cols[name]
+                    entries[g][gr][:, c:c + 6] = off + (r - row0 + local) * dim + np.arange(6)[None]
+                for p, key in f.mirror_keys.items():
+                    off, dim = block_of[key]
+                    c = f.slots.mirror_cols[p]
+                    entries[g][gr][:, c:c + 3] = off + (r - row0 + local) * dim + np.arange(3)[None]
+                r += m
+            self._stack_keys.append(keys)
+            self._stack_rows.append(slice(row0, row0 + rows))
+            self._stack_blocks.append(blocks)
+            sigmas = np.concatenate([f.sigmas.T.reshape(-1) for f in views])
+            noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
+            self.factors.append(gtsam.CustomFactor(noise, keys, self._error_function(len(self.factors))))
+            row0, jac0 = r, offset
+        for g, group in enumerate(self.groups):
+            group.error_rows, group.jacobian_entries = error_rows[g], entries[g]
+        self._jac = np.zeros(jac0)
+        self._placement_of_key = {k: p for p, k in self.mirror_keys.items()}
+        self._camera_of_key = {k: c for c, k in self.pose_keys.items()}
+        # cache
+        self._valid = False
+        self._has_jacobians = False
+        self._poses: dict[int, gtsam.Pose3] = {}
+        self._planes: dict[int, gtsam.OrientedPlane3] = {}
+        self._plane_bytes: dict[int, bytes] = {}
+        self.batches = 0
+
+    # --- cache ------------------------------------------------------------------------------------
+
+    def _matches(self, s: int, values: gtsam.Values) -> bool:
+        if not self._valid:
+            return False
+        poses, planes = self._poses, self._plane_bytes
+        for key in self._stack_keys[s]:
+            if key in poses:
+                if not values.atPose3(key).equals(poses[key], 0.0):
+                    return False
+            elif values.atOrientedPlane3(key).planeCoefficients().tobytes() != planes[key]:
+                return False  # (OrientedPlane3.equals at tolerance 0 is false even for itself)
+        return True
+
+    def _load(self, values: gtsam.Values) -> None:
+        self._poses = {k: values.atPose3(k) for k in self.pose_keys.values()}
+        self._planes = {k: values.atOrientedPlane3(k) for k in self.mirror_keys.values()}
+        self._plane_bytes = {k: plane.planeCoefficients().tobytes() for k, plane in self._planes.items()}
+        self._valid = True
+        self._has_jacobians = False
+
+    def _compute(self, jacobians: bool) -> None:
+        self.batches += 1
+        poses = dict(self.fixed)
+        for name, key in self.pose_keys.items():
+            pose = self._poses[key]
+            poses[name] = (pose.rotation().matrix(), np.asarray(pose.translation(), dtype=float))
+        vectors, plane_jacobians = {}, {}
+        for p, key in self.mirror_keys.items():
+            vectors[p], plane_jacobians[p] = vector_of_plane(self._planes[key])
+        for group in self.groups:
+            z, dz = group.model(poses, vectors, plane_jacobians, jacobians)
+            residual = z - group.observed  # (b, 2, N), h - z
+            if group.robust is None:
+                self._err[group.error_rows] = residual.transpose(0, 2, 1).reshape(len(residual), -1)
+                scale = None
+            else:
+                norms = np.linalg.norm(residual / group.sigmas, axis=1)
+                sqrt_w, loss_scale = robust_row_scales(group.robust, norms.reshape(-1), group.robust_k)
+                sqrt_w, loss_scale = sqrt_w.reshape(norms.shape), loss_scale.reshape(norms.shape)
+                self._err[group.error_rows] = (residual * loss_scale[:, None]).transpose(0, 2, 1).reshape(len(residual), -1)
+                self._err_lin[group.error_rows] = (residual * sqrt_w[:, None]).transpose(0, 2, 1).reshape(len(residual), -1)
+                scale = sqrt_w
+            if jacobians:
+                assert dz is not None
+                if scale is not None:
+                    dz = dz * scale[:, None, None, :]
+                self._jac[group.jacobian_entries] = np.transpose(dz, (0, 3, 1, 2)).reshape(group.jacobian_entries.shape)
+        self._has_jacobians = jacobians
+
+    def _error_function(self, s: int):
+        def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
+            if not self._matches(s, values):
+                self._load(values)
+                self._compute(H is not None)
+            elif H is not None and not self._has_jacobians:
+                self._compute(True)
+            rows = self._stack_rows[s]
+            if H is None:
+                return self._err[rows].copy()
+            count = rows.stop - rows.start
+            for k, (offset, dim) in enumerate(self._stack_blocks[s]):
+                H[k] = self._jac[offset:offset + count * dim].reshape(count, dim).copy()
+            return self._err_lin[rows].copy()
+
+        return error
+
+
+def stacked_view_factors(view_factors: Sequence[ViewFactor]) -> list[gtsam.CustomFactor]:
+    """The factors of ``view_factors``: the stackable ones stacked (:class:`ViewStackEvaluator`), the
+    others their own ``ViewFactor`` s."""
+    stack = [f for f in view_factors if stackable(f)]
+    factors = [f.factor() for f in view_factors if not stackable(f)]
+    if stack:
+        factors.extend(ViewStackEvaluator(stack, PLACEMENTS_PER_FACTOR).factors)
+    return factors
