@@ -13,9 +13,9 @@ import numpy as np
 
 from mirror_fg.core.camera import Camera
 from mirror_fg.core.errors import DatasetError, SolveError
+from mirror_fg.core.fit import plausible
 from mirror_fg.core.transform import Transform
 from mirror_fg.solver.analytic import AnalyticSolution
-from mirror_fg.solver.lm import plausible
 
 __all__ = [
     "Calibration", "EstimatedCamera", "Exclusion", "Inconsistency", "require_converged", "POOR_FIT_RATIO",

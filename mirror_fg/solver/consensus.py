@@ -30,23 +30,27 @@ Nothing left out is dropped silently: every image or measurement is an
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
-
-from dataclasses import dataclass, field, replace
-
 import logging
 from collections import defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
 from types import SimpleNamespace
 
 import numpy as np
 
+from mirror_fg.core.fit import expected_cost, plausible
 from mirror_fg.core.geometry import apply_transform
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.calibration import Exclusion
 from mirror_fg.solver.graph import Labelled
-from mirror_fg.solver.lm import plausible
 from mirror_fg.solver.placement_consensus import (  # noqa: F401 (the node's constants: public here too)
-    CONSENSUS_FACTOR, CONSENSUS_MIN_SIGMAS, CONSENSUS_TRIPLES, check_node, fiducial_names, fit_mirrors, mirror_fit,
+    CONSENSUS_FACTOR,
+    CONSENSUS_MIN_SIGMAS,
+    CONSENSUS_TRIPLES,
+    check_node,
+    fiducial_names,
+    fit_mirrors,
+    mirror_fit,
     reflected_errors,
 )
 from mirror_fg.solver.pnp import pnp_candidates, pnp_candidates_many, pnp_minima
@@ -305,7 +309,7 @@ def final_check(
         return []
     flagged_images = {m.image_id for m, b in zip(measurements, bad) if b}  # their other residuals are pulled too
     rest = whitened[[m.image_id not in flagged_images for m in measurements]]
-    if not plausible(0.5 * float(np.sum(rest**2)), 0.5 * max(2 * len(rest) - dimension, 0)):
+    if not plausible(0.5 * float(np.sum(rest**2)), expected_cost(2 * len(rest), dimension)):
         return []
     per_image: dict[str, list[int]] = defaultdict(list)
     for i, m in enumerate(measurements):

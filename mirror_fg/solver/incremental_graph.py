@@ -41,10 +41,15 @@ from mirror_fg.solver.calibration import Calibration, Exclusion
 from mirror_fg.solver.graph import GraphLayout, Measurement, measurement_sigmas
 from mirror_fg.solver.incremental_state import GraphState, PlacementBlock, RelinearizeThresholds, new_isam2
 from mirror_fg.solver.incremental_values import (
-    MIN_PNP_FIDUCIALS, REFINE_ITERATIONS, PlacementInitialiser, initialise_points, refine_alone,
+    MIN_PNP_FIDUCIALS,
+    REFINE_ITERATIONS,
+    PlacementInitialiser,
+    initialise_points,
+    refine_alone,
 )
 from mirror_fg.solver.marginals import marginal_covariances, unconstrained_as_solve_error, unconstrained_message
-from mirror_fg.solver.residuals import outliers_of, predicted_normalized, residual_statistics
+from mirror_fg.solver.residuals import predicted_normalized, residual_statistics
+from mirror_fg.solver.result_builder import build_calibration
 from mirror_fg.solver.timing import timed
 
 __all__ = [
@@ -421,46 +426,32 @@ class IncrementalGraph:
         if not full:
             return self._calibration(
                 analytic, settled, excluded, covariance=covariance_from_pose3(g.R, g.pose_cov), mirror_covs={},
-                point_covs={}, residuals=np.zeros((0, 2)), labels=[], outliers=[], final_error=math.nan,
+                point_covs={}, residuals=np.zeros((0, 2)), whitened=np.zeros(0), labels=[], final_error=math.nan,
+                unknowns=None,
             )
         factors, estimate = self.explicit_graph()  # every placement an unknown, at the estimate
         covariance, mirror_covs, point_covs = marginal_covariances(factors, estimate, g.layout, self._ds.source)
         predicted = predicted_normalized(self._ds, g.measurements, g.R, g.t, g.mirrors, g.points)
         residuals, whitened = residual_statistics(self._ds, g.measurements, predicted)
-        calibration = self._calibration(
-            analytic, settled, excluded, covariance=covariance, mirror_covs=mirror_covs, point_covs=point_covs,
-            residuals=residuals, labels=[(m.image_id, m.point) for m in g.measurements],
-            outliers=outliers_of(g.measurements, whitened), final_error=float(factors.error(estimate)),
-        )
         # Its cost judged as the batch's (lm.LMRun.expected_final_error): two per measurement less
         # the unknowns (pose, every mirror vector, points).
-        unknowns = 6 + 3 * len(calibration.mirror_vectors) + 3 * len(calibration.points)
-        calibration.expected_final_error = 0.5 * max(2 * len(calibration.residuals) - unknowns, 0)
+        calibration = self._calibration(
+            analytic, settled, excluded, covariance=covariance, mirror_covs=mirror_covs, point_covs=point_covs,
+            residuals=residuals, whitened=whitened, labels=[(m.image_id, m.point) for m in g.measurements],
+            final_error=float(factors.error(estimate)), unknowns=6 + 3 * len(g.mirrors) + 3 * len(g.points),
+        )
         calibration.converged = settled and g.step_sigmas < POLISH_SIGMAS
         return calibration
 
     def _calibration(
         self, analytic: AnalyticSolution | None, settled: bool, excluded: list[Exclusion], *, covariance, mirror_covs,
-        point_covs, residuals, labels, outliers, final_error,
+        point_covs, residuals, whitened, labels, final_error, unknowns,
     ) -> Calibration:
         g = self._state
-        return Calibration(
-            R_cam_base=g.R.copy(),
-            t_cam_base=g.t.copy(),
-            covariance=covariance,
-            mirror_vectors=dict(g.mirrors),
-            mirror_covariances=mirror_covs,
-            points=dict(g.points),
-            point_covariances=point_covs,
-            analytic=analytic,
-            iterations=self.updates,
-            initial_error=g.initial_error,
-            final_error=final_error,
-            converged=settled,
-            residuals=residuals,
-            residual_labels=labels,
-            residual_units="px" if self._ds.camera is not None else "normalized",
-            outliers=outliers,
-            timings=dict(self.timings),
-            excluded=list(excluded),
+        return build_calibration(
+            self._ds, (g.R.copy(), g.t.copy()), covariance, mirror_vectors=dict(g.mirrors),
+            mirror_covariances=mirror_covs, points=dict(g.points), point_covariances=point_covs,
+            residuals=residuals, whitened=whitened, labels=labels, unknowns=unknowns, iterations=self.updates,
+            initial_error=g.initial_error, final_error=final_error, converged=settled, timings=dict(self.timings),
+            excluded=excluded, analytic=analytic,
         )

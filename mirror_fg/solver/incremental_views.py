@@ -47,17 +47,29 @@ from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.calibration import POOR_FIT_RATIO, Calibration, Exclusion, require_converged
 from mirror_fg.solver.consensus import final_check, without
 from mirror_fg.solver.incremental_state import RelinearizeThresholds, new_isam2
-from mirror_fg.solver.incremental_views_start import (determines_new_unknowns, joining_views, lm_settings,
-                                                      refined_new, scaled_start)
+from mirror_fg.solver.incremental_views_start import (
+    determines_new_unknowns,
+    joining_views,
+    lm_settings,
+    refined_new,
+    scaled_start,
+)
+from mirror_fg.solver.marginals import unconstrained_as_solve_error, unconstrained_message
+from mirror_fg.solver.options import SolveOptions
 from mirror_fg.solver.propagation import ViewObs
+from mirror_fg.solver.rechecks import MAX_RECHECKS
+from mirror_fg.solver.result_builder import Label
 from mirror_fg.solver.timing import timed
 from mirror_fg.solver.views import (
-    ViewEstimate, ViewProblem, camera_names, mirror_vector_at, plane_of, scale_prior, views_of,
+    ViewEstimate,
+    ViewProblem,
+    camera_names,
+    mirror_vector_at,
+    plane_of,
+    scale_prior,
+    views_of,
 )
-from mirror_fg.solver.options import SolveOptions
-from mirror_fg.solver.marginals import unconstrained_as_solve_error, unconstrained_message
-from mirror_fg.solver.rechecks import MAX_RECHECKS
-from mirror_fg.solver.views_solve import _Label, calibration_of
+from mirror_fg.solver.views_solve import calibration_of
 
 __all__ = ["ViewsIncrementalCalibrator", "calibrate_views_incremental"]
 
@@ -192,10 +204,9 @@ class ViewsIncrementalCalibrator:
             residuals, whitened, labels = np.zeros((0, 2)), np.zeros(0), []
         dimension = values.dim() - problem.constraints
         final_error = float(self._graph.error(values)) if full else float("nan")
-        expected = 0.5 * max(len(whitened) * 2 - dimension, 0) if full else 0.0
         calibration = calibration_of(problem, estimate, covariances, residuals, whitened, labels,
                                      iterations=self._updates, initial_error=self._initial_error,
-                                     final_error=final_error, converged=converged, expected=expected,
+                                     final_error=final_error, converged=converged, dimension=dimension,
                                      excluded=list(self.excluded), timings=dict(self.timings))
         if not full and self._ds.cameras is not None:
             calibration.camera_pose_covariance = None
@@ -229,7 +240,7 @@ class ViewsIncrementalCalibrator:
         problem = self._problem(full=True)
         _, whitened, labels = problem.residuals(self._estimate)
         dimension = problem.values(self._estimate).dim() - problem.constraints
-        excluded = final_check(problem.dataset, [_Label(i, p) for i, p in labels], whitened, dimension)
+        excluded = final_check(problem.dataset, [Label(i, p) for i, p in labels], whitened, dimension)
         if not excluded:
             return []
         self.excluded.extend(excluded)

@@ -11,14 +11,23 @@ import gtsam
 import numpy as np
 
 from mirror_fg.core.errors import SolveError
+from mirror_fg.core.fit import expected_cost, plausible
+from mirror_fg.factors.eliminated import EliminatedEvaluator, collapsed
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.analytic import AnalyticSolution, reconstruct_points
-from mirror_fg.factors.eliminated import EliminatedEvaluator, collapsed
 from mirror_fg.solver.graph import (
-    GraphLayout, InitialEstimate, Measurement, build_eliminated_graph, build_graph, extract_values,
+    GraphLayout,
+    InitialEstimate,
+    Measurement,
+    build_eliminated_graph,
+    build_graph,
+    extract_values,
 )
 from mirror_fg.solver.marginals import (
-    eliminated_covariances, marginal_covariances, unconstrained_as_solve_error, unconstrained_message,
+    eliminated_covariances,
+    marginal_covariances,
+    unconstrained_as_solve_error,
+    unconstrained_message,
 )
 from mirror_fg.solver.options import SolveOptions
 from mirror_fg.solver.timing import timed
@@ -129,12 +138,6 @@ def _polished(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> gtsam.
     return values
 
 
-def plausible(final_error: float, expected_final_error: float) -> bool:
-    """Whether a final cost 0.5 chi^2 is within 10 spreads (sqrt(dof / 2)) above its mean dof / 2."""
-    spread = np.sqrt(max(expected_final_error, 1.0))
-    return not final_error > expected_final_error + 10.0 * spread
-
-
 #: Solve with the last mirror's placements eliminated inside the factors (``factors/eliminated.py``)
 #: where the options ask for it and the data allow it (no robust kernel, ``SolveOptions.eliminates``):
 #: linear cost in the number of images. False: the stacked factors of ``factors/batched.py`` with
@@ -164,7 +167,7 @@ class LMRun:
     @property
     def expected_final_error(self) -> float:
         """Mean of the final cost 0.5 chi^2 at the optimum: half the degrees of freedom."""
-        return 0.5 * max(2 * len(self.measurements) - self.dimension, 0)
+        return expected_cost(2 * len(self.measurements), self.dimension)
 
     def estimate(self) -> tuple[np.ndarray, np.ndarray, dict, dict]:
         """``(R_cam_base, t_cam_base, mirror_vectors, points)`` at the result (``graph.extract_values``)."""

@@ -29,15 +29,24 @@ from mirror_fg.solver.calibration import Calibration, EstimatedCamera, Exclusion
 from mirror_fg.solver.consensus import without
 from mirror_fg.solver.graph import Estimate, GraphLayout, InitialEstimate, Measurement, extract_values
 from mirror_fg.solver.intrinsics import (
-    JointRun, camera_intrinsics, camera_of, check_supported, joint_covariances, joint_problem,
-    joint_values, photograph_start, pixel_sigmas, run_joint_lm, with_start_noise,
+    JointRun,
+    camera_intrinsics,
+    camera_of,
+    check_supported,
+    joint_covariances,
+    joint_problem,
+    joint_values,
+    photograph_start,
+    pixel_sigmas,
+    run_joint_lm,
+    with_start_noise,
 )
 from mirror_fg.solver.intrinsics_observability import unobservable_refusal, warn_weak
 from mirror_fg.solver.options import STAGES, Linearization, SolveOptions
 from mirror_fg.solver.rechecks import Checked, Rechecked, solve_with_rechecks
 from mirror_fg.solver.residuals import predicted_normalized
+from mirror_fg.solver.result_builder import build_calibration
 from mirror_fg.solver.timing import timed
-from mirror_fg.solver.tree_problem import calibration_from
 
 __all__ = ["PixelProblem"]
 
@@ -219,20 +228,15 @@ class PixelProblem:
                     run.graph, run.result, run.layout, joint.R, dataset.source)
                 report(STAGES[2], 1, 1)
                 warn_weak(intrinsics_cov, estimated_camera, self.model.estimated, dataset.source)
-        return calibration_from(
-            (joint.R, joint.t, joint.mirror_vectors, joint.points), (covariance, mirror_covs, point_covs),
-            measurements, joint.whitened,
-            analytic=start.analytic,
-            iterations=run.iterations,
-            initial_error=run.initial_error,
-            final_error=run.final_error,
-            converged=run.converged,
-            residuals=joint.residuals,
-            residual_units="px",
+        return build_calibration(
+            dataset, (joint.R, joint.t), covariance, mirror_vectors=joint.mirror_vectors,
+            mirror_covariances=mirror_covs, points=joint.points, point_covariances=point_covs,
+            residuals=joint.residuals, whitened=joint.whitened,
+            labels=[(m.image_id, m.point) for m in measurements], unknowns=run.result.dim(),
+            iterations=run.iterations, initial_error=run.initial_error, final_error=run.final_error,
+            converged=run.converged, in_pixels=True,
             timings={**{f'start: {k}': v for k, v in start.timings.items()}, **timings},
-            expected_final_error=0.5 * max(2 * len(measurements) - run.result.dim(), 0),
-            restarts=start.restarts,
-            excluded=excluded,
+            analytic=start.analytic, restarts=start.restarts, excluded=excluded,
             camera=EstimatedCamera(camera=estimated_camera, estimated=self.model.estimated, covariance=intrinsics_cov,
                                    pose_cross_covariance=cross),
         )

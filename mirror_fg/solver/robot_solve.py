@@ -15,14 +15,16 @@ import gtsam
 import numpy as np
 
 from mirror_fg.core.errors import SolveError
+from mirror_fg.core.fit import expected_cost, plausible
 from mirror_fg.core.transform import rotation_to_quaternion_xyzw
 from mirror_fg.factors.robot import compose
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.calibration import Calibration, Exclusion
+from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, run_optimizer
+from mirror_fg.solver.options import STAGES, SolveOptions
 from mirror_fg.solver.pipeline import run_pipeline
 from mirror_fg.solver.rechecks import Checked, Rechecked
-from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, plausible, run_optimizer
-from mirror_fg.solver.options import STAGES, SolveOptions
+from mirror_fg.solver.result_builder import Label, build_calibration
 from mirror_fg.solver.robot_start import arm_start, triangulate
 from mirror_fg.solver.robot_views import RobotEstimate, RobotProblem, camera_base_pose
 
@@ -195,7 +197,7 @@ def solve_robot(dataset: Dataset, initial: RobotEstimate | None = None,
     check_rotation_axes(problem)
     graph = problem.graph()
     params = lm_params(options.max_iterations, cost_scale(dataset), GENERAL_LAMBDA_UPPER_BOUND)
-    expected = 0.5 * max(problem.size - problem.dimension(), 0)
+    expected = expected_cost(problem.size, problem.dimension())
 
     def optimize(begin: RobotEstimate):
         return run_optimizer(graph, problem.values(begin), params, dataset.source, lambda error: str(error),
@@ -245,10 +247,8 @@ class RobotPipelineProblem:
         return solution
 
     def check(self, run: RobotSolution) -> Checked:
-        from mirror_fg.solver.views_solve import _Label
-
         _, whitened, labels = run.problem.residuals(run.values)
-        return Checked([_Label(i, p) for i, p in labels], whitened, run.problem.dimension())
+        return Checked([Label(i, p) for i, p in labels], whitened, run.problem.dimension())
 
     def finish(self, rechecked: Rechecked[RobotSolution]) -> Calibration:
         return _calibration(rechecked.run, self.options, rechecked.excluded)
@@ -256,9 +256,6 @@ class RobotPipelineProblem:
 
 def _calibration(solution: RobotSolution, options: SolveOptions, excluded: list[Exclusion]) -> Calibration:
     """The :class:`Calibration` of a solve, with its covariances where asked."""
-    from mirror_fg.solver.residuals import outliers_of
-    from mirror_fg.solver.views_solve import _Label
-
     problem, graph, result, estimate = solution.problem, solution.graph, solution.values, solution.estimate
     information, columns, initial_error = solution.information, solution.columns, solution.initial_error
     dataset = problem.dataset
@@ -275,15 +272,12 @@ def _calibration(solution: RobotSolution, options: SolveOptions, excluded: list[
         pose3_cov = np.linalg.inv(information)[c, c]
     (R, t), P = camera_base_pose(estimate.mounts["camera"], pose3_cov)
     iterations = solution.iterations
-    return Calibration(
-        R_cam_base=R, t_cam_base=t, covariance=P,
-        mirror_vectors=estimate.mirror_vectors, mirror_covariances=covariances["mirrors"] if covariances else {},
-        points=estimate.points, point_covariances=covariances["points"] if covariances else {}, analytic=None,
-        iterations=iterations, initial_error=initial_error, final_error=float(graph.error(result)),
-        converged=iterations < options.max_iterations, residuals=residuals, residual_labels=labels,
-        residual_units="px" if dataset.camera is not None else "normalized",
-        outliers=outliers_of([_Label(i, p) for i, p in labels], whitened),
-        expected_final_error=0.5 * max(2 * len(whitened) - dimension, 0), excluded=list(excluded),
+    return build_calibration(
+        dataset, (R, t), P, mirror_vectors=estimate.mirror_vectors,
+        mirror_covariances=covariances["mirrors"] if covariances else {}, points=estimate.points,
+        point_covariances=covariances["points"] if covariances else {}, residuals=residuals, whitened=whitened,
+        labels=labels, unknowns=dimension, iterations=iterations, initial_error=initial_error,
+        final_error=float(graph.error(result)), converged=iterations < options.max_iterations, excluded=excluded,
         robot={**robot_entries(problem, estimate, covariances),
                **({"link_error": _link_error_model(problem, estimate, information, columns)} if covariances else {})},
     )

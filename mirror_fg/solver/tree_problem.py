@@ -10,7 +10,6 @@ two images labelled as one placement whose mirrors differ, a camera that moved; 
 from __future__ import annotations
 
 import logging
-from typing import Any
 
 import numpy as np
 
@@ -25,10 +24,11 @@ from mirror_fg.solver.initial import initial_estimate
 from mirror_fg.solver.lm import levenberg_marquardt_with_restarts
 from mirror_fg.solver.options import STAGES, SolveOptions
 from mirror_fg.solver.rechecks import Checked, Rechecked
-from mirror_fg.solver.residuals import outliers_of, predicted_normalized, residual_statistics
+from mirror_fg.solver.residuals import predicted_normalized, residual_statistics
+from mirror_fg.solver.result_builder import build_calibration
 from mirror_fg.solver.timing import timed
 
-__all__ = ["TreeProblem", "calibration_from"]
+__all__ = ["TreeProblem"]
 
 logger = logging.getLogger("mirror_fg")
 
@@ -125,38 +125,10 @@ def _solve(
         R, t, mirror_vectors, points = run.estimate()
         predicted = predicted_normalized(dataset, run.measurements, R, t, mirror_vectors, points)
         residuals, whitened = residual_statistics(dataset, run.measurements, predicted)
-    return calibration_from(
-        (R, t, mirror_vectors, points), (covariance, mirror_covs, point_covs), run.measurements, whitened,
-        analytic=analytic,
-        iterations=run.iterations,
-        initial_error=run.initial_error,
-        expected_final_error=run.expected_final_error,
-        restarts=restarts,
-        final_error=run.final_error,
-        converged=run.converged,
-        residuals=residuals,
-        residual_units="px" if dataset.camera is not None else "normalized",
-        timings=timings,
+    return build_calibration(
+        dataset, (R, t), covariance, mirror_vectors=mirror_vectors, mirror_covariances=mirror_covs, points=points,
+        point_covariances=point_covs, residuals=residuals, whitened=whitened,
+        labels=[(m.image_id, m.point) for m in run.measurements], unknowns=run.dimension,
+        iterations=run.iterations, initial_error=run.initial_error, final_error=run.final_error,
+        converged=run.converged, timings=timings, analytic=analytic, restarts=restarts,
     ), run.measurements, whitened
-
-
-def calibration_from(
-    estimate: tuple[np.ndarray, np.ndarray, dict, dict], covariances: tuple[np.ndarray | None, dict, dict],
-    measurements: list[Measurement], whitened: np.ndarray, **solve: Any,
-) -> Calibration:
-    """The :class:`Calibration` of an estimate ``(R_cam_base, t_cam_base, mirror_vectors, points)``, its
-    covariances ``(pose, mirrors, points)``, its measurements' labels and outliers (whitened residual
-    norms ``whitened``) and what the solve reports (``solve``: iterations, costs, residuals, ...)."""
-    (R, t, mirror_vectors, points), (covariance, mirror_covs, point_covs) = estimate, covariances
-    return Calibration(
-        R_cam_base=R,
-        t_cam_base=t,
-        covariance=covariance,
-        mirror_vectors=mirror_vectors,
-        mirror_covariances=mirror_covs,
-        points=points,
-        point_covariances=point_covs,
-        residual_labels=[(m.image_id, m.point) for m in measurements],
-        outliers=outliers_of(measurements, whitened),
-        **solve,
-    )

@@ -53,15 +53,16 @@ from scipy import optimize as scipy_optimize
 from scipy import stats
 
 from mirror_fg.core.errors import DatasetError
+from mirror_fg.core.fit import expected_cost, plausible
 from mirror_fg.core.transform import covariance_from_pose3, covariance_to_pose3
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.io.result import estimated_camera, pose
-from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, plausible, run_optimizer
+from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, run_optimizer
 from mirror_fg.solver.marginals import unconstrained_message
 from mirror_fg.solver.options import SolveOptions
 from mirror_fg.solver.propagation import Unsolvable, propagate
-from mirror_fg.solver.views import SINGLE_CAMERA, ViewProblem, camera_names, tangent_dimension
 from mirror_fg.solver.verify_priors import StoredIntrinsics, joint_prior, stored_intrinsics
+from mirror_fg.solver.views import SINGLE_CAMERA, ViewProblem, camera_names, tangent_dimension
 
 __all__ = ["Verification", "CameraVerdict", "verify", "MOVED", "NOT_MOVED", "CANNOT_TELL", "POWER", "stored_cameras",
            "detectable_noncentrality"]
@@ -393,7 +394,7 @@ def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.0
     seen = {n: _seen(fits.stored_tangent[n], fits.pose_information(n, held_all)) for n in tested}
     free_priors = {n: fits.prior(n, _free_information(*seen[n])) for n in tested}
     free, cost_free = fits.fit(list(free_priors.values()), [held_all, start])
-    expected = 0.5 * max(problem.size - (free.dim() - 6 * len(tested)), 1)
+    expected = expected_cost(problem.size, free.dim() - 6 * len(tested), min_dof=1)
     if not plausible(float(fits.data.error(free)), expected):  # not even a moved camera explains them
         raise DatasetError(f"{dataset.source}: the new images do not fit {source}'s target and points even with the "
                            f"camera free (cost {fits.data.error(free):.3g}, expected about {expected:.3g}): the result and "

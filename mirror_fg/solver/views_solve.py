@@ -12,18 +12,20 @@ import gtsam
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError, SolveError
+from mirror_fg.core.fit import expected_cost, plausible
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.analytic import AnalyticSolution
-from mirror_fg.solver.camera_labels import lone_image_hint
 from mirror_fg.solver.calibration import POOR_FIT_RATIO, Calibration, CameraPose, EstimatedCamera, Exclusion
+from mirror_fg.solver.camera_labels import lone_image_hint
 from mirror_fg.solver.consensus import check_images, screen, without
+from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, run_optimizer
 from mirror_fg.solver.marginals import unconstrained_as_solve_error, unconstrained_message
-from mirror_fg.solver.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, plausible, run_optimizer
 from mirror_fg.solver.options import STAGES, SolveOptions
+from mirror_fg.solver.pipeline import run_pipeline
 from mirror_fg.solver.placement_consensus import fiducial_names
 from mirror_fg.solver.propagation import KnownPnP, Unsolvable, propagate
-from mirror_fg.solver.pipeline import run_pipeline
 from mirror_fg.solver.rechecks import Checked, Rechecked, solve_with_rechecks
+from mirror_fg.solver.result_builder import Label, build_calibration
 from mirror_fg.solver.rig import rig_transforms
 from mirror_fg.solver.timing import timed
 from mirror_fg.solver.tree_problem import TreeProblem
@@ -34,13 +36,6 @@ __all__ = ["calibrate_views", "ViewsProblem", "tree_start_for", "calibration_of"
 logger = logging.getLogger("mirror_fg")
 
 
-
-@dataclass
-class _Label:
-    """What ``consensus.final_check`` reads of a measurement."""
-
-    image_id: str
-    point: str
 
 
 def tree_start_for(dataset: Dataset, options: SolveOptions, minima: dict | None = None):
@@ -267,7 +262,7 @@ class ViewsProblem:
             optimizer, result, initial_error = optimize(begin)
             dimension = result.dim() - problem.constraints
             if self.analytic and self.last is None and not plausible(graph.error(result),
-                                                                     0.5 * max(problem.size - dimension, 0)):
+                                                                     expected_cost(problem.size, dimension)):
                 other = _other_start(problem, options, self.known_pnp, self.minima)  # the analytical start ended implausibly: try the other one
                 if other is not None:
                     tried = optimize(other)
@@ -282,7 +277,7 @@ class ViewsProblem:
                     int(optimizer.iterations()), initial_error, list(left_out), timings)
 
     def check(self, run: _Run) -> Checked:
-        return Checked([_Label(i, p) for i, p in run.labels], run.whitened, run.dimension)
+        return Checked([Label(i, p) for i, p in run.labels], run.whitened, run.dimension)
 
     def finish(self, rechecked: Rechecked[_Run]) -> Calibration:
         run = rechecked.run
@@ -322,19 +317,18 @@ def _finish(run: _Run, options: SolveOptions) -> Calibration:
                           iterations=run.iterations, initial_error=run.initial_error,
                           final_error=float(run.graph.error(run.result)),
                           converged=run.iterations < options.max_iterations,
-                          expected=0.5 * max(2 * len(run.whitened) - run.dimension, 0), excluded=run.excluded,
+                          dimension=run.dimension, excluded=run.excluded,
                           timings=run.timings)
 
 
 def calibration_of(problem: ViewProblem, estimate: ViewEstimate, covariances, residuals: np.ndarray,
                    whitened: np.ndarray, labels: list, *, iterations: int, initial_error: float,
-                   final_error: float, converged: bool, expected: float, excluded: list[Exclusion],
+                   final_error: float, converged: bool, dimension: int, excluded: list[Exclusion],
                    timings: dict[str, float]) -> Calibration:
     """The :class:`Calibration` of an estimate of ``problem`` (batch or incremental): ``covariances`` as
     ``ViewProblem.covariances`` gives them (or None), the residuals and their labels as
-    ``ViewProblem.residuals``, and what the solve reports."""
+    ``ViewProblem.residuals``, and what the solve reports (``dimension``: its scalar unknowns)."""
     from mirror_fg.solver.intrinsics import camera_of
-    from mirror_fg.solver.residuals import outliers_of
 
     pose_covs: dict[str, np.ndarray] = {}
     joint: np.ndarray | None = None
@@ -360,17 +354,13 @@ def calibration_of(problem: ViewProblem, estimate: ViewEstimate, covariances, re
                                     estimated.get(name))
                    for name in camera_names(dataset) if name in estimate.poses}
         rig = _rig(cameras, joint)
-    return Calibration(
-        R_cam_base=R, t_cam_base=t, covariance=pose_covs.get(first),
-        mirror_vectors=estimate.mirror_vectors, mirror_covariances=mirror_covs,
-        points=estimate.points, point_covariances=point_covs, analytic=None,
-        iterations=iterations, initial_error=initial_error, final_error=final_error,
-        converged=converged, residuals=residuals, residual_labels=labels,
-        residual_units="px" if dataset.camera is not None else "normalized",
-        outliers=outliers_of([_Label(i, p) for i, p in labels], whitened),
-        timings=timings, expected_final_error=expected,
-        excluded=list(excluded), camera=estimated.get(first),
-        cameras=cameras, camera_pose_covariance=joint if dataset.cameras is not None else None, rig=rig,
+    return build_calibration(
+        dataset, (R, t), pose_covs.get(first), mirror_vectors=estimate.mirror_vectors,
+        mirror_covariances=mirror_covs, points=estimate.points, point_covariances=point_covs,
+        residuals=residuals, whitened=whitened, labels=labels, unknowns=dimension, iterations=iterations,
+        initial_error=initial_error, final_error=final_error, converged=converged, timings=timings,
+        excluded=excluded, camera=estimated.get(first), cameras=cameras,
+        camera_pose_covariance=joint if dataset.cameras is not None else None, rig=rig,
         mirror_frames=dict(problem.owners) if dataset.cameras is not None else {},
     )
 

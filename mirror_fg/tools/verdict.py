@@ -28,6 +28,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from mirror_fg.core.fit import plausible
+
 if TYPE_CHECKING:
     from mirror_fg.io.dataset import Dataset
     from mirror_fg.tools.residuals import Residuals
@@ -222,8 +224,6 @@ def cost_warning(opt: Mapping[str, Any]) -> str | None:
     final, expected = opt.get("final_error"), opt.get("expected_final_error")
     if final is None or expected is None or not (math.isfinite(final) and math.isfinite(expected)):
         return None
-    from mirror_fg.solver.lm import plausible
-
     if plausible(final, expected):
         return None
     return (f"final cost {final:.4g} is far above its expected {expected:.4g} at the optimum: a local minimum, "
