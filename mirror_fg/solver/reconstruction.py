@@ -12,7 +12,7 @@ from mirror_fg.core.geometry import nested_transform
 from mirror_fg.io.dataset import Dataset, Image
 
 if TYPE_CHECKING:
-    from mirror_fg.solver.analytic import AnalyticSolution
+    from mirror_fg.solver.analytic_solution import AnalyticSolution
 
 __all__ = ["triangulate_point", "image_transform", "reconstruct_points"]
 

@@ -18,13 +18,15 @@ import numpy as np
 
 from mirror_fg.io.result import base_cam_sigma3, transforms, validate_result
 from mirror_fg.tools.report_units import units_lines
-from mirror_fg.tools.verdict import (
+from mirror_fg.tools.verdict import (  # noqa: F401 (unknown_count, without_target: public here too)
     NOISE_BAND,
     Verdict,
     cost_warning,
     judge,
     noise_note,
     stored_verdict,
+    unknown_count,
+    without_target,
 )
 
 __all__ = ["summary_lines", "rig_lines", "frame_convention", "cost_warning", "verdict_line", "noise_note", "unknown_count",
@@ -114,15 +116,6 @@ def summary_lines(result: Mapping[str, Any], *, verbose: bool = False, increment
     return lines
 
 
-def without_target(result: Mapping[str, Any]) -> bool:
-    """Whether the result is of data without a known target (``fiducials: {}``): the first camera's pose
-    is then exactly the identity with an exactly zero covariance (not estimated)."""
-    cov = result.get("covariance_cam_base")
-    T = result["T_cam_base"]
-    return (cov is not None and not np.any(np.asarray(cov, dtype=float))
-            and np.array_equal(np.asarray(T["R"], dtype=float), np.eye(3)) and not np.any(np.asarray(T["t"], dtype=float)))
-
-
 def _target_free_lines(result: Mapping[str, Any]) -> list[str]:
     """Each mirror's distance and each point with their 3-sigma bounds (camera frame, millimetres)."""
     lines = []
@@ -136,19 +129,6 @@ def _target_free_lines(result: Mapping[str, Any]) -> list[str]:
         lines.append(f"  point {name}: {_vector(entry['xyz'], ' .5f')} m"
                      + (f", 3-sigma ±{_vector(sigma, '.2f')} mm" if sigma else ""))
     return lines
-
-
-def unknown_count(result: Mapping[str, Any]) -> int:
-    """The solve's unknowns p: the pose (6; 6 per camera with ``cameras``), each mirror placement and
-    reconstruction point (3 each), each estimated intrinsic (of every camera with ``cameras``): the degrees
-    of freedom the residuals lose at the optimum."""
-    from mirror_fg.io.result import mirror_vectors, points
-
-    cameras = result.get("cameras") or {}
-    blocks = [entry.get("camera") or {} for entry in cameras.values()] if cameras else [result.get("camera") or {}]
-    poses = 6 * max(len(cameras), 1) - (7 if without_target(result) else 0)  # the first pose fixed, and the scale
-    return (poses + 3 * len(mirror_vectors(result)) + 3 * len(points(result))
-            + sum(len(block.get("estimated") or []) for block in blocks))
 
 
 def rig_lines(result: Mapping[str, Any]) -> list[str]:

@@ -36,7 +36,8 @@ if TYPE_CHECKING:
 
 __all__ = ["Verdict", "Finding", "judge", "with_verdict", "stored_verdict", "noise_band", "noise_note",
            "noise_fit", "weak_geometry", "scene_size", "cost_warning", "NOISE_BAND", "NOISE_CONFIDENCE", "LINEAR_LIMIT_DEG",
-           "MIN_MEAN_REDUNDANCY", "POSITION_LIMIT", "WEAK_GEOMETRY", "GOOD", "CHECK", "UNKNOWN"]
+           "MIN_MEAN_REDUNDANCY", "POSITION_LIMIT", "WEAK_GEOMETRY", "GOOD", "CHECK", "UNKNOWN", "unknown_count",
+           "without_target"]
 
 GOOD, CHECK, UNKNOWN = "good", "check", "unknown"
 
@@ -190,10 +191,26 @@ def noise_note(ratio: float, sigma: float, units: str, dof: float = float("nan")
     return ""
 
 
-def _unknown_count(result: Mapping[str, Any]) -> int:
-    from mirror_fg.tools.summary import unknown_count
+def without_target(result: Mapping[str, Any]) -> bool:
+    """Whether the result is of data without a known target (``fiducials: {}``): the first camera's pose
+    is then exactly the identity with an exactly zero covariance (not estimated)."""
+    cov = result.get("covariance_cam_base")
+    T = result["T_cam_base"]
+    return (cov is not None and not np.any(np.asarray(cov, dtype=float))
+            and np.array_equal(np.asarray(T["R"], dtype=float), np.eye(3)) and not np.any(np.asarray(T["t"], dtype=float)))
 
-    return unknown_count(result)
+
+def unknown_count(result: Mapping[str, Any]) -> int:
+    """The solve's unknowns p: the pose (6; 6 per camera with ``cameras``), each mirror placement and
+    reconstruction point (3 each), each estimated intrinsic (of every camera with ``cameras``): the degrees
+    of freedom the residuals lose at the optimum."""
+    from mirror_fg.io.result import mirror_vectors, points
+
+    cameras = result.get("cameras") or {}
+    blocks = [entry.get("camera") or {} for entry in cameras.values()] if cameras else [result.get("camera") or {}]
+    poses = 6 * max(len(cameras), 1) - (7 if without_target(result) else 0)  # the first pose fixed, and the scale
+    return (poses + 3 * len(mirror_vectors(result)) + 3 * len(points(result))
+            + sum(len(block.get("estimated") or []) for block in blocks))
 
 
 def noise_fit(result: Mapping[str, Any], pixel_sigma: float | None = None) -> tuple[float, float, float] | None:
@@ -210,7 +227,7 @@ def noise_fit(result: Mapping[str, Any], pixel_sigma: float | None = None) -> tu
         return None
     expected, rms = float(expected), float(rms)  # type: ignore[arg-type]  # checked above (all() does not narrow)
     dof = 2.0 * expected
-    measurements = expected + _unknown_count(result) / 2
+    measurements = expected + unknown_count(result) / 2
     if pixel_sigma is not None and pixel_sigma > 0:
         return rms / (pixel_sigma * math.sqrt(2 * expected / measurements)), float(pixel_sigma), dof
     if not (isinstance(final, (int, float)) and math.isfinite(final) and final > 0):
@@ -292,7 +309,7 @@ def weak_geometry(result: Mapping[str, Any]) -> str | None:
     expected = (result.get("optimizer") or {}).get("expected_final_error")
     spare = 2.0 * float(expected) if isinstance(expected, (int, float)) and math.isfinite(expected) else None
     if spare is not None:
-        measurements = spare + _unknown_count(result)
+        measurements = spare + unknown_count(result)
         if measurements > 0 and spare / measurements < MIN_MEAN_REDUNDANCY:
             reasons.append(f"only {spare:.0f} spare of {measurements:.0f} measured coordinates (a wrong one can be "
                            "neither seen nor told apart)")
@@ -327,9 +344,9 @@ def judge(result: Mapping[str, Any], dataset: Dataset | None = None, *, residual
     fit_words = ""
     if fit is not None:
         ratio, sigma, dof = fit
-        coordinates = dof + _unknown_count(result)
+        coordinates = dof + unknown_count(result)
         fit_words = (f"residuals {ratio:.2f} × their predicted size under pixel_sigma {sigma:.3g} {units} "
-                     f"({_band_words(noise_band(dof), dof, coordinates)}; {_unknown_count(result)} unknowns)")
+                     f"({_band_words(noise_band(dof), dof, coordinates)}; {unknown_count(result)} unknowns)")
         note = noise_note(ratio, sigma, units, dof, coordinates)
         if note:
             problems.append(Finding("noise", "pixel_sigma does not fit the residuals", note))
