@@ -6,7 +6,7 @@ import os
 import sys
 from typing import Any
 
-from mirror_fg.cli.commands import _load_input, _print_transform_summary
+from mirror_fg.cli.loading import load_input_file, print_transform_summary
 from mirror_fg.cli.printing import EXIT_OK, _Printer
 from mirror_fg.core.errors import DatasetError
 
@@ -21,18 +21,12 @@ def plan_next(args, out: _Printer) -> int:
     from mirror_fg.solver.calibration import require_converged
     from mirror_fg.solver.consensus import without
     from mirror_fg.solver.graph import InitialEstimate
-    from mirror_fg.tools.suggest import (
-        Reach,
-        default_reach,
-        estimate_from_result,
-        require_suggestions,
-        suggest_next,
-    )
+    from mirror_fg.tools.suggest import Reach, default_reach, estimate_from_result, require_suggestions, suggest_next
 
     outputs = OutputPlan(inputs=[os.fspath(p) for p in (args.next_data, args.result) if p is not None])
     if args.output is not None:
         outputs.add(args.output, "suggestions")
-    dataset = _load_input(args.next_data, out, outputs)
+    dataset = load_input_file(args.next_data, out, outputs)
     if not dataset.is_tree:
         raise DatasetError(f"{dataset.source}: plan --next ranks the next placement of the paper's hand-held mirrors "
                            "(images with mirror_configs, one camera, a known target); these images give reflections, "
@@ -70,6 +64,7 @@ def cmd_live(args, out: _Printer) -> int:
     end the session as the source's end does: the saved capture is finished and the result written."""
     import signal
 
+    from mirror_fg.cli.verify_cmd import live_verifier, live_verify_end, live_verify_frame
     from mirror_fg.io.capture import capture_from_file_data
     from mirror_fg.io.fileio import load_structured
     from mirror_fg.registry.cli import record_document, registry_target
@@ -77,7 +72,6 @@ def cmd_live(args, out: _Printer) -> int:
     from mirror_fg.tools.live import LiveSession, run
     from mirror_fg.tools.live_save import SessionFolder, plan_live_outputs
     from mirror_fg.tools.live_sources import open_source
-    from mirror_fg.cli.verify_cmd import live_verifier, live_verify_end, live_verify_frame
 
     registry = registry_target(args)
     source_path = os.fspath(args.capture)
@@ -169,7 +163,7 @@ def cmd_live(args, out: _Printer) -> int:
     result = calibration.to_dict()
     if outputs.calibration is not None:
         written += [os.fspath(p) for p in outputs.calibration.write(result)]
-    _print_transform_summary(out, result, figures["seconds"], incremental=True)
+    print_transform_summary(out, result, figures["seconds"], incremental=True)
     if written:
         out.info(f"wrote {len(written)} file(s): " + ", ".join(written[-3:]) + (" ..." if len(written) > 3 else ""))
     record_document(registry, result, source_path, args.output, out)

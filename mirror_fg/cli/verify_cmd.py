@@ -47,7 +47,7 @@ def _probability(text: str) -> float:
 
 
 def cmd_verify(args, out: _Printer) -> int:
-    from mirror_fg.cli.commands import _load_input
+    from mirror_fg.cli.loading import load_input_file
     from mirror_fg.io.output import OutputPlan
     from mirror_fg.io.result import load_result, result_text
     from mirror_fg.io.verification import check_updatable, updated_result, verification_text
@@ -63,7 +63,7 @@ def cmd_verify(args, out: _Printer) -> int:
     result = load_result(args.result)
     if args.update is not None:
         check_updatable(result, os.fspath(args.result))
-    dataset = _load_input(args.data, out, plan)
+    dataset = load_input_file(args.data, out, plan)
     verification = verify(result, dataset, alpha=args.alpha, tolerance_mm=args.tolerance_mm,
                           tolerance_deg=args.tolerance_deg, source=os.fspath(args.result))
     contents = {}
