@@ -220,7 +220,7 @@ class ViewFactor:
     ``OrientedPlane3`` variables (module docstring);
     ``owners``: each placement's camera. ``fiducials``: (3, N) base points, NaN columns where
     ``landmark_keys[i]`` (a key, else -1) gives the point. ``observed`` (2, N); ``sigmas`` (2, N).
-    ``intrinsics``: ``(model, key)`` where the camera's intrinsics are estimated (issue 16): then the
+    ``intrinsics``: ``(model, key)`` where the camera's intrinsics are estimated: then the
     factor predicts pixels through them (``factors/intrinsics.py``), ``observed`` and ``sigmas`` are
     pixels, and the intrinsics vector is the last key.
     """

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Speed and memory of a calibration (issue 6), in one run on this machine.
+"""Speed and memory of a calibration, in one run on this machine.
 
     python scripts/benchmark.py [--repeats 5] [--slow-repeats 3] [--quick] [--profile] [--json out.json]
     python scripts/benchmark.py --scaling [--scaling-max 10000]   # time per stage and memory, 1k..100k images
@@ -48,8 +48,8 @@ CASES = {
     },
 }
 COMMON = {"pixel_sigma": 1.0, "mirror_distance": 0.5, "tilt_deg": 30.0, "seed": 0, "num_mirrors": 2, "num_fiducials": 3}
-GOALS = {"900img": 0.5, "200img+60pts": 1.0}
-ORACLE_GOAL = 0.25  # LM stage / dense numpy LM (dense_lm), measured alternately in one process (issue 27)  # seconds, calibrate() total (900 images: issue 14; issue 6 asked 3 s)
+GOALS = {"900img": 0.5, "200img+60pts": 1.0}  # seconds, calibrate() total
+ORACLE_GOAL = 0.25  # LM stage / dense numpy LM (dense_lm), measured alternately in one process
 LINEARISE_GOAL = 2.0  # x the native floor per measurement
 SPEEDUP_GOAL = 10.0  # x faster than scipy
 MEMORY_GOAL_MB = 1024.0  # 900-image problem with marginals
@@ -549,7 +549,7 @@ def scaling_table(max_images: int, timeout_s: float) -> list[dict]:
 
 
 # --------------------------------------------------------------------------------------------------
-# Start-up and a peer (issue 27): the command's own cost, and a public Python port of Takahashi et al.
+# Start-up and a peer: the command's own cost, and a public Python port of Takahashi et al.
 # (CVPR 2012: linear solution + scipy bundle adjustment) on the same 5 real photographs.
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -1,4 +1,4 @@
-"""Live-session throughput (issue 25): does ``mirror-fg live`` keep up with the camera?
+"""Live-session throughput: does ``mirror-fg live`` keep up with the camera?
 
 Renders a hand-held AprilTag session (scripts/render_live.py: each placement held ``--hold`` frames,
 ``--move`` frames of motion-blurred sweep between them) at 800 x 600 and 1280 x 720, then:

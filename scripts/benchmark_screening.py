@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""The consensus screening's share of a small solve (issue 27, "Speed"): the five real photographs of
+"""The consensus screening's share of a small solve (the five real photographs of
 Takahashi et al. (2012), one mirror, 10 x 7 corners.
 
     python scripts/benchmark_screening.py [--repeats 30] [--dataset PATH]

@@ -1,4 +1,4 @@
-"""Guided capture study (issue 25): does following ``plan --next`` beat random reachable placements?
+"""Guided capture study: does following ``plan --next`` beat random reachable placements?
 
 For simulated one- and two-mirror set-ups (the paper's scene: 4 fiducials, 1 px, fx = 800) it starts
 from a small capture (three placements of mirror 1; for two mirrors 20 placements of mirror 2 under each

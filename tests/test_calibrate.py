@@ -137,7 +137,7 @@ def test_result_dict_matches_spec_shape():
 
 
 def test_covariance_convention_matches_perturbation_of_rotation_about_camera_axes():
-    """SPEC: R_true = Exp(dtheta) R_est; the reported covariance must match the spread of such dtheta."""
+    """docs/formats.md: R_true = Exp(dtheta) R_est; the reported covariance must match the spread of such dtheta."""
     from mirror_fg.core.transform import covariance_from_pose3 as spec_covariance_from_pose3
     from mirror_fg.core.geometry import so3_exp
 
@@ -157,7 +157,7 @@ def test_covariance_convention_matches_perturbation_of_rotation_about_camera_axe
     d = np.diag(expected)
     standard_error = np.sqrt((np.outer(d, d) + expected**2) / len(samples))
     assert np.all(np.abs(empirical - expected) < 5 * standard_error)
-    # the unconverted GTSAM covariance is NOT the SPEC one (the test can fail)
+    # the unconverted GTSAM covariance is NOT docs/formats.md's (the test can fail)
     assert not np.all(np.abs(empirical - pose3_cov) < 5 * standard_error)
 
 

@@ -1,4 +1,4 @@
-"""Small command-line promises: --version, python -m mirror_fg, -v stage timings (issues 13 and 17)."""
+"""Small command-line promises: --version, python -m mirror_fg, -v stage timings."""
 import json
 import subprocess
 import sys

@@ -1,4 +1,4 @@
-"""Consensus initial estimate (issue 15): wrong corner orders and gross corners are left out, each named
+"""Consensus initial estimate: wrong corner orders and gross corners are left out, each named
 with its reason, and the capture calibrates to the answer of the capture without them."""
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""The consensus guards (issue 27): they neither refuse valid data (coplanar fiducials seen from either side,
+"""The consensus guards: they neither refuse valid data (coplanar fiducials seen from either side,
 a small planar target whose PnP has a twin, a rough start of the intrinsics) nor let one garbage image of
 the paper's three-fiducial set-up sink the batch or the incremental solve."""
 from dataclasses import replace
@@ -163,7 +163,7 @@ def test_cli_exits_0_naming_the_garbage_image(tmp_path, incremental):
 
 def test_fit_mirrors_reaches_each_mirrors_least_squares_optimum():
     """``fit_mirrors`` on 40 mirrors at once against scipy's least_squares on each alone (same starts,
-    eq. 3 written here from the SPEC), with noise so that the optimum is not the truth."""
+    eq. 3 written here from docs/formats.md), with noise so that the optimum is not the truth."""
     from scipy.optimize import least_squares
 
     from mirror_fg.solver.placement_consensus import fit_mirrors

@@ -1,4 +1,4 @@
-"""Inconsistent captures diagnosed (issue 15): a camera bumped mid-capture is named as a split of the images
+"""Inconsistent captures diagnosed: a camera bumped mid-capture is named as a split of the images
 in capture order, with how far apart the two groups' ``T_cam_base`` are."""
 import numpy as np
 import pytest

@@ -125,7 +125,7 @@ def test_pose_error_follows_spec_convention():
     rng = np.random.default_rng(0)
     R_est = so3_exp(rng.normal(size=3))
     dtheta = np.array([0.01, -0.02, 0.005])
-    R_true = so3_exp(dtheta) @ R_est  # SPEC: R_true = Exp(dtheta) R_est
+    R_true = so3_exp(dtheta) @ R_est  # docs/formats.md: R_true = Exp(dtheta) R_est
     t_est = rng.normal(size=3)
     error = pose_error(R_true, t_est + [0.1, 0.2, 0.3], R_est, t_est)
     np.testing.assert_allclose(error, [*dtheta, 0.1, 0.2, 0.3], atol=1e-12)

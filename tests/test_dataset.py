@@ -448,7 +448,7 @@ def test_camera_not_an_object_or_other_model(tmp_path: Path) -> None:
     assert_error(load_mutated(tmp_path, lambda d: d.update(camera=[800.0])), "camera", "object or null")
     exc = load_mutated(tmp_path, lambda d: d["camera"].update(model="omni"))
     assert_error(exc, "camera", "unsupported model", "omni")
-    # fisheye (issue 17) is a model now, with exactly 4 coefficients (k1..k4): the 5 here are refused
+    # fisheye is a model now, with exactly 4 coefficients (k1..k4): the 5 here are refused
     exc = load_mutated(tmp_path, lambda d: d["camera"].update(model="fisheye"))
     assert_error(exc, "camera", "fisheye", "4 finite numbers")
 

@@ -114,7 +114,7 @@ def test_robust_kernels_keep_the_stacked_factors():
 
 
 def test_calibration_without_covariance_repr_and_progress(caplog):
-    """Issue 17: no covariance gives None bounds; a bounded repr and an HTML table; per-stage progress."""
+    """No covariance gives None bounds; a bounded repr and an HTML table; per-stage progress."""
     import logging
 
     dataset, _ = simulate_base_case(num_images=200, num_points=20, seed=1)

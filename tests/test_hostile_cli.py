@@ -1,4 +1,4 @@
-"""Issue 12, hostile input and faults at the command line: one test (or parametrised family) per class.
+"""Hostile input and faults at the command line: one test (or parametrised family) per class.
 
 Data loss, hangs and runaway memory, silent wrong answers, internal errors that must be exit 2 with
 one line. Each test fails on the code before the fix (noted per test).

@@ -1,4 +1,4 @@
-"""What an incremental calibration waits for (issue 27): ``IncrementalCalibrator.status`` and its repr, the
+"""What an incremental calibration waits for: ``IncrementalCalibrator.status`` and its repr, the
 CLI's lines before start-up, and no ``nan`` / ``0 measurements`` in the estimates between images."""
 import json
 from collections import defaultdict

@@ -1,4 +1,4 @@
-"""``--incremental`` on general data (issues 23, 24): iSAM2 on the view factors (``solver/incremental_views.py``)
+"""``--incremental`` on general data: iSAM2 on the view factors (``solver/incremental_views.py``)
 against the batch ``mirror_fg.calibrate`` (``views_solve.calibrate_views``, Levenberg-Marquardt and
 ``gtsam.Marginals``) on the same dataset: every pose, mirror vector and point within 0.1 of the batch's
 standard deviation, covariances within 5 %, whatever order the images come in."""
@@ -40,7 +40,7 @@ def _dataset(raw: dict, name: str):
 
 def _pose_sigmas(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray],
                  covariance: np.ndarray) -> np.ndarray:
-    """|a - b| per component in the standard deviations of ``covariance`` (SPEC: ``R_a = Exp(dtheta) R_b``)."""
+    """|a - b| per component in the standard deviations of ``covariance`` (docs/formats.md: ``R_a = Exp(dtheta) R_b``)."""
     dtheta = gtsam.Rot3.Logmap(gtsam.Rot3(a[0] @ b[0].T))
     return np.abs(np.concatenate([dtheta, a[1] - b[1]])) / np.sqrt(np.diag(covariance))
 

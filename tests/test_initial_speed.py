@@ -1,4 +1,4 @@
-"""The vectorised paths of the initial estimate (issue 14) give what the one-at-a-time paths give:
+"""The vectorised paths of the initial estimate give what the one-at-a-time paths give:
 batched node solves and P3P, the closed-form eigenvectors, GTSAM's LM loop replayed, and the subtree
 refinement that stops at an optimum another hypothesis already reached."""
 from itertools import product
@@ -147,7 +147,7 @@ def test_stopping_at_a_known_optimum_keeps_the_same_hypotheses(scene, monkeypatc
 
 
 def _unbounded(monkeypatch):
-    """Every node searched and ranked on all of its placements (the bounds of issue 14 lifted)."""
+    """Every node searched and ranked on all of its placements."""
     monkeypatch.setattr(peeling, "MAX_SEARCH_CHILDREN", 10**9)
     monkeypatch.setattr(initial, "MAX_RANKING_PLACEMENTS", 10**9)
 

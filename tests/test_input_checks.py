@@ -1,4 +1,4 @@
-"""Issue 27, input checks at the boundary: implausible sizes (millimetres in metres fields), camchains with
+"""Input checks at the boundary: implausible sizes (millimetres in metres fields), camchains with
 several cameras, one rule for placement indices, bounded memory on a huge string, and messages in the
 user's words. Each test fails on the code before the fix."""
 from __future__ import annotations

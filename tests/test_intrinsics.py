@@ -1,4 +1,4 @@
-"""Intrinsics estimated through the mirrors (issue 16): pixel factors, the joint MLE, its covariance,
+"""Intrinsics estimated through the mirrors: pixel factors, the joint MLE, its covariance,
 the observability refusal, and the real photographs of shared/data/takahashi2012."""
 import copy
 import json
@@ -45,7 +45,7 @@ def reference_pixels(camera_points, intrinsics):
 
 def seen_points(R, t, vectors, base_points):
     """Camera-frame points (N, 3) of base points through the mirrors ``vectors`` (mirror 1 first), written
-    here from the SPEC (eqs. 2, 3): independent of mirror_fg's model."""
+    here from docs/formats.md (eqs. 2, 3): independent of mirror_fg's model."""
     x = base_points @ R.T + t
     for v in vectors:
         x = x - 2.0 * ((x @ v - v @ v) / (v @ v))[:, None] * v  # reflection about the plane v.x = v.v
@@ -116,7 +116,7 @@ def joint_covariance(calibration):
 
 
 def joint_error(calibration, R, t, intrinsics):
-    """``[dtheta, dt, intrinsics]`` from the estimate to (R, t, intrinsics), SPEC convention."""
+    """``[dtheta, dt, intrinsics]`` from the estimate to (R, t, intrinsics), docs/formats.md's convention."""
     camera = calibration.camera.camera
     dist = dict(zip(("k1", "k2", "p1", "p2", "k3"), camera.dist))
     values = {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy, **dist}
@@ -333,7 +333,7 @@ def test_weak_intrinsics_warn():
 
 
 def test_per_measurement_sigma_whitens_each_row():
-    """point_sigma (issue 18) reaches the pixel factors: each measurement is whitened by its own sigma."""
+    """point_sigma reaches the pixel factors: each measurement is whitened by its own sigma."""
     data, truth = simulate_pixels(num_images=8)
     dataset = dataset_from_dict(data)
     layout = GraphLayout.for_dataset(dataset)
@@ -406,7 +406,7 @@ def test_real_photographs_with_intrinsics(takahashi_dir):
     joint = _takahashi(takahashi_dir)
     k1 = joint.camera.camera.dist[0]
     sigma3 = joint.camera.sigma3
-    # Independent joint MLE (issue 16): k1 = -0.24 +/- 0.03 (1 sigma), mean reprojection 0.64 -> 0.30 px,
+    # Independent joint MLE: k1 = -0.24 +/- 0.03 (1 sigma), mean reprojection 0.64 -> 0.30 px,
     # T_cam_base moves by ~14 mm.
     assert abs(k1 - (-0.24)) < 0.01 and 0.08 < sigma3["k1"] < 0.10
     assert abs(np.mean(joint.residual_norms) - 0.30) < 0.005 and abs(np.mean(fixed.residual_norms) - 0.64) < 0.005

@@ -1,5 +1,5 @@
 """solver/marginals.py's one wrap of GTSAM's indeterminant-system error into a SolveError naming the unknown
-(issue 23, "One pipeline for every problem": one error wrap for LM, Marginals and the intrinsics' Marginals)."""
+(one error wrap for LM, Marginals and the intrinsics' Marginals)."""
 from __future__ import annotations
 
 from dataclasses import replace

@@ -1,4 +1,4 @@
-"""A camera that moved between groups of placements (issue 27): the paper's two-mirror scene with six
+"""A camera that moved between groups of placements: the paper's two-mirror scene with six
 placements of mirror 1 and ten fiducials, the camera moved after the first three. A mirror placement
 absorbs most of the move, so the cost stays plausible; the split at the boundary between placements of
 mirror 1 is tested anyway, by a chi-square test on the two sides' poses with their covariances."""

@@ -1,4 +1,4 @@
-"""Wrong answers that passed as success (issue 27): a fit the noise model cannot explain, two photographs
+"""Wrong answers that passed as success: a fit the noise model cannot explain, two photographs
 labelled as one placement, sizes in millimetres where metres are meant. ``require_converged`` refuses them
 for ``mirror-fg calibrate``, ``calibrate-many`` and ``--incremental`` alike, unless accepted."""
 import json

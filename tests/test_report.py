@@ -77,7 +77,7 @@ def make_scene(seed: int = 0, pixel_sigma: float = PIXEL_SIGMA, outlier_px: floa
         num_mirrors=2, camera=cam if camera else None, pixel_sigma=pixel_sigma * scale,
         fiducials=fiducials, images=images, source="<test scene>",
     )
-    # A plausible covariance with correlations, in SPEC order [dtheta, dt].
+    # A plausible covariance with correlations, in docs/formats.md's order [dtheta, dt].
     L = np.tril(rng.normal(size=(6, 6))) * np.array([1e-3] * 3 + [2e-3] * 3)[:, None]
     cov = L @ L.T + np.diag([1e-7] * 3 + [1e-6] * 3)
     sd3 = 3.0 * np.sqrt(np.diag(cov))
@@ -302,7 +302,7 @@ def test_report_pdf_pages_render(report, tmp_path):
     pdf = report["pdf"]
     data = pdf.read_bytes()
     assert data.startswith(b"%PDF")
-    figures = 6  # every figure in the PDF, several to a page since issue 27 (was one page per figure)
+    figures = 6  # every figure in the PDF, several to a page (was one page per figure)
     run = subprocess.run([pdftoppm, "-r", "40", "-png", str(pdf), str(tmp_path / "page")],
                          capture_output=True, text=True, timeout=120, check=False)
     assert run.returncode == 0, run.stderr
@@ -321,7 +321,7 @@ def test_report_pdf_pages_render(report, tmp_path):
 
 
 def test_report_pdf_holds_what_the_html_holds(report, tmp_path):
-    """Flagged measurements, ROS snippets, frames, the input echo: in the PDF as in the HTML (issue 17)."""
+    """Flagged measurements, ROS snippets, frames, the input echo: in the PDF as in the HTML."""
     pdftotext = shutil.which("pdftotext")
     if pdftotext is None:
         pytest.skip("pdftotext not installed: apt-get install poppler-utils")

@@ -1,4 +1,4 @@
-"""The report's diagnostics (issues 17, 18): residual vs distance from the image centre, the camera's pose
+"""The report's diagnostics: residual vs distance from the image centre, the camera's pose
 uncertainty drawn at visible scale, sampled placements, tracked points, the input echo and one RMS."""
 from __future__ import annotations
 

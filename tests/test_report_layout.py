@@ -1,5 +1,5 @@
 """The report's verdict as a headline and bullets, its progress per figure, each figure rendered once,
-and several plots to a PDF page (issue 27)."""
+and several plots to a PDF page."""
 from __future__ import annotations
 
 import collections

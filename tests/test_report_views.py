@@ -1,4 +1,4 @@
-"""The report on general data (issues 23, 24): residuals of any reflection order and of several cameras
+"""The report on general data: residuals of any reflection order and of several cameras
 against an independent model (reflections in the base frame), their grouping by order and camera, the
 scene with each placement once and every camera, the cameras / rig / placement tables, and a page without
 a known target that says the base frame is the camera's instead of showing zero bounds."""

@@ -1,4 +1,4 @@
-"""mirror_fg.io.result.validate_result: a corrupt result@1 fails with one line naming the key (issue 12).
+"""mirror_fg.io.result.validate_result: a corrupt result@1 fails with one line naming the key.
 
 Every key path of a real result is replaced, in turn, by each of a few wrong values; the validator
 either refuses it with a short line naming that path, or (optional keys, NaN statistics, extras)

@@ -1,4 +1,4 @@
-"""factors/robust.py, the one home of the robust kernels (issue 23, "One pipeline for every problem")."""
+"""factors/robust.py, the one home of the robust kernels."""
 from __future__ import annotations
 
 import json

@@ -1,4 +1,4 @@
-"""The pipeline and the pixel problem without an import circle (issue 23): ``intrinsics.py`` is below
+"""The pipeline and the pixel problem without an import circle: ``intrinsics.py`` is below
 ``calibrate.py``, which imports it at the top (through ``pixel_problem.py``, the pixel problem of the
 pipeline); neither imports the other inside a function."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""mirror_fg.tools.summary: each transform with its own bounds in its own frame, one RMS (issue 17)."""
+"""mirror_fg.tools.summary: each transform with its own bounds in its own frame, one RMS."""
 from __future__ import annotations
 
 import copy

@@ -1,4 +1,4 @@
-"""Symmetric chessboards (issue 15, part 2): accepted, each image labelled by consistency across the images.
+"""Symmetric chessboards: accepted, each image labelled by consistency across the images.
 
 The capture is synthetic: a 6 x 4-square board (5 x 3 inner corners, the gaze-tracking pattern) seen
 through one hand-held mirror by a wide-angle 800 x 600 camera, each image rendered exactly by the
@@ -166,7 +166,7 @@ def gaze_capture(tmp_path_factory):
 
 
 def test_symmetric_boards_are_accepted_with_their_symmetries():
-    """Refused at load before issue 15; now the target knows which turns it cannot tell apart."""
+    """Refused at load once; now the target knows which turns it cannot tell apart."""
     for cols, rows, turns in [(5, 3, ["identity", "half turn"]), (4, 6, ["identity", "half turn"]),
                               (4, 4, ["identity", "quarter turn", "half turn", "three-quarter turn"]),
                               (5, 5, ["identity", "half turn"]), (6, 5, ["identity"])]:

@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
         handler.setFormatter(logging.Formatter("%(message)s"))
         logger.addHandler(handler)
         logger.setLevel(logging.INFO)
-    notes = _Notes(out)  # the camera a camchain gave: printed without -v too (issue 27)
+    notes = _Notes(out)  # the camera a camchain gave: printed without -v too
     notes_logger = logging.getLogger("mirror_fg.io.camera_files")
     notes_logger.addHandler(notes)
     notes_level = notes_logger.level

@@ -376,7 +376,7 @@ def points(result: Mapping[str, Any]) -> dict[str, tuple[np.ndarray, np.ndarray 
 
 
 def pose_covariance(result: Mapping[str, Any]) -> np.ndarray | None:
-    """The 6x6 ``covariance_cam_base`` (SPEC convention), or None when the result has none."""
+    """The 6x6 ``covariance_cam_base`` (docs/formats.md's convention), or None when the result has none."""
     cov = result.get("covariance_cam_base")
     return None if cov is None else np.array(cov, dtype=float)
 

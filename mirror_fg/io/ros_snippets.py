@@ -119,7 +119,7 @@ def link_frame_name(camera_frame: str) -> str:
 
 def quoteattr(value: str) -> str:
     """``value`` as a double-quoted XML attribute (``&``, ``<``, ``>``, quotes escaped). ``html.escape``:
-    ``xml.sax.saxutils.quoteattr`` would load urllib and ssl into every ``calibrate`` (issue 27's start-up)."""
+    ``xml.sax.saxutils.quoteattr`` would load urllib and ssl into every ``calibrate`` (a slower start-up)."""
     return '"' + html.escape(value, quote=True) + '"'
 
 
@@ -222,5 +222,5 @@ def _xml_comment(text: str) -> str:
 
 
 # --------------------------------------------------------------------------------------------------
-# camera_info (intrinsics estimated through the mirrors, issue 16)
+# camera_info (intrinsics estimated through the mirrors)
 # --------------------------------------------------------------------------------------------------

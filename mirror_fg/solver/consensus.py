@@ -1,4 +1,4 @@
-"""Consensus before the solve and a final check after it (issue 15): images or measurements that do not
+"""Consensus before the solve and a final check after it: images or measurements that do not
 agree with the rest are left out, each named with its reason, instead of sinking the calibration.
 
 Before the solve (:func:`screen`), on images with >= 3 fiducials:
@@ -94,7 +94,7 @@ def _whitened_errors(dataset: Dataset, A: np.ndarray, b: np.ndarray, points: np.
 
 def _ransac_inliers(points: np.ndarray, observed: np.ndarray, num_mirrors: int, threshold: float) -> np.ndarray | None:
     """Indices of the fiducials that agree with cv2's RANSAC PnP (normalized coordinates), or None."""
-    import cv2  # imported where used: OpenCV is slow to load (issue 27)
+    import cv2  # imported where used: OpenCV is slow to load
 
     image_points = np.array(observed, dtype=np.float64)
     if num_mirrors % 2 == 1:

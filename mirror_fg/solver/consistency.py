@@ -1,4 +1,4 @@
-"""Inconsistent captures diagnosed (issue 15): when the images do not fit one ``T_cam_base``, do they split
+"""Inconsistent captures diagnosed: when the images do not fit one ``T_cam_base``, do they split
 into groups that each fit one? A camera (or a board) that moved mid-capture shows as images before and
 after some index in capture order that are each consistent alone but disagree with each other.
 
@@ -6,7 +6,7 @@ Each group is solved on its own (analytical solution, then the MLE of eq. 23 wit
 split is named when both groups are plausible alone (their final cost within its chi-square range,
 ``lm.plausible``) and the whole is not (:func:`diagnose_split`).
 
-A move need not make the cost implausible: a mirror placement absorbs most of it (issue 27). So the
+A move need not make the cost implausible: a mirror placement absorbs most of it. So the
 splits at the boundaries between placements of mirror 1 in capture order, where each side is solvable
 alone, are tested whatever the cost (:func:`moved_camera_split`, at most ``MAX_MOVE_SPLITS`` of them):
 the two sides' ``T_cam_base`` with their covariances, and a chi-square test on their difference.
@@ -261,7 +261,7 @@ def moved_camera_split(
     if not boundaries:
         return None
     tested = [boundaries[i] for i in spread_subset(len(boundaries), MAX_MOVE_SPLITS).tolist()]
-    from scipy.stats import chi2  # imported where used: SciPy is slow to load (issue 27)
+    from scipy.stats import chi2  # imported where used: SciPy is slow to load
 
     threshold = chi2.isf(MOVE_SIGNIFICANCE / len(tested), 6)
     worst: tuple[float, int, list[GroupFit]] | None = None
@@ -327,7 +327,7 @@ def placement_disagreement(dataset: Dataset, calibration: Calibration) -> Incons
     if not pairs:
         return None
     distance, a, b, v_a, v_b = max(pairs, key=lambda pair: pair[0])
-    from scipy.stats import chi2  # imported where used: SciPy is slow to load (issue 27)
+    from scipy.stats import chi2  # imported where used: SciPy is slow to load
 
     if not distance > chi2.isf(LABEL_SIGNIFICANCE / len(pairs), 3):
         return None

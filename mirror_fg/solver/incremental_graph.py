@@ -5,7 +5,7 @@ Frames, keys and units as ``incremental.py``. :class:`GraphState` is everything 
 back; :class:`IncrementalGraph` holds one and grows it (the calibrator holds one ``IncrementalGraph``);
 the values of new placements come from ``incremental_placements.py``.
 
-Eliminated placements (issue 14; without a robust kernel). The last mirror moves in (nearly) every image,
+Eliminated placements (without a robust kernel). The last mirror moves in (nearly) every image,
 so one ``Point3`` per placement in iSAM2 makes each update cost O(images): every Python factor call gets
 a copy of iSAM2's whole ``Values``, and reading the estimate back touches every unknown. Instead each
 last-mirror placement is eliminated inside its factor (``factors/eliminated.py``: a Schur complement, as

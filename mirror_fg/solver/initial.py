@@ -2,7 +2,7 @@
 mirror placement below the root refined on its own images by Levenberg-Marquardt (eq. 23) before the
 levels above choose between them.
 
-Its cost is bounded in the number of images (issue 14: a video brings a placement of the last mirror in
+Its cost is bounded in the number of images (a video brings a placement of the last mirror in
 every frame): a placement with more than ``MAX_RANKING_PLACEMENTS`` placements of the last mirror under
 it ranks its hypotheses on the images of that many, spread over them; every other placement's mirror
 vector follows from each refined hypothesis by eqs. (6)-(7), a start that the MLE's eliminated factors

@@ -1,4 +1,4 @@
-"""The pixel problem: the MLE (eq. 23) with the camera intrinsics among the unknowns (issue 16).
+"""The pixel problem: the MLE (eq. 23) with the camera intrinsics among the unknowns.
 
 Its pieces, which ``calibrate.calibrate_with_intrinsics`` (the pipeline) puts together: the dataset's
 camera holds the start intrinsics (the given values; where fx, fy, cx or cy was absent,

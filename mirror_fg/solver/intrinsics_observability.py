@@ -1,4 +1,4 @@
-"""Whether the photographs determine the estimated intrinsics (issue 16; ``intrinsics.py`` estimates them).
+"""Whether the photographs determine the estimated intrinsics (``intrinsics.py`` estimates them).
 
 Observability criterion (Fisher information). ``F = J^T J`` of the whitened pixel factors at the start
 values; the intrinsics' marginal information is its Schur complement ``S`` with every other unknown

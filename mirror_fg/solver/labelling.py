@@ -1,4 +1,4 @@
-"""Labelling a symmetric target's images by consistency across the images (issue 15, part 2).
+"""Labelling a symmetric target's images by consistency across the images.
 
 A symmetric chessboard (``cols + rows`` even) looks the same after a half turn (a square one with an
 even count also after a quarter turn), so one image gives its corners only up to the board's

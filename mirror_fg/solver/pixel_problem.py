@@ -1,4 +1,4 @@
-"""The paper's problem with intrinsics estimated through the mirrors (``camera.estimate``, issue 16), for
+"""The paper's problem with intrinsics estimated through the mirrors (``camera.estimate``), for
 ``calibrate()``'s pipeline (``pipeline.py``).
 
 screen: the dataset's camera holds the start intrinsics -> the paper's problem with them fixed

@@ -402,7 +402,7 @@ def weakest_direction(pose_covariance: np.ndarray, lever_arm_m: float = 1.0) -> 
     return WeakestDirection(vector=u, shares=shares, sigma_m=sigma, lever_arm_m=lever_arm_m, text=text)
 
 
-# --- with the intrinsics among the unknowns (issue 16) -----------------------------------------------
+# --- with the intrinsics among the unknowns -----------------------------------------------
 
 
 @dataclass

@@ -3,7 +3,7 @@
 Scene: the base frame {B} sits around the camera; its fiducials and reconstruction points are never
 seen directly, only through Nv planar mirrors that alternate in front of (+z) and behind (-z) the
 camera, the last one (mirror Nv) in front, so light goes point -> mirror 1 -> ... -> mirror Nv ->
-camera (SPEC nested transform ``A_k = M_k A_{k-1}``). With nominal mirrors at distance ``d`` the
+camera (docs/formats.md's nested transform ``A_k = M_k A_{k-1}``). With nominal mirrors at distance ``d`` the
 camera sees a point at camera depth ``z`` at depth ``2 Nv d + z`` (even Nv) or ``2 Nv d - z`` (odd
 Nv): about 2 m for the base case's two mirrors at 0.5 m.
 

@@ -1,4 +1,4 @@
-"""Synthetic rigs: several cameras with different intrinsics on one body (SPEC "Several cameras on one
+"""Synthetic rigs: several cameras with different intrinsics on one body (docs/formats.md "Several cameras on one
 body"), seen through the paper's tree of two mirrors (Sect. 7) or through two hand-held mirrors in mixed
 reflection orders (:func:`mirror_fg.tools.simulate_views.simulate_mixed`'s scene).
 

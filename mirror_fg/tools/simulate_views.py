@@ -1,4 +1,4 @@
-"""Synthetic views of any reflection order (SPEC "Views of any reflection order, and several cameras").
+"""Synthetic views of any reflection order (docs/formats.md "Views of any reflection order, and several cameras").
 
 Kinds (numpy only; the tree of the paper's Sect. 7 stays in :mod:`mirror_fg.tools.simulate`):
 
@@ -17,7 +17,7 @@ A point is observed in a view only where the light really takes that path: the m
 are traced from the camera (the first plane the ray meets must be the view's last mirror, and so on, and
 no plane may block the last leg to the point), the point lies on the reflective side (the camera's) of
 each mirror in turn, and its image is at positive depth and inside the image with
-VISIBILITY_MARGIN_PX to spare. Mirror vectors follow SPEC eq. (3): ``x -> M x + 2 v``.
+VISIBILITY_MARGIN_PX to spare. Mirror vectors follow eq. (3): ``x -> M x + 2 v``.
 """
 from __future__ import annotations
 

@@ -422,7 +422,7 @@ def _detect_video(
                     with native_stderr() as native:
                         ok, image = vc.read() if position == frame else (False, None)
                     # A failed read consumes its frame too: OpenCV goes on with the next one, so the
-                    # frames after a damaged stretch keep their indices (issue 28).
+                    # frames after a damaged stretch keep their indices.
                     position += 1
                     if not ok or image is None:
                         if frame in outputs_of_seg:
