@@ -60,7 +60,7 @@ MEMORY_GOAL_MB = 1024.0  # 900-image problem with marginals
 
 
 def _dataset(case: str):
-    from mirror_fg.tools.simulate import simulate_base_case
+    from mirror_fg.simulate.tree import simulate_base_case
 
     return simulate_base_case(**CASES[case]["simulate"], **COMMON)
 
@@ -77,7 +77,7 @@ def task_baseline(case: str, repeats: int) -> dict:
     """Interpreter + gtsam + numpy + the dataset: the memory floor of every other task."""
     import gtsam  # noqa: F401
 
-    from mirror_fg.solver.graph import measurements_of
+    from mirror_fg.solver.model.graph import measurements_of
 
     dataset, _ = _dataset(case)
     measurements_of(dataset)
@@ -134,7 +134,7 @@ def task_linearize(case: str, repeats: int) -> dict:
     import gtsam
     from mirror_fg.factors.batched import batched_factors
 
-    from mirror_fg.solver.graph import build_graph
+    from mirror_fg.solver.model.graph import build_graph
 
     dataset, truth = _dataset(case)
     reference, values, layout, measurements = build_graph(dataset, truth, fast=False)
@@ -188,7 +188,7 @@ def _scipy_problem(dataset, initial):
     import scipy.sparse as sparse
     from scipy.spatial.transform import Rotation
 
-    from mirror_fg.solver.graph import measurements_of
+    from mirror_fg.solver.model.graph import measurements_of
 
     measurements = measurements_of(dataset)
     configs = sorted(dataset.configurations)
@@ -451,7 +451,7 @@ def task_scaling(case: str, repeats: int) -> dict:
     """One calibrate() of ``case`` images (2 mirrors, 3 fiducials, mirror 1 in 3 placements): stage times
     and the process's peak memory (each size in a fresh process, so the peak is its own)."""
     from mirror_fg import calibrate
-    from mirror_fg.tools.simulate import simulate_base_case
+    from mirror_fg.simulate.tree import simulate_base_case
 
     start = time.perf_counter()
     dataset, _ = simulate_base_case(num_images=int(case), num_points=0, mirror1_placements=3, **COMMON)
@@ -469,8 +469,8 @@ def task_rig(case: str, repeats: int) -> dict:
     images, 3 fiducials, as ``--scaling``): wall time, stage times and measurements."""
     from mirror_fg import calibrate
     from mirror_fg.io.dataset import dataset_from_dict
-    from mirror_fg.tools.simulate import simulate_base_case
-    from mirror_fg.tools.simulate_rig import simulate_rig_mixed
+    from mirror_fg.simulate.tree import simulate_base_case
+    from mirror_fg.simulate.rig import simulate_rig_mixed
 
     kind, count = case.split(":")
     if kind == "rig":

@@ -30,7 +30,7 @@ GOAL_FRACTION = 0.25
 def measure(dataset_path: Path, repeats: int) -> dict[str, float]:
     """Medians (seconds) of ``calibrate``'s wall time and of its stages, the same in CPU time, and the ratios."""
     from mirror_fg import calibrate, load_dataset
-    from mirror_fg.solver import consensus
+    from mirror_fg.solver.screen import consensus
 
     check_images = getattr(consensus, "check_images", None)  # releases before it timed the PnP with the screening
 

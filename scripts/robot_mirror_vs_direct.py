@@ -1,7 +1,7 @@
 """A camera mount's 3-sigma through one hand-held mirror against a direct-view hand-eye calibration with the
 same number of images, on simulated arms (docs/formats.md, "Robot arms: joint states and mounts").
 
-Both are the MLE's covariance (solver/robot_solve.py) at the simulated truth, averaged over seeds. The
+Both are the MLE's covariance (solver/batch/robot_solve.py) at the simulated truth, averaged over seeds. The
 direct view is as good as a user could make it: the board at each of several distances ahead of the camera
 (0.35 m fills about a third of the image; closer, the arm poses' spread takes it out of view), the best one
 kept (the smallest largest 3-sigma); the mirror scenes are those of ``simulate --robot`` (eye-to-hand: the
@@ -19,8 +19,8 @@ import numpy as np
 
 from mirror_fg.io.dataset import load_dataset
 from mirror_fg.robot.simulate import simulate_arm, write_arm_simulation
-from mirror_fg.solver.robot_solve import calibrate_robot
-from mirror_fg.solver.robot_views import RobotEstimate
+from mirror_fg.solver.batch.robot_solve import calibrate_robot
+from mirror_fg.solver.model.robot_views import RobotEstimate
 
 #: Board distances (metres) a user might hold the board at in front of the camera for a direct view.
 DIRECT_DISTANCES = (0.35, 0.45, 0.6, 0.9)

@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 import mirror_fg
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.result import base_cam_covariance, ros_pose_covariance, validate_result
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.simulate.tree import simulate_base_case
 
 
 def _random_pose_and_covariance(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

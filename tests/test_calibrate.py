@@ -7,8 +7,8 @@ from scipy.stats import chi2
 
 from conftest import pose_difference
 from mirror_fg import calibrate, load_dataset
-from mirror_fg.solver.calibration import Calibration
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.result.calibration import Calibration
+from mirror_fg.simulate.tree import simulate_base_case
 from mirror_fg.core.transform import rotation_angle
 
 # The authors' bundle adjustment on the five real photographs (shared/data/takahashi2012/README.md).
@@ -162,8 +162,8 @@ def test_covariance_convention_matches_perturbation_of_rotation_about_camera_axe
 
 
 def test_schur_marginals_equal_gtsam_marginals():
-    from mirror_fg.solver.graph import build_graph
-    from mirror_fg.solver.marginals import _marginals_from_gtsam, marginal_covariances
+    from mirror_fg.solver.model.graph import build_graph
+    from mirror_fg.solver.model.marginals import _marginals_from_gtsam, marginal_covariances
 
     dataset, truth = simulate_base_case(num_images=40, num_points=4, pixel_sigma=1.0, seed=8)
     for fast in (True, False):
@@ -190,8 +190,8 @@ def test_an_implausible_optimum_restarts_from_the_runner_up_hypotheses(monkeypat
     """When LM from the analytical solution ends far above the chi-square range of the cost, calibrate()
     starts again from the root's runner-up hypotheses and keeps the best: here the first hypothesis is
     a deliberately wrong pose (rotated 150 deg, 2 m off), the runner-up the real solution."""
-    import mirror_fg.solver.tree_problem as calibrate_module  # the tree problem starts from it
-    from mirror_fg.solver.analytic import AnalyticSolution
+    import mirror_fg.solver.batch.tree_problem as calibrate_module  # the tree problem starts from it
+    from mirror_fg.solver.start.analytic import AnalyticSolution
     from mirror_fg.core.geometry import so3_exp
 
     dataset, truth = simulate_base_case(num_images=60, num_points=4, pixel_sigma=1.0, seed=5)

@@ -691,7 +691,7 @@ def test_dataset_repr_is_short_and_its_html_summary_bounded(caplog) -> None:
     notebook table is bounded and escaped whatever the source name."""
     import logging
 
-    from mirror_fg.tools.simulate import simulate_base_case
+    from mirror_fg.simulate.tree import simulate_base_case
 
     ds, _ = simulate_base_case(num_images=200, num_points=10)
     text, table = repr(ds), ds._repr_html_()

@@ -1,4 +1,4 @@
-"""Tests of mirror_fg.solver.incremental: iSAM2 image by image against the batch MLE (graph.calibrate).
+"""Tests of mirror_fg.solver.incremental.calibrator: iSAM2 image by image against the batch MLE (graph.calibrate).
 
 Deviations are per axis of the 6-DoF pose in docs/formats.md's convention, ``|incremental - batch| / sigma`` with
 the batch's marginal standard deviations.
@@ -12,12 +12,12 @@ import pytest
 from conftest import pose_difference
 
 from mirror_fg.core.errors import SolveError
-from mirror_fg.solver.analytic import solve_analytic
+from mirror_fg.solver.start.analytic import solve_analytic
 from mirror_fg.io.dataset import Dataset, Image, dataset_to_dict
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.solver.calibrate import calibrate
-from mirror_fg.solver.incremental import IncrementalCalibrator, complete_tree
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator, complete_tree
+from mirror_fg.simulate.tree import simulate_base_case
 
 #: Largest allowed deviation from the batch MLE, in batch standard deviations (the issue's figure).
 MAX_SIGMAS = 0.1

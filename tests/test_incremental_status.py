@@ -7,9 +7,9 @@ import pytest
 
 from mirror_fg.cli import main
 from mirror_fg.io.dataset import Image, dataset_to_dict
-from mirror_fg.solver.incremental import IncrementalCalibrator
-from mirror_fg.solver.placement_tree import tree_shortfall
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator
+from mirror_fg.solver.start.placement_tree import tree_shortfall
+from mirror_fg.simulate.tree import simulate_base_case
 
 
 def _images(configs: list[tuple[int, ...]]) -> list[Image]:

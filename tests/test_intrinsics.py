@@ -19,9 +19,9 @@ from mirror_fg.factors.intrinsics import (
 )
 from mirror_fg.io.dataset import dataset_from_dict, load_dataset
 from mirror_fg.solver.calibrate import calibrate
-from mirror_fg.solver.graph import GraphLayout, initial_values, measurements_of
-from mirror_fg.solver.intrinsics import WeakIntrinsicsWarning
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.model.graph import GraphLayout, initial_values, measurements_of
+from mirror_fg.solver.batch.intrinsics import WeakIntrinsicsWarning
+from mirror_fg.simulate.tree import simulate_base_case
 
 # The simulated camera: fx != fy, principal point off-centre, barrel distortion (k1, k2).
 TRUE_INTRINSICS = {"fx": 830.0, "fy": 790.0, "cx": 531.0, "cy": 371.0, "k1": -0.12, "k2": 0.05}
@@ -433,7 +433,7 @@ def test_real_photographs_from_nothing_but_the_images(takahashi_dir):
 
 
 def test_cramer_rao_bound_with_intrinsics_matches_the_mle_covariance(simulated):
-    from mirror_fg.tools.crb import intrinsics_cramer_rao_bound
+    from mirror_fg.solver.information.crb import intrinsics_cramer_rao_bound
 
     data, truth, calibration = simulated
     at_truth = copy.deepcopy(data)
@@ -448,7 +448,7 @@ def test_cramer_rao_bound_with_intrinsics_matches_the_mle_covariance(simulated):
 
 
 def test_plan_bounds_the_intrinsics():
-    from mirror_fg.tools.plan import PlanSetup, format_plan, plan
+    from mirror_fg.analysis.plan import PlanSetup, format_plan, plan
 
     result = plan(PlanSetup(num_images=30, fiducials=BOARD, estimate=("fx", "k1")), draws=1)
     assert set(result.intrinsics_sigma3) == {"fx", "k1"} and result.intrinsics_sigma3["fx"] > 0

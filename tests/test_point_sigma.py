@@ -25,11 +25,11 @@ from conftest import pose_difference
 from mirror_fg import calibrate
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.dataset import dataset_from_dict, dataset_to_dict, load_dataset
-from mirror_fg.solver import lm as lm_module
-from mirror_fg.solver.graph import build_eliminated_graph, build_graph, extract_values, measurement_sigmas, measurements_of
-from mirror_fg.solver.incremental import IncrementalCalibrator
-from mirror_fg.tools.crb import cramer_rao_bound
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.model import lm as lm_module
+from mirror_fg.solver.model.graph import build_eliminated_graph, build_graph, extract_values, measurement_sigmas, measurements_of
+from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator
+from mirror_fg.solver.information.crb import cramer_rao_bound
+from mirror_fg.simulate.tree import simulate_base_case
 
 
 def noisy_dataset(num_mirrors: int, num_images: int, sigmas_px: dict[str, float], pixel_sigma: float, seed: int,

@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mirror_fg.solver.graph import build_eliminated_graph
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.model.graph import build_eliminated_graph
+from mirror_fg.simulate.tree import simulate_base_case
 
 threadpoolctl = pytest.importorskip("threadpoolctl")
 

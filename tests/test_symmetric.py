@@ -23,7 +23,7 @@ from mirror_fg.core.geometry import nested_transform
 from mirror_fg.io.capture import capture_from_dict, load_capture
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.io.target import ChessboardTarget, target_from_dict
-from mirror_fg.solver.labelling import choose_labellings
+from mirror_fg.solver.screen.labelling import choose_labellings
 from mirror_fg.vision.detect import detect_capture
 from mirror_fg.vision.detectors import FOUND, detect_chessboard
 
@@ -290,7 +290,7 @@ def test_labelling_through_the_mirror_tree(num_mirrors):
     """Dataset level, any number of mirrors: the paper's 3^Nv tree (simulate_tree's scene) with a 5 x 3
     board for fiducials, every image given in a random labelling: each is labelled as the truth."""
     from mirror_fg.core.geometry import project
-    from mirror_fg.tools.simulate import default_camera, simulate_tree
+    from mirror_fg.simulate.tree import default_camera, simulate_tree
 
     board = ChessboardTarget(5, 3, 0.05)
     _, truth = simulate_tree(num_mirrors, seed=2)

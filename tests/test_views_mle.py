@@ -16,7 +16,7 @@ import mirror_fg
 import views_reference as vr
 from mirror_fg.cli import main
 from mirror_fg.io.dataset import dataset_to_dict
-from mirror_fg.tools.simulate import simulate_tree
+from mirror_fg.simulate.tree import simulate_tree
 
 #: The MLE is one optimum: the solver's and the reference's differ by rounding and stopping tolerances.
 ESTIMATE_SIGMAS = 0.05

@@ -25,7 +25,7 @@ from mirror_fg.cli.printing import EXIT_OK, _error_line, _one_line, _Printer
 
 
 def cmd_simulate(args, out: _Printer) -> int:
-    from mirror_fg.tools.simulate import simulation_outputs
+    from mirror_fg.simulate.tree import simulation_outputs
 
     if getattr(args, "robot", None) is not None:  # a robot arm (cli/robot_cmd.py)
         from mirror_fg.cli.robot_cmd import simulate_robot
@@ -34,8 +34,8 @@ def cmd_simulate(args, out: _Printer) -> int:
     plan = simulation_outputs(args.output)  # checked before the work
     if args.kind == "tree" and args.cameras is None:
         return _simulate_tree(args, out, plan)
-    from mirror_fg.tools.simulate_rig import simulate_rig_mixed, simulate_rig_tree
-    from mirror_fg.tools.simulate_views import simulate_kaleidoscope, simulate_mixed, write_views_simulation
+    from mirror_fg.simulate.rig import simulate_rig_mixed, simulate_rig_tree
+    from mirror_fg.simulate.views import simulate_kaleidoscope, simulate_mixed, write_views_simulation
 
     own = None if args.own is None else _simulate_counts(args.own, "--own", args.cameras)
     try:
@@ -70,7 +70,7 @@ def cmd_simulate(args, out: _Printer) -> int:
 
 def _simulate_tree(args, out: _Printer, plan: OutputPlan) -> int:
     """The paper's tree (the base case, or ``--tree``) for one camera."""
-    from mirror_fg.tools.simulate import simulate_base_case, simulate_tree, write_simulation
+    from mirror_fg.simulate.tree import simulate_base_case, simulate_tree, write_simulation
 
     mirrors, fiducials, points = args.mirrors or 2, args.fiducials or 3, args.points or 0
     distance = args.distance or 0.5
@@ -134,8 +134,8 @@ def cmd_calibrate(args, out: _Printer) -> int:
     from mirror_fg.io.calibration_files import plan_calibration_outputs
     from mirror_fg.registry.cli import record_document, registry_target
     from mirror_fg.solver.calibrate import calibrate
-    from mirror_fg.solver.calibration import require_converged
-    from mirror_fg.tools.verdict import with_verdict
+    from mirror_fg.solver.result.calibration import require_converged
+    from mirror_fg.report.verdict import with_verdict
 
     status = calibrate_screens_input(args, out)  # a capture with several screens (docs/formats.md)
     if status is not None:
@@ -168,7 +168,7 @@ def cmd_calibrate(args, out: _Printer) -> int:
                      "runner-up P3P hypothesis(es) and kept the lowest cost")
         require_converged(calibration, dataset.source, accept_poor_fit=args.accept_poor_fit)
     if getattr(args, "validate", False):  # before the detection exclusions: those images are not in the dataset
-        from mirror_fg.solver.validation import validate_calibration
+        from mirror_fg.solver.fit.validation import validate_calibration
 
         calibration.validation = validate_calibration(dataset, calibration)
     calibration.at_points = list(getattr(args, "at", None) or [])
@@ -263,7 +263,7 @@ def _registry_status(registry, rows: list[dict], out: _Printer) -> int:
 
 
 def _run_incremental(dataset, args, out: _Printer):
-    from mirror_fg.solver.incremental import calibrate_incremental
+    from mirror_fg.solver.incremental.calibrator import calibrate_incremental
 
     total = len(dataset.images)
 
@@ -295,10 +295,10 @@ def cmd_detect(args, out: _Printer) -> int:
 
 
 def _print_consensus(out: _Printer, dataset: Dataset) -> None:
-    """What ``calibrate`` will leave out of a detected dataset, and why (``solver.consensus.screen``: each
+    """What ``calibrate`` will leave out of a detected dataset, and why (``solver.screen.consensus.screen``: each
     image's own PnP fit, the side of the board, agreement with the other placements of its mirror); the
     dataset itself keeps every detection."""
-    from mirror_fg.solver.consensus import screen
+    from mirror_fg.solver.screen.consensus import screen
 
     _, excluded, _ = screen(dataset)
     if excluded:
@@ -312,7 +312,7 @@ def cmd_report(args, out: _Printer) -> int:
     from mirror_fg.io.output import OutputPlan
     from mirror_fg.io.result import load_result
     from mirror_fg.io.ros import check_camera_frame_name, check_frame_name
-    from mirror_fg.tools.report import write_report
+    from mirror_fg.report.writer import write_report
 
     plan = OutputPlan(inputs=[os.fspath(p) for p in (args.result, args.dataset) if p is not None])
     if os.path.exists(args.output) and not os.path.isdir(args.output):
@@ -364,11 +364,11 @@ def _refuse_input_as_result(args) -> None:
 
 
 def _plan_views(args, out: _Printer) -> int:
-    """``plan --kind kaleidoscope|mixed`` and ``plan --cameras N [--shared K,...]`` (tools/plan_views.py)."""
+    """``plan --kind kaleidoscope|mixed`` and ``plan --cameras N [--shared K,...]`` (analysis/plan_views.py)."""
     import json
 
     from mirror_fg.io.output import OutputPlan
-    from mirror_fg.tools.plan_views import format_views_plan, plan_views
+    from mirror_fg.analysis.plan_views import format_views_plan, plan_views
 
     if args.shared is not None and args.cameras is None:
         raise DatasetError("plan: --shared goes with --cameras N")
@@ -404,7 +404,7 @@ def _plan_views(args, out: _Printer) -> int:
 
 def cmd_plan(args, out: _Printer) -> int:
     from mirror_fg.io.output import OutputPlan
-    from mirror_fg.tools.plan import PlanSetup, format_plan, load_fiducials, plan, setup_from_files
+    from mirror_fg.analysis.plan import PlanSetup, format_plan, load_fiducials, plan, setup_from_files
 
     if getattr(args, "robot", None) is not None or getattr(args, "joint_candidates", None) is not None:  # an arm
         from mirror_fg.cli.robot_cmd import plan_robot

@@ -17,8 +17,8 @@ __all__ = ["print_transform_summary", "load_input_file", "load_input_with_report
 
 def print_transform_summary(out: _Printer, result: dict, elapsed: float, incremental: bool = False,
                              pixel_sigma: float | None = None) -> None:
-    """Each transform with its own bounds in its own frame, the residuals, the solver (tools.summary)."""
-    from mirror_fg.tools.summary import summary_lines
+    """Each transform with its own bounds in its own frame, the residuals, the solver (report.summary)."""
+    from mirror_fg.report.summary import summary_lines
 
     for line in summary_lines(result, verbose=out.verbose, incremental=incremental, pixel_sigma=pixel_sigma):
         out.info(line)
@@ -45,7 +45,7 @@ def load_input_with_reports(path: Path, out: _Printer, plan: OutputPlan, tracks:
 
 def detection_exclusions(reports: list) -> list:
     """Images of a capture that detection left out, as result@1 ``excluded`` entries (nothing dropped silently)."""
-    from mirror_fg.solver.calibration import Exclusion
+    from mirror_fg.solver.result.calibration import Exclusion
     from mirror_fg.vision.detectors import FOUND
 
     return [Exclusion(r.id, f"detection: {r.status}: {r.reason}") for r in reports if r.status != FOUND]

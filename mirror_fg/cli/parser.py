@@ -62,7 +62,7 @@ def _distance_range(text: str) -> tuple[float, ...]:
 
 def _point(text: str) -> tuple[float, float, float]:
     """``X,Y,Z``, metres (``calibrate --at``)."""
-    from mirror_fg.solver.point_error import parse_point
+    from mirror_fg.solver.result.point_error import parse_point
 
     try:
         return parse_point(text)

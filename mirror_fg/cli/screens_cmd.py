@@ -1,5 +1,5 @@
 """``mirror-fg calibrate CAPTURE`` where the capture gives several ``screens`` (:mod:`mirror_fg.io.screens_capture`,
-:mod:`mirror_fg.solver.screens`): detect each screen's images, calibrate each alone, then all in one graph;
+:mod:`mirror_fg.solver.batch.screens`): detect each screen's images, calibrate each alone, then all in one graph;
 write result@1 with every screen and their relative poses. Runner and printing only."""
 from __future__ import annotations
 
@@ -38,8 +38,8 @@ def _calibrate(args, out: _Printer, data: dict, source: str) -> int:
     from mirror_fg.io.result import result_text
     from mirror_fg.io.screens_capture import screens_result, split_screens_capture
     from mirror_fg.solver.calibrate import calibrate
-    from mirror_fg.solver.calibration import require_converged
-    from mirror_fg.solver.screens import calibrate_screens
+    from mirror_fg.solver.result.calibration import require_converged
+    from mirror_fg.solver.batch.screens import calibrate_screens
     from mirror_fg.vision.detect import detect_capture
 
     if args.incremental:
@@ -71,7 +71,7 @@ def _calibrate(args, out: _Printer, data: dict, source: str) -> int:
 
 
 def _as_dicts(exclusions: list) -> list[dict]:
-    """result@1 ``excluded`` entries of :class:`~mirror_fg.solver.calibration.Exclusion` values."""
+    """result@1 ``excluded`` entries of :class:`~mirror_fg.solver.result.calibration.Exclusion` values."""
     return [{"image": e.image, "point": e.point, "reason": e.reason, "sigmas": e.sigmas} for e in exclusions]
 
 

@@ -185,7 +185,7 @@ class Dataset:
     def is_tree(self) -> bool:
         """Whether this is the paper's problem: one camera, a known target, and every image seeing the
         points through mirrors 1..num_mirrors in that order (``mirror_configs``). Anything else is solved
-        by the general view model (:mod:`mirror_fg.solver.views`)."""
+        by the general view model (:mod:`mirror_fg.solver.model.views`)."""
         return (self.cameras is None and bool(self.fiducials) and self.scale is None and self.robot is None
                 and all(len(image.mirror_configs) == self.num_mirrors for image in self.images))
 

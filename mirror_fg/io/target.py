@@ -15,7 +15,7 @@
   A *symmetric* board (``cols + rows`` even) looks the same turned half a turn, and a square one
   (``cols == rows``, even) also a quarter turn (an odd square board's colours still tell the quarter
   turns apart): no single image can tell which corner is C00. Each image is then labelled by
-  consistency across the images (:mod:`mirror_fg.solver.labelling`): the labelling, among the
+  consistency across the images (:mod:`mirror_fg.solver.screen.labelling`): the labelling, among the
   board's symmetric ones (:meth:`ChessboardTarget.symmetries`), under which every image fits one
   ``T_cam_base``. An image no labelling clearly fits better than another is left out with that
   reason. The images cannot tell the whole capture apart from its twin turned with the board (the
