@@ -19,6 +19,13 @@ holds (``nu factor ~ chi2_nu``), larger where the images disagree beyond it. ``m
 its statistic by it (an F-test: the noise level estimated from the image-level redundancy, the standard
 remedy when sigma is not known). ``nu = 0`` (every image needed to determine the solution): no estimate.
 Whitened units (each row by its measurement sigma); measurements the solve left out are not counted.
+
+Cost: ``Sigma`` on each image's columns comes from eliminating the columns one image touches and
+inverting the rest densely, cubic in the shared unknowns. With more than :data:`MAX_IMAGES` images, or
+more than :data:`MAX_DENSE_COLUMNS` shared columns, ``B`` and ``nu`` are summed over
+:data:`MAX_IMAGES` images evenly spread through the capture instead, ``Sigma``'s blocks from GTSAM's
+marginals (its Bayes tree): the factor is then estimated from those images' redundancy, and ``dof``
+and ``images`` say so (an F-test takes that ``dof``).
 """
 from __future__ import annotations
 
@@ -26,13 +33,19 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import gtsam
 import numpy as np
 
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.fit.validation import _problem, estimate_of_calibration
 from mirror_fg.solver.model.views import ViewEstimate, tangent_dimension
 
-__all__ = ["Dispersion", "image_dispersion", "dispersion_of_calibration"]
+__all__ = ["Dispersion", "image_dispersion", "dispersion_of_calibration", "MAX_IMAGES", "MAX_DENSE_COLUMNS"]
+
+#: Above this many images the dispersion is summed over this many, evenly spread (module docstring).
+MAX_IMAGES = 400
+#: Above this many columns shared by several images, likewise (a dense inverse of them is cubic).
+MAX_DENSE_COLUMNS = 1500
 
 
 @dataclass(frozen=True)
@@ -68,6 +81,8 @@ def image_dispersion(dataset: Dataset, estimate: ViewEstimate, excluded: Sequenc
     :func:`~mirror_fg.solver.fit.validation.validate`."""
     used, problem, values, masks = _problem(dataset, estimate, excluded, estimated_cameras)
     graph = problem.graph()
+    if len(problem.factors) > MAX_IMAGES or _shared_columns(problem, values) > MAX_DENSE_COLUMNS:
+        return _sampled_dispersion(dataset, estimate, excluded, estimated_cameras)
     offset: dict[int, int] = {}
     size = 0
     for key in problem.keys:
@@ -149,3 +164,52 @@ def _range(J: np.ndarray) -> np.ndarray:
     U, s, _ = np.linalg.svd(J, full_matrices=False)
     rank = int(np.sum(s > max(s[0], 1e-300) * 1e-10)) if len(s) else 0  # as validation's complement
     return U[:, :rank]
+
+
+def _shared_columns(problem, values) -> int:
+    """How many tangent columns more than one image's factor touches."""
+    touched: dict[int, int] = {}
+    for factor in problem.factors:
+        for key in factor.factor().keys():
+            touched[key] = touched.get(key, 0) + 1
+    return sum(tangent_dimension(key, values) for key, count in touched.items() if count > 1)
+
+
+def _sampled_dispersion(dataset: Dataset, estimate: ViewEstimate, excluded: Sequence[tuple[str, str | None]],
+                        estimated_cameras: Mapping[str, Any] | None) -> Dispersion:
+    """``B`` and ``nu`` over :data:`MAX_IMAGES` images evenly spread, ``Sigma``'s blocks of each from GTSAM's
+    marginals of the whole solve (module docstring). The measurements the solve left out are dropped from
+    the graph (they carry no information in the solve)."""
+    from dataclasses import replace
+
+    points_out: dict[str, set[str]] = {}
+    for image_id, point in excluded:
+        if point is not None:
+            points_out.setdefault(image_id, set()).add(point)
+    kept = replace(dataset, images=[replace(image, observations={n: z for n, z in image.observations.items()
+                                                                  if n not in points_out.get(image.id, ())})
+                                    for image in dataset.images])
+    _, problem, values, _ = _problem(kept, estimate, [(i, p) for i, p in excluded if p is None], estimated_cameras)
+    marginals = gtsam.Marginals(problem.graph(), values)
+    own_keys = set(problem.pose_keys.values()) | set(problem.mirror_keys.values())
+    count = len(problem.factors)
+    chosen = sorted(set(np.linspace(0, count - 1, min(MAX_IMAGES, count)).round().astype(int).tolist()))
+    cost, rank_sum, explained, images = 0.0, 0, 0.0, 0
+    for index in chosen:
+        gaussian = problem.factors[index].factor().linearize(values)
+        A, b = gaussian.jacobian()
+        keys = list(gaussian.keys())
+        dims = [tangent_dimension(key, values) for key in keys]
+        starts = np.concatenate([[0], np.cumsum(dims)])
+        own = [i for key, a, z in zip(keys, starts[:-1], starts[1:]) if key in own_keys for i in range(a, z)]
+        if not own or not len(b):
+            continue
+        U = _range(A[:, own])
+        joint = marginals.jointMarginalCovariance(gtsam.KeyVector(keys))
+        Sigma = np.block([[joint.at(k, m) for m in keys] for k in keys])
+        UJ = U.T @ A
+        rank_sum += U.shape[1]
+        cost += float(np.sum((U.T @ -b) ** 2))
+        explained += float(np.sum((UJ @ Sigma) * UJ))
+        images += 1
+    return Dispersion(cost, max(rank_sum - explained, 0.0), images)
