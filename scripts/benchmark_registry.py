@@ -114,9 +114,9 @@ def main() -> None:
                 best, median, cpu, count = time_history(url, args.repeats)
                 best_cam, median_cam, cpu_cam, count_cam = time_history(url, args.repeats, "left")
                 load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-                print(f"{name}: filled {count} records of arm-0 (+ others) in {filled:.1f} s (load average {load:.1f} on "
-                      f"{os.cpu_count()} cores); history(arm-0, left), {count_cam} records: best {best_cam * 1000:.0f} ms, "
-                      f"median {median_cam * 1000:.0f} ms, CPU {cpu_cam * 1000:.0f} ms")
+                print(f"{name}: filled {count} records of arm-0 (+ others) in {filled:.1f} s (load average "
+                      f"{load:.1f} on {os.cpu_count()} cores); history(arm-0, left), {count_cam} records: best "
+                      f"{best_cam * 1000:.0f} ms, median {median_cam * 1000:.0f} ms, CPU {cpu_cam * 1000:.0f} ms")
                 figures.append((name, count, best, median, cpu))
                 if not args.no_writers:
                     writer_url = (f"sqlite:///{folder}/writers.db" if name == "sqlite"

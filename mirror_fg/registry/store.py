@@ -248,10 +248,11 @@ def _history_records(rows: Any, robot: str, sqlite: bool) -> list[HistoryRecord]
     times are SQLAlchemy's SQLite text of a UTC time (``YYYY-MM-DD HH:MM:SS.ffffff``, models.UtcDateTime),
     else the driver's aware datetimes."""
     utc = timezone.utc
-    return [HistoryRecord(camera, verdict, None if tx is None else (tx, ty, tz), None if qx is None else (qx, qy, qz, qw),
-                          None if sx is None else (sx, sy, sz), None if srx is None else (srx, sry, srz), id_, run_id,
-                          robot, kind, datetime.fromisoformat(when + "+00:00") if sqlite else when.astimezone(utc),
-                          version, sha, host)
+    return [HistoryRecord(camera, verdict, None if tx is None else (tx, ty, tz),
+                          None if qx is None else (qx, qy, qz, qw), None if sx is None else (sx, sy, sz),
+                          None if srx is None else (srx, sry, srz), id_, run_id, robot, kind,
+                          datetime.fromisoformat(when + "+00:00") if sqlite else when.astimezone(utc), version, sha,
+                          host)
             for (id_, run_id, camera, kind, verdict, tx, ty, tz, qx, qy, qz, qw, sx, sy, sz, srx, sry, srz, when,
                  version, sha, host) in rows]
 
