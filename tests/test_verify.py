@@ -264,6 +264,25 @@ def test_unchecked_bounds_cannot_say_not_moved():
     assert answer.p_value == pytest.approx(stats.chi2.sf(answer.mahalanobis2, answer.dof))
 
 
+def test_an_arm_is_refused_in_words(tmp_path, capsys):
+    """Images with joint states, or an arm's result (with mounts): one line saying verify does not test an arm's
+    mounts, not a "different set-ups" from fitting them as a fixed camera."""
+    from mirror_fg.robot.simulate import simulate_arm, write_arm_simulation
+
+    for name, seed in (("stored", 1), ("new", 2)):
+        dataset, truth = simulate_arm("arm6", False, placements=3, arm_poses=6, seed=seed)
+        write_arm_simulation(str(tmp_path / f"{name}.json"), dataset, truth)
+    assert main(["calibrate", str(tmp_path / "stored.json"), "-o", str(tmp_path / "r.json"), "--no-ros", "-q"]) == 0
+    (tmp_path / "fixed").mkdir()
+    _, new_data = _files(tmp_path / "fixed")  # a camera fixed in the base frame
+    capsys.readouterr()
+    assert main(["verify", str(tmp_path / "r.json"), str(tmp_path / "new.json")]) == 2
+    assert main(["verify", str(tmp_path / "r.json"), str(new_data)]) == 2
+    errors = capsys.readouterr().err.strip().splitlines()
+    assert len(errors) == 2 and all("not an arm's mounts" in line for line in errors), errors
+    assert "images with joint states" in errors[0] and "an arm's result" in errors[1]
+
+
 def test_data_that_do_not_fit_the_stored_target_are_refused(tmp_path, capsys):
     """Reconstruction points of another scene (another seed) under the same names: not even a free camera
     fits them, so the result and the data are not of one set-up (exit 2), never a `moved`."""

@@ -232,6 +232,10 @@ def _verification_dataset(result: Mapping[str, Any], dataset: Dataset,
     """``dataset`` with the stored intrinsics (their values; none left to estimate) and the stored
     reconstruction points as known points, and the intrinsics the result estimated with their stored
     covariances; one line (DatasetError) where the result and the data cannot be from one set-up."""
+    if dataset.robot is not None or result.get("mounts"):  # the target or the camera rides the arm's joints
+        what = f"{dataset.source}: images with joint states" if dataset.robot is not None else f"{source}: an arm's result"
+        raise DatasetError(f"{what}: verify tests cameras fixed in the base frame, not an arm's mounts; calibrate "
+                           "again and compare with mirror-fg history")
     stored = stored_cameras(result)
     names = camera_names(dataset)
     unknown = [n for n in names if n not in stored]
