@@ -85,7 +85,7 @@ def writers(url: str, processes: int = 8, each: int = 250) -> tuple[float, int]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--records", type=int, default=10_000)
-    parser.add_argument("--repeats", type=int, default=9)
+    parser.add_argument("--repeats", type=int, default=25)
     parser.add_argument("--no-postgres", action="store_true")
     parser.add_argument("--no-writers", action="store_true")
     args = parser.parse_args()

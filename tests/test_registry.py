@@ -200,6 +200,19 @@ def test_a_newer_schema_is_refused_in_one_line(url):
             assert "newer than this mirror-fg knows" in str(error.value) and "\n" not in str(error.value)
 
 
+def test_a_query_that_fails_is_one_line(url):
+    """A registry whose records table is gone (its revision still there): history's query fails on the server, one
+    RegistryError line with the database's own words (PostgreSQL's rows are read by the driver itself)."""
+    with Registry(url) as registry:
+        registry.record("r", result_document())
+        with registry.engine.begin() as connection:
+            connection.execute(text("DROP TABLE records"))
+        with pytest.raises(RegistryError) as error:
+            registry.history("r")
+    message = str(error.value)
+    assert "cannot read the history" in message and "records" in message and "\n" not in message, message
+
+
 def test_unusable_databases_are_one_line(tmp_path, postgres_cluster_or_none):
     path = tmp_path / "ro.db"
     with Registry(f"sqlite:///{path}") as registry:
