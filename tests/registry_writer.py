@@ -45,3 +45,15 @@ def main() -> None:
 
 if __name__ == "__main__":
     main()
+
+
+def record_in_worker(url: str, tag: str) -> dict:
+    """One recording as calibrate-many makes it in a Dask worker (``registry.cli.record_row``, a new Registry per
+    input, after the result file would be written), of a run tagged ``tag``: the error line (None: stored) and the
+    worker's process."""
+    import os
+
+    from mirror_fg.registry.cli import record_row
+
+    error = record_row(url, "fleet", result_document(tag=tag), f"{tag}.json", f"{tag}.result.json")
+    return {"tag": tag, "error": error, "pid": os.getpid()}

@@ -122,6 +122,56 @@ def test_migrates_from_the_first_schema_keeping_its_data(url):
             assert connection.execute(text("SELECT version_num FROM alembic_version")).scalar() == head_revision()
             indexes = {i["name"]: i["column_names"] for i in inspect(connection).get_indexes("records")}
         assert indexes["ix_records_robot_camera_time"] == ["robot", "camera", "time"]
+        assert indexes["ix_records_robot_time_id"] == ["robot", "time", "id"]
+
+
+def test_migrates_from_the_second_schema_and_back(url):
+    """A database at revision 0002 (records written) gains the history-order index at the first write of this
+    code, keeps its records and reads them in order; downgraded, it loses only that index."""
+    from alembic import command
+    from alembic.config import Config
+
+    engine = make_engine(url)
+    _alembic_upgrade(engine, "0002")
+    engine.dispose()
+    with Registry(url) as registry:
+        assert registry.history("r") == []  # read at 0002: not migrated by a reader
+        with registry.engine.connect() as connection:
+            assert connection.execute(text("SELECT version_num FROM alembic_version")).scalar() == "0002"
+        times = [_t0() + timedelta(hours=h) for h in (3, 1, 2)]
+        registry.record("r", result_document(), time=times[0])  # migrates to the newest revision first
+        for when in times[1:]:
+            registry.record("r", result_document(), time=when)
+        assert [r.time for r in registry.history("r")] == sorted(times)
+        with registry.engine.connect() as connection:
+            assert connection.execute(text("SELECT version_num FROM alembic_version")).scalar() == head_revision()
+            assert "ix_records_robot_time_id" in {i["name"] for i in inspect(connection).get_indexes("records")}
+        config = Config()
+        config.set_main_option("script_location", str(MIGRATIONS))
+        with registry.engine.begin() as connection:
+            config.attributes["connection"] = connection
+            command.downgrade(config, "0002")
+        with registry.engine.connect() as connection:
+            indexes = {i["name"] for i in inspect(connection).get_indexes("records")}
+        assert "ix_records_robot_time_id" not in indexes and "ix_records_robot_camera_time" in indexes
+        assert len(registry.history("r")) == 3
+
+
+def test_history_reads_in_index_order_on_sqlite(tmp_path):
+    """A robot's whole history is read through the (robot, time, id) index: no sort of its records afterwards."""
+    from sqlalchemy import select
+
+    from mirror_fg.registry.models import CameraRecord, Run
+
+    url = f"sqlite:///{tmp_path / 'registry.db'}"
+    with Registry(url) as registry:
+        registry.record("r", result_document())
+        query = (select(CameraRecord.id, Run.host).join(Run, Run.id == CameraRecord.run_id)
+                 .where(CameraRecord.robot == "r").order_by(CameraRecord.time, CameraRecord.id))
+        sql = str(query.compile(registry.engine, compile_kwargs={"literal_binds": True}))
+        with registry.engine.connect() as connection:
+            plan = " ".join(str(row[-1]) for row in connection.exec_driver_sql("EXPLAIN QUERY PLAN " + sql))
+    assert "ix_records_robot_time_id" in plan and "TEMP B-TREE" not in plan, plan
 
 
 def test_the_models_are_the_migrations(url):
@@ -148,6 +198,19 @@ def test_a_newer_schema_is_refused_in_one_line(url):
             with pytest.raises(RegistryError) as error:
                 call()
             assert "newer than this mirror-fg knows" in str(error.value) and "\n" not in str(error.value)
+
+
+def test_a_query_that_fails_is_one_line(url):
+    """A registry whose records table is gone (its revision still there): history's query fails on the server, one
+    RegistryError line with the database's own words (PostgreSQL's rows are read by the driver itself)."""
+    with Registry(url) as registry:
+        registry.record("r", result_document())
+        with registry.engine.begin() as connection:
+            connection.execute(text("DROP TABLE records"))
+        with pytest.raises(RegistryError) as error:
+            registry.history("r")
+    message = str(error.value)
+    assert "cannot read the history" in message and "records" in message and "\n" not in message, message
 
 
 def test_unusable_databases_are_one_line(tmp_path, postgres_cluster_or_none):

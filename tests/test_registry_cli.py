@@ -212,3 +212,23 @@ def test_verify_records_its_verification(tmp_path):
     assert verification.verdict == written["cameras"][verification.camera]["verdict"]
     # no URL, no robot: nothing is recorded and nothing is asked
     assert run_cli("verify", str(result), str(today), "--tolerance-mm", "10", "--tolerance-deg", "1").returncode in (0, 5)
+
+
+def test_verify_with_a_database_that_cannot_record_keeps_its_file(tmp_path, capsys):
+    """verify's verification@1 is written before the record: a read-only or down registry costs it nothing, the run
+    ends with exit 2 and one line saying the record was not stored (whatever the verdict)."""
+    stored, today = tmp_path / "stored.json", tmp_path / "today.json"
+    assert main(["simulate", "--mirrors", "1", "--images", "20", "--fiducials", "4", "--sigma", "0.1", "--seed", "1",
+                 "-o", str(stored), "-q"]) == 0
+    assert main(["simulate", "--mirrors", "1", "--images", "3", "--fiducials", "4", "--sigma", "0.1", "--seed", "2",
+                 "-o", str(today), "-q"]) == 0
+    result = tmp_path / "stored.result.json"
+    assert main(["calibrate", str(stored), "-o", str(result), "--no-ros", "-q"]) == 0
+    for kind in ("read-only", "down"):
+        out = tmp_path / f"verification-{kind}.json"
+        capsys.readouterr()
+        status = main(["verify", str(result), str(today), "-o", str(out), "--registry", _unusable(kind, tmp_path),
+                       "--robot", "arm"])
+        [line] = capsys.readouterr().err.splitlines()
+        assert status == 2 and "the record was not stored" in line and f"{out.name} is written" in line, line
+        assert json.loads(out.read_text())["format"] == "mirror-fg/verification@1"

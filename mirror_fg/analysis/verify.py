@@ -22,7 +22,10 @@ stored covariance, in both fits), every mirror placement of the new data is a ne
 cameras (a Schur complement), in the stored covariance's units: the eigenvalues ``lambda_i`` of
 ``L^T N L`` (``S = L L^T``). A direction with ``lambda_i`` below :data:`SEEN` is one the new data cannot
 see (one mirror placement absorbs any rotation about a line in its plane: three of six); there the
-"free" fit keeps the stored prior, so it adds nothing to ``d2``, and ``k`` counts the others. Where
+"free" fit holds the camera by :data:`UNSEEN_WEIGHT` of the stored prior (under 1 % of a degree of freedom
+in ``d2``), and ``k`` counts the others. Not by all of it: the poses the images cannot tell apart are a
+curved family (turned about the placements' common line) that leaves the stored tangent, and after a large
+move the whole prior there keeps the free camera off it (no pose it allows fits the images). Where
 ``k = 6`` the move ``delta`` (new minus stored) has the combined covariance ``C = S + N^-1``. The
 smallest move detectable at ``alpha`` with power 0.9 has non-centrality ``lambda*``
 (``P(ncx2_k(lambda*) > chi2_k^-1(1 - alpha)) = 0.9``); in the worst direction it is
@@ -79,6 +82,11 @@ SEEN = 1e-6
 #: The "free" fit's prior in the seen directions, as a fraction of the stored information: it keeps LM's
 #: system regular and changes ``d2`` by less than this over ``SEEN`` (1 %).
 FREE_WEIGHT = 1e-8
+#: The "free" fit's prior in the unseen directions, as a fraction of the stored information: it picks one
+#: pose of the family the images cannot tell apart (the one nearest the stored), lets a direction with
+#: information below ``SEEN`` change ``d2`` by less than ``SEEN`` over this (1 % of a chi-square degree of
+#: freedom) and, unlike the whole stored prior, lets the free camera follow that family after a large move.
+UNSEEN_WEIGHT = 1e-4
 #: LM iterations of each fit.
 MAX_ITERATIONS = 100
 
@@ -225,6 +233,10 @@ def _verification_dataset(result: Mapping[str, Any], dataset: Dataset,
     """``dataset`` with the stored intrinsics (their values; none left to estimate) and the stored
     reconstruction points as known points, and the intrinsics the result estimated with their stored
     covariances; one line (DatasetError) where the result and the data cannot be from one set-up."""
+    if dataset.robot is not None or result.get("mounts"):  # the target or the camera rides the arm's joints
+        what = f"{dataset.source}: images with joint states" if dataset.robot is not None else f"{source}: an arm's result"
+        raise DatasetError(f"{what}: verify tests cameras fixed in the base frame, not an arm's mounts; calibrate "
+                           "again and compare with mirror-fg history")
     stored = stored_cameras(result)
     names = camera_names(dataset)
     unknown = [n for n in names if n not in stored]
@@ -362,8 +374,8 @@ def _seen(stored_tangent: np.ndarray, information: np.ndarray) -> tuple[np.ndarr
 
 def _free_information(lam: np.ndarray, U: np.ndarray, L: np.ndarray) -> np.ndarray:
     """The free fit's prior (tangent information): :data:`FREE_WEIGHT` of the stored one in the seen
-    directions, all of it in the unseen ones (there free and held fits agree)."""
-    weights = np.where(lam > SEEN, FREE_WEIGHT, 1.0)
+    directions, :data:`UNSEEN_WEIGHT` of it in the unseen ones (module docstring)."""
+    weights = np.where(lam > SEEN, FREE_WEIGHT, UNSEEN_WEIGHT)
     L_inv = np.linalg.inv(L)
     F = L_inv.T @ (U * weights) @ U.T @ L_inv
     return 0.5 * (F + F.T)

@@ -73,6 +73,7 @@ class CameraRecord(Base):
     __table_args__ = (
         UniqueConstraint("run_id", "camera", name="uq_records_run_camera"),
         Index("ix_records_robot_camera_time", "robot", "camera", "time"),  # revision 2
+        Index("ix_records_robot_time_id", "robot", "time", "id"),  # revision 3: history in its order, unsorted
     )
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)

@@ -9,6 +9,7 @@ newer mirror-fg wrote it) is refused in one line (exit 2).
 """
 from __future__ import annotations
 
+import functools
 import os
 from pathlib import Path
 from typing import Any
@@ -108,9 +109,16 @@ def _script() -> Any:
     return config, ScriptDirectory.from_config(config)
 
 
+@functools.lru_cache(maxsize=1)
 def head_revision() -> str:
-    """The newest schema revision this code knows."""
+    """The newest schema revision this code knows (the package's migrations: read once)."""
     return _script()[1].get_current_head()
+
+
+@functools.lru_cache(maxsize=1)
+def _revisions() -> frozenset[str]:
+    """Every schema revision this code knows (read once: every reader checks the database's against them)."""
+    return frozenset(script.revision for script in _script()[1].walk_revisions())
 
 
 def database_revision(connection: Connection) -> str | None:
@@ -121,12 +129,7 @@ def database_revision(connection: Connection) -> str | None:
 
 
 def _known(revision: str | None) -> bool:
-    if revision is None:
-        return True
-    try:
-        return _script()[1].get_revision(revision) is not None
-    except Exception:  # noqa: BLE001 - alembic's own "no such revision"
-        return False
+    return revision is None or revision in _revisions()
 
 
 def check_revision(revision: str | None, url: str) -> None:
