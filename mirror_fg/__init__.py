@@ -38,6 +38,7 @@ _PUBLIC = {
     "Registry": "mirror_fg.registry.store",
     "SolveError": "mirror_fg.core.errors",
     "SolveOptions": "mirror_fg.solver.options",
+    "IncrementalOptions": "mirror_fg.solver.options",
     "Transform": "mirror_fg.core.transform",
     "calibrate": "mirror_fg.solver.calibrate",
     "calibrate_incremental": "mirror_fg.solver.incremental.calibrator",
@@ -104,7 +105,7 @@ if _TYPE_CHECKING:  # the names as static analysers and IDEs see them
     from mirror_fg.solver.result.calibration import Calibration  # noqa: F401 - re-exported
     from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator, calibrate_incremental  # noqa: F401 - re-exported
     from mirror_fg.solver.start.initial import initial_estimate  # noqa: F401 - re-exported
-    from mirror_fg.solver.options import SolveOptions  # noqa: F401 - re-exported
+    from mirror_fg.solver.options import IncrementalOptions, SolveOptions  # noqa: F401 - re-exported
     from mirror_fg.report.verdict import judge  # noqa: F401 - re-exported
 
     __version__: str

@@ -20,7 +20,7 @@ CAPTURE = REPO / "tests" / "data" / "capture" / "takahashi.yaml"
 
 PUBLIC = {
     "__version__", "AnalyticSolution", "Calibration", "Camera", "Dataset", "DatasetError", "Image",
-    "IncrementalCalibrator", "MirrorFgError", "Registry", "SolveError", "SolveOptions", "Transform", "calibrate", "calibrate_incremental",
+    "IncrementalCalibrator", "IncrementalOptions", "MirrorFgError", "Registry", "SolveError", "SolveOptions", "Transform", "calibrate", "calibrate_incremental",
     "dataset_from_dict", "initial_estimate", "load_capture", "load_dataset", "load_result", "save_dataset",
     "solve_analytic", "write_result", "judge",
 }

@@ -33,8 +33,8 @@ def _imports(path: Path) -> tuple[set[str], set[str]]:
 
 def test_calibrate_and_intrinsics_import_each_other_in_one_direction_only():
     calibrate_top, calibrate_inner = _imports(SOLVER / "calibrate.py")
-    pixel_top, pixel_inner = _imports(SOLVER / "pixel_problem.py")
-    intrinsics_top, intrinsics_inner = _imports(SOLVER / "intrinsics.py")
+    pixel_top, pixel_inner = _imports(SOLVER / "batch" / "pixel_problem.py")
+    intrinsics_top, intrinsics_inner = _imports(SOLVER / "batch" / "intrinsics.py")
     assert "mirror_fg.solver.batch.pixel_problem" in calibrate_top and "mirror_fg.solver.batch.intrinsics" in pixel_top
     assert "mirror_fg.solver.batch.intrinsics" not in calibrate_inner | pixel_inner
     assert "mirror_fg.solver.calibrate" not in pixel_top | pixel_inner
@@ -51,6 +51,6 @@ def test_the_general_view_model_does_not_import_the_pipeline_entry_back():
     """calibrate.py imports views_solve.py; views_solve.py reaches the tree problem directly (its rule 2),
     never calibrate.py (at the top or inside a function)."""
     calibrate_top, _ = _imports(SOLVER / "calibrate.py")
-    views_top, views_inner = _imports(SOLVER / "views_solve.py")
+    views_top, views_inner = _imports(SOLVER / "batch" / "views_solve.py")
     assert "mirror_fg.solver.batch.views_solve" in calibrate_top
     assert "mirror_fg.solver.calibrate" not in views_top | views_inner

@@ -8,12 +8,13 @@ them (``factors/eliminated.py``) where the data allow it, else stacked (see :met
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 from dataclasses import dataclass, replace
 from enum import Enum
 
 from mirror_fg.factors.robust import check_kernel
 
-__all__ = ["Linearization", "Progress", "SolveOptions", "STAGES"]
+__all__ = ["Linearization", "Progress", "SolveOptions", "IncrementalOptions", "STAGES"]
 
 #: ``progress(stage, done, total)``: called as each stage of ``calibrate`` advances (``total`` None
 #: where it is not known in advance).
@@ -78,3 +79,36 @@ class SolveOptions:
         """Whether to build the eliminated graph: asked for, no robust kernel (the elimination solves
         the placements by least squares) and ``allowed`` (``lm.ELIMINATE``, the switch tests turn off)."""
         return self.linearization is Linearization.ELIMINATED and self.robust is None and allowed
+
+
+@dataclass(frozen=True)
+class IncrementalOptions:
+    """The settings of the incremental path (iSAM2: :class:`~mirror_fg.solver.incremental.IncrementalCalibrator`,
+    :func:`~mirror_fg.solver.incremental.calibrate_incremental`), one value as :class:`SolveOptions` is
+    for the batch.
+
+    robust: ``None``, ``"huber"`` or ``"cauchy"`` (another name: ValueError). points: the reconstruction
+    points to estimate (None: those the dataset names). thresholds: iSAM2's relinearisation thresholds
+    (``incremental.state.RelinearizeThresholds``; None: its defaults, the one place they are set). seed:
+    the consensus's random choices. accept_poor_fit: a final estimate that fits worse than the noise model
+    allows is kept (``calibrate_incremental``).
+    """
+
+    robust: str | None = None
+    points: tuple[str, ...] | None = None
+    thresholds: Any = None
+    seed: int = 0
+    accept_poor_fit: bool = False
+
+    def __post_init__(self) -> None:
+        check_kernel(self.robust)
+        if self.points is not None:
+            object.__setattr__(self, "points", tuple(self.points))
+
+    def backend_options(self) -> dict[str, Any]:
+        """The keywords the incremental backends take."""
+        return {"points": self.points, "robust": self.robust, "thresholds": self.thresholds, "seed": self.seed}
+
+    def solve_options(self) -> SolveOptions:
+        """The batch settings of the checks the incremental path runs (consistency, splits)."""
+        return SolveOptions(robust=self.robust)

@@ -33,7 +33,7 @@ from mirror_fg.solver.screen.consistency import diagnose_inconsistency, misfits_
 from mirror_fg.solver.incremental.state import RelinearizeThresholds
 from mirror_fg.solver.incremental.tree import LeavesTheTree, TreeIncrementalCalibrator
 from mirror_fg.solver.incremental.views import ViewsIncrementalCalibrator, calibrate_views_incremental
-from mirror_fg.solver.options import SolveOptions
+from mirror_fg.solver.options import IncrementalOptions
 from mirror_fg.solver.start.placement_tree import complete_tree
 
 if TYPE_CHECKING:
@@ -58,10 +58,13 @@ class IncrementalCalibrator:
     graph; ``marginal_covariance()`` gives covariances on demand.
     """
 
-    def __init__(self, dataset: Dataset | Mapping[str, Any], *, points: Iterable[str] | None = None,
-                 robust: str | None = None, thresholds: RelinearizeThresholds | None = None, seed: int = 0) -> None:
+    def __init__(self, dataset: Dataset | Mapping[str, Any], options: IncrementalOptions | None = None, *,
+                 points: Iterable[str] | None = None, robust: str | None = None,
+                 thresholds: RelinearizeThresholds | None = None, seed: int = 0) -> None:
         dataset = as_dataset(dataset, "IncrementalCalibrator()")
-        self._options: dict[str, Any] = {"points": points, "robust": robust, "thresholds": thresholds, "seed": seed}
+        #: The settings (:class:`~mirror_fg.solver.options.IncrementalOptions`): ``options``, or the keywords.
+        self.options = _options_of(options, points=points, robust=robust, thresholds=thresholds, seed=seed)
+        self._options: dict[str, Any] = self.options.backend_options()
         self._dataset = dataset
         self._given: list[Image | Mapping[str, Any]] = []  # every image the backend took, in order (handed over on leaving the tree)
         #: The graph and iSAM2: ``TreeIncrementalCalibrator`` or ``ViewsIncrementalCalibrator``.
@@ -176,6 +179,7 @@ def calibrate_incremental(
     on_estimate: Callable[[int, Calibration], None] | None = None,
     on_wait: Callable[[int, str], None] | None = None,
     accept_poor_fit: bool = False,
+    options: IncrementalOptions | None = None,
 ) -> Calibration:
     """Stream ``dataset``'s images in file order through :class:`IncrementalCalibrator` and return the
     full final calibration (``calibration(full=True)``).
@@ -190,11 +194,12 @@ def calibrate_incremental(
     refused as inconsistent with the estimate are asked whether they fit a pose of their own.
     """
     dataset = as_dataset(dataset)
+    options = _options_of(options, robust=robust, accept_poor_fit=accept_poor_fit)
     check_cameras_named(dataset.cameras, (image.camera for image in dataset.images), dataset.source)
-    if not dataset.is_tree:  # the general view model (incremental_views.py)
-        return calibrate_views_incremental(dataset, robust=robust, on_estimate=on_estimate, on_wait=on_wait,
-                                           accept_poor_fit=accept_poor_fit)
-    calibrator = IncrementalCalibrator(dataset, robust=robust)
+    if not dataset.is_tree:  # the general view model (incremental/views.py)
+        return calibrate_views_incremental(dataset, robust=options.robust, on_estimate=on_estimate, on_wait=on_wait,
+                                           accept_poor_fit=options.accept_poor_fit)
+    calibrator = IncrementalCalibrator(dataset, options)
     started = False
     for index, image in enumerate(dataset.images, start=1):
         estimate = calibrator.add_image(image)
@@ -211,8 +216,19 @@ def calibrate_incremental(
     if calibration.converged:
         order = {image.id: i for i, image in enumerate(dataset.images)}
         in_graph = sorted((im for im in calibrator.dataset.images if im.id in order), key=lambda im: order[im.id])
-        options = SolveOptions(robust=robust)
-        calibration.inconsistency = (misfits_split(dataset, in_graph, calibrator.misfits, options)
+        solve_options = options.solve_options()
+        calibration.inconsistency = (misfits_split(dataset, in_graph, calibrator.misfits, solve_options)
                                      or diagnose_inconsistency(replace(dataset, images=in_graph), calibration,
-                                                               options=options))
-    return require_converged(calibration, dataset.source, "iSAM2", accept_poor_fit=accept_poor_fit)
+                                                               options=solve_options))
+    return require_converged(calibration, dataset.source, "iSAM2", accept_poor_fit=options.accept_poor_fit)
+
+
+def _options_of(options: IncrementalOptions | None, **keywords: Any) -> IncrementalOptions:
+    """``options``, or an :class:`IncrementalOptions` of the keywords given instead (both: TypeError)."""
+    defaults = IncrementalOptions()
+    given = {k: v for k, v in keywords.items() if v != getattr(defaults, k)}
+    if options is None:
+        return IncrementalOptions(**keywords)
+    if given:
+        raise TypeError(f"give the settings in options= or as keywords, not both ({', '.join(sorted(given))})")
+    return options
