@@ -20,6 +20,7 @@ from gtsam.symbol_shorthand import L, M, O, V
 
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.robot import RobotViewFactor, adjoint, inverse
+from mirror_fg.factors.robot_stack import stacked_robot_factors
 from mirror_fg.factors.views import plane_of, vector_of_plane
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.io.point_sigma import normalized_sigmas
@@ -129,9 +130,11 @@ class RobotProblem:
             np.asarray(values.atVector(self.offset_key), float) if self.offset_key is not None else np.zeros(0))
 
     def graph(self) -> gtsam.NonlinearFactorGraph:
+        """Every image's factor, those of one shape stacked (``factors/robot_stack.py``: one call per
+        placement per LM step instead of one per image), and the joint offsets' prior."""
         graph = gtsam.NonlinearFactorGraph()
-        for factor in self.factors:
-            graph.add(factor.factor())
+        for factor in stacked_robot_factors(self.factors):
+            graph.add(factor)
         if self.offset_key is not None:  # the encoders' zero: a zero-mean prior of the given sigma
             sigmas = np.array([self.setup.offset_sigma[n] for n in self.offsets])
             graph.add(gtsam.PriorFactorVector(self.offset_key, np.zeros(len(sigmas)),
