@@ -25,7 +25,7 @@ from mirror_fg.factors.robot import RobotViewFactor, adjoint, inverse
 from mirror_fg.factors.robust import robust_row_scales
 from mirror_fg.factors.views import vector_of_plane
 
-__all__ = ["stackable", "RobotStack", "stacked_robot_factors"]
+__all__ = ["stackable", "RobotStack", "robot_stacks", "stacked_robot_factors"]
 
 
 def stackable(factor: RobotViewFactor) -> bool:
@@ -195,17 +195,23 @@ class RobotStack:
         return gtsam.CustomFactor(noise, self.keys, self.error)
 
 
-def stacked_robot_factors(factors: Sequence[RobotViewFactor]) -> list[gtsam.CustomFactor]:
-    """The factors of an arm's images: the stackable ones of one shape (module docstring) in one
-    :class:`RobotStack` each, the others (reconstruction points) their own :class:`RobotViewFactor` s."""
-    shapes: dict[tuple, list[RobotViewFactor]] = {}
-    out = []
-    for f in factors:
+def robot_stacks(factors: Sequence[RobotViewFactor]) -> tuple[list[tuple[list[int], RobotStack]], list[int]]:
+    """The stacks of ``factors`` (module docstring), each with its images' indices in ``factors``, and the
+    indices of the images that stay alone (reconstruction points)."""
+    shapes: dict[tuple, list[int]] = {}
+    alone = []
+    for i, f in enumerate(factors):
         if not stackable(f):
-            out.append(f.factor())
+            alone.append(i)
             continue
         shape = (f.reflections, tuple(f.keys), f.target_points.shape[1], f.robust, f.robust_k,
                  tuple((role, R.tobytes(), np.asarray(t).tobytes()) for role, (R, t) in sorted(f.known.items())))
-        shapes.setdefault(shape, []).append(f)
-    out.extend(RobotStack(members).factor() for members in shapes.values())
-    return out
+        shapes.setdefault(shape, []).append(i)
+    return [(members, RobotStack([factors[i] for i in members])) for members in shapes.values()], alone
+
+
+def stacked_robot_factors(factors: Sequence[RobotViewFactor]) -> list[gtsam.CustomFactor]:
+    """The factors of an arm's images: the stackable ones of one shape (module docstring) in one
+    :class:`RobotStack` each, the others (reconstruction points) their own :class:`RobotViewFactor` s."""
+    stacks, alone = robot_stacks(factors)
+    return [factors[i].factor() for i in alone] + [stack.factor() for _, stack in stacks]

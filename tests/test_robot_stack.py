@@ -102,3 +102,21 @@ def test_stacked_graph_keeps_images_with_reconstruction_points_alone() -> None:
     graph = stacked_robot_factors(factors)
     assert len(graph) == 3  # one per placement, and the image with a reconstruction point alone
     assert sorted(g.dim() for g in graph) == [8, 16, 24]
+
+
+def test_problem_predictions_are_each_images_factors(tmp_path) -> None:
+    from mirror_fg.io.dataset import load_dataset
+    from mirror_fg.robot.simulate import simulate_arm, write_arm_simulation
+    from mirror_fg.solver.robot_views import RobotEstimate, RobotProblem
+
+    dataset, truth = simulate_arm("arm6", False, placements=3, arm_poses=4, seed=1,
+                                  joint_offsets_deg={"elbow_joint": 0.3})
+    path = tmp_path / "arm.json"
+    write_arm_simulation(str(path), dataset, truth)
+    problem = RobotProblem(load_dataset(path))
+    values = problem.values(RobotEstimate({r: p for r, (_, p) in truth.mounts.items()}, dict(truth.mirror_vectors),
+                                          {}, np.array([0.004])))
+    stacks, alone = problem.stacks
+    assert len(stacks) == 3 and not alone  # one per placement
+    for z, factor in zip(problem.predictions(values), problem.factors):
+        assert np.allclose(z, factor.predict(values), rtol=0, atol=1e-14)
