@@ -191,16 +191,27 @@ class RobotProblem:
         residuals: list[np.ndarray] = []
         whitened: list[np.ndarray] = []
         labels: list[tuple[str, str]] = []
-        for image, factor, observed, z in zip(self.dataset.images, self.factors, self.normalized, self.predictions(values)):
+        by_camera: dict[int, list[int]] = {}  # images distorted together, one call per camera
+        predictions = self.predictions(values)
+        for i, (image, factor, observed, z) in enumerate(zip(self.dataset.images, self.factors, self.normalized, predictions)):
             whitened.append(np.linalg.norm((z - observed) / factor.sigmas, axis=0))
             camera = self.dataset.camera_of(image)
             names = list(image.observations)
             if camera is not None:
-                raw = np.array([image.observations[n] for n in names], float).reshape(-1, 2)
-                residuals.append(camera.distort(z.T) - raw)
+                by_camera.setdefault(id(camera), []).append(i)
+                residuals.append(np.array([image.observations[n] for n in names], float).reshape(-1, 2))  # raw
             else:
                 residuals.append((z - observed).T)
             labels.extend((image.id, n) for n in names)
+        for members in by_camera.values():
+            camera = self.dataset.camera_of(self.dataset.images[members[0]])
+            assert camera is not None
+            pixels = camera.distort(np.vstack([predictions[i].T for i in members]))  # each point on its own
+            start = 0
+            for i in members:
+                count = len(residuals[i])
+                residuals[i] = pixels[start:start + count] - residuals[i]
+                start += count
         return np.vstack(residuals), np.concatenate(whitened), labels
 
     # ------------------------------------------------------------------ covariances
