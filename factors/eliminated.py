@@ -1,7 +1,7 @@
 """Reflection factors with the last mirror's placements eliminated (Schur complement), the way GTSAM's
 ``SmartProjectionFactor`` eliminates its landmark (Hesch et al., eqs. 5, 9, 23).
 
-Why (issue 14): inside GTSAM's optimizers every Python factor call receives a copy of the whole
+Why: inside GTSAM's optimizers every Python factor call receives a copy of the whole
 ``Values``, so a graph with one ``Point3`` per image (the last mirror moves in every image) costs
 (factor calls) x (unknowns) = O(n^2). Here the last mirror's placements never enter the ``Values``:
 

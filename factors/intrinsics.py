@@ -1,4 +1,4 @@
-"""Pixel-predicting reflection factors: the camera intrinsics as one shared unknown (issue 16).
+"""Pixel-predicting reflection factors: the camera intrinsics as one shared unknown.
 
 Where ``camera.estimate`` names intrinsics, a measurement is no longer undistorted once with fixed
 intrinsics: the factor predicts the *pixel* (Hesch et al. eqs. 2, 3, 5-9 to the normalized point

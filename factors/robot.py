@@ -26,8 +26,8 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from mirror_fg.factors.robust import ROBUST_K, check_kernel, robust_row_scales
-from mirror_fg.factors.views import ViewSlots, vector_of_plane, view_model
+from mirror_fg.factors.robust import ROBUST_K, check_kernel
+from mirror_fg.factors.views import ViewSlots, landmark_blocks, planes_at, points_at, scaled_error, view_model
 
 __all__ = ["RobotViewFactor", "adjoint", "compose", "inverse", "CAMERA"]
 
@@ -111,14 +111,8 @@ class RobotViewFactor:
 
     def _state(self, values: gtsam.Values):
         state = self.poses(values)
-        mirrors, mirror_jacobians = {}, {}
-        for p, key in self.mirror_keys.items():
-            mirrors[p], mirror_jacobians[p] = vector_of_plane(values.atOrientedPlane3(key))
-        B = self.target_points.copy()
-        for j, key in enumerate(self.landmark_keys):
-            if key >= 0:
-                B[:, j] = values.atPoint3(int(key))
-        return state, mirrors, B, mirror_jacobians
+        mirrors, mirror_jacobians = planes_at(values, self.mirror_keys)
+        return state, mirrors, points_at(values, self.target_points, self.landmark_keys), mirror_jacobians
 
     def predict(self, values: gtsam.Values) -> np.ndarray:
         """Predicted normalized coordinates (2, N) at ``values``."""
@@ -149,12 +143,7 @@ class RobotViewFactor:
         slots = self.slots if jacobians is not None else None
         z, dz, dzB, d_u, d_a = self._model(state, mirrors, B, slots)
         residual = z - self.observed
-        scale = np.ones(residual.shape[1])
-        if self.robust is not None:
-            norms = np.linalg.norm(residual / self.sigmas, axis=0)
-            sqrt_w, loss_scale = robust_row_scales(self.robust, norms, self.robust_k)
-            scale = sqrt_w if jacobians is not None else loss_scale
-        error = (residual * scale).T.reshape(-1)
+        error, scale = scaled_error(residual, self.sigmas, self.robust, self.robust_k, jacobians is not None)
         if jacobians is None:
             return error
         assert dz is not None and dzB is not None
@@ -174,11 +163,7 @@ class RobotViewFactor:
             c = self.slots.mirror_cols[p]
             jacobians[k] = J[:, c:c + 3] @ d_u[p] @ mirror_jacobians[p]
             k += 1
-        JB = np.transpose(dzB * scale, (2, 0, 1))  # (N, 2, 3)
-        for key in self.unique_landmarks:
-            block = np.zeros((rows, 3))
-            for j in np.flatnonzero(self.landmark_keys == key):
-                block[2 * j:2 * j + 2] = JB[j]
+        for block in landmark_blocks(dzB, scale, self.landmark_keys, self.unique_landmarks):
             jacobians[k] = block
             k += 1
         if self.offset_key is not None:

@@ -3,7 +3,7 @@ weight and loss of GTSAM's mEstimators, the per-measurement row scales of a stac
 robust noise model.
 
 No numpy or GTSAM at module level: the command line shows :data:`KERNELS` and :data:`ROBUST_K` in its help
-without loading either (issue 27's start-up); the functions import them when called.
+without loading either (to keep the start-up fast); the functions import them when called.
 
 Kernels (``e`` a measurement's whitened residual norm, ``k`` the threshold in sigmas), as GTSAM's
 ``noiseModel.mEstimator``:

@@ -27,6 +27,7 @@ Jacobians and whole calibrations against the per-view factors.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -91,7 +92,7 @@ class _Group:
         b, _, n = B.shape
         x = np.einsum("ij,bjn->bin", R_c, B) + t_c[None, :, None]  # eq. (2)
         size = self.slots.size
-        dx = None
+        dx: Any = None
         if jacobians:
             dx = np.zeros((b, 3, size, n))
             if self.camera in self.pose_cols:
@@ -102,12 +103,12 @@ class _Group:
                 dx[:, :, c:c + 3, :] = -np.einsum("ij,bjkn->bikn", R_c, S)  # d(R Exp(w) B)/dw = -R [B]x
                 dx[:, :, c + 3:c + 6, :] = R_c[None, :, :, None]  # d(t + R nu)/dnu = R
         v_all = np.array([[vectors[p] for p in ps] for ps in self.placements])  # (b, U, 3)
-        J_all = np.array([[plane_jacobians[p] for p in ps] for ps in self.placements]) if jacobians else None
+        J_all: Any = np.array([[plane_jacobians[p] for p in ps] for ps in self.placements]) if jacobians else None
         offset = 6 * len(self.pose_cols)
         for owner, u in self.steps:
             v_o = v_all[:, u]
             col = offset + 3 * u
-            dv = None
+            dv: Any = None
             if owner == self.camera:
                 v = v_o
                 if jacobians:
@@ -197,8 +198,8 @@ class ViewStackEvaluator:
         stacks = {k: members for k, (_, members) in enumerate(merged)}
         shapes: dict[tuple, list[int]] = {}
         for i, f in enumerate(view_factors):
-            placements = list(dict.fromkeys(f.reflections))
-            shape = (f.camera, tuple((f.owners[p], placements.index(p)) for p in f.reflections),
+            order = list(dict.fromkeys(f.reflections))
+            shape = (f.camera, tuple((f.owners[p], order.index(p)) for p in f.reflections),
                      tuple(f.pose_keys), f.base_points.shape[1], f.robust, f.robust_k)
             shapes.setdefault(shape, []).append(i)
         self.groups = [_Group([view_factors[i] for i in members]) for members in shapes.values()]
@@ -311,7 +312,9 @@ class ViewStackEvaluator:
                 assert dz is not None
                 if scale is not None:
                     dz = dz * scale[:, None, None, :]
-                self._jac[group.jacobian_entries] = np.transpose(dz, (0, 3, 1, 2)).reshape(group.jacobian_entries.shape)
+                entries = group.jacobian_entries
+                assert entries is not None  # set when the stacks were laid out
+                self._jac[entries] = np.transpose(dz, (0, 3, 1, 2)).reshape(entries.shape)
         self._has_jacobians = jacobians
 
     def _error_function(self, s: int):

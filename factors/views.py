@@ -35,7 +35,8 @@ import numpy as np
 from mirror_fg.factors.intrinsics import IntrinsicsModel, pixel_jacobians
 from mirror_fg.factors.robust import ROBUST_K, check_kernel, robust_row_scales
 
-__all__ = ["ViewSlots", "view_model", "ViewFactor", "transfer_mirror_vector", "plane_of", "vector_of_plane"]
+__all__ = ["ViewSlots", "view_model", "ViewFactor", "transfer_mirror_vector", "plane_of", "vector_of_plane", "planes_at",
+           "points_at", "scaled_error", "landmark_blocks"]
 
 
 def plane_of(v: np.ndarray) -> gtsam.OrientedPlane3:
@@ -169,6 +170,48 @@ def _skew_many(B: np.ndarray) -> np.ndarray:
     return S
 
 
+def planes_at(values: gtsam.Values, mirror_keys: dict) -> tuple[dict, dict]:
+    """Each placement's mirror vector (its plane variable's, :func:`vector_of_plane`) and that vector's
+    3x3 derivative in the plane's local coordinates, at ``values``."""
+    mirrors, mirror_jacobians = {}, {}
+    for p, key in mirror_keys.items():
+        mirrors[p], mirror_jacobians[p] = vector_of_plane(values.atOrientedPlane3(key))
+    return mirrors, mirror_jacobians
+
+
+def points_at(values: gtsam.Values, base_points: np.ndarray, landmark_keys: np.ndarray) -> np.ndarray:
+    """The view's points in {B} (3, N): the known ones as given, each unknown one (key >= 0) at ``values``."""
+    B = base_points.copy()
+    for j, key in enumerate(landmark_keys):
+        if key >= 0:
+            B[:, j] = values.atPoint3(int(key))
+    return B
+
+
+def scaled_error(residual: np.ndarray, sigmas: np.ndarray, robust: str | None, robust_k: float,
+                 linearizing: bool) -> tuple[np.ndarray, np.ndarray]:
+    """``(error, scale)``: the residuals (2, N) measurement-major, each measurement scaled for the robust
+    kernel (``robust.robust_row_scales``: the square-root weight where the factor is linearised, the
+    loss scale where only its cost is asked), and that per-measurement scale (ones without a kernel)."""
+    scale = np.ones(residual.shape[1])
+    if robust is not None:
+        norms = np.linalg.norm(residual / sigmas, axis=0)
+        sqrt_w, loss_scale = robust_row_scales(robust, norms, robust_k)
+        scale = sqrt_w if linearizing else loss_scale
+    return (residual * scale).T.reshape(-1), scale
+
+
+def landmark_blocks(dzB: np.ndarray, scale: np.ndarray, landmark_keys: np.ndarray, unique_landmarks: list[int]):
+    """The Jacobian block (2N, 3) of each unknown point in ``unique_landmarks``' order: its measurements'
+    rows of ``dzB`` (2, 3, N), scaled as :func:`scaled_error` scales the residuals."""
+    JB = np.transpose(dzB * scale, (2, 0, 1))  # (N, 2, 3)
+    for key in unique_landmarks:
+        block = np.zeros((2 * dzB.shape[2], 3))
+        for j in np.flatnonzero(landmark_keys == key):
+            block[2 * j:2 * j + 2] = JB[j]
+        yield block
+
+
 class ViewFactor:
     """The factor of one image (module docstring) as a ``gtsam.CustomFactor``: build with :meth:`factor`.
 
@@ -177,7 +220,7 @@ class ViewFactor:
     ``OrientedPlane3`` variables (module docstring);
     ``owners``: each placement's camera. ``fiducials``: (3, N) base points, NaN columns where
     ``landmark_keys[i]`` (a key, else -1) gives the point. ``observed`` (2, N); ``sigmas`` (2, N).
-    ``intrinsics``: ``(model, key)`` where the camera's intrinsics are estimated (issue 16): then the
+    ``intrinsics``: ``(model, key)`` where the camera's intrinsics are estimated: then the
     factor predicts pixels through them (``factors/intrinsics.py``), ``observed`` and ``sigmas`` are
     pixels, and the intrinsics vector is the last key.
     """
@@ -214,14 +257,8 @@ class ViewFactor:
         for name, key in self.pose_keys.items():
             pose = values.atPose3(key)
             poses[name] = (pose.rotation().matrix(), np.asarray(pose.translation(), dtype=float))
-        mirrors, mirror_jacobians = {}, {}
-        for p, key in self.mirror_keys.items():
-            mirrors[p], mirror_jacobians[p] = vector_of_plane(values.atOrientedPlane3(key))
-        B = self.base_points.copy()
-        for j, key in enumerate(self.landmark_keys):
-            if key >= 0:
-                B[:, j] = values.atPoint3(int(key))
-        return poses, mirrors, B, mirror_jacobians
+        mirrors, mirror_jacobians = planes_at(values, self.mirror_keys)
+        return poses, mirrors, points_at(values, self.base_points, self.landmark_keys), mirror_jacobians
 
     def predict(self, values: gtsam.Values) -> np.ndarray:
         """Predicted normalized coordinates (2, N) at ``values``."""
@@ -248,12 +285,7 @@ class ViewFactor:
                 dzB = np.einsum("ijn,jpn->ipn", D, dzB)
                 dK = T[:, self.intrinsics[0].index, :]
         residual = z - self.observed  # (2, N), h - z
-        scale = np.ones(residual.shape[1])
-        if self.robust is not None:
-            norms = np.linalg.norm(residual / self.sigmas, axis=0)
-            sqrt_w, loss_scale = robust_row_scales(self.robust, norms, self.robust_k)
-            scale = sqrt_w if jacobians is not None else loss_scale
-        error = (residual * scale).T.reshape(-1)
+        error, scale = scaled_error(residual, self.sigmas, self.robust, self.robust_k, jacobians is not None)
         if jacobians is not None:
             assert dz is not None and dzB is not None
             J = np.transpose(dz * scale, (2, 0, 1)).reshape(2 * residual.shape[1], self.slots.size)  # measurement-major
@@ -266,11 +298,7 @@ class ViewFactor:
                 c = self.slots.mirror_cols[p]
                 jacobians[k] = np.ascontiguousarray(J[:, c:c + 3])
                 k += 1
-            JB = np.transpose(dzB * scale, (2, 0, 1))  # (N, 2, 3)
-            for key in self.unique_landmarks:
-                block = np.zeros((2 * residual.shape[1], 3))
-                for j in np.flatnonzero(self.landmark_keys == key):
-                    block[2 * j:2 * j + 2] = JB[j]
+            for block in landmark_blocks(dzB, scale, self.landmark_keys, self.unique_landmarks):
                 jacobians[k] = block
                 k += 1
             if dK is not None:

@@ -21,29 +21,33 @@ from typing import TYPE_CHECKING as _TYPE_CHECKING, Any as _Any
 # Library messages go to the "mirror_fg" logger; applications attach their own handlers.
 _logging.getLogger("mirror_fg").addHandler(_logging.NullHandler())
 
+from mirror_fg import _moved
+
+_moved.install()  # the old import paths of moved modules, for one release
+
 #: Each public name and the module it lives in (imported on first access).
 _PUBLIC = {
-    "AnalyticSolution": "mirror_fg.solver.analytic",
-    "Calibration": "mirror_fg.solver.calibration",
+    "AnalyticSolution": "mirror_fg.solver.start.analytic",
+    "Calibration": "mirror_fg.solver.result.calibration",
     "Camera": "mirror_fg.core.camera",
     "Dataset": "mirror_fg.io.dataset",
     "DatasetError": "mirror_fg.core.errors",
     "Image": "mirror_fg.io.dataset",
-    "IncrementalCalibrator": "mirror_fg.solver.incremental",
+    "IncrementalCalibrator": "mirror_fg.solver.incremental.calibrator",
     "MirrorFgError": "mirror_fg.core.errors",
     "Registry": "mirror_fg.registry.store",
     "SolveError": "mirror_fg.core.errors",
     "SolveOptions": "mirror_fg.solver.options",
     "Transform": "mirror_fg.core.transform",
     "calibrate": "mirror_fg.solver.calibrate",
-    "calibrate_incremental": "mirror_fg.solver.incremental",
+    "calibrate_incremental": "mirror_fg.solver.incremental.calibrator",
     "dataset_from_dict": "mirror_fg.io.dataset",
-    "initial_estimate": "mirror_fg.solver.initial",
-    "judge": "mirror_fg.tools.verdict",
+    "initial_estimate": "mirror_fg.solver.start.initial",
+    "judge": "mirror_fg.report.verdict",
     "load_dataset": "mirror_fg.io.dataset",
     "load_result": "mirror_fg.io.result",
     "save_dataset": "mirror_fg.io.dataset",
-    "solve_analytic": "mirror_fg.solver.analytic",
+    "solve_analytic": "mirror_fg.solver.start.analytic",
     "write_result": "mirror_fg.io.result",
 }
 
@@ -95,12 +99,12 @@ if _TYPE_CHECKING:  # the names as static analysers and IDEs see them
     from mirror_fg.io.dataset import Dataset, Image, dataset_from_dict, load_dataset, save_dataset  # noqa: F401 - re-exported
     from mirror_fg.io.result import load_result, write_result  # noqa: F401 - re-exported
     from mirror_fg.registry.store import Registry  # noqa: F401 - re-exported
-    from mirror_fg.solver.analytic import AnalyticSolution, solve_analytic  # noqa: F401 - re-exported
+    from mirror_fg.solver.start.analytic import AnalyticSolution, solve_analytic  # noqa: F401 - re-exported
     from mirror_fg.solver.calibrate import calibrate  # noqa: F401 - re-exported
-    from mirror_fg.solver.calibration import Calibration  # noqa: F401 - re-exported
-    from mirror_fg.solver.incremental import IncrementalCalibrator, calibrate_incremental  # noqa: F401 - re-exported
-    from mirror_fg.solver.initial import initial_estimate  # noqa: F401 - re-exported
+    from mirror_fg.solver.result.calibration import Calibration  # noqa: F401 - re-exported
+    from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator, calibrate_incremental  # noqa: F401 - re-exported
+    from mirror_fg.solver.start.initial import initial_estimate  # noqa: F401 - re-exported
     from mirror_fg.solver.options import SolveOptions  # noqa: F401 - re-exported
-    from mirror_fg.tools.verdict import judge  # noqa: F401 - re-exported
+    from mirror_fg.report.verdict import judge  # noqa: F401 - re-exported
 
     __version__: str

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Speed and memory of a calibration (issue 6), in one run on this machine.
+"""Speed and memory of a calibration, in one run on this machine.
 
     python scripts/benchmark.py [--repeats 5] [--slow-repeats 3] [--quick] [--profile] [--json out.json]
     python scripts/benchmark.py --scaling [--scaling-max 10000]   # time per stage and memory, 1k..100k images
@@ -48,8 +48,8 @@ CASES = {
     },
 }
 COMMON = {"pixel_sigma": 1.0, "mirror_distance": 0.5, "tilt_deg": 30.0, "seed": 0, "num_mirrors": 2, "num_fiducials": 3}
-GOALS = {"900img": 0.5, "200img+60pts": 1.0}
-ORACLE_GOAL = 0.25  # LM stage / dense numpy LM (dense_lm), measured alternately in one process (issue 27)  # seconds, calibrate() total (900 images: issue 14; issue 6 asked 3 s)
+GOALS = {"900img": 0.5, "200img+60pts": 1.0}  # seconds, calibrate() total
+ORACLE_GOAL = 0.25  # LM stage / dense numpy LM (dense_lm), measured alternately in one process
 LINEARISE_GOAL = 2.0  # x the native floor per measurement
 SPEEDUP_GOAL = 10.0  # x faster than scipy
 MEMORY_GOAL_MB = 1024.0  # 900-image problem with marginals
@@ -60,7 +60,7 @@ MEMORY_GOAL_MB = 1024.0  # 900-image problem with marginals
 
 
 def _dataset(case: str):
-    from mirror_fg.tools.simulate import simulate_base_case
+    from mirror_fg.simulate.tree import simulate_base_case
 
     return simulate_base_case(**CASES[case]["simulate"], **COMMON)
 
@@ -77,7 +77,7 @@ def task_baseline(case: str, repeats: int) -> dict:
     """Interpreter + gtsam + numpy + the dataset: the memory floor of every other task."""
     import gtsam  # noqa: F401
 
-    from mirror_fg.solver.graph import measurements_of
+    from mirror_fg.solver.model.graph import measurements_of
 
     dataset, _ = _dataset(case)
     measurements_of(dataset)
@@ -134,7 +134,7 @@ def task_linearize(case: str, repeats: int) -> dict:
     import gtsam
     from mirror_fg.factors.batched import batched_factors
 
-    from mirror_fg.solver.graph import build_graph
+    from mirror_fg.solver.model.graph import build_graph
 
     dataset, truth = _dataset(case)
     reference, values, layout, measurements = build_graph(dataset, truth, fast=False)
@@ -188,7 +188,7 @@ def _scipy_problem(dataset, initial):
     import scipy.sparse as sparse
     from scipy.spatial.transform import Rotation
 
-    from mirror_fg.solver.graph import measurements_of
+    from mirror_fg.solver.model.graph import measurements_of
 
     measurements = measurements_of(dataset)
     configs = sorted(dataset.configurations)
@@ -451,7 +451,7 @@ def task_scaling(case: str, repeats: int) -> dict:
     """One calibrate() of ``case`` images (2 mirrors, 3 fiducials, mirror 1 in 3 placements): stage times
     and the process's peak memory (each size in a fresh process, so the peak is its own)."""
     from mirror_fg import calibrate
-    from mirror_fg.tools.simulate import simulate_base_case
+    from mirror_fg.simulate.tree import simulate_base_case
 
     start = time.perf_counter()
     dataset, _ = simulate_base_case(num_images=int(case), num_points=0, mirror1_placements=3, **COMMON)
@@ -469,8 +469,8 @@ def task_rig(case: str, repeats: int) -> dict:
     images, 3 fiducials, as ``--scaling``): wall time, stage times and measurements."""
     from mirror_fg import calibrate
     from mirror_fg.io.dataset import dataset_from_dict
-    from mirror_fg.tools.simulate import simulate_base_case
-    from mirror_fg.tools.simulate_rig import simulate_rig_mixed
+    from mirror_fg.simulate.tree import simulate_base_case
+    from mirror_fg.simulate.rig import simulate_rig_mixed
 
     kind, count = case.split(":")
     if kind == "rig":
@@ -549,7 +549,7 @@ def scaling_table(max_images: int, timeout_s: float) -> list[dict]:
 
 
 # --------------------------------------------------------------------------------------------------
-# Start-up and a peer (issue 27): the command's own cost, and a public Python port of Takahashi et al.
+# Start-up and a peer: the command's own cost, and a public Python port of Takahashi et al.
 # (CVPR 2012: linear solution + scipy bundle adjustment) on the same 5 real photographs.
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -8,7 +8,7 @@ of 100 images, mirror 2 new in every image, 10 reconstruction points, 1 px) thro
 * the image of the first estimate and what that start-up cost;
 * the per-image update latency (median, p95, max) after start-up: over every image, and over the
   images of a *settled* calibrator (the start-up's LM solution was a clean minimum; before that each
-  image re-runs the start-up, see ``mirror_fg.solver.incremental``);
+  image re-runs the start-up, see ``mirror_fg.solver.incremental.calibrator``);
 * the total time of the stream and of ``calibration(full=True)``, and how far the last per-image and
   the full estimate are from the batch MLE (per pose axis, in batch standard deviations);
 * the time a batch solve (``mirror_fg.calibrate``) re-run after every image from the first estimate on
@@ -27,9 +27,9 @@ import numpy as np
 
 from mirror_fg import calibrate
 from mirror_fg.io.dataset import Dataset
-from mirror_fg.solver.incremental import IncrementalCalibrator
-from mirror_fg.tools.crb import pose_error
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator
+from mirror_fg.solver.information.crb import pose_error
+from mirror_fg.simulate.tree import simulate_base_case
 
 
 def pose_sigmas(batch, estimate) -> np.ndarray:
@@ -94,7 +94,7 @@ def rig_mode(shared: int, own: int, seed: int) -> None:
     mixed --cameras 3 --shared K --own N,N,N``) in file order; per-image update latency after the start,
     and the median of the last 100 updates against the first 100 (does an update cost grow with the
     images in the graph?)."""
-    from mirror_fg.tools.simulate_rig import simulate_rig_mixed
+    from mirror_fg.simulate.rig import simulate_rig_mixed
 
     from mirror_fg.io.dataset import dataset_from_dict
 

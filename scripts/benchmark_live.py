@@ -1,4 +1,4 @@
-"""Live-session throughput (issue 25): does ``mirror-fg live`` keep up with the camera?
+"""Live-session throughput: does ``mirror-fg live`` keep up with the camera?
 
 Renders a hand-held AprilTag session (scripts/render_live.py: each placement held ``--hold`` frames,
 ``--move`` frames of motion-blurred sweep between them) at 800 x 600 and 1280 x 720, then:
@@ -28,8 +28,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import render_live  # noqa: E402
 from mirror_fg.io.capture import capture_from_dict  # noqa: E402
-from mirror_fg.tools.live import LiveSession, run  # noqa: E402
-from mirror_fg.tools.live_sources import CameraSource, VideoFileSource  # noqa: E402
+from mirror_fg.live.session import LiveSession, run  # noqa: E402
+from mirror_fg.live.sources import CameraSource, VideoFileSource  # noqa: E402
 
 GOALS = {(800, 600): 30.0, (1280, 720): 15.0}
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""The consensus screening's share of a small solve (issue 27, "Speed"): the five real photographs of
+"""The consensus screening's share of a small solve (the five real photographs of
 Takahashi et al. (2012), one mirror, 10 x 7 corners.
 
     python scripts/benchmark_screening.py [--repeats 30] [--dataset PATH]
@@ -30,7 +30,7 @@ GOAL_FRACTION = 0.25
 def measure(dataset_path: Path, repeats: int) -> dict[str, float]:
     """Medians (seconds) of ``calibrate``'s wall time and of its stages, the same in CPU time, and the ratios."""
     from mirror_fg import calibrate, load_dataset
-    from mirror_fg.solver import consensus
+    from mirror_fg.solver.screen import consensus
 
     check_images = getattr(consensus, "check_images", None)  # releases before it timed the PnP with the screening
 

@@ -19,7 +19,7 @@ counts success over non-singular runs. The paper reports about 4 vs 18 iteration
 from its analytical guess.
 
 Usage: ``python scripts/convergence.py --runs 100 --jobs 2 --out out/convergence``; writes
-``runs.jsonl`` (resumable, ``tools/trial_log.py``) and ``summary.json`` and prints the table.
+``runs.jsonl`` (resumable, ``analysis/trial_log.py``) and ``summary.json`` and prints the table.
 """
 from __future__ import annotations
 
@@ -40,11 +40,11 @@ from mirror_fg import calibrate, initial_estimate
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.transform import rotation_angle
 from mirror_fg.io.dataset import Dataset
-from mirror_fg.solver.analytic import solve_analytic
-from mirror_fg.solver.graph import Estimate
-from mirror_fg.tools.montecarlo import run_script, run_trials
-from mirror_fg.tools.simulate import simulate_base_case
-from mirror_fg.tools.trial_log import TrialLog
+from mirror_fg.solver.start.analytic import solve_analytic
+from mirror_fg.solver.model.graph import Estimate
+from mirror_fg.analysis.montecarlo import run_script, run_trials
+from mirror_fg.simulate.tree import simulate_base_case
+from mirror_fg.analysis.trial_log import TrialLog
 
 #: A start reached the global optimum when within these of the MLE started from the truth.
 POSE_TOL_RAD = 1e-4

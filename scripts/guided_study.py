@@ -1,11 +1,11 @@
-"""Guided capture study (issue 25): does following ``plan --next`` beat random reachable placements?
+"""Guided capture study: does following ``plan --next`` beat random reachable placements?
 
 For simulated one- and two-mirror set-ups (the paper's scene: 4 fiducials, 1 px, fx = 800) it starts
 from a small capture (three placements of mirror 1; for two mirrors 20 placements of mirror 2 under each
 of three of mirror 1, 60 images) and adds one image at a time:
 
 - **guided**: calibrate what is there (``mirror_fg.calibrate``), take the first suggestion of
-  ``mirror_fg.tools.suggest.suggest_next``, photograph it (the true mirror at that vector, 1 px noise);
+  ``mirror_fg.solver.information.suggest.suggest_next``, photograph it (the true mirror at that vector, 1 px noise);
 - **random**: a placement drawn uniformly over the same reachable set (distance, tilt; a random parent
   placement for trees), kept when every fiducial is seen, as a user without guidance might do.
 
@@ -33,10 +33,10 @@ from mirror_fg.core.geometry import nested_transform, project  # noqa: E402
 from mirror_fg.core.transform import Transform  # noqa: E402
 from mirror_fg.io.dataset import Dataset, Image  # noqa: E402
 from mirror_fg.solver.calibrate import calibrate  # noqa: E402
-from mirror_fg.solver.graph import Estimate  # noqa: E402
-from mirror_fg.tools.crb import cramer_rao_bound  # noqa: E402
-from mirror_fg.tools.simulate import simulate_base_case  # noqa: E402
-from mirror_fg.tools.suggest import (  # noqa: E402
+from mirror_fg.solver.model.graph import Estimate  # noqa: E402
+from mirror_fg.solver.information.crb import cramer_rao_bound  # noqa: E402
+from mirror_fg.simulate.tree import simulate_base_case  # noqa: E402
+from mirror_fg.solver.information.suggest import (  # noqa: E402
     Reach, default_reach, random_reachable_vectors, sees_every_fiducial, suggest_next,
 )
 

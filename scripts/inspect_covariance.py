@@ -19,8 +19,8 @@ import numpy as np
 
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.result import load_result
-from mirror_fg.tools.crb import AXIS_NAMES, WeakestDirection, weakest_direction
-from mirror_fg.tools.report_figures import correlation, draw_correlation
+from mirror_fg.solver.information.crb import AXIS_NAMES, WeakestDirection, weakest_direction
+from mirror_fg.report.figures import correlation, draw_correlation
 
 LABELS = ("θx", "θy", "θz", "tx", "ty", "tz")
 PLANES = (("x", "y", 0, 1), ("x", "z", 0, 2), ("y", "z", 1, 2))

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
-VERIFY_PY = "mirror_fg/solver/verify.py"
+VERIFY_PY = "mirror_fg/analysis/verify.py"
 VERIFY = ("tests/test_verify.py",)
 VERIFY_FAST = tuple(f"tests/test_verify.py::{t}" for t in (
     "test_degrees_of_freedom_seen", "test_detectable_noncentrality_against_monte_carlo", "test_verdicts_follow_the_tolerance",
@@ -69,10 +69,10 @@ def groups(Mutant: Any) -> dict[str, list]:
           "a rig with one camera that cannot tell hides another that moved"),
         M(VERIFY_PY, "    weights = np.where(lam > SEEN, FREE_WEIGHT, 1.0)", "    weights = np.where(lam > SEEN, 1.0, FREE_WEIGHT)",
           VERIFY_FAST, "the free fit loose where the new images see nothing and held where they see"),
-        M("mirror_fg/solver/verify_priors.py", "covariance = pose_tangent - B @ cross_tangent.T",
+        M("mirror_fg/analysis/verify_priors.py", "covariance = pose_tangent - B @ cross_tangent.T",
           "covariance = pose_tangent + B @ cross_tangent.T", VERIFY_FAST,
           "the conditional covariance adds what the intrinsics explain"),
-        M("mirror_fg/solver/verify_priors.py", "B = cross_tangent @ np.linalg.inv(self.covariance)",
+        M("mirror_fg/analysis/verify_priors.py", "B = cross_tangent @ np.linalg.inv(self.covariance)",
           "B = cross_tangent @ self.covariance", VERIFY_FAST, "the regression with the covariance, not its inverse"),
         M("mirror_fg/io/verification.py", "P_bc = T.inverse_covariance(P)", "P_bc = P", VERIFY_FAST,
           "--update writes the camera-base covariance as the base-camera one"),
@@ -148,21 +148,21 @@ def groups(Mutant: Any) -> dict[str, list]:
           "setup.offset_sigma[n] = sigmas[\"prior_sigma_mm\"] / 1000.0 if prismatic else math.radians(sigmas[\"prior_sigma_deg\"])",
           "setup.offset_sigma[n] = sigmas[\"prior_sigma_mm\"] / 1000.0 if prismatic else sigmas[\"prior_sigma_deg\"]",
           ROBOT_INPUTS + ("tests/test_robot_mle.py",), "the joint offsets' prior sigma in degrees taken as radians"),
-        M("mirror_fg/solver/robot_solve.py", "if s[0] > 0 and s[1] > ONE_AXIS_RATIO * s[0]:",
+        M("mirror_fg/solver/batch/robot_solve.py", "if s[0] > 0 and s[1] > ONE_AXIS_RATIO * s[0]:",
           "if s[0] > 0 and s[2] > ONE_AXIS_RATIO * s[0]:", ROBOT_AXES,
           "the one-axis check on the third singular value (a planar motion refused)"),
-        M("mirror_fg/solver/robot_solve.py", "ONE_AXIS_RATIO = 0.02", "ONE_AXIS_RATIO = 0.0002", ROBOT_AXES,
+        M("mirror_fg/solver/batch/robot_solve.py", "ONE_AXIS_RATIO = 0.02", "ONE_AXIS_RATIO = 0.0002", ROBOT_AXES,
           "the one-axis threshold a hundred times lower"),
-        M("mirror_fg/solver/robot_views.py", "return inv, covariance_from_pose3(inv[0], Ad @ pose3_covariance @ Ad.T)",
+        M("mirror_fg/solver/model/robot_views.py", "return inv, covariance_from_pose3(inv[0], Ad @ pose3_covariance @ Ad.T)",
           "return inv, covariance_from_pose3(inv[0], Ad.T @ pose3_covariance @ Ad)", ("tests/test_robot_axes.py", "tests/test_robot_mle.py"),
           "the mount's covariance carried by the transposed adjoint"),
     ]
     out["units"] = [
-        M("mirror_fg/solver/point_error.py", "return np.hstack([-skew, np.eye(3)])", "return np.hstack([skew, np.eye(3)])",
+        M("mirror_fg/solver/result/point_error.py", "return np.hstack([-skew, np.eye(3)])", "return np.hstack([skew, np.eye(3)])",
           POINT, "the point Jacobian's rotation term with the wrong sign"),
-        M("mirror_fg/solver/point_error.py", "a = np.asarray(R_base_cam, float) @ np.asarray(point_cam, float)",
+        M("mirror_fg/solver/result/point_error.py", "a = np.asarray(R_base_cam, float) @ np.asarray(point_cam, float)",
           "a = np.asarray(point_cam, float)", POINT, "the lever arm in camera axes, not base axes"),
-        M("mirror_fg/solver/point_error.py", "return PointError(p, T_base_cam.apply(p), C, 3000.0 * np.sqrt(np.clip(np.diag(C), 0.0, None)))",
+        M("mirror_fg/solver/result/point_error.py", "return PointError(p, T_base_cam.apply(p), C, 3000.0 * np.sqrt(np.clip(np.diag(C), 0.0, None)))",
           "return PointError(p, T_base_cam.apply(p), C, 3.0 * np.sqrt(np.clip(np.diag(C), 0.0, None)))", POINT,
           "sigma3_mm in metres"),
         M("mirror_fg/core/gaze_error.py", "mm_per_px = 1000.0 * screen.metres_per_px", "mm_per_px = screen.metres_per_px",
@@ -181,45 +181,45 @@ def groups(Mutant: Any) -> dict[str, list]:
           "the ray's hit on the far side"),
         M("mirror_fg/core/screen.py", "J_q = (np.eye(3) - np.outer(d_s, [0.0, 0.0, 1.0]) / d_s[2]) @ G",
           "J_q = G", GAZE + SCREEN, "the hit's Jacobian without the ray's slide along itself"),
-        M("mirror_fg/solver/validation.py", "ratios = np.sqrt(costs / expected) if len(costs) else np.zeros(0)",
+        M("mirror_fg/solver/fit/validation.py", "ratios = np.sqrt(costs / expected) if len(costs) else np.zeros(0)",
           "ratios = costs / expected if len(costs) else np.zeros(0)", VALIDATION, "the held-out ratio without its root"),
-        M("mirror_fg/solver/validation.py", "step = -covariance @ gradient  # one Gauss-Newton step",
+        M("mirror_fg/solver/fit/validation.py", "step = -covariance @ gradient  # one Gauss-Newton step",
           "step = covariance @ gradient  # one Gauss-Newton step", VALIDATION, "the Gauss-Newton step uphill"),
-        M("mirror_fg/solver/screens.py", "(measurements - unknowns) / 2.0,", "(measurements - unknowns),",
+        M("mirror_fg/solver/batch/screens.py", "(measurements - unknowns) / 2.0,", "(measurements - unknowns),",
           ("tests/test_screens.py", "tests/test_units_mutants.py"), "the screens' expected cost twice the chi-square's half"),
     ]
     out["verdict"] = [
-        M("mirror_fg/tools/verdict.py", "low = math.sqrt(float(chdtri(dof, 1.0 - tail)) / dof)",
+        M("mirror_fg/report/verdict.py", "low = math.sqrt(float(chdtri(dof, 1.0 - tail)) / dof)",
           "low = math.sqrt(float(chdtri(dof, tail)) / dof)", VERDICT, "the noise band's low end at the upper quantile"),
-        M("mirror_fg/tools/verdict.py", "tail = (1.0 - confidence) / 2.0", "tail = 1.0 - confidence", VERDICT,
+        M("mirror_fg/report/verdict.py", "tail = (1.0 - confidence) / 2.0", "tail = 1.0 - confidence", VERDICT,
           "the noise band one-sided"),
-        M("mirror_fg/tools/verdict.py", "high = math.sqrt(float(chdtri(dof, tail)) / dof)",
+        M("mirror_fg/report/verdict.py", "high = math.sqrt(float(chdtri(dof, tail)) / dof)",
           "high = math.sqrt(float(chdtri(dof, tail)) / (dof + 1))", VERDICT, "the band's degrees of freedom off by one"),
-        M("mirror_fg/tools/verdict.py", "return min(low, NOISE_BAND[0]), max(high, NOISE_BAND[1])",
+        M("mirror_fg/report/verdict.py", "return min(low, NOISE_BAND[0]), max(high, NOISE_BAND[1])",
           "return max(low, NOISE_BAND[0]), min(high, NOISE_BAND[1])", VERDICT, "the band narrowed, not widened"),
-        M("mirror_fg/tools/verdict.py", "LINEAR_LIMIT_DEG = 10.0", "LINEAR_LIMIT_DEG = 100.0", VERDICT,
+        M("mirror_fg/report/verdict.py", "LINEAR_LIMIT_DEG = 10.0", "LINEAR_LIMIT_DEG = 100.0", VERDICT,
           "the linearisation limit ten times looser"),
-        M("mirror_fg/tools/verdict.py", "        if size_mm > 0 and position_mm > limit_mm:",
+        M("mirror_fg/report/verdict.py", "        if size_mm > 0 and position_mm > limit_mm:",
           "        if size_mm > 0 and position_mm > size_mm:", VERDICT, "the position bound against the whole scene"),
-        M("mirror_fg/tools/verdict.py", "        if measurements > 0 and spare / measurements < MIN_MEAN_REDUNDANCY:",
+        M("mirror_fg/report/verdict.py", "        if measurements > 0 and spare / measurements < MIN_MEAN_REDUNDANCY:",
           "        if measurements > 0 and spare / measurements > MIN_MEAN_REDUNDANCY:", VERDICT, "the redundancy test inverted"),
-        M("mirror_fg/tools/verdict.py", "spare = 2.0 * float(expected) if", "spare = float(expected) if", VERDICT,
+        M("mirror_fg/report/verdict.py", "spare = 2.0 * float(expected) if", "spare = float(expected) if", VERDICT,
           "spare measurements as GTSAM's half chi-square"),
-        M("mirror_fg/solver/result_guard.py", "MAX_SCENE_DISTANCE_M = 20.0", "MAX_SCENE_DISTANCE_M = 20000.0",
+        M("mirror_fg/solver/result/guard.py", "MAX_SCENE_DISTANCE_M = 20.0", "MAX_SCENE_DISTANCE_M = 20000.0",
           ("tests/test_result_validation.py",), "the scene-distance guard in mm"),
-        M("mirror_fg/solver/camera_labels.py", "if rms is not None and rms > LABEL_CONFLICT_SIGMAS * np.sqrt(2.0) * sigma:",
+        M("mirror_fg/solver/screen/camera_labels.py", "if rms is not None and rms > LABEL_CONFLICT_SIGMAS * np.sqrt(2.0) * sigma:",
           "if rms is not None and rms < LABEL_CONFLICT_SIGMAS * np.sqrt(2.0) * sigma:", ("tests/test_consensus_guards.py",),
           "a camera label conflict when the two agree"),
-        M("mirror_fg/solver/camera_labels.py", "if len(images) == 1 and others:", "if len(images) == 0 and others:",
+        M("mirror_fg/solver/screen/camera_labels.py", "if len(images) == 1 and others:", "if len(images) == 0 and others:",
           ("tests/test_consensus_guards.py",), "a lone mislabelled image never suspected"),
         M("mirror_fg/io/dataset_fields.py",
           "if not is_number(distance) or not MIN_LENGTH_M <= float(distance) <= MAX_TARGET_EXTENT_M:",
           "if not is_number(distance) or not MIN_LENGTH_M <= float(distance):", ("tests/test_dataset.py",),
           "a scale distance in millimetres accepted"),
     ]
-    inc = "mirror_fg/solver/incremental.py"
-    views = "mirror_fg/solver/incremental_views.py"
-    state = "mirror_fg/solver/incremental_state.py"
+    inc = "mirror_fg/solver/incremental/calibrator.py"
+    views = "mirror_fg/solver/incremental/views.py"
+    state = "mirror_fg/solver/incremental/state.py"
     out["incremental"] = [
         M(inc, "            for earlier in self._given:\n", "            for earlier in self._given[1:]:\n", INCREMENTAL,
           "the hand-over forgets the first image"),

@@ -70,51 +70,51 @@ def register(group: str, mutants: list[Mutant]) -> None:
 
 EXACT = ("tests/test_propagation_exact.py",)
 register("propagation", [
-    Mutant("mirror_fg/solver/propagation.py", "for p in reversed(view.reflections):", "for p in view.reflections:",
+    Mutant("mirror_fg/solver/start/propagation.py", "for p in reversed(view.reflections):", "for p in view.reflections:",
            EXACT, "a ray carried back through a view's reflections in the order the light met them"),
-    Mutant("mirror_fg/solver/propagation.py", "self.known.planes[unknown[0]] = (n, 0.5 * float(n @ H[:3, 3]))",
+    Mutant("mirror_fg/solver/start/propagation.py", "self.known.planes[unknown[0]] = (n, 0.5 * float(n @ H[:3, 3]))",
            "self.known.planes[unknown[0]] = (n, 1.0 * float(n @ H[:3, 3]))", EXACT,
            "rule 3's plane distance doubled"),
-    Mutant("mirror_fg/solver/propagation.py", "return points - 2.0 * np.outer(points @ n - d, n)",
+    Mutant("mirror_fg/solver/start/propagation.py", "return points - 2.0 * np.outer(points @ n - d, n)",
            "return points - 2.0 * np.outer(points @ n + d, n)", EXACT, "a reflection about the plane's mirror image"),
-    Mutant("mirror_fg/solver/propagation.py", "H[:3, 3] = 2.0 * d * n", "H[:3, 3] = d * n", EXACT,
+    Mutant("mirror_fg/solver/start/propagation.py", "H[:3, 3] = 2.0 * d * n", "H[:3, 3] = d * n", EXACT,
            "the 4x4 reflection's offset halved"),
-    Mutant("mirror_fg/solver/propagation.py", "return R.T @ n_c, d_c - float(n_c @ t)",
+    Mutant("mirror_fg/solver/start/propagation.py", "return R.T @ n_c, d_c - float(n_c @ t)",
            "return R.T @ n_c, d_c + float(n_c @ t)", EXACT, "a camera's plane moved to the base with the wrong sign"),
-    Mutant("mirror_fg/solver/propagation.py", "b += P @ o", "b += o", EXACT,
+    Mutant("mirror_fg/solver/start/propagation.py", "b += P @ o", "b += o", EXACT,
            "triangulation without projecting the ray origins"),
-    Mutant("mirror_fg/solver/propagation.py", "found = _best_pnp(points, z, len(view.reflections))",
+    Mutant("mirror_fg/solver/start/propagation.py", "found = _best_pnp(points, z, len(view.reflections))",
            "found = _best_pnp(points, z, 0)", EXACT, "rule 3's PnP ignoring the view's parity"),
 ])
 
 ANALYTIC = ("tests/test_analytic.py",)
 PEELING = ANALYTIC + ("tests/test_peeling_exact.py",)
 register("peeling", [
-    Mutant("mirror_fg/solver/peeling.py",
+    Mutant("mirror_fg/solver/start/peeling.py",
            "distances = np.bincount(children, weights=along, minlength=num_children) / (2.0 * np.maximum(counts, 1))",
            "distances = np.bincount(children, weights=along, minlength=num_children) / np.maximum(counts, 1)",
            PEELING, "eq. (16)'s mirror distances doubled"),
-    Mutant("mirror_fg/solver/peeling.py",
+    Mutant("mirror_fg/solver/start/peeling.py",
            "normals = np.linalg.eigh(np.matmul(np.swapaxes(axes, -1, -2), axes))[1][..., 0]  # eq. (15)",
            "normals = np.linalg.eigh(np.matmul(np.swapaxes(axes, -1, -2), axes))[1][..., 2]  # eq. (15)",
            PEELING, "eq. (15)'s normal as the largest eigenvector, not the smallest"),
     # Survives: the alternation's later steps undo most of it (noise-free nodes stay exact; with 0.01 rad of
     # noise the parent moves by ~1e-3 rad, within its own error), so no test of the result can tell.
-    Mutant("mirror_fg/solver/peeling.py",
+    Mutant("mirror_fg/solver/start/peeling.py",
            "new_parent = project_to_orthogonal(rotation_sum - 2.0 * np.swapaxes(normals, 1, 2) @ weighted, parent_det)",
            "new_parent = project_to_orthogonal(rotation_sum + 2.0 * np.swapaxes(normals, 1, 2) @ weighted, parent_det)",
            PEELING, "eq. (17)'s average with the reflection's sign flipped (many children)", occurrence=0),
-    Mutant("mirror_fg/solver/peeling.py",
+    Mutant("mirror_fg/solver/start/peeling.py",
            "smallest = q + 2.0 * p * np.cos(np.arccos(r) / 3.0 + 2.0 * np.pi / 3.0)",
            "smallest = q + 2.0 * p * np.cos(np.arccos(r) / 3.0 + 4.0 * np.pi / 3.0)",
            PEELING, "the closed-form eigenvalue takes another root"),
 ])
 
 register("pnp", [
-    Mutant("mirror_fg/solver/pnp.py", "        observed[:, 1] *= -1.0  # eq. (11)\n    candidates = solver(",
+    Mutant("mirror_fg/solver/start/pnp.py", "        observed[:, 1] *= -1.0  # eq. (11)\n    candidates = solver(",
            "        observed[:, 0] *= -1.0  # eq. (11)\n    candidates = solver(", ANALYTIC,
            "eq. (11)'s flip of the image about the wrong axis"),
-    Mutant("mirror_fg/solver/pnp.py", "    flip = num_mirrors % 2 == 1\n    observed = np.array(",
+    Mutant("mirror_fg/solver/start/pnp.py", "    flip = num_mirrors % 2 == 1\n    observed = np.array(",
            "    flip = num_mirrors % 2 == 0\n    observed = np.array(", ANALYTIC,
            "the parity of the number of mirrors inverted"),
 ])
@@ -138,47 +138,47 @@ register("factors", [
 
 RIG = ("tests/test_rig.py",)
 register("rig", [
-    Mutant("mirror_fg/solver/rig.py", "J[:3, 0:3] = -R  # dtheta = db - R da", "J[:3, 0:3] = R  # dtheta = db - R da",
+    Mutant("mirror_fg/solver/model/rig.py", "J[:3, 0:3] = -R  # dtheta = db - R da", "J[:3, 0:3] = R  # dtheta = db - R da",
            RIG, "the rig covariance's rotation term with the wrong sign"),
-    Mutant("mirror_fg/solver/rig.py", "J[3:, 9:12] = np.eye(3)", "J[3:, 9:12] = -np.eye(3)", RIG,
+    Mutant("mirror_fg/solver/model/rig.py", "J[3:, 9:12] = np.eye(3)", "J[3:, 9:12] = -np.eye(3)", RIG,
            "the rig covariance's position term with the wrong sign"),
-    Mutant("mirror_fg/solver/rig.py", "T = Transform(R_b, t_b) @ Transform(R_a, t_a).inverse()",
+    Mutant("mirror_fg/solver/model/rig.py", "T = Transform(R_b, t_b) @ Transform(R_a, t_a).inverse()",
            "T = Transform(R_a, t_a) @ Transform(R_b, t_b).inverse()", RIG, "the rig transform the wrong way round"),
-    Mutant("mirror_fg/solver/rig.py", "index = np.r_[6 * (n - 1): 6 * n + 6]", "index = np.r_[6 * n: 6 * n + 12]",
+    Mutant("mirror_fg/solver/model/rig.py", "index = np.r_[6 * (n - 1): 6 * n + 6]", "index = np.r_[6 * n: 6 * n + 12]",
            RIG, "the wrong cameras' blocks of the joint covariance"),
 ])
 
 register("consistency", [
-    Mutant("mirror_fg/solver/consistency.py", "threshold = chi2.isf(MOVE_SIGNIFICANCE / len(tested), 6)",
+    Mutant("mirror_fg/solver/screen/consistency.py", "threshold = chi2.isf(MOVE_SIGNIFICANCE / len(tested), 6)",
            "threshold = chi2.isf(MOVE_SIGNIFICANCE / len(tested), 3)", ("tests/test_moved_camera_threshold.py",),
            "the moved-camera test with 3 degrees of freedom instead of 6"),
-    Mutant("mirror_fg/solver/consistency.py", "threshold = chi2.isf(MOVE_SIGNIFICANCE / len(tested), 6)",
+    Mutant("mirror_fg/solver/screen/consistency.py", "threshold = chi2.isf(MOVE_SIGNIFICANCE / len(tested), 6)",
            "threshold = chi2.isf(MOVE_SIGNIFICANCE, 6)", ("tests/test_moved_camera_threshold.py",),
            "the moved-camera test without Bonferroni's correction"),
-    Mutant("mirror_fg/solver/consistency.py", "if worst is None or distance > worst[0]:",
+    Mutant("mirror_fg/solver/screen/consistency.py", "if worst is None or distance > worst[0]:",
            "if worst is None or distance < worst[0]:", ("tests/test_moved_camera_threshold.py",),
            "the least, not the largest, disagreement kept"),
 ])
 
 LIVE_OUTPUTS = ("tests/test_live_outputs.py",)
 register("live", [
-    Mutant("mirror_fg/tools/live.py", "MOTION_PX = 1.5", "MOTION_PX = 15.0", ("tests/test_live_motion.py",),
+    Mutant("mirror_fg/live/session.py", "MOTION_PX = 1.5", "MOTION_PX = 15.0", ("tests/test_live_motion.py",),
            "the motion threshold ten times looser"),
-    Mutant("mirror_fg/tools/live.py", "SAME_PLACEMENT_PX = 6.0", "SAME_PLACEMENT_PX = 0.6", ("tests/test_live_motion.py",),
+    Mutant("mirror_fg/live/session.py", "SAME_PLACEMENT_PX = 6.0", "SAME_PLACEMENT_PX = 0.6", ("tests/test_live_motion.py",),
            "repeats of one placement counted as new"),
-    Mutant("mirror_fg/tools/live_server.py", 'last = self.request.headers.get("Last-Event-ID")', "last = None",
+    Mutant("mirror_fg/live/server.py", 'last = self.request.headers.get("Last-Event-ID")', "last = None",
            ("tests/test_live_server.py",), "/events ignoring Last-Event-ID"),
-    Mutant("mirror_fg/tools/live_server.py", "if (host or \"\").lower() not in hosts:", "if False:",
+    Mutant("mirror_fg/live/server.py", "if (host or \"\").lower() not in hosts:", "if False:",
            ("tests/test_live_server.py",), "the Host check dropped"),
-    Mutant("mirror_fg/tools/live_server.py",
+    Mutant("mirror_fg/live/server.py",
            "if origin is not None and origin.lower() not in {f\"http://{h}\" for h in hosts}:",
            "if origin is not None and origin.lower() in {f\"https://{h}\" for h in hosts}:",
            ("tests/test_live_server.py",), "the Origin check inverted"),
-    Mutant("mirror_fg/tools/live_save.py", "if source_kind == \"file\":\n        files.append(source)",
+    Mutant("mirror_fg/live/save.py", "if source_kind == \"file\":\n        files.append(source)",
            "if source_kind == \"video\":\n        files.append(source)",
            (LIVE_OUTPUTS[0] + "::test_outputs_that_meet_an_input_or_each_other_are_refused_before_anything_is_written",),
            "the --source video not counted as an input"),
-    Mutant("mirror_fg/tools/live_save.py", "        self._write_capture(incomplete=True)\n",
+    Mutant("mirror_fg/live/save.py", "        self._write_capture(incomplete=True)\n",
            "        self._write_capture(incomplete=False)\n",
            (LIVE_OUTPUTS[0] + "::test_after_a_sigkill_detect_names_the_saved_folder_incomplete",),
            "the saved capture never marked incomplete while the session runs"),

@@ -1,5 +1,5 @@
 """Tracked points through the calibration with one ``pixel_sigma`` (before) and with each track's own
-sigma in ``point_sigma`` (after, issue 18): the reconstructed points' distance to the truth in their sigmas.
+sigma in ``point_sigma`` (after): the reconstructed points' distance to the truth in their sigmas.
 
 The scenes are ``scripts/render_scene.py``'s rendered one-mirror loops (``render_sequence``, 54 frames,
 800 x 600, a corner-like P0 and a blob-like P1; about 1.5 s each, nothing cached). Each point is followed

@@ -23,7 +23,7 @@ at the rectangle's local -y, so textures are written upside down to put the tag'
 
 Needs ``pip install mitsuba`` (scalar_rgb variant, CPU). Takes about a minute.
 
-``--sequence SEED`` instead writes a video-like sequence (issue 18) without Mitsuba: one mirror moving
+``--sequence SEED`` instead writes a video-like sequence without Mitsuba: one mirror moving
 along a smooth loop, a new placement every frame, a textured plane with a corner-like and a blob-like
 unknown point and four dark squares (fiducials), rendered exactly through the plane's homography with
 sRGB gamma and 4 x 4 supersampling (:func:`render_sequence`); ``frame_KKK.png`` and ``truth.json``.

@@ -6,7 +6,7 @@ within 10 cm of the fiducials. Sweeps: (a) pixel sigma at 0.5 m mirror distance,
 1 px. Per point of a sweep, ``--runs`` Monte Carlo runs (seed = run index; in sweep (a) a run keeps its
 mirror placements and only the noise scale changes). Each run: the analytical solution and the MLE
 (``mirror_fg.calibrate``), its reported covariance, and the Cramér-Rao bound (inverse Fisher
-information at the truth, ``mirror_fg.tools.crb``). "Analytical" is ``calibrate()``'s start
+information at the truth, ``mirror_fg.solver.information.crb``). "Analytical" is ``calibrate()``'s start
 (``mirror_fg.initial_estimate``: the closed form with each mirror placement's P3P hypotheses refined on its
 own images); the bare closed form of Sects. 4-5 (``solve_analytic``, the paper's method) is reported
 beside it as "closed form".
@@ -26,7 +26,7 @@ Sigma^-1 (z - h(x_true))`` of each run has the Cramér-Rao covariance exactly, s
 variate: ``MSE_cv = mean(CRB variance) + mean(mle_error^2 - first_order_error^2)`` estimates the MLE's
 mean squared error without bias and with the noise of the estimate mostly cancelled (``*_cv`` columns).
 
-Writes ``runs.jsonl`` (one line per run; a re-run resumes from it: ``tools/trial_log.py`` says what a killed
+Writes ``runs.jsonl`` (one line per run; a re-run resumes from it: ``analysis/trial_log.py`` says what a killed
 run, a full disk or a second run on the same ``--out`` leave), ``fig4.csv`` and ``fig4.png`` in ``--out``. Usage: ``python scripts/reproduce_fig4.py --runs 100 --jobs 2 --out out/fig4`` (about 2 h on a 2-core
 machine: it says so when it starts; ``--time-budget MIN`` bounds it).
 
@@ -50,11 +50,11 @@ import numpy as np
 
 from mirror_fg import calibrate
 from mirror_fg.core.errors import DatasetError, SolveError
-from mirror_fg.solver.analytic import solve_analytic
-from mirror_fg.tools.crb import cramer_rao_bound, nees, nees_band, pose_error
-from mirror_fg.tools.montecarlo import run_script, run_trials
-from mirror_fg.tools.simulate import simulate_base_case
-from mirror_fg.tools.trial_log import TrialLog
+from mirror_fg.solver.start.analytic import solve_analytic
+from mirror_fg.solver.information.crb import cramer_rao_bound, nees, nees_band, pose_error
+from mirror_fg.analysis.montecarlo import run_script, run_trials
+from mirror_fg.simulate.tree import simulate_base_case
+from mirror_fg.analysis.trial_log import TrialLog
 
 SIGMAS_PX = (0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 1.75, 2.0)
 DISTANCES_M = (0.25, 0.5, 0.75, 1.0, 1.25, 1.5)

@@ -16,9 +16,9 @@ import time
 from mirror_fg.io.dataset import load_dataset
 from mirror_fg.robot.simulate import simulate_arm, write_arm_simulation
 from mirror_fg.solver.calibrate import calibrate
+from mirror_fg.simulate.tree import simulate_base_case
+from mirror_fg.solver.batch.robot_solve import RobotPipelineProblem, solve_robot
 from mirror_fg.solver.options import SolveOptions
-from mirror_fg.solver.robot_solve import RobotPipelineProblem, solve_robot
-from mirror_fg.tools.simulate import simulate_base_case
 
 
 def main() -> None:

@@ -2,7 +2,7 @@
 same number of images, on simulated arms (docs/formats.md, "Robot arms: joint states and mounts"), for
 several mirror set-ups.
 
-All figures are the MLE's covariance (solver/robot_solve.py) at the simulated truth, averaged over seeds,
+All figures are the MLE's covariance (solver/batch/robot_solve.py) at the simulated truth, averaged over seeds,
 0.5 px, the 6 x 5 chessboard of ``simulate --robot``. The direct views: the board at each of several
 distances ahead of the camera (0.35 m fills about a third of the image; closer, the arm poses' spread
 takes it out of view); "best" is the one with the smallest largest 3-sigma. The mirror set-ups (the board
@@ -37,8 +37,8 @@ from mirror_fg.io.dataset import load_dataset
 from mirror_fg.robot import arm_urdf
 from mirror_fg.robot.kinematics import load_kinematics
 from mirror_fg.robot.simulate import simulate_arm, write_arm_simulation
-from mirror_fg.solver.robot_solve import solve_robot
-from mirror_fg.solver.robot_views import RobotEstimate
+from mirror_fg.solver.batch.robot_solve import solve_robot
+from mirror_fg.solver.model.robot_views import RobotEstimate
 
 #: Board distances (metres) a user might hold the board at in front of the camera for a direct view.
 DIRECT_DISTANCES = (0.35, 0.45, 0.6, 0.9)

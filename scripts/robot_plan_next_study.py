@@ -17,7 +17,7 @@ import numpy as np
 from mirror_fg.io.dataset import load_dataset
 from mirror_fg.robot.plan import candidate_jacobian, mount_bounds
 from mirror_fg.robot.simulate import NOMINAL, simulate_arm, write_arm_simulation
-from mirror_fg.solver.robot_solve import solve_robot
+from mirror_fg.solver.batch.robot_solve import solve_robot
 
 
 def run(robot: str, eye_in_hand: bool, seed: int, pool: int, random_images: int, folder: str) -> tuple[int, int]:

@@ -30,9 +30,9 @@ sys.path[:0] = [str(REPO), str(REPO / "tests")]
 from mirror_fg.core.transform import Transform  # noqa: E402
 from mirror_fg.io.dataset import dataset_from_dict  # noqa: E402
 from mirror_fg.solver.calibrate import calibrate  # noqa: E402
-from mirror_fg.solver.validation import validate_calibration  # noqa: E402
-from mirror_fg.tools.report_figures import new_figure, png  # noqa: E402
-from mirror_fg.tools.simulate import simulate_base_case  # noqa: E402
+from mirror_fg.solver.fit.validation import validate_calibration  # noqa: E402
+from mirror_fg.report.figures import new_figure, png  # noqa: E402
+from mirror_fg.simulate.tree import simulate_base_case  # noqa: E402
 
 
 def monte_carlo(ax) -> str:
@@ -106,8 +106,8 @@ def ratios(ax) -> str:
 def brute_force(ax) -> str:
     from test_validation import brute_force_ratio
 
-    from mirror_fg.tools.simulate_rig import simulate_rig_mixed
-    from mirror_fg.tools.simulate_views import simulate_kaleidoscope
+    from mirror_fg.simulate.rig import simulate_rig_mixed
+    from mirror_fg.simulate.views import simulate_kaleidoscope
 
     cases = [("tree", simulate_base_case(num_images=40, seed=5)[0]),
              ("kaleidoscope", dataset_from_dict(simulate_kaleidoscope(2, seed=2)[0])),

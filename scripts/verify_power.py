@@ -1,4 +1,4 @@
-"""The detection power of ``mirror-fg verify`` on simulated data (mirror_fg/tools/verify_study.py): how
+"""The detection power of ``mirror-fg verify`` on simulated data (mirror_fg/analysis/verify_study.py): how
 often a camera moved by 3x the combined sigma of each pose component is called ``moved``, and how often an
 unmoved one is (at most alpha + 2 %).
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from mirror_fg.tools.verify_study import power_study
+from mirror_fg.analysis.verify_study import power_study
 
 
 def main() -> None:

@@ -29,7 +29,7 @@ def takahashi_dir() -> Path:
 
 
 def pose_difference(R_ref, t_ref, R, t) -> np.ndarray:
-    """SPEC-convention difference ``[dtheta, dt]`` taking (R_ref, t_ref) to (R, t): R = Exp(dtheta) R_ref."""
+    """docs/formats.md-convention difference ``[dtheta, dt]`` taking (R_ref, t_ref) to (R, t): R = Exp(dtheta) R_ref."""
     D = np.asarray(R) @ np.asarray(R_ref).T
     angle = np.arccos(np.clip((np.trace(D) - 1) / 2, -1, 1))
     axis = np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]])

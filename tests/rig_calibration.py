@@ -6,8 +6,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mirror_fg.core.camera import Camera
-from mirror_fg.solver.calibration import Calibration, CameraPose, EstimatedCamera
-from mirror_fg.solver.rig import rig_transforms
+from mirror_fg.solver.result.calibration import Calibration, CameraPose, EstimatedCamera
+from mirror_fg.solver.model.rig import rig_transforms
 
 NAMES = ("left", "right", "wrist")
 

@@ -9,16 +9,16 @@ from mirror_fg import (
     initial_estimate,
     solve_analytic,
 )
-from mirror_fg.solver.analytic import (
+from mirror_fg.solver.start.analytic import (
     Hypothesis as _Hypothesis,
     _subtree_solution,
     subtree_dataset,
     triangulate_point,
 )
-from mirror_fg.solver.pnp import pnp_candidates
+from mirror_fg.solver.start.pnp import pnp_candidates
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.core.geometry import apply_transform, nested_transform, project, so3_exp
-from mirror_fg.tools.simulate import simulate_base_case, simulate_tree
+from mirror_fg.simulate.tree import simulate_base_case, simulate_tree
 from mirror_fg.core.transform import rotation_angle
 
 
@@ -196,7 +196,7 @@ def test_one_mirror_with_many_p3p_images_is_not_enumerated():
 
 def test_smallest_eigenvectors_match_eigh():
     """The closed-form smallest eigenvectors of the mirror peeling agree with eigh to rounding (up to sign)."""
-    from mirror_fg.solver.peeling import smallest_eigenvectors
+    from mirror_fg.solver.start.peeling import smallest_eigenvectors
 
     rng = np.random.default_rng(3)
     normals = rng.normal(size=(200, 3))

@@ -1,4 +1,4 @@
-"""The public API a new user meets (issue 27): a clean ``mirror_fg`` namespace whose import loads none of
+"""The public API a new user meets: a clean ``mirror_fg`` namespace whose import loads none of
 the heavy stacks, the camera's pose in the base frame as attributes, short reprs, and a capture that
 ``load_dataset`` names as such and ``load_capture`` detects."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""result@1's ``covariance_base_cam``, ``sigma3_base_cam`` and ``covariance_base_cam_ros`` (issue 17).
+"""result@1's ``covariance_base_cam``, ``sigma3_base_cam`` and ``covariance_base_cam_ros``.
 
 The bounds of ``T_base_cam`` are checked against two references that share nothing with the code under
 test: GTSAM's ``Pose3.AdjointMap`` (the inverse's right-perturbation covariance is ``Ad Sigma Ad^T``) and a
@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 import mirror_fg
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.result import base_cam_covariance, ros_pose_covariance, validate_result
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.simulate.tree import simulate_base_case
 
 
 def _random_pose_and_covariance(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -31,7 +31,7 @@ def _random_pose_and_covariance(seed: int) -> tuple[np.ndarray, np.ndarray, np.n
 @pytest.mark.parametrize("seed", range(5))
 def test_base_cam_covariance_matches_gtsam_adjoint(seed):
     R, t, P = _random_pose_and_covariance(seed)
-    # SPEC [dtheta, dt] (left rotation, additive translation) -> GTSAM's right tangent [w, nu] of T_cam_base.
+    # docs/formats.md's [dtheta, dt] (left rotation, additive translation) -> GTSAM's right tangent [w, nu] of T_cam_base.
     J_to = np.zeros((6, 6))
     J_to[:3, :3] = R.T
     J_to[3:, 3:] = R.T
@@ -40,7 +40,7 @@ def test_base_cam_covariance_matches_gtsam_adjoint(seed):
     T = gtsam.Pose3(gtsam.Rot3(R), t)
     Ad = T.AdjointMap()
     sigma_bc = Ad @ sigma_cb @ Ad.T
-    # GTSAM's right tangent of T_base_cam -> SPEC for T_base_cam (rotation about the base axes).
+    # GTSAM's right tangent of T_base_cam -> docs/formats.md's convention for T_base_cam (rotation about the base axes).
     R_bc = R.T
     J_from = np.zeros((6, 6))
     J_from[:3, :3] = R_bc
@@ -85,7 +85,7 @@ def test_result_holds_the_camera_pose_bounds_in_base_axes(result):
     sd3 = 3.0 * np.sqrt(np.diag(P_bc))
     assert np.allclose(result["sigma3_base_cam"]["rotation_deg"], np.rad2deg(sd3[:3]))
     assert np.allclose(result["sigma3_base_cam"]["position_mm"], 1e3 * sd3[3:])
-    # The base-frame bounds differ from the camera-frame ones (the point of issue 17).
+    # The base-frame bounds differ from the camera-frame ones.
     assert not np.allclose(result["sigma3_base_cam"]["position_mm"], result["sigma3_cam_base"]["position_mm"], rtol=0.05)
     ros = np.array(result["covariance_base_cam_ros"])
     assert np.allclose(ros[:3, :3], P_bc[3:, 3:]) and np.allclose(ros[3:, 3:], P_bc[:3, :3])

@@ -47,7 +47,7 @@ def test_scaling_task_reports_stages_and_memory(benchmark):
 def test_dense_lm_oracle_reaches_the_mle(benchmark):
     """The oracle the LM stage is timed against solves the same problem: calibrate()'s final cost."""
     from mirror_fg import calibrate, initial_estimate
-    from mirror_fg.tools.simulate import simulate_base_case
+    from mirror_fg.simulate.tree import simulate_base_case
 
     dataset, _ = simulate_base_case(num_images=24, num_points=4, seed=3)
     initial = initial_estimate(dataset)

@@ -1,4 +1,4 @@
-"""A chessboard given by its squares instead of its inner corners (issue 27): the one-line refusal
+"""A chessboard given by its squares instead of its inner corners: the one-line refusal
 says what cols and rows count and names the size that is in the image."""
 from __future__ import annotations
 

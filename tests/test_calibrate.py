@@ -7,8 +7,8 @@ from scipy.stats import chi2
 
 from conftest import pose_difference
 from mirror_fg import calibrate, load_dataset
-from mirror_fg.solver.calibration import Calibration
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.result.calibration import Calibration
+from mirror_fg.simulate.tree import simulate_base_case
 from mirror_fg.core.transform import rotation_angle
 
 # The authors' bundle adjustment on the five real photographs (shared/data/takahashi2012/README.md).
@@ -137,7 +137,7 @@ def test_result_dict_matches_spec_shape():
 
 
 def test_covariance_convention_matches_perturbation_of_rotation_about_camera_axes():
-    """SPEC: R_true = Exp(dtheta) R_est; the reported covariance must match the spread of such dtheta."""
+    """docs/formats.md: R_true = Exp(dtheta) R_est; the reported covariance must match the spread of such dtheta."""
     from mirror_fg.core.transform import covariance_from_pose3 as spec_covariance_from_pose3
     from mirror_fg.core.geometry import so3_exp
 
@@ -157,13 +157,13 @@ def test_covariance_convention_matches_perturbation_of_rotation_about_camera_axe
     d = np.diag(expected)
     standard_error = np.sqrt((np.outer(d, d) + expected**2) / len(samples))
     assert np.all(np.abs(empirical - expected) < 5 * standard_error)
-    # the unconverted GTSAM covariance is NOT the SPEC one (the test can fail)
+    # the unconverted GTSAM covariance is NOT docs/formats.md's (the test can fail)
     assert not np.all(np.abs(empirical - pose3_cov) < 5 * standard_error)
 
 
 def test_schur_marginals_equal_gtsam_marginals():
-    from mirror_fg.solver.graph import build_graph
-    from mirror_fg.solver.marginals import _marginals_from_gtsam, marginal_covariances
+    from mirror_fg.solver.model.graph import build_graph
+    from mirror_fg.solver.model.marginals import _marginals_from_gtsam, marginal_covariances
 
     dataset, truth = simulate_base_case(num_images=40, num_points=4, pixel_sigma=1.0, seed=8)
     for fast in (True, False):
@@ -190,8 +190,8 @@ def test_an_implausible_optimum_restarts_from_the_runner_up_hypotheses(monkeypat
     """When LM from the analytical solution ends far above the chi-square range of the cost, calibrate()
     starts again from the root's runner-up hypotheses and keeps the best: here the first hypothesis is
     a deliberately wrong pose (rotated 150 deg, 2 m off), the runner-up the real solution."""
-    import mirror_fg.solver.tree_problem as calibrate_module  # the tree problem starts from it
-    from mirror_fg.solver.analytic import AnalyticSolution
+    import mirror_fg.solver.batch.tree_problem as calibrate_module  # the tree problem starts from it
+    from mirror_fg.solver.start.analytic import AnalyticSolution
     from mirror_fg.core.geometry import so3_exp
 
     dataset, truth = simulate_base_case(num_images=60, num_points=4, pixel_sigma=1.0, seed=5)

@@ -172,7 +172,7 @@ def test_camera_from_kalibr_and_ros(tmp_path):
     (tmp_path / "fish.yaml").write_text(yaml.safe_dump({"cam0": {
         "camera_model": "pinhole", "intrinsics": [1, 1, 0, 0], "distortion_model": "equidistant",
         "distortion_coeffs": [0, 0, 0, 0], "resolution": [64, 48]}}))
-    cap = load_capture(write(tmp_path, chessboard_capture(tmp_path, camera="fish.yaml")))  # issue 17: fisheye
+    cap = load_capture(write(tmp_path, chessboard_capture(tmp_path, camera="fish.yaml")))  # a fisheye
     assert (cap.camera["model"], cap.camera["dist"], cap.camera["width"]) == ("fisheye", [0, 0, 0, 0], 64)
     (tmp_path / "fov.yaml").write_text(yaml.safe_dump({"cam0": {
         "camera_model": "pinhole", "intrinsics": [1, 1, 0, 0], "distortion_model": "fov",

@@ -1,4 +1,4 @@
-"""capture@1 reflections, kaleidoscope views and rig cameras (issues 23, 24): loading, detection per
+"""capture@1 reflections, kaleidoscope views and rig cameras: loading, detection per
 region of interest on a rendered kaleidoscope photograph, and the dataset@1 dictionary detection builds.
 
 The dataset parser for ``reflections`` / ``cameras`` is not this module's: the dictionary that

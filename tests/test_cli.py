@@ -9,7 +9,7 @@ import pytest
 
 from mirror_fg.cli import main
 from mirror_fg.io.dataset import dataset_to_dict
-from mirror_fg.tools.simulate import simulate_base_case, simulate_tree
+from mirror_fg.simulate.tree import simulate_base_case, simulate_tree
 
 
 @pytest.fixture

@@ -1,4 +1,4 @@
-"""Small command-line promises: --version, python -m mirror_fg, -v stage timings (issues 13 and 17)."""
+"""Small command-line promises: --version, python -m mirror_fg, -v stage timings."""
 import json
 import subprocess
 import sys
@@ -6,7 +6,7 @@ import sys
 import mirror_fg
 from mirror_fg.cli import main
 from mirror_fg.io.dataset import dataset_to_dict
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.simulate.tree import simulate_base_case
 
 
 def test_version_from_the_command_and_the_package(capsys):

@@ -1,4 +1,4 @@
-"""``mirror-fg`` with intrinsics estimated through the mirrors (issue 16): the result's camera block, the
+"""``mirror-fg`` with intrinsics estimated through the mirrors: the result's camera block, the
 camera_info side file, the summary, one-line warnings, --incremental refused, ``plan --estimate``."""
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Consensus initial estimate (issue 15): wrong corner orders and gross corners are left out, each named
+"""Consensus initial estimate: wrong corner orders and gross corners are left out, each named
 with its reason, and the capture calibrates to the answer of the capture without them."""
 import numpy as np
 import pytest
@@ -6,9 +6,9 @@ import pytest
 from conftest import pose_difference
 from mirror_fg import DatasetError, calibrate, load_dataset
 from mirror_fg.io.dataset import Dataset, Image
-from mirror_fg.solver.calibration import Calibration
-from mirror_fg.solver.consensus import FINAL_SIGMAS, PNP_POINT_SIGMAS, screen, without
-from mirror_fg.tools.simulate import GroundTruth, default_camera, measure, simulate_base_case
+from mirror_fg.solver.result.calibration import Calibration
+from mirror_fg.solver.screen.consensus import FINAL_SIGMAS, PNP_POINT_SIGMAS, screen, without
+from mirror_fg.simulate.tree import GroundTruth, default_camera, measure, simulate_base_case
 
 # --------------------------------------------------------------------------------------------------
 # Chessboard labellings gone wrong (what a detector returns at steep mirror angles)
@@ -214,7 +214,7 @@ def test_final_check_leaves_out_a_gross_measurement_of_a_reconstruction_point():
 
 
 def test_incremental_refuses_the_bad_images_and_lands_on_the_batch_answer():
-    from mirror_fg.solver.incremental import calibrate_incremental
+    from mirror_fg.solver.incremental.calibrator import calibrate_incremental
 
     clean, _ = board_scene(1)
     picks = np.random.default_rng(5).choice(len(clean.images), size=6, replace=False)

@@ -1,4 +1,4 @@
-"""The consensus guards (issue 27): they neither refuse valid data (coplanar fiducials seen from either side,
+"""The consensus guards: they neither refuse valid data (coplanar fiducials seen from either side,
 a small planar target whose PnP has a twin, a rough start of the intrinsics) nor let one garbage image of
 the paper's three-fiducial set-up sink the batch or the incremental solve."""
 from dataclasses import replace
@@ -11,9 +11,9 @@ from test_intrinsics import reference_pixels, seen_points
 from mirror_fg import calibrate
 from mirror_fg.core.geometry import apply_transform
 from mirror_fg.io.dataset import Dataset, Image, dataset_from_dict
-from mirror_fg.solver.consensus import screen
-from mirror_fg.solver.incremental import calibrate_incremental
-from mirror_fg.tools.simulate import measure, simulate_base_case, visible
+from mirror_fg.solver.screen.consensus import screen
+from mirror_fg.solver.incremental.calibrator import calibrate_incremental
+from mirror_fg.simulate.tree import measure, simulate_base_case, visible
 
 # Ten coplanar fiducials in the simulator's 20 cm triangle (its plane z = 0): corners, edge midpoints,
 # centroid and three inner points (the issue's layout).
@@ -146,7 +146,7 @@ def test_cli_exits_0_naming_the_garbage_image(tmp_path, incremental):
     import json
 
     from mirror_fg.cli import main
-    from mirror_fg.tools.simulate import write_simulation
+    from mirror_fg.simulate.tree import write_simulation
 
     clean, truth = simulate_base_case(num_images=60, pixel_sigma=1.0, seed=0)
     path = tmp_path / "garbage.json"
@@ -163,10 +163,10 @@ def test_cli_exits_0_naming_the_garbage_image(tmp_path, incremental):
 
 def test_fit_mirrors_reaches_each_mirrors_least_squares_optimum():
     """``fit_mirrors`` on 40 mirrors at once against scipy's least_squares on each alone (same starts,
-    eq. 3 written here from the SPEC), with noise so that the optimum is not the truth."""
+    eq. 3 written here from docs/formats.md), with noise so that the optimum is not the truth."""
     from scipy.optimize import least_squares
 
-    from mirror_fg.solver.placement_consensus import fit_mirrors
+    from mirror_fg.solver.screen.placement_consensus import fit_mirrors
 
     rng = np.random.default_rng(3)
     sigma = np.array([1.0 / 800, 1.0 / 790])
@@ -212,7 +212,7 @@ def test_pnp_refines_one_start_per_basin_to_opencvs_optimum(takahashi_dir):
 
     from mirror_fg import load_dataset
     from mirror_fg.core.geometry import FLIP_Y
-    from mirror_fg.solver.pnp import pnp_candidates
+    from mirror_fg.solver.start.pnp import pnp_candidates
 
     dataset = load_dataset(takahashi_dir / "dataset.json")
     for image in dataset.images:
@@ -235,7 +235,7 @@ def test_fit_last_mirror_is_scipys_least_squares_result():
     from scipy.optimize import least_squares
 
     from mirror_fg.core.geometry import nested_transform
-    from mirror_fg.solver.consensus import fit_last_mirror
+    from mirror_fg.solver.screen.consensus import fit_last_mirror
 
     dataset, truth = _board_scene(_board(), num_images=12, seed=1)
     image = dataset.images[4]

@@ -1,4 +1,4 @@
-"""Inconsistent captures diagnosed (issue 15): a camera bumped mid-capture is named as a split of the images
+"""Inconsistent captures diagnosed: a camera bumped mid-capture is named as a split of the images
 in capture order, with how far apart the two groups' ``T_cam_base`` are."""
 import numpy as np
 import pytest
@@ -62,7 +62,7 @@ def test_too_small_sigma_is_not_called_a_split():
 
 
 def test_incremental_camera_bump_split_named():
-    from mirror_fg.solver.incremental import calibrate_incremental
+    from mirror_fg.solver.incremental.calibrator import calibrate_incremental
 
     dataset, _ = board_scene(1, num_images=24, seed=2, bump=(16, np.radians(BUMP_DEG) * BUMP_AXIS, BUMP_T))
     found = calibrate_incremental(dataset).inconsistency
@@ -74,7 +74,7 @@ def test_incremental_camera_bump_split_named():
 
 
 def test_incremental_consistent_stream_has_no_split():
-    from mirror_fg.solver.incremental import calibrate_incremental
+    from mirror_fg.solver.incremental.calibrator import calibrate_incremental
 
     dataset, _ = board_scene(1, num_images=24, seed=2)
     assert calibrate_incremental(dataset).inconsistency is None

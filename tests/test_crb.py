@@ -1,4 +1,4 @@
-"""Fisher information / Cramér-Rao bound (mirror_fg.tools.crb) against finite differences, GTSAM and chi-square."""
+"""Fisher information / Cramér-Rao bound (mirror_fg.solver.information.crb) against finite differences, GTSAM and chi-square."""
 from __future__ import annotations
 
 import gtsam
@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 
 from mirror_fg.core.errors import SolveError
-from mirror_fg.tools.crb import (
+from mirror_fg.solver.information.crb import (
     UnknownIndex, chi2_quantile, cramer_rao_bound, fisher_information, linearize, nees, nees_band, pose_error,
     weakest_direction,
 )
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.core.geometry import measurement, so3_exp
 from mirror_fg import calibrate
-from mirror_fg.solver.graph import build_graph
-from mirror_fg.tools.simulate import GroundTruth, simulate_base_case
+from mirror_fg.solver.model.graph import build_graph
+from mirror_fg.simulate.tree import GroundTruth, simulate_base_case
 from mirror_fg.core.transform import covariance_from_pose3 as spec_covariance_from_pose3
 
 
@@ -125,7 +125,7 @@ def test_pose_error_follows_spec_convention():
     rng = np.random.default_rng(0)
     R_est = so3_exp(rng.normal(size=3))
     dtheta = np.array([0.01, -0.02, 0.005])
-    R_true = so3_exp(dtheta) @ R_est  # SPEC: R_true = Exp(dtheta) R_est
+    R_true = so3_exp(dtheta) @ R_est  # docs/formats.md: R_true = Exp(dtheta) R_est
     t_est = rng.normal(size=3)
     error = pose_error(R_true, t_est + [0.1, 0.2, 0.3], R_est, t_est)
     np.testing.assert_allclose(error, [*dtheta, 0.1, 0.2, 0.3], atol=1e-12)

@@ -1,4 +1,4 @@
-"""A video with a damaged middle (issue 28): every frame OpenCV can still decode is used, in its place,
+"""A video with a damaged middle: every frame OpenCV can still decode is used, in its place,
 and FFmpeg's own complaints never reach stderr."""
 from __future__ import annotations
 

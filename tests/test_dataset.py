@@ -448,7 +448,7 @@ def test_camera_not_an_object_or_other_model(tmp_path: Path) -> None:
     assert_error(load_mutated(tmp_path, lambda d: d.update(camera=[800.0])), "camera", "object or null")
     exc = load_mutated(tmp_path, lambda d: d["camera"].update(model="omni"))
     assert_error(exc, "camera", "unsupported model", "omni")
-    # fisheye (issue 17) is a model now, with exactly 4 coefficients (k1..k4): the 5 here are refused
+    # fisheye is a model now, with exactly 4 coefficients (k1..k4): the 5 here are refused
     exc = load_mutated(tmp_path, lambda d: d["camera"].update(model="fisheye"))
     assert_error(exc, "camera", "fisheye", "4 finite numbers")
 
@@ -691,7 +691,7 @@ def test_dataset_repr_is_short_and_its_html_summary_bounded(caplog) -> None:
     notebook table is bounded and escaped whatever the source name."""
     import logging
 
-    from mirror_fg.tools.simulate import simulate_base_case
+    from mirror_fg.simulate.tree import simulate_base_case
 
     ds, _ = simulate_base_case(num_images=200, num_points=10)
     text, table = repr(ds), ds._repr_html_()

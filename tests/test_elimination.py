@@ -10,10 +10,10 @@ import gtsam
 import numpy as np
 import pytest
 
-from mirror_fg.solver import lm as lm_module
+from mirror_fg.solver.model import lm as lm_module
 from mirror_fg.solver.calibrate import calibrate
-from mirror_fg.solver.graph import build_eliminated_graph, build_graph, extract_values, initial_values
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.model.graph import build_eliminated_graph, build_graph, extract_values, initial_values
+from mirror_fg.simulate.tree import simulate_base_case
 from test_fast_path import _assert_close, _perturbed
 
 RTOL = 1e-9
@@ -114,7 +114,7 @@ def test_robust_kernels_keep_the_stacked_factors():
 
 
 def test_calibration_without_covariance_repr_and_progress(caplog):
-    """Issue 17: no covariance gives None bounds; a bounded repr and an HTML table; per-stage progress."""
+    """No covariance gives None bounds; a bounded repr and an HTML table; per-stage progress."""
     import logging
 
     dataset, _ = simulate_base_case(num_images=200, num_points=20, seed=1)

@@ -11,12 +11,12 @@ import gtsam
 import numpy as np
 import pytest
 
-from mirror_fg.solver import lm as lm_module
+from mirror_fg.solver.model import lm as lm_module
 from mirror_fg.factors.batched import ROBUST_K, batched_evaluator, batched_factors, robust_weight_and_loss
 from mirror_fg.factors.reflection import noise_model, reflection_error
 from mirror_fg.solver.calibrate import calibrate
-from mirror_fg.solver.graph import build_graph, measurement_factor
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.model.graph import build_graph, measurement_factor
+from mirror_fg.simulate.tree import simulate_base_case
 
 RTOL = 1e-9
 
@@ -241,8 +241,8 @@ def test_rejects_bad_options():
 
 
 def test_predicted_matches_graph_predictions():
-    from mirror_fg.solver.graph import extract_values
-    from mirror_fg.solver.residuals import predicted_normalized
+    from mirror_fg.solver.model.graph import extract_values
+    from mirror_fg.solver.model.residuals import predicted_normalized
 
     dataset, layout, measurements, values = _scene(2, 4)
     evaluator = batched_evaluator(dataset, layout, measurements, dataset.normalized_sigma, "huber")

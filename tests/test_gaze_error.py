@@ -196,7 +196,7 @@ def test_calibrate_writes_and_prints_the_gaze_error_at_the_viewing_distance(setu
 
 
 def test_report_draws_the_gaze_error_over_the_screen(setup, tmp_path):
-    from mirror_fg.tools.report_screen import figure_gaze
+    from mirror_fg.report.screen import figure_gaze
 
     write_observed_capture(setup, tmp_path, np.random.default_rng(9))
     assert run_cli("calibrate", "capture.yaml", "-o", "result.json", "-q", cwd=tmp_path) == 0

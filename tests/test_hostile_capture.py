@@ -1,4 +1,4 @@
-"""Hostile input to captures and detection (issue 12): every bad file ends in one DatasetError line or a
+"""Hostile input to captures and detection: every bad file ends in one DatasetError line or a
 refused image, never an internal exception, a native library's stderr line, or gigabytes of memory."""
 from __future__ import annotations
 

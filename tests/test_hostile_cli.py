@@ -1,4 +1,4 @@
-"""Issue 12, hostile input and faults at the command line: one test (or parametrised family) per class.
+"""Hostile input and faults at the command line: one test (or parametrised family) per class.
 
 Data loss, hangs and runaway memory, silent wrong answers, internal errors that must be exit 2 with
 one line. Each test fails on the code before the fix (noted per test).
@@ -21,7 +21,7 @@ import mirror_fg
 from mirror_fg.cli import main
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.dataset import dataset_from_dict, dataset_to_dict
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.simulate.tree import simulate_base_case
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -276,7 +276,7 @@ def test_pixels_outside_the_image_are_refused_by_batch_and_incremental_alike(tmp
 
 
 def test_incremental_refuses_a_result_that_did_not_converge_like_the_batch(data, tmp_path, capsys, monkeypatch):
-    from mirror_fg.solver import incremental
+    from mirror_fg.solver.incremental import calibrator as incremental
 
     real = incremental.IncrementalCalibrator.calibration
 

@@ -1,6 +1,6 @@
-"""Tests of mirror_fg.solver.incremental: iSAM2 image by image against the batch MLE (graph.calibrate).
+"""Tests of mirror_fg.solver.incremental.calibrator: iSAM2 image by image against the batch MLE (graph.calibrate).
 
-Deviations are per axis of the 6-DoF pose in SPEC's convention, ``|incremental - batch| / sigma`` with
+Deviations are per axis of the 6-DoF pose in docs/formats.md's convention, ``|incremental - batch| / sigma`` with
 the batch's marginal standard deviations.
 """
 from __future__ import annotations
@@ -12,12 +12,12 @@ import pytest
 from conftest import pose_difference
 
 from mirror_fg.core.errors import SolveError
-from mirror_fg.solver.analytic import solve_analytic
+from mirror_fg.solver.start.analytic import solve_analytic
 from mirror_fg.io.dataset import Dataset, Image, dataset_to_dict
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.solver.calibrate import calibrate
-from mirror_fg.solver.incremental import IncrementalCalibrator, complete_tree
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator, complete_tree
+from mirror_fg.simulate.tree import simulate_base_case
 
 #: Largest allowed deviation from the batch MLE, in batch standard deviations (the issue's figure).
 MAX_SIGMAS = 0.1
@@ -29,7 +29,7 @@ def _prefix(ds: Dataset, n: int) -> Dataset:
 
 def _earliest_two_mirror_solution(ds: Dataset) -> int:
     """First image count at which every placement of mirror 1 seen so far has >= 3 placements of mirror 2
-    under it and there are >= 3 placements of mirror 1 (SPEC, the paper's tree), counted directly."""
+    under it and there are >= 3 placements of mirror 1 (docs/formats.md, the paper's tree), counted directly."""
     children: dict[int, set[int]] = {}
     for n, image in enumerate(ds.images, start=1):
         children.setdefault(image.mirror_configs[0], set()).add(image.mirror_configs[1])
@@ -188,7 +188,7 @@ def test_calibration_shapes_and_covariances() -> None:
     assert all(m["sigma3_mm"] is not None for m in full["mirrors"])
     assert 0.8 < full["residuals"]["rms_px"] / batch["residuals"]["rms_px"] < 1.2
     assert full["optimizer"]["converged"]
-    # SPEC's covariance on demand, and the covariances of other unknowns.
+    # docs/formats.md's covariance on demand, and the covariances of other unknowns.
     np.testing.assert_allclose(calibrator.marginal_covariance(), calibrator.calibration().covariance)
     assert calibrator.marginal_covariance((1, 0)).shape == (3, 3)
     assert calibrator.marginal_covariance("P0").shape == (3, 3)

@@ -1,4 +1,4 @@
-"""The incremental graph with the last mirror's placements eliminated (mirror_fg/solver/incremental_graph.py)
+"""The incremental graph with the last mirror's placements eliminated (mirror_fg/solver/incremental/graph.py)
 against the per-measurement reference graph (factors/reflection.py), as tests/test_elimination.py does
 for the batch graph.
 
@@ -16,10 +16,10 @@ import pytest
 from mirror_fg.factors.reflection import noise_model
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.calibrate import calibrate
-from mirror_fg.solver.graph import measurement_factor, measurement_sigmas
-from mirror_fg.solver.incremental import IncrementalCalibrator
-from mirror_fg.solver.incremental_graph import MERGE_FANOUT
-from mirror_fg.tools.simulate import measure, simulate_base_case
+from mirror_fg.solver.model.graph import measurement_factor, measurement_sigmas
+from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator
+from mirror_fg.solver.incremental.graph import MERGE_FANOUT
+from mirror_fg.simulate.tree import measure, simulate_base_case
 from test_fast_path import _assert_close
 
 RTOL = 1e-9

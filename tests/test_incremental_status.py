@@ -1,4 +1,4 @@
-"""What an incremental calibration waits for (issue 27): ``IncrementalCalibrator.status`` and its repr, the
+"""What an incremental calibration waits for: ``IncrementalCalibrator.status`` and its repr, the
 CLI's lines before start-up, and no ``nan`` / ``0 measurements`` in the estimates between images."""
 import json
 from collections import defaultdict
@@ -7,9 +7,9 @@ import pytest
 
 from mirror_fg.cli import main
 from mirror_fg.io.dataset import Image, dataset_to_dict
-from mirror_fg.solver.incremental import IncrementalCalibrator
-from mirror_fg.solver.placement_tree import tree_shortfall
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator
+from mirror_fg.solver.start.placement_tree import tree_shortfall
+from mirror_fg.simulate.tree import simulate_base_case
 
 
 def _images(configs: list[tuple[int, ...]]) -> list[Image]:

@@ -1,4 +1,4 @@
-"""``--incremental`` on general data (issues 23, 24): iSAM2 on the view factors (``solver/incremental_views.py``)
+"""``--incremental`` on general data: iSAM2 on the view factors (``solver/incremental/views.py``)
 against the batch ``mirror_fg.calibrate`` (``views_solve.calibrate_views``, Levenberg-Marquardt and
 ``gtsam.Marginals``) on the same dataset: every pose, mirror vector and point within 0.1 of the batch's
 standard deviation, covariances within 5 %, whatever order the images come in."""
@@ -16,11 +16,11 @@ import mirror_fg
 from mirror_fg.cli import main
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.io.dataset import dataset_from_dict
-from mirror_fg.solver.incremental import IncrementalCalibrator, calibrate_incremental
-from mirror_fg.solver.incremental_tree import TreeIncrementalCalibrator
-from mirror_fg.solver.incremental_views import ViewsIncrementalCalibrator
-from mirror_fg.solver.incremental_views_start import determines_new_unknowns
-from mirror_fg.solver.views import ViewEstimate, ViewProblem
+from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator, calibrate_incremental
+from mirror_fg.solver.incremental.tree import TreeIncrementalCalibrator
+from mirror_fg.solver.incremental.views import ViewsIncrementalCalibrator
+from mirror_fg.solver.incremental.views_start import determines_new_unknowns
+from mirror_fg.solver.model.views import ViewEstimate, ViewProblem
 
 #: Largest difference from the batch, in the batch's standard deviations.
 MAX_SIGMAS = 0.1
@@ -40,7 +40,7 @@ def _dataset(raw: dict, name: str):
 
 def _pose_sigmas(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray],
                  covariance: np.ndarray) -> np.ndarray:
-    """|a - b| per component in the standard deviations of ``covariance`` (SPEC: ``R_a = Exp(dtheta) R_b``)."""
+    """|a - b| per component in the standard deviations of ``covariance`` (docs/formats.md: ``R_a = Exp(dtheta) R_b``)."""
     dtheta = gtsam.Rot3.Logmap(gtsam.Rot3(a[0] @ b[0].T))
     return np.abs(np.concatenate([dtheta, a[1] - b[1]])) / np.sqrt(np.diag(covariance))
 
@@ -253,8 +253,8 @@ def test_bad_images_are_refused_before_anything_changes() -> None:
 def test_the_start_fit_is_judged_by_the_median_measurement() -> None:
     """About 1 at the batch's solution whatever one gross measurement does; far above the refusal
     threshold (``POOR_FIT_RATIO``) at a pose 2 cm off."""
-    from mirror_fg.solver.calibration import POOR_FIT_RATIO
-    from mirror_fg.solver.incremental_views import _median_fit
+    from mirror_fg.solver.result.calibration import POOR_FIT_RATIO
+    from mirror_fg.solver.incremental.views import _median_fit
 
     raw = mixed()
     batch = mirror_fg.calibrate(_dataset(raw, "mixed"))  # before the gross measurement
@@ -272,7 +272,7 @@ def test_a_gross_measurement_in_the_first_image(scene: str) -> None:
     """15 px off in the image the start is made of: the start still fits by its median, the final check
     leaves the measurement out, and the result is the batch's on the rest. (The batch on the whole file
     is no reference here: its Levenberg-Marquardt stops before its first step, see lm_settings.)"""
-    from mirror_fg.solver.consensus import without
+    from mirror_fg.solver.screen.consensus import without
 
     raw = SCENES[scene]()
     image = raw["images"][0]

@@ -1,4 +1,4 @@
-"""The vectorised paths of the initial estimate (issue 14) give what the one-at-a-time paths give:
+"""The vectorised paths of the initial estimate give what the one-at-a-time paths give:
 batched node solves and P3P, the closed-form eigenvectors, GTSAM's LM loop replayed, and the subtree
 refinement that stops at an optimum another hypothesis already reached."""
 from itertools import product
@@ -7,16 +7,16 @@ import gtsam
 import numpy as np
 import pytest
 
-import mirror_fg.solver.initial as initial
-import mirror_fg.solver.peeling as peeling
+import mirror_fg.solver.start.initial as initial
+import mirror_fg.solver.start.peeling as peeling
 from mirror_fg import calibrate
 from mirror_fg.core.geometry import householders
-from mirror_fg.solver.analytic import TreeWalk
-from mirror_fg.solver.graph import build_eliminated_graph
-from mirror_fg.solver.lm import cost_scale, lm_params
-from mirror_fg.solver.peeling import smallest_eigenvectors, solve_children, solve_children_many, solve_triples
-from mirror_fg.solver.pnp import pnp_candidates, pnp_candidates_many
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.start.analytic import TreeWalk
+from mirror_fg.solver.model.graph import build_eliminated_graph
+from mirror_fg.solver.model.lm import cost_scale, lm_params
+from mirror_fg.solver.start.peeling import smallest_eigenvectors, solve_children, solve_children_many, solve_triples
+from mirror_fg.solver.start.pnp import pnp_candidates, pnp_candidates_many
+from mirror_fg.simulate.tree import simulate_base_case
 
 
 def _leaf_candidates(**scene):
@@ -147,7 +147,7 @@ def test_stopping_at_a_known_optimum_keeps_the_same_hypotheses(scene, monkeypatc
 
 
 def _unbounded(monkeypatch):
-    """Every node searched and ranked on all of its placements (the bounds of issue 14 lifted)."""
+    """Every node searched and ranked on all of its placements."""
     monkeypatch.setattr(peeling, "MAX_SEARCH_CHILDREN", 10**9)
     monkeypatch.setattr(initial, "MAX_RANKING_PLACEMENTS", 10**9)
 

@@ -1,4 +1,4 @@
-"""Issue 27, input checks at the boundary: implausible sizes (millimetres in metres fields), camchains with
+"""Input checks at the boundary: implausible sizes (millimetres in metres fields), camchains with
 several cameras, one rule for placement indices, bounded memory on a huge string, and messages in the
 user's words. Each test fails on the code before the fix."""
 from __future__ import annotations
@@ -21,7 +21,7 @@ from mirror_fg.core.values import MAX_INDEX
 from mirror_fg.io.capture import load_capture
 from mirror_fg.io.dataset import dataset_from_dict, dataset_to_dict
 from mirror_fg.io.result import validate_result
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.simulate.tree import simulate_base_case
 
 REPO = Path(__file__).resolve().parents[1]
 CAMERA = {"model": "pinhole", "width": 64, "height": 48, "fx": 50.0, "fy": 50.0, "cx": 31.5, "cy": 23.5}

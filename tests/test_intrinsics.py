@@ -1,4 +1,4 @@
-"""Intrinsics estimated through the mirrors (issue 16): pixel factors, the joint MLE, its covariance,
+"""Intrinsics estimated through the mirrors: pixel factors, the joint MLE, its covariance,
 the observability refusal, and the real photographs of shared/data/takahashi2012."""
 import copy
 import json
@@ -19,9 +19,9 @@ from mirror_fg.factors.intrinsics import (
 )
 from mirror_fg.io.dataset import dataset_from_dict, load_dataset
 from mirror_fg.solver.calibrate import calibrate
-from mirror_fg.solver.graph import GraphLayout, initial_values, measurements_of
-from mirror_fg.solver.intrinsics import WeakIntrinsicsWarning
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.model.graph import GraphLayout, initial_values, measurements_of
+from mirror_fg.solver.batch.intrinsics import WeakIntrinsicsWarning
+from mirror_fg.simulate.tree import simulate_base_case
 
 # The simulated camera: fx != fy, principal point off-centre, barrel distortion (k1, k2).
 TRUE_INTRINSICS = {"fx": 830.0, "fy": 790.0, "cx": 531.0, "cy": 371.0, "k1": -0.12, "k2": 0.05}
@@ -45,7 +45,7 @@ def reference_pixels(camera_points, intrinsics):
 
 def seen_points(R, t, vectors, base_points):
     """Camera-frame points (N, 3) of base points through the mirrors ``vectors`` (mirror 1 first), written
-    here from the SPEC (eqs. 2, 3): independent of mirror_fg's model."""
+    here from docs/formats.md (eqs. 2, 3): independent of mirror_fg's model."""
     x = base_points @ R.T + t
     for v in vectors:
         x = x - 2.0 * ((x @ v - v @ v) / (v @ v))[:, None] * v  # reflection about the plane v.x = v.v
@@ -116,7 +116,7 @@ def joint_covariance(calibration):
 
 
 def joint_error(calibration, R, t, intrinsics):
-    """``[dtheta, dt, intrinsics]`` from the estimate to (R, t, intrinsics), SPEC convention."""
+    """``[dtheta, dt, intrinsics]`` from the estimate to (R, t, intrinsics), docs/formats.md's convention."""
     camera = calibration.camera.camera
     dist = dict(zip(("k1", "k2", "p1", "p2", "k3"), camera.dist))
     values = {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy, **dist}
@@ -333,7 +333,7 @@ def test_weak_intrinsics_warn():
 
 
 def test_per_measurement_sigma_whitens_each_row():
-    """point_sigma (issue 18) reaches the pixel factors: each measurement is whitened by its own sigma."""
+    """point_sigma reaches the pixel factors: each measurement is whitened by its own sigma."""
     data, truth = simulate_pixels(num_images=8)
     dataset = dataset_from_dict(data)
     layout = GraphLayout.for_dataset(dataset)
@@ -406,7 +406,7 @@ def test_real_photographs_with_intrinsics(takahashi_dir):
     joint = _takahashi(takahashi_dir)
     k1 = joint.camera.camera.dist[0]
     sigma3 = joint.camera.sigma3
-    # Independent joint MLE (issue 16): k1 = -0.24 +/- 0.03 (1 sigma), mean reprojection 0.64 -> 0.30 px,
+    # Independent joint MLE: k1 = -0.24 +/- 0.03 (1 sigma), mean reprojection 0.64 -> 0.30 px,
     # T_cam_base moves by ~14 mm.
     assert abs(k1 - (-0.24)) < 0.01 and 0.08 < sigma3["k1"] < 0.10
     assert abs(np.mean(joint.residual_norms) - 0.30) < 0.005 and abs(np.mean(fixed.residual_norms) - 0.64) < 0.005
@@ -433,7 +433,7 @@ def test_real_photographs_from_nothing_but_the_images(takahashi_dir):
 
 
 def test_cramer_rao_bound_with_intrinsics_matches_the_mle_covariance(simulated):
-    from mirror_fg.tools.crb import intrinsics_cramer_rao_bound
+    from mirror_fg.solver.information.crb import intrinsics_cramer_rao_bound
 
     data, truth, calibration = simulated
     at_truth = copy.deepcopy(data)
@@ -448,7 +448,7 @@ def test_cramer_rao_bound_with_intrinsics_matches_the_mle_covariance(simulated):
 
 
 def test_plan_bounds_the_intrinsics():
-    from mirror_fg.tools.plan import PlanSetup, format_plan, plan
+    from mirror_fg.analysis.plan import PlanSetup, format_plan, plan
 
     result = plan(PlanSetup(num_images=30, fiducials=BOARD, estimate=("fx", "k1")), draws=1)
     assert set(result.intrinsics_sigma3) == {"fx", "k1"} and result.intrinsics_sigma3["fx"] > 0

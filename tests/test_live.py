@@ -20,8 +20,8 @@ import yaml
 
 from conftest import load_script, pose_difference
 from mirror_fg.io.capture import capture_from_dict
-from mirror_fg.tools.live import LiveSession, run
-from mirror_fg.tools.live_sources import FolderSource, VideoFileSource
+from mirror_fg.live.session import LiveSession, run
+from mirror_fg.live.sources import FolderSource, VideoFileSource
 from test_live_page import CHROMIUM, chromium  # Chromium in a process group of its own
 
 render = load_script("render_live")

@@ -1,4 +1,4 @@
-"""A live session's judgement of motion (tools/live.py): a frame whose corners moved more than
+"""A live session's judgement of motion (live/session.py): a frame whose corners moved more than
 ``MOTION_PX`` since the previous one is skipped as "moving"; a still one (sub-pixel jitter) is used.
 
 The corners are a real detection of a rendered frame (scripts/render_live.py), shifted per frame by a
@@ -9,7 +9,7 @@ import yaml
 
 from conftest import load_script
 from mirror_fg.io.capture import capture_from_dict
-from mirror_fg.tools.live import LiveSession
+from mirror_fg.live.session import LiveSession
 from mirror_fg.vision.detectors import Detection
 
 render = load_script("render_live")

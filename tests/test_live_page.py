@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mirror_fg.tools.live_server import LiveServer
+from mirror_fg.live.server import LiveServer
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",

@@ -1,4 +1,4 @@
-"""The live page's server (tools/live_server.py) against a stub state: which requests it answers
+"""The live page's server (live/server.py) against a stub state: which requests it answers
 (DNS rebinding: only its loopback names, no other web page's origin) and ``/events``' Last-Event-ID."""
 import http.client
 import json
@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from mirror_fg.tools.live_server import LiveServer
+from mirror_fg.live.server import LiveServer
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""``mirror-fg live --verify RESULT`` (mirror_fg/tools/live_verify.py): the verdict as frames arrive, on
+"""``mirror-fg live --verify RESULT`` (mirror_fg/live/verify.py): the verdict as frames arrive, on
 rendered hand-held sessions (scripts/render_live.py): the stored result from one session, then a second
 session of the same camera, and one with the camera moved 4 cm along its x axis."""
 import json
@@ -12,8 +12,8 @@ import yaml
 
 from conftest import load_script
 from mirror_fg.io.capture import capture_from_dict
-from mirror_fg.tools.live import LiveSession, run
-from mirror_fg.tools.live_sources import VideoFileSource
+from mirror_fg.live.session import LiveSession, run
+from mirror_fg.live.sources import VideoFileSource
 
 render = load_script("render_live")
 

@@ -1,4 +1,4 @@
-"""calibrate-many under faults (tools/many.py, tools/montecarlo.py): schedulers that are not there or are not
+"""calibrate-many under faults (tools/many.py, analysis/montecarlo.py): schedulers that are not there or are not
 Dask, a worker killed while the local cluster starts, an input whose worker keeps dying; and small jobs run in
 this process, with the same rows as on Dask.
 
@@ -25,7 +25,7 @@ from conftest import REPO
 from mirror_fg import cli
 from mirror_fg.io.dataset import dataset_text
 from mirror_fg.tools.many import calibrate_many, runs_in_process
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.simulate.tree import simulate_base_case
 
 CRASH_ON_INPUT = '''
 import os

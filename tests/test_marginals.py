@@ -1,5 +1,5 @@
-"""solver/marginals.py's one wrap of GTSAM's indeterminant-system error into a SolveError naming the unknown
-(issue 23, "One pipeline for every problem": one error wrap for LM, Marginals and the intrinsics' Marginals)."""
+"""solver/model/marginals.py's one wrap of GTSAM's indeterminant-system error into a SolveError naming the unknown
+(one error wrap for LM, Marginals and the intrinsics' Marginals)."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -8,9 +8,9 @@ import gtsam
 import pytest
 
 from mirror_fg.core.errors import SolveError
-from mirror_fg.solver.graph import build_graph
-from mirror_fg.solver.marginals import unconstrained_as_solve_error, unconstrained_message
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.model.graph import build_graph
+from mirror_fg.solver.model.marginals import unconstrained_as_solve_error, unconstrained_message
+from mirror_fg.simulate.tree import simulate_base_case
 
 
 def test_an_indeterminant_system_becomes_a_solve_error_naming_the_unknown():

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from conftest import load_script
 
-from mirror_fg.tools.crb import chi2_quantile
+from mirror_fg.solver.information.crb import chi2_quantile
 
 _script = load_script
 
@@ -123,7 +123,7 @@ def test_convergence_from_the_analytical_guess():
 
 def test_naive_guess_knows_nothing():
     conv = _script("convergence")
-    from mirror_fg.tools.simulate import simulate_base_case
+    from mirror_fg.simulate.tree import simulate_base_case
 
     dataset, _ = simulate_base_case(num_images=9, num_points=2, pixel_sigma=0.0, seed=0)
     guess = conv.naive_guess(dataset)

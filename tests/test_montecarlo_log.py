@@ -1,4 +1,4 @@
-"""The resumable Monte Carlo log (tools/trial_log.py) through its users, scripts/reproduce_fig4.py and
+"""The resumable Monte Carlo log (analysis/trial_log.py) through its users, scripts/reproduce_fig4.py and
 scripts/convergence.py: a torn last record, a torn line elsewhere, a full disk, two runs on one log."""
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import pytest
 from conftest import REPO, load_script
 
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.tools.trial_log import TrialLog
+from mirror_fg.analysis.trial_log import TrialLog
 
 POINTS = [("a", 0.5, 0.5)]
 SMALL = dict(num_images=9, num_points=2, jobs=1, progress=False)

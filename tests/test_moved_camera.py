@@ -1,4 +1,4 @@
-"""A camera that moved between groups of placements (issue 27): the paper's two-mirror scene with six
+"""A camera that moved between groups of placements: the paper's two-mirror scene with six
 placements of mirror 1 and ten fiducials, the camera moved after the first three. A mirror placement
 absorbs most of the move, so the cost stays plausible; the split at the boundary between placements of
 mirror 1 is tested anyway, by a chi-square test on the two sides' poses with their covariances."""
@@ -10,9 +10,9 @@ from conftest import pose_difference
 from mirror_fg import calibrate
 from mirror_fg.core.geometry import so3_exp
 from mirror_fg.io.dataset import Dataset, Image
-from mirror_fg.solver import consistency
-from mirror_fg.solver.consistency import MAX_MOVE_SPLITS, MOVE_SIGNIFICANCE
-from mirror_fg.tools.simulate import GroundTruth, default_camera, default_fiducials, measure, simulate_base_case
+from mirror_fg.solver.screen import consistency
+from mirror_fg.solver.screen.consistency import MAX_MOVE_SPLITS, MOVE_SIGNIFICANCE
+from mirror_fg.simulate.tree import GroundTruth, default_camera, default_fiducials, measure, simulate_base_case
 
 MOVE_AXIS = np.array([0.2, 1.0, -0.3]) / np.linalg.norm([0.2, 1.0, -0.3])
 MOVE_DIRECTION = np.array([1.0, -0.5, 0.4]) / np.linalg.norm([1.0, -0.5, 0.4])
@@ -76,7 +76,7 @@ def test_consistent_capture_is_not_split(seed):
 
 
 def test_incremental_names_the_same_split():
-    from mirror_fg.solver.incremental import calibrate_incremental
+    from mirror_fg.solver.incremental.calibrator import calibrate_incremental
 
     dataset, _ = moved_scene()
     found = calibrate_incremental(dataset).inconsistency
@@ -102,7 +102,7 @@ def test_solvable_boundaries_are_those_a_test_per_boundary_finds():
     """The bisections of ``_solvable_boundaries`` against the plain definition, boundary by boundary."""
     from test_consensus import board_scene
 
-    from mirror_fg.solver.placement_tree import complete_tree
+    from mirror_fg.solver.start.placement_tree import complete_tree
 
     def every_boundary(dataset: Dataset) -> list[int]:
         images, Nv = dataset.images, dataset.num_mirrors

@@ -1,4 +1,4 @@
-"""The moved-camera test's threshold (solver/consistency.py, ``moved_camera_split``): the difference of
+"""The moved-camera test's threshold (solver/screen/consistency.py, ``moved_camera_split``): the difference of
 two ``T_cam_base`` has 6 degrees of freedom, so a chi-square statistic between the 3- and 6-dof
 thresholds is chance, not a move; a split it reports states a p-value within its own limit.
 
@@ -9,8 +9,8 @@ import re
 import pytest
 from scipy.stats import chi2
 
-from mirror_fg.solver import consistency
-from mirror_fg.solver.consistency import MAX_MOVE_SPLITS, MOVE_SIGNIFICANCE
+from mirror_fg.solver.screen import consistency
+from mirror_fg.solver.screen.consistency import MAX_MOVE_SPLITS, MOVE_SIGNIFICANCE
 from test_moved_camera import moved_scene
 
 

@@ -1,4 +1,4 @@
-"""Issue 28, "Outputs": a run killed between the renames of its output set, two writers on one set, a
+"""Outputs: a run killed between the renames of its output set, two writers on one set, a
 new output directory on a full disk. Every kill lands at a chosen moment through a hook in the child
 (``os.replace`` / ``os.fsync`` wrapped to signal the process after the N-th call on the run's files),
 every full disk is an injected ENOSPC: nothing waits on a clock. Each test fails on the code before the

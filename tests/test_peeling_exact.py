@@ -1,4 +1,4 @@
-"""One node of the paper's peeling (solver/peeling.py, eqs. 13-17) on noise-free children: the parent's
+"""One node of the paper's peeling (solver/start/peeling.py, eqs. 13-17) on noise-free children: the parent's
 ``(A, b)`` and every child's mirror vector come out exact, however many children and observations.
 
 The children are made here from eq. (3) alone: ``A_l = M_m A_{l-1}``, ``b_l = M_m b_{l-1} + 2 v_m``
@@ -6,7 +6,7 @@ with ``M_m = I - 2 n_m n_m^T`` and ``v_m = d_m n_m``."""
 import numpy as np
 import pytest
 
-from mirror_fg.solver.peeling import solve_children
+from mirror_fg.solver.start.peeling import solve_children
 
 TOLERANCE = 1e-9
 

@@ -1,4 +1,4 @@
-"""Experiment planner (mirror_fg.tools.plan): Cramér-Rao bounds before data, checked against a Monte Carlo."""
+"""Experiment planner (mirror_fg.analysis.plan): Cramér-Rao bounds before data, checked against a Monte Carlo."""
 from __future__ import annotations
 
 import json
@@ -6,11 +6,11 @@ import json
 import numpy as np
 import pytest
 
-from mirror_fg.tools.crb import chi2_quantile, nees, nees_band, pose_error
+from mirror_fg.solver.information.crb import chi2_quantile, nees, nees_band, pose_error
 from mirror_fg.core.errors import DatasetError
 from mirror_fg import calibrate
-from mirror_fg.tools.plan import PlanSetup, format_plan, load_fiducials, plan
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.analysis.plan import PlanSetup, format_plan, load_fiducials, plan
+from mirror_fg.simulate.tree import simulate_base_case
 
 
 def test_planner_predicts_the_monte_carlo_spread():

@@ -1,4 +1,4 @@
-"""``mirror-fg plan --camera FILE`` and ``--capture FILE`` (issue 27): the plan of a setup described by
+"""``mirror-fg plan --camera FILE`` and ``--capture FILE``: the plan of a setup described by
 the files the calibration will use equals the plan with the same numbers given by hand."""
 from __future__ import annotations
 

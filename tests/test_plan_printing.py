@@ -11,8 +11,8 @@ import pytest
 from mirror_fg.cli import main
 from mirror_fg.core.geometry import so3_exp
 from mirror_fg.core.transform import Transform
-from mirror_fg.tools.plan import plan
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.analysis.plan import plan
+from mirror_fg.simulate.tree import simulate_base_case
 
 
 def _plan(capsys, *args: str) -> tuple[int, str, str]:

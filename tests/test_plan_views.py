@@ -1,4 +1,4 @@
-"""plan --kind / --cameras (tools/plan_views.py): Cramér-Rao bounds of the general set-ups and rigs."""
+"""plan --kind / --cameras (analysis/plan_views.py): Cramér-Rao bounds of the general set-ups and rigs."""
 from __future__ import annotations
 
 import subprocess
@@ -7,8 +7,8 @@ import sys
 import numpy as np
 
 import mirror_fg
-from mirror_fg.tools.plan_views import plan_views
-from mirror_fg.tools.simulate_rig import simulate_rig_tree
+from mirror_fg.analysis.plan_views import plan_views
+from mirror_fg.simulate.rig import simulate_rig_tree
 
 
 def test_rig_bound_is_the_covariance_calibrate_reports_on_that_scene() -> None:

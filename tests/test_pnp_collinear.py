@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mirror_fg.core.geometry import so3_exp_many
-from mirror_fg.solver import pnp
+from mirror_fg.solver.start import pnp
 from test_pnp_minima import _reference_minima  # noqa: E402  (the search with every start)
 
 
@@ -69,9 +69,9 @@ def test_the_arms_screen_leaves_out_what_the_shared_screen_does(tmp_path) -> Non
     pytest.importorskip("pinocchio")
     from mirror_fg.io.dataset import load_dataset
     from mirror_fg.robot.simulate import simulate_arm, write_arm_simulation
-    from mirror_fg.solver.consensus import screen
+    from mirror_fg.solver.screen.consensus import screen
     from mirror_fg.solver.options import SolveOptions
-    from mirror_fg.solver.robot_solve import RobotPipelineProblem
+    from mirror_fg.solver.batch.robot_solve import RobotPipelineProblem
 
     dataset, truth = simulate_arm("arm6", False, placements=3, arm_poses=5, seed=2)
     dataset["images"][1]["observations"]["F8"][1] += 30.0  # a gross corner

@@ -1,4 +1,4 @@
-"""The per-image PnP minima (``solver/pnp.py``) are those of the one-start-at-a-time search they replace:
+"""The per-image PnP minima (``solver/start/pnp.py``) are those of the one-start-at-a-time search they replace:
 the same poses, in the same order, on random problems of 4-8 points, planar and not, with noise."""
 from __future__ import annotations
 
@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from mirror_fg.core.geometry import apply_transform, project, so3_exp_many
-from mirror_fg.solver.pnp import SAME_BASIN, SAME_MINIMUM, _pnp_minima
+from mirror_fg.solver.start.pnp import SAME_BASIN, SAME_MINIMUM, _pnp_minima
 
 _PNP_CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
 
 
-# The search one start at a time, as solver/pnp.py had it: the reference.
+# The search one start at a time, as solver/start/pnp.py had it: the reference.
 def _reprojection_rms(R, t, base_points, normalized):
     camera_points = apply_transform(R, t, base_points)
     if np.any(camera_points[:, 2] <= 0):

@@ -1,4 +1,4 @@
-"""The error at a point (solver/point_error.py, ``Calibration.point_error``, result@1 ``at``): against a Monte
+"""The error at a point (solver/result/point_error.py, ``Calibration.point_error``, result@1 ``at``): against a Monte
 Carlo of the result's own covariance and against the simulator's truth (NEES over simulated runs)."""
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from scipy.stats import chi2
 from mirror_fg.core.transform import Transform
 from mirror_fg.io.result import validate_result
 from mirror_fg.solver.calibrate import calibrate
-from mirror_fg.solver.point_error import parse_point, point_error
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.result.point_error import parse_point, point_error
+from mirror_fg.simulate.tree import simulate_base_case
 
 GRASPS = [(0.0, 0.0, 0.6), (0.3, -0.2, 1.0), (-0.5, 0.4, 2.0)]
 

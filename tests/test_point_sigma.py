@@ -1,4 +1,4 @@
-"""Per-point measurement noise (dataset@1 ``point_sigma``, issue 18): file, solver, covariance.
+"""Per-point measurement noise (dataset@1 ``point_sigma``): file, solver, covariance.
 
 A tracked point's pixel is noisier than a detected fiducial's corner; with ``point_sigma`` every
 observation of that point is whitened with its own sigma. Checked here: the file (read, written,
@@ -25,11 +25,11 @@ from conftest import pose_difference
 from mirror_fg import calibrate
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.dataset import dataset_from_dict, dataset_to_dict, load_dataset
-from mirror_fg.solver import lm as lm_module
-from mirror_fg.solver.graph import build_eliminated_graph, build_graph, extract_values, measurement_sigmas, measurements_of
-from mirror_fg.solver.incremental import IncrementalCalibrator
-from mirror_fg.tools.crb import cramer_rao_bound
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.model import lm as lm_module
+from mirror_fg.solver.model.graph import build_eliminated_graph, build_graph, extract_values, measurement_sigmas, measurements_of
+from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator
+from mirror_fg.solver.information.crb import cramer_rao_bound
+from mirror_fg.simulate.tree import simulate_base_case
 
 
 def noisy_dataset(num_mirrors: int, num_images: int, sigmas_px: dict[str, float], pixel_sigma: float, seed: int,
@@ -112,7 +112,7 @@ def test_misspelt_key_is_still_refused():
 
 
 def _reflect_project(R, t, vectors, base_points):
-    """Independent model (SPEC), rows (N, 3): x = R Bp + t, then x -> x - 2 v (v.x - v.v) / v.v for each
+    """Independent model (docs/formats.md), rows (N, 3): x = R Bp + t, then x -> x - 2 v (v.x - v.v) / v.v for each
     mirror (``vectors``: one (N, 3) per mirror, mirror 1 first), z = x / x3."""
     x = base_points @ R.T + t
     for v in vectors:
@@ -123,7 +123,7 @@ def _reflect_project(R, t, vectors, base_points):
 
 class WeightedProblem:
     """Every measurement's residual over its own sigma, unknowns ``[w, t, mirror vectors, points]`` with
-    ``R = Exp(w) R0`` (SPEC's perturbation: the covariance of ``[w, t]`` at ``w = 0`` is the pose's)."""
+    ``R = Exp(w) R0`` (docs/formats.md's perturbation: the covariance of ``[w, t]`` at ``w = 0`` is the pose's)."""
 
     def __init__(self, ds, R0):
         self.R0 = R0
@@ -160,12 +160,12 @@ class WeightedProblem:
 
 
 def weighted_mle(ds, start):
-    """The weighted MLE by scipy (LM, 3-point Jacobians) and its covariance (SPEC convention for the pose)."""
+    """The weighted MLE by scipy (LM, 3-point Jacobians) and its covariance (docs/formats.md's convention for the pose)."""
     problem = WeightedProblem(ds, start.R_cam_base)
     fit = least_squares(problem.residuals, problem.pack(start.t_cam_base, start.mirror_vectors, start.points),
                         method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, jac="3-point")
     R, t, mirrors, points = problem.unpack(fit.x)
-    at = WeightedProblem(ds, R)  # re-centred at the optimum: w = 0, so the [w, t] block is SPEC's
+    at = WeightedProblem(ds, R)  # re-centred at the optimum: w = 0, so the [w, t] block is docs/formats.md's
     x = at.pack(t, mirrors, points)
     J = least_squares(at.residuals, x, method="lm", jac="3-point", max_nfev=1).jac
     covariance = np.linalg.inv(J.T @ J)
@@ -203,7 +203,7 @@ def test_mle_is_the_independent_weighted_mle(num_mirrors):
             assert _relative(cal.mirror_vectors[c], v) < 1e-6, c
         for name, p in points.items():
             assert _relative(cal.points[name], p) < 1e-6, name
-        # Covariances: the pose (SPEC convention), every point and mirror, to the Jacobians' accuracy.
+        # Covariances: the pose (docs/formats.md's convention), every point and mirror, to the Jacobians' accuracy.
         np.testing.assert_allclose(cal.covariance, covariance[:6, :6], rtol=1e-4, atol=1e-6 * np.max(np.abs(covariance[:6, :6])))
         offset = 6 + 3 * len(problem.configs)
         for j, name in enumerate(problem.points):
@@ -416,7 +416,7 @@ def test_tracked_point_sigma_is_the_users_else_the_trackers_never_below_pixel_si
     assert sigmas["P4"] == 0.6  # track lost to a gap in the frames: the kind's floor 0.5, below pixel_sigma
 
 
-# --- detect writes each tracked point's sigma (needs the detect.py change of issue 18's point_sigma) --
+# --- detect writes each tracked point's sigma (needs the detect.py change of point_sigma) --
 
 
 def test_detect_writes_each_tracked_points_sigma_into_point_sigma(tmp_path):

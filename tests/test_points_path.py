@@ -1,4 +1,4 @@
-"""The points path of the eliminated factors (issue 27): reconstruction points make a factor as wide as
+"""The points path of the eliminated factors: reconstruction points make a factor as wide as
 6 + 3 (parents + points); its linearisation works on each measurement's nonzero columns (the same
 normal equations as the dense projected system, checked here against one built densely) and runs its
 small BLAS calls on one thread (a second OpenBLAS thread spinning on a loaded machine took the cores
@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mirror_fg.solver.graph import build_eliminated_graph
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.model.graph import build_eliminated_graph
+from mirror_fg.simulate.tree import simulate_base_case
 
 threadpoolctl = pytest.importorskip("threadpoolctl")
 

@@ -1,4 +1,4 @@
-"""Wrong answers that passed as success (issue 27): a fit the noise model cannot explain, two photographs
+"""Wrong answers that passed as success: a fit the noise model cannot explain, two photographs
 labelled as one placement, sizes in millimetres where metres are meant. ``require_converged`` refuses them
 for ``mirror-fg calibrate``, ``calibrate-many`` and ``--incremental`` alike, unless accepted."""
 import json
@@ -12,8 +12,8 @@ from mirror_fg import calibrate
 from mirror_fg.cli import main
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.io.dataset import Dataset, dataset_to_dict, load_dataset
-from mirror_fg.solver.calibration import POOR_FIT_RATIO, require_converged
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.result.calibration import POOR_FIT_RATIO, require_converged
+from mirror_fg.simulate.tree import simulate_base_case
 
 
 @pytest.fixture
@@ -111,7 +111,7 @@ def test_a_sigma_twice_too_small_still_passes():
 
 
 def test_incremental_judges_its_final_cost():
-    from mirror_fg.solver.incremental import calibrate_incremental
+    from mirror_fg.solver.incremental.calibrator import calibrate_incremental
 
     dataset = _declared_sigma(1.0, 0.25)
     with pytest.raises(SolveError, match="times worse than the noise model allows"):

@@ -1,4 +1,4 @@
-"""The propagation's start (solver/propagation.py) is a result: on noise-free scenes every plane and
+"""The propagation's start (solver/start/propagation.py) is a result: on noise-free scenes every plane and
 point it finds equals the truth (to 1e-6), whatever rule found it.
 
 The scenes are those of views_scenes.py (independent of mirror_fg); a kaleidoscope here adds points
@@ -9,9 +9,9 @@ import pytest
 
 import views_scenes as scenes
 from mirror_fg.io.dataset import dataset_from_dict
-from mirror_fg.solver.propagation import propagate
-from mirror_fg.solver.views import ViewProblem
-from mirror_fg.solver.views_solve import tree_start_for
+from mirror_fg.solver.start.propagation import propagate
+from mirror_fg.solver.model.views import ViewProblem
+from mirror_fg.solver.batch.views_solve import tree_start_for
 from mirror_fg.solver.options import SolveOptions
 
 TOLERANCE = 1e-6  # metres, and for unit normals

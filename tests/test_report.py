@@ -1,4 +1,4 @@
-"""Tests of mirror_fg.tools.report: residuals, the HTML page (rendered in headless Chromium) and the PDF."""
+"""Tests of mirror_fg.report.writer: residuals, the HTML page (rendered in headless Chromium) and the PDF."""
 from __future__ import annotations
 
 import base64
@@ -16,8 +16,8 @@ from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.camera import Camera
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.core.geometry import nested_transform, project, so3_exp
-from mirror_fg.tools.residuals import OUTLIER_FACTOR, compute_residuals
-from mirror_fg.tools.report import write_report
+from mirror_fg.report.residuals import OUTLIER_FACTOR, compute_residuals
+from mirror_fg.report.writer import write_report
 from mirror_fg.core.transform import rotation_to_quaternion_xyzw
 
 PIXEL_SIGMA = 0.5
@@ -77,7 +77,7 @@ def make_scene(seed: int = 0, pixel_sigma: float = PIXEL_SIGMA, outlier_px: floa
         num_mirrors=2, camera=cam if camera else None, pixel_sigma=pixel_sigma * scale,
         fiducials=fiducials, images=images, source="<test scene>",
     )
-    # A plausible covariance with correlations, in SPEC order [dtheta, dt].
+    # A plausible covariance with correlations, in docs/formats.md's order [dtheta, dt].
     L = np.tril(rng.normal(size=(6, 6))) * np.array([1e-3] * 3 + [2e-3] * 3)[:, None]
     cov = L @ L.T + np.diag([1e-7] * 3 + [1e-6] * 3)
     sd3 = 3.0 * np.sqrt(np.diag(cov))
@@ -216,10 +216,10 @@ def test_report_shows_what_was_left_out_a_split_and_the_estimated_camera(tmp_pat
 
 def test_report_figures_normalized_dataset():
     """Without a camera: normalized units, no image size for the frustum or the residual arrows."""
-    from mirror_fg.tools.report import _summary
-    from mirror_fg.tools.report_figures import figure_per_point as _figure_per_point
-    from mirror_fg.tools.report_figures import figure_scene as _figure_scene
-    from mirror_fg.tools.report_figures import png as _png
+    from mirror_fg.report.writer import _summary
+    from mirror_fg.report.figures import figure_per_point as _figure_per_point
+    from mirror_fg.report.figures import figure_scene as _figure_scene
+    from mirror_fg.report.figures import png as _png
 
     ds, result = make_scene(camera=False)
     res = compute_residuals(result, ds)
@@ -302,7 +302,7 @@ def test_report_pdf_pages_render(report, tmp_path):
     pdf = report["pdf"]
     data = pdf.read_bytes()
     assert data.startswith(b"%PDF")
-    figures = 6  # every figure in the PDF, several to a page since issue 27 (was one page per figure)
+    figures = 6  # every figure in the PDF, several to a page (was one page per figure)
     run = subprocess.run([pdftoppm, "-r", "40", "-png", str(pdf), str(tmp_path / "page")],
                          capture_output=True, text=True, timeout=120, check=False)
     assert run.returncode == 0, run.stderr
@@ -321,7 +321,7 @@ def test_report_pdf_pages_render(report, tmp_path):
 
 
 def test_report_pdf_holds_what_the_html_holds(report, tmp_path):
-    """Flagged measurements, ROS snippets, frames, the input echo: in the PDF as in the HTML (issue 17)."""
+    """Flagged measurements, ROS snippets, frames, the input echo: in the PDF as in the HTML."""
     pdftotext = shutil.which("pdftotext")
     if pdftotext is None:
         pytest.skip("pdftotext not installed: apt-get install poppler-utils")
@@ -362,7 +362,7 @@ def _check_pipeline_report(ds, result, out: Path, render: bool) -> None:
 
 
 def test_report_simulated_base_case(tmp_path):
-    from mirror_fg.tools.simulate import simulate_base_case
+    from mirror_fg.simulate.tree import simulate_base_case
 
     ds, _ = simulate_base_case(num_images=30, num_points=2, pixel_sigma=1.0, seed=3)
     _check_pipeline_report(ds, calibrate(ds).to_dict(), tmp_path, render=False)  # rendering: the fixture

@@ -1,4 +1,4 @@
-"""The report's diagnostics (issues 17, 18): residual vs distance from the image centre, the camera's pose
+"""The report's diagnostics: residual vs distance from the image centre, the camera's pose
 uncertainty drawn at visible scale, sampled placements, tracked points, the input echo and one RMS."""
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 import mirror_fg
-from mirror_fg.tools.report import _summary, write_report
-from mirror_fg.tools.report_figures import MAX_PLACEMENTS_DRAWN, _nice_scale, figure_scene
-from mirror_fg.tools.residuals import Residuals, compute_residuals
+from mirror_fg.report.writer import _summary, write_report
+from mirror_fg.report.figures import MAX_PLACEMENTS_DRAWN, _nice_scale, figure_scene
+from mirror_fg.report.residuals import Residuals, compute_residuals
 from mirror_fg.vision.tracking import Track, TrackSample
 
 from test_report import make_scene

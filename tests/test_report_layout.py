@@ -1,5 +1,5 @@
 """The report's verdict as a headline and bullets, its progress per figure, each figure rendered once,
-and several plots to a PDF page (issue 27)."""
+and several plots to a PDF page."""
 from __future__ import annotations
 
 import collections
@@ -10,8 +10,8 @@ import subprocess
 import pytest
 
 import mirror_fg
-from mirror_fg.tools.report import _summary, write_report
-from mirror_fg.tools.residuals import compute_residuals
+from mirror_fg.report.writer import _summary, write_report
+from mirror_fg.report.residuals import compute_residuals
 
 from test_report import make_scene
 

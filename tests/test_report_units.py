@@ -1,5 +1,5 @@
 """``calibrate --at`` / ``--validate`` on the command line, their console lines, and the report's section
-(tools/report_units.py): the points, the map of the largest 3-sigma over the image, the validation."""
+(report/units.py): the points, the map of the largest 3-sigma over the image, the validation."""
 from __future__ import annotations
 
 import json
@@ -11,9 +11,9 @@ from mirror_fg.cli import main
 from mirror_fg.core.transform import Transform
 from mirror_fg.io.dataset import dataset_to_dict, load_dataset
 from mirror_fg.io.result import load_result
-from mirror_fg.solver.point_error import point_error
-from mirror_fg.tools.report_units import MAP_DEPTHS_M, largest_sigma3_map, units_blocks
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.solver.result.point_error import point_error
+from mirror_fg.report.units import MAP_DEPTHS_M, largest_sigma3_map, units_blocks
+from mirror_fg.simulate.tree import simulate_base_case
 
 
 @pytest.fixture(scope="module")

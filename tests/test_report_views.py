@@ -1,4 +1,4 @@
-"""The report on general data (issues 23, 24): residuals of any reflection order and of several cameras
+"""The report on general data: residuals of any reflection order and of several cameras
 against an independent model (reflections in the base frame), their grouping by order and camera, the
 scene with each placement once and every camera, the cameras / rig / placement tables, and a page without
 a known target that says the base frame is the camera's instead of showing zero bounds."""
@@ -15,10 +15,10 @@ from mirror_fg.core.geometry import so3_exp
 from mirror_fg.core.transform import Transform, rotation_to_quaternion_xyzw
 from mirror_fg.io.dataset import dataset_from_dict
 from mirror_fg.io.result import result_dict, sigma3_pose, validate_result
-from mirror_fg.tools.report import write_report
-from mirror_fg.tools.report_general import view_unknown_count
-from mirror_fg.tools.report_scene import figure_views_scene
-from mirror_fg.tools.report_views import camera_stats, order_stats, placement_ties, view_residuals
+from mirror_fg.report.writer import write_report
+from mirror_fg.report.general import view_unknown_count
+from mirror_fg.report.scene import figure_views_scene
+from mirror_fg.report.views import camera_stats, order_stats, placement_ties, view_residuals
 
 CAM = {"model": "pinhole", "width": 1280, "height": 960, "fx": 1000.0, "fy": 1000.0, "cx": 640.0, "cy": 480.0,
        "dist": [0.0, 0.0, 0.0, 0.0, 0.0]}

@@ -1,4 +1,4 @@
-"""mirror_fg.io.result.validate_result: a corrupt result@1 fails with one line naming the key (issue 12).
+"""mirror_fg.io.result.validate_result: a corrupt result@1 fails with one line naming the key.
 
 Every key path of a real result is replaced, in turn, by each of a few wrong values; the validator
 either refuses it with a short line naming that path, or (optional keys, NaN statistics, extras)
@@ -21,13 +21,13 @@ import mirror_fg
 from mirror_fg.cli import main
 from mirror_fg.core.camera import Camera
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.solver.calibration import EstimatedCamera, Exclusion, Inconsistency
+from mirror_fg.solver.result.calibration import EstimatedCamera, Exclusion, Inconsistency
 from mirror_fg.io.dataset import dataset_to_dict
-from mirror_fg.tools.report import _summary, write_report
-from mirror_fg.tools.residuals import compute_residuals
+from mirror_fg.report.writer import _summary, write_report
+from mirror_fg.report.residuals import compute_residuals
 from mirror_fg.io.result import validate_result
 from mirror_fg.io.ros import ros_outputs, write_ros_outputs
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.simulate.tree import simulate_base_case
 from mirror_fg.core.transform import rotation_to_quaternion_xyzw
 
 SOURCE = "r.json"

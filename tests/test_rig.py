@@ -1,4 +1,4 @@
-"""solver.rig: Kalibr's T_cn_cnm1 chain and its covariance propagated from the joint covariance, against
+"""solver.model.rig: Kalibr's T_cn_cnm1 chain and its covariance propagated from the joint covariance, against
 numerical Jacobians of the exact perturbation and a Monte Carlo of the cameras' joint errors."""
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mirror_fg.solver.rig import RigTransform, rig_jacobian, rig_transforms
+from mirror_fg.solver.model.rig import RigTransform, rig_jacobian, rig_transforms
 from rig_calibration import random_poses, random_spd
 
 

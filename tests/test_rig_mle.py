@@ -1,4 +1,4 @@
-"""mirror_fg's MLE for several cameras on one body (SPEC "Several cameras on one body") against the
+"""mirror_fg's MLE for several cameras on one body (docs/formats.md "Several cameras on one body") against the
 independent reference (views_reference.py): every camera's pose, the shared and own placements (each in
 its owner camera's frame), the rig chain and its covariance; and the bad input of a rig dataset.
 

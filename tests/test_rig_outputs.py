@@ -12,7 +12,7 @@ import pytest
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.transform import Transform
 from mirror_fg.io.result import load_result, result_dict, validate_result, write_result
-from mirror_fg.solver.rig import rig_jacobian
+from mirror_fg.solver.model.rig import rig_jacobian
 from rig_calibration import NAMES, rig_calibration
 
 
@@ -407,12 +407,12 @@ def test_no_camchain_for_a_device_a_single_camera_or_cameras_without_intrinsics(
 
 
 # --------------------------------------------------------------------------------------------------
-# The CLI summary (tools.summary): every camera and every rig transform with its own bounds
+# The CLI summary (report.summary): every camera and every rig transform with its own bounds
 # --------------------------------------------------------------------------------------------------
 
 
 def test_summary_prints_every_camera_and_rig_transform_with_its_own_bounds():
-    from mirror_fg.tools.summary import summary_lines, unknown_count
+    from mirror_fg.report.summary import summary_lines, unknown_count
 
     calibration = rig_calibration(0)
     calibration.cameras["wrist"] = dataclasses.replace(calibration.cameras["wrist"],
@@ -439,7 +439,7 @@ def test_summary_prints_every_camera_and_rig_transform_with_its_own_bounds():
 
 
 def test_summary_without_rig_covariance_says_not_computed():
-    from mirror_fg.tools.summary import summary_lines
+    from mirror_fg.report.summary import summary_lines
 
     lines = summary_lines(result_dict(rig_calibration(1, covariance=False)))
     rig_start = next(i for i, line in enumerate(lines) if line.startswith("rig (Kalibr's T_cn_cnm1)"))

@@ -1,4 +1,4 @@
-"""The one-rotation-axis check before an arm's solve (solver/robot_solve.py ``check_rotation_axes``) on given
+"""The one-rotation-axis check before an arm's solve (solver/batch/robot_solve.py ``check_rotation_axes``) on given
 link rotations: turns about one axis (within about a degree per radian) are refused with exit 3, turns
 about two clearly different axes are enough (hand-eye needs two, not three), a mount on the base link is
 never checked; and the camera mount's covariance carried to ``T_cam_link``."""
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from mirror_fg.core.errors import SolveError
-from mirror_fg.solver.robot_solve import check_rotation_axes
+from mirror_fg.solver.batch.robot_solve import check_rotation_axes
 
 
 def _rotation(rotation_vector) -> np.ndarray:
@@ -56,7 +56,7 @@ def test_the_camera_mount_s_covariance_inverts_as_the_first_order_propagation():
     ``t' = t + dt``) from the mount's Pose3 tangent one, against central differences of the inversion."""
     import gtsam
 
-    from mirror_fg.solver.robot_views import camera_base_pose
+    from mirror_fg.solver.model.robot_views import camera_base_pose
 
     R, t = _rotation([0.3, -1.1, 0.5]), np.array([0.05, -0.12, 0.3])
     A = np.random.default_rng(4).normal(size=(6, 6))

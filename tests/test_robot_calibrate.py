@@ -130,7 +130,7 @@ def test_the_readme_arm_example_runs_and_holds_the_truth(tmp_path) -> None:
 
 def test_report_of_an_arm_predicts_through_the_kinematics(tmp_path) -> None:
     from conftest import REPO
-    from mirror_fg.tools.report_robot import figure_arm, robot_residuals
+    from mirror_fg.report.robot import figure_arm, robot_residuals
 
     example = REPO / "examples" / "arm6" / "arm6_mirror.json"
     out = tmp_path / "arm.json"

@@ -14,7 +14,7 @@ from mirror_fg.factors.robot import compose, inverse  # noqa: E402
 from mirror_fg.io.dataset import dataset_from_dict  # noqa: E402
 from mirror_fg.robot import arm_urdf  # noqa: E402
 from mirror_fg.robot.simulate import simulate_arm  # noqa: E402
-from mirror_fg.solver.robot_solve import calibrate_robot  # noqa: E402
+from mirror_fg.solver.batch.robot_solve import calibrate_robot  # noqa: E402
 
 
 def _calibrate(robot: str, eye_in_hand: bool, offsets: dict | None = None):

@@ -20,7 +20,7 @@ from mirror_fg.io.capture import capture_from_dict  # noqa: E402
 from mirror_fg.robot import arm_urdf  # noqa: E402
 from mirror_fg.robot.kinematics import load_kinematics  # noqa: E402
 from mirror_fg.robot.simulate import CAMERA, _board, _reflect, simulate_arm  # noqa: E402
-from mirror_fg.tools.live_joints import JointStream, LiveArmSession  # noqa: E402
+from mirror_fg.live.joints import JointStream, LiveArmSession  # noqa: E402
 
 
 def _scene():

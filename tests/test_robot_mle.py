@@ -1,4 +1,4 @@
-"""The arm's MLE (solver/robot_solve.py) against an independent reference (tests/robot_reference.py:
+"""The arm's MLE (solver/batch/robot_solve.py) against an independent reference (tests/robot_reference.py:
 scipy least_squares, yourdfpy kinematics): estimates within 0.05 sigma, covariances within 15 %; its
 analytical start needs no truth; the truth within 3 sigma."""
 from __future__ import annotations

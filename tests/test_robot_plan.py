@@ -15,7 +15,7 @@ from mirror_fg.cli import main  # noqa: E402
 from mirror_fg.io.dataset import load_dataset  # noqa: E402
 from mirror_fg.robot.plan import rank_joint_candidates  # noqa: E402
 from mirror_fg.robot.simulate import NOMINAL, simulate_arm, write_arm_simulation  # noqa: E402
-from mirror_fg.solver.robot_solve import calibrate_robot, solve_robot  # noqa: E402
+from mirror_fg.solver.batch.robot_solve import calibrate_robot, solve_robot  # noqa: E402
 
 
 @pytest.fixture()

@@ -107,7 +107,7 @@ def test_stacked_graph_keeps_images_with_reconstruction_points_alone() -> None:
 def test_problem_predictions_are_each_images_factors(tmp_path) -> None:
     from mirror_fg.io.dataset import load_dataset
     from mirror_fg.robot.simulate import simulate_arm, write_arm_simulation
-    from mirror_fg.solver.robot_views import RobotEstimate, RobotProblem
+    from mirror_fg.solver.model.robot_views import RobotEstimate, RobotProblem
 
     dataset, truth = simulate_arm("arm6", False, placements=3, arm_poses=4, seed=1,
                                   joint_offsets_deg={"elbow_joint": 0.3})

@@ -1,4 +1,4 @@
-"""The arm's analytical start (solver/robot_start.py): noise-free, every start (all placements peeled at
+"""The arm's analytical start (solver/start/robot_start.py): noise-free, every start (all placements peeled at
 once, and each triple's restart) is the truth; a first start that ends badly is followed by restarts."""
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ pytest.importorskip("pinocchio")
 
 from mirror_fg.io.dataset import load_dataset  # noqa: E402
 from mirror_fg.robot.simulate import simulate_arm, write_arm_simulation  # noqa: E402
-from mirror_fg.solver import robot_solve  # noqa: E402
-from mirror_fg.solver.robot_solve import calibrate_robot, start_estimate  # noqa: E402
-from mirror_fg.solver.robot_views import RobotProblem  # noqa: E402
+from mirror_fg.solver.batch import robot_solve  # noqa: E402
+from mirror_fg.solver.batch.robot_solve import calibrate_robot, start_estimate  # noqa: E402
+from mirror_fg.solver.model.robot_views import RobotProblem  # noqa: E402
 
 
 def _data(tmp_path, eye_in_hand, sigma):
@@ -74,8 +74,8 @@ def test_a_gross_corner_is_left_out_and_named(tmp_path) -> None:
 
 
 def test_the_start_takes_the_screens_pnp_minima_where_the_image_is_unchanged(tmp_path, monkeypatch) -> None:
-    from mirror_fg.solver import robot_start
-    from mirror_fg.solver.consensus import check_images
+    from mirror_fg.solver.start import robot_start
+    from mirror_fg.solver.screen.consensus import check_images
 
     ds, _ = _data(tmp_path, False, 0.5)
     problem = RobotProblem(ds)

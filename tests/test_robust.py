@@ -1,4 +1,4 @@
-"""factors/robust.py, the one home of the robust kernels (issue 23, "One pipeline for every problem")."""
+"""factors/robust.py, the one home of the robust kernels."""
 from __future__ import annotations
 
 import json
@@ -14,7 +14,7 @@ from mirror_fg.factors.robust import (
     KERNELS, ROBUST_K, check_kernel, robust_noise_model, robust_row_scales, robust_weight_and_loss,
 )
 from mirror_fg.solver.calibrate import calibrate
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.simulate.tree import simulate_base_case
 
 ROOT = Path(__file__).resolve().parents[1]
 ESTIMATORS = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy}
@@ -63,7 +63,7 @@ def test_robust_module_loads_neither_numpy_nor_gtsam():
 
 def test_calibrate_refuses_an_unknown_kernel_before_solving(monkeypatch):
     dataset, _ = simulate_base_case(num_images=6, seed=3)
-    import mirror_fg.solver.tree_problem as pipeline  # the tree problem runs the checks
+    import mirror_fg.solver.batch.tree_problem as pipeline  # the tree problem runs the checks
 
     def no_solve(*args, **kwargs):
         raise AssertionError("solved with an unknown kernel")

@@ -157,7 +157,7 @@ def test_sigma3_base_cam_matches_numerical_jacobian():
     cov = L @ L.T
     result = _result(R_cb.T, -R_cb.T @ t_cb)
     result["covariance_cam_base"] = cov.tolist()
-    # Numerical Jacobian of the base-frame pose [dphi (base axes), dp] w.r.t. SPEC's [dtheta, dt].
+    # Numerical Jacobian of the base-frame pose [dphi (base axes), dp] w.r.t. docs/formats.md's [dtheta, dt].
     J = np.zeros((6, 6))
     eps = 1e-7
     R_bc, t_bc = R_cb.T, -R_cb.T @ t_cb

@@ -1,4 +1,4 @@
-"""Screens (issue 26): ``mirror-fg pattern``, target kind ``screen``, the result's ``screen`` block, gaze rays.
+"""Screens: ``mirror-fg pattern``, target kind ``screen``, the result's ``screen`` block, gaze rays.
 
 The end-to-end test draws the pattern with ``mirror-fg pattern``, shows it on a simulated 24-inch monitor
 and photographs it with the 640 x 480 webcam above the monitor through a hand-held mirror in six
@@ -291,7 +291,7 @@ def _exp(w: np.ndarray) -> np.ndarray:
 
 
 def test_uncertainties_are_the_first_order_propagation_of_the_pose_covariance(calibrated):
-    """Each Jacobian against central differences of the pose in the SPEC convention
+    """Each Jacobian against central differences of the pose in the docs/formats.md's convention
     (``R' = Exp(dtheta) R``, ``t' = t + dt``), and the ray's pixel covariance against Monte Carlo."""
     screen = Screen.from_result(calibrated)
     P = screen.covariance

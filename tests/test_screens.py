@@ -1,4 +1,4 @@
-"""Several screens in one graph (``mirror_fg.solver.screens``; docs/formats.md, "The answer in the user's
+"""Several screens in one graph (``mirror_fg.solver.batch.screens``; docs/formats.md, "The answer in the user's
 units"): two monitors side by side seen by one webcam through a hand-held mirror.
 
 Fast tests: the screens' corners projected through the mirrors by scripts/render_screen.py's own geometry
@@ -21,7 +21,7 @@ from mirror_fg.core.camera import Camera
 from mirror_fg.core.transform import Transform
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.io.screen_target import screen_target_from_dict
-from mirror_fg.solver.screens import calibrate_screens, relative_pose
+from mirror_fg.solver.batch.screens import calibrate_screens, relative_pose
 
 SCREEN_PX = (1920, 1080)
 PIXEL_SIGMA = 0.3
@@ -264,7 +264,7 @@ def test_export_writes_the_screen_it_is_asked_for(rendered, capsys):
 
 def test_report_draws_each_screens_gaze_error(rendered):
     from mirror_fg.io.result import load_result
-    from mirror_fg.tools.report_screen import figure_gaze, gaze_screens
+    from mirror_fg.report.screen import figure_gaze, gaze_screens
 
     if not (rendered / "result.json").exists():
         assert run_cli("calibrate", "capture.yaml", "-o", "result.json", "-q", cwd=rendered) == 0

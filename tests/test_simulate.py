@@ -1,4 +1,4 @@
-"""Tests of mirror_fg.tools.simulate: the scenes agree with their ground truth and the paper's Sect. 7 / Fig. 3."""
+"""Tests of mirror_fg.simulate.tree: the scenes agree with their ground truth and the paper's Sect. 7 / Fig. 3."""
 from __future__ import annotations
 
 import json
@@ -7,10 +7,10 @@ from collections import defaultdict
 import numpy as np
 import pytest
 
-from mirror_fg.tools import simulate
+from mirror_fg.simulate import tree as simulate
 from mirror_fg.io.dataset import DATASET_FORMAT, Dataset
 from mirror_fg.core.geometry import apply_transform, nested_transform, project
-from mirror_fg.tools.simulate import (
+from mirror_fg.simulate.tree import (
     GroundTruth,
     ground_truth_from_dict,
     simulate_base_case,

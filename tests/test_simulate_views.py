@@ -1,4 +1,4 @@
-"""Simulated kaleidoscopes, mixed reflection orders and rigs (mirror_fg.tools.simulate_views / _rig).
+"""Simulated kaleidoscopes, mixed reflection orders and rigs (mirror_fg.simulate.views / _rig).
 
 The datasets are checked as dicts (the dataset@1 parser of `reflections` / `cameras` lands separately):
 their shape, that every observation is the truth re-projected through the image's reflections (own
@@ -16,15 +16,15 @@ import pytest
 from mirror_fg.cli import main
 from mirror_fg.core.camera import Camera
 from mirror_fg.core.geometry import measurement
-from mirror_fg.tools.simulate import ground_truth_from_dict
-from mirror_fg.tools.simulate_rig import simulate_rig_mixed, simulate_rig_tree
-from mirror_fg.tools.simulate_views import (
+from mirror_fg.simulate.tree import ground_truth_from_dict
+from mirror_fg.simulate.rig import simulate_rig_mixed, simulate_rig_tree
+from mirror_fg.simulate.views import (
     MIN_FIDUCIALS_PER_VIEW,
     observe,
     simulate_kaleidoscope,
     simulate_mixed,
 )
-from mirror_fg.tools.views_truth import load_views_truth, views_truth_from_dict
+from mirror_fg.simulate.views_truth import load_views_truth, views_truth_from_dict
 
 MARGIN = 20.0
 

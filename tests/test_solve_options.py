@@ -11,10 +11,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from mirror_fg.solver import lm as lm_module
+from mirror_fg.solver.model import lm as lm_module
 from mirror_fg.solver.calibrate import calibrate
 from mirror_fg.solver.options import Linearization, SolveOptions
-from mirror_fg.tools.simulate import simulate_base_case
+from mirror_fg.simulate.tree import simulate_base_case
 
 
 @pytest.fixture(scope="module")
@@ -99,8 +99,9 @@ def test_the_users_options_reach_every_nested_solve(monkeypatch):
     user's kernel and iteration limit (``SolveOptions.nested``), never a fresh default; no progress or
     iteration hook of the user's is called by them."""
     from mirror_fg.io.dataset import dataset_from_dict
-    from mirror_fg.solver import consistency, views_solve
-    from mirror_fg.tools.simulate_views import simulate_mixed
+    from mirror_fg.solver.screen import consistency
+    from mirror_fg.solver.batch import views_solve
+    from mirror_fg.simulate.views import simulate_mixed
 
     seen: list[SolveOptions] = []
     real_pipeline, real_lm = views_solve.run_pipeline, consistency.levenberg_marquardt

@@ -1,4 +1,4 @@
-"""The pipeline and the pixel problem without an import circle (issue 23): ``intrinsics.py`` is below
+"""The pipeline and the pixel problem without an import circle: ``intrinsics.py`` is below
 ``calibrate.py``, which imports it at the top (through ``pixel_problem.py``, the pixel problem of the
 pipeline); neither imports the other inside a function."""
 from __future__ import annotations
@@ -35,14 +35,14 @@ def test_calibrate_and_intrinsics_import_each_other_in_one_direction_only():
     calibrate_top, calibrate_inner = _imports(SOLVER / "calibrate.py")
     pixel_top, pixel_inner = _imports(SOLVER / "pixel_problem.py")
     intrinsics_top, intrinsics_inner = _imports(SOLVER / "intrinsics.py")
-    assert "mirror_fg.solver.pixel_problem" in calibrate_top and "mirror_fg.solver.intrinsics" in pixel_top
-    assert "mirror_fg.solver.intrinsics" not in calibrate_inner | pixel_inner
+    assert "mirror_fg.solver.batch.pixel_problem" in calibrate_top and "mirror_fg.solver.batch.intrinsics" in pixel_top
+    assert "mirror_fg.solver.batch.intrinsics" not in calibrate_inner | pixel_inner
     assert "mirror_fg.solver.calibrate" not in pixel_top | pixel_inner
     assert "mirror_fg.solver.calibrate" not in intrinsics_top | intrinsics_inner
 
 
 def test_the_pixel_problem_loads_without_the_pipeline():
-    code = "import sys, mirror_fg.solver.intrinsics; print('mirror_fg.solver.calibrate' in sys.modules)"
+    code = "import sys, mirror_fg.solver.batch.intrinsics; print('mirror_fg.solver.calibrate' in sys.modules)"
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert loaded == "False"
 
@@ -52,5 +52,5 @@ def test_the_general_view_model_does_not_import_the_pipeline_entry_back():
     never calibrate.py (at the top or inside a function)."""
     calibrate_top, _ = _imports(SOLVER / "calibrate.py")
     views_top, views_inner = _imports(SOLVER / "views_solve.py")
-    assert "mirror_fg.solver.views_solve" in calibrate_top
+    assert "mirror_fg.solver.batch.views_solve" in calibrate_top
     assert "mirror_fg.solver.calibrate" not in views_top | views_inner

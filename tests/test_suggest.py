@@ -1,4 +1,4 @@
-"""Guided capture (tools/suggest.py, ``plan --next``): predictions against the bound with the image really
+"""Guided capture (solver/information/suggest.py, ``plan --next``): predictions against the bound with the image really
 added, reachability and visibility checked independently, following the suggestions against random
 placements, suggestions@1 from the CLI."""
 import json
@@ -13,10 +13,10 @@ from mirror_fg.core.geometry import nested_transform, project
 from mirror_fg.core.transform import Transform
 from mirror_fg.io.dataset import save_dataset
 from mirror_fg.solver.calibrate import calibrate
-from mirror_fg.solver.incremental import IncrementalCalibrator
-from mirror_fg.tools.crb import cramer_rao_bound
-from mirror_fg.tools.simulate import simulate_base_case, visible
-from mirror_fg.tools.suggest import Reach, suggest_next
+from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator
+from mirror_fg.solver.information.crb import cramer_rao_bound
+from mirror_fg.simulate.tree import simulate_base_case, visible
+from mirror_fg.solver.information.suggest import Reach, suggest_next
 
 study = load_script("guided_study")
 

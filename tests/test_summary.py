@@ -1,4 +1,4 @@
-"""mirror_fg.tools.summary: each transform with its own bounds in its own frame, one RMS (issue 17)."""
+"""mirror_fg.report.summary: each transform with its own bounds in its own frame, one RMS."""
 from __future__ import annotations
 
 import copy
@@ -9,8 +9,8 @@ import pytest
 
 import mirror_fg
 from mirror_fg.io.result import base_cam_covariance
-from mirror_fg.tools.simulate import simulate_base_case
-from mirror_fg.tools.summary import MAX_OUTLIER_LINES, summary_lines
+from mirror_fg.simulate.tree import simulate_base_case
+from mirror_fg.report.summary import MAX_OUTLIER_LINES, summary_lines
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Symmetric chessboards (issue 15, part 2): accepted, each image labelled by consistency across the images.
+"""Symmetric chessboards: accepted, each image labelled by consistency across the images.
 
 The capture is synthetic: a 6 x 4-square board (5 x 3 inner corners, the gaze-tracking pattern) seen
 through one hand-held mirror by a wide-angle 800 x 600 camera, each image rendered exactly by the
@@ -23,7 +23,7 @@ from mirror_fg.core.geometry import nested_transform
 from mirror_fg.io.capture import capture_from_dict, load_capture
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.io.target import ChessboardTarget, target_from_dict
-from mirror_fg.solver.labelling import choose_labellings
+from mirror_fg.solver.screen.labelling import choose_labellings
 from mirror_fg.vision.detect import detect_capture
 from mirror_fg.vision.detectors import FOUND, detect_chessboard
 
@@ -166,7 +166,7 @@ def gaze_capture(tmp_path_factory):
 
 
 def test_symmetric_boards_are_accepted_with_their_symmetries():
-    """Refused at load before issue 15; now the target knows which turns it cannot tell apart."""
+    """Refused at load once; now the target knows which turns it cannot tell apart."""
     for cols, rows, turns in [(5, 3, ["identity", "half turn"]), (4, 6, ["identity", "half turn"]),
                               (4, 4, ["identity", "quarter turn", "half turn", "three-quarter turn"]),
                               (5, 5, ["identity", "half turn"]), (6, 5, ["identity"])]:
@@ -290,7 +290,7 @@ def test_labelling_through_the_mirror_tree(num_mirrors):
     """Dataset level, any number of mirrors: the paper's 3^Nv tree (simulate_tree's scene) with a 5 x 3
     board for fiducials, every image given in a random labelling: each is labelled as the truth."""
     from mirror_fg.core.geometry import project
-    from mirror_fg.tools.simulate import default_camera, simulate_tree
+    from mirror_fg.simulate.tree import default_camera, simulate_tree
 
     board = ChessboardTarget(5, 3, 0.05)
     _, truth = simulate_tree(num_mirrors, seed=2)

@@ -1,4 +1,4 @@
-"""Tracked points stay on their feature (issue 18): KLT, then refinement onto the feature it started on.
+"""Tracked points stay on their feature: KLT, then refinement onto the feature it started on.
 
 The rendered sequence is ``scripts/render_scene.py``'s one-mirror loop (``render_sequence``: a planar
 homography renderer, exact pinhole geometry through the mirror, 4 x 4 supersampling in linear
@@ -46,7 +46,7 @@ def follow(frames, truth, tracker: PointTracker, kinds: dict[str, str | None]) -
 
 
 def test_tracked_corner_stays_on_its_feature_with_the_detect_call_pattern(loop):
-    """Fails on the tracker before issue 18 (plain KLT: the corner drifts to 0.81 px along the loop).
+    """Fails on the tracker without refinement (plain KLT: the corner drifts to 0.81 px along the loop).
 
     detect.py's calls (``PointTracker(KLTParams())``, ``set(name, pixel)``, ``step(gray)``) now refine
     onto a corner by default. (A disc is not a corner: followed as one, it is cut once cornerSubPix
@@ -61,7 +61,7 @@ def test_tracked_corner_stays_on_its_feature_with_the_detect_call_pattern(loop):
 def test_plain_klt_drifts_over_the_loop_and_refinement_removes_it(loop, kinds):
     frames, truth = loop
     plain = follow(frames, truth, PointTracker(KLTParams(), default_kind="klt"), {"P0": None, "P1": None})
-    assert np.max(plain["P0"]) > 0.6 and np.median(plain["P0"]) > 0.4, plain["P0"]  # issue 18's drift
+    assert np.max(plain["P0"]) > 0.6 and np.median(plain["P0"]) > 0.4, plain["P0"]  # drift
     assert abs(plain["P0"][-1]) < np.max(plain["P0"]) / 2  # it returns with the loop: a drift, not a loss
     refined = follow(frames, truth, PointTracker(KLTParams()), kinds)
     for name, e in refined.items():
@@ -214,7 +214,7 @@ def point_sigma_distances(truth: dict, tracked: list[dict[str, np.ndarray]], pix
                           fiducial_noise_px: float = 0.2, seed: int = 0) -> dict[str, tuple[float, float]]:
     """Calibrate a dataset@1 built from ``tracked`` pixels of the unknown points (one dict per frame)
     and the fiducials' true pixels plus Gaussian noise; return each point's largest per-axis error in
-    its sigmas (SPEC's 3-sigma convention) and its error (mm)."""
+    its sigmas (docs/formats.md's 3-sigma convention) and its error (mm)."""
     from mirror_fg import calibrate, dataset_from_dict
 
     rng = np.random.default_rng(seed)

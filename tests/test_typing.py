@@ -1,4 +1,4 @@
-"""The package ships its types (py.typed) and mypy finds no error in it (issue 17)."""
+"""The package ships its types (py.typed) and mypy finds no error in it."""
 import subprocess
 import sys
 from pathlib import Path

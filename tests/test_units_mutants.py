@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from test_screens import datasets_of, scene  # noqa: F401  (the module's scene fixture)
 
-from mirror_fg.solver.screens import calibrate_screens
+from mirror_fg.solver.batch.screens import calibrate_screens
 
 
 def test_the_screens_expected_cost_is_the_sum_of_each_screens_own(scene):  # noqa: F811
@@ -22,8 +22,8 @@ def test_validation_from_an_estimate_near_the_optimum_equals_the_optimum_s():
     from dataclasses import replace
 
     from mirror_fg.solver.calibrate import calibrate
-    from mirror_fg.solver.validation import estimate_of_calibration, validate
-    from mirror_fg.tools.simulate import simulate_base_case
+    from mirror_fg.solver.fit.validation import estimate_of_calibration, validate
+    from mirror_fg.simulate.tree import simulate_base_case
 
     dataset, _ = simulate_base_case(num_images=12, seed=5)
     calibration = calibrate(dataset)

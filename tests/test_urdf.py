@@ -1,4 +1,4 @@
-"""The URDF and the camera_link outputs of mirror_fg.io.ros, read by a URDF library (yourdfpy) (issue 17).
+"""The URDF and the camera_link outputs of mirror_fg.io.ros, read by a URDF library (yourdfpy).
 
 ``<stem>.urdf.xml`` is a minimal valid robot (two links and the joint) whose base -> camera transform is
 ``T_base_cam``; the ``camera_link`` variant (REP 103 body frame, x forward) chains base -> link -> optical

@@ -37,3 +37,23 @@ def test_command_help_does_not_say_spec(command, capsys):
     with pytest.raises(SystemExit):
         main([command, "-h"])
     assert "SPEC" not in capsys.readouterr().out
+
+
+#: The files that check a word is absent must name it.
+_CHECKERS = {"tests/test_user_text.py", "tests/test_live_outputs.py"}
+
+
+def test_the_repository_names_no_specification_or_issue_number_a_reader_does_not_have():
+    """Comments, docstrings and pages cite docs/formats.md and the paper, not the project's private
+    specification or its issue tracker (neither comes with a clone)."""
+    found = []
+    for folder in ("mirror_fg", "factors", "scripts", "tests", "docs"):
+        for path in sorted((REPO / folder).rglob("*")):
+            if path.suffix not in (".py", ".md", ".html", ".yaml") or path.relative_to(REPO).as_posix() in _CHECKERS:
+                continue
+            for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+                if re.search(r"\bSPEC\b|\b[Ii]ssues? #?\d+", line):
+                    found.append(f"{path.relative_to(REPO)}:{number}: {line.strip()[:80]}")
+    readme = (REPO / "README.md").read_text(encoding="utf-8")
+    found += [f"README.md: {m.group(0)}" for m in re.finditer(r"\bSPEC\b|\b[Ii]ssues? #?\d+", readme)]
+    assert not found, "\n".join(found)

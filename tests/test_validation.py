@@ -1,4 +1,4 @@
-"""Held-out validation (solver/validation.py): against the brute force (a full re-solve without the image,
+"""Held-out validation (solver/fit/validation.py): against the brute force (a full re-solve without the image,
 then the same predictive ratio from the re-solve's own marginals), and its goals on simulated data: the
 ratio near 1 with the right noise model, an image with one point 6 px off named as the worst."""
 from __future__ import annotations
@@ -11,10 +11,10 @@ import pytest
 
 from mirror_fg.io.dataset import dataset_from_dict
 from mirror_fg.solver.calibrate import calibrate
-from mirror_fg.solver.validation import estimate_of_calibration, validate_calibration
-from mirror_fg.solver.views import ViewProblem, plane_of
-from mirror_fg.tools.simulate import simulate_base_case
-from mirror_fg.tools.simulate_views import simulate_kaleidoscope, simulate_mixed
+from mirror_fg.solver.fit.validation import estimate_of_calibration, validate_calibration
+from mirror_fg.solver.model.views import ViewProblem, plane_of
+from mirror_fg.simulate.tree import simulate_base_case
+from mirror_fg.simulate.views import simulate_kaleidoscope, simulate_mixed
 
 
 def _names(problem: ViewProblem) -> dict[int, tuple]:
@@ -173,7 +173,7 @@ def test_an_offset_the_images_own_mirror_can_mimic_is_mostly_absorbed():
 
 
 def test_held_out_ratio_matches_the_brute_force_on_a_rig():
-    from mirror_fg.tools.simulate_rig import simulate_rig_mixed
+    from mirror_fg.simulate.rig import simulate_rig_mixed
 
     dataset = dataset_from_dict(simulate_rig_mixed(2, seed=1)[0])
     calibration = calibrate(dataset, diagnose=False)
@@ -190,7 +190,7 @@ def test_estimated_intrinsics_widen_what_each_image_is_expected_to_cost():
     at least that with the intrinsics taken as known (same estimate), and the ratio stays near 1."""
     import warnings
 
-    from mirror_fg.solver.validation import estimate_of_calibration, validate
+    from mirror_fg.solver.fit.validation import estimate_of_calibration, validate
 
     dataset, _ = simulate_base_case(num_images=100, seed=3, num_fiducials=4)
     dataset = replace(dataset, camera=replace(dataset.camera, estimate=("fx", "fy", "cx", "cy")))

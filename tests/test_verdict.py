@@ -1,4 +1,4 @@
-"""The one verdict (mirror_fg.tools.verdict): a pixel_sigma far from the measurements' real noise is named,
+"""The one verdict (mirror_fg.report.verdict): a pixel_sigma far from the measurements' real noise is named,
 with the sigma the residuals fit; the console, the result and the report say the same."""
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import re
 import pytest
 
 import mirror_fg
-from mirror_fg.tools.simulate import simulate_base_case
-from mirror_fg.tools.summary import summary_lines
+from mirror_fg.simulate.tree import simulate_base_case
+from mirror_fg.report.summary import summary_lines
 
 NOISE_PX = 0.5  # the simulated measurements' noise
 
@@ -73,8 +73,8 @@ def test_the_report_and_its_console_block_say_the_one_verdict(takahashi_dir, tmp
     """A result from the Python API carries no verdict: the report judges it once, and its headline and the
     console summary it shows agree (the headline said "Check before use: ... distortion" while the console
     block said "looks right")."""
-    from mirror_fg.tools.report import write_report
-    from mirror_fg.tools.verdict import judge
+    from mirror_fg.report.writer import write_report
+    from mirror_fg.report.verdict import judge
 
     ds = mirror_fg.load_dataset(takahashi_dir / "dataset.json")
     result = mirror_fg.calibrate(ds).to_dict()

@@ -7,7 +7,7 @@ import math
 import pytest
 from scipy import stats
 
-from mirror_fg.tools.verdict import NOISE_BAND, noise_band
+from mirror_fg.report.verdict import NOISE_BAND, noise_band
 
 
 @pytest.mark.parametrize("dof", [1, 2, 3])

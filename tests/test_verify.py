@@ -1,4 +1,4 @@
-"""mirror_fg.solver.verify and `mirror-fg verify` (docs/formats.md, "Has it moved?"): the test's degrees of
+"""mirror_fg.analysis.verify and `mirror-fg verify` (docs/formats.md, "Has it moved?"): the test's degrees of
 freedom, its false-alarm rate and power on simulated data, the detectable move against an independent
 Monte Carlo, the update's bounds, verification@1, the exit statuses and the refusals; the real photographs."""
 from __future__ import annotations
@@ -15,9 +15,9 @@ from mirror_fg.cli import main
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.io.dataset import save_dataset
 from mirror_fg.io.result import load_result, write_result
-from mirror_fg.solver.verify import CANNOT_TELL, MOVED, NOT_MOVED, detectable_noncentrality, verify
-from mirror_fg.tools.simulate import simulate_base_case
-from mirror_fg.tools.verify_study import moved_data, power_study
+from mirror_fg.analysis.verify import CANNOT_TELL, MOVED, NOT_MOVED, detectable_noncentrality, verify
+from mirror_fg.simulate.tree import simulate_base_case
+from mirror_fg.analysis.verify_study import moved_data, power_study
 
 
 def _scene(seed: int = 3, new_images: int = 3, stored_images: int = 20):
@@ -80,7 +80,7 @@ def test_power_200_trials():
 
 def test_estimated_intrinsics_fast():
     """A stored result that estimated fx, fy, cx, cy: its intrinsics are held under their stored covariance,
-    jointly with the pose's (solver/verify_priors.py); the test stays calibrated (fast version)."""
+    jointly with the pose's (analysis/verify_priors.py); the test stays calibrated (fast version)."""
     figures = power_study(trials=6, seed=4, stored_images=12, estimate=("fx", "fy", "cx", "cy"))
     assert figures.false_alarms <= 1 and figures.detections >= 5
     assert 2.0 < figures.mean_d2_still < 11.0
@@ -232,7 +232,7 @@ def test_takahashi_unsolvable_splits_refused(takahashi_dir):
 def test_dispersion_is_one_with_the_right_noise_model():
     """Simulated images with the noise the model says: ``B / nu ~ chi2_nu / nu`` with ``nu = 3 n - 6``;
     the mean over 8 calibrations of 20 images (sd 0.07) is 1."""
-    from mirror_fg.solver.dispersion import dispersion_of_calibration
+    from mirror_fg.solver.fit.dispersion import dispersion_of_calibration
 
     factors = []
     for seed in range(8):
@@ -305,7 +305,7 @@ def test_readme_section_runs(tmp_path):
 def test_rig_each_camera_tested():
     """A rig: each camera has its own verdict; a camera without new images cannot tell, and says so."""
     from mirror_fg.io.dataset import dataset_from_dict
-    from mirror_fg.tools.simulate_rig import simulate_rig_tree
+    from mirror_fg.simulate.rig import simulate_rig_tree
 
     stored_dict, _ = simulate_rig_tree(num_mirrors=1, own=[20, 20], shared=4, num_fiducials=4, seed=1)
     stored = calibrate(dataset_from_dict(stored_dict))

@@ -6,7 +6,7 @@ import pytest
 from scipy import stats
 from test_verify import _scene
 
-from mirror_fg.solver.verify import verify
+from mirror_fg.analysis.verify import verify
 
 
 @pytest.mark.parametrize("placements, dof", [(1, 3), (2, 5)])
@@ -22,7 +22,7 @@ def test_the_p_value_uses_the_degrees_of_freedom_seen(placements, dof):
 
 def test_the_statistic_is_the_move_s_mahalanobis_distance():
     """Linearised, ``d2 = 2 (cost_held - cost_free)`` is ``move^T C^-1 move`` with ``C = S + N^-1`` (the
-    module docstring of solver/verify.py): the fits' cost difference against the move and its covariance."""
+    module docstring of analysis/verify.py): the fits' cost difference against the move and its covariance."""
     import numpy as np
 
     stored, new, _ = _scene(new_images=3)
@@ -65,7 +65,7 @@ def test_the_move_is_new_minus_stored():
     estimate's own error."""
     import numpy as np
 
-    from mirror_fg.tools.verify_study import moved_data
+    from mirror_fg.analysis.verify_study import moved_data
 
     stored, new, truth = _scene()
     shift = np.array([np.radians(0.5), 0.0, 0.0, 0.0, 0.004, 0.0])

@@ -10,10 +10,10 @@ import pytest
 
 from mirror_fg.io.dataset import dataset_from_dict
 from mirror_fg.solver.options import SolveOptions
-from mirror_fg.solver.views import ViewProblem
-from mirror_fg.solver.views_solve import _start
-from mirror_fg.tools.simulate_rig import simulate_rig_mixed
-from mirror_fg.tools.simulate_views import simulate_kaleidoscope
+from mirror_fg.solver.model.views import ViewProblem
+from mirror_fg.solver.batch.views_solve import _start
+from mirror_fg.simulate.rig import simulate_rig_mixed
+from mirror_fg.simulate.views import simulate_kaleidoscope
 
 
 def _systems(problem: ViewProblem, values: gtsam.Values):

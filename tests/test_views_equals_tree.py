@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import mirror_fg
-from mirror_fg.solver.views_solve import calibrate_views
-from mirror_fg.tools.simulate import simulate_tree
+from mirror_fg.solver.batch.views_solve import calibrate_views
+from mirror_fg.simulate.tree import simulate_tree
 
 
 @pytest.mark.parametrize("num_mirrors,points", [(1, 0), (2, 3)])

@@ -1,8 +1,8 @@
-"""mirror_fg's MLE for views of any reflection order (SPEC "Views of any reflection order") against the
+"""mirror_fg's MLE for views of any reflection order (docs/formats.md "Views of any reflection order") against the
 independent reference (views_reference.py), bad input, and ``reflections`` = ``mirror_configs``.
 
 ``vr.compare`` reads from a ``mirror_fg.Calibration``: ``R_cam_base``, ``t_cam_base``, ``covariance``
-(6 x 6, SPEC), ``mirror_vectors[(l, m)]``, ``mirror_covariances[(l, m)]`` (owner camera's frame),
+(6 x 6, docs/formats.md), ``mirror_vectors[(l, m)]``, ``mirror_covariances[(l, m)]`` (owner camera's frame),
 ``points[name]``, ``point_covariances[name]`` (base frame); with several cameras ``cameras[name]``.
 Run one case by name: ``pytest tests/test_views_mle.py -k kaleidoscope_two_mirrors``.
 """
@@ -16,7 +16,7 @@ import mirror_fg
 import views_reference as vr
 from mirror_fg.cli import main
 from mirror_fg.io.dataset import dataset_to_dict
-from mirror_fg.tools.simulate import simulate_tree
+from mirror_fg.simulate.tree import simulate_tree
 
 #: The MLE is one optimum: the solver's and the reference's differ by rounding and stopping tolerances.
 ESTIMATE_SIGMAS = 0.05

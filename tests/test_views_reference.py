@@ -56,7 +56,7 @@ def test_complex_step_jacobian_equals_central_differences(name):
 
 
 def test_reported_covariances_are_blocks_of_the_inverse_fisher_information():
-    """With fiducials every pose, mirror vector and point parameter is the SPEC perturbation itself
+    """With fiducials every pose, mirror vector and point parameter is docs/formats.md's perturbation itself
     (R = Exp(dtheta) R0, t = t0 + dt, v = v0 + dv), so each reported block is the block of (J^T J)^-1."""
     dataset, truth = vr.mixed_two_handheld(None)
     ref = vr.reference_mle(dataset, truth)
@@ -73,7 +73,7 @@ def test_reported_covariances_are_blocks_of_the_inverse_fisher_information():
 
 @pytest.mark.slow
 def test_covariance_matches_monte_carlo_rig_two_cameras():
-    """200 noisy trials of case (e): the sample covariance of the MLE errors (SPEC convention, truth
+    """200 noisy trials of case (e): the sample covariance of the MLE errors (docs/formats.md's convention, truth
     as reference) against the reference covariance at the truth."""
     dataset, truth = vr.rig_two_cameras(None)
     predicted = vr.reference_mle(dataset, truth)

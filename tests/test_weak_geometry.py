@@ -1,5 +1,5 @@
 """Weak geometry is called by its name where the user meets it (console, result file, report), and the
-noise-model check widens with few spare measurements (mirror_fg.tools.verdict).
+noise-model check widens with few spare measurements (mirror_fg.report.verdict).
 
 The real photographs (examples/takahashi2012) cut down to three placements of the mirror and three
 neighbouring chessboard corners: 18 measurements, 15 unknowns (the pose, three mirror vectors), 3 spare.
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from mirror_fg.cli import main
-from mirror_fg.tools.verdict import NOISE_CONFIDENCE, WEAK_GEOMETRY, noise_band
+from mirror_fg.report.verdict import NOISE_CONFIDENCE, WEAK_GEOMETRY, noise_band
 
 CORNERS = ("C00", "C01", "C10")  # 27.5 mm apart
 IMAGES = (2, 3, 4)
@@ -110,7 +110,7 @@ def test_the_band_is_the_chi_square_interval_where_that_is_wider():
 
 def test_bounds_that_are_not_numbers_are_never_called_right(takahashi_dir, tmp_path, capsys):
     """A result whose 3-sigma bounds are nan (a degenerate scale) is a CHECK, whatever else it holds."""
-    from mirror_fg.tools.verdict import judge
+    from mirror_fg.report.verdict import judge
 
     _, _, result = _calibrate(takahashi_dir / "dataset_3p.json", tmp_path / "r.json", capsys)
     result["points"] = {"P0": {"xyz": [0.1, 0.0, 0.5], "sigma3_mm": [float("nan"), 1.0, 1.0]}}

@@ -1,6 +1,6 @@
-"""Independent reference MLE for the general view model (SPEC "Views of any reflection order, and several
+"""Independent reference MLE for the general view model (docs/formats.md "Views of any reflection order, and several
 cameras"): scipy.optimize.least_squares on the whitened pixel residuals, its covariance the inverse Fisher
-information, in SPEC's conventions. Imports nothing from mirror_fg.
+information, in docs/formats.md's conventions. Imports nothing from mirror_fg.
 
 Model (Hesch et al. 2010): camera c sees base point Bp as x = R_c Bp + t_c (eq. 2), then for each
 placement of the image's ``reflections`` in order x <- M x + 2 v (eq. 3, v that placement's mirror vector
@@ -9,7 +9,7 @@ frame of its owner camera o (the first camera in ``cameras`` order with an image
 the plane n.x = d (n = v/|v|, d = |v|) goes o -> base -> c.
 
 Parameters (perturbations about a reference state, re-centred at the optimum so that the covariance of
-the parameters *is* SPEC's): per estimated camera ``[dtheta, dt]`` with R = Exp(dtheta) R0, t = t0 + dt;
+the parameters *is* docs/formats.md's): per estimated camera ``[dtheta, dt]`` with R = Exp(dtheta) R0, t = t0 + dt;
 per placement dv (3) with v = v0 + dv, or for the ``scale`` placement a (2) with v = d unit(u0 + B a)
 (|v| = d exactly); per reconstruction point dp (3), or for the second ``scale`` point a (2) with
 P1 = P0 + d unit(u0 + B a). Without fiducials the first camera is the base frame and is not estimated.
@@ -56,7 +56,7 @@ def log_so3(R) -> np.ndarray:
 
 
 def pose_error(R_ref, t_ref, R, t) -> np.ndarray:
-    """SPEC's ``[dtheta, dt]`` from (R_ref, t_ref) to (R, t): R = Exp(dtheta) R_ref, t = t_ref + dt."""
+    """docs/formats.md's ``[dtheta, dt]`` from (R_ref, t_ref) to (R, t): R = Exp(dtheta) R_ref, t = t_ref + dt."""
     return np.r_[log_so3(np.asarray(R) @ np.asarray(R_ref).T), np.asarray(t) - np.asarray(t_ref)]
 
 
@@ -91,7 +91,7 @@ def read_problem(d: dict) -> Problem:
     images = []
     for im in d["images"]:
         refl = im.get("reflections")
-        if refl is None:  # SPEC: mirror_configs [m1..mNv] means [[1, m1], ..., [Nv, mNv]]
+        if refl is None:  # docs/formats.md: mirror_configs [m1..mNv] means [[1, m1], ..., [Nv, mNv]]
             refl = [[l + 1, m] for l, m in enumerate(im["mirror_configs"])]
         names = list(im["observations"])
         images.append((im.get("camera", SINGLE), [tuple(p) for p in refl], names,
@@ -229,7 +229,7 @@ class Model:
 
 @dataclass
 class Reference:
-    """The reference MLE and its covariances in SPEC's conventions (module docstring)."""
+    """The reference MLE and its covariances in docs/formats.md's conventions (module docstring)."""
 
     poses: dict
     pose_cov: dict
@@ -253,8 +253,8 @@ class Reference:
 
 
 def rig_transform(poses: dict, joint_cov: np.ndarray, order: list, frm: str, to: str, step: float = 1e-6):
-    """(R, t, cov) of T_to_from from the camera poses and their joint SPEC covariance (6C, 6C) in ``order``;
-    cov in SPEC's convention about the ``to`` camera's axes, by central differences of the 12 pose
+    """(R, t, cov) of T_to_from from the camera poses and their joint covariance (docs/formats.md's convention) (6C, 6C) in ``order``;
+    cov in docs/formats.md's convention about the ``to`` camera's axes, by central differences of the 12 pose
     perturbations (each R = Exp(dtheta) R, t = t + dt)."""
     (Rf, tf), (Rt, tt) = poses[frm], poses[to]
 
@@ -289,7 +289,7 @@ def start_state(problem: Problem, truth: Truth, perturbation: float = 0.0, seed:
         poses[c] = (R, t)
     for p in problem.owners:
         if truth.owners[p] != problem.owners[p]:
-            raise AssertionError(f"truth owner of {p} is {truth.owners[p]}, SPEC's is {problem.owners[p]}")
+            raise AssertionError(f"truth owner of {p} is {truth.owners[p]}, docs/formats.md's is {problem.owners[p]}")
         v = truth.mirrors[p]
         mirrors[p] = v + (rng.normal(0, 0.1 * perturbation, 3) if perturbation else 0)
     for n in problem.point_names:
@@ -307,7 +307,7 @@ def start_state(problem: Problem, truth: Truth, perturbation: float = 0.0, seed:
 def reference_mle(dataset_dict: dict, truth: Truth, perturbation: float = 0.0, seed: int = 0,
                   passes: int = 3) -> Reference:
     """The MLE of ``dataset_dict`` started from ``truth`` (or from it perturbed, see :func:`start_state`)
-    and its covariance (inverse of J^T J of the whitened residuals) in SPEC's conventions. ``passes``:
+    and its covariance (inverse of J^T J of the whitened residuals) in docs/formats.md's conventions. ``passes``:
     solves, each re-centred at the previous optimum."""
     problem = read_problem(dataset_dict)
     model = Model(problem, *start_state(problem, truth, perturbation, seed))

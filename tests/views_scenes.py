@@ -1,4 +1,4 @@
-"""Synthetic scenes for the general view model (SPEC "Views of any reflection order, and several cameras").
+"""Synthetic scenes for the general view model (docs/formats.md "Views of any reflection order, and several cameras").
 
 Each generator returns ``(dataset_dict, truth)``: a ``mirror-fg/dataset@1`` dictionary (JSON types only,
 ``reflections`` per image, pixels of pinhole cameras without distortion) and a :class:`Truth`.
@@ -28,7 +28,7 @@ GEOMETRY_SEED = 7
 @dataclass
 class Truth:
     """``T_cam_base[name] = (R, t)`` (``Cp = R Bp + t``); ``mirrors[(l, m)]``: v in the frame of
-    ``owners[(l, m)]`` (SPEC: first camera in ``cameras`` order with an image seeing it);
+    ``owners[(l, m)]`` (docs/formats.md: first camera in ``cameras`` order with an image seeing it);
     ``points[name]``: reconstruction points, base frame; ``planes[(l, m)] = (n, d)``: base frame."""
 
     T_cam_base: dict[str, tuple[np.ndarray, np.ndarray]]
@@ -121,7 +121,7 @@ def build(cameras: dict, poses: dict, fiducials: dict, points: dict, planes: dic
             image["camera"] = cam
         images.append(image)
     owners: dict = {}
-    for cam in cameras:  # SPEC: the first camera in `cameras` order with an image seeing the placement
+    for cam in cameras:  # docs/formats.md: the first camera in `cameras` order with an image seeing the placement
         for image in images:
             if single_camera or image["camera"] == cam:
                 for p in image["reflections"]:

@@ -14,19 +14,12 @@ import traceback
 import warnings
 
 from mirror_fg.cli.bench import cmd_live, cmd_pattern
+from mirror_fg.cli.commands import cmd_calibrate, cmd_calibrate_many, cmd_detect, cmd_plan, cmd_report, cmd_simulate
 from mirror_fg.cli.export_cmd import cmd_export
 from mirror_fg.cli.history_cmd import cmd_history
-from mirror_fg.cli.commands import (
-    cmd_calibrate,
-    cmd_calibrate_many,
-    cmd_detect,
-    cmd_plan,
-    cmd_report,
-    cmd_simulate,
-)
 from mirror_fg.cli.parser import build_parser
-from mirror_fg.cli.verify_cmd import cmd_verify
 from mirror_fg.cli.printing import EXIT_INTERNAL, _error_line, _one_line, _Printer
+from mirror_fg.cli.verify_cmd import cmd_verify
 from mirror_fg.core.errors import MirrorFgError
 
 __all__ = ["main", "build_parser"]
@@ -64,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
         handler.setFormatter(logging.Formatter("%(message)s"))
         logger.addHandler(handler)
         logger.setLevel(logging.INFO)
-    notes = _Notes(out)  # the camera a camchain gave: printed without -v too (issue 27)
+    notes = _Notes(out)  # the camera a camchain gave: printed without -v too
     notes_logger = logging.getLogger("mirror_fg.io.camera_files")
     notes_logger.addHandler(notes)
     notes_level = notes_logger.level

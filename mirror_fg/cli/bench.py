@@ -6,33 +6,27 @@ import os
 import sys
 from typing import Any
 
-from mirror_fg.cli.commands import _load_input, _print_transform_summary
+from mirror_fg.cli.loading import load_input_file, print_transform_summary
 from mirror_fg.cli.printing import EXIT_OK, _Printer
 from mirror_fg.core.errors import DatasetError
 
 
 def plan_next(args, out: _Printer) -> int:
-    """``plan --next``: calibrate the data so far, then rank the reachable placements (tools/suggest.py)."""
+    """``plan --next``: calibrate the data so far, then rank the reachable placements (solver/information/suggest.py)."""
     import json
     from dataclasses import replace
 
     from mirror_fg.io.output import OutputPlan
     from mirror_fg.solver.calibrate import calibrate
-    from mirror_fg.solver.calibration import require_converged
-    from mirror_fg.solver.consensus import without
-    from mirror_fg.solver.graph import InitialEstimate
-    from mirror_fg.tools.suggest import (
-        Reach,
-        default_reach,
-        estimate_from_result,
-        require_suggestions,
-        suggest_next,
-    )
+    from mirror_fg.solver.result.calibration import require_converged
+    from mirror_fg.solver.screen.consensus import without
+    from mirror_fg.solver.model.graph import InitialEstimate
+    from mirror_fg.solver.information.suggest import Reach, default_reach, estimate_from_result, require_suggestions, suggest_next
 
     outputs = OutputPlan(inputs=[os.fspath(p) for p in (args.next_data, args.result) if p is not None])
     if args.output is not None:
         outputs.add(args.output, "suggestions")
-    dataset = _load_input(args.next_data, out, outputs)
+    dataset = load_input_file(args.next_data, out, outputs)
     if not dataset.is_tree:
         raise DatasetError(f"{dataset.source}: plan --next ranks the next placement of the paper's hand-held mirrors "
                            "(images with mirror_configs, one camera, a known target); these images give reflections, "
@@ -63,21 +57,21 @@ def plan_next(args, out: _Printer) -> int:
 
 
 def cmd_live(args, out: _Printer) -> int:
-    """``live``: the session loop of tools/live.py between a frame source, the outputs and the page.
+    """``live``: the session loop of live/session.py between a frame source, the outputs and the page.
 
     Every output is checked against every input and each other before the first frame
-    (tools/live_save.py); ``--save`` writes each used frame as it is added. Ctrl-C, SIGTERM and SIGHUP
+    (live/save.py); ``--save`` writes each used frame as it is added. Ctrl-C, SIGTERM and SIGHUP
     end the session as the source's end does: the saved capture is finished and the result written."""
     import signal
 
+    from mirror_fg.cli.verify_cmd import live_verifier, live_verify_end, live_verify_frame
     from mirror_fg.io.capture import capture_from_file_data
     from mirror_fg.io.fileio import load_structured
     from mirror_fg.registry.cli import record_document, registry_target
-    from mirror_fg.solver.calibration import require_converged
-    from mirror_fg.tools.live import LiveSession, run
-    from mirror_fg.tools.live_save import SessionFolder, plan_live_outputs
-    from mirror_fg.tools.live_sources import open_source
-    from mirror_fg.cli.verify_cmd import live_verifier, live_verify_end, live_verify_frame
+    from mirror_fg.solver.result.calibration import require_converged
+    from mirror_fg.live.session import LiveSession, run
+    from mirror_fg.live.save import SessionFolder, plan_live_outputs
+    from mirror_fg.live.sources import open_source
 
     registry = registry_target(args)
     source_path = os.fspath(args.capture)
@@ -89,8 +83,8 @@ def cmd_live(args, out: _Printer) -> int:
                                 None if args.save is None else os.fspath(args.save), ros=not args.no_ros)
     folder: SessionFolder | None = None
     session: Any  # a LiveSession, or an arm's LiveArmSession (the same loop drives both)
-    if capture.robot is not None:  # an arm: joint states from the capture's growing CSV (tools/live_joints.py)
-        from mirror_fg.tools.live_joints import LiveArmSession
+    if capture.robot is not None:  # an arm: joint states from the capture's growing CSV (live/joints.py)
+        from mirror_fg.live.joints import LiveArmSession
 
         for flag, given in (("--serve", args.serve), ("--save", args.save), ("--verify", getattr(args, "verify", None))):
             if given is not None:
@@ -108,7 +102,7 @@ def cmd_live(args, out: _Printer) -> int:
         session.source = source  # each frame's name or time, matched to the joint states
     server = None
     if args.serve is not None:
-        from mirror_fg.tools.live_server import LiveServer
+        from mirror_fg.live.server import LiveServer
 
         server = LiveServer(args.serve, lambda: session.state)
         server.start()
@@ -169,7 +163,7 @@ def cmd_live(args, out: _Printer) -> int:
     result = calibration.to_dict()
     if outputs.calibration is not None:
         written += [os.fspath(p) for p in outputs.calibration.write(result)]
-    _print_transform_summary(out, result, figures["seconds"], incremental=True)
+    print_transform_summary(out, result, figures["seconds"], incremental=True)
     if written:
         out.info(f"wrote {len(written)} file(s): " + ", ".join(written[-3:]) + (" ..." if len(written) > 3 else ""))
     record_document(registry, result, source_path, args.output, out)

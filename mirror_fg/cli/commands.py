@@ -15,57 +15,17 @@ if TYPE_CHECKING:
     from mirror_fg.io.output import OutputPlan
     from mirror_fg.vision.tracking import Track
 
+from mirror_fg.cli.loading import (
+    detection_exclusions,
+    load_input_file,
+    load_input_with_reports,
+    print_transform_summary,
+)
 from mirror_fg.cli.printing import EXIT_OK, _error_line, _one_line, _Printer
 
 
-def _print_transform_summary(out: _Printer, result: dict, elapsed: float, incremental: bool = False,
-                             pixel_sigma: float | None = None) -> None:
-    """Each transform with its own bounds in its own frame, the residuals, the solver (tools.summary)."""
-    from mirror_fg.tools.summary import summary_lines
-
-    for line in summary_lines(result, verbose=out.verbose, incremental=incremental, pixel_sigma=pixel_sigma):
-        out.info(line)
-    out.info(f"time {elapsed:.2f} s")
-
-
-def _load_input(path: Path, out: _Printer, plan: OutputPlan, tracks: dict | None = None,
-                capture_only: bool = False) -> Dataset:
-    """A Dataset from a dataset@1 or capture@1 file (detected, with its report printed); read once."""
-    return _load_input_with_reports(path, out, plan, tracks, capture_only)[0]
-
-
-def _load_input_with_reports(path: Path, out: _Printer, plan: OutputPlan, tracks: dict | None = None,
-                             capture_only: bool = False, on_capture: Any = None) -> tuple[Dataset, list]:
-    """:func:`_load_input` and the per-image detection reports (empty for a dataset@1)."""
-    from mirror_fg.vision.detect import load_input
-
-    dataset, reports = load_input(path, plan, progress=out.progress, tracks=tracks, capture_only=capture_only,
-                                  on_capture=on_capture)
-    if reports:
-        _print_detection_report(out, reports)
-    return dataset, list(reports or [])
-
-
-def _detection_exclusions(reports: list) -> list:
-    """Images of a capture that detection left out, as result@1 ``excluded`` entries (nothing dropped silently)."""
-    from mirror_fg.solver.calibration import Exclusion
-    from mirror_fg.vision.detectors import FOUND
-
-    return [Exclusion(r.id, f"detection: {r.status}: {r.reason}") for r in reports if r.status != FOUND]
-
-
-def _print_detection_report(out: _Printer, reports) -> None:
-    found = sum(1 for r in reports if r.status == "found")
-    out.info(f"detection: target found in {found} of {len(reports)} image(s)")
-    for r in reports:
-        if r.status != "found":
-            out.info("  " + r.line())
-        else:
-            out.detail("  " + r.line())
-
-
 def cmd_simulate(args, out: _Printer) -> int:
-    from mirror_fg.tools.simulate import simulation_outputs
+    from mirror_fg.simulate.tree import simulation_outputs
 
     if getattr(args, "robot", None) is not None:  # a robot arm (cli/robot_cmd.py)
         from mirror_fg.cli.robot_cmd import simulate_robot
@@ -74,8 +34,8 @@ def cmd_simulate(args, out: _Printer) -> int:
     plan = simulation_outputs(args.output)  # checked before the work
     if args.kind == "tree" and args.cameras is None:
         return _simulate_tree(args, out, plan)
-    from mirror_fg.tools.simulate_rig import simulate_rig_mixed, simulate_rig_tree
-    from mirror_fg.tools.simulate_views import simulate_kaleidoscope, simulate_mixed, write_views_simulation
+    from mirror_fg.simulate.rig import simulate_rig_mixed, simulate_rig_tree
+    from mirror_fg.simulate.views import simulate_kaleidoscope, simulate_mixed, write_views_simulation
 
     own = None if args.own is None else _simulate_counts(args.own, "--own", args.cameras)
     try:
@@ -110,7 +70,7 @@ def cmd_simulate(args, out: _Printer) -> int:
 
 def _simulate_tree(args, out: _Printer, plan: OutputPlan) -> int:
     """The paper's tree (the base case, or ``--tree``) for one camera."""
-    from mirror_fg.tools.simulate import simulate_base_case, simulate_tree, write_simulation
+    from mirror_fg.simulate.tree import simulate_base_case, simulate_tree, write_simulation
 
     mirrors, fiducials, points = args.mirrors or 2, args.fiducials or 3, args.points or 0
     distance = args.distance or 0.5
@@ -170,12 +130,12 @@ def _simulate_counts(text: str, option: str, count: int) -> list[int]:
 
 
 def cmd_calibrate(args, out: _Printer) -> int:
-    from mirror_fg.io.calibration_files import plan_calibration_outputs
-    from mirror_fg.solver.calibrate import calibrate
-    from mirror_fg.registry.cli import record_document, registry_target
-    from mirror_fg.solver.calibration import require_converged
-    from mirror_fg.tools.verdict import with_verdict
     from mirror_fg.cli.screens_cmd import calibrate_screens_input
+    from mirror_fg.io.calibration_files import plan_calibration_outputs
+    from mirror_fg.registry.cli import record_document, registry_target
+    from mirror_fg.solver.calibrate import calibrate
+    from mirror_fg.solver.result.calibration import require_converged
+    from mirror_fg.report.verdict import with_verdict
 
     status = calibrate_screens_input(args, out)  # a capture with several screens (docs/formats.md)
     if status is not None:
@@ -187,7 +147,7 @@ def cmd_calibrate(args, out: _Printer) -> int:
     if not args.no_ros and not outputs.ros:
         out.info(f"note: the result goes to a device ({args.output}): no ROS outputs written beside it")
     outputs.viewing_distance_m = args.viewing_distance
-    dataset, reports = _load_input_with_reports(args.input, out, outputs.plan, on_capture=outputs.use_capture)
+    dataset, reports = load_input_with_reports(args.input, out, outputs.plan, on_capture=outputs.use_capture)
     estimating = [c for c in (list(dataset.cameras.values()) if dataset.cameras else [dataset.camera]) if c is not None and c.estimate]
     if dataset.robot is not None and args.incremental:  # a robot arm: the batch solver only
         raise DatasetError(f"{dataset.source}: robot: a robot arm's data need the batch solver; drop --incremental")
@@ -208,14 +168,14 @@ def cmd_calibrate(args, out: _Printer) -> int:
                      "runner-up P3P hypothesis(es) and kept the lowest cost")
         require_converged(calibration, dataset.source, accept_poor_fit=args.accept_poor_fit)
     if getattr(args, "validate", False):  # before the detection exclusions: those images are not in the dataset
-        from mirror_fg.solver.validation import validate_calibration
+        from mirror_fg.solver.fit.validation import validate_calibration
 
         calibration.validation = validate_calibration(dataset, calibration)
     calibration.at_points = list(getattr(args, "at", None) or [])
-    calibration.excluded = _detection_exclusions(reports) + list(calibration.excluded)
+    calibration.excluded = detection_exclusions(reports) + list(calibration.excluded)
     result = with_verdict(calibration.to_dict(), dataset)  # the one verdict: printed, stored, the report's
     written = outputs.write(result)
-    _print_transform_summary(out, result, time.perf_counter() - start, args.incremental,
+    print_transform_summary(out, result, time.perf_counter() - start, args.incremental,
                              pixel_sigma=None if dataset.point_sigma else dataset.pixel_sigma)
     if outputs.screen is not None:  # the gaze point's error (docs/formats.md, "The answer in the user's units")
         from mirror_fg.core.gaze_error import gaze_summary_lines
@@ -303,7 +263,7 @@ def _registry_status(registry, rows: list[dict], out: _Printer) -> int:
 
 
 def _run_incremental(dataset, args, out: _Printer):
-    from mirror_fg.solver.incremental import calibrate_incremental
+    from mirror_fg.solver.incremental.calibrator import calibrate_incremental
 
     total = len(dataset.images)
 
@@ -327,7 +287,7 @@ def cmd_detect(args, out: _Printer) -> int:
 
     plan = OutputPlan(inputs=[os.fspath(args.capture)])
     plan.add(args.output, "dataset")
-    dataset = _load_input(args.capture, out, plan, capture_only=True)
+    dataset = load_input_file(args.capture, out, plan, capture_only=True)
     _print_consensus(out, dataset)
     plan.commit({os.fspath(args.output): dataset_text(dataset)})
     out.info(f"wrote {args.output} ({len(dataset.images)} images)")
@@ -335,10 +295,10 @@ def cmd_detect(args, out: _Printer) -> int:
 
 
 def _print_consensus(out: _Printer, dataset: Dataset) -> None:
-    """What ``calibrate`` will leave out of a detected dataset, and why (``solver.consensus.screen``: each
+    """What ``calibrate`` will leave out of a detected dataset, and why (``solver.screen.consensus.screen``: each
     image's own PnP fit, the side of the board, agreement with the other placements of its mirror); the
     dataset itself keeps every detection."""
-    from mirror_fg.solver.consensus import screen
+    from mirror_fg.solver.screen.consensus import screen
 
     _, excluded, _ = screen(dataset)
     if excluded:
@@ -352,7 +312,7 @@ def cmd_report(args, out: _Printer) -> int:
     from mirror_fg.io.output import OutputPlan
     from mirror_fg.io.result import load_result
     from mirror_fg.io.ros import check_camera_frame_name, check_frame_name
-    from mirror_fg.tools.report import write_report
+    from mirror_fg.report.writer import write_report
 
     plan = OutputPlan(inputs=[os.fspath(p) for p in (args.result, args.dataset) if p is not None])
     if os.path.exists(args.output) and not os.path.isdir(args.output):
@@ -372,7 +332,7 @@ def cmd_report(args, out: _Printer) -> int:
     tracks: dict[str, Track] = {}
     dataset = None
     if args.dataset is not None:  # a dataset, or a capture (detected again: its tracks are drawn too)
-        dataset = _load_input(args.dataset, out, plan, tracks=tracks)
+        dataset = load_input_file(args.dataset, out, plan, tracks=tracks)
     try:
         paths = write_report(result, dataset, args.output, progress=out.progress, source=os.fspath(args.result),
                              base_frame=args.base_frame, camera_frame=args.camera_frame, tracks=tracks or None)
@@ -404,11 +364,11 @@ def _refuse_input_as_result(args) -> None:
 
 
 def _plan_views(args, out: _Printer) -> int:
-    """``plan --kind kaleidoscope|mixed`` and ``plan --cameras N [--shared K,...]`` (tools/plan_views.py)."""
+    """``plan --kind kaleidoscope|mixed`` and ``plan --cameras N [--shared K,...]`` (analysis/plan_views.py)."""
     import json
 
     from mirror_fg.io.output import OutputPlan
-    from mirror_fg.tools.plan_views import format_views_plan, plan_views
+    from mirror_fg.analysis.plan_views import format_views_plan, plan_views
 
     if args.shared is not None and args.cameras is None:
         raise DatasetError("plan: --shared goes with --cameras N")
@@ -444,13 +404,7 @@ def _plan_views(args, out: _Printer) -> int:
 
 def cmd_plan(args, out: _Printer) -> int:
     from mirror_fg.io.output import OutputPlan
-    from mirror_fg.tools.plan import (
-        PlanSetup,
-        format_plan,
-        load_fiducials,
-        plan,
-        setup_from_files,
-    )
+    from mirror_fg.analysis.plan import PlanSetup, format_plan, load_fiducials, plan, setup_from_files
 
     if getattr(args, "robot", None) is not None or getattr(args, "joint_candidates", None) is not None:  # an arm
         from mirror_fg.cli.robot_cmd import plan_robot

@@ -6,10 +6,10 @@ import math
 from pathlib import Path
 
 from mirror_fg.cli.export_cmd import add_export_parser
-from mirror_fg.factors.robust import KERNELS, ROBUST_K
 from mirror_fg.cli.history_cmd import add_history_parser
-from mirror_fg.registry.cli import add_registry_arguments
 from mirror_fg.cli.robot_cmd import add_robot_arguments, add_robot_plan_arguments
+from mirror_fg.factors.robust import KERNELS, ROBUST_K
+from mirror_fg.registry.cli import add_registry_arguments
 
 EPILOG = """exit status: 0 success, 2 bad input (the message names the file, image or point),
 3 could not solve (degenerate data, no convergence), 1 internal error. Output files are written
@@ -62,7 +62,7 @@ def _distance_range(text: str) -> tuple[float, ...]:
 
 def _point(text: str) -> tuple[float, float, float]:
     """``X,Y,Z``, metres (``calibrate --at``)."""
-    from mirror_fg.solver.point_error import parse_point
+    from mirror_fg.solver.result.point_error import parse_point
 
     try:
         return parse_point(text)

@@ -1,5 +1,5 @@
 """``mirror-fg calibrate CAPTURE`` where the capture gives several ``screens`` (:mod:`mirror_fg.io.screens_capture`,
-:mod:`mirror_fg.solver.screens`): detect each screen's images, calibrate each alone, then all in one graph;
+:mod:`mirror_fg.solver.batch.screens`): detect each screen's images, calibrate each alone, then all in one graph;
 write result@1 with every screen and their relative poses. Runner and printing only."""
 from __future__ import annotations
 
@@ -30,18 +30,17 @@ def calibrate_screens_input(args, out: _Printer) -> int | None:
 
 
 def _calibrate(args, out: _Printer, data: dict, source: str) -> int:
-    from mirror_fg.cli.commands import _detection_exclusions, _print_detection_report
+    from mirror_fg.cli.loading import detection_exclusions, print_detection_report
+    from mirror_fg.core.errors import DatasetError
     from mirror_fg.core.gaze_error import gaze_summary_lines
     from mirror_fg.io.capture import capture_from_file_data
     from mirror_fg.io.output import OutputPlan
     from mirror_fg.io.result import result_text
     from mirror_fg.io.screens_capture import screens_result, split_screens_capture
     from mirror_fg.solver.calibrate import calibrate
-    from mirror_fg.solver.calibration import require_converged
-    from mirror_fg.solver.screens import calibrate_screens
+    from mirror_fg.solver.result.calibration import require_converged
+    from mirror_fg.solver.batch.screens import calibrate_screens
     from mirror_fg.vision.detect import detect_capture
-
-    from mirror_fg.core.errors import DatasetError
 
     if args.incremental:
         raise DatasetError(f"{source}: screens: several screens are calibrated in one batch; drop --incremental")
@@ -55,11 +54,11 @@ def _calibrate(args, out: _Printer, data: dict, source: str) -> int:
         plan.add_inputs(capture.input_files())
         out.info(f"screen {name}:")
         dataset, reports = detect_capture(capture, progress=out.progress)
-        _print_detection_report(out, reports)
+        print_detection_report(out, reports)
         datasets[name] = dataset
         alone[name] = require_converged(calibrate(dataset, robust=args.robust), f"{source} (screen {name})",
                                         accept_poor_fit=args.accept_poor_fit)
-        left_out = _as_dicts(_detection_exclusions(reports)) + _as_dicts(alone[name].excluded)
+        left_out = _as_dicts(detection_exclusions(reports)) + _as_dicts(alone[name].excluded)
         excluded += [{**e, "image": f"{name}/{e['image']}"} for e in left_out]  # images are named screen/image
     calibration = calibrate_screens(datasets, alone)
     result = screens_result(calibration, targets, args.viewing_distance)
@@ -72,7 +71,7 @@ def _calibrate(args, out: _Printer, data: dict, source: str) -> int:
 
 
 def _as_dicts(exclusions: list) -> list[dict]:
-    """result@1 ``excluded`` entries of :class:`~mirror_fg.solver.calibration.Exclusion` values."""
+    """result@1 ``excluded`` entries of :class:`~mirror_fg.solver.result.calibration.Exclusion` values."""
     return [{"image": e.image, "point": e.point, "reason": e.reason, "sigmas": e.sigmas} for e in exclusions]
 
 

@@ -1,6 +1,6 @@
 """``mirror-fg verify RESULT DATA|CAPTURE``: has the camera moved since RESULT? (docs/formats.md, "Has it
 moved?"). Its options (:func:`add_parser`) and its runner (:func:`cmd_verify`); the test is
-``mirror_fg.solver.verify``'s. Exit 0 not moved, 4 moved, 5 cannot tell, 2 bad input."""
+``mirror_fg.analysis.verify``'s. Exit 0 not moved, 4 moved, 5 cannot tell, 2 bad input."""
 from __future__ import annotations
 
 import argparse
@@ -47,12 +47,12 @@ def _probability(text: str) -> float:
 
 
 def cmd_verify(args, out: _Printer) -> int:
-    from mirror_fg.cli.commands import _load_input
+    from mirror_fg.cli.loading import load_input_file
     from mirror_fg.io.output import OutputPlan
     from mirror_fg.io.result import load_result, result_text
     from mirror_fg.io.verification import check_updatable, updated_result, verification_text
     from mirror_fg.registry.cli import record_document, registry_target
-    from mirror_fg.solver.verify import MOVED, verify
+    from mirror_fg.analysis.verify import MOVED, verify
 
     target = registry_target(args)  # checked before any work
     plan = OutputPlan(inputs=[os.fspath(args.result), os.fspath(args.data)])
@@ -63,7 +63,7 @@ def cmd_verify(args, out: _Printer) -> int:
     result = load_result(args.result)
     if args.update is not None:
         check_updatable(result, os.fspath(args.result))
-    dataset = _load_input(args.data, out, plan)
+    dataset = load_input_file(args.data, out, plan)
     verification = verify(result, dataset, alpha=args.alpha, tolerance_mm=args.tolerance_mm,
                           tolerance_deg=args.tolerance_deg, source=os.fspath(args.result))
     contents = {}
@@ -116,12 +116,12 @@ def verification_lines(verification) -> list[str]:
 
 
 def live_verifier(args, session, out: _Printer):
-    """``live --verify RESULT``: the verifier of a live session (``tools/live_verify.py``), or None without it."""
+    """``live --verify RESULT``: the verifier of a live session (``live/verify.py``), or None without it."""
     if getattr(args, "verify", None) is None:
         return None
     from mirror_fg.core.errors import DatasetError
     from mirror_fg.io.result import load_result
-    from mirror_fg.tools.live_verify import LiveVerifier
+    from mirror_fg.live.verify import LiveVerifier
 
     if args.output is not None:
         raise DatasetError("live: --verify tests the frames against RESULT and calibrates nothing: drop -o (or run "

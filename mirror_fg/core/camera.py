@@ -298,7 +298,7 @@ def initial_intrinsics(
     where: str,
     free_k1: bool = False,
 ) -> dict[str, float]:
-    """Start values of fx, fy, cx, cy (pixels) from the photographs of a planar target (issue 16).
+    """Start values of fx, fy, cx, cy (pixels) from the photographs of a planar target.
 
     ``views``: per photograph, pixel observations by name; those of ``fiducials`` (base frame,
     metres) are a planar board seen in a (virtual) camera: ``cv2.initCameraMatrix2D`` then

@@ -19,7 +19,7 @@ from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.gaze_error import DEFAULT_VIEWING_DISTANCE_M
 from mirror_fg.io.camchain import camchain_paths, camchain_texts
 from mirror_fg.io.fileio import load_structured
-from mirror_fg.io.output import OutputPlan, same_file
+from mirror_fg.io.output import OutputPlan, file_head, same_file
 from mirror_fg.io.result import RESULT_FORMAT, estimated_camera, result_text
 from mirror_fg.io.screen_result import screen_block, screen_xml_path, screen_xml_text
 from mirror_fg.io.ros import (
@@ -142,7 +142,7 @@ class CalibrationOutputs:
                 continue
             if any(same_file(path, source) for source in self.plan.inputs):
                 continue
-            if os.path.islink(path) or not os.path.isfile(path) or SIDE_FILE_MARKER not in _head(path):
+            if os.path.islink(path) or not os.path.isfile(path) or SIDE_FILE_MARKER not in file_head(path):
                 self.notes.append(f"warning: {path} is not from this run (it was not written by mirror-fg, or is not "
                                   "a regular file): left as it is; it does not belong to the new result")
                 continue
@@ -154,14 +154,6 @@ class CalibrationOutputs:
                 continue
             self.notes.append(f"removed {path}: an earlier run's side file under this name that the new result "
                               "does not have")
-
-
-def _head(path: str, size: int = 512) -> bytes:
-    try:
-        with open(path, "rb") as handle:
-            return handle.read(size)
-    except OSError:
-        return b""
 
 
 def _earlier_side_files(result_path: str) -> list[Path]:

@@ -1,5 +1,5 @@
 """Per-image reflections, kaleidoscope views and rig cameras of a capture@1 (docs/capture_guide.md, "4c.
-Direct views, fixed mirrors, kaleidoscopes and rigs"; SPEC "Views of any reflection order, and several
+Direct views, fixed mirrors, kaleidoscopes and rigs"; docs/formats.md "Views of any reflection order, and several
 cameras").
 
 An image gives either ``mirror_configs: [m1, ..., mNv]`` (the paper's tree: it means ``reflections:

@@ -185,7 +185,7 @@ class Dataset:
     def is_tree(self) -> bool:
         """Whether this is the paper's problem: one camera, a known target, and every image seeing the
         points through mirrors 1..num_mirrors in that order (``mirror_configs``). Anything else is solved
-        by the general view model (:mod:`mirror_fg.solver.views`)."""
+        by the general view model (:mod:`mirror_fg.solver.model.views`)."""
         return (self.cameras is None and bool(self.fiducials) and self.scale is None and self.robot is None
                 and all(len(image.mirror_configs) == self.num_mirrors for image in self.images))
 
@@ -248,7 +248,7 @@ def dataset_from_dict(d: Mapping[str, Any], source: str = "<dataset>") -> Datase
             raise DatasetError(f"{source}: camera and cameras are both given: give one of them (cameras for several)")
         cameras = cameras_from_dict(d["cameras"], source)
         camera = next(iter(cameras.values()))
-    elif isinstance(given, str) or (isinstance(given, Mapping) and "file" in given):  # SPEC: capture@1 only
+    elif isinstance(given, str) or (isinstance(given, Mapping) and "file" in given):  # capture@1 only (docs/formats.md)
         raise DatasetError(f"{source}: camera: a dataset@1 holds the camera inline ({{model, width, height, fx, fy, "
                            f"cx, cy, dist}}); a calibration file such as {short(given)} can be named in a capture@1")
     if cameras is None and given is not None and not isinstance(given, Mapping):
@@ -325,7 +325,7 @@ def _parity(ds: Dataset, where: str) -> bool:
 
 
 def _start_camera(ds: Dataset, checked: dict[str, Any]) -> None:
-    """Give ``ds`` its camera with fx, fy, cx, cy started from its pixel observations (issue 16), then
+    """Give ``ds`` its camera with fx, fy, cx, cy started from its pixel observations, then
     validate its images again with it (image bounds, normalization).
 
     Until then the dataset has no camera, so nothing can normalize with an unset focal length.
@@ -438,7 +438,7 @@ def validate_image(
     checked = Image(id=image_id, mirror_configs=tuple(int(m) for m in configs), observations=obs,
                     reflections=placements if reflections is not None else (), camera=camera_name)
     raw = _observation_array(obs, list(obs))
-    checked.normalized = _normalize(camera, list(obs), raw)  # once, here (issue 13)
+    checked.normalized = _normalize(camera, list(obs), raw)  # once, here
     for name, z in checked.normalized.items():
         if not np.all(np.isfinite(z)):
             assert camera is not None  # normalized coordinates are checked finite above

@@ -5,7 +5,7 @@ either an ``image`` column (the image file's name) or a ``time`` column (seconds
 Matching by time takes, for an image at time ``t``, the one row nearest to ``t``; it is refused where no
 row lies within ``max_dt`` seconds (default 0.02 s) or where two rows are equally near (within
 ``TIE_S``): which state the image shows cannot then be told. Used by capture@1 (``io/robot_capture.py``)
-and by live sessions reading a CSV as it grows (``tools/live_joints.py``).
+and by live sessions reading a CSV as it grows (``live/joints.py``).
 """
 from __future__ import annotations
 

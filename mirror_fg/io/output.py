@@ -24,7 +24,7 @@ from typing import Any
 from mirror_fg.core.errors import DatasetError, OutputError
 from mirror_fg.io.output_lock import DeferredSignals, Interrupted, OutputLock, recover, temporary_prefix
 
-__all__ = ["OutputPlan", "same_file", "atomic_write", "json_text", "is_yaml"]
+__all__ = ["OutputPlan", "same_file", "atomic_write", "json_text", "is_yaml", "file_head"]
 
 
 def _write_error(target: str, exc: OSError) -> Exception:
@@ -76,7 +76,7 @@ class OutputPlan:
             raise DatasetError(f"{target}: is a directory; give a file name for the {role}")
         if kind not in (None, "file", "character device"):
             raise DatasetError(f"{target}: is a {kind}; the {role} must go to a regular file")
-        if kind == "file" and marker is not None and marker not in _head(target):
+        if kind == "file" and marker is not None and marker not in file_head(target):
             raise DatasetError(f"{target}: exists and was not written by mirror-fg; refusing to replace it with the "
                          f"{role} (move it, or choose another output name)")
         if kind is None:
@@ -209,7 +209,9 @@ def _existing_kind(path: str) -> str | None:
     return next((name for test, name in kinds if test(mode)), "special file")
 
 
-def _head(path: str, size: int = 512) -> bytes:
+def file_head(path: str, size: int = 512) -> bytes:
+    """The first ``size`` bytes of the file at ``path`` (where a marker of mirror-fg's own files sits), or
+    nothing where it cannot be read."""
     try:
         with open(path, "rb") as handle:
             return handle.read(size)

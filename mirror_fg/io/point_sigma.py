@@ -3,7 +3,7 @@
 ``point_sigma: {name: sigma}`` (optional, same units as ``pixel_sigma``: pixels with a camera, else
 normalized image coordinates) gives every observation of that point this standard deviation (per
 axis) instead of ``pixel_sigma``: e.g. a point followed through a video by the tracker, whose pixel is
-noisier (and biased along the track) than a detected fiducial's corner (issue 18). The solver whitens
+noisier (and biased along the track) than a detected fiducial's corner. The solver whitens
 each measurement with its own sigma (:func:`normalized_sigmas`).
 """
 from __future__ import annotations

@@ -82,12 +82,12 @@ class _Pose(Protocol):
 
 
 class CalibrationLike(Protocol):
-    """What :func:`result_dict` reads of a calibration (:class:`mirror_fg.solver.graph.Calibration`).
+    """What :func:`result_dict` reads of a calibration (:class:`mirror_fg.solver.result.calibration.Calibration`).
 
     ``R_cam_base``, ``t_cam_base`` (metres): ``Cp = R Bp + t``; ``covariance`` 6x6 ``[dtheta, dt]`` or
     None; mirror vectors ``(l, m) -> v`` (camera frame, metres) and points (base frame, metres) with
     their 3x3 covariances; ``analytic``: the analytical solution's pose or None. A calibration of several
-    cameras also has ``cameras`` (name -> CameraPose), ``rig`` (solver.rig.rig_transforms of them) and
+    cameras also has ``cameras`` (name -> CameraPose), ``rig`` (solver.model.rig.rig_transforms of them) and
     ``mirror_frames`` ((l, m) -> camera name), read where present (``cameras`` None: one camera).
     """
 
@@ -201,7 +201,7 @@ def result_dict(calibration: CalibrationLike) -> dict:
         result["rig"] = rig_entries(cameras, list(getattr(c, "rig", None) or []))
     at_points = getattr(c, "at_points", None)
     if at_points:  # the error at the user's points (docs/formats.md "The answer in the user's units")
-        from mirror_fg.solver.point_error import at_entries, calibration_poses
+        from mirror_fg.solver.result.point_error import at_entries, calibration_poses
 
         result["at"] = at_entries(calibration_poses(c), at_points)
     validation = getattr(c, "validation", None)
@@ -376,7 +376,7 @@ def points(result: Mapping[str, Any]) -> dict[str, tuple[np.ndarray, np.ndarray 
 
 
 def pose_covariance(result: Mapping[str, Any]) -> np.ndarray | None:
-    """The 6x6 ``covariance_cam_base`` (SPEC convention), or None when the result has none."""
+    """The 6x6 ``covariance_cam_base`` (docs/formats.md's convention), or None when the result has none."""
     cov = result.get("covariance_cam_base")
     return None if cov is None else np.array(cov, dtype=float)
 

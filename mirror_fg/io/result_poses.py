@@ -77,7 +77,7 @@ def _kept_camera_block(camera: Any) -> dict[str, Any]:
 
 
 def camera_entries(cameras: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
-    """result@1's ``cameras``: per camera (a :class:`~mirror_fg.solver.calibration.CameraPose`, in the
+    """result@1's ``cameras``: per camera (a :class:`~mirror_fg.solver.result.calibration.CameraPose`, in the
     dataset's order) both transforms, both covariances and both bounds, and its ``camera`` block: the
     estimated intrinsics (as the top-level ``camera``) or, where it estimated none, the ones used."""
     out: dict[str, dict[str, Any]] = {}
@@ -103,14 +103,14 @@ def camera_entries(cameras: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
 
 
 def rig_entries(cameras: Mapping[str, Any], rig: list[Any]) -> list[dict[str, Any]]:
-    """result@1's ``rig``: one entry per camera after the first (``rig``: :func:`mirror_fg.solver.rig.rig_transforms`'
+    """result@1's ``rig``: one entry per camera after the first (``rig``: :func:`mirror_fg.solver.model.rig.rig_transforms`'
     list). ValueError when ``rig`` is not the chain of ``cameras`` (the solver did not fill it)."""
     names = list(cameras)
     chain = [(a, b) for a, b in zip(names, names[1:])]
     got = [(r.from_camera, r.to_camera) for r in rig]
     if got != chain:
         raise ValueError(f"result: the rig {got} is not the chain {chain} of the cameras "
-                         "(Calibration.rig must be solver.rig.rig_transforms of Calibration.cameras)")
+                         "(Calibration.rig must be solver.model.rig.rig_transforms of Calibration.cameras)")
     out = []
     for r in rig:
         P = None if r.covariance is None else np.asarray(r.covariance, dtype=float)

@@ -167,7 +167,7 @@ _VALIDATION: tuple[dict[str, Checker], dict[str, Checker]] = (
     {"worst": lambda x, p: _fields(x, p, {"image": _text, "ratio": _statistic}, {}), "not_held_out": _list_of(_text)},
 )
 
-#: The images' agreement with each other (solver/dispersion.py): B / nu, nu, B, images counted.
+#: The images' agreement with each other (solver/fit/dispersion.py): B / nu, nu, B, images counted.
 _DISPERSION: tuple[dict[str, Checker], dict[str, Checker]] = (
     {"dof": lambda x, p: _number(x, p, minimum=0.0), "cost": lambda x, p: _number(x, p, minimum=0.0),
      "images": lambda x, p: _integer(x, p, 0)},

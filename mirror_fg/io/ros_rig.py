@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.io.ros import (
+from mirror_fg.io.ros_snippets import (
     _CAMERA_CONVENTION,
     _camera_link,
     _transform_entry,

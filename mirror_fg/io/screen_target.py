@@ -35,12 +35,12 @@ import numpy as np
 
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.values import check_keys, finite, is_int, short, type_name
-from mirror_fg.io.target import (
+from mirror_fg.io.target_kinds import (
     CharucoTarget,
     ChessboardTarget,
     TagTarget,
-    _count,
-    _length,
+    count_field,
+    length_field,
     tag_dictionary,
 )
 
@@ -113,11 +113,11 @@ class ScreenTarget:
 def screen_target_from_dict(t: Mapping[str, Any], where: str) -> ScreenTarget:
     """The ``screen`` target ``t`` (``where`` starts every message); DatasetError on any problem."""
     check_keys(t, _SCREEN_KEYS, where)
-    width_px, height_px = (_count(t, key, 1, where, " (screen pixels)") for key in ("width_px", "height_px"))
+    width_px, height_px = (count_field(t, key, 1, where, " (screen pixels)") for key in ("width_px", "height_px"))
     for key, pixels in (("width_px", width_px), ("height_px", height_px)):
         if pixels > MAX_SCREEN_PX:
             raise DatasetError(f"{where}: {key} {pixels} is not a plausible screen (at most {MAX_SCREEN_PX} pixels a side)")
-    width_mm, height_mm = (_length(t, key, where, "millimetres of the active area") for key in ("width_mm", "height_mm"))
+    width_mm, height_mm = (length_field(t, key, where, "millimetres of the active area") for key in ("width_mm", "height_mm"))
     for key, mm in (("width_mm", width_mm), ("height_mm", height_mm)):
         check_screen_mm(mm, f"{where}: {key}")
     p = t.get("pattern")
@@ -132,8 +132,8 @@ def screen_target_from_dict(t: Mapping[str, Any], where: str) -> ScreenTarget:
     pattern: dict[str, Any] = {"kind": kind}
     inner: ChessboardTarget | CharucoTarget | TagTarget
     if kind == "charuco":
-        cols, rows = (_count(p, key, 2, pw, " (squares)") for key in ("cols", "rows"))
-        square = _length(p, "square_px", pw, "screen pixels")
+        cols, rows = (count_field(p, key, 2, pw, " (squares)") for key in ("cols", "rows"))
+        square = length_field(p, "square_px", pw, "screen pixels")
         marker = finite(p.get("marker_px"))
         if marker is None or not 0 < marker < square:
             raise DatasetError(f"{pw}: marker_px must be a number > 0 and below square_px, got {short(p.get('marker_px'))}")
@@ -143,8 +143,8 @@ def screen_target_from_dict(t: Mapping[str, Any], where: str) -> ScreenTarget:
         pattern.update(cols=cols, rows=rows, square_px=square, marker_px=marker, dictionary=name)
         offset, y_sign = origin, 1.0
     elif kind == "chessboard":
-        cols, rows = (_count(p, key, 3, pw, " (inner corners)") for key in ("cols", "rows"))
-        square = _length(p, "square_px", pw, "screen pixels")
+        cols, rows = (count_field(p, key, 3, pw, " (inner corners)") for key in ("cols", "rows"))
+        square = length_field(p, "square_px", pw, "screen pixels")
         if (cols + rows) % 2 == 0:
             raise DatasetError(f"{pw}: cols + rows must be odd ({cols} + {rows}): a board that looks the same turned "
                                "half a turn cannot tell which corner is C00")
@@ -153,9 +153,9 @@ def screen_target_from_dict(t: Mapping[str, Any], where: str) -> ScreenTarget:
         offset, y_sign = origin + square, 1.0
     else:
         name, dict_id = tag_dictionary(p.get("dictionary"), f"{pw}: dictionary")
-        cols, rows = (_count(p, key, 1, pw) for key in ("cols", "rows"))
-        size = _length(p, "tag_px", pw, "screen pixels, edge of the black square")
-        spacing = _length(p, "spacing_px", pw, "screen pixels, centre to centre")
+        cols, rows = (count_field(p, key, 1, pw) for key in ("cols", "rows"))
+        size = length_field(p, "tag_px", pw, "screen pixels, edge of the black square")
+        spacing = length_field(p, "spacing_px", pw, "screen pixels, centre to centre")
         if spacing < size:
             raise DatasetError(f"{pw}: spacing_px ({spacing:g}) is below tag_px ({size:g}): the tags would overlap")
         first = p.get("first_id", 0)

@@ -9,7 +9,7 @@ One camera (``camera``, not ``cameras``); no ``T_base_target``, ``video`` or ``t
 :func:`split_screens_capture` turns it into one ordinary capture@1 per screen (each detected as a screen
 capture is); :func:`screens_result` writes result@1 with the first screen's pose at the top level (its
 ``screen`` block too, so single-screen readers keep working) and, in one graph
-(:mod:`mirror_fg.solver.screens`):
+(:mod:`mirror_fg.solver.batch.screens`):
 
 * ``screens: {name: {...the screen block..., "T_cam_screen": {R, t, q_xyzw}, "covariance": [[6 x 6]],
   "sigma3": {rotation_deg, position_mm}}}`` (each screen's pose, camera <- screen, metres, the joint
@@ -87,7 +87,7 @@ def split_screens_capture(data: Mapping[str, Any], source: str) -> tuple[dict[st
 
 
 def screens_result(calibration: Any, targets: Mapping[str, ScreenTarget], viewing_distance_m: float) -> dict[str, Any]:
-    """result@1 of a :class:`~mirror_fg.solver.screens.ScreensCalibration` (module docstring)."""
+    """result@1 of a :class:`~mirror_fg.solver.batch.screens.ScreensCalibration` (module docstring)."""
     from mirror_fg.core.gaze_error import gaze_block
     from mirror_fg.io.screen_result import screen_of
 

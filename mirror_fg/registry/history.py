@@ -161,7 +161,7 @@ def _figure_camera(camera: str, records: Sequence[HistoryRecord], changes: Seque
     3-sigma band, flagged calibrations ringed, verifications as vertical lines coloured by verdict."""
     from matplotlib.dates import AutoDateLocator, ConciseDateFormatter
 
-    from mirror_fg.tools.report_figures import new_figure
+    from mirror_fg.report.figures import new_figure
 
     mine = [r for r in records if r.camera == camera]
     calibrations = _calibrations(mine, camera)
@@ -204,8 +204,8 @@ def _figure_camera(camera: str, records: Sequence[HistoryRecord], changes: Seque
 
 def history_html(robot: str, records: Sequence[HistoryRecord], changes: Sequence[Change], source: str) -> str:
     """The history page: a verdict box (changes flagged or none), the legend, one figure per camera, the
-    flagged changes and the table of records, in the report's style (``tools.report_pages``)."""
-    from mirror_fg.tools.report_pages import Block, RenderedFigure, html_page
+    flagged changes and the table of records, in the report's style (``report.pages``)."""
+    from mirror_fg.report.pages import Block, RenderedFigure, html_page
 
     cameras = cameras_of(records)
     blocks = [Block("table", rows=[("robot", robot), ("registry", source), ("records", str(len(records))),

@@ -101,8 +101,8 @@ def _verdict(value: Any) -> str | None:
 
 def _calibration_verdict(document: Mapping[str, Any]) -> str | None:
     """The console's verdict on a result (``looks right``, ``check``; None when there is no cost to judge)."""
-    from mirror_fg.tools.summary import verdict_line
-    from mirror_fg.tools.verdict import stored_verdict
+    from mirror_fg.report.summary import verdict_line
+    from mirror_fg.report.verdict import stored_verdict
 
     stored = stored_verdict(document)  # the one verdict calibrate stored, as printed
     if stored is not None:

@@ -43,7 +43,7 @@ def arm_bounds(robot: str, eye_in_hand: bool, placements: int, arm_poses: int, p
 
     from mirror_fg.io.dataset import load_dataset
     from mirror_fg.robot.simulate import simulate_arm, write_arm_simulation
-    from mirror_fg.solver.robot_views import RobotEstimate, RobotProblem
+    from mirror_fg.solver.model.robot_views import RobotEstimate, RobotProblem
 
     sums: dict[str, np.ndarray] = {}
     with tempfile.TemporaryDirectory(dir=folder) as where:
@@ -154,7 +154,7 @@ def rank_joint_candidates(dataset, candidates: list[dict[str, float]], solution=
     """The candidates ranked (module docstring), best first, and the ranked mount's current 3-sigma
     ``{"mount", "placement", "position_mm", "rotation_deg"}``. ``solution``: a ``robot_solve.RobotSolution``
     of ``dataset`` (solved here when None)."""
-    from mirror_fg.solver.robot_solve import solve_robot
+    from mirror_fg.solver.batch.robot_solve import solve_robot
 
     solution = solution if solution is not None else solve_robot(dataset)
     problem = solution.problem

@@ -215,7 +215,7 @@ def arm_outputs(path: str, robot: str):
     """The checked outputs of :func:`write_arm_simulation` (DatasetError before any work where one cannot be
     written): the dataset, ``<stem>.truth.json`` and the arm's URDF beside them."""
     from mirror_fg.io.output import OutputPlan
-    from mirror_fg.tools.simulate import truth_path
+    from mirror_fg.simulate.tree import truth_path
 
     plan = OutputPlan()
     plan.add(path, "dataset")
@@ -227,7 +227,7 @@ def arm_outputs(path: str, robot: str):
 def write_arm_simulation(path: str, dataset: dict, truth: ArmTruth, plan=None) -> tuple[str, str]:
     """Write the dataset, ``<stem>.truth.json`` and the arm's URDF beside them, all-or-nothing; returns the
     truth's and the URDF's paths."""
-    from mirror_fg.tools.simulate import truth_path
+    from mirror_fg.simulate.tree import truth_path
 
     path = os.fspath(path)
     plan = plan if plan is not None else arm_outputs(path, truth.robot)

@@ -9,7 +9,7 @@ driven by a :class:`~mirror_fg.solver.options.SolveOptions` and the problem the 
 - anything else (``views_solve.py``): direct views, fixed mirrors, any order of reflections, no known
   target, several cameras, by the general view model (``views.py``).
 
-Each gives a :class:`~mirror_fg.solver.calibration.Calibration`, with everything left out in ``excluded``.
+Each gives a :class:`~mirror_fg.solver.result.calibration.Calibration`, with everything left out in ``excluded``.
 """
 from __future__ import annotations
 
@@ -20,16 +20,16 @@ from typing import Any
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.dataset_fields import check_cameras_named
 from mirror_fg.io.dataset import Dataset, dataset_from_dict
-from mirror_fg.solver.camera_labels import check_camera_labels
-from mirror_fg.solver.calibration import Calibration
-from mirror_fg.solver.dispersion import dispersion_of_calibration
-from mirror_fg.solver.graph import InitialEstimate
+from mirror_fg.solver.screen.camera_labels import check_camera_labels
+from mirror_fg.solver.result.calibration import Calibration
+from mirror_fg.solver.fit.dispersion import dispersion_of_calibration
+from mirror_fg.solver.model.graph import InitialEstimate
 from mirror_fg.solver.options import STAGES, Linearization, Progress, SolveOptions
 from mirror_fg.solver.pipeline import run_pipeline
-from mirror_fg.solver.pixel_problem import PixelProblem
-from mirror_fg.solver.rechecks import MAX_RECHECKS  # noqa: F401 (public here as before)
-from mirror_fg.solver.tree_problem import TreeProblem
-from mirror_fg.solver.views_solve import calibrate_views
+from mirror_fg.solver.batch.pixel_problem import PixelProblem
+from mirror_fg.solver.screen.rechecks import MAX_RECHECKS  # noqa: F401 (public here as before)
+from mirror_fg.solver.batch.tree_problem import TreeProblem
+from mirror_fg.solver.batch.views_solve import calibrate_views
 
 __all__ = ["as_dataset", "calibrate", "calibrate_with_intrinsics", "Progress", "SolveOptions", "STAGES"]
 
@@ -83,7 +83,7 @@ def calibrate(
     mirrors differ; whatever the cost, a split at a boundary between placements of mirror 1 whose two
     sides' poses differ beyond their covariances (a camera that moved). A few dozen solves of the groups
     at most: ``diagnose=False`` skips it, e.g. for a first solve that is expected to fit badly.
-    Whether the result may be written is :func:`~mirror_fg.solver.calibration.require_converged`'s call.
+    Whether the result may be written is :func:`~mirror_fg.solver.result.calibration.require_converged`'s call.
 
     options: all of the settings above in one :class:`~mirror_fg.solver.options.SolveOptions` (then give
     none of them separately: TypeError); ``fast=True`` is ``linearization="eliminated"``, ``fast=False``
@@ -101,7 +101,7 @@ def calibrate(
     # leave cameras out: the check is the calibration's, not the file's).
     check_cameras_named(dataset.cameras, (image.camera for image in dataset.images), dataset.source)
     if dataset.robot is not None:  # a robot arm (docs/formats.md "Robot arms"): mounts from joint states
-        from mirror_fg.solver.robot_solve import calibrate_robot
+        from mirror_fg.solver.batch.robot_solve import calibrate_robot
         return calibrate_robot(dataset, initial, options)  # type: ignore[arg-type]
     if not dataset.is_tree:  # direct views, fixed mirrors, any order, no known target, several cameras
         check_camera_labels(dataset)  # a rig image naming the wrong camera, before any plane is started
@@ -136,7 +136,7 @@ def calibrate_with_intrinsics(
 
     Raises DatasetError (a fisheye camera, unmodelled distortion terms) or SolveError (unobservable
     intrinsics, an indeterminant system); warns
-    :class:`~mirror_fg.solver.intrinsics_observability.WeakIntrinsicsWarning` on weak ones.
+    :class:`~mirror_fg.solver.batch.intrinsics_observability.WeakIntrinsicsWarning` on weak ones.
     ``options``: the settings in one :class:`SolveOptions` instead (its ``linearization`` and ``diagnose``
     are not used: the start takes the default factors, the joint solve pixel factors).
     """

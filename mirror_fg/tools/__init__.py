@@ -1,1 +1,1 @@
-"""Around the solver: simulation (Sect. 7), Cramer-Rao bounds and planning, reports, Monte Carlo runs."""
+"""Commands' engines that are neither solver nor analysis: ``mirror-fg pattern`` and ``calibrate-many``."""

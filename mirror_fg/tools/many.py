@@ -1,4 +1,4 @@
-"""Calibrating many captures or datasets (a fleet of robots) on the Dask engine of ``tools/montecarlo.py``.
+"""Calibrating many captures or datasets (a fleet of robots) on the Dask engine of ``analysis/montecarlo.py``.
 
 Each input goes through the same path as ``mirror-fg calibrate``: read once (a capture@1 is detected
 first, :func:`mirror_fg.vision.detect.load_input`), ``calibrate``, a converged result written all-or-nothing by
@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.tools.montecarlo import (
+from mirror_fg.analysis.montecarlo import (
     CONNECT_TIMEOUT_S,
     lost_reason,
     run_trials,
@@ -72,8 +72,8 @@ def calibrate_one(path: str, out_dir: str, ros: bool = True, registry: str | Non
     from mirror_fg.core.errors import MirrorFgError, SolveError
     from mirror_fg.io.calibration_files import plan_calibration_outputs
     from mirror_fg.solver.calibrate import calibrate
-    from mirror_fg.solver.calibration import require_converged
-    from mirror_fg.tools.verdict import with_verdict
+    from mirror_fg.solver.result.calibration import require_converged
+    from mirror_fg.report.verdict import with_verdict
     from mirror_fg.vision.detect import load_input
 
     row: dict[str, Any] = {"input": os.fspath(path), "status": "failed", "reason": "", "result": None}

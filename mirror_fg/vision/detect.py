@@ -10,7 +10,7 @@ each refined by its ``feature`` kind; a cut track is named, with the reason, in 
 report.
 
 A symmetric chessboard (``cols + rows`` even) gives each image's corners only up to a half (or
-quarter) turn: after every image is detected, :func:`mirror_fg.solver.labelling.choose_labellings`
+quarter) turn: after every image is detected, :func:`mirror_fg.solver.screen.labelling.choose_labellings`
 labels each by consistency across the images; its report names the labelling (``labelling half
 turn (...)``: turned from the detector's), and an image no labelling clearly fits is ``refused`` with
 the reason. Every refused or not-found image is an :class:`ImageReport` with its ``id`` and ``reason``.
@@ -197,9 +197,9 @@ def detect_capture(
 
 def _label_symmetric(dataset: Dataset, capture: Capture, reports: list[ImageReport]) -> Dataset:
     """Each image of a symmetric board labelled by consistency across the images
-    (:func:`mirror_fg.solver.labelling.choose_labellings`); the labelling, or why the image was left
+    (:func:`mirror_fg.solver.screen.labelling.choose_labellings`); the labelling, or why the image was left
     out (status ``refused``), is added to its report."""
-    from mirror_fg.solver.labelling import choose_labellings
+    from mirror_fg.solver.screen.labelling import choose_labellings
 
     board = capture.target
     assert isinstance(board, ChessboardTarget)
@@ -422,7 +422,7 @@ def _detect_video(
                     with native_stderr() as native:
                         ok, image = vc.read() if position == frame else (False, None)
                     # A failed read consumes its frame too: OpenCV goes on with the next one, so the
-                    # frames after a damaged stretch keep their indices (issue 28).
+                    # frames after a damaged stretch keep their indices.
                     position += 1
                     if not ok or image is None:
                         if frame in outputs_of_seg:

@@ -12,7 +12,7 @@ with the columns top to bottom in the un-mirrored view (handedness), and the squ
 black one (the half turn, from the colours of all inner squares); an image whose square colours do not
 tell is refused. A symmetric board (``cols + rows`` even) has no such colour cue: its squares must
 still alternate, and of its symmetric labellings the detector returns the one showing the board most
-upright (C00's row nearest the top of the image); :mod:`mirror_fg.solver.labelling` then chooses
+upright (C00's row nearest the top of the image); :mod:`mirror_fg.solver.screen.labelling` then chooses
 each image's labelling by consistency across the images. Tags: ``cv2.aruco.ArucoDetector`` finds and decodes the markers; by default
 (``subpix``) each corner is then refined by ``cv2.cornerSubPix`` on the linearized image (inverse
 sRGB, float) with a half window of half a tag cell (2 to 5 px): on gamma-encoded images OpenCV's own
@@ -130,7 +130,7 @@ def detect_chessboard(
 def _upright(pts: np.ndarray, names: list[str], board: ChessboardTarget) -> np.ndarray:
     """Corners (N, 2) of a symmetric board in the labelling, among its symmetric ones, that shows it most
     upright: the rows from C00's to the last run down the image (where that is the capture's one
-    labelling is chosen across the images, :mod:`mirror_fg.solver.labelling`)."""
+    labelling is chosen across the images, :mod:`mirror_fg.solver.screen.labelling`)."""
     points = dict(zip(names, pts))
     top, bottom = board.top_and_bottom_rows()
     best, best_down = points, -np.inf

@@ -1,4 +1,4 @@
-"""Each tracked point's pixel sigma for dataset@1's ``point_sigma`` (issue 18), from a capture's ``track:``.
+"""Each tracked point's pixel sigma for dataset@1's ``point_sigma``, from a capture's ``track:``.
 
 A tracked point's pixel is noisier, and biased along its track, compared with a detected fiducial's
 corner (:mod:`mirror_fg.vision.tracking`); weighed with the one ``pixel_sigma`` its reconstructed

@@ -12,11 +12,11 @@ stays inside the image, then *refines* the KLT position onto the feature the tra
   first frame) against the median of its window's border, on the linearised frame;
 - ``template``: ``cv2.findTransformECC`` (affine) of the *first* frame's patch around the point,
   anchored to that frame (never chained frame to frame), the point being the patch's centre;
-- ``klt``: no refinement (the tracker as it was before issue 18).
+- ``klt``: no refinement.
 
 Why: pyramidal LK's translation-only model is biased when the window's appearance changes (a scene
 seen through a moving mirror), and chaining frame to frame integrates that bias into a drift of up to
-~1 px over a loop (issue 18); a refinement tied to the feature itself does not accumulate it.
+~1 px over a loop; a refinement tied to the feature itself does not accumulate it.
 
 A track is cut, with a reason, when KLT fails, the forward-backward check fails, the point leaves the
 image, or the refinement fails (no corner, blob or template match within ``max_shift_px`` of KLT).
@@ -55,7 +55,7 @@ FEATURE_KINDS = ("corner", "blob", "dot", "template", "klt")
 #: (``scripts/render_scene.py``'s sequence, 54 frames; tests/test_tracking_refine.py): refined corners
 #: sat a median 0.17-0.25 px and at most 0.39 px from the truth, the same way in every frame (a
 #: blurred corner's tip pulls cornerSubPix inwards), blob centroids and templates a median <= 0.05 px;
-#: plain KLT drifted to 0.57-0.87 px (issue 18: 1.37 px with a 31 px window). The bias is shared by
+#: plain KLT drifted to 0.57-0.87 px (1.37 px with a 31 px window). The bias is shared by
 #: all frames, so averaging does not remove it: at 0.5 px the reconstructed points were within
 #: 2.9 sigma per axis in all six scenes. Detected fiducials use the capture's ``pixel_sigma`` (0.5 px by
 #: default); tracked points are never tighter.
@@ -345,7 +345,7 @@ class PointTracker:
     point's kind, first-frame template and history; :meth:`sigma` is its pixel sigma.
 
     ``default_kind``: the kind of points :meth:`set` without one (``corner``; ``klt`` is the tracker
-    as it was before issue 18); ``image_gamma``: ``srgb`` (frames are gamma-encoded, refinement runs on
+    without refinement); ``image_gamma``: ``srgb`` (frames are gamma-encoded, refinement runs on
     their inverse) or ``linear``.
     """
 

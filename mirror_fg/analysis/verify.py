@@ -1,0 +1,499 @@
+"""Has it moved? (docs/formats.md, "Has it moved? `mirror-fg verify`"): a likelihood-ratio test, per
+camera, of a few new images against the transform and covariance a stored result@1 holds.
+
+Frames and units as docs/formats.md: ``T_cam_base = (R, t)``, ``Cp = R Bp + t`` (metres); covariances
+``[dtheta (rad), dt (m)]`` with ``R_true = Exp(dtheta) R_est`` and ``t_true = t_est + dt``. GTSAM's
+Pose3 tangent ``[w, nu]`` (right perturbation) is used inside, converted at the edges
+(``core.transform.covariance_to_pose3`` / ``covariance_from_pose3``).
+
+The model is the general view model (``solver/model/views.py``, one ``factors/views.py`` factor per image): the
+target, the reconstruction points and the intrinsics are the stored ones (they cannot have moved; the
+points are held at their stored positions; intrinsics the result estimated are unknowns under their
+stored covariance, in both fits), every mirror placement of the new data is a new unknown (started by
+``solver/start/propagation.py``'s rule 3 from the stored pose). For camera ``c``:
+
+- ``cost_free``: the new images with every camera free;
+- ``cost_held``: the same with camera ``c`` under a prior at its stored transform with its stored
+  covariance ``S`` (jointly with its estimated intrinsics, their stored cross-covariance, where the result
+  estimated them: the pose's error and theirs are correlated);
+- ``d2 = 2 (cost_held - cost_free)``; under "not moved" (linearised) ``d2 ~ chi2_k``, ``p = 1 - chi2_k(d2)``.
+
+``k``: the new data's information ``N`` about the pose after marginalising the placements and the other
+cameras (a Schur complement), in the stored covariance's units: the eigenvalues ``lambda_i`` of
+``L^T N L`` (``S = L L^T``). A direction with ``lambda_i`` below :data:`SEEN` is one the new data cannot
+see (one mirror placement absorbs any rotation about a line in its plane: three of six); there the
+"free" fit keeps the stored prior, so it adds nothing to ``d2``, and ``k`` counts the others. Where
+``k = 6`` the move ``delta`` (new minus stored) has the combined covariance ``C = S + N^-1``. The
+smallest move detectable at ``alpha`` with power 0.9 has non-centrality ``lambda*``
+(``P(ncx2_k(lambda*) > chi2_k^-1(1 - alpha)) = 0.9``); in the worst direction it is
+``sqrt(lambda* max eig C_rr)`` in rotation and ``sqrt(lambda* max eig C_tt)`` in position (infinite
+where ``k < 6``).
+
+Bounds too narrow for the data (``solver/fit/dispersion.py``): a per-image systematic error (corner bias,
+unmodelled distortion) moves each image's virtual camera while its own mirror placement hides it from the
+residuals, so ``S`` and ``N^-1`` are too small by a factor the residuals do not show. Where the result
+stores its images' agreement with each other, ``dispersion`` (``s2 = B / nu``, ``nu`` degrees of freedom;
+about 1 when the noise model holds), both are scaled by ``f = max(1, s2)`` and the test is an F-test, the
+noise level estimated from the image-level redundancy: ``F = d2 / (k f)``, ``p = 1 - F_{k,nu}(F)`` (exact
+size alpha where ``s2 >= 1``, below it otherwise: the bounds are only ever widened); ``C = f (S + N^-1)``
+and ``lambda*`` the non-centrality of power 0.9 of ``F_{k,nu}`` (times ``f`` in ``d2``). Where ``nu = 0`` (every stored image was needed to determine the solution: its
+bounds cannot be checked) the test is the chi-square one and `not moved` becomes `cannot tell`; a
+result without ``dispersion`` (written before it existed) is tested with the chi-square as stored.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import Any
+
+import gtsam
+import numpy as np
+from scipy import optimize as scipy_optimize
+from scipy import stats
+
+from mirror_fg.core.errors import DatasetError
+from mirror_fg.core.fit import expected_cost, plausible
+from mirror_fg.core.transform import covariance_from_pose3, covariance_to_pose3
+from mirror_fg.io.dataset import Dataset
+from mirror_fg.io.result import estimated_camera, pose
+from mirror_fg.solver.model.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, run_optimizer
+from mirror_fg.solver.model.marginals import unconstrained_message
+from mirror_fg.solver.options import SolveOptions
+from mirror_fg.solver.start.propagation import Unsolvable, propagate
+from mirror_fg.analysis.verify_priors import StoredIntrinsics, joint_prior, stored_intrinsics
+from mirror_fg.solver.model.views import SINGLE_CAMERA, ViewProblem, camera_names, tangent_dimension
+
+__all__ = ["Verification", "CameraVerdict", "verify", "MOVED", "NOT_MOVED", "CANNOT_TELL", "POWER", "stored_cameras",
+           "detectable_noncentrality"]
+
+MOVED, NOT_MOVED, CANNOT_TELL = "moved", "not moved", "cannot tell"
+#: The advice of a `cannot tell` whose stored bounds could not be checked (dispersion with nu = 0).
+UNCHECKED = ("the stored result's images cannot be checked against each other (each was needed to determine it), "
+             "so its bounds may be too narrow: calibrate again with more placements")
+#: The power at which the detectable move is stated.
+POWER = 0.9
+#: A direction of the pose whose new-data information is below this fraction of the stored information
+#: is not seen by the new data (numerically zero where a placement absorbs it: ~1e-10 measured).
+SEEN = 1e-6
+#: The "free" fit's prior in the seen directions, as a fraction of the stored information: it keeps LM's
+#: system regular and changes ``d2`` by less than this over ``SEEN`` (1 %).
+FREE_WEIGHT = 1e-8
+#: LM iterations of each fit.
+MAX_ITERATIONS = 100
+
+
+@dataclass(frozen=True)
+class CameraVerdict:
+    """One camera's answer. ``move``: ``[dtheta (rad), dt (m)]`` new minus stored and ``covariance`` its
+    combined 6 x 6 (``S + N^-1``), both None where the new data do not determine the pose (``dof < 6``);
+    ``detectable_rad`` / ``detectable_m``: the smallest rotation / translation detectable at ``alpha``
+    with power :data:`POWER` in the worst direction (inf where ``dof < 6``); ``advice``: what to add."""
+
+    name: str
+    verdict: str
+    p_value: float
+    mahalanobis2: float
+    dof: int
+    move: np.ndarray | None
+    covariance: np.ndarray | None
+    detectable_rad: float
+    detectable_m: float
+    advice: str
+    #: The result's dispersion ``s2`` (the test divides by ``max(1, s2)``; NaN where ``nu = 0``, 1.0 where
+    #: the result stores none) and its degrees of freedom ``nu`` (None where it stores none: chi-square).
+    dispersion: float = 1.0
+    dispersion_dof: float | None = None
+
+    @property
+    def exit_code(self) -> int:
+        return {MOVED: 4, NOT_MOVED: 0, CANNOT_TELL: 5}[self.verdict]
+
+    def to_dict(self) -> dict[str, Any]:
+        """This camera's entry of verification@1 (docs/formats.md)."""
+        move = sigma3 = None
+        if self.move is not None and self.covariance is not None:
+            move = {"rotation_deg": np.rad2deg(self.move[:3]).tolist(), "position_mm": (1e3 * self.move[3:]).tolist()}
+            sd3 = 3.0 * np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+            sigma3 = {"rotation_deg": np.rad2deg(sd3[:3]).tolist(), "position_mm": (1e3 * sd3[3:]).tolist()}
+        return {"verdict": self.verdict, "p_value": self.p_value, "mahalanobis2": self.mahalanobis2, "dof": self.dof,
+                "move": move, "sigma3": sigma3,
+                "detectable": {"rotation_deg": _finite(math.degrees(self.detectable_rad)),
+                               "position_mm": _finite(1e3 * self.detectable_m)},
+                "advice": self.advice or None,
+                "dispersion": None if self.dispersion_dof is None else {"factor": self.dispersion,
+                                                                        "dof": self.dispersion_dof}}
+
+
+@dataclass(frozen=True)
+class Verification:
+    """Every camera's verdict; ``fused``: ``{camera: (R, t, covariance)}``, the stored estimate combined
+    with the new data (the stored transforms as priors), for ``--update``."""
+
+    cameras: dict[str, CameraVerdict]
+    alpha: float
+    tolerance_mm: float
+    tolerance_deg: float
+    fused: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+    @property
+    def verdict(self) -> str:
+        """``moved`` if any camera moved, else ``cannot tell`` if any cannot tell, else ``not moved``."""
+        verdicts = {v.verdict for v in self.cameras.values()}
+        return MOVED if MOVED in verdicts else CANNOT_TELL if CANNOT_TELL in verdicts else NOT_MOVED
+
+    @property
+    def exit_code(self) -> int:
+        return {MOVED: 4, NOT_MOVED: 0, CANNOT_TELL: 5}[self.verdict]
+
+    def to_dict(self, result_path: str, data_path: str) -> dict[str, Any]:
+        """The verification@1 document (docs/formats.md)."""
+        return {"format": "mirror-fg/verification@1", "result": result_path, "data": data_path, "alpha": self.alpha,
+                "tolerance": {"rotation_deg": self.tolerance_deg, "position_mm": self.tolerance_mm},
+                "verdict": self.verdict, "cameras": {n: v.to_dict() for n, v in self.cameras.items()}}
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def detectable_noncentrality(dof: int, alpha: float, power: float = POWER, denominator_dof: float | None = None
+                              ) -> float:
+    """The non-centrality ``lambda*`` at which a chi-square test of ``dof`` degrees of freedom at level
+    ``alpha`` rejects with probability ``power`` (non-central chi-square); with ``denominator_dof`` ``nu``,
+    an F-test of ``(dof, nu)`` degrees of freedom (non-central F)."""
+    if denominator_dof is None:
+        critical = stats.chi2.isf(alpha, dof)
+
+        def shortfall(ncp: float) -> float:
+            return float(stats.ncx2.sf(critical, dof, ncp)) - power
+    else:
+        critical = stats.f.isf(alpha, dof, denominator_dof)
+
+        def shortfall(ncp: float) -> float:
+            return float(stats.ncf.sf(critical, dof, denominator_dof, ncp)) - power
+
+    high = 1.0
+    while shortfall(high) < 0:
+        high *= 2.0
+    return float(scipy_optimize.brentq(shortfall, 1e-9, high, xtol=1e-9))
+
+
+# --------------------------------------------------------------------------------------------------
+# The stored result
+
+
+def stored_dispersion(result: Mapping[str, Any]) -> tuple[float, float] | None:
+    """``(s2, nu)`` of the result's ``dispersion`` (``s2`` NaN where ``nu`` is 0), None without one."""
+    block = result.get("dispersion")
+    if not block:
+        return None
+    dof = float(block["dof"])
+    factor = block.get("factor")
+    return (float(factor) if factor is not None and dof > 0.5 else math.nan), dof
+
+
+def stored_cameras(result: Mapping[str, Any]) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
+    """``{camera: (R_cam_base, t_cam_base, covariance_cam_base or None)}`` of a validated result@1 (one
+    camera is :data:`~mirror_fg.solver.model.views.SINGLE_CAMERA`)."""
+    entries = result.get("cameras") or {SINGLE_CAMERA: result}
+    out = {}
+    for name, entry in entries.items():
+        R, t = pose(entry["T_cam_base"])
+        cov = entry.get("covariance_cam_base")
+        out[name] = (R, t, None if cov is None else np.array(cov, dtype=float))
+    return out
+
+
+def _stored_intrinsics(result: Mapping[str, Any], name: str, given, source: str):
+    """The camera the result used for ``name`` (its estimated block where it has one), else ``given``."""
+    if result.get("cameras"):
+        block = result["cameras"][name].get("camera")
+        found = estimated_camera({"camera": block}, source, given) if block is not None else None
+    else:
+        found = estimated_camera(result, source, given)
+    if found is None:
+        return given
+    if given is not None and (found.width, found.height) != (given.width, given.height):
+        raise DatasetError(f"{source}: camera {name!r} is {found.width}x{found.height} px but the new images' camera "
+                           f"is {given.width}x{given.height}: the result and the data are from different set-ups")
+    return found
+
+
+def _verification_dataset(result: Mapping[str, Any], dataset: Dataset,
+                          source: str) -> tuple[Dataset, dict[str, StoredIntrinsics]]:
+    """``dataset`` with the stored intrinsics (their values; none left to estimate) and the stored
+    reconstruction points as known points, and the intrinsics the result estimated with their stored
+    covariances; one line (DatasetError) where the result and the data cannot be from one set-up."""
+    stored = stored_cameras(result)
+    names = camera_names(dataset)
+    unknown = [n for n in names if n not in stored]
+    if unknown:
+        have = ", ".join(repr(n) for n in stored)
+        what = "the data have one camera" if dataset.cameras is None else f"camera {unknown[0]!r} of the data"
+        raise DatasetError(f"{source}: {what} is not in the result (its cameras: {have}): the result and the data "
+                           "are from different set-ups")
+    for name in names:
+        covariance = stored[name][2]
+        if covariance is None:
+            raise DatasetError(f"{source}: camera {name!r} has no covariance_cam_base: verify needs the stored "
+                               "uncertainty (calibrate again)")
+        if not np.all(np.isfinite(covariance)) or np.linalg.eigvalsh(0.5 * (covariance + covariance.T))[0] <= 0:
+            raise DatasetError(f"{source}: camera {name!r}: covariance_cam_base is not positive definite (a camera "
+                               "whose frame is the base frame cannot have moved against it)")
+    if not dataset.fiducials:
+        raise DatasetError(f"{dataset.source}: no fiducials: verify needs the known target the result was made with")
+    units = (result.get("residuals") or {}).get("units")
+    if units is not None and (units == "px") != (dataset.camera is not None or dataset.cameras is not None):
+        raise DatasetError(f"{source}: its residuals are in {units} but the data are "
+                           f"{'pixels' if units != 'px' else 'normalized'}: the result and the data are from "
+                           "different set-ups")
+    points = {n: np.array(e["xyz"], dtype=float) for n, e in (result.get("points") or {}).items()}
+    missing = [n for n in dataset.reconstruction_point_names if n not in points]
+    if missing:
+        raise DatasetError(f"{dataset.source}: point {missing[0]!r} is neither a fiducial nor a point of the result "
+                           f"{source}: verify takes the points from the result")
+
+    def fixed(camera):
+        return None if camera is None else replace(camera, estimate=(), prior_sigma=())
+
+    if dataset.cameras is not None:
+        cameras = {n: fixed(_stored_intrinsics(result, n, c, source)) for n, c in dataset.cameras.items()}
+        camera = None
+    else:
+        cameras, camera = None, fixed(_stored_intrinsics(result, SINGLE_CAMERA, dataset.camera, source))
+    used = {n: points[n] for n in dataset.reconstruction_point_names}
+    verification = replace(dataset, camera=camera, cameras=cameras, fiducials={**dataset.fiducials, **used})
+    intrinsics = {}
+    for name in names:
+        found = stored_intrinsics(result, name, verification.cameras[name] if verification.cameras else camera, source)
+        if found is not None:
+            intrinsics[name] = found
+    return verification, intrinsics
+
+
+# --------------------------------------------------------------------------------------------------
+# The fits
+
+
+class _Fits:
+    """The new data's graph and the priors of the test, and LM on them."""
+
+    def __init__(self, dataset: Dataset, stored: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
+                 intrinsics: dict[str, StoredIntrinsics], max_iterations: int = MAX_ITERATIONS):
+        self.problem = ViewProblem(dataset, intrinsics={n: i.model for n, i in intrinsics.items()})
+        self.intrinsics = intrinsics
+        self.data = self.problem.graph()
+        for name, stored_k in intrinsics.items():  # in every fit: the intrinsics cannot have moved
+            self.data.add(stored_k.marginal_prior(self.problem.intrinsics_keys[name]))
+        self.stored = stored
+        self.params = lm_params(max_iterations, cost_scale(dataset), GENERAL_LAMBDA_UPPER_BOUND)
+        self.source = dataset.source
+        self.stored_pose = {n: gtsam.Pose3(gtsam.Rot3(R), t) for n, (R, t, _) in stored.items()}
+        #: The stored covariance in GTSAM's tangent at the stored pose.
+        self.stored_tangent = {n: covariance_to_pose3(R, C) for n, (R, _, C) in stored.items()}
+
+    def start(self) -> gtsam.Values:
+        """The stored poses and every new placement from them (propagation rule 3)."""
+        problem = self.problem
+        poses = {n: (R, t) for n, (R, t, _) in self.stored.items() if n in problem.pose_keys}
+        try:
+            known = propagate(problem.views, problem.dataset.fiducials, problem.cameras, poses)
+        except Unsolvable as error:
+            raise DatasetError(f"{self.source}: {error}") from None
+        return problem.values(problem.estimate_from(known))
+
+    def prior(self, name: str, information: np.ndarray | None = None) -> gtsam.NonlinearFactor:
+        """Camera ``name`` at its stored transform: with its stored covariance (and, where the result
+        estimated them, its intrinsics' cross-covariance), or ``information`` (tangent)."""
+        key = self.problem.pose_keys[name]
+        if information is not None:
+            return gtsam.PriorFactorPose3(key, self.stored_pose[name], gtsam.noiseModel.Gaussian.Information(information))
+        if name in self.intrinsics:
+            return joint_prior(key, self.problem.intrinsics_keys[name], self.stored_pose[name], self.intrinsics[name],
+                               self.stored_tangent[name])
+        return gtsam.PriorFactorPose3(key, self.stored_pose[name],
+                                      gtsam.noiseModel.Gaussian.Covariance(self.stored_tangent[name]))
+
+    def fit(self, priors: list, starts: list[gtsam.Values]) -> tuple[gtsam.Values, float]:
+        """LM on the data and ``priors`` from each start: the lowest ``(values, cost)``."""
+        graph = gtsam.NonlinearFactorGraph(self.data)
+        for factor in priors:
+            graph.add(factor)
+        best: tuple[gtsam.Values, float] | None = None
+        for start in starts:
+            _, values, _ = run_optimizer(graph, start, self.params, self.source,
+                                         lambda error: unconstrained_message(error, self.problem))
+            cost = float(graph.error(values))
+            if best is None or cost < best[1]:
+                best = (values, cost)
+        assert best is not None
+        return best
+
+    def information(self, values: gtsam.Values) -> tuple[np.ndarray, dict[int, slice]]:
+        """The data's Gauss-Newton information over every unknown (tangent) and each key's columns."""
+        ordering, columns, start = gtsam.Ordering(), {}, 0
+        for key in self.problem.keys:
+            ordering.push_back(key)
+            dim = tangent_dimension(key, values)
+            columns[key] = slice(start, start + dim)
+            start += dim
+        A, _ = self.data.linearize(values).jacobian(ordering)
+        return A.T @ A, columns
+
+    def pose_information(self, name: str, values: gtsam.Values) -> np.ndarray:
+        """What the new data say about camera ``name``'s pose, the placements and the other cameras
+        marginalised (Schur complement; tangent at ``values``)."""
+        H, columns = self.information(values)
+        c = columns[self.problem.pose_keys[name]]
+        own = np.zeros(H.shape[0], dtype=bool)
+        own[c] = True
+        H_oo = H[~own][:, ~own]
+        H_co = H[own][:, ~own]
+        return H[c, c] - H_co @ np.linalg.pinv(H_oo, rcond=1e-12, hermitian=True) @ H_co.T
+
+
+def _seen(stored_tangent: np.ndarray, information: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(lambda, U, L)``: the new data's information relative to the stored (module docstring)."""
+    L = np.linalg.cholesky(stored_tangent)
+    lam, U = np.linalg.eigh(L.T @ information @ L)
+    return lam, U, L
+
+
+def _free_information(lam: np.ndarray, U: np.ndarray, L: np.ndarray) -> np.ndarray:
+    """The free fit's prior (tangent information): :data:`FREE_WEIGHT` of the stored one in the seen
+    directions, all of it in the unseen ones (there free and held fits agree)."""
+    weights = np.where(lam > SEEN, FREE_WEIGHT, 1.0)
+    L_inv = np.linalg.inv(L)
+    F = L_inv.T @ (U * weights) @ U.T @ L_inv
+    return 0.5 * (F + F.T)
+
+
+# --------------------------------------------------------------------------------------------------
+# The test
+
+
+def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.01, tolerance_mm: float = 2.0,
+           tolerance_deg: float = 0.2, source: str = "result", options: SolveOptions | None = None) -> Verification:
+    """Whether each camera of ``dataset``'s images is still where ``result`` (a validated result@1
+    dictionary, or a :class:`~mirror_fg.solver.result.calibration.Calibration`) puts it (module docstring).
+    ``source`` names the result in messages; ``options``: its ``max_iterations`` bounds each LM fit.
+    DatasetError (exit 2) where the result and the data cannot be from one set-up."""
+    if not 0.0 < alpha < 1.0:
+        raise DatasetError(f"alpha must be between 0 and 1, got {alpha}")
+    if hasattr(result, "to_dict"):
+        result = result.to_dict()
+    verification_data, intrinsics = _verification_dataset(result, dataset, source)
+    stored_all = stored_cameras(result)
+    fits = _Fits(verification_data, {n: c for n, c in stored_all.items() if n in camera_names(dataset)},  # type: ignore[misc]
+                 intrinsics, options.max_iterations if options is not None else MAX_ITERATIONS)
+    problem = fits.problem
+    tested = list(problem.pose_keys)
+    start = fits.start()
+    held_all, _ = fits.fit([fits.prior(n) for n in tested], [start])  # every camera held: also the fused estimate
+    seen = {n: _seen(fits.stored_tangent[n], fits.pose_information(n, held_all)) for n in tested}
+    free_priors = {n: fits.prior(n, _free_information(*seen[n])) for n in tested}
+    free, cost_free = fits.fit(list(free_priors.values()), [held_all, start])
+    expected = expected_cost(problem.size, free.dim() - 6 * len(tested), min_dof=1)
+    if not plausible(float(fits.data.error(free)), expected):  # not even a moved camera explains them
+        raise DatasetError(f"{dataset.source}: the new images do not fit {source}'s target and points even with the "
+                           f"camera free (cost {fits.data.error(free):.3g}, expected about {expected:.3g}): the result and "
+                           "the data are from different set-ups, or the target or its points moved")
+    dispersion = stored_dispersion(result)
+    checked = dispersion is not None and dispersion[1] > 0.5 and math.isfinite(dispersion[0]) and dispersion[0] > 0
+    # only ever widened: bounds narrower than the noise model gives are not trusted (s2 < 1 is chance)
+    scale, nu = (max(1.0, dispersion[0]), dispersion[1]) if checked else (1.0, None)  # type: ignore[index]
+    ncp = {k: detectable_noncentrality(k, alpha, denominator_dof=nu) for k in range(1, 7)}
+    verdicts: dict[str, CameraVerdict] = {}
+    for name in camera_names(dataset):
+        if name not in problem.pose_keys:
+            verdicts[name] = CameraVerdict(name, CANNOT_TELL, 1.0, 0.0, 0, None, None, math.inf, math.inf,
+                                           "no new image of this camera")
+            continue
+        priors = [fits.prior(name)] + [f for n, f in free_priors.items() if n != name]
+        _, cost_held = fits.fit(priors, [held_all, free])
+        d2 = max(0.0, 2.0 * (cost_held - cost_free))
+        dof = int(np.sum(seen[name][0] > SEEN))
+        if dof == 0:
+            p = 1.0
+        elif nu is not None:  # the F-test: d2 / k over the image-level variance factor (module docstring)
+            p = float(stats.f.sf(d2 / (dof * scale), dof, nu))
+        else:
+            p = float(stats.chi2.sf(d2, dof))
+        answer = _verdict(name, d2, dof, p, free, fits, ncp.get(dof, math.inf), alpha, tolerance_mm, tolerance_deg,
+                          scale)
+        if dispersion is not None:
+            answer = replace(answer, dispersion=dispersion[0], dispersion_dof=dispersion[1])
+            if not checked and answer.verdict == NOT_MOVED:  # nu = 0: the stored bounds cannot be checked
+                answer = replace(answer, verdict=CANNOT_TELL, advice=UNCHECKED)
+        verdicts[name] = answer
+    fused = _fused(fits, held_all, tested)
+    return Verification(verdicts, alpha, tolerance_mm, tolerance_deg, fused)
+
+
+def _verdict(name: str, d2: float, dof: int, p: float, free: gtsam.Values, fits: _Fits, ncp: float, alpha: float,
+             tolerance_mm: float, tolerance_deg: float, scale: float = 1.0) -> CameraVerdict:
+    R_s, t_s, S = fits.stored[name]
+    ncp = ncp * scale  # the detectable d2 in the stored units: the test divides d2 by scale
+    move = combined = None
+    detectable_rad = detectable_m = math.inf
+    if dof == 6:
+        estimate = free.atPose3(fits.problem.pose_keys[name])
+        R, t = estimate.rotation().matrix(), np.asarray(estimate.translation(), float)
+        # the move in the uncertainty convention: R_new = Exp(dtheta) R_stored, t_new = t_stored + dt
+        move = np.concatenate([gtsam.Rot3.Logmap(gtsam.Rot3(R @ R_s.T)), t - t_s])
+        new = covariance_from_pose3(R, np.linalg.inv(fits.pose_information(name, free)))
+        combined = S + 0.5 * (new + new.T)
+        detectable_rad = math.sqrt(ncp * float(np.linalg.eigvalsh(combined[:3, :3])[-1]))
+        detectable_m = math.sqrt(ncp * float(np.linalg.eigvalsh(combined[3:, 3:])[-1]))
+        combined = scale * combined  # the bounds the images' agreement supports
+    if p < alpha:
+        verdict, advice = MOVED, ""
+    elif math.degrees(detectable_rad) <= tolerance_deg and 1e3 * detectable_m <= tolerance_mm:
+        verdict, advice = NOT_MOVED, ""
+    else:
+        verdict, advice = CANNOT_TELL, _advice(dof, S, ncp, tolerance_mm, tolerance_deg)
+    return CameraVerdict(name, verdict, p, d2, dof, move, combined, detectable_rad, detectable_m, advice)
+
+
+def _advice(dof: int, stored: np.ndarray, ncp: float, tolerance_mm: float, tolerance_deg: float) -> str:
+    """What to add for a ``cannot tell``."""
+    if dof < 6:
+        return (f"the new images see {dof} of the camera's 6 degrees of freedom (a mirror placement hides any "
+                "rotation about a line in its plane): add images at other mirror placements (mirror-fg plan --next)")
+    rotation = math.degrees(math.sqrt(ncp * float(np.linalg.eigvalsh(stored[:3, :3])[-1])))
+    position = 1e3 * math.sqrt(ncp * float(np.linalg.eigvalsh(stored[3:, 3:])[-1]))
+    if rotation > tolerance_deg or position > tolerance_mm:
+        return (f"the stored result alone is too uncertain for this tolerance (no move below {rotation:.2g} deg / "
+                f"{position:.2g} mm could be told apart from it): calibrate again with more placements")
+    return "the new images are too few for the tolerance: add images at other mirror placements (mirror-fg plan --next)"
+
+
+def _fused(fits: _Fits, held: gtsam.Values, tested: list[str]) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The stored transforms (priors, their stored covariance) combined with the new data: the fit with
+    every camera held, and each camera's marginal of ``H_data + blockdiag(S^-1)`` (in the convention
+    at the fused estimate), never wider than ``S``."""
+    H, columns = fits.information(held)
+    out = {}
+    rotations = {}
+    for name in tested:
+        estimate = held.atPose3(fits.problem.pose_keys[name])
+        R = estimate.rotation().matrix()
+        rotations[name] = R
+        c = columns[fits.problem.pose_keys[name]]
+        if name in fits.intrinsics:  # the pose given the intrinsics (their marginal is in the data graph)
+            k = columns[fits.problem.intrinsics_keys[name]]
+            B, conditional = fits.intrinsics[name].conditional(covariance_to_pose3(R, fits.stored[name][2]), R)
+            E = np.zeros((6, H.shape[0]))
+            E[:, c] = np.eye(6)
+            E[:, k] = -B
+            H += E.T @ np.linalg.inv(conditional) @ E
+        else:
+            H[c, c] += np.linalg.inv(covariance_to_pose3(R, fits.stored[name][2]))
+    covariance = np.linalg.pinv(H, rcond=1e-14, hermitian=True)
+    for name in tested:
+        estimate = held.atPose3(fits.problem.pose_keys[name])
+        c = columns[fits.problem.pose_keys[name]]
+        C = covariance_from_pose3(rotations[name], covariance[c, c])
+        out[name] = (rotations[name], np.asarray(estimate.translation(), float), 0.5 * (C + C.T))
+    return out

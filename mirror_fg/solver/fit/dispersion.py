@@ -1,0 +1,151 @@
+"""Image-level dispersion: do the images agree with each other as closely as their noise model says?
+
+docs/formats.md, "Has it moved? `mirror-fg verify`". Each image's measurements determine its virtual
+camera (the camera seen through its mirrors: a 6-dof rigid, or with one mirror improper, transform of
+the target; Sect. 3 of the paper). A per-image systematic error (a corner detector's bias, distortion the
+model lacks) moves that virtual camera without showing in the image's own residuals: its mirror
+placement absorbs it, the residuals look right, the pose is biased. What shows it is how far each image
+would go on its own: with the image's camera pose and mirror placements free for it alone, its cost falls
+by ``c_i = |P_i r_i|^2`` (whitened rows ``r_i`` at the solution, ``P_i`` the projection onto the column
+space of its Jacobian on the camera pose and its mirror placements, rank 6 where the image determines its
+virtual camera). Under the noise model (linearised) ``B = sum_i c_i`` has expectation
+``nu = sum_i rank_i - sum_i tr(Sigma G_i)`` (``G_i = (U_i^T J_i)^T (U_i^T J_i)``, ``U_i`` an orthonormal
+basis of that column space, ``J_i`` the image's whole Jacobian, ``Sigma`` the solution's covariance):
+``r = (I - H) e`` so ``E[B] = tr(P (I - H))``. For one camera and one mirror, ``nu = 3 n - 6`` (each
+image adds 6 conditions, its placement takes 3, the pose 6).
+
+``factor = B / nu`` is the variance factor of the images' virtual cameras: about 1 where the noise model
+holds (``nu factor ~ chi2_nu``), larger where the images disagree beyond it. ``mirror-fg verify`` divides
+its statistic by it (an F-test: the noise level estimated from the image-level redundancy, the standard
+remedy when sigma is not known). ``nu = 0`` (every image needed to determine the solution): no estimate.
+Whitened units (each row by its measurement sigma); measurements the solve left out are not counted.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from mirror_fg.io.dataset import Dataset
+from mirror_fg.solver.fit.validation import _problem, estimate_of_calibration
+from mirror_fg.solver.model.views import ViewEstimate, tangent_dimension
+
+__all__ = ["Dispersion", "image_dispersion", "dispersion_of_calibration"]
+
+
+@dataclass(frozen=True)
+class Dispersion:
+    """``cost``: ``B`` (chi^2 units); ``dof``: ``nu``, its expectation under the noise model; ``images``: how
+    many images counted."""
+
+    cost: float
+    dof: float
+    images: int
+
+    @property
+    def factor(self) -> float:
+        """``B / nu`` (1 where the noise model holds); NaN where ``nu`` is not positive."""
+        return self.cost / self.dof if self.dof > 0.5 else float("nan")
+
+    def to_dict(self) -> dict[str, Any]:
+        """result@1's ``dispersion`` (docs/formats.md)."""
+        return {"factor": self.factor if self.dof > 0.5 else None, "dof": self.dof, "cost": self.cost,
+                "images": self.images}
+
+
+def dispersion_of_calibration(dataset: Dataset, calibration: Any) -> Dispersion:
+    """:func:`image_dispersion` of a calibration of ``dataset`` (stored in its result by ``calibrate``)."""
+    estimate, estimated = estimate_of_calibration(calibration)
+    excluded = [(e.image, e.point) for e in calibration.excluded]
+    return image_dispersion(dataset, estimate, excluded, estimated)
+
+
+def image_dispersion(dataset: Dataset, estimate: ViewEstimate, excluded: Sequence[tuple[str, str | None]],
+                     estimated_cameras: Mapping[str, Any] | None = None) -> Dispersion:
+    """``B`` and ``nu`` (module docstring) of ``dataset``'s images at ``estimate``; arguments as
+    :func:`~mirror_fg.solver.fit.validation.validate`."""
+    used, problem, values, masks = _problem(dataset, estimate, excluded, estimated_cameras)
+    graph = problem.graph()
+    offset: dict[int, int] = {}
+    size = 0
+    for key in problem.keys:
+        offset[key] = size
+        size += tangent_dimension(key, values)
+    own_keys = set(problem.pose_keys.values()) | set(problem.mirror_keys.values())
+    blocks: list[tuple[np.ndarray, np.ndarray]] = []  # (global columns, information block): H, sparse
+    parts = []  # per image: its block's index, U_i^T J_i
+    cost = 0.0
+    rank_sum = 0
+    for factor, mask in zip(problem.factors, masks):
+        gaussian = factor.factor().linearize(values)
+        A, b = gaussian.jacobian()
+        A, r = A[mask], -b[mask]
+        columns, own, at = [], [], 0
+        for key in gaussian.keys():
+            dim = tangent_dimension(key, values)
+            columns += list(range(offset[key], offset[key] + dim))
+            if key in own_keys:
+                own += list(range(at, at + dim))
+            at += dim
+        blocks.append((np.array(columns, dtype=int), A.T @ A))
+        if not own or not len(r):
+            continue
+        U = _range(A[:, own])
+        rank_sum += U.shape[1]
+        cost += float(np.sum((U.T @ r) ** 2))
+        parts.append((len(blocks) - 1, U.T @ A))
+    for k in range(len(problem.factors), graph.size()):  # priors (intrinsics, scale): in Sigma only
+        gaussian = graph.at(k).linearize(values)
+        A, _ = gaussian.jacobian()
+        columns = [i for key in gaussian.keys() for i in range(offset[key], offset[key] + tangent_dimension(key, values))]
+        blocks.append((np.array(columns, dtype=int), A.T @ A))
+    return Dispersion(cost, max(rank_sum - _explained(blocks, parts, size), 0.0), len(parts))
+
+
+def _explained(blocks: list[tuple[np.ndarray, np.ndarray]], parts: list[tuple[int, np.ndarray]], size: int) -> float:
+    """``sum_i tr(Sigma_cc G_i)`` over each image's columns ``c``, without inverting the whole information:
+    the columns only one block touches (a placement one image sees) are eliminated block by block (Schur
+    complement), the rest (pose, intrinsics, points, shared placements) inverted densely; ``blocks``: each
+    factor's columns and information, ``parts``: an image's block and ``U_i^T J_i``."""
+    touches = np.zeros(size, dtype=int)
+    for columns, _ in blocks:
+        touches[columns] += 1
+    shared = np.flatnonzero(touches > 1)
+    where = np.full(size, -1)
+    where[shared] = np.arange(len(shared))
+    H_ss = np.zeros((len(shared), len(shared)))
+    eliminated = []  # per block: its shared columns (positions in H_ss), local positions in the block, K, H_ll^-1
+    for columns, H in blocks:
+        local = touches[columns] == 1
+        s_at = where[columns[~local]]
+        H_ss[np.ix_(s_at, s_at)] += H[np.ix_(~local, ~local)]
+        if not np.any(local):
+            eliminated.append((s_at, local, np.zeros((0, len(s_at))), np.zeros((0, 0))))
+            continue
+        H_ll_inv = np.linalg.pinv(H[np.ix_(local, local)], hermitian=True)
+        K = H_ll_inv @ H[np.ix_(local, ~local)]  # H_ll^-1 H_ls
+        H_ss[np.ix_(s_at, s_at)] -= H[np.ix_(~local, local)] @ K
+        eliminated.append((s_at, local, K, H_ll_inv))
+    Sigma_ss = np.linalg.pinv(0.5 * (H_ss + H_ss.T), hermitian=True) if len(shared) else np.zeros((0, 0))
+    total = 0.0
+    for index, UJ in parts:
+        columns = blocks[index][0]
+        s_at, local, K, H_ll_inv = eliminated[index]
+        S = Sigma_ss[np.ix_(s_at, s_at)]
+        Sigma = np.zeros((len(columns), len(columns)))
+        Sigma[np.ix_(~local, ~local)] = S
+        if np.any(local):
+            Sigma[np.ix_(~local, local)] = -S @ K.T
+            Sigma[np.ix_(local, ~local)] = -K @ S
+            Sigma[np.ix_(local, local)] = H_ll_inv + K @ S @ K.T
+        total += float(np.sum((UJ @ Sigma) * UJ))
+    return total
+
+
+def _range(J: np.ndarray) -> np.ndarray:
+    """An orthonormal basis of ``J``'s column space."""
+    U, s, _ = np.linalg.svd(J, full_matrices=False)
+    rank = int(np.sum(s > max(s[0], 1e-300) * 1e-10)) if len(s) else 0  # as validation's complement
+    return U[:, :rank]

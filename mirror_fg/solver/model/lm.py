@@ -1,0 +1,266 @@
+"""Levenberg-Marquardt for the MLE (eq. 23): settings scaled to the noise, one run, its stall test, the
+plausibility of its final cost, and the restarts from the analytical solution's runner-up hypotheses.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from mirror_fg.core.errors import SolveError
+from mirror_fg.core.fit import expected_cost, plausible
+from mirror_fg.factors.eliminated import EliminatedEvaluator, collapsed
+from mirror_fg.io.dataset import Dataset
+from mirror_fg.solver.start.analytic import AnalyticSolution, reconstruct_points
+from mirror_fg.solver.model.graph import (
+    GraphLayout,
+    InitialEstimate,
+    Measurement,
+    build_eliminated_graph,
+    build_graph,
+    extract_values,
+)
+from mirror_fg.solver.model.marginals import (
+    eliminated_covariances,
+    marginal_covariances,
+    unconstrained_as_solve_error,
+    unconstrained_message,
+)
+from mirror_fg.solver.options import SolveOptions
+from mirror_fg.solver.timing import timed
+
+__all__ = [
+    "REFERENCE_NORMALIZED_SIGMA", "MAX_RESTARTS", "LMRun", "cost_scale", "lm_params", "plausible",
+    "levenberg_marquardt", "levenberg_marquardt_with_restarts",
+]
+
+logger = logging.getLogger("mirror_fg")
+
+#: Normalized measurement noise at which the LM settings below were chosen: 1 px at fx = 800 px
+#: (the paper's base case).
+REFERENCE_NORMALIZED_SIGMA = 1.0 / 800.0
+
+
+def cost_scale(dataset: Dataset) -> float:
+    """How many times larger every whitened cost, gradient and Hessian are than at the reference noise.
+
+    With a uniform ``pixel_sigma`` the MLE does not depend on it, but the cost scales as
+    ``1 / sigma^2``: every absolute threshold of LM (its damping, its absolute tolerance, the stall
+    test) is multiplied by this factor so that LM takes the same steps whatever the sigma.
+    """
+    sigma = float(np.sqrt(np.prod(dataset.normalized_sigma)))
+    return (REFERENCE_NORMALIZED_SIGMA / sigma) ** 2
+
+
+def lm_params(max_iterations: int, scale: float = 1.0, lambda_upper_bound: float = 1e5) -> gtsam.LevenbergMarquardtParams:
+    """Levenberg-Marquardt settings of the MLE (eq. 23): tight tolerances, at most ``max_iterations``.
+
+    ``scale``: :func:`cost_scale` of the data; the damping and the absolute tolerance scale with it
+    (GTSAM's defaults, 1e-5 and 1e5 for the damping, hold at the reference noise). The general view
+    model's solves give the damping room to 1e10 (:data:`GENERAL_LAMBDA_UPPER_BOUND`): from a start far
+    off (a gross measurement that no per-image check can see) 1e5 stops LM before its first step.
+    """
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(1e-10)
+    params.setAbsoluteErrorTol(1e-12 * scale)
+    params.setlambdaInitial(1e-5 * scale)
+    params.setlambdaUpperBound(lambda_upper_bound * scale)
+    return params
+
+
+#: The damping's bound in the general view model's solves (:func:`lm_params`).
+GENERAL_LAMBDA_UPPER_BOUND = 1e10
+
+
+def run_optimizer(
+    graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, params: gtsam.LevenbergMarquardtParams, source: str,
+    unconstrained: Callable[[Exception], str], on_iteration: Callable[[int, float, float], None] | None = None,
+) -> tuple[gtsam.LevenbergMarquardtOptimizer, gtsam.Values, float]:
+    """GTSAM's Levenberg-Marquardt on ``graph`` from ``values``: ``(optimizer, result, initial error)``.
+
+    ``on_iteration`` becomes the iteration hook; an indeterminant linear system becomes a SolveError
+    naming ``source`` and, through ``unconstrained(error)``, the unknown GTSAM found unconstrained.
+    """
+    if on_iteration is not None:
+        # GTSAM's stub types the hook's arguments as SupportsInt/SupportsFloat (what the binding
+        # accepts); GTSAM calls it with an int and two floats.
+        params.iterationHook = on_iteration  # type: ignore[assignment]
+    initial_error = graph.error(values)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    with unconstrained_as_solve_error(source, unconstrained):
+        result = optimizer.optimize()
+    return optimizer, result, float(initial_error)
+
+
+def _stationary(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, error: float, scale: float) -> bool:
+    """Whether the Gauss-Newton step at ``values`` promises (almost) no decrease of the error
+    (relative to the error, or to ``scale`` (:func:`cost_scale`) near a zero error)."""
+    linear = graph.linearize(values)
+    try:
+        step = linear.optimize()
+    except RuntimeError:  # indeterminant: not a well-defined optimum
+        return False
+    zero = step.scale(0.0)
+    predicted_decrease = linear.error(zero) - linear.error(step)
+    return predicted_decrease <= 1e-6 * max(error, scale)
+
+
+#: Gauss-Newton steps after LM on the eliminated graph (each one linearisation of a small system).
+POLISH_STEPS = 5
+#: A polishing step this small (radians, metres) ends the polish.
+POLISH_STEP_TOLERANCE = 1e-11
+
+
+def _polished(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> gtsam.Values:
+    """``values`` moved by Gauss-Newton steps while they lower the error: LM stops when an iteration
+    lowers the cost by less than 1e-10 relative, which leaves the estimate ~1e-7 relative from the
+    optimum; on the eliminated graph a few more steps are cheap and reach it to ~1e-12
+    (:data:`POLISH_STEP_TOLERANCE`)."""
+    error = graph.error(values)
+    for _ in range(POLISH_STEPS):
+        try:
+            step = graph.linearize(values).optimize()
+        except RuntimeError:
+            break
+        candidate = values.retract(step)
+        candidate_error = graph.error(candidate)
+        if not candidate_error <= error * (1.0 + 1e-12):  # rising beyond the cost's rounding
+            break
+        values, error = candidate, candidate_error
+        # Gauss-Newton converges linearly here (rate ~0.02-0.05 on the benchmark's scenes): after a step
+        # below 1e-11 the rest is ~1e-12, so a further step (a linearisation) would change nothing we report
+        if np.max(np.abs(step.vector()), initial=0.0) < POLISH_STEP_TOLERANCE:
+            break
+    return values
+
+
+#: Solve with the last mirror's placements eliminated inside the factors (``factors/eliminated.py``)
+#: where the options ask for it and the data allow it (no robust kernel, ``SolveOptions.eliminates``):
+#: linear cost in the number of images. False: the stacked factors of ``factors/batched.py`` with
+#: every placement in the graph (same estimates).
+ELIMINATE = True
+
+#: At most this many restarts of LM from the analytical solution's runner-up hypotheses.
+MAX_RESTARTS = 4
+
+
+@dataclass
+class LMRun:
+    """One Levenberg-Marquardt run: its graph, start and result values, costs and convergence."""
+
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+    result: gtsam.Values
+    layout: GraphLayout
+    measurements: list[Measurement]
+    initial_error: float
+    final_error: float
+    iterations: int
+    converged: bool
+    dimension: int  # number of scalar unknowns (eliminated placements included)
+    evaluator: EliminatedEvaluator | None = None  # the eliminated placements' solver, if any
+
+    @property
+    def expected_final_error(self) -> float:
+        """Mean of the final cost 0.5 chi^2 at the optimum: half the degrees of freedom."""
+        return expected_cost(2 * len(self.measurements), self.dimension)
+
+    def estimate(self) -> tuple[np.ndarray, np.ndarray, dict, dict]:
+        """``(R_cam_base, t_cam_base, mirror_vectors, points)`` at the result (``graph.extract_values``)."""
+        return extract_values(self.result, self.layout, self.evaluator)
+
+    def covariances(self, dataset: Dataset) -> tuple[np.ndarray, dict, dict]:
+        """Pose (docs/formats.md convention), mirror and point covariances at the result (``marginals.py``)."""
+        if self.evaluator is not None:
+            return eliminated_covariances(dataset, self.evaluator, self.result, self.layout)
+        return marginal_covariances(self.graph, self.result, self.layout, dataset.source)
+
+    @property
+    def plausible(self) -> bool:
+        """Converged with a final cost within its chi-square range (:func:`plausible`)."""
+        return self.converged and plausible(self.final_error, self.expected_final_error)
+
+
+def levenberg_marquardt(
+    dataset: Dataset, initial: InitialEstimate, options: SolveOptions,
+    on_iteration: Callable[[int, float, float], None] | None, timings: dict[str, float],
+) -> LMRun:
+    """Build the graph from ``initial`` with ``options``' factors and kernel and run LM (eq. 23) for at most
+    ``options.max_iterations``; ``on_iteration`` its iteration hook, times added to ``timings``."""
+    run = _levenberg_marquardt(dataset, initial, options, options.eliminates(ELIMINATE), on_iteration, timings)
+    if run.evaluator is not None and collapsed(list(run.evaluator.mirror_vectors(run.result).values())):
+        # a placement ran into the camera centre inside its factor (factors.eliminated.COLLAPSED_FRACTION)
+        logger.info("%s: an eliminated mirror placement collapsed into the camera centre: solving again with every "
+                    "placement an unknown", dataset.source)
+        run = _levenberg_marquardt(dataset, initial, options, False, on_iteration, timings)
+    return run
+
+
+def _levenberg_marquardt(
+    dataset: Dataset, initial: InitialEstimate, options: SolveOptions, eliminate: bool,
+    on_iteration: Callable[[int, float, float], None] | None, timings: dict[str, float],
+) -> LMRun:
+    """:func:`levenberg_marquardt` on the eliminated graph (``eliminate``, where the schedule allows it) or
+    on the graph with every placement an unknown."""
+    with timed(timings, "build"):
+        eliminated = build_eliminated_graph(dataset, initial) if eliminate else None
+        if eliminated is not None:
+            graph, values, layout, measurements = eliminated.graph, eliminated.values, eliminated.layout, eliminated.measurements
+            evaluator, dimension = eliminated.evaluator, eliminated.evaluator.dimension
+        else:
+            graph, values, layout, measurements = build_graph(dataset, initial, options.robust, fast=options.stacked)
+            evaluator, dimension = None, values.dim()
+
+    max_iterations = options.max_iterations
+    with timed(timings, "optimize"):
+        scale = cost_scale(dataset)
+        params = lm_params(max_iterations, scale)
+        optimizer, result, initial_error = run_optimizer(
+            graph, values, params, dataset.source, lambda error: unconstrained_message(error, layout), on_iteration)
+        iterations = optimizer.iterations()
+        if evaluator is not None:
+            result = _polished(graph, result)
+        final_error = graph.error(result)
+        # LM also stops when its damping hits the upper bound: a stall unless a Gauss-Newton step
+        # would no longer lower the error (then it is at a stationary point, e.g. noise-free data).
+        stalled = optimizer.lambda_() >= params.getlambdaUpperBound() and not _stationary(graph, result, final_error, scale)
+        converged = bool(np.isfinite(final_error)) and iterations < max_iterations and not stalled
+    return LMRun(graph, values, result, layout, measurements, float(initial_error), float(final_error), iterations,
+                 converged, dimension, evaluator)
+
+
+def levenberg_marquardt_with_restarts(
+    dataset: Dataset, initial: InitialEstimate, analytic: AnalyticSolution | None, options: SolveOptions,
+    on_iteration: Callable[[int, float, float], None] | None, timings: dict[str, float],
+) -> tuple[LMRun, AnalyticSolution | None, int]:
+    """LM from ``initial``; when it ends implausibly and ``analytic`` is that start, LM again from the
+    root's runner-up hypotheses (best fiducial reprojection first, at most ``MAX_RESTARTS``).
+
+    Returns the best run (converged first, then lowest cost), the analytical solution it started from
+    and the number of restarts.
+    """
+    run = levenberg_marquardt(dataset, initial, options, on_iteration, timings)
+    restarts = 0
+    if analytic is None or run.plausible:
+        return run, analytic, restarts
+    # A cost far above its chi-square range: LM stopped in another minimum. Start again from the
+    # root's runner-up hypotheses; keep the lowest cost.
+    logger.info("%s: final cost %.6g far above its expected %.6g: restarting from the runner-up hypotheses",
+                dataset.source, run.final_error, run.expected_final_error)
+    for alternative in analytic.alternatives[:MAX_RESTARTS]:
+        if not alternative.points and run.layout.point_keys:
+            alternative.points = reconstruct_points(dataset, alternative)
+        restarts += 1
+        try:
+            other = levenberg_marquardt(dataset, alternative, options, None, timings)
+        except SolveError:
+            continue
+        if (other.converged, -other.final_error) > (run.converged, -run.final_error):
+            run, analytic = other, alternative
+        if run.plausible:
+            break
+    return run, analytic, restarts
