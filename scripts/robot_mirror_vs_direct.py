@@ -1,12 +1,26 @@
 """A camera mount's 3-sigma through one hand-held mirror against a direct-view hand-eye calibration with the
-same number of images, on simulated arms (docs/formats.md, "Robot arms: joint states and mounts").
+same number of images, on simulated arms (docs/formats.md, "Robot arms: joint states and mounts"), for
+several mirror set-ups.
 
-Both are the MLE's covariance (solver/batch/robot_solve.py) at the simulated truth, averaged over seeds. The
-direct view is as good as a user could make it: the board at each of several distances ahead of the camera
-(0.35 m fills about a third of the image; closer, the arm poses' spread takes it out of view), the best one
-kept (the smallest largest 3-sigma); the mirror scenes are those of ``simulate --robot`` (eye-to-hand: the
-board on the tool 0.3 m in front of the camera, the mirror 0.45-0.6 m ahead, tilted 6-14 degrees) at 3 or
-4 placements.
+All figures are the MLE's covariance (solver/batch/robot_solve.py) at the simulated truth, averaged over seeds,
+0.5 px, the 6 x 5 chessboard of ``simulate --robot``. The direct views: the board at each of several
+distances ahead of the camera (0.35 m fills about a third of the image; closer, the arm poses' spread
+takes it out of view); "best" is the one with the smallest largest 3-sigma. The mirror set-ups (the board
+where ``simulate --robot`` puts it: eye-to-hand on the tool 0.3 m in front of the camera and 0.15 m to its
+side, eye-in-hand on the base beside the wrist camera):
+
+* poor: the mirror 0.45-0.6 m ahead, its normal 6-14 deg from the camera's axis (``simulate``'s default):
+  the placements' planes nearly parallel;
+* bench: the mirror 0.5 m ahead, tilted 20-30 deg, each placement turned a further quarter turn about the
+  camera's axis (30-60 deg between placements' normals), as a user holds it at arm's length;
+* bench, 1 m: the same with the mirror 1 m ahead;
+* close: the mirror 0.3-0.35 m ahead, tilted 20-30 deg (eye-to-hand, the board on the tool then a few
+  centimetres in front of the glass).
+
+Each mirror row is also compared with a direct view at the distance of the board's image in the mirror
+(camera to the reflected board's centre, the mean over the images): what the mirror's model costs
+beyond the longer light path. The last figure, "planes known", is the mount's 3-sigma from the same images
+were the placements' planes given (the share of the information the planes take).
 Run: PYTHONPATH=. python scripts/robot_mirror_vs_direct.py [--images 24] [--seeds 5]
 """
 from __future__ import annotations
@@ -17,33 +31,80 @@ import tempfile
 
 import numpy as np
 
+from mirror_fg.core.transform import covariance_from_pose3
+from mirror_fg.factors.robot import compose
 from mirror_fg.io.dataset import load_dataset
+from mirror_fg.robot import arm_urdf
+from mirror_fg.robot.kinematics import load_kinematics
 from mirror_fg.robot.simulate import simulate_arm, write_arm_simulation
-from mirror_fg.solver.batch.robot_solve import calibrate_robot
+from mirror_fg.solver.batch.robot_solve import solve_robot
 from mirror_fg.solver.model.robot_views import RobotEstimate
 
 #: Board distances (metres) a user might hold the board at in front of the camera for a direct view.
 DIRECT_DISTANCES = (0.35, 0.45, 0.6, 0.9)
+#: name: (mirror distance range (m), tilt range (deg)) -- module docstring.
+SETUPS = {
+    "poor: mirror 0.45-0.6 m, tilt 6-14 deg": ((0.45, 0.6), (6.0, 14.0)),
+    "bench: mirror 0.5 m, tilt 20-30 deg": ((0.5, 0.5), (20.0, 30.0)),
+    "bench: mirror 1 m, tilt 20-30 deg": ((1.0, 1.0), (20.0, 30.0)),
+    "close: mirror 0.3-0.35 m, tilt 20-30 deg": ((0.3, 0.35), (20.0, 30.0)),
+}
 
 
-def sigma3(robot: str, eye_in_hand: bool, placements: int, images: int, seed: int, folder: str,
-           distance: float = 0.9) -> np.ndarray:
-    """[rotation 3-sigma (deg) x3, position 3-sigma (mm) x3] of the camera's mount, at the truth."""
+def _sigma3(covariance: np.ndarray, R: np.ndarray) -> np.ndarray:
+    s = 3.0 * np.sqrt(np.diag(covariance_from_pose3(R, covariance)))
+    return np.concatenate([np.degrees(s[:3]), 1000.0 * s[3:]])
+
+
+def _board_distance(dataset: dict, truth) -> float:
+    """Mean distance (m) from the camera to the board's centre as the camera sees it (through the mirror)."""
+    kin = load_kinematics(arm_urdf(truth.robot))
+    (link_c, mount_c), (link_t, mount_t) = truth.mounts["camera"], truth.mounts["target"]
+    distances = []
+    for image in dataset["images"]:
+        F = kin.placements(image["joints"], list({link_c, link_t}))
+        C = compose((F[link_c][0][:3, :3], F[link_c][0][:3, 3]), mount_c)
+        x = compose((F[link_t][0][:3, :3], F[link_t][0][:3, 3]), mount_t)[1]  # the board's centre, {B}
+        for k in image.get("mirror_configs", []):
+            v = truth.mirror_vectors[(1, k)]
+            x = x - 2.0 * v * ((v @ x) / (v @ v) - 1.0)  # eq. (3)
+        distances.append(float(np.linalg.norm(x - C[1])))
+    return float(np.mean(distances))
+
+
+def camera_mount(robot: str, eye_in_hand: bool, placements: int, images: int, seed: int, folder: str,
+                 distance: float = 0.9, setup: tuple | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+    """The camera mount's 3-sigma ``[rotation (deg) x3, position (mm) x3]`` at the truth, the same with the
+    planes known, and the board's distance as seen; ``placements`` 0: the direct view at ``distance``."""
     direct = placements == 0
+    mirror = {} if setup is None else {"mirror_distance": setup[0], "mirror_tilt_deg": setup[1]}
     dataset, truth = simulate_arm(robot, eye_in_hand, placements=max(placements, 1),
                                   arm_poses=images if direct else images // placements, pixel_sigma=0.5,
-                                  seed=seed, direct=direct, direct_distance=distance)
-    path = os.path.join(folder, f"{robot}_{placements}_{seed}_{distance}.json")
+                                  seed=seed, direct=direct, direct_distance=distance, **mirror)
+    path = os.path.join(folder, f"{robot}_{placements}_{seed}.json")
     write_arm_simulation(path, dataset, truth)
     start = RobotEstimate({role: pose for role, (_, pose) in truth.mounts.items()}, dict(truth.mirror_vectors))
-    entry = calibrate_robot(load_dataset(path), initial=start).robot["mounts"]["camera"]["sigma3"]
-    return np.array(entry["rotation_deg"] + entry["position_mm"])
+    solution = solve_robot(load_dataset(path), initial=start)
+    problem, information, columns = solution.problem, solution.information, solution.columns
+    R = solution.estimate.mounts["camera"][0]
+    c = columns[problem.mount_keys["camera"]]
+    marginal = _sigma3(np.linalg.inv(information)[c, c], R)
+    keep = np.array([i for key, cols in columns.items() if key not in problem.mirror_keys.values()
+                     for i in range(cols.start, cols.stop)])  # every unknown but the planes
+    at = {i: k for k, i in enumerate(keep)}
+    mount = [at[i] for i in range(c.start, c.stop)]
+    known_planes = _sigma3(np.linalg.inv(information[np.ix_(keep, keep)])[np.ix_(mount, mount)], R)
+    return marginal, known_planes, _board_distance(dataset, truth) if not direct else distance
 
 
 def _line(setup: str, name: str, images: int, values: np.ndarray) -> str:
-    return (f"{setup:22s} {name:28s} {images} images: camera mount 3-sigma rotation "
+    return (f"{setup:22s} {name:46s} {images} images: camera mount 3-sigma rotation "
             f"{np.round(values[:3], 3).tolist()} deg, position {np.round(values[3:], 2).tolist()} mm "
             f"(largest {values[:3].max():.3f} deg, {values[3:].max():.2f} mm)")
+
+
+def _ratio(a: np.ndarray, b: np.ndarray) -> str:
+    return f"rotation x{a[:3].max() / b[:3].max():.2f}, position x{a[3:].max() / b[3:].max():.2f}"
 
 
 def main() -> None:
@@ -51,27 +112,35 @@ def main() -> None:
     parser.add_argument("--images", type=int, default=24)
     parser.add_argument("--seeds", type=int, default=5)
     args = parser.parse_args()
+    seeds = range(args.seeds)
     with tempfile.TemporaryDirectory() as folder:
         for robot, eye_in_hand in (("arm6", False), ("panda", True)):
-            setup = f"{robot} {'eye-in-hand' if eye_in_hand else 'eye-to-hand'}"
-            direct = {}
+            arm = f"{robot} {'eye-in-hand' if eye_in_hand else 'eye-to-hand'}"
+            direct: dict[float, np.ndarray] = {}
+
+            def direct_at(distance: float) -> np.ndarray:
+                distance = round(distance, 2)
+                if distance not in direct:
+                    direct[distance] = np.mean([camera_mount(robot, eye_in_hand, 0, args.images, s, folder, distance)[0]
+                                                for s in seeds], axis=0)
+                    print(_line(arm, f"direct view, board {distance:.2f} m", args.images, direct[distance]))
+                return direct[distance]
+
             for distance in DIRECT_DISTANCES:
-                direct[distance] = np.mean([sigma3(robot, eye_in_hand, 0, args.images, s, folder, distance)
-                                            for s in range(args.seeds)], axis=0)
-                print(_line(setup, f"direct view, board {distance:.2f} m", args.images, direct[distance]))
-            best = min(direct, key=lambda d: (direct[d][3:].max() / direct[0.9][3:].max()
-                                              + direct[d][:3].max() / direct[0.9][:3].max()))
-            rows = {0: direct[best]}
-            for placements in (3, 4):
-                rows[placements] = np.mean([sigma3(robot, eye_in_hand, placements, args.images, s, folder)
-                                            for s in range(args.seeds)], axis=0)
-                print(_line(setup, f"mirror, {placements} placements", args.images, rows[placements]))
-            for placements in (3, 4):
-                for name, base in ((f"the best direct view ({best:.2f} m)", direct[best]),
-                                   ("the direct view at 0.9 m", direct[0.9])):
-                    ratio = rows[placements] / base
-                    print(f"{setup:22s} mirror at {placements} placements / {name}: rotation x{ratio[:3].max():.2f}, "
-                          f"position x{ratio[3:].max():.2f} (largest axis ratio)")
+                direct_at(distance)
+            best = min(DIRECT_DISTANCES, key=lambda d: direct[d][:3].max() / direct[0.9][:3].max()
+                       + direct[d][3:].max() / direct[0.9][3:].max())
+            for name, setup in SETUPS.items():
+                for placements in (3, 4):
+                    runs = [camera_mount(robot, eye_in_hand, placements, args.images, s, folder, setup=setup)
+                            for s in seeds]
+                    mirror, known, seen = (np.mean([r[k] for r in runs], axis=0) for k in range(3))
+                    print(_line(arm, f"{name}, {placements} placements", args.images, mirror))
+                    same_path = direct_at(0.05 * round(float(seen) / 0.05))
+                    print(f"{arm:22s}   board seen {float(seen):.2f} m away; / best direct view ({best:.2f} m): "
+                          f"{_ratio(mirror, direct[best])}; / direct view at {0.05 * round(float(seen) / 0.05):.2f} m: "
+                          f"{_ratio(mirror, same_path)}; planes known: {known[:3].max():.3f} deg, "
+                          f"{known[3:].max():.2f} mm")
 
 
 if __name__ == "__main__":

@@ -71,3 +71,24 @@ def test_a_gross_corner_is_left_out_and_named(tmp_path) -> None:
     clean = calibrate(load_dataset(path))
     for role, key in (("camera", "T_link_cam"), ("target", "T_link_target")):
         assert np.allclose(result.robot["mounts"][role][key]["t"], clean.robot["mounts"][role][key]["t"], atol=1e-7)
+
+
+def test_the_start_takes_the_screens_pnp_minima_where_the_image_is_unchanged(tmp_path, monkeypatch) -> None:
+    from mirror_fg.solver.start import robot_start
+    from mirror_fg.solver.screen.consensus import check_images
+
+    ds, _ = _data(tmp_path, False, 0.5)
+    problem = RobotProblem(ds)
+    alone = start_estimate(problem, max_starts=5)
+    minima = check_images(ds).minima
+    changed = ds.images[0].id  # an image whose fiducials differ from the screen's: its PnP solved again
+    minima[changed] = (minima[changed][0][1:], minima[changed][1])
+    solved = []
+    real = robot_start.pnp_candidates
+    monkeypatch.setattr(robot_start, "pnp_candidates", lambda *a: solved.append(1) or real(*a))
+    reused = start_estimate(problem, max_starts=5, minima=minima)
+    assert len(solved) == 1  # only the changed image's
+    for a, b in zip(alone, reused):
+        for role in a.mounts:
+            assert np.array_equal(a.mounts[role][0], b.mounts[role][0]) and np.array_equal(a.mounts[role][1], b.mounts[role][1])
+        assert all(np.array_equal(a.mirror_vectors[p], b.mirror_vectors[p]) for p in a.mirror_vectors)

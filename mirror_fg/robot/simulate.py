@@ -82,14 +82,17 @@ def _seen_in_mirror(poses, x_B: np.ndarray, v_B: np.ndarray) -> bool:
 def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int = 3, arm_poses: int = 8,
                  pixel_sigma: float = 0.5, joint_offsets_deg: dict[str, float] | None = None,
                  seed: int = 0, spread_rad: float = 0.25, estimate_offsets: bool = True,
-                 moving: tuple[str, ...] | None = None, direct: bool = False, direct_distance: float = 0.9):
+                 moving: tuple[str, ...] | None = None, direct: bool = False, direct_distance: float = 0.9,
+                 mirror_distance: tuple[float, float] = (0.45, 0.6), mirror_tilt_deg: tuple[float, float] = (6.0, 14.0)):
     """A dataset@1 dictionary (its ``robot.urdf`` the arm's file name) and its :class:`ArmTruth`.
 
     ``arm_poses`` images per placement; ``joint_offsets_deg``: true encoder offsets, recorded joints are
     ``q_true - delta`` (and, with ``estimate_offsets``, the dataset asks for them). ``moving``: the joints
     that move between arm poses (default all; one wrist joint alone is the degenerate motion). ``direct``:
     no mirror, the camera sees the board ``direct_distance`` metres ahead (a direct-view hand-eye calibration,
-    for comparison): ``arm_poses`` images in all."""
+    for comparison): ``arm_poses`` images in all. ``mirror_distance`` (metres from the camera) and
+    ``mirror_tilt_deg`` (the plane's normal from the camera's optical axis, each placement turned a further
+    third of a turn about it): the ranges each placement is drawn from."""
     from mirror_fg.robot.kinematics import load_kinematics
 
     rng = np.random.default_rng(seed)
@@ -115,13 +118,13 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
         D = compose(F0, mount_target)
         C = compose(D, inverse(T_cam_target))
         mounts = {"camera": (kin.base_link, C), "target": (tool, mount_target)}
-    # mirror placements, camera frame at the nominal pose: 0.45-0.6 m ahead, tilted 6-14 degrees
+    # mirror placements, camera frame at the nominal pose: by default 0.45-0.6 m ahead, tilted 6-14 degrees
     mirrors_cam = []
     for k in range(placements):
         angle = 2 * math.pi * k / placements + rng.uniform(-0.3, 0.3)
-        tilt = math.radians(rng.uniform(6, 14))
+        tilt = math.radians(rng.uniform(*mirror_tilt_deg))
         n = np.array([math.sin(tilt) * math.cos(angle), math.sin(tilt) * math.sin(angle), -math.cos(tilt)])
-        d = rng.uniform(0.45, 0.6)
+        d = rng.uniform(*mirror_distance)
         mirrors_cam.append(-d * n)  # v = d n with n from the camera towards the plane
     R_C, t_C = C
     mirror_vectors = {}

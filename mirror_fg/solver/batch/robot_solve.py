@@ -56,9 +56,10 @@ def _affine(pose) -> np.ndarray:
     return T
 
 
-def start_estimate(problem: RobotProblem, max_starts: int = 1) -> list[RobotEstimate]:
+def start_estimate(problem: RobotProblem, max_starts: int = 1, minima: dict | None = None) -> list[RobotEstimate]:
     """The analytical starts (``robot_start.arm_start``; the first, and restarts), joint offsets at zero,
-    reconstruction points triangulated through each."""
+    reconstruction points triangulated through each. ``minima``: the screen's PnP minima
+    (``consensus.ImageChecks.minima``), each used where the image still has the very fiducials it had."""
     dataset, kin = problem.dataset, problem.kinematics
     links = problem.links
     base = kin.base_link
@@ -76,9 +77,10 @@ def start_estimate(problem: RobotProblem, max_starts: int = 1) -> list[RobotEsti
         names = [n for n in image.observations if n in dataset.fiducials]
         normalized = dataset.normalized(image)
         F = kin.placements(image.joints, list(dict.fromkeys(links.values())))
+        known = (minima or {}).get(image.id)
         placed.append((image.reflections[0], np.array([dataset.fiducials[n] for n in names]).reshape(-1, 3),
                        np.array([normalized[n] for n in names]).reshape(-1, 2), F[links["camera"]][0],
-                       F[links["target"]][0]))
+                       F[links["target"]][0], known[1] if known is not None and known[0] == tuple(names) else None))
     estimates = []
     for M_c, M_t, planes in arm_start(placed, eye_to_hand, dataset.source, max_starts):
         mounts = {"camera": M_c, "target": M_t, **problem.known}
@@ -189,9 +191,11 @@ class RobotSolution:
 
 
 def solve_robot(dataset: Dataset, initial: RobotEstimate | None = None,
-                options: SolveOptions | None = None) -> RobotSolution:
+                options: SolveOptions | None = None, minima: dict | None = None) -> RobotSolution:
     """The MLE (module docstring) from the analytical start with its restarts, or from ``initial``; its
-    motion checked (SolveError where the data cannot determine a mount)."""
+    motion checked (SolveError where the data cannot determine a mount). ``minima``: the screen's PnP
+    minima of these photographs (``consensus.ImageChecks.minima``), which the start takes instead of
+    solving the same PnP again."""
     options = options or SolveOptions()
     problem = RobotProblem(dataset, options.robust)
     check_rotation_axes(problem)
@@ -203,9 +207,9 @@ def solve_robot(dataset: Dataset, initial: RobotEstimate | None = None,
         return run_optimizer(graph, problem.values(begin), params, dataset.source, lambda error: str(error),
                              options.iteration)
 
-    optimizer, result, initial_error = optimize(initial if initial is not None else start_estimate(problem)[0])
+    optimizer, result, initial_error = optimize(initial if initial is not None else start_estimate(problem, 1, minima)[0])
     if initial is None and not plausible(graph.error(result), expected):  # restarts: one triple of placements each
-        for begin in start_estimate(problem, MAX_STARTS)[1:]:
+        for begin in start_estimate(problem, MAX_STARTS, minima)[1:]:
             tried = optimize(begin)
             if graph.error(tried[1]) < graph.error(result):
                 logger.info("%s: a restart from another triple of placements fits better", dataset.source)
@@ -234,15 +238,18 @@ class RobotPipelineProblem:
 
     def __init__(self, initial: RobotEstimate | None, options: SolveOptions):
         self.last, self.options = initial, options
+        self.minima: dict = {}
 
     def screen(self, dataset: Dataset) -> tuple[Dataset, list[Exclusion]]:
-        from mirror_fg.solver.screen.consensus import screen
+        from mirror_fg.solver.screen.consensus import check_images, screen
 
-        screened, excluded, _ = screen(dataset)
+        checked = check_images(dataset, lowest_pnp_minima(dataset))
+        self.minima = checked.minima  # the start's PnP: the same photographs' (robot_start._best_map)
+        screened, excluded, _ = screen(dataset, checked=checked)  # its PnP candidates (twins) unused here
         return screened, excluded
 
     def solve(self, solved: Dataset, left_out: list[Exclusion]) -> RobotSolution:
-        solution = solve_robot(solved, self.last, self.options)
+        solution = solve_robot(solved, self.last, self.options, self.minima)
         self.last = solution.estimate
         return solution
 
@@ -252,6 +259,27 @@ class RobotPipelineProblem:
 
     def finish(self, rechecked: Rechecked[RobotSolution]) -> Calibration:
         return _calibration(rechecked.run, self.options, rechecked.excluded)
+
+
+def lowest_pnp_minima(dataset: Dataset) -> dict[str, tuple[tuple[str, ...], list]]:
+    """Each image's PnP minima for the screen (``consensus.check_images``' ``known``), as the screen's own
+    search finds them but without P3P starts from three fiducials on one line (``pnp.pnp_minima``'s
+    ``collinear_p3p``: a board's first row, arbitrary starts). The screen judges an image by its lowest
+    minimum only (the other minima are the twin candidates of the tree's analytical start, which an arm
+    does not use); that search finds the same lowest minimum at about half the cost."""
+    from mirror_fg.solver.screen.placement_consensus import fiducial_names
+    from mirror_fg.solver.start.pnp import pnp_minima
+
+    out = {}
+    for image in dataset.images:
+        names = fiducial_names(dataset, image)
+        if len(names) < 4:
+            continue
+        normalized = dataset.normalized(image)
+        points = np.array([dataset.fiducials[n] for n in names])
+        observed = np.array([normalized[n] for n in names])
+        out[image.id] = (tuple(names), pnp_minima(points, observed, len(image.reflections), collinear_p3p=False))
+    return out
 
 
 def _calibration(solution: RobotSolution, options: SolveOptions, excluded: list[Exclusion]) -> Calibration:

@@ -20,6 +20,7 @@ from gtsam.symbol_shorthand import L, M, O, V
 
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.robot import RobotViewFactor, adjoint, inverse
+from mirror_fg.factors.robot_stack import robot_stacks
 from mirror_fg.factors.views import plane_of, vector_of_plane
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.io.point_sigma import normalized_sigmas
@@ -82,9 +83,29 @@ class RobotProblem:
             self.factors.append(RobotViewFactor(
                 image.reflections, self.mount_keys, self.known, self.mirror_keys, self.forward(image.joints),
                 self.offset_key, len(self.offsets), points, landmarks, observed, sigmas, robust))
+        self._stacks: tuple | None = None
         #: Number of residual rows (2 per measurement).
         self.size = sum(2 * len(im.observations) for im in dataset.images)
         self.constraints = 0
+
+    @property
+    def stacks(self):
+        """``factors/robot_stack.robot_stacks`` of the images' factors (built once)."""
+        if self._stacks is None:
+            self._stacks = robot_stacks(self.factors)
+        return self._stacks
+
+    def predictions(self, values: gtsam.Values) -> list[np.ndarray]:
+        """Each image's predicted normalized coordinates (2, N) at ``values`` (file order), the stacked
+        images' in one pass per stack."""
+        stacks, alone = self.stacks
+        out: list = [None] * len(self.factors)
+        for i in alone:
+            out[i] = self.factors[i].predict(values)
+        for members, stack in stacks:
+            for i, z in zip(members, stack.predict(values)):
+                out[i] = z
+        return out
 
     def forward(self, joints: dict[str, float]):
         """The image's forward kinematics for ``factors/robot.py``: at ``joints + delta``, the placements
@@ -129,9 +150,14 @@ class RobotProblem:
             np.asarray(values.atVector(self.offset_key), float) if self.offset_key is not None else np.zeros(0))
 
     def graph(self) -> gtsam.NonlinearFactorGraph:
+        """Every image's factor, those of one shape stacked (``factors/robot_stack.py``: one call per
+        placement per LM step instead of one per image), and the joint offsets' prior."""
         graph = gtsam.NonlinearFactorGraph()
-        for factor in self.factors:
-            graph.add(factor.factor())
+        stacks, alone = self.stacks
+        for i in alone:
+            graph.add(self.factors[i].factor())
+        for _, stack in stacks:
+            graph.add(stack.factor())
         if self.offset_key is not None:  # the encoders' zero: a zero-mean prior of the given sigma
             sigmas = np.array([self.setup.offset_sigma[n] for n in self.offsets])
             graph.add(gtsam.PriorFactorVector(self.offset_key, np.zeros(len(sigmas)),
@@ -165,17 +191,27 @@ class RobotProblem:
         residuals: list[np.ndarray] = []
         whitened: list[np.ndarray] = []
         labels: list[tuple[str, str]] = []
-        for image, factor, observed in zip(self.dataset.images, self.factors, self.normalized):
-            z = factor.predict(values)
+        by_camera: dict[int, list[int]] = {}  # images distorted together, one call per camera
+        predictions = self.predictions(values)
+        for i, (image, factor, observed, z) in enumerate(zip(self.dataset.images, self.factors, self.normalized, predictions)):
             whitened.append(np.linalg.norm((z - observed) / factor.sigmas, axis=0))
             camera = self.dataset.camera_of(image)
             names = list(image.observations)
             if camera is not None:
-                raw = np.array([image.observations[n] for n in names], float).reshape(-1, 2)
-                residuals.append(camera.distort(z.T) - raw)
+                by_camera.setdefault(id(camera), []).append(i)
+                residuals.append(np.array([image.observations[n] for n in names], float).reshape(-1, 2))  # raw
             else:
                 residuals.append((z - observed).T)
             labels.extend((image.id, n) for n in names)
+        for members in by_camera.values():
+            camera = self.dataset.camera_of(self.dataset.images[members[0]])
+            assert camera is not None
+            pixels = camera.distort(np.vstack([predictions[i].T for i in members]))  # each point on its own
+            start = 0
+            for i in members:
+                count = len(residuals[i])
+                residuals[i] = pixels[start:start + count] - residuals[i]
+                start += count
         return np.vstack(residuals), np.concatenate(whitened), labels
 
     # ------------------------------------------------------------------ covariances

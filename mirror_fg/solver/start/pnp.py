@@ -42,11 +42,13 @@ def _pnp_rotation_candidates(base_points: np.ndarray, normalized: np.ndarray) ->
     return minima[:1]
 
 
-def _pnp_minima(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+def _pnp_minima(base_points: np.ndarray, normalized: np.ndarray, collinear_p3p: bool = True
+                ) -> list[tuple[np.ndarray, np.ndarray]]:
     """The distinct local minima (R, t) of the reprojection error of >= 4 points (eq. 10), lowest first:
     the starts of several solvers, each refined by LM (SQPnP alone can be wrong, STYLE.md). The rotations
     of all starts, and of all refined poses, are formed at once (``so3_exp_many``), and which start lies
-    in which basin is decided from one table of distances (:func:`_near_table`)."""
+    in which basin is decided from one table of distances (:func:`_near_table`). ``collinear_p3p``
+    False: no P3P start from three points on one line (:func:`pnp_minima`)."""
     obj = np.ascontiguousarray(base_points, dtype=np.float64).reshape(-1, 1, 3)
     img = np.ascontiguousarray(normalized, dtype=np.float64).reshape(-1, 1, 2)
     K = _IDENTITY
@@ -65,6 +67,8 @@ def _pnp_minima(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[n
             rvecs_all.extend(rvecs)
             tvecs_all.extend(tvecs)
     for triple in islice(combinations(range(len(base_points)), 3), 4):  # not list(): C(70, 3) tuples cost 3 ms
+        if not collinear_p3p and _collinear(base_points[list(triple)]):
+            continue
         try:
             count, rvecs, tvecs = cv2.solveP3P(obj[list(triple)], img[list(triple)], K, None, flags=cv2.SOLVEPNP_P3P)
         except cv2.error:
@@ -99,6 +103,15 @@ def _pnp_minima(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[n
     return [(R_sorted[k], t_sorted[k]) for k in _first_of_each(R_sorted, t_sorted, SAME_MINIMUM)]
 
 
+def _collinear(points: np.ndarray) -> bool:
+    """Whether three points (3, 3) lie on one line (relative to their spread): P3P's pose is then
+    undetermined by a turn about it."""
+    (ax, ay, az), (bx, by, bz), (cx, cy, cz) = np.asarray(points, dtype=float).tolist()
+    ux, uy, uz, wx, wy, wz = bx - ax, by - ay, bz - az, cx - ax, cy - ay, cz - az  # (numpy's cross costs 50 us)
+    cross = (uy * wz - uz * wy) ** 2 + (uz * wx - ux * wz) ** 2 + (ux * wy - uy * wx) ** 2
+    return cross <= 1e-18 * (ux * ux + uy * uy + uz * uz) * (wx * wx + wy * wy + wz * wz)  # |u x w| <= 1e-9 |u| |w|
+
+
 def _first_of_each(R: np.ndarray, t: np.ndarray, tolerance: float) -> list[int]:
     """Indices of the poses ``(R[k], t[k])`` kept when each is kept unless it is near one kept before it
     (rotations within ``tolerance`` entry-wise, translations within ``tolerance`` relative to its own)."""
@@ -119,11 +132,19 @@ def _near_table(R: np.ndarray, t: np.ndarray, tolerance: float) -> list[list[boo
     return ((rotation <= tolerance) & (translation <= tolerance * scale[:, None])).tolist()
 
 
-def pnp_minima(base_points: np.ndarray, normalized: np.ndarray, num_mirrors: int) -> list[tuple[np.ndarray, np.ndarray]]:
+def pnp_minima(base_points: np.ndarray, normalized: np.ndarray, num_mirrors: int, collinear_p3p: bool = True
+               ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Every distinct local minimum ``(A_Nv, b_Nv)`` of the reprojection error of one image's >= 4
     fiducials (eqs. 5, 10-12), lowest first; the first is :func:`pnp_candidates`'. A small planar target
-    far away has two minima that fit about equally (IPPE's twin poses): the caller tells them apart."""
-    return _with_parity(_pnp_minima, base_points, normalized, num_mirrors)
+    far away has two minima that fit about equally (IPPE's twin poses): the caller tells them apart.
+
+    ``collinear_p3p`` False: none of the P3P starts from three points on one line (a chessboard's first
+    row, in a dataset's order: P3P leaves the turn about the line free, so these starts are arbitrary
+    poses): about half the cost on a board, and the same lowest minimum on every board measured
+    (``tests/test_pnp_collinear.py``); the search then misses some of the further, shallow minima of a far,
+    noisy board that those arbitrary starts fall into. For a caller that needs the lowest minimum only."""
+    return _with_parity(lambda points, observed: _pnp_minima(points, observed, collinear_p3p), base_points,
+                        normalized, num_mirrors)
 
 
 def pnp_candidates(base_points: np.ndarray, normalized: np.ndarray, num_mirrors: int) -> list[tuple[np.ndarray, np.ndarray]]:

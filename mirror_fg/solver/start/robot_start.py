@@ -35,9 +35,12 @@ MAX_START_IMAGES = 12
 S = np.diag([1.0, 1.0, -1.0])
 
 
-def _best_map(points: np.ndarray, normalized: np.ndarray):
-    """The improper map ``(A, b)`` target -> camera through one mirror of lowest reprojection error."""
-    return lowest_reprojection(pnp_candidates(points, normalized, 1), points, normalized)
+def _best_map(points: np.ndarray, normalized: np.ndarray, minima=None):
+    """The improper map ``(A, b)`` target -> camera through one mirror of lowest reprojection error
+    (``minima``: ``pnp.pnp_minima`` of these very points and observations, when the screen found them:
+    its first is ``pnp_candidates``')."""
+    candidates = minima[:1] if minima is not None else pnp_candidates(points, normalized, 1)
+    return lowest_reprojection(candidates, points, normalized)
 
 
 def _mean_pose(poses):
@@ -47,8 +50,8 @@ def _mean_pose(poses):
 
 def arm_start(images, eye_to_hand: bool, source: str, max_starts: int = 1) -> list:
     """Up to ``max_starts`` starts ``(M_c, M_t, {placement: v_B})`` from ``images``: ``(placement, target
-    points (N, 3), normalized (N, 2), T_B_camlink (4x4), T_B_targetlink (4x4))`` of the images seen through
-    one mirror. The first peels every placement at once; the others (restarts) one triple of placements each,
+    points (N, 3), normalized (N, 2), T_B_camlink (4x4), T_B_targetlink (4x4)[, PnP minima or None])`` of
+    the images seen through one mirror (the minima: ``pnp.pnp_minima`` of those points, when known). The first peels every placement at once; the others (restarts) one triple of placements each,
     the rest's planes then from their own virtual maps."""
     groups: dict = {}
     by_placement: dict = {}
@@ -58,10 +61,10 @@ def arm_start(images, eye_to_hand: bool, source: str, max_starts: int = 1) -> li
     for group in by_placement.values():
         keep = np.unique(np.linspace(0, len(group) - 1, min(len(group), MAX_START_IMAGES)).round().astype(int))
         chosen += [group[k] for k in keep]
-    for placement, points, normalized, F_c, F_t in chosen:
+    for placement, points, normalized, F_c, F_t, *minima in chosen:
         if len(points) < 4:
             continue
-        found = _best_map(points, normalized)
+        found = _best_map(points, normalized, minima[0] if minima else None)
         if found is None:
             continue
         A, b = found
