@@ -26,6 +26,7 @@ GAZE = ("tests/test_gaze_error.py", "tests/test_gaze_export.py")
 SCREEN = ("tests/test_screen.py",)
 VALIDATION = ("tests/test_validation.py", "tests/test_units_mutants.py::test_validation_from_an_estimate_near_the_optimum_equals_the_optimum_s")
 VERDICT = ("tests/test_verdict.py", "tests/test_verdict_mutants.py")
+GUARDS = "tests/test_input_guard_mutants.py"
 INCREMENTAL = ("tests/test_incremental_views.py",)
 TREE = ("tests/test_incremental.py",)
 
@@ -206,15 +207,15 @@ def groups(Mutant: Any) -> dict[str, list]:
         M("mirror_fg/tools/verdict.py", "spare = 2.0 * float(expected) if", "spare = float(expected) if", VERDICT,
           "spare measurements as GTSAM's half chi-square"),
         M("mirror_fg/solver/result_guard.py", "MAX_SCENE_DISTANCE_M = 20.0", "MAX_SCENE_DISTANCE_M = 20000.0",
-          ("tests/test_result_validation.py",), "the scene-distance guard in mm"),
+          ("tests/test_result_validation.py", GUARDS), "the scene-distance guard in mm"),
         M("mirror_fg/solver/camera_labels.py", "if rms is not None and rms > LABEL_CONFLICT_SIGMAS * np.sqrt(2.0) * sigma:",
-          "if rms is not None and rms < LABEL_CONFLICT_SIGMAS * np.sqrt(2.0) * sigma:", ("tests/test_consensus_guards.py",),
+          "if rms is not None and rms < LABEL_CONFLICT_SIGMAS * np.sqrt(2.0) * sigma:", ("tests/test_consensus_guards.py", GUARDS),
           "a camera label conflict when the two agree"),
         M("mirror_fg/solver/camera_labels.py", "if len(images) == 1 and others:", "if len(images) == 0 and others:",
-          ("tests/test_consensus_guards.py",), "a lone mislabelled image never suspected"),
+          ("tests/test_consensus_guards.py", GUARDS), "a lone mislabelled image never suspected"),
         M("mirror_fg/io/dataset_fields.py",
           "if not is_number(distance) or not MIN_LENGTH_M <= float(distance) <= MAX_TARGET_EXTENT_M:",
-          "if not is_number(distance) or not MIN_LENGTH_M <= float(distance):", ("tests/test_dataset.py",),
+          "if not is_number(distance) or not MIN_LENGTH_M <= float(distance):", ("tests/test_dataset.py", GUARDS),
           "a scale distance in millimetres accepted"),
     ]
     inc = "mirror_fg/solver/incremental.py"
