@@ -36,9 +36,8 @@ def groups(Mutant: Any) -> dict[str, list]:
     M = Mutant
     out: dict[str, list] = {}
     out["verify"] = [
-        M(VERIFY_PY, "p = float(stats.chi2.sf(d2, dof)) if dof > 0 else 1.0",
-          "p = float(stats.chi2.sf(d2, 6)) if dof > 0 else 1.0", VERIFY_FAST,
-          "the p-value with 6 degrees of freedom whatever the new images see"),
+        M(VERIFY_PY, "            p = float(stats.chi2.sf(d2, dof))", "            p = float(stats.chi2.sf(d2, 6))",
+          VERIFY_FAST, "the p-value with 6 degrees of freedom whatever the new images see"),
         M(VERIFY_PY, "dof = int(np.sum(seen[name][0] > SEEN))", "dof = int(np.sum(seen[name][0] > SEEN)) - 1",
           VERIFY_FAST, "the seen degrees of freedom off by one"),
         M(VERIFY_PY, "d2 = max(0.0, 2.0 * (cost_held - cost_free))", "d2 = max(0.0, cost_held - cost_free)",
