@@ -27,7 +27,7 @@ SCREEN = ("tests/test_screen.py",)
 VALIDATION = ("tests/test_validation.py", "tests/test_units_mutants.py::test_validation_from_an_estimate_near_the_optimum_equals_the_optimum_s")
 VERDICT = ("tests/test_verdict.py", "tests/test_verdict_mutants.py")
 GUARDS = "tests/test_input_guard_mutants.py"
-INCREMENTAL = ("tests/test_incremental_views.py",)
+INCREMENTAL = ("tests/test_incremental_views.py", "tests/test_incremental_mutants.py")
 TREE = ("tests/test_incremental.py",)
 
 
