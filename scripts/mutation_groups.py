@@ -26,7 +26,8 @@ GAZE = ("tests/test_gaze_error.py", "tests/test_gaze_export.py")
 SCREEN = ("tests/test_screen.py",)
 VALIDATION = ("tests/test_validation.py", "tests/test_units_mutants.py::test_validation_from_an_estimate_near_the_optimum_equals_the_optimum_s")
 VERDICT = ("tests/test_verdict.py", "tests/test_verdict_mutants.py")
-INCREMENTAL = ("tests/test_incremental_views.py",)
+GUARDS = "tests/test_input_guard_mutants.py"
+INCREMENTAL = ("tests/test_incremental_views.py", "tests/test_incremental_mutants.py")
 TREE = ("tests/test_incremental.py",)
 
 
@@ -35,9 +36,8 @@ def groups(Mutant: Any) -> dict[str, list]:
     M = Mutant
     out: dict[str, list] = {}
     out["verify"] = [
-        M(VERIFY_PY, "p = float(stats.chi2.sf(d2, dof)) if dof > 0 else 1.0",
-          "p = float(stats.chi2.sf(d2, 6)) if dof > 0 else 1.0", VERIFY_FAST,
-          "the p-value with 6 degrees of freedom whatever the new images see"),
+        M(VERIFY_PY, "            p = float(stats.chi2.sf(d2, dof))", "            p = float(stats.chi2.sf(d2, 6))",
+          VERIFY_FAST, "the p-value with 6 degrees of freedom whatever the new images see"),
         M(VERIFY_PY, "dof = int(np.sum(seen[name][0] > SEEN))", "dof = int(np.sum(seen[name][0] > SEEN)) - 1",
           VERIFY_FAST, "the seen degrees of freedom off by one"),
         M(VERIFY_PY, "d2 = max(0.0, 2.0 * (cost_held - cost_free))", "d2 = max(0.0, cost_held - cost_free)",
@@ -211,15 +211,15 @@ def groups(Mutant: Any) -> dict[str, list]:
         M("mirror_fg/report/verdict.py", "spare = 2.0 * float(expected) if", "spare = float(expected) if", VERDICT,
           "spare measurements as GTSAM's half chi-square"),
         M("mirror_fg/solver/result/guard.py", "MAX_SCENE_DISTANCE_M = 20.0", "MAX_SCENE_DISTANCE_M = 20000.0",
-          ("tests/test_result_validation.py",), "the scene-distance guard in mm"),
+          ("tests/test_result_validation.py", GUARDS), "the scene-distance guard in mm"),
         M("mirror_fg/solver/screen/camera_labels.py", "if rms is not None and rms > LABEL_CONFLICT_SIGMAS * np.sqrt(2.0) * sigma:",
-          "if rms is not None and rms < LABEL_CONFLICT_SIGMAS * np.sqrt(2.0) * sigma:", ("tests/test_consensus_guards.py",),
+          "if rms is not None and rms < LABEL_CONFLICT_SIGMAS * np.sqrt(2.0) * sigma:", ("tests/test_consensus_guards.py", GUARDS),
           "a camera label conflict when the two agree"),
         M("mirror_fg/solver/screen/camera_labels.py", "if len(images) == 1 and others:", "if len(images) == 0 and others:",
-          ("tests/test_consensus_guards.py",), "a lone mislabelled image never suspected"),
+          ("tests/test_consensus_guards.py", GUARDS), "a lone mislabelled image never suspected"),
         M("mirror_fg/io/dataset_fields.py",
           "if not is_number(distance) or not MIN_LENGTH_M <= float(distance) <= MAX_TARGET_EXTENT_M:",
-          "if not is_number(distance) or not MIN_LENGTH_M <= float(distance):", ("tests/test_dataset.py",),
+          "if not is_number(distance) or not MIN_LENGTH_M <= float(distance):", ("tests/test_dataset.py", GUARDS),
           "a scale distance in millimetres accepted"),
     ]
     inc = "mirror_fg/solver/incremental/calibrator.py"

@@ -73,3 +73,77 @@ def test_the_move_is_new_minus_stored():
     moved = verify(stored, moved_data(new, truth, shift, 0.0, None)).cameras["camera"]
     # the stored estimate's error cancels in the difference of the two moves (first order)
     np.testing.assert_allclose(moved.move - still.move, shift, atol=2e-4)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_held_pose_s_prior_with_the_intrinsics_marginal_is_the_stored_joint_prior(seed):
+    """The pose's prior given the intrinsics (analysis/verify_priors.py) with the intrinsics' marginal prior is
+    the stored joint Gaussian exactly: GTSAM's joint marginal of the two priors alone equals the stored joint
+    covariance of ``[xi (GTSAM's [w, nu]), kappa]``, ``xi = blkdiag(R, R)^T [dtheta, dt]``."""
+    import gtsam
+    import numpy as np
+
+    from factors.intrinsics import IntrinsicsModel
+    from mirror_fg.analysis.verify_priors import StoredIntrinsics, joint_prior
+
+    rng = np.random.default_rng(seed)
+    R = gtsam.Rot3.Expmap(rng.normal(size=3)).matrix()
+    stored_pose = gtsam.Pose3(gtsam.Rot3(R), rng.normal(size=3))
+    root = np.r_[np.full(6, 1e-3), [2.0, 3.0, 0.5, 0.4]][:, None] * rng.normal(size=(10, 10))  # rad / m, px
+    joint = root @ root.T  # [dtheta, dt, fx, fy, cx, cy], the convention's order
+    J = np.kron(np.eye(2), R)  # [dtheta, dt] = J xi
+    expected = joint.copy()
+    expected[:6, :6] = J.T @ joint[:6, :6] @ J
+    expected[:6, 6:] = J.T @ joint[:6, 6:]
+    expected[6:, :6] = expected[:6, 6:].T
+    values0 = np.array([800.0, 810.0, 320.0, 240.0])
+    model = IntrinsicsModel(np.array([800.0, 810.0, 320.0, 240.0, 0.0, 0.0, 0.0, 0.0, 0.0]), ["fx", "fy", "cx", "cy"])
+    stored = StoredIntrinsics(model, values0, joint[6:, 6:], joint[6:, :6])
+    pose_key, intrinsics_key = 1, 2
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(joint_prior(pose_key, intrinsics_key, stored_pose, stored, expected[:6, :6]))
+    graph.add(stored.marginal_prior(intrinsics_key))
+    values = gtsam.Values()
+    values.insert(pose_key, stored_pose)
+    values.insert(intrinsics_key, values0)
+    found = gtsam.Marginals(graph, values).jointMarginalCovariance(gtsam.KeyVector([pose_key, intrinsics_key])).fullMatrix()
+    np.testing.assert_allclose(found, expected, rtol=1e-6, atol=1e-9 * np.abs(expected).max())
+
+
+def test_the_detectable_move_is_detected_in_every_direction():
+    """The detectable move is stated for the worst direction: a pure rotation or translation of that size in
+    any direction has a non-centrality at least lambda* (power 0.9 at alpha 0.01, solved here with scipy's
+    non-central chi-square), and in the worst direction exactly lambda*."""
+    import numpy as np
+    from scipy import optimize
+
+    stored, new, _ = _scene(new_images=3)
+    stored.dispersion = None  # the chi-square test (docs/formats.md)
+    answer = verify(stored, new, alpha=0.01).cameras["camera"]
+    assert answer.dof == 6
+    critical = stats.chi2.isf(0.01, 6)
+    ncp = optimize.brentq(lambda x: stats.ncx2.sf(critical, 6, x) - 0.9, 1e-6, 1e3)
+    directions = np.random.default_rng(0).normal(size=(500, 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    for block, size in ((slice(0, 3), answer.detectable_rad), (slice(3, 6), answer.detectable_m)):
+        information = np.linalg.inv(answer.covariance[block, block])  # the block's marginal
+        found = size**2 * np.einsum("ni,ij,nj->n", directions, information, directions)
+        assert found.min() >= ncp * (1 - 1e-9)
+        worst = np.linalg.eigh(answer.covariance[block, block])[1][:, -1]
+        assert size**2 * worst @ information @ worst == pytest.approx(ncp, rel=1e-6)
+
+
+def test_a_rig_is_moved_when_any_camera_moved():
+    """docs/formats.md: the verification says `moved` (exit 4) if any camera moved, even where another cannot
+    tell; `cannot tell` (exit 5) only where none moved."""
+    import math
+
+    from mirror_fg.analysis.verify import CANNOT_TELL, MOVED, NOT_MOVED, CameraVerdict, Verification
+
+    def camera(name, verdict):
+        return CameraVerdict(name, verdict, 0.5, 1.0, 6, None, None, math.inf, math.inf, "")
+
+    for verdicts, expected, status in (((MOVED, CANNOT_TELL), MOVED, 4), ((CANNOT_TELL, MOVED, NOT_MOVED), MOVED, 4),
+                                       ((NOT_MOVED, CANNOT_TELL), CANNOT_TELL, 5), ((NOT_MOVED, NOT_MOVED), NOT_MOVED, 0)):
+        rig = Verification({f"c{k}": camera(f"c{k}", v) for k, v in enumerate(verdicts)}, 0.01, 2.0, 0.2, {})
+        assert (rig.verdict, rig.exit_code) == (expected, status), verdicts

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 from typing import Protocol, TypeVar
 
+from mirror_fg.core.errors import SolveError
+from mirror_fg.core.values import clip
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.result.calibration import Calibration, Exclusion
 from mirror_fg.solver.screen.rechecks import Checked, Rechecked, solve_with_rechecks
@@ -43,6 +45,19 @@ class Problem(Protocol[Run]):
 
 
 def run_pipeline(problem: Problem[Run], dataset: Dataset) -> Calibration:
-    """screen -> solve -> final check (solve again without what ends far off) -> finish."""
+    """screen -> solve -> final check (solve again without what ends far off) -> finish. SolveError where the
+    screen leaves every image out: nothing is left to solve."""
     screened, excluded = problem.screen(dataset)
+    if dataset.images and not screened.images:
+        raise SolveError(_nothing_left(dataset, excluded))
     return problem.finish(solve_with_rechecks(screened, problem.solve, problem.check, excluded))
+
+
+def _nothing_left(dataset: Dataset, excluded: list[Exclusion]) -> str:
+    """Why nothing is left to solve, in the user's words: the screen left every image out. Where every image
+    disagrees with its own PnP fit, the noise model or the target is more likely at fault than every image."""
+    first = next((e for e in excluded if e.point is None), excluded[0] if excluded else None)
+    example = f" (image {clip(first.image, 40)!r}: {first.reason})" if first is not None else ""
+    return (f"{dataset.source}: every image was left out before the solve{example}: when all of them disagree, "
+            f"check pixel_sigma ({dataset.pixel_sigma:g}: too small for these images?), the fiducials' "
+            "coordinates and the camera's intrinsics")
