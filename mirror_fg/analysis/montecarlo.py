@@ -158,10 +158,17 @@ def _local_cluster(workers: int):
     # ("ConnectionPool is closed", seen in a CI run), to our stderr. The environment reaches every worker
     # process from its start (the user's own setting wins); what a dying worker means is one failed row.
     os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "critical")
+    import dask
+
+    # A worker failing inside distributed as it closes prints its traceback to our stderr through
+    # multiprocessing, not logging: worker_stderr.py drops what a closing worker writes (the user's
+    # own preloads kept, first).
+    preloads = [*dask.config.get("distributed.worker.preload", []), "mirror_fg.analysis.worker_stderr"]
     reason = ""
     for attempt in range(1, _CLUSTER_STARTS + 1):
         try:
-            with warnings.catch_warnings():  # a nanny's HTTP port taken by another cluster: it takes another one
+            with warnings.catch_warnings(), dask.config.set({"distributed.worker.preload": preloads}):
+                # a nanny's HTTP port taken by another cluster: it takes another one
                 warnings.filterwarnings("ignore", message="Port .* is already in use", category=UserWarning)
                 cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                        dashboard_address=None, silence_logs=_SILENT)
