@@ -80,9 +80,11 @@ def image_dispersion(dataset: Dataset, estimate: ViewEstimate, excluded: Sequenc
     """``B`` and ``nu`` (module docstring) of ``dataset``'s images at ``estimate``; arguments as
     :func:`~mirror_fg.solver.fit.validation.validate`."""
     used, problem, values, masks = _problem(dataset, estimate, excluded, estimated_cameras)
-    graph = problem.graph()
     if len(problem.factors) > MAX_IMAGES or _shared_columns(problem, values) > MAX_DENSE_COLUMNS:
+        if all(mask.all() for mask in masks):  # no measurement left out: this very problem
+            return _sampled_from(problem, values)
         return _sampled_dispersion(dataset, estimate, excluded, estimated_cameras)
+    graph = problem.graph()
     offset: dict[int, int] = {}
     size = 0
     for key in problem.keys:
@@ -190,6 +192,11 @@ def _sampled_dispersion(dataset: Dataset, estimate: ViewEstimate, excluded: Sequ
                                                                   if n not in points_out.get(image.id, ())})
                                     for image in dataset.images])
     _, problem, values, _ = _problem(kept, estimate, [(i, p) for i, p in excluded if p is None], estimated_cameras)
+    return _sampled_from(problem, values)
+
+
+def _sampled_from(problem, values) -> Dispersion:
+    """:func:`_sampled_dispersion` of a view problem with every measurement used, at ``values``."""
     marginals = gtsam.Marginals(problem.graph(), values)
     own_keys = set(problem.pose_keys.values()) | set(problem.mirror_keys.values())
     count = len(problem.factors)
