@@ -96,14 +96,20 @@ class RobotViewFactor:
         self.keys = [*self.mount_keys.values(), *self.mirror_keys.values(), *self.unique_landmarks,
                      *([offset_key] if offset_key is not None else [])]
 
-    def poses(self, values: gtsam.Values) -> dict[str, Any]:
-        """The image's state at ``values``: mounts, link placements and Jacobians, C, D, T (module docstring)."""
+    def mounts_and_offsets(self, values: gtsam.Values) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], np.ndarray]:
+        """Both mounts ``(R, t)`` (the known ones as given, the unknown ones at ``values``) and the joint
+        offsets at ``values`` (zeros where they are not estimated)."""
         mounts = dict(self.known)
         for role, key in self.mount_keys.items():
             pose = values.atPose3(key)
             mounts[role] = (pose.rotation().matrix(), np.asarray(pose.translation(), float))
         delta = (np.asarray(values.atVector(self.offset_key), float) if self.offset_key is not None
                  else np.zeros(self.num_offsets))
+        return mounts, delta
+
+    def poses(self, values: gtsam.Values) -> dict[str, Any]:
+        """The image's state at ``values``: mounts, link placements and Jacobians, C, D, T (module docstring)."""
+        mounts, delta = self.mounts_and_offsets(values)
         (F_c, J_c), (F_t, J_t) = self.fk(delta)
         C = compose(_pose_of(F_c), mounts["camera"])
         D = compose(_pose_of(F_t), mounts["target"])

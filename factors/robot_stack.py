@@ -82,12 +82,7 @@ class RobotStack:
         return self._fk
 
     def _state(self, values: gtsam.Values):
-        mounts = dict(self.known)
-        for role, key in self.mount_keys.items():
-            pose = values.atPose3(key)
-            mounts[role] = (pose.rotation().matrix(), np.asarray(pose.translation(), float))
-        delta = (np.asarray(values.atVector(self.offset_key), float) if self.offset_key is not None
-                 else np.zeros(self.num_offsets))
+        mounts, delta = self.members[0].mounts_and_offsets(values)  # the same mount and offset keys in every member
         F_c, J_c, F_t, J_t = self._kinematics(delta)
         (R_mc, t_mc), (R_mt, t_mt) = mounts["camera"], mounts["target"]
         R_C = F_c[:, :3, :3] @ R_mc  # C = F_c M_c

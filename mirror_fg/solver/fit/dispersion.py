@@ -172,7 +172,7 @@ def _shared_columns(problem, values) -> int:
     """How many tangent columns more than one image's factor touches."""
     touched: dict[int, int] = {}
     for factor in problem.factors:
-        for key in factor.factor().keys():
+        for key in factor.keys:  # the view's keys (not its gtsam factor, built again by each route)
             touched[key] = touched.get(key, 0) + 1
     return sum(tangent_dimension(key, values) for key, count in touched.items() if count > 1)
 

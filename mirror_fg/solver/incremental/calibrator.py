@@ -64,13 +64,12 @@ class IncrementalCalibrator:
         dataset = as_dataset(dataset, "IncrementalCalibrator()")
         #: The settings (:class:`~mirror_fg.solver.options.IncrementalOptions`): ``options``, or the keywords.
         self.options = _options_of(options, points=points, robust=robust, thresholds=thresholds, seed=seed)
-        self._options: dict[str, Any] = self.options.backend_options()
         self._dataset = dataset
         self._given: list[Image | Mapping[str, Any]] = []  # every image the backend took, in order (handed over on leaving the tree)
         #: The graph and iSAM2: ``TreeIncrementalCalibrator`` or ``ViewsIncrementalCalibrator``.
         self.backend: TreeIncrementalCalibrator | ViewsIncrementalCalibrator = (
-            TreeIncrementalCalibrator(dataset, **self._options) if dataset.is_tree
-            else ViewsIncrementalCalibrator(dataset, **self._options))
+            TreeIncrementalCalibrator(dataset, **self.options.backend_options()) if dataset.is_tree
+            else ViewsIncrementalCalibrator(dataset, **self.options.backend_options()))
 
     def add_image(self, image: Image | Mapping[str, Any]) -> Calibration | None:
         """Take one image's observations (a ``mirror_fg.Image`` or its dataset@1 dict).
@@ -84,7 +83,8 @@ class IncrementalCalibrator:
             estimate = self.backend.add_image(image)
         except LeavesTheTree:
             # The tree backend took nothing: the general backend from here on, fed every image so far.
-            self.backend = ViewsIncrementalCalibrator(replace(self._dataset, images=[]), **self._options)
+            self.backend = ViewsIncrementalCalibrator(replace(self._dataset, images=[]),
+                                                      **self.options.backend_options())
             for earlier in self._given:
                 self.backend.add_image(earlier)
             estimate = self.backend.add_image(image)
