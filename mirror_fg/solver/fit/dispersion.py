@@ -38,7 +38,7 @@ import numpy as np
 
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.fit.validation import _problem, estimate_of_calibration
-from mirror_fg.solver.model.views import ViewEstimate, tangent_dimension
+from mirror_fg.solver.model.views import ViewEstimate, scale_prior, tangent_dimension
 
 __all__ = ["Dispersion", "image_dispersion", "dispersion_of_calibration", "MAX_IMAGES", "MAX_DENSE_COLUMNS"]
 
@@ -84,7 +84,7 @@ def image_dispersion(dataset: Dataset, estimate: ViewEstimate, excluded: Sequenc
         if all(mask.all() for mask in masks):  # no measurement left out: this very problem
             return _sampled_from(problem, values)
         return _sampled_dispersion(dataset, estimate, excluded, estimated_cameras)
-    graph = problem.graph()
+    graph = problem.graph(stacked=False)  # one factor per view, in order, then the priors
     offset: dict[int, int] = {}
     size = 0
     for key in problem.keys:
@@ -195,28 +195,78 @@ def _sampled_dispersion(dataset: Dataset, estimate: ViewEstimate, excluded: Sequ
     return _sampled_from(problem, values)
 
 
+#: Above this many columns shared by the counted images, their joint marginal is asked image by image
+#: (one joint over every shared column would cost more than the small ones).
+MAX_JOINT_COLUMNS = 600
+
+
 def _sampled_from(problem, values) -> Dispersion:
-    """:func:`_sampled_dispersion` of a view problem with every measurement used, at ``values``."""
-    marginals = gtsam.Marginals(problem.graph(), values)
+    """:func:`_sampled_dispersion` of a view problem with every measurement used, at ``values``.
+
+    ``Sigma`` on an image's columns: the columns no other factor touches (a placement only this image sees)
+    carry only this image's information, so they are eliminated from its own block (Schur complement, as
+    :func:`_explained`); the shared ones come from GTSAM's marginals, in one joint over every shared column
+    of the counted images (at most :data:`MAX_JOINT_COLUMNS`; else a joint per image)."""
+    graph = problem.graph()
+    marginals = gtsam.Marginals(graph, values)
+    touches: dict[int, int] = {}
+    for factor in problem.factors:
+        for key in factor.keys:
+            touches[key] = touches.get(key, 0) + 1
+    priors = scale_prior(problem.dataset, problem.mirror_keys, problem.point_keys)
+    for key in [*problem.intrinsics_keys.values(), *(k for i in range(priors.size()) for k in priors.at(i).keys())]:
+        touches[key] = touches.get(key, 0) + 1  # a prior's information is not the image's alone
     own_keys = set(problem.pose_keys.values()) | set(problem.mirror_keys.values())
     count = len(problem.factors)
     chosen = sorted(set(np.linspace(0, count - 1, min(MAX_IMAGES, count)).round().astype(int).tolist()))
-    cost, rank_sum, explained, images = 0.0, 0, 0.0, 0
+    linearised = []
     for index in chosen:
         gaussian = problem.factors[index].factor().linearize(values)
         A, b = gaussian.jacobian()
         keys = list(gaussian.keys())
         dims = [tangent_dimension(key, values) for key in keys]
-        starts = np.concatenate([[0], np.cumsum(dims)])
-        own = [i for key, a, z in zip(keys, starts[:-1], starts[1:]) if key in own_keys for i in range(a, z)]
+        linearised.append((keys, dims, A, b))
+    shared_keys = list(dict.fromkeys(k for keys, _, _, _ in linearised for k in keys if touches.get(k, 0) > 1))
+    joint = None
+    if sum(tangent_dimension(k, values) for k in shared_keys) <= MAX_JOINT_COLUMNS and shared_keys:
+        joint = marginals.jointMarginalCovariance(gtsam.KeyVector(shared_keys))
+    cost, rank_sum, explained, images = 0.0, 0, 0.0, 0
+    for keys, dims, A, b in linearised:
+        starts = np.concatenate([[0], np.cumsum(dims)]).astype(int)
+        columns = {key: np.arange(a, z) for key, a, z in zip(keys, starts[:-1], starts[1:])}
+        own = [i for key in keys if key in own_keys for i in columns[key]]
         if not own or not len(b):
             continue
         U = _range(A[:, own])
-        joint = marginals.jointMarginalCovariance(gtsam.KeyVector(keys))
-        Sigma = np.block([[joint.at(k, m) for m in keys] for k in keys])
         UJ = U.T @ A
+        if joint is None:
+            block = marginals.jointMarginalCovariance(gtsam.KeyVector(keys))
+            Sigma = np.block([[block.at(k, m) for m in keys] for k in keys])
+        else:
+            Sigma = _image_covariance(A, keys, columns, joint, [touches.get(k, 0) > 1 for k in keys])
         rank_sum += U.shape[1]
         cost += float(np.sum((U.T @ -b) ** 2))
         explained += float(np.sum((UJ @ Sigma) * UJ))
         images += 1
     return Dispersion(cost, max(rank_sum - explained, 0.0), images)
+
+
+def _image_covariance(A: np.ndarray, keys: list[int], columns: dict[int, np.ndarray], joint,
+                      shared: list[bool]) -> np.ndarray:
+    """The marginal covariance on one image's columns: its shared keys' block from ``joint`` (GTSAM's
+    joint marginal of every shared key), its own-only columns eliminated from its information ``A^T A``
+    (``Sigma_ll = H_ll^-1 + K S K^T``, ``Sigma_ls = -K S``, ``K = H_ll^-1 H_ls``)."""
+    s = np.concatenate([columns[k] for k, is_shared in zip(keys, shared) if is_shared] or [np.zeros(0, int)])
+    loc = np.concatenate([columns[k] for k, is_shared in zip(keys, shared) if not is_shared] or [np.zeros(0, int)])
+    shared_keys = [k for k, is_shared in zip(keys, shared) if is_shared]
+    S = np.block([[joint.at(k, m) for m in shared_keys] for k in shared_keys]) if shared_keys else np.zeros((0, 0))
+    Sigma = np.zeros((A.shape[1], A.shape[1]))
+    Sigma[np.ix_(s, s)] = S
+    if len(loc):
+        H = A.T @ A
+        H_ll_inv = np.linalg.pinv(H[np.ix_(loc, loc)], hermitian=True)
+        K = H_ll_inv @ H[np.ix_(loc, s)]
+        Sigma[np.ix_(s, loc)] = -S @ K.T
+        Sigma[np.ix_(loc, s)] = -K @ S
+        Sigma[np.ix_(loc, loc)] = H_ll_inv + K @ S @ K.T
+    return Sigma
