@@ -63,7 +63,7 @@ def _mount_entries(result) -> dict:
     return out
 
 
-@pytest.mark.parametrize("robot,eye_in_hand,link", [SETUPS[0], *(pytest.param(*s, marks=pytest.mark.slow) for s in SETUPS[1:])])
+@pytest.mark.parametrize("robot,eye_in_hand,link", SETUPS)
 def test_mle_equals_the_independent_reference(tmp_path, robot, eye_in_hand, link) -> None:
     dataset, truth = _simulate(robot, eye_in_hand, link, seed=5, poses=4)
     assert {im["camera"] for im in dataset["images"]} == {"cam0", "cam1"}
