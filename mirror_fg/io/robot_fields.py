@@ -1,5 +1,6 @@
 """dataset@1's robot fields (docs/formats.md, "Robot arms: joint states and mounts"): ``robot``,
-``mounts`` and each image's ``joints``, read and checked once.
+``mounts`` and each image's ``joints``, read and checked once. With several cameras (``cameras``), each
+camera's mount is in ``mounts.cameras`` (``{name: {link, T_link_cam}}``, every camera and no other).
 
 Frames: {B} is ``robot.base_link``; ``T_link_cam`` / ``T_link_target`` map mount coordinates into the
 link's (``x_link = R x_mount + t``), metres. Joint values: radians (metres for a prismatic joint).
