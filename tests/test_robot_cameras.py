@@ -253,3 +253,25 @@ def test_report_residuals_through_each_cameras_mount(tmp_path, two_cameras) -> N
     del swapped["mounts"]["cameras"]["cam1"]
     with pytest.raises(DatasetError, match="mounts.cameras.cam1"):
         robot_residuals(swapped, ds, "result")
+
+
+def test_plan_bounds_every_cameras_mount(tmp_path, capsys) -> None:
+    from mirror_fg.robot.plan import arm_bounds
+
+    bounds = arm_bounds("arm6", False, 3, 4, 0.5, draws=1, seed=1, folder=str(tmp_path), cameras=2)
+    assert list(bounds) == ["camera:cam0", "camera:cam1", "target"]
+    assert all(0 < x < 20 for b in bounds.values() for x in b["position_mm"])
+    assert main(["plan", "--robot", "arm6", "--cameras", "2", "--arm-poses", "4", "--draws", "1", "--sigma", "0.5"]) == 0
+    printed = capsys.readouterr().out
+    assert "camera cam0 mount 3-sigma" in printed and "camera cam1 mount 3-sigma" in printed
+
+
+def test_joint_candidates_refuse_several_cameras_in_one_line(tmp_path, two_cameras, capsys) -> None:
+    dataset, truth = two_cameras
+    data = tmp_path / "two.json"
+    write_arm_simulation(str(data), dataset, truth)
+    names = list(dataset["images"][0]["joints"])
+    (tmp_path / "reach.csv").write_text(",".join(names) + "\n" + ",".join("0.1" for _ in names) + "\n")
+    assert main(["plan", "--next", str(data), "--joint-candidates", str(tmp_path / "reach.csv")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "one camera" in err and len(err.splitlines()) == 1

@@ -99,12 +99,14 @@ def plan_robot(args, out: _Printer) -> int:
         return EXIT_OK
     if args.arm_poses < 3:
         raise DatasetError(f"--arm-poses: 3 or more arm poses per placement, got {args.arm_poses}")
+    cameras = getattr(args, "cameras", None) or 1
     bounds = arm_bounds(args.robot, args.eye_in_hand, args.placements, args.arm_poses, args.sigma or 1.0,
-                        draws=args.draws, seed=args.seed)
+                        draws=args.draws, seed=args.seed, cameras=cameras)
     setup = "eye-in-hand" if args.eye_in_hand else "eye-to-hand"
     out.info(f"{args.robot} {setup}, {args.placements} mirror placements x {args.arm_poses} arm poses, "
              f"{args.sigma or 1.0} px (Cramer-Rao, {args.draws} draws):")
     for role, b in bounds.items():
+        role = role.replace("camera:", "camera ")  # several cameras: "camera cam0"
         out.info(f"  {role} mount 3-sigma: rotation {np.round(b['rotation_deg'], 3).tolist()} deg, position "
                  f"{np.round(b['position_mm'], 2).tolist()} mm")
     if args.json is not None:
