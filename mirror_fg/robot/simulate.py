@@ -15,6 +15,7 @@ import json
 import math
 import os
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -133,8 +134,8 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
         F_nominal = kin.placements(dict(zip(names, q0)), list(dict.fromkeys([tool, kin.base_link, *camera_links])))
         for k in range(cameras):
             link = camera_links[k - 1] if 0 < k <= len(camera_links) else mounts["camera"][0]
-            step = (_rot([0, 1, 0], math.radians(RIG_TURN_DEG) * k), np.array([-RIG_STEP * k, 0.01 * k, 0.0]))
-            pose = compose(C, step)
+            beside = (_rot([0, 1, 0], math.radians(RIG_TURN_DEG) * k), np.array([-RIG_STEP * k, 0.01 * k, 0.0]))
+            pose = compose(C, beside)
             F = F_nominal[link][0]
             mounts_k = compose(inverse((F[:3, :3], F[:3, 3])), pose)
             if k == 0:
@@ -178,15 +179,15 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
                 continue
             recorded = {n: float(x - delta.get(n, 0.0)) for n, x in zip(names, q)}
             F = kin.placements(dict(zip(names, q)), links)
-            T = F[mounts["target"][0]][0]
-            target = compose((T[:3, :3], T[:3, 3]), mounts["target"][1])
+            F_t = F[mounts["target"][0]][0]
+            target = compose((F_t[:3, :3], F_t[:3, 3]), mounts["target"][1])
             x_B = target[0] @ points + target[1][:, None]
             for role in roles:
                 if found[role] >= arm_poses:
                     continue
                 link, mount = camera_mounts[role] if camera_mounts else mounts["camera"]
-                T = F[link][0]
-                poses = {"camera": compose((T[:3, :3], T[:3, 3]), mount), "target": target}
+                F_c = F[link][0]
+                poses = {"camera": compose((F_c[:3, :3], F_c[:3, 3]), mount), "target": target}
                 pix = _observe(poses, x_B, v_B)
                 if pix is None:
                     continue
@@ -194,8 +195,8 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
                 if any(i.lower is not None and i.upper is not None and not i.lower <= recorded[n] <= i.upper
                        for n, i in zip(names, info)):
                     break  # the recorded joints out of their limits (the noise drawn as before: the same scenes)
-                n = found[role]
-                images.append({"id": f"p{k}_{n:03d}" if not camera_mounts else f"p{k}_{role}_{n:03d}",
+                count = found[role]
+                images.append({"id": f"p{k}_{count:03d}" if not camera_mounts else f"p{k}_{role}_{count:03d}",
                                **({"camera": role} if camera_mounts else {}),
                                **({"reflections": []} if direct else {"mirror_configs": [k]}), "joints": recorded,
                                "observations": {name: [float(u), float(w)] for name, (u, w) in zip(board, pix)}})
@@ -206,6 +207,8 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
         robot_entry["joint_offsets"] = {"estimate": list(delta), "prior_sigma_deg": 2.0}
     link_c, _ = mounts["camera"]
     link_t, _ = mounts["target"]
+    camera_entries: dict[str, Any]
+    camera_entries_mounts: dict[str, Any]
     if camera_mounts:  # several cameras: each its own intrinsics entry and mount
         camera_entries = {"cameras": {role: camera_to_dict(CAMERA) for role in camera_mounts}}
         camera_entries_mounts = {"cameras": {role: {"link": link} for role, (link, _) in camera_mounts.items()}}
