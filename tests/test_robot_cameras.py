@@ -275,3 +275,31 @@ def test_joint_candidates_refuse_several_cameras_in_one_line(tmp_path, two_camer
     assert main(["plan", "--next", str(data), "--joint-candidates", str(tmp_path / "reach.csv")]) == 2
     err = capsys.readouterr().err.strip()
     assert "one camera" in err and len(err.splitlines()) == 1
+
+
+def test_a_capture_with_cameras_and_joint_states_calibrates_as_its_dataset(tmp_path, two_cameras) -> None:
+    import csv
+
+    dataset, truth = two_cameras
+    write_arm_simulation(str(tmp_path / "arm.json"), dataset, truth)
+    names = list(dataset["images"][0]["joints"])
+    with open(tmp_path / "joints.csv", "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["image", *names])
+        for image in dataset["images"]:
+            writer.writerow([image["id"], *[repr(image["joints"][n]) for n in names]])
+    capture = {
+        "format": "mirror-fg/capture@1", "num_mirrors": 1, "cameras": dataset["cameras"], "pixel_sigma": 0.5,
+        "target": {"kind": "points", "fiducials": dataset["fiducials"]},
+        "robot": dataset["robot"], "mounts": dataset["mounts"], "joints": {"file": "joints.csv"},
+        "images": [{"id": im["id"], "camera": im["camera"], "mirror_configs": im["mirror_configs"],
+                    "observations": im["observations"]} for im in dataset["images"]],
+    }
+    (tmp_path / "capture.json").write_text(json.dumps(capture))
+    assert main(["calibrate", str(tmp_path / "capture.json"), "-o", str(tmp_path / "a.json"), "-q", "--no-ros"]) == 0
+    assert main(["calibrate", str(tmp_path / "arm.json"), "-o", str(tmp_path / "b.json"), "-q", "--no-ros"]) == 0
+    a = json.loads((tmp_path / "a.json").read_text())["mounts"]["cameras"]
+    b = json.loads((tmp_path / "b.json").read_text())["mounts"]["cameras"]
+    for name in ("cam0", "cam1"):
+        assert np.allclose(a[name]["T_link_cam"]["t"], b[name]["T_link_cam"]["t"], atol=1e-9)
+        assert np.allclose(a[name]["covariance"], b[name]["covariance"], rtol=1e-6, atol=1e-15)
