@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 
 @dataclass
 class Reference:
-    """The reference MLE: mounts ``{role: (R, t)}``, planes ``{config: v}``, offsets (radians),
+    """The reference MLE: mounts ``{role: (R, t)}`` (roles ``camera`` or ``camera:NAME``, ``target``), planes ``{config: v}``, offsets (radians),
     covariance of all parameters (mount blocks [dtheta, dt], plane blocks of v, offsets), and its layout."""
 
     mounts: dict
@@ -41,20 +41,25 @@ def _exp(w):
 
 
 class ArmModel:
-    """The model above for a dataset@1 dictionary whose URDF is at ``urdf_path``."""
+    """The model above for a dataset@1 dictionary whose URDF is at ``urdf_path``; with several cameras
+    (``cameras``, ``mounts.cameras``) each image's camera has its own mount, role ``camera:NAME``."""
 
     def __init__(self, dataset: dict, urdf_path: str):
         self.urdf = yourdfpy.URDF.load(urdf_path, build_scene_graph=True, load_meshes=False)
         self.base = dataset["robot"].get("base_link", "base_link")
-        mounts = dataset.get("mounts", {})
-        self.links = {"camera": mounts.get("camera", {}).get("link", self.base),
-                      "target": mounts.get("target", {}).get("link", self.base)}
-        self.unknown = [r for r in ("camera", "target") if r in mounts and
-                        ("T_link_cam" if r == "camera" else "T_link_target") not in mounts[r]]
+        mounts = dict(dataset.get("mounts", {}))
+        # several cameras (dataset "cameras", "mounts.cameras"): a mount "camera:NAME" per camera
+        cameras = {f"camera:{n}": e for n, e in mounts.pop("cameras", {}).items()}
+        self.roles = [*cameras, "target"] if cameras else ["camera", "target"]
+        mounts.update(cameras)
+        self.links = {r: mounts.get(r, {}).get("link", self.base) for r in self.roles}
+        self.unknown = [r for r in self.roles if r in mounts and
+                        ("T_link_target" if r == "target" else "T_link_cam") not in mounts[r]]
         self.offset_names = list(dataset["robot"].get("joint_offsets", {}).get("estimate", []))
         self.offset_sigma = np.radians(dataset["robot"].get("joint_offsets", {}).get("prior_sigma_deg", 2.0))
-        cam = dataset["camera"]
-        self.K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1.0]])
+        intrinsics = ({f"camera:{n}": c for n, c in dataset["cameras"].items()} if cameras
+                      else {"camera": dataset["camera"]})
+        self.K = {r: np.array([[c["fx"], 0, c["cx"]], [0, c["fy"], c["cy"]], [0, 0, 1.0]]) for r, c in intrinsics.items()}
         self.sigma = float(dataset["pixel_sigma"])
         fiducials = dataset["fiducials"]
         self.images = []
@@ -62,7 +67,8 @@ class ArmModel:
             names = list(image["observations"])
             self.images.append((image["joints"], image["mirror_configs"][0],
                                 np.array([fiducials[n] for n in names]).T,
-                                np.array([image["observations"][n] for n in names])))
+                                np.array([image["observations"][n] for n in names]),
+                                f"camera:{image['camera']}" if cameras else "camera"))
         self.configs = sorted({im[1] for im in self.images})
 
     def _fk(self, joints: dict, link: str) -> np.ndarray:
@@ -85,7 +91,7 @@ class ArmModel:
     def unpack(self, x, start):
         layout = self.layout()
         mounts = {}
-        for role in ("camera", "target"):
+        for role in self.roles:
             R0, t0 = start["mounts"][role]
             if role in self.unknown:
                 d = x[layout[role]]
@@ -98,19 +104,19 @@ class ArmModel:
     def residuals(self, x, start):
         mounts, planes, offsets = self.unpack(x, start)
         out = []
-        for joints, config, points, observed in self.images:
+        for joints, config, points, observed, camera in self.images:
             q = dict(joints)
             for name, d in zip(self.offset_names, offsets):
                 q[name] = q[name] + d
-            Fc, Ft = self._fk(q, self.links["camera"]), self._fk(q, self.links["target"])
-            Rc, tc = Fc[:3, :3] @ mounts["camera"][0], Fc[:3, :3] @ mounts["camera"][1] + Fc[:3, 3]
+            Fc, Ft = self._fk(q, self.links[camera]), self._fk(q, self.links["target"])
+            Rc, tc = Fc[:3, :3] @ mounts[camera][0], Fc[:3, :3] @ mounts[camera][1] + Fc[:3, 3]
             Rt, tt = Ft[:3, :3] @ mounts["target"][0], Ft[:3, :3] @ mounts["target"][1] + Ft[:3, 3]
             x_B = Rt @ points + tt[:, None]
             v = planes[config]
             n, d = v / np.linalg.norm(v), np.linalg.norm(v)
             x_B = x_B - 2.0 * np.outer(n, n @ x_B - d)
             x_c = Rc.T @ (x_B - tc[:, None])
-            pix = (self.K @ (x_c / x_c[2]))[:2].T
+            pix = (self.K[camera] @ (x_c / x_c[2]))[:2].T
             out.append(((pix - observed) / self.sigma).ravel())
         out.append(offsets / self.offset_sigma)
         return np.concatenate(out)

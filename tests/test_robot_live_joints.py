@@ -148,5 +148,8 @@ def test_mirror_fg_live_with_an_arm_matches_a_videos_frames_by_time(tmp_path, ca
     records = [json.loads(line) for line in lines.read_text().splitlines()]
     assert [r["status"] for r in records] == ["not found"] * 3 + ["skipped"]
     assert "no row within max_dt" in records[3]["reason"] or "joints.csv" in records[3]["reason"], records[3]
-    assert main(["live", str(tmp_path / "live.json"), "--source", str(tmp_path / "run.avi"), "--serve", "0"]) == 2
-    assert "--serve is not available with a robot arm" in capsys.readouterr().err
+    capsys.readouterr()
+    assert main(["live", str(tmp_path / "live.json"), "--source", str(tmp_path / "run.avi"), "--verify",
+                 str(tmp_path / "old.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--verify is not available with a robot arm" in err and len(err.splitlines()) == 1

@@ -77,7 +77,9 @@ def cmd_live(args, out: _Printer) -> int:
     source_path = os.fspath(args.capture)
     data = load_structured(source_path, source_path)
     capture = capture_from_file_data(data, source_path, media=False)
-    outputs = plan_live_outputs(source_path, args.source, capture.input_files(),
+    arm_files = ([capture.robot["path"], capture.robot["robot"]["urdf"]] if capture.robot is not None
+                 and isinstance(capture.robot["robot"].get("urdf"), str) else [])  # an arm's joints CSV and URDF
+    outputs = plan_live_outputs(source_path, args.source, [*capture.input_files(), *arm_files],
                                 None if args.output is None else os.fspath(args.output),
                                 None if args.json_lines is None else os.fspath(args.json_lines),
                                 None if args.save is None else os.fspath(args.save), ros=not args.no_ros)
@@ -86,17 +88,18 @@ def cmd_live(args, out: _Printer) -> int:
     if capture.robot is not None:  # an arm: joint states from the capture's growing CSV (live/joints.py)
         from mirror_fg.live.joints import LiveArmSession
 
-        for flag, given in (("--serve", args.serve), ("--save", args.save), ("--verify", getattr(args, "verify", None))):
-            if given is not None:
-                raise DatasetError(f"live: {flag} is not available with a robot arm's capture yet; drop it")
-        session = LiveArmSession(capture, target_mm=args.target_mm, target_deg=args.target_deg)
+        if getattr(args, "verify", None) is not None:
+            raise DatasetError("live: --verify is not available with a robot arm's capture yet; drop it")
+        session = LiveArmSession(capture, target_mm=args.target_mm, target_deg=args.target_deg,
+                                 on_added=lambda frame, gray, image: folder.add(frame, gray, image)
+                                 if folder is not None else None, picture=args.serve is not None)
     else:
         session = LiveSession(capture, target_mm=args.target_mm, target_deg=args.target_deg,
                               on_added=lambda frame, gray: folder.add(frame, gray) if folder is not None else None,
                               picture=args.serve is not None)
     verifier = live_verifier(args, session, out)
     if args.save is not None:
-        folder = SessionFolder(os.fspath(args.save), data, session.camera_dict)
+        folder = SessionFolder(os.fspath(args.save), data, session.camera_dict, robot=capture.robot)
     source = open_source(args.source, idle_s=args.idle)
     if capture.robot is not None:
         session.source = source  # each frame's name or time, matched to the joint states

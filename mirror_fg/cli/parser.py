@@ -135,7 +135,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--no-target", action="store_true",
                      help="kaleidoscope without fiducials: unknown points only, scale = mirror 1's distance")
     sim.add_argument("--direct", type=_COUNT0, help="mixed: photographs that also give the direct view (default 0)")
-    sim.add_argument("--cameras", type=_number(int, 2), help="a rig of N >= 2 cameras (tree or mixed kind)")
+    sim.add_argument("--cameras", type=_number(int, 2), help="a rig of N >= 2 cameras (tree or mixed kind; with "
+                     "--robot, N cameras beside each other on the arm's base, or on its tool with --eye-in-hand)")
     sim.add_argument("--shared", type=_COUNT0,
                      help="with --cameras: photographs every camera sees (default 8 tree, 2 mixed)")
     sim.add_argument("--own", metavar="N[,N...]",

@@ -1,4 +1,4 @@
-"""``mirror-fg simulate --robot arm6|panda [--arm-poses N] [--eye-in-hand]``: a simulated robot arm seen
+"""``mirror-fg simulate --robot arm6|panda [--arm-poses N] [--eye-in-hand] [--cameras N]``: a simulated robot arm seen
 through hand-held mirrors (docs/formats.md, "Robot arms: joint states and mounts"); its arguments and runner,
 registered by ``parser.py`` and ``commands.cmd_simulate``."""
 from __future__ import annotations
@@ -40,9 +40,13 @@ def simulate_robot(args, out: _Printer) -> int:
         raise DatasetError(f"--arm-poses: 3 or more arm poses per placement, got {args.arm_poses}")
     path = str(args.output)
     plan = arm_outputs(path, args.robot)  # checked before the work
-    dataset, truth = simulate_arm(args.robot, args.eye_in_hand, placements, args.arm_poses, args.sigma, seed=args.seed)
+    cameras = getattr(args, "cameras", None) or 1
+    dataset, truth = simulate_arm(args.robot, args.eye_in_hand, placements, args.arm_poses, args.sigma, seed=args.seed,
+                                  cameras=cameras)
     truth_file, urdf = write_arm_simulation(path, dataset, truth, plan)
     setup = "eye-in-hand" if args.eye_in_hand else "eye-to-hand"
+    if cameras > 1:
+        setup += f", {cameras} cameras on {'the tool' if args.eye_in_hand else 'the base'}"
     out.info(f"wrote {path} ({len(dataset['images'])} images of {args.robot}, {setup}, {placements} mirror placements), "
              f"{truth_file} and {urdf}")
     return EXIT_OK
@@ -76,6 +80,9 @@ def plan_robot(args, out: _Printer) -> int:
         dataset = load_dataset(args.next_data)
         if dataset.robot is None:
             raise DatasetError(f"{args.next_data}: --joint-candidates needs data of a robot arm (robot, mounts, joints)")
+        if dataset.robot.cameras is not None:
+            raise DatasetError(f"{args.next_data}: --joint-candidates ranks arm poses for one camera; these data have "
+                               f"{len(dataset.robot.cameras)} (cameras)")
         candidates = load_joint_candidates(args.joint_candidates, dataset.robot.joints)
         ranked, now = rank_joint_candidates(dataset, candidates)
         l, m = now["placement"]
@@ -92,12 +99,14 @@ def plan_robot(args, out: _Printer) -> int:
         return EXIT_OK
     if args.arm_poses < 3:
         raise DatasetError(f"--arm-poses: 3 or more arm poses per placement, got {args.arm_poses}")
+    cameras = getattr(args, "cameras", None) or 1
     bounds = arm_bounds(args.robot, args.eye_in_hand, args.placements, args.arm_poses, args.sigma or 1.0,
-                        draws=args.draws, seed=args.seed)
+                        draws=args.draws, seed=args.seed, cameras=cameras)
     setup = "eye-in-hand" if args.eye_in_hand else "eye-to-hand"
     out.info(f"{args.robot} {setup}, {args.placements} mirror placements x {args.arm_poses} arm poses, "
              f"{args.sigma or 1.0} px (Cramer-Rao, {args.draws} draws):")
     for role, b in bounds.items():
+        role = role.replace("camera:", "camera ")  # several cameras: "camera cam0"
         out.info(f"  {role} mount 3-sigma: rotation {np.round(b['rotation_deg'], 3).tolist()} deg, position "
                  f"{np.round(b['position_mm'], 2).tolist()} mm")
     if args.json is not None:

@@ -1,5 +1,6 @@
 """dataset@1's robot fields (docs/formats.md, "Robot arms: joint states and mounts"): ``robot``,
-``mounts`` and each image's ``joints``, read and checked once.
+``mounts`` and each image's ``joints``, read and checked once. With several cameras (``cameras``), each
+camera's mount is in ``mounts.cameras`` (``{name: {link, T_link_cam}}``, every camera and no other).
 
 Frames: {B} is ``robot.base_link``; ``T_link_cam`` / ``T_link_target`` map mount coordinates into the
 link's (``x_link = R x_mount + t``), metres. Joint values: radians (metres for a prismatic joint).
@@ -55,6 +56,15 @@ class RobotSetup:
     prior_sigma_deg: float | None = None
     prior_sigma_mm: float | None = None
     camera_given: bool = True
+    #: A dataset with several cameras: each camera's mount ``mounts.cameras`` ``{name: Mount}`` in the
+    #: ``cameras`` order (``mounts["camera"]`` is then the first's); None with one camera.
+    cameras: dict[str, Mount] | None = None
+
+    def camera_mounts(self) -> dict[str | None, Mount]:
+        """``{camera name: Mount}`` of every camera: ``{None: mounts["camera"]}`` with one camera."""
+        if self.cameras is None:
+            return {None: self.mounts["camera"]}
+        return dict(self.cameras)
 
     @property
     def kinematics(self):
@@ -66,7 +76,7 @@ class RobotSetup:
         """The movable joints between the base and each mount's link (every image gives these)."""
         kin = self.kinematics
         names: list[str] = []
-        for mount in self.mounts.values():
+        for mount in [*self.mounts.values(), *(self.cameras or {}).values()]:
             names += [n for n in kin.chain(mount.link) if n not in names]
         return names
 
@@ -117,32 +127,76 @@ def robot_from_dict(d: Mapping[str, Any], source: str) -> RobotSetup | None:
     if mounts is not None and not isinstance(mounts, Mapping):
         raise DatasetError(f"{source}: mounts: expected an object {{camera, target}}, got {type_name(mounts)}")
     mounts = dict(mounts or {})
-    check_keys(mounts, tuple(_MOUNT_KEYS), f"{source}: mounts")
+    check_keys(mounts, (*_MOUNT_KEYS, "cameras"), f"{source}: mounts")
+    names = _camera_names(d, mounts, source)
     parsed: dict[str, Mount] = {}
     for role, (_, pose_key) in _MOUNT_KEYS.items():
         entry = mounts.get(role)
-        at = f"{source}: mounts.{role}"
         if entry is None:  # the camera: on the base, unknown; the target: the fiducials are in {B}
             parsed[role] = Mount(kin.base_link, None if role == "camera" else (np.eye(3), np.zeros(3)))
             continue
-        if not isinstance(entry, Mapping):
-            raise DatasetError(f"{at}: expected an object {{link, {pose_key}}}, got {type_name(entry)}")
-        check_keys(entry, _MOUNT_KEYS[role], at)
-        link = entry.get("link", kin.base_link)
-        if not isinstance(link, str) or link not in kin.links:
-            raise DatasetError(f"{at}: link {short(link)} is not a link of {name}")
-        cut = kin.unrecordable(link)
-        if cut:
-            raise DatasetError(f"{at}: link {link!r} is not connected to the base link {kin.base_link!r} through "
-                               f"recorded joints (joint {cut[0]!r} is floating or planar)")
-        known = pose_from_dict(entry[pose_key], f"{at}: {pose_key}") if pose_key in entry else None
-        parsed[role] = Mount(link, known)
-    setup = RobotSetup(path, name, kin.base_link, parsed, "target" in mounts, camera_given="camera" in mounts)
-    if parsed["camera"].known is not None and parsed["target"].known is not None and not _has_offsets(robot):
+        parsed[role] = _mount(entry, role, f"{source}: mounts.{role}", kin, name)
+    cameras = None
+    if names is not None:  # several cameras (docs/formats.md "Robot arms", several cameras): one mount each
+        cameras = {camera: _mount(mounts["cameras"][camera], "camera", f"{source}: mounts.cameras.{camera}", kin, name)
+                   for camera in names}
+        parsed["camera"] = cameras[names[0]]
+    setup = RobotSetup(path, name, kin.base_link, parsed, "target" in mounts, camera_given="camera" in mounts,
+                       cameras=cameras)
+    if (all(m.known is not None for m in setup.camera_mounts().values()) and parsed["target"].known is not None
+            and not _has_offsets(robot)):
         raise DatasetError(f"{source}: mounts: both T_link_cam and T_link_target are known: nothing to calibrate "
                            "(leave the one to estimate out)")
     _offsets(robot.get("joint_offsets"), setup, f"{where}: joint_offsets")
     return setup
+
+
+def _mount(entry: Any, role: str, at: str, kin, urdf_name: str) -> Mount:
+    """One ``{link, T_link_cam | T_link_target}`` entry (``at`` names it in messages)."""
+    pose_key = _MOUNT_KEYS[role][1]
+    if not isinstance(entry, Mapping):
+        raise DatasetError(f"{at}: expected an object {{link, {pose_key}}}, got {type_name(entry)}")
+    check_keys(entry, _MOUNT_KEYS[role], at)
+    link = entry.get("link", kin.base_link)
+    if not isinstance(link, str) or link not in kin.links:
+        raise DatasetError(f"{at}: link {short(link)} is not a link of {urdf_name}")
+    cut = kin.unrecordable(link)
+    if cut:
+        raise DatasetError(f"{at}: link {link!r} is not connected to the base link {kin.base_link!r} through "
+                           f"recorded joints (joint {cut[0]!r} is floating or planar)")
+    known = pose_from_dict(entry[pose_key], f"{at}: {pose_key}") if pose_key in entry else None
+    return Mount(link, known)
+
+
+def _camera_names(d: Mapping[str, Any], mounts: dict[str, Any], source: str) -> list[str] | None:
+    """The names of a dataset's ``cameras`` (None with one ``camera``), each with its entry in
+    ``mounts.cameras`` and no other: ``mounts.camera`` beside ``cameras``, ``mounts.cameras`` without them, a
+    camera without a mount and a mount of an undeclared camera are refused (one line, exit 2)."""
+    declared = d.get("cameras")
+    given = mounts.get("cameras")
+    if not isinstance(declared, Mapping):
+        if given is not None:
+            raise DatasetError(f"{source}: mounts.cameras: the data have one camera (camera); give its mount as "
+                               "mounts.camera, or the cameras as cameras: {name: camera}")
+        return None
+    names = [str(n) for n in declared]
+    if "camera" in mounts:
+        raise DatasetError(f"{source}: mounts.camera: the data have several cameras ({', '.join(names)}); give each "
+                           "its mount in mounts.cameras: {name: {link, T_link_cam}}")
+    if given is None:
+        given = {}
+    if not isinstance(given, Mapping):
+        raise DatasetError(f"{source}: mounts.cameras: expected an object {{camera name: {{link, T_link_cam}}}}, got "
+                           f"{type_name(given)}")
+    for camera in given:
+        if camera not in declared:
+            raise DatasetError(f"{source}: mounts.cameras: {short(camera)} is not one of the cameras "
+                               f"({', '.join(names)})")
+    for camera in names:
+        if camera not in given:
+            raise DatasetError(f"{source}: mounts.cameras: camera {camera!r} has no mount: give mounts.cameras."
+                               f"{camera}: {{link, T_link_cam}} (the link it is fixed to; T_link_cam where known)")
+    return names
 
 
 def _has_offsets(robot: Mapping[str, Any]) -> bool:
@@ -232,10 +286,16 @@ def robot_to_dict(setup: RobotSetup | None) -> dict[str, Any]:
         mount = setup.mounts[role]
         if role == "target" and not setup.target_given:
             continue
-        if role == "camera" and not setup.camera_given and mount.known is None:
+        if role == "camera" and (setup.cameras is not None or (not setup.camera_given and mount.known is None)):
             continue
-        mounts[role] = {"link": mount.link, **({pose_key: _pose_dict(mount.known)} if mount.known is not None else {})}
+        mounts[role] = _mount_dict(mount, pose_key)
+    if setup.cameras is not None:
+        mounts["cameras"] = {camera: _mount_dict(mount, "T_link_cam") for camera, mount in setup.cameras.items()}
     return {"robot": robot, **({"mounts": mounts} if mounts else {})}
+
+
+def _mount_dict(mount: Mount, pose_key: str) -> dict[str, Any]:
+    return {"link": mount.link, **({pose_key: _pose_dict(mount.known)} if mount.known is not None else {})}
 
 
 def joints_to_dict(joints: dict[str, float] | None) -> dict[str, Any]:

@@ -221,10 +221,16 @@ def ros_output_texts(
         f"     {link} (x forward), use the two joints under camera_link.urdf_joints in the .ros.yaml. -->\n"
         + urdf_robot(content["urdf_joint"], base_frame, camera_frame)
     )
+    links = {base_frame, camera_frame}
+    for name, entry in (mounts.get("cameras") or {}).items():  # an arm's several cameras: each by its name
+        R_lc, t_lc = (np.asarray(entry["T_link_cam"][k], dtype=float) for k in ("R", "t"))
+        frame = f"{name}_optical_frame"
+        extra = "".join(f"  <link name={quoteattr(f)}/>\n" for f in dict.fromkeys((entry["link"], frame)) if f not in links)
+        links |= {entry["link"], frame}
+        urdf = urdf.replace("</robot>\n", extra + urdf_joint(R_lc, t_lc, entry["link"], frame) + "</robot>\n")
     if "target" in mounts:  # the target's estimated mount too (docs/formats.md "Robot arms")
         target = mounts["target"]
         R_lt, t_lt = (np.asarray(target["T_link_target"][k], dtype=float) for k in ("R", "t"))
-        links = {base_frame, camera_frame}
         extra = "".join(f"  <link name={quoteattr(f)}/>\n" for f in (target["link"], "calibration_target") if f not in links)
         urdf = urdf.replace("</robot>\n", extra + urdf_joint(R_lt, t_lt, target["link"], "calibration_target") + "</robot>\n")
     return {os.fspath(yaml_path): _yaml_text(content, header), os.fspath(urdf_path): urdf}

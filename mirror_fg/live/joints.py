@@ -20,20 +20,27 @@ mirror was moved: it begins the next placement (so move the mirror with the arm 
 placement before, e.g. its last). Once three placements hold three arm poses each, every added frame
 re-solves the arm (``solver/batch/robot_solve.py``) and the camera mount's 3-sigma is the record's bound.
 Radians (metres for prismatic joints), pixels, seconds.
+
+**Saved and served** (``--save``, ``--serve``): each added frame goes to ``on_added`` with its placement
+and joint states (``live/save.py`` keeps them in the folder's ``joints.csv``); with ``picture`` the page's
+state (``live/session.LiveState``) is made after each frame: the record, the camera mount's 3-sigma, arm
+poses per placement, each placement's tilt in the camera's frame and the next step in words.
 """
 from __future__ import annotations
 
 import csv
 import io
+import json
 import time
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError, MirrorFgError, SolveError
 from mirror_fg.io.capture import Capture
 from mirror_fg.io.joint_table import JointTable, parse_header, parse_row
-from mirror_fg.live.session import MIN_FIDUCIALS, MOTION_PX, SAME_PLACEMENT_PX, FrameRecord, _mean_distance
+from mirror_fg.live.session import (MIN_FIDUCIALS, MOTION_PX, SAME_PLACEMENT_PX, FrameRecord, LiveState, _mean_distance,
+                                    next_state)
 
 __all__ = ["JointStream", "LiveArmSession", "frame_key", "WAIT_S", "JOINT_STILL"]
 
@@ -138,7 +145,8 @@ class LiveArmSession:
     """A live session of an arm (module docstring): frames with joint states from a growing CSV."""
 
     def __init__(self, capture: Capture, *, target_mm: float | None = None, target_deg: float | None = None,
-                 wait_s: float = WAIT_S, detect: Any = None, source: Any = None):
+                 wait_s: float = WAIT_S, detect: Any = None, source: Any = None,
+                 on_added: Callable[[int, np.ndarray, dict[str, Any]], None] | None = None, picture: bool = False):
         fields = capture.robot
         if not fields:
             raise DatasetError(f"{capture.source}: a live session of an arm needs robot and joints: {{file: ...}}")
@@ -165,6 +173,15 @@ class LiveArmSession:
         self.counts: dict[str, int] = {}
         self.done = False
         self.began: float | None = None
+        #: Called with each added frame, its picture and its ``{mirror_configs, joints}`` (``--save``).
+        self.on_added = on_added
+        #: The page's state (``--serve``), made after each frame where ``picture``.
+        self.picture = picture
+        self.state = LiveState()
+        self._last_picture = 0.0
+        self._shown: dict[str, np.ndarray] = {}
+        self._joints_now: dict[str, float] | None = None
+        self._solved: Any = None  # the dataset of the last estimate
 
     # --- per frame ---------------------------------------------------------------------------------
 
@@ -176,17 +193,23 @@ class LiveArmSession:
             self.camera_dict.update(width=gray.shape[1], height=gray.shape[0])
         if key is None and self.source is not None:
             key = frame_key(self.source, index)
+        self._shown, self._joints_now = {}, None
         status, reason = self._judge(index, gray, key)
         self.counts[status] = self.counts.get(status, 0) + 1
-        return FrameRecord(index, now - self.began, status, reason, self.placement + 1 if self.images else 0,
-                           self.sigma3, None, self.done)
+        record = FrameRecord(index, now - self.began, status, reason, self.placement + 1 if self.images else 0,
+                             self.sigma3, None, self.done)
+        if self.picture:
+            self._publish(record, gray)
+        return record
 
     def _judge(self, index: int, gray: np.ndarray, key: str | float | None) -> tuple[str, str]:
         joints, note = self.stream.lookup(key, f"frame{index:06d}")
         if joints is None:
             return "skipped", note
+        self._joints_now = joints
         detection = self.detect(gray)
         points = {n: np.asarray(p, float) for n, p in detection.points.items() if n in self.fiducials}
+        self._shown = points
         previous, self.previous = self.previous, (joints, points)
         if len(points) < MIN_FIDUCIALS:
             return "not found", detection.reason or f"{len(points)} fiducials found, {MIN_FIDUCIALS} needed"
@@ -207,6 +230,8 @@ class LiveArmSession:
         self.images.append({"id": image_id, "mirror_configs": [self.placement], "joints": joints,
                             "observations": {n: [float(p[0]), float(p[1])] for n, p in points.items()},
                             "_joints": joints, "_points": points})
+        if self.on_added is not None:  # e.g. --save: the frame and its joint states are written now
+            self.on_added(index, gray, {"mirror_configs": [self.placement], "joints": dict(joints)})
         return "added", self._update()
 
     def _counts(self) -> list[int]:
@@ -220,11 +245,12 @@ class LiveArmSession:
                     f"each (this placement: {counts[-1]}); move the arm, then, with the arm still, the mirror")
         from mirror_fg.solver.batch.robot_solve import calibrate_robot
 
+        dataset = self.dataset()
         try:
-            calibration = calibrate_robot(self.dataset())
+            calibration = calibrate_robot(dataset)
         except MirrorFgError as error:
             return f"no estimate yet: {error}"
-        self.calibration = calibration
+        self.calibration, self._solved = calibration, dataset
         entry = (calibration.robot or {}).get("mounts", {}).get("camera")
         if entry is not None and "sigma3" in entry:
             self.sigma3 = entry["sigma3"]
@@ -246,6 +272,51 @@ class LiveArmSession:
         if fields["mounts"] is not None:
             data["mounts"] = fields["mounts"]
         return dataset_from_dict(data, source=self.capture.source)
+
+    # --- the page's state (--serve) ------------------------------------------------------------------
+
+    def _publish(self, record: FrameRecord, gray: np.ndarray) -> None:
+        status = json.loads(record.to_json())
+        counts = self._counts() if self.images else []
+        status.update(targets={"mm": self.target_mm, "deg": self.target_deg}, placements_tilt=self._placement_tilts(),
+                      current_tilt=None, counts=dict(self.counts), next_words=self._next_words(counts),
+                      arm={"poses": counts, "joints": self._joints_now})
+        self.state, self._last_picture = next_state(self.state, status, gray, self._shown, self._last_picture)
+
+    def _next_words(self, counts: list[int]) -> str:
+        """What to do next, in words (the page's "next" line)."""
+        if not counts or counts[-1] < MIN_POSES:
+            have = counts[-1] if counts else 0
+            return (f"move the arm to a new pose and hold it still ({have} of {MIN_POSES} arm poses at this mirror "
+                    "placement)")
+        return ("move the arm to a new pose and hold it still, or, with the arm still, move the mirror to a new "
+                f"placement ({len(counts)} so far; {MIN_PLACEMENTS} with {MIN_POSES} arm poses each start the estimate)")
+
+    def _placement_tilts(self) -> list[tuple[float, float]]:
+        """(tilt, azimuth) in degrees of each placement the estimate holds, in the camera's frame at the last
+        arm pose of that placement (``robot_views``: ``v_c = (d - n . t_C) R_C^T n``, ``C = F_c(q) M_c``)."""
+        if self.calibration is None or self._solved is None:
+            return []
+        from mirror_fg.factors.robot import compose
+        from mirror_fg.live.session import _tilt
+
+        setup = self._solved.robot
+        mount = setup.mounts["camera"].known
+        entry = (self.calibration.robot or {}).get("mounts", {}).get("camera")
+        if entry is not None:
+            mount = (np.array(entry["T_link_cam"]["R"], float), np.array(entry["T_link_cam"]["t"], float))
+        link = setup.mounts["camera"].link
+        tilts = []
+        for (_, m), v in sorted(self.calibration.mirror_vectors.items()):
+            last = [im for im in self.images if im["mirror_configs"] == [m]]
+            if not last or mount is None:
+                continue
+            F = setup.kinematics.placements(last[-1]["_joints"], [link])[link][0]
+            R_C, t_C = compose((F[:3, :3], F[:3, 3]), mount)
+            d = float(np.linalg.norm(v))
+            n = np.asarray(v, float) / d
+            tilts.append(_tilt((d - float(n @ t_C)) * (R_C.T @ n)))
+        return tilts
 
     # --- the end -----------------------------------------------------------------------------------
 

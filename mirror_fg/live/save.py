@@ -27,10 +27,12 @@ import numpy as np
 from mirror_fg.core.errors import DatasetError, OutputError
 from mirror_fg.io.output import OutputPlan, atomic_write, same_file
 
-__all__ = ["LiveOutputs", "SessionFolder", "plan_live_outputs", "SAVED_CAPTURE", "FRAME_NAME"]
+__all__ = ["LiveOutputs", "SessionFolder", "plan_live_outputs", "SAVED_CAPTURE", "SAVED_JOINTS", "FRAME_NAME"]
 
 #: The capture@1 a saved session writes in its folder.
 SAVED_CAPTURE = "capture.yaml"
+#: The joint states of a robot arm's saved frames (an ``image`` column naming each frame, then the joints).
+SAVED_JOINTS = "joints.csv"
 #: The name of a saved frame: the index of the frame in the source.
 FRAME_NAME = re.compile(r"frame[0-9]{6,}\.png")
 _HEADER = "# Written by mirror-fg live: the frames it used, one placement each.\n"
@@ -58,10 +60,15 @@ def _inside(path: str, folder: str) -> bool:
 class SessionFolder:
     """``--save DIR``: the frames used, each written as it is added, and the capture@1 that repeats them."""
 
-    def __init__(self, folder: str, capture_data: dict[str, Any], camera: dict[str, Any]):
+    def __init__(self, folder: str, capture_data: dict[str, Any], camera: dict[str, Any],
+                 robot: dict[str, Any] | None = None):
         self.folder = folder
         self.capture = {key: value for key, value in capture_data.items() if key not in ("images", "video", "track")}
         self.camera = camera  # the session's camera dictionary (its size is known once the first frame is read)
+        #: A robot arm's capture fields (``io.robot_capture.capture_robot_fields``: its URDF's absolute path):
+        #: each frame's joint states are kept in ``joints.csv`` beside it, matched by the frame's file name.
+        self.robot = robot
+        self.joints: list[dict[str, float]] = []
         self.images: list[dict[str, Any]] = []
         self.written: list[str] = []
         self.finished = False
@@ -85,8 +92,9 @@ class SessionFolder:
         except OSError as error:
             raise DatasetError(f"--save {folder}: cannot read the folder: {error.strerror or error}") from None
 
-    def add(self, frame: int, gray: np.ndarray) -> None:
-        """Write one used frame, then the capture naming every frame so far (still ``incomplete``)."""
+    def add(self, frame: int, gray: np.ndarray, image: dict[str, Any] | None = None) -> None:
+        """Write one used frame, then the capture naming every frame so far (still ``incomplete``). ``image``:
+        the frame's ``mirror_configs`` (default: a placement of its own) and, of an arm, its ``joints``."""
         if not self.images:
             try:
                 os.makedirs(self.folder, exist_ok=True)
@@ -99,7 +107,10 @@ class SessionFolder:
         path = os.path.join(self.folder, name)
         atomic_write(path, png.tobytes())
         self.written.append(path)
-        self.images.append({"file": name, "mirror_configs": [len(self.images)]})
+        image = image or {}
+        self.images.append({"file": name, "mirror_configs": list(image.get("mirror_configs", [len(self.images)]))})
+        if self.robot is not None:
+            self.joints.append(dict(image["joints"]))
         self._write_capture(incomplete=True)
 
     def finish(self) -> list[str]:
@@ -121,7 +132,26 @@ class SessionFolder:
                     **data}
         data["camera"] = self.camera
         data["images"] = self.images
+        if self.robot is not None:  # an arm: the frames' joint states, then the capture naming them
+            self._write_joints()
+            urdf = os.path.relpath(self.robot["robot"]["urdf"], os.path.abspath(self.folder))
+            data["robot"] = {**data.get("robot", {}), "urdf": urdf}
+            data["joints"] = {"file": SAVED_JOINTS}
         atomic_write(os.path.join(self.folder, SAVED_CAPTURE), _HEADER + yaml.safe_dump(data, sort_keys=False))
+
+    def _write_joints(self) -> None:
+        """``joints.csv``: an ``image`` column (each saved frame's file name) and the joints, every value as
+        Python writes it exactly (``repr``), so that the folder calibrates again to the same answer."""
+        import csv
+        import io
+
+        names = list(self.joints[0])
+        text = io.StringIO()
+        rows = csv.writer(text, lineterminator="\n")
+        rows.writerow(["image", *names])
+        for image, joints in zip(self.images, self.joints):
+            rows.writerow([image["file"], *(repr(float(joints[n])) for n in names)])
+        atomic_write(os.path.join(self.folder, SAVED_JOINTS), text.getvalue().encode("utf-8"))
 
 
 @dataclass
@@ -187,10 +217,10 @@ def plan_live_outputs(capture: str, source: str, inputs: list[str], output: str 
         for path, role in plan.outputs.items():
             if _inside(save, path) and not same_file(save, path):
                 raise DatasetError(f"--save {save}: lies under the {role} {path}")
-            if same_file(path, save) or (_inside(path, save) and (os.path.basename(path) == SAVED_CAPTURE
+            if same_file(path, save) or (_inside(path, save) and (os.path.basename(path) in (SAVED_CAPTURE, SAVED_JOINTS)
                                                                    or FRAME_NAME.fullmatch(os.path.basename(path)))):
                 raise DatasetError(f"{path}: the {role} would be written over by --save {save} (its "
-                                   f"{SAVED_CAPTURE} and frameNNNNNN.png); choose another name")
+                                   f"{SAVED_CAPTURE}, {SAVED_JOINTS} and frameNNNNNN.png); choose another name")
         for path in files:
             if _inside(path, save):
                 raise DatasetError(f"--save {save}: holds the input {path}; give a new or empty folder")

@@ -39,7 +39,7 @@ from mirror_fg.solver.information.suggest import Reach, Suggestion
 from mirror_fg.vision.detect import _Detector
 from mirror_fg.vision.detectors import FOUND
 
-__all__ = ["LiveSession", "FrameRecord", "MOTION_PX", "SAME_PLACEMENT_PX", "BLUR_FRACTION"]
+__all__ = ["LiveSession", "FrameRecord", "LiveState", "next_state", "MOTION_PX", "SAME_PLACEMENT_PX", "BLUR_FRACTION"]
 
 #: Mean corner motion (pixels) between consecutive frames above which the mirror is moving.
 MOTION_PX = 1.5
@@ -295,16 +295,7 @@ class LiveSession:
                       current_tilt=self.current_tilt, counts=dict(self.counts),
                       next_words=self.suggestion.words(max(self.sigma3["position_mm"])) if (
                           self.suggestion is not None and self.sigma3 is not None) else None)
-        now = time.monotonic()
-        jpeg = self.state.jpeg
-        if now - self._last_picture > 0.1 or not jpeg:  # at most ~10 pictures a second
-            picture = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
-            colour = (0, 200, 0) if record.status == "added" else (0, 200, 255) if record.status == "skipped" else (0, 0, 255)
-            for p in points.values():
-                cv2.circle(picture, (int(round(p[0])), int(round(p[1]))), 4, colour, 2)
-            jpeg = cv2.imencode(".jpg", picture, [cv2.IMWRITE_JPEG_QUALITY, 80])[1].tobytes()
-            self._last_picture = now
-        self.state = LiveState(self.state.seq + 1, status, jpeg)
+        self.state, self._last_picture = next_state(self.state, status, gray, points, self._last_picture)
 
     # --- the end -----------------------------------------------------------------------------------
 
@@ -319,6 +310,24 @@ class LiveSession:
     def summary(self) -> str:
         counts = ", ".join(f"{n} {status}" for status, n in sorted(self.counts.items()))
         return f"{sum(self.counts.values())} frames: {counts}; {len(self.added)} placements"
+
+def next_state(state: LiveState, status: dict, gray: np.ndarray, points: dict[str, np.ndarray],
+               last_picture: float) -> tuple[LiveState, float]:
+    """The page's next :class:`LiveState` after a frame whose ``status`` (a record's JSON and the page's
+    fields) and detections ``points`` are given, and the time of its picture: a new picture (the frame with
+    its detections, green added, orange skipped, red otherwise) at most ~10 times a second."""
+    now = time.monotonic()
+    jpeg = state.jpeg
+    if now - last_picture > 0.1 or not jpeg:  # at most ~10 pictures a second
+        picture = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
+        kind = status.get("status")
+        colour = (0, 200, 0) if kind == "added" else (0, 200, 255) if kind == "skipped" else (0, 0, 255)
+        for p in points.values():
+            cv2.circle(picture, (int(round(p[0])), int(round(p[1]))), 4, colour, 2)
+        jpeg = cv2.imencode(".jpg", picture, [cv2.IMWRITE_JPEG_QUALITY, 80])[1].tobytes()
+        last_picture = now
+    return LiveState(state.seq + 1, status, jpeg), last_picture
+
 
 def _tilt(mirror_vector: np.ndarray) -> tuple[float, float]:
     """Tilt from the optical axis and azimuth in the image (degrees) of a mirror vector (camera frame)."""

@@ -22,20 +22,24 @@ __all__ = ["robot_residuals", "figure_arm", "ARM_POSES_DRAWN"]
 
 #: Arm poses drawn at most (evenly spread over the images).
 ARM_POSES_DRAWN = 12
-KEYS = {"camera": "T_link_cam", "target": "T_link_target"}
 
 
 def _estimate(result: Mapping[str, Any], dataset: Dataset, source: str):
     from mirror_fg.io.result import mirror_vectors
-    from mirror_fg.solver.model.robot_views import RobotEstimate, RobotProblem
+    from mirror_fg.io.robot_fields import pose_from_dict
+    from mirror_fg.solver.model.robot_views import RobotEstimate, RobotProblem, camera_name, is_camera, mount_words
 
     problem = RobotProblem(dataset)
     mounts = dict(problem.known)
+    given = result.get("mounts") or {}
     for role in problem.mount_keys:
-        entry = (result.get("mounts") or {}).get(role)
+        name = camera_name(role)
+        entry = given.get(role) if name is None else (given.get("cameras") or {}).get(name)
+        where = f"mounts.{role}" if name is None else f"mounts.cameras.{name}"
         if entry is None:
-            raise DatasetError(f"{source} has no {role} mount for {dataset.source} (mounts.{role})")
-        mounts[role] = (np.array(entry[KEYS[role]]["R"], float), np.array(entry[KEYS[role]]["t"], float))
+            raise DatasetError(f"{source} has no {mount_words(role)} for {dataset.source} ({where})")
+        key = "T_link_cam" if is_camera(role) else "T_link_target"
+        mounts[role] = pose_from_dict(entry.get(key) if isinstance(entry, Mapping) else entry, f"{source}: {where}.{key}")
     vectors = {p: v for p, v in mirror_vectors(result).items()}
     missing = [p for p in problem.placements if p not in vectors]
     if missing:
@@ -87,7 +91,7 @@ def figure_arm(result: Mapping[str, Any], dataset: Dataset) -> Any:
     for k in drawn:
         image, factor = dataset.images[k], problem.factors[k]
         state = factor.poses(problem.values(estimate))
-        for role in ("camera", "target"):
+        for role in (problem.role_of(image), "target"):
             chain = kin.chain_links(problem.links[role])
             placed = kin.placements(image.joints, chain)
             xyz = np.array([placed[link][0][:3, 3] for link in chain])

@@ -17,9 +17,15 @@ def _numbers(values, digits: int) -> str:
 def mount_lines(result: Mapping[str, Any]) -> list[str]:
     """Lines for ``mounts`` and ``joint_offsets`` (none without them)."""
     lines = []
-    for role, entry in (result.get("mounts") or {}).items():
+    mounts = dict(result.get("mounts") or {})
+    cameras = mounts.pop("cameras", None) or {}
+    if cameras:  # several cameras: each under its name (mounts.camera repeats the first's)
+        mounts.pop("camera", None)
+    entries = [(f"the camera {name!r}", "camera", entry) for name, entry in cameras.items()]
+    entries += [(f"the {role}", role, entry) for role, entry in mounts.items()]
+    for words, role, entry in entries:
         pose = entry[KEYS[role]]
-        lines.append(f"{KEYS[role]}  the {role} on link {entry['link']}: t {_numbers(pose['t'], 5)} m, "
+        lines.append(f"{KEYS[role]}  {words} on link {entry['link']}: t {_numbers(pose['t'], 5)} m, "
                      f"q_xyzw {_numbers(pose['q_xyzw'], 6)}")
         sigma3 = entry.get("sigma3")
         if sigma3:

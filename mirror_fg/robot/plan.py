@@ -36,23 +36,27 @@ def _sigma3(covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def arm_bounds(robot: str, eye_in_hand: bool, placements: int, arm_poses: int, pixel_sigma: float,
-               draws: int = 3, seed: int = 0, folder: str | None = None) -> dict:
+               draws: int = 3, seed: int = 0, folder: str | None = None, cameras: int = 1) -> dict:
     """``{mount: {"rotation_deg": [3], "position_mm": [3]}}``: each unknown mount's 3-sigma (Cramer-Rao, at
-    the truth) of a simulated set-up, averaged over ``draws`` scenes."""
+    the truth) of a simulated set-up, averaged over ``draws`` scenes; ``cameras`` > 1: that many cameras
+    (``simulate_arm``'s), their mounts ``camera:cam0``, ``camera:cam1``, ..."""
     import tempfile
 
     from mirror_fg.io.dataset import load_dataset
     from mirror_fg.robot.simulate import simulate_arm, write_arm_simulation
-    from mirror_fg.solver.model.robot_views import RobotEstimate, RobotProblem
+    from mirror_fg.solver.model.robot_views import RobotEstimate, RobotProblem, camera_role
 
     sums: dict[str, np.ndarray] = {}
     with tempfile.TemporaryDirectory(dir=folder) as where:
         for draw in range(draws):
-            dataset, truth = simulate_arm(robot, eye_in_hand, placements, arm_poses, pixel_sigma, seed=seed + draw)
+            dataset, truth = simulate_arm(robot, eye_in_hand, placements, arm_poses, pixel_sigma, seed=seed + draw,
+                                          cameras=cameras)
             path = os.path.join(where, f"plan{draw}.json")
             write_arm_simulation(path, dataset, truth)
             problem = RobotProblem(load_dataset(path))
-            at_truth = RobotEstimate({r: pose for r, (_, pose) in truth.mounts.items()}, dict(truth.mirror_vectors))
+            mounts = {r: pose for r, (_, pose) in truth.mounts.items()}
+            mounts.update({camera_role(n): pose for n, (_, pose) in truth.cameras.items()})
+            at_truth = RobotEstimate(mounts, dict(truth.mirror_vectors))
             information, columns = problem.information(problem.graph(), problem.values(at_truth))
             covariance = problem.covariances(np.linalg.inv(information), columns, at_truth)
             for role, C in covariance["mounts"].items():

@@ -15,6 +15,7 @@ import json
 import math
 import os
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -32,6 +33,9 @@ NOMINAL = {
 #: The tool link of each test arm.
 TOOL_LINK = {"arm6": "tool0", "panda": "panda_hand"}
 CAMERA = Camera(width=1024, height=768, fx=800.0, fy=800.0, cx=512.0, cy=384.0)
+#: Several cameras: camera k stands ``RIG_STEP * k`` metres along the first's -x axis, turned ``RIG_TURN_DEG * k``
+#: degrees about its y axis (towards the first's view of the mirror).
+RIG_STEP, RIG_TURN_DEG = 0.1, 4.0
 
 
 @dataclass
@@ -43,6 +47,8 @@ class ArmTruth:
     mounts: dict[str, tuple[str, tuple[np.ndarray, np.ndarray]]]
     mirror_vectors: dict[tuple[int, int], np.ndarray]
     joint_offsets: dict[str, float] = field(default_factory=dict)
+    #: Several cameras: ``{name: (link, T_link_cam)}`` in order (``mounts["camera"]`` is the first's); else empty.
+    cameras: dict[str, tuple[str, tuple[np.ndarray, np.ndarray]]] = field(default_factory=dict)
 
 
 def _rot(axis, angle: float) -> np.ndarray:
@@ -83,7 +89,8 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
                  pixel_sigma: float = 0.5, joint_offsets_deg: dict[str, float] | None = None,
                  seed: int = 0, spread_rad: float = 0.25, estimate_offsets: bool = True,
                  moving: tuple[str, ...] | None = None, direct: bool = False, direct_distance: float = 0.9,
-                 mirror_distance: tuple[float, float] = (0.45, 0.6), mirror_tilt_deg: tuple[float, float] = (6.0, 14.0)):
+                 mirror_distance: tuple[float, float] = (0.45, 0.6), mirror_tilt_deg: tuple[float, float] = (6.0, 14.0),
+                 cameras: int = 1, camera_links: tuple[str, ...] = ()):
     """A dataset@1 dictionary (its ``robot.urdf`` the arm's file name) and its :class:`ArmTruth`.
 
     ``arm_poses`` images per placement; ``joint_offsets_deg``: true encoder offsets, recorded joints are
@@ -92,7 +99,11 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
     no mirror, the camera sees the board ``direct_distance`` metres ahead (a direct-view hand-eye calibration,
     for comparison): ``arm_poses`` images in all. ``mirror_distance`` (metres from the camera) and
     ``mirror_tilt_deg`` (the plane's normal from the camera's optical axis, each placement turned a further
-    third of a turn about it): the ranges each placement is drawn from."""
+    third of a turn about it): the ranges each placement is drawn from. ``cameras`` > 1: a dataset with
+    ``cameras`` ``cam0``, ``cam1``, ... and ``mounts.cameras``: the first camera where one camera would be,
+    camera k ``RIG_STEP`` further along its x axis (turned towards the others), on ``camera_links[k - 1]``
+    where given (else the first camera's link); at each arm pose every camera that sees the target through
+    the mirror takes an image, ``arm_poses`` per camera and placement."""
     from mirror_fg.robot.kinematics import load_kinematics
 
     rng = np.random.default_rng(seed)
@@ -102,6 +113,7 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
     tool = TOOL_LINK[robot]
     F0 = kin.placements(dict(zip(names, q0)), [tool])[tool][0]
     F0 = (F0[:3, :3], F0[:3, 3])
+    camera_mounts: dict = {}
     # in the camera's frame at the nominal pose, the board facing the mirrors (pattern normal -z_target):
     # eye-in-hand, the fixed board beside the wrist camera; eye-to-hand, the board on the tool held 0.3 m in
     # front of the camera and 0.15 m to its side (clear of its view of the mirror), as a user sets it up
@@ -118,6 +130,17 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
         D = compose(F0, mount_target)
         C = compose(D, inverse(T_cam_target))
         mounts = {"camera": (kin.base_link, C), "target": (tool, mount_target)}
+    if cameras > 1:
+        F_nominal = kin.placements(dict(zip(names, q0)), list(dict.fromkeys([tool, kin.base_link, *camera_links])))
+        for k in range(cameras):
+            link = camera_links[k - 1] if 0 < k <= len(camera_links) else mounts["camera"][0]
+            beside = (_rot([0, 1, 0], math.radians(RIG_TURN_DEG) * k), np.array([-RIG_STEP * k, 0.01 * k, 0.0]))
+            pose = compose(C, beside)
+            F = F_nominal[link][0]
+            mounts_k = compose(inverse((F[:3, :3], F[:3, 3])), pose)
+            if k == 0:
+                mounts["camera"] = (link, mounts_k)
+            camera_mounts[f"cam{k}"] = (link, mounts_k)
     # mirror placements, camera frame at the nominal pose: by default 0.45-0.6 m ahead, tilted 6-14 degrees
     mirrors_cam = []
     for k in range(placements):
@@ -137,13 +160,16 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
     board = _board()
     points = np.array(list(board.values())).T
     images, truth_joints = [], []
+    roles = list(camera_mounts) if camera_mounts else ["camera"]
+    links = list(dict.fromkeys([tool, kin.base_link, *(link for link, _ in camera_mounts.values())]))
     for k in range(1 if direct else placements):
         v_B = None if direct else mirror_vectors[(1, k)]
-        found, tries = 0, 0
-        while found < arm_poses:
+        found = dict.fromkeys(roles, 0)
+        tries = 0
+        while min(found.values()) < arm_poses:
             tries += 1
-            if tries > 2000:
-                raise RuntimeError(f"no visible arm pose for placement {k} after 2000 tries")
+            if tries > 2000 * len(roles):
+                raise RuntimeError(f"no visible arm pose for placement {k} after {tries - 1} tries")
             step = rng.uniform(-spread_rad, spread_rad, len(q0))
             if moving is not None:
                 step *= np.array([n in moving for n in names], float)
@@ -151,48 +177,72 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
             info = [kin.joints[n] for n in names]
             if any(i.lower is not None and i.upper is not None and not i.lower <= x <= i.upper for i, x in zip(info, q)):
                 continue
-            F = kin.placements(dict(zip(names, q)), list({tool, kin.base_link}))
-            poses = {}
-            for role, (link, mount) in mounts.items():
-                T = F[link][0]
-                poses[role] = compose((T[:3, :3], T[:3, 3]), mount)
-            x_B = poses["target"][0] @ points + poses["target"][1][:, None]
-            if v_B is None:
-                R, t = inverse(poses["camera"])
-                x_cam = R @ x_B + t[:, None]
-                facing = -poses["target"][0][:, 2] @ (poses["camera"][1] - poses["target"][1])
-                if np.any(x_cam[2] < 0.2) or facing <= 0.2 * np.linalg.norm(poses["camera"][1] - poses["target"][1]):
-                    continue
-            elif not _seen_in_mirror(poses, x_B, v_B):
-                continue
-            else:
-                R, t = inverse(poses["camera"])
-                x_cam = R @ _reflect(x_B, v_B) + t[:, None]  # eq. (3)
-            pix = (CAMERA.K @ (x_cam / x_cam[2]))[:2].T
-            if not CAMERA.contains(pix).all() or np.any((pix < 20) | (pix > [CAMERA.width - 20, CAMERA.height - 20])):
-                continue
-            pix = pix + rng.normal(0.0, pixel_sigma, pix.shape)
             recorded = {n: float(x - delta.get(n, 0.0)) for n, x in zip(names, q)}
-            if any(i.lower is not None and i.upper is not None and not i.lower <= recorded[n] <= i.upper
-                   for n, i in zip(names, info)):
-                continue
-            images.append({"id": f"p{k}_{found:03d}", **({"reflections": []} if direct else {"mirror_configs": [k]}),
-                           "joints": recorded,
-                           "observations": {name: [float(u), float(w)] for name, (u, w) in zip(board, pix)}})
-            truth_joints.append(q)
-            found += 1
+            F = kin.placements(dict(zip(names, q)), links)
+            F_t = F[mounts["target"][0]][0]
+            target = compose((F_t[:3, :3], F_t[:3, 3]), mounts["target"][1])
+            x_B = target[0] @ points + target[1][:, None]
+            for role in roles:
+                if found[role] >= arm_poses:
+                    continue
+                link, mount = camera_mounts[role] if camera_mounts else mounts["camera"]
+                F_c = F[link][0]
+                poses = {"camera": compose((F_c[:3, :3], F_c[:3, 3]), mount), "target": target}
+                pix = _observe(poses, x_B, v_B)
+                if pix is None:
+                    continue
+                pix = pix + rng.normal(0.0, pixel_sigma, pix.shape)
+                if any(i.lower is not None and i.upper is not None and not i.lower <= recorded[n] <= i.upper
+                       for n, i in zip(names, info)):
+                    break  # the recorded joints out of their limits (the noise drawn as before: the same scenes)
+                count = found[role]
+                images.append({"id": f"p{k}_{count:03d}" if not camera_mounts else f"p{k}_{role}_{count:03d}",
+                               **({"camera": role} if camera_mounts else {}),
+                               **({"reflections": []} if direct else {"mirror_configs": [k]}), "joints": recorded,
+                               "observations": {name: [float(u), float(w)] for name, (u, w) in zip(board, pix)}})
+                truth_joints.append(q)
+                found[role] += 1
     robot_entry: dict = {"urdf": f"{robot}.urdf", "base_link": kin.base_link}
     if delta and estimate_offsets:
         robot_entry["joint_offsets"] = {"estimate": list(delta), "prior_sigma_deg": 2.0}
     link_c, _ = mounts["camera"]
     link_t, _ = mounts["target"]
+    camera_entries: dict[str, Any]
+    camera_entries_mounts: dict[str, Any]
+    if camera_mounts:  # several cameras: each its own intrinsics entry and mount
+        camera_entries = {"cameras": {role: camera_to_dict(CAMERA) for role in camera_mounts}}
+        camera_entries_mounts = {"cameras": {role: {"link": link} for role, (link, _) in camera_mounts.items()}}
+    else:
+        camera_entries = {"camera": camera_to_dict(CAMERA)}
+        camera_entries_mounts = {"camera": {"link": link_c}}
     dataset = {
-        "format": "mirror-fg/dataset@1", "num_mirrors": 1, "camera": camera_to_dict(CAMERA),
+        "format": "mirror-fg/dataset@1", "num_mirrors": 1, **camera_entries,
         "pixel_sigma": pixel_sigma, "fiducials": {n: [float(x) for x in p] for n, p in board.items()},
-        "robot": robot_entry, "mounts": {"camera": {"link": link_c}, "target": {"link": link_t}},
+        "robot": robot_entry, "mounts": {**camera_entries_mounts, "target": {"link": link_t}},
         "images": images,
     }
-    return dataset, ArmTruth(robot, mounts, {} if direct else mirror_vectors, delta)
+    return dataset, ArmTruth(robot, mounts, {} if direct else mirror_vectors, delta, camera_mounts)
+
+
+def _observe(poses, x_B: np.ndarray, v_B: np.ndarray | None) -> np.ndarray | None:
+    """The pixels (N, 2) of the target points ``x_B`` ({B}) seen by the camera at ``poses["camera"]`` through
+    the plane of ``v_B`` (None: directly, the board facing the camera), or None where not all are seen well
+    inside the image."""
+    if v_B is None:
+        R, t = inverse(poses["camera"])
+        x_cam = R @ x_B + t[:, None]
+        facing = -poses["target"][0][:, 2] @ (poses["camera"][1] - poses["target"][1])
+        if np.any(x_cam[2] < 0.2) or facing <= 0.2 * np.linalg.norm(poses["camera"][1] - poses["target"][1]):
+            return None
+    elif not _seen_in_mirror(poses, x_B, v_B):
+        return None
+    else:
+        R, t = inverse(poses["camera"])
+        x_cam = R @ _reflect(x_B, v_B) + t[:, None]  # eq. (3)
+    pix = (CAMERA.K @ (x_cam / x_cam[2]))[:2].T
+    if not CAMERA.contains(pix).all() or np.any((pix < 20) | (pix > [CAMERA.width - 20, CAMERA.height - 20])):
+        return None
+    return pix
 
 
 def _pose_dict(pose) -> dict:
@@ -204,7 +254,10 @@ def truth_to_dict(truth: ArmTruth) -> dict:
     keys = {"camera": "T_link_cam", "target": "T_link_target"}
     return {
         "format": "mirror-fg/truth@1", "robot": truth.robot,
-        "mounts": {role: {"link": link, keys[role]: _pose_dict(pose)} for role, (link, pose) in truth.mounts.items()},
+        "mounts": {**{role: {"link": link, keys[role]: _pose_dict(pose)} for role, (link, pose) in truth.mounts.items()
+                      if not (truth.cameras and role == "camera")},
+                   **({"cameras": {name: {"link": link, "T_link_cam": _pose_dict(pose)}
+                                   for name, (link, pose) in truth.cameras.items()}} if truth.cameras else {})},
         "mirrors": [{"mirror": l, "config": m, "v": np.asarray(v, float).tolist(), "frame": "base_link"}
                     for (l, m), v in sorted(truth.mirror_vectors.items())],
         "joint_offsets": {n: {"offset_deg": math.degrees(x)} for n, x in truth.joint_offsets.items()},

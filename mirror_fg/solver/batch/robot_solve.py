@@ -25,8 +25,8 @@ from mirror_fg.solver.options import STAGES, SolveOptions
 from mirror_fg.solver.pipeline import run_pipeline
 from mirror_fg.solver.screen.rechecks import Checked, Rechecked
 from mirror_fg.solver.result.builder import Label, build_calibration
-from mirror_fg.solver.start.robot_start import arm_start, triangulate
-from mirror_fg.solver.model.robot_views import RobotEstimate, RobotProblem, camera_base_pose
+from mirror_fg.solver.start.robot_start import arm_start, camera_from_planes, triangulate
+from mirror_fg.solver.model.robot_views import RobotEstimate, RobotProblem, camera_base_pose, camera_name, is_camera, mount_words
 
 __all__ = ["calibrate_robot", "solve_robot", "RobotSolution", "start_estimate", "UNDETERMINED_RATIO"]
 
@@ -59,40 +59,101 @@ def _affine(pose) -> np.ndarray:
 def start_estimate(problem: RobotProblem, max_starts: int = 1, minima: dict | None = None) -> list[RobotEstimate]:
     """The analytical starts (``robot_start.arm_start``; the first, and restarts), joint offsets at zero,
     reconstruction points triangulated through each. ``minima``: the screen's PnP minima
-    (``consensus.ImageChecks.minima``), each used where the image still has the very fiducials it had."""
+    (``consensus.ImageChecks.minima``), each used where the image still has the very fiducials it had.
+    With several cameras each camera's images give their own start as one camera's would; each such start
+    gives the target mount and the planes, the other cameras placed in them (:func:`_joined`; a camera
+    without a start of its own too: neither it nor the target on the base link, or too few arm poses), and
+    the joined starts are tried best-fitting first."""
+    dataset = problem.dataset
+    starts: dict[str, list] = {}
+    failures: dict[str, SolveError] = {}
+    for role in problem.camera_roles.values():
+        try:
+            starts[role] = _camera_starts(problem, role, max_starts, minima)
+        except SolveError as error:
+            if len(problem.camera_roles) == 1:
+                raise
+            failures[role] = error
+    if not starts:
+        raise next(iter(failures.values()))
+    estimates = []
+    for k in range(max(len(s) for s in starts.values())):
+        chosen = {role: s[min(k, len(s) - 1)] for role, s in starts.items()}
+        for reference in chosen:  # one camera's start, the others placed in its planes (a consistent start)
+            estimates.append(_joined(problem, reference, chosen, failures, minima))
+    if len(problem.camera_roles) > 1:  # several cameras: the joined start that fits best first
+        graph = problem.graph()
+        estimates.sort(key=lambda e: float(graph.error(problem.values(e))))
+    return estimates[:max(max_starts, 1)]
+
+
+def _joined(problem: RobotProblem, reference: str, chosen: dict, failures: dict, minima: dict | None) -> RobotEstimate:
+    """One start of every unknown from the camera ``reference``'s start ``(M_c, M_t, planes)``: its target
+    mount and planes (placements it did not see: another camera's), each other camera placed in them
+    (``robot_start.camera_from_planes``; its own start's mount where that finds none)."""
+    dataset = problem.dataset
+    M_c, M_t, planes = chosen[reference]
+    planes = dict(planes)
+    for _, _, found in chosen.values():
+        for p, v in found.items():
+            planes.setdefault(p, v)
+    target = problem.known.get("target", M_t)
+    mounts = {reference: M_c, "target": target}
+    for role in problem.camera_roles.values():
+        if role == reference or role in problem.known:
+            continue
+        placed = camera_from_planes(_single_views(problem, role, minima), target, planes)
+        if placed is None and role in failures:
+            name = camera_name(role)
+            raise SolveError(f"{dataset.source}: camera {name!r} has no start: "
+                             f"{str(failures[role]).split(': ', 1)[-1]}; nor does it see 4 or more known target "
+                             "points through a placement another camera started")
+        mounts[role] = placed if placed is not None else chosen[role][0]
+    mounts.update(problem.known)
+    missing = [p for p in problem.placements if p not in planes]
+    if missing:
+        raise SolveError(f"{dataset.source}: mirror {missing[0][0]} placement {missing[0][1]} has no start: each "
+                         f"placement needs 3 or more arm poses seen through it alone")
+    estimate = RobotEstimate(mounts, planes, {}, np.zeros(len(problem.offsets)))
+    if problem.point_names:
+        estimate.points = _points(problem, estimate)
+    return estimate
+
+
+def _single_views(problem: RobotProblem, role: str, minima: dict | None) -> list:
+    """``(placement, target points (N, 3), normalized (N, 2), T_B_camlink, T_B_targetlink, PnP minima or None)``
+    of each image of the camera ``role`` seen through one mirror."""
     dataset, kin = problem.dataset, problem.kinematics
-    links = problem.links
-    base = kin.base_link
-    if links["camera"] == base:
-        eye_to_hand = True
-    elif links["target"] == base:
-        eye_to_hand = False
-    else:
-        raise SolveError(f"{dataset.source}: the analytical start needs the camera or the target on the base link "
-                         f"{base!r} (here on {links['camera']!r} and {links['target']!r})")
+    links = (problem.links[role], problem.links["target"])
     placed = []
     for image in dataset.images:
-        if len(image.reflections) != 1:
+        if len(image.reflections) != 1 or problem.role_of(image) != role:
             continue
         names = [n for n in image.observations if n in dataset.fiducials]
         normalized = dataset.normalized(image)
-        F = kin.placements(image.joints, list(dict.fromkeys(links.values())))
+        F = kin.placements(image.joints, list(dict.fromkeys(links)))
         known = (minima or {}).get(image.id)
         placed.append((image.reflections[0], np.array([dataset.fiducials[n] for n in names]).reshape(-1, 3),
-                       np.array([normalized[n] for n in names]).reshape(-1, 2), F[links["camera"]][0],
-                       F[links["target"]][0], known[1] if known is not None and known[0] == tuple(names) else None))
-    estimates = []
-    for M_c, M_t, planes in arm_start(placed, eye_to_hand, dataset.source, max_starts):
-        mounts = {"camera": M_c, "target": M_t, **problem.known}
-        missing = [p for p in problem.placements if p not in planes]
-        if missing:
-            raise SolveError(f"{dataset.source}: mirror {missing[0][0]} placement {missing[0][1]} has no start: each "
-                             f"placement needs 3 or more arm poses seen through it alone")
-        estimate = RobotEstimate(mounts, planes, {}, np.zeros(len(problem.offsets)))
-        if problem.point_names:
-            estimate.points = _points(problem, estimate)
-        estimates.append(estimate)
-    return estimates
+                       np.array([normalized[n] for n in names]).reshape(-1, 2), F[links[0]][0],
+                       F[links[1]][0], known[1] if known is not None and known[0] == tuple(names) else None))
+    return placed
+
+
+def _camera_starts(problem: RobotProblem, role: str, max_starts: int, minima: dict | None) -> list:
+    """``robot_start.arm_start`` of the images of one camera: ``[(M_c, M_t, {placement: v_B})]``."""
+    dataset, base = problem.dataset, problem.kinematics.base_link
+    camera_link, target_link = problem.links[role], problem.links["target"]
+    if camera_link == base:
+        eye_to_hand = True
+    elif target_link == base:
+        eye_to_hand = False
+    else:
+        name = camera_name(role)
+        raise SolveError(f"{dataset.source}: the analytical start needs the camera or the target on the base link "
+                         f"{base!r} (here on {camera_link!r} and {target_link!r})"
+                         + ("" if name is None else f", or camera {name!r} placed from another camera's start"))
+    source = dataset.source if camera_name(role) is None else f"{dataset.source}: camera {camera_name(role)!r}"
+    return arm_start(_single_views(problem, role, minima), eye_to_hand, source, max_starts)
 
 
 def _points(problem: RobotProblem, estimate: RobotEstimate) -> dict[str, np.ndarray]:
@@ -100,7 +161,7 @@ def _points(problem: RobotProblem, estimate: RobotEstimate) -> dict[str, np.ndar
     maps: dict[str, list] = {}
     for image, factor, observed in zip(problem.dataset.images, problem.factors, problem.normalized):
         F_c, F_t = factor.fk(estimate.offsets)
-        C = _affine(compose(_pose(F_c[0]), estimate.mounts["camera"]))
+        C = _affine(compose(_pose(F_c[0]), estimate.mounts[problem.role_of(image)]))
         D = _affine(compose(_pose(F_t[0]), estimate.mounts["target"]))
         T = np.linalg.inv(C)
         for p in reversed(image.reflections):
@@ -128,7 +189,8 @@ def check_rotation_axes(problem: RobotProblem) -> None:
         link = problem.links[role]
         if link == kin.base_link:
             continue
-        rotations = [kin.placements(image.joints, [link])[link][0][:3, :3] for image in problem.dataset.images]
+        rotations = [kin.placements(image.joints, [link])[link][0][:3, :3] for image in problem.dataset.images
+                     if not is_camera(role) or problem.role_of(image) == role]  # a camera's own images
         turns = np.array([cv2.Rodrigues(rotations[0].T @ R)[0].ravel() for R in rotations[1:]])
         if len(turns) == 0:
             continue
@@ -136,9 +198,9 @@ def check_rotation_axes(problem: RobotProblem) -> None:
         if s[0] > 0 and s[1] > ONE_AXIS_RATIO * s[0]:
             continue
         axis = np.round(vt[0] * np.sign(vt[0][np.argmax(np.abs(vt[0]))]), 2) + 0.0
-        frame = "T_link_cam" if role == "camera" else "T_link_target"
+        frame = "T_link_cam" if is_camera(role) else "T_link_target"
         raise SolveError(
-            f"{problem.dataset.source}: the {role} mount's position ({frame}) along the axis "
+            f"{problem.dataset.source}: {mount_words(role)}'s position ({frame}) along the axis "
             f"[{axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f}] of link {link!r} is not determined: every arm pose turns "
             f"{link!r} about that one axis; add arm poses that rotate it about another axis (tilt the wrist or move "
             "another joint), with at least two clearly different rotation axes")
@@ -160,10 +222,10 @@ def _check_motion(problem: RobotProblem, information: np.ndarray, columns: dict,
             continue
         axis = estimate.mounts[role][0] @ nu  # link axes
         axis /= np.linalg.norm(axis)
-        frame = "T_link_cam" if role == "camera" else "T_link_target"
-        moving = "camera" if problem.links["camera"] != problem.kinematics.base_link else "target"
+        frame = "T_link_cam" if is_camera(role) else "T_link_target"
+        moving = "camera" if problem.links[problem.camera] != problem.kinematics.base_link else "target"
         raise SolveError(
-            f"{problem.dataset.source}: the {role} mount's position along the {problem.links[role]!r} axis "
+            f"{problem.dataset.source}: {mount_words(role)}'s position along the {problem.links[role]!r} axis "
             f"[{axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f}] is not determined ({frame}): every arm pose turns the "
             f"{moving}'s link about that one axis; add arm poses that rotate the tool about another axis "
             "(tilt the wrist), at least two clearly different rotation axes")
@@ -295,10 +357,10 @@ def _calibration(solution: RobotSolution, options: SolveOptions, excluded: list[
     residuals, whitened, labels = problem.residuals(result)
     dimension = problem.dimension()
     pose3_cov = None
-    if covariances is not None and "camera" in problem.mount_keys:
-        c = columns[problem.mount_keys["camera"]]
+    if covariances is not None and problem.camera in problem.mount_keys:  # the (first) camera's mount
+        c = columns[problem.mount_keys[problem.camera]]
         pose3_cov = np.linalg.inv(information)[c, c]
-    (R, t), P = camera_base_pose(estimate.mounts["camera"], pose3_cov)
+    (R, t), P = camera_base_pose(estimate.mounts[problem.camera], pose3_cov)
     iterations = solution.iterations
     return build_calibration(
         dataset, (R, t), P, mirror_vectors=estimate.mirror_vectors,
@@ -318,15 +380,16 @@ def _link_error_model(problem: RobotProblem, estimate: RobotEstimate, informatio
 
     covariance = np.linalg.inv(information)
     index = np.full(6, -1)
-    if "camera" in problem.mount_keys:
-        index = np.arange(columns[problem.mount_keys["camera"]].start, columns[problem.mount_keys["camera"]].stop)
+    if problem.camera in problem.mount_keys:
+        c = columns[problem.mount_keys[problem.camera]]
+        index = np.arange(c.start, c.stop)
     if problem.offset_key is not None:
         c = columns[problem.offset_key]
         index = np.concatenate([index, np.arange(c.start, c.stop)])
     S = np.zeros((len(index), len(index)))
     known = index >= 0
     S[np.ix_(known, known)] = covariance[np.ix_(index[known], index[known])]
-    return LinkErrorModel(problem.kinematics, problem.links["camera"], estimate.mounts["camera"], tuple(problem.offsets),
+    return LinkErrorModel(problem.kinematics, problem.links[problem.camera], estimate.mounts[problem.camera], tuple(problem.offsets),
                           np.asarray(estimate.offsets, float).copy(), S)
 
 
@@ -336,18 +399,28 @@ def _sigma3(covariance: np.ndarray) -> dict:
 
 
 def robot_entries(problem: RobotProblem, estimate: RobotEstimate, covariances: dict | None) -> dict:
-    """result@1's ``mounts`` (each unknown one, its covariance and 3-sigma), ``joint_offsets`` and the
-    frame of ``mirrors[].v`` (docs/formats.md, "Robot arms")."""
-    mounts = {}
+    """result@1's ``mounts`` (each unknown one, its covariance and 3-sigma; with several cameras each
+    camera's under ``mounts.cameras`` and the first's repeated as ``mounts.camera``), ``joint_offsets`` and
+    the frame of ``mirrors[].v`` (docs/formats.md, "Robot arms")."""
+    mounts: dict = {}
     for role in problem.mount_keys:
         R, t = estimate.mounts[role]
-        key = "T_link_cam" if role == "camera" else "T_link_target"
+        key = "T_link_cam" if is_camera(role) else "T_link_target"
         entry: dict = {"link": problem.links[role],
                        key: {"R": R.tolist(), "t": t.tolist(), "q_xyzw": rotation_to_quaternion_xyzw(R).tolist()}}
         if covariances is not None:
             C = covariances["mounts"][role]
             entry.update({"covariance": C.tolist(), "sigma3": _sigma3(C)})
-        mounts[role] = entry
+        name = camera_name(role)
+        if name is not None:
+            mounts.setdefault("cameras", {})[name] = entry
+            if role == problem.camera:
+                mounts["camera"] = entry
+        else:
+            mounts[role] = entry
+    if "cameras" in mounts:  # the cameras in the dataset's order, then the target
+        mounts = {**({"camera": mounts["camera"]} if "camera" in mounts else {}), "cameras": mounts["cameras"],
+                  **({"target": mounts["target"]} if "target" in mounts else {})}
     offsets = {}
     for k, name in enumerate(problem.offsets):
         prismatic = problem.kinematics.joints[name].prismatic
@@ -356,5 +429,4 @@ def robot_entries(problem: RobotProblem, estimate: RobotEstimate, covariances: d
         offsets[name] = ({"offset_mm": 1000.0 * value, "sigma3_mm": 3000.0 * sigma} if prismatic
                          else {"offset_deg": math.degrees(value), "sigma3_deg": 3.0 * math.degrees(sigma)})
     return {"mounts": mounts, **({"joint_offsets": offsets} if offsets else {}), "mirror_frame": problem.kinematics.base_link,
-            "camera_link": problem.links["camera"]}
-
+            "camera_link": problem.links[problem.camera]}

@@ -4,7 +4,8 @@ key holds which unknown, the graph of every image (``factors/robot.py``: the vie
 back and the covariances.
 
 Frames: {B} the robot's base link. Unknowns: the unknown mounts ``M(0)`` (camera, ``T_link_cam``) and
-``M(1)`` (target, ``T_link_target``) as Pose3; one ``OrientedPlane3`` ``V(i)`` per placement, fixed in {B}
+``M(1)`` (target, ``T_link_target``) as Pose3, with several cameras ``M(0)`` the first's and ``M(k + 1)``
+the k-th's after it (each image's camera pose from its own camera's mount, the role ``camera:NAME``); one ``OrientedPlane3`` ``V(i)`` per placement, fixed in {B}
 while the arm moves; ``L(j)`` reconstruction points (target frame, metres); ``O(0)`` the estimated joint
 offsets (radians, metres for prismatic joints; ``q_true = q_recorded + delta``) with their zero-mean
 Gaussian prior. Covariances leave in the uncertainty convention (docs/formats.md), each mount's about and
@@ -25,10 +26,32 @@ from mirror_fg.factors.views import plane_of, vector_of_plane
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.io.point_sigma import normalized_sigmas
 
-__all__ = ["RobotProblem", "RobotEstimate", "ROLES", "camera_base_pose"]
+__all__ = ["RobotProblem", "RobotEstimate", "ROLES", "camera_base_pose", "camera_role", "is_camera", "camera_name",
+           "mount_words"]
 
 ROLES = ("camera", "target")
 Pose = tuple[np.ndarray, np.ndarray]
+
+
+def camera_role(name: str | None) -> str:
+    """The mount role of a camera: ``camera`` (the one camera), ``camera:NAME`` (one of several)."""
+    return "camera" if name is None else f"camera:{name}"
+
+
+def is_camera(role: str) -> bool:
+    """Whether a mount role is a camera's (``camera``, ``camera:NAME``) rather than the target's."""
+    return role != "target"
+
+
+def mount_words(role: str) -> str:
+    """A mount in a user's words: "the camera mount", "the 'left' camera mount", "the target mount"."""
+    name = camera_name(role)
+    return f"the {role} mount" if name is None else f"the {name!r} camera mount"
+
+
+def camera_name(role: str) -> str | None:
+    """The camera's name in a ``camera:NAME`` role (None for ``camera``)."""
+    return role.split(":", 1)[1] if ":" in role else None
 
 
 @dataclass
@@ -50,13 +73,17 @@ class RobotProblem:
         self.dataset = dataset
         setup = self.setup = dataset.robot
         self.kinematics = setup.kinematics
-        self.links = {role: setup.mounts[role].link for role in ROLES}
-        self.known: dict[str, Pose] = {}
-        for role in ROLES:
-            known = setup.mounts[role].known
-            if known is not None:
-                self.known[role] = known
-        self.mount_keys = {role: M(k) for k, role in enumerate(ROLES) if role not in self.known}
+        #: Each camera's mount role (``camera_role``), in the ``cameras`` order; the first's is :attr:`camera`.
+        self.camera_roles = {name: camera_role(name) for name in setup.camera_mounts()}
+        self.camera = next(iter(self.camera_roles.values()))
+        mounts = {camera_role(name): mount for name, mount in setup.camera_mounts().items()}
+        mounts["target"] = setup.mounts["target"]
+        self.roles = list(mounts)
+        self.links = {role: mount.link for role, mount in mounts.items()}
+        self.known: dict[str, Pose] = {role: mount.known for role, mount in mounts.items() if mount.known is not None}
+        numbers = {role: (0 if k == 0 else k + 1) for k, role in enumerate(self.camera_roles.values())}
+        numbers["target"] = 1
+        self.mount_keys = {role: M(numbers[role]) for role in self.roles if role not in self.known}
         self.placements = sorted({p for im in dataset.images for p in im.reflections})
         self.mirror_keys = {p: V(i) for i, p in enumerate(self.placements)}
         self.point_names = dataset.reconstruction_point_names
@@ -80,8 +107,11 @@ class RobotProblem:
                 else:
                     landmarks.append(self.point_keys[name])
             assert image.joints is not None
+            role = self.role_of(image)
+            keys = {r: self.mount_keys[w] for r, w in (("camera", role), ("target", "target")) if w in self.mount_keys}
+            known = {r: self.known[w] for r, w in (("camera", role), ("target", "target")) if w in self.known}
             self.factors.append(RobotViewFactor(
-                image.reflections, self.mount_keys, self.known, self.mirror_keys, self.forward(image.joints),
+                image.reflections, keys, known, self.mirror_keys, self.forward(image.joints, role),
                 self.offset_key, len(self.offsets), points, landmarks, observed, sigmas, robust))
         self._stacks: tuple | None = None
         #: Number of residual rows (2 per measurement).
@@ -107,14 +137,20 @@ class RobotProblem:
                 out[i] = z
         return out
 
-    def forward(self, joints: dict[str, float]):
+    def role_of(self, image) -> str:
+        """The mount role of the camera that took ``image``."""
+        return self.camera_roles[image.camera] if self.setup.cameras is not None else self.camera
+
+    def forward(self, joints: dict[str, float], role: str | None = None):
         """The image's forward kinematics for ``factors/robot.py``: at ``joints + delta``, the placements
-        of the camera's and the target's links in {B} and their Jacobians in the offsets."""
-        kin, offsets, links = self.kinematics, self.offsets, self.links
-        unique = list(dict.fromkeys(links.values()))
+        of the camera's (``role``, default the first camera) and the target's links in {B} and their
+        Jacobians in the offsets."""
+        kin, offsets = self.kinematics, self.offsets
+        camera_link, target_link = self.links[role or self.camera], self.links["target"]
+        unique = list(dict.fromkeys((camera_link, target_link)))
         if not offsets:  # nothing moves the joints: the placements once
             out = kin.placements(joints, unique)
-            fixed = (out[links["camera"]], out[links["target"]])
+            fixed = (out[camera_link], out[target_link])
             return lambda delta: fixed
 
         def fk(delta: np.ndarray):
@@ -122,7 +158,7 @@ class RobotProblem:
             for name, d in zip(offsets, delta):
                 q[name] += float(d)
             out = kin.placements(q, unique, list(offsets))
-            return out[links["camera"]], out[links["target"]]
+            return out[camera_link], out[target_link]
         return fk
 
     # ------------------------------------------------------------------ values
@@ -172,7 +208,7 @@ class RobotProblem:
     def name_of(self, key: int) -> str:
         for role, k in self.mount_keys.items():
             if k == key:
-                return f"the {role} mount T_link_{'cam' if role == 'camera' else 'target'}"
+                return f"{mount_words(role)} T_link_{'cam' if is_camera(role) else 'target'}"
         for p, k in self.mirror_keys.items():
             if k == key:
                 return f"mirror {p[0]} placement {p[1]}"

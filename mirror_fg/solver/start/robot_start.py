@@ -25,7 +25,7 @@ from mirror_fg.solver.start.peeling import solve_children
 from mirror_fg.solver.start.pnp import lowest_reprojection, pnp_candidates
 from mirror_fg.solver.start.propagation import plane_from_camera
 
-__all__ = ["arm_start", "triangulate", "MIN_POSES"]
+__all__ = ["arm_start", "camera_from_planes", "mean_pose", "triangulate", "MIN_POSES"]
 
 #: Arm poses per placement that OpenCV's robot-world hand-eye solver needs (distinct rotations).
 MIN_POSES = 3
@@ -43,9 +43,39 @@ def _best_map(points: np.ndarray, normalized: np.ndarray, minima=None):
     return lowest_reprojection(candidates, points, normalized)
 
 
-def _mean_pose(poses):
+def mean_pose(poses):
+    """The chordal mean of poses ``(R, t)``: the rotation nearest their sum, the mean translation."""
     R = project_to_orthogonal(sum(p[0] for p in poses), 1.0)
     return R, np.mean([p[1] for p in poses], axis=0)
+
+
+def _affine(pose) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = pose
+    return T
+
+
+def camera_from_planes(images, target, planes: dict):
+    """A camera's mount ``T_link_cam`` from known planes and the target's mount, or None where no image
+    gives one. ``images`` as :func:`arm_start`'s, of this camera; ``target`` the target's mount ``(R, t)``;
+    ``planes`` ``{placement: v_B}``. Each image's PnP map ``x_cam = A x_target + b`` (improper, one
+    mirror) is ``C^-1 H D`` (eq. 3: ``H`` the reflection in the plane, ``D = F_t M_t``), so
+    ``C = H D (A, b)^-1`` and the mount is ``F_c^-1 C``; the mean over the images."""
+    mounts = []
+    for placement, points, normalized, F_c, F_t, *minima in images:
+        if len(points) < 4 or placement not in planes:
+            continue
+        found = _best_map(points, normalized, minima[0] if minima else None)
+        if found is None:
+            continue
+        v = np.asarray(planes[placement], float)
+        H = np.eye(4)
+        H[:3, :3] -= 2.0 * np.outer(v, v) / (v @ v)  # eq. (3): x -> M x + 2 v
+        H[:3, 3] = 2.0 * v
+        C = H @ F_t @ _affine(target) @ np.linalg.inv(_affine(found))
+        M = np.linalg.inv(F_c) @ C
+        mounts.append((M[:3, :3], M[:3, 3]))
+    return mean_pose(mounts) if mounts else None
 
 
 def arm_start(images, eye_to_hand: bool, source: str, max_starts: int = 1) -> list:
@@ -105,7 +135,7 @@ def arm_start(images, eye_to_hand: bool, source: str, max_starts: int = 1) -> li
         for k, p in enumerate(placements):
             planes[p] = _plane_of_map(maps[k][1], maps[k][2], Y_inv)
         Y = inverse(Y_inv)
-        mount = _mean_pose(moving)
+        mount = mean_pose(moving)
         starts.append((Y, mount, planes) if eye_to_hand else (mount, Y, planes))
     return starts
 
