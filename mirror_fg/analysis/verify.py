@@ -233,10 +233,6 @@ def _verification_dataset(result: Mapping[str, Any], dataset: Dataset,
     """``dataset`` with the stored intrinsics (their values; none left to estimate) and the stored
     reconstruction points as known points, and the intrinsics the result estimated with their stored
     covariances; one line (DatasetError) where the result and the data cannot be from one set-up."""
-    if dataset.robot is not None or result.get("mounts"):  # the target or the camera rides the arm's joints
-        what = f"{dataset.source}: images with joint states" if dataset.robot is not None else f"{source}: an arm's result"
-        raise DatasetError(f"{what}: verify tests cameras fixed in the base frame, not an arm's mounts; calibrate "
-                           "again and compare with mirror-fg history")
     stored = stored_cameras(result)
     names = camera_names(dataset)
     unknown = [n for n in names if n not in stored]
@@ -304,6 +300,10 @@ class _Fits:
         self.stored_pose = {n: gtsam.Pose3(gtsam.Rot3(R), t) for n, (R, t, _) in stored.items()}
         #: The stored covariance in GTSAM's tangent at the stored pose.
         self.stored_tangent = {n: covariance_to_pose3(R, C) for n, (R, _, C) in stored.items()}
+        self.noun = "camera"
+
+    def pose_key(self, name: str) -> int:
+        return self.problem.pose_keys[name]
 
     def start(self) -> gtsam.Values:
         """The stored poses and every new placement from them (propagation rule 3)."""
@@ -395,6 +395,11 @@ def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.0
         raise DatasetError(f"alpha must be between 0 and 1, got {alpha}")
     if hasattr(result, "to_dict"):
         result = result.to_dict()
+    if dataset.robot is not None or result.get("mounts"):  # the target or the camera rides the arm's joints
+        from mirror_fg.analysis.verify_arm import verify_arm
+
+        return verify_arm(result, dataset, alpha, tolerance_mm, tolerance_deg, source,
+                          options.max_iterations if options is not None else MAX_ITERATIONS)
     verification_data, intrinsics = _verification_dataset(result, dataset, source)
     stored_all = stored_cameras(result)
     fits = _Fits(verification_data, {n: c for n, c in stored_all.items() if n in camera_names(dataset)},  # type: ignore[misc]
@@ -450,7 +455,7 @@ def _verdict(name: str, d2: float, dof: int, p: float, free: gtsam.Values, fits:
     move = combined = None
     detectable_rad = detectable_m = math.inf
     if dof == 6:
-        estimate = free.atPose3(fits.problem.pose_keys[name])
+        estimate = free.atPose3(fits.pose_key(name))
         R, t = estimate.rotation().matrix(), np.asarray(estimate.translation(), float)
         # the move in the uncertainty convention: R_new = Exp(dtheta) R_stored, t_new = t_stored + dt
         move = np.concatenate([gtsam.Rot3.Logmap(gtsam.Rot3(R @ R_s.T)), t - t_s])
@@ -464,14 +469,15 @@ def _verdict(name: str, d2: float, dof: int, p: float, free: gtsam.Values, fits:
     elif math.degrees(detectable_rad) <= tolerance_deg and 1e3 * detectable_m <= tolerance_mm:
         verdict, advice = NOT_MOVED, ""
     else:
-        verdict, advice = CANNOT_TELL, _advice(dof, S, ncp, tolerance_mm, tolerance_deg)
+        verdict, advice = CANNOT_TELL, _advice(dof, S, ncp, tolerance_mm, tolerance_deg, fits.noun)
     return CameraVerdict(name, verdict, p, d2, dof, move, combined, detectable_rad, detectable_m, advice)
 
 
-def _advice(dof: int, stored: np.ndarray, ncp: float, tolerance_mm: float, tolerance_deg: float) -> str:
-    """What to add for a ``cannot tell``."""
+def _advice(dof: int, stored: np.ndarray, ncp: float, tolerance_mm: float, tolerance_deg: float,
+            noun: str = "camera") -> str:
+    """What to add for a ``cannot tell`` (``noun``: what is tested, a camera or an arm's mount)."""
     if dof < 6:
-        return (f"the new images see {dof} of the camera's 6 degrees of freedom (a mirror placement hides any "
+        return (f"the new images see {dof} of the {noun}'s 6 degrees of freedom (a mirror placement hides any "
                 "rotation about a line in its plane): add images at other mirror placements (mirror-fg plan --next)")
     rotation = math.degrees(math.sqrt(ncp * float(np.linalg.eigvalsh(stored[:3, :3])[-1])))
     position = 1e3 * math.sqrt(ncp * float(np.linalg.eigvalsh(stored[3:, 3:])[-1]))

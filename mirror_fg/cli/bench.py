@@ -86,7 +86,7 @@ def cmd_live(args, out: _Printer) -> int:
     if capture.robot is not None:  # an arm: joint states from the capture's growing CSV (live/joints.py)
         from mirror_fg.live.joints import LiveArmSession
 
-        for flag, given in (("--serve", args.serve), ("--save", args.save), ("--verify", getattr(args, "verify", None))):
+        for flag, given in (("--serve", args.serve), ("--save", args.save)):
             if given is not None:
                 raise DatasetError(f"live: {flag} is not available with a robot arm's capture yet; drop it")
         session = LiveArmSession(capture, target_mm=args.target_mm, target_deg=args.target_deg)
