@@ -64,6 +64,7 @@ from mirror_fg.solver.model.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm
 from mirror_fg.solver.model.marginals import unconstrained_message
 from mirror_fg.solver.options import SolveOptions
 from mirror_fg.solver.start.propagation import Unsolvable, propagate
+from mirror_fg.analysis.verify_plane import StoredPlane, stored_plane
 from mirror_fg.analysis.verify_priors import StoredIntrinsics, joint_prior, stored_intrinsics
 from mirror_fg.solver.model.views import SINGLE_CAMERA, ViewProblem, camera_names, tangent_dimension
 
@@ -301,6 +302,14 @@ class _Fits:
         #: The stored covariance in GTSAM's tangent at the stored pose.
         self.stored_tangent = {n: covariance_to_pose3(R, C) for n, (R, _, C) in stored.items()}
         self.noun = "camera"
+        #: A stored placement held at its plane in {B} (``verify_plane.py``), else None.
+        self.plane: StoredPlane | None = None
+
+    def hold_plane(self, plane: StoredPlane | None) -> None:
+        """Hold ``plane`` (the single camera's): its marginal in every fit, the held pose given it."""
+        self.plane = plane
+        if plane is not None:
+            self.data.add(plane.marginal_prior(self.pose_key(SINGLE_CAMERA), self.problem.mirror_keys[plane.placement]))
 
     def pose_key(self, name: str) -> int:
         return self.problem.pose_keys[name]
@@ -321,6 +330,8 @@ class _Fits:
         key = self.problem.pose_keys[name]
         if information is not None:
             return gtsam.PriorFactorPose3(key, self.stored_pose[name], gtsam.noiseModel.Gaussian.Information(information))
+        if self.plane is not None:
+            return self.plane.conditional(key, self.problem.mirror_keys[self.plane.placement], self.stored_pose[name])
         if name in self.intrinsics:
             return joint_prior(key, self.problem.intrinsics_keys[name], self.stored_pose[name], self.intrinsics[name],
                                self.stored_tangent[name])
@@ -386,15 +397,20 @@ def _free_information(lam: np.ndarray, U: np.ndarray, L: np.ndarray) -> np.ndarr
 
 
 def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.01, tolerance_mm: float = 2.0,
-           tolerance_deg: float = 0.2, source: str = "result", options: SolveOptions | None = None) -> Verification:
+           tolerance_deg: float = 0.2, source: str = "result", options: SolveOptions | None = None,
+           standing: bool = False) -> Verification:
     """Whether each camera of ``dataset``'s images is still where ``result`` (a validated result@1
     dictionary, or a :class:`~mirror_fg.solver.result.calibration.Calibration`) puts it (module docstring).
-    ``source`` names the result in messages; ``options``: its ``max_iterations`` bounds each LM fit.
+    ``source`` names the result in messages; ``options``: its ``max_iterations`` bounds each LM fit;
+    ``standing``: the new images' placements the result holds (the same labels) are the same mirrors, standing
+    where they stood (``verify_plane.py``: one of them is held at its stored plane).
     DatasetError (exit 2) where the result and the data cannot be from one set-up."""
     if not 0.0 < alpha < 1.0:
         raise DatasetError(f"alpha must be between 0 and 1, got {alpha}")
     if hasattr(result, "to_dict"):
         result = result.to_dict()
+    if standing and (dataset.robot is not None or result.get("mounts")):
+        raise DatasetError(f"{source}: a standing mirror is held for a camera fixed in the base frame, not an arm")
     if dataset.robot is not None or result.get("mounts"):  # the target or the camera rides the arm's joints
         from mirror_fg.analysis.verify_arm import verify_arm
 
@@ -406,6 +422,15 @@ def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.0
                  intrinsics, options.max_iterations if options is not None else MAX_ITERATIONS)
     problem = fits.problem
     tested = list(problem.pose_keys)
+    if standing:  # a mirror that still stands (verify_plane.py)
+        if intrinsics or tested != [SINGLE_CAMERA]:
+            raise DatasetError(f"{source}: a standing mirror is held for one camera whose intrinsics the result did not "
+                               "estimate (no covariance of the plane with the intrinsics is stored)")
+        plane = stored_plane(result, verification_data, fits.stored_tangent[SINGLE_CAMERA], source)
+        if plane is None:
+            raise DatasetError(f"{dataset.source}: none of its mirror placements is one {source} holds with its "
+                               "covariance (mirrors[].covariance): drop the standing mirror or calibrate again")
+        fits.hold_plane(plane)
     start = fits.start()
     held_all, _ = fits.fit([fits.prior(n) for n in tested], [start])  # every camera held: also the fused estimate
     seen = {n: _seen(fits.stored_tangent[n], fits.pose_information(n, held_all)) for n in tested}
@@ -478,7 +503,8 @@ def _advice(dof: int, stored: np.ndarray, ncp: float, tolerance_mm: float, toler
     """What to add for a ``cannot tell`` (``noun``: what is tested, a camera or an arm's mount)."""
     if dof < 6:
         return (f"the new images see {dof} of the {noun}'s 6 degrees of freedom (a mirror placement hides any "
-                "rotation about a line in its plane): add images at other mirror placements (mirror-fg plan --next)")
+                "rotation about a line in its plane): add images at other mirror placements (mirror-fg plan --next), "
+                "or at a mirror the result knows still standing where it stood (its label kept, --standing-mirror)")
     rotation = math.degrees(math.sqrt(ncp * float(np.linalg.eigvalsh(stored[:3, :3])[-1])))
     position = 1e3 * math.sqrt(ncp * float(np.linalg.eigvalsh(stored[3:, 3:])[-1]))
     if rotation > tolerance_deg or position > tolerance_mm:
@@ -506,6 +532,11 @@ def _fused(fits: _Fits, held: gtsam.Values, tested: list[str]) -> dict[str, tupl
             E[:, c] = np.eye(6)
             E[:, k] = -B
             H += E.T @ np.linalg.inv(conditional) @ E
+        elif fits.plane is not None:  # the pose given the held plane (whose marginal is in the data graph)
+            gaussian = fits.prior(name).linearize(held)
+            A, _ = gaussian.jacobian()
+            index = np.concatenate([np.arange(columns[k].start, columns[k].stop) for k in gaussian.keys()])
+            H[np.ix_(index, index)] += A.T @ A
         else:
             H[c, c] += np.linalg.inv(covariance_to_pose3(R, fits.stored[name][2]))
     covariance = np.linalg.pinv(H, rcond=1e-14, hermitian=True)
