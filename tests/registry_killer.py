@@ -7,7 +7,7 @@ printing ``killed <k>`` per killed child and ``whole <k>`` for the last.
 ``python registry_killer.py fresh URL_PATTERN CAMERAS``: the same, each k on its own empty database
 (``URL_PATTERN`` with ``{k}``; PostgreSQL databases are created here), so the kills fall in the migrations too.
 ``python registry_killer.py random URL CAMERAS TIMES SEED``: TIMES children each record runs (tagged
-``r<i>-<j>``) in a loop until the parent SIGKILLs them at a random instant (0-0.4 s).
+``r<i>-<j>``) in a loop until the parent SIGKILLs them at a random instant (0-0.4 s after the first record).
 
 The parent is one thread (it only forks and waits), so forking it is safe.
 """
@@ -100,11 +100,18 @@ def main() -> None:
     elif mode == "random":
         times, rng = int(sys.argv[4]), random.Random(int(sys.argv[5]))
         for i in range(times):
+            ready, told = os.pipe()
+
             def loop(i: int = i) -> None:
                 registry = Registry(url)
                 for j in range(10_000):
                     registry.record(ROBOT, _document(f"r{i}-{j}", cameras))
+                    if j == 0:  # recording: the kill may come
+                        os.write(told, b".")
             pid = _fork(loop)
+            os.read(ready, 1)
+            os.close(ready)
+            os.close(told)
             time.sleep(rng.uniform(0.0, 0.4))
             os.kill(pid, signal.SIGKILL)
             print(f"{_status(pid)} {i}", flush=True)
