@@ -92,7 +92,7 @@ def main() -> None:
             target = url.format(k=k) if mode == "fresh" else url
             if mode == "fresh":
                 _create_database(target)
-            status = _status(_fork(lambda: _record_killed_at(target, k, f"k{k}", cameras)))
+            status = _status(_fork(lambda target=target, k=k: _record_killed_at(target, k, f"k{k}", cameras)))
             print(f"{status} {k}", flush=True)
             if status != "killed":
                 return
@@ -102,7 +102,7 @@ def main() -> None:
         for i in range(times):
             ready, told = os.pipe()
 
-            def loop(i: int = i) -> None:
+            def loop(i: int = i, told: int = told) -> None:
                 registry = Registry(url)
                 for j in range(10_000):
                     registry.record(ROBOT, _document(f"r{i}-{j}", cameras))

@@ -6,7 +6,7 @@ arm's session."""
 from __future__ import annotations
 
 import json
-from types import SimpleNamespace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -136,8 +136,8 @@ def test_one_placement_sees_part_of_the_base_mount_and_all_of_the_tool_mount() -
 
 def _arm_files(tmp_path, move=None):
     """stored.json (calibrated), new.json and moved.json (the camera mount moved 2 cm along x), URDF."""
-    data, truth = simulate_arm("arm6", placements=3, arm_poses=6, pixel_sigma=0.5, seed=41)
-    (tmp_path / "arm6.urdf").write_text(open(arm_urdf("arm6")).read())
+    data, _ = simulate_arm("arm6", placements=3, arm_poses=6, pixel_sigma=0.5, seed=41)
+    (tmp_path / "arm6.urdf").write_text(Path(arm_urdf("arm6")).read_text())
     (tmp_path / "stored.json").write_text(json.dumps(data))
     new_data, new_truth = simulate_arm("arm6", placements=3, arm_poses=4, pixel_sigma=0.5, seed=42)
     (tmp_path / "new.json").write_text(json.dumps(new_data))

@@ -64,7 +64,8 @@ from mirror_fg.solver.model.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm
 from mirror_fg.solver.model.marginals import unconstrained_message
 from mirror_fg.solver.options import SolveOptions
 from mirror_fg.solver.start.propagation import Unsolvable, propagate
-from mirror_fg.analysis.verify_plane import StoredPlane, stored_plane
+from mirror_fg.analysis.verify_fused import fused_estimate
+from mirror_fg.analysis.verify_plane import StoredPlane, standing_plane
 from mirror_fg.analysis.verify_priors import StoredIntrinsics, joint_prior, stored_intrinsics
 from mirror_fg.solver.model.views import SINGLE_CAMERA, ViewProblem, camera_names, tangent_dimension
 
@@ -423,14 +424,8 @@ def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.0
     problem = fits.problem
     tested = list(problem.pose_keys)
     if standing:  # a mirror that still stands (verify_plane.py)
-        if intrinsics or tested != [SINGLE_CAMERA]:
-            raise DatasetError(f"{source}: a standing mirror is held for one camera whose intrinsics the result did not "
-                               "estimate (no covariance of the plane with the intrinsics is stored)")
-        plane = stored_plane(result, verification_data, fits.stored_tangent[SINGLE_CAMERA], source)
-        if plane is None:
-            raise DatasetError(f"{dataset.source}: none of its mirror placements is one {source} holds with its "
-                               "covariance (mirrors[].covariance): drop the standing mirror or calibrate again")
-        fits.hold_plane(plane)
+        fits.hold_plane(standing_plane(result, verification_data, bool(intrinsics) or tested != [SINGLE_CAMERA],
+                                       fits.stored_tangent, source))
     start = fits.start()
     held_all, _ = fits.fit([fits.prior(n) for n in tested], [start])  # every camera held: also the fused estimate
     seen = {n: _seen(fits.stored_tangent[n], fits.pose_information(n, held_all)) for n in tested}
@@ -469,7 +464,7 @@ def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.0
             if not checked and answer.verdict == NOT_MOVED:  # nu = 0: the stored bounds cannot be checked
                 answer = replace(answer, verdict=CANNOT_TELL, advice=UNCHECKED)
         verdicts[name] = answer
-    fused = _fused(fits, held_all, tested)
+    fused = fused_estimate(fits, held_all, tested)
     return Verification(verdicts, alpha, tolerance_mm, tolerance_deg, fused)
 
 
@@ -511,38 +506,3 @@ def _advice(dof: int, stored: np.ndarray, ncp: float, tolerance_mm: float, toler
         return (f"the stored result alone is too uncertain for this tolerance (no move below {rotation:.2g} deg / "
                 f"{position:.2g} mm could be told apart from it): calibrate again with more placements")
     return "the new images are too few for the tolerance: add images at other mirror placements (mirror-fg plan --next)"
-
-
-def _fused(fits: _Fits, held: gtsam.Values, tested: list[str]) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """The stored transforms (priors, their stored covariance) combined with the new data: the fit with
-    every camera held, and each camera's marginal of ``H_data + blockdiag(S^-1)`` (in the convention
-    at the fused estimate), never wider than ``S``."""
-    H, columns = fits.information(held)
-    out = {}
-    rotations = {}
-    for name in tested:
-        estimate = held.atPose3(fits.problem.pose_keys[name])
-        R = estimate.rotation().matrix()
-        rotations[name] = R
-        c = columns[fits.problem.pose_keys[name]]
-        if name in fits.intrinsics:  # the pose given the intrinsics (their marginal is in the data graph)
-            k = columns[fits.problem.intrinsics_keys[name]]
-            B, conditional = fits.intrinsics[name].conditional(covariance_to_pose3(R, fits.stored[name][2]), R)
-            E = np.zeros((6, H.shape[0]))
-            E[:, c] = np.eye(6)
-            E[:, k] = -B
-            H += E.T @ np.linalg.inv(conditional) @ E
-        elif fits.plane is not None:  # the pose given the held plane (whose marginal is in the data graph)
-            gaussian = fits.prior(name).linearize(held)
-            A, _ = gaussian.jacobian()
-            index = np.concatenate([np.arange(columns[k].start, columns[k].stop) for k in gaussian.keys()])
-            H[np.ix_(index, index)] += A.T @ A
-        else:
-            H[c, c] += np.linalg.inv(covariance_to_pose3(R, fits.stored[name][2]))
-    covariance = np.linalg.pinv(H, rcond=1e-14, hermitian=True)
-    for name in tested:
-        estimate = held.atPose3(fits.problem.pose_keys[name])
-        c = columns[fits.problem.pose_keys[name]]
-        C = covariance_from_pose3(rotations[name], covariance[c, c])
-        out[name] = (rotations[name], np.asarray(estimate.translation(), float), 0.5 * (C + C.T))
-    return out

@@ -32,8 +32,9 @@ import numpy as np
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.factors.views import vector_of_plane
 from mirror_fg.io.dataset import Dataset
+from mirror_fg.solver.model.views import SINGLE_CAMERA
 
-__all__ = ["StoredPlane", "stored_plane", "base_vector"]
+__all__ = ["StoredPlane", "stored_plane", "standing_plane", "base_vector"]
 
 
 def _skew(a: np.ndarray) -> np.ndarray:
@@ -147,3 +148,17 @@ def stored_plane(result: Mapping[str, Any], dataset: Dataset, pose_tangent: np.n
     B = cov_xi_e @ np.linalg.inv(P)
     C = A - B @ cov_xi_e.T
     return StoredPlane(placement, v_B, P, B, 0.5 * (C + C.T))
+
+
+def standing_plane(result: Mapping[str, Any], dataset: Dataset, refused: bool, stored_tangent: Mapping[str, np.ndarray],
+                   source: str) -> StoredPlane:
+    """:func:`stored_plane` of the single camera where the user says a mirror stands; DatasetError (one
+    line) where it cannot be held (``refused``: several cameras or estimated intrinsics) or none is stored."""
+    if refused:
+        raise DatasetError(f"{source}: a standing mirror is held for one camera whose intrinsics the result did not "
+                           "estimate (no covariance of the plane with the intrinsics is stored)")
+    plane = stored_plane(result, dataset, stored_tangent[SINGLE_CAMERA], source)
+    if plane is None:
+        raise DatasetError(f"{dataset.source}: none of its mirror placements is one {source} holds with its "
+                           "covariance (mirrors[].covariance): drop the standing mirror or calibrate again")
+    return plane
