@@ -48,14 +48,28 @@ def _stored(seed: int):
     return data, truth, calibrate(data)
 
 
-def test_the_stored_joint_covariance_is_the_solvers() -> None:
-    """The placement's block equals the solver's marginal of v; the pose block (not stored) its pose's."""
-    _, _, cal = _stored(3)
+def test_the_stored_joint_covariance_is_gtsams_joint_marginal() -> None:
+    """Each placement's v and its cross-covariance with the pose, as result@1 holds them, against GTSAM's
+    joint marginal (its Bayes tree) of the pose and the plane on the same problem."""
+    import gtsam
+
+    from mirror_fg.factors.views import vector_of_plane
+    from mirror_fg.solver.fit.validation import _problem, estimate_of_calibration
+
+    data, _, cal = _stored(3)
     document = cal.to_dict()
+    estimate, estimated = estimate_of_calibration(cal)
+    _, problem, values, _ = _problem(data, estimate, [], estimated)
+    marginals = gtsam.Marginals(problem.graph(), values)
+    pose = problem.pose_keys["camera"]
+    T = np.kron(np.eye(2), values.atPose3(pose).rotation().matrix())  # [dtheta, dt] = blkdiag(R, R) [w, nu]
     for entry in document["mirrors"]:
-        placement = (entry["mirror"], entry["config"])
-        assert np.allclose(entry["covariance"], cal.mirror_covariances[placement], rtol=1e-6, atol=1e-15)
-        assert np.array(entry["cross_covariance_cam_base"]).shape == (3, 6)
+        key = problem.mirror_keys[(entry["mirror"], entry["config"])]
+        keys = gtsam.KeyVector([key, pose])
+        joint = marginals.jointMarginalCovariance(keys).fullMatrix()  # ordered as the keys: plane, pose
+        J = vector_of_plane(values.atOrientedPlane3(key))[1]
+        assert np.allclose(entry["covariance"], J @ joint[:3, :3] @ J.T, rtol=1e-5, atol=1e-14)
+        assert np.allclose(entry["cross_covariance_cam_base"], J @ joint[:3, 3:] @ T.T, rtol=1e-5, atol=1e-14)
 
 
 def _at_the_stored_placement(data, truth, move: np.ndarray, images: int, rng, placement=(1, 0)):
