@@ -92,7 +92,7 @@ ACCEPTED = {
     "null": [  # optional keys: null means absent
         r"T_base_cam", r"(T_cam_base|T_base_cam|analytic\.T_cam_base)\.q_xyzw", r"analytic(\.T_cam_base)?",
         r"covariance_cam_base", r"sigma3_cam_base(\.\w+)?", r"covariance_base_cam(_ros)?", r"sigma3_base_cam(\.\w+)?",
-        r"mirrors", r"mirrors\[\d+\]\.sigma3_mm",
+        r"mirrors", r"mirrors\[\d+\]\.(sigma3_mm|covariance|cross_covariance_cam_base)",
         r"points", rf"points\.{_ANY}\.sigma3_mm", r"optimizer(\.\w+)?", r"residuals(\.\w+)?",
         r"excluded", r"excluded\[\d+\]\.(point|sigmas)", r"inconsistency", r"inconsistency\.(rotation_deg|position_mm)",
         r"camera", r"camera\.(model|width|height|dist|sigma3|covariance|cross_covariance_cam_base)",

@@ -264,9 +264,10 @@ def test_unchecked_bounds_cannot_say_not_moved():
     assert answer.p_value == pytest.approx(stats.chi2.sf(answer.mahalanobis2, answer.dof))
 
 
-def test_an_arm_is_refused_in_words(tmp_path, capsys):
-    """Images with joint states, or an arm's result (with mounts): one line saying verify does not test an arm's
-    mounts, not a "different set-ups" from fitting them as a fixed camera."""
+def test_an_arm_against_a_fixed_camera_is_refused_in_words(tmp_path, capsys):
+    """An arm's result (with mounts) is tested against images with joint states (analysis/verify_arm.py);
+    against a fixed camera's images, or a fixed camera's result against an arm's images: one line saying
+    so, not a "different set-ups" from fitting them as a fixed camera."""
     from mirror_fg.robot.simulate import simulate_arm, write_arm_simulation
 
     for name, seed in (("stored", 1), ("new", 2)):
@@ -274,13 +275,15 @@ def test_an_arm_is_refused_in_words(tmp_path, capsys):
         write_arm_simulation(str(tmp_path / f"{name}.json"), dataset, truth)
     assert main(["calibrate", str(tmp_path / "stored.json"), "-o", str(tmp_path / "r.json"), "--no-ros", "-q"]) == 0
     (tmp_path / "fixed").mkdir()
-    _, new_data = _files(tmp_path / "fixed")  # a camera fixed in the base frame
+    fixed_result, new_data = _files(tmp_path / "fixed")  # a camera fixed in the base frame
     capsys.readouterr()
-    assert main(["verify", str(tmp_path / "r.json"), str(tmp_path / "new.json")]) == 2
+    assert main(["verify", str(tmp_path / "r.json"), str(tmp_path / "new.json"), "-q"]) in (0, 5)
     assert main(["verify", str(tmp_path / "r.json"), str(new_data)]) == 2
+    assert main(["verify", str(fixed_result), str(tmp_path / "new.json")]) == 2
     errors = capsys.readouterr().err.strip().splitlines()
-    assert len(errors) == 2 and all("not an arm's mounts" in line for line in errors), errors
-    assert "images with joint states" in errors[0] and "an arm's result" in errors[1]
+    assert len(errors) == 2, errors
+    assert "an arm's result (mounts) needs new images with joint states" in errors[0]
+    assert "images with joint states, but" in errors[1] and "is not an arm's result" in errors[1]
 
 
 def test_data_that_do_not_fit_the_stored_target_are_refused(tmp_path, capsys):

@@ -64,6 +64,8 @@ from mirror_fg.solver.model.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm
 from mirror_fg.solver.model.marginals import unconstrained_message
 from mirror_fg.solver.options import SolveOptions
 from mirror_fg.solver.start.propagation import Unsolvable, propagate
+from mirror_fg.analysis.verify_fused import fused_estimate
+from mirror_fg.analysis.verify_plane import StoredPlane, standing_plane
 from mirror_fg.analysis.verify_priors import StoredIntrinsics, joint_prior, stored_intrinsics
 from mirror_fg.solver.model.views import SINGLE_CAMERA, ViewProblem, camera_names, tangent_dimension
 
@@ -233,10 +235,6 @@ def _verification_dataset(result: Mapping[str, Any], dataset: Dataset,
     """``dataset`` with the stored intrinsics (their values; none left to estimate) and the stored
     reconstruction points as known points, and the intrinsics the result estimated with their stored
     covariances; one line (DatasetError) where the result and the data cannot be from one set-up."""
-    if dataset.robot is not None or result.get("mounts"):  # the target or the camera rides the arm's joints
-        what = f"{dataset.source}: images with joint states" if dataset.robot is not None else f"{source}: an arm's result"
-        raise DatasetError(f"{what}: verify tests cameras fixed in the base frame, not an arm's mounts; calibrate "
-                           "again and compare with mirror-fg history")
     stored = stored_cameras(result)
     names = camera_names(dataset)
     unknown = [n for n in names if n not in stored]
@@ -304,6 +302,18 @@ class _Fits:
         self.stored_pose = {n: gtsam.Pose3(gtsam.Rot3(R), t) for n, (R, t, _) in stored.items()}
         #: The stored covariance in GTSAM's tangent at the stored pose.
         self.stored_tangent = {n: covariance_to_pose3(R, C) for n, (R, _, C) in stored.items()}
+        self.noun = "camera"
+        #: A stored placement held at its plane in {B} (``verify_plane.py``), else None.
+        self.plane: StoredPlane | None = None
+
+    def hold_plane(self, plane: StoredPlane | None) -> None:
+        """Hold ``plane`` (the single camera's): its marginal in every fit, the held pose given it."""
+        self.plane = plane
+        if plane is not None:
+            self.data.add(plane.marginal_prior(self.pose_key(SINGLE_CAMERA), self.problem.mirror_keys[plane.placement]))
+
+    def pose_key(self, name: str) -> int:
+        return self.problem.pose_keys[name]
 
     def start(self) -> gtsam.Values:
         """The stored poses and every new placement from them (propagation rule 3)."""
@@ -321,6 +331,8 @@ class _Fits:
         key = self.problem.pose_keys[name]
         if information is not None:
             return gtsam.PriorFactorPose3(key, self.stored_pose[name], gtsam.noiseModel.Gaussian.Information(information))
+        if self.plane is not None:
+            return self.plane.conditional(key, self.problem.mirror_keys[self.plane.placement], self.stored_pose[name])
         if name in self.intrinsics:
             return joint_prior(key, self.problem.intrinsics_keys[name], self.stored_pose[name], self.intrinsics[name],
                                self.stored_tangent[name])
@@ -386,21 +398,34 @@ def _free_information(lam: np.ndarray, U: np.ndarray, L: np.ndarray) -> np.ndarr
 
 
 def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.01, tolerance_mm: float = 2.0,
-           tolerance_deg: float = 0.2, source: str = "result", options: SolveOptions | None = None) -> Verification:
+           tolerance_deg: float = 0.2, source: str = "result", options: SolveOptions | None = None,
+           standing: bool = False) -> Verification:
     """Whether each camera of ``dataset``'s images is still where ``result`` (a validated result@1
     dictionary, or a :class:`~mirror_fg.solver.result.calibration.Calibration`) puts it (module docstring).
-    ``source`` names the result in messages; ``options``: its ``max_iterations`` bounds each LM fit.
+    ``source`` names the result in messages; ``options``: its ``max_iterations`` bounds each LM fit;
+    ``standing``: the new images' placements the result holds (the same labels) are the same mirrors, standing
+    where they stood (``verify_plane.py``: one of them is held at its stored plane).
     DatasetError (exit 2) where the result and the data cannot be from one set-up."""
     if not 0.0 < alpha < 1.0:
         raise DatasetError(f"alpha must be between 0 and 1, got {alpha}")
     if hasattr(result, "to_dict"):
         result = result.to_dict()
+    if standing and (dataset.robot is not None or result.get("mounts")):
+        raise DatasetError(f"{source}: a standing mirror is held for a camera fixed in the base frame, not an arm")
+    if dataset.robot is not None or result.get("mounts"):  # the target or the camera rides the arm's joints
+        from mirror_fg.analysis.verify_arm import verify_arm
+
+        return verify_arm(result, dataset, alpha, tolerance_mm, tolerance_deg, source,
+                          options.max_iterations if options is not None else MAX_ITERATIONS)
     verification_data, intrinsics = _verification_dataset(result, dataset, source)
     stored_all = stored_cameras(result)
     fits = _Fits(verification_data, {n: c for n, c in stored_all.items() if n in camera_names(dataset)},  # type: ignore[misc]
                  intrinsics, options.max_iterations if options is not None else MAX_ITERATIONS)
     problem = fits.problem
     tested = list(problem.pose_keys)
+    if standing:  # a mirror that still stands (verify_plane.py)
+        fits.hold_plane(standing_plane(result, verification_data, bool(intrinsics) or tested != [SINGLE_CAMERA],
+                                       fits.stored_tangent, source))
     start = fits.start()
     held_all, _ = fits.fit([fits.prior(n) for n in tested], [start])  # every camera held: also the fused estimate
     seen = {n: _seen(fits.stored_tangent[n], fits.pose_information(n, held_all)) for n in tested}
@@ -439,7 +464,7 @@ def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.0
             if not checked and answer.verdict == NOT_MOVED:  # nu = 0: the stored bounds cannot be checked
                 answer = replace(answer, verdict=CANNOT_TELL, advice=UNCHECKED)
         verdicts[name] = answer
-    fused = _fused(fits, held_all, tested)
+    fused = fused_estimate(fits, held_all, tested)
     return Verification(verdicts, alpha, tolerance_mm, tolerance_deg, fused)
 
 
@@ -450,7 +475,7 @@ def _verdict(name: str, d2: float, dof: int, p: float, free: gtsam.Values, fits:
     move = combined = None
     detectable_rad = detectable_m = math.inf
     if dof == 6:
-        estimate = free.atPose3(fits.problem.pose_keys[name])
+        estimate = free.atPose3(fits.pose_key(name))
         R, t = estimate.rotation().matrix(), np.asarray(estimate.translation(), float)
         # the move in the uncertainty convention: R_new = Exp(dtheta) R_stored, t_new = t_stored + dt
         move = np.concatenate([gtsam.Rot3.Logmap(gtsam.Rot3(R @ R_s.T)), t - t_s])
@@ -464,48 +489,20 @@ def _verdict(name: str, d2: float, dof: int, p: float, free: gtsam.Values, fits:
     elif math.degrees(detectable_rad) <= tolerance_deg and 1e3 * detectable_m <= tolerance_mm:
         verdict, advice = NOT_MOVED, ""
     else:
-        verdict, advice = CANNOT_TELL, _advice(dof, S, ncp, tolerance_mm, tolerance_deg)
+        verdict, advice = CANNOT_TELL, _advice(dof, S, ncp, tolerance_mm, tolerance_deg, fits.noun)
     return CameraVerdict(name, verdict, p, d2, dof, move, combined, detectable_rad, detectable_m, advice)
 
 
-def _advice(dof: int, stored: np.ndarray, ncp: float, tolerance_mm: float, tolerance_deg: float) -> str:
-    """What to add for a ``cannot tell``."""
+def _advice(dof: int, stored: np.ndarray, ncp: float, tolerance_mm: float, tolerance_deg: float,
+            noun: str = "camera") -> str:
+    """What to add for a ``cannot tell`` (``noun``: what is tested, a camera or an arm's mount)."""
     if dof < 6:
-        return (f"the new images see {dof} of the camera's 6 degrees of freedom (a mirror placement hides any "
-                "rotation about a line in its plane): add images at other mirror placements (mirror-fg plan --next)")
+        return (f"the new images see {dof} of the {noun}'s 6 degrees of freedom (a mirror placement hides any "
+                "rotation about a line in its plane): add images at other mirror placements (mirror-fg plan --next), "
+                "or at a mirror the result knows still standing where it stood (its label kept, --standing-mirror)")
     rotation = math.degrees(math.sqrt(ncp * float(np.linalg.eigvalsh(stored[:3, :3])[-1])))
     position = 1e3 * math.sqrt(ncp * float(np.linalg.eigvalsh(stored[3:, 3:])[-1]))
     if rotation > tolerance_deg or position > tolerance_mm:
         return (f"the stored result alone is too uncertain for this tolerance (no move below {rotation:.2g} deg / "
                 f"{position:.2g} mm could be told apart from it): calibrate again with more placements")
     return "the new images are too few for the tolerance: add images at other mirror placements (mirror-fg plan --next)"
-
-
-def _fused(fits: _Fits, held: gtsam.Values, tested: list[str]) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """The stored transforms (priors, their stored covariance) combined with the new data: the fit with
-    every camera held, and each camera's marginal of ``H_data + blockdiag(S^-1)`` (in the convention
-    at the fused estimate), never wider than ``S``."""
-    H, columns = fits.information(held)
-    out = {}
-    rotations = {}
-    for name in tested:
-        estimate = held.atPose3(fits.problem.pose_keys[name])
-        R = estimate.rotation().matrix()
-        rotations[name] = R
-        c = columns[fits.problem.pose_keys[name]]
-        if name in fits.intrinsics:  # the pose given the intrinsics (their marginal is in the data graph)
-            k = columns[fits.problem.intrinsics_keys[name]]
-            B, conditional = fits.intrinsics[name].conditional(covariance_to_pose3(R, fits.stored[name][2]), R)
-            E = np.zeros((6, H.shape[0]))
-            E[:, c] = np.eye(6)
-            E[:, k] = -B
-            H += E.T @ np.linalg.inv(conditional) @ E
-        else:
-            H[c, c] += np.linalg.inv(covariance_to_pose3(R, fits.stored[name][2]))
-    covariance = np.linalg.pinv(H, rcond=1e-14, hermitian=True)
-    for name in tested:
-        estimate = held.atPose3(fits.problem.pose_keys[name])
-        c = columns[fits.problem.pose_keys[name]]
-        C = covariance_from_pose3(rotations[name], covariance[c, c])
-        out[name] = (rotations[name], np.asarray(estimate.translation(), float), 0.5 * (C + C.T))
-    return out

@@ -88,8 +88,6 @@ def cmd_live(args, out: _Printer) -> int:
     if capture.robot is not None:  # an arm: joint states from the capture's growing CSV (live/joints.py)
         from mirror_fg.live.joints import LiveArmSession
 
-        if getattr(args, "verify", None) is not None:
-            raise DatasetError("live: --verify is not available with a robot arm's capture yet; drop it")
         session = LiveArmSession(capture, target_mm=args.target_mm, target_deg=args.target_deg,
                                  on_added=lambda frame, gray, image: folder.add(frame, gray, image)
                                  if folder is not None else None, picture=args.serve is not None)

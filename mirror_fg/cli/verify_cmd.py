@@ -32,6 +32,9 @@ def add_parser(sub, common, epilog: str, positive) -> None:
     ver.add_argument("-o", "--output", type=Path, help="write the verification (verification@1 JSON) here")
     ver.add_argument("--update", type=Path, metavar="OUT",
                      help="where nothing moved: write the stored estimate combined with the new images (result@1)")
+    ver.add_argument("--standing-mirror", action="store_true",
+                     help="the new images' mirror placements that RESULT has (same mirror and config numbers) are the "
+                     "same mirrors, standing where they stood: one placement then determines the camera")
     add_registry_arguments(ver)
     common(ver)
 
@@ -65,7 +68,8 @@ def cmd_verify(args, out: _Printer) -> int:
         check_updatable(result, os.fspath(args.result))
     dataset = load_input_file(args.data, out, plan)
     verification = verify(result, dataset, alpha=args.alpha, tolerance_mm=args.tolerance_mm,
-                          tolerance_deg=args.tolerance_deg, source=os.fspath(args.result))
+                          tolerance_deg=args.tolerance_deg, source=os.fspath(args.result),
+                          standing=args.standing_mirror)
     contents = {}
     document = verification.to_dict(os.fspath(args.result), os.fspath(args.data))
     if args.output is not None:

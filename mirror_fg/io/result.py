@@ -216,6 +216,12 @@ def result_dict(calibration: CalibrationLike) -> dict:
     dispersion = getattr(c, "dispersion", None)
     if dispersion is not None:  # docs/formats.md "Has it moved?"
         result["dispersion"] = dispersion.to_dict()
+    joint = getattr(c, "placement_covariances", None)
+    if joint:  # docs/formats.md "Has it moved?": a mirror that stands still, jointly with the camera
+        for entry in result["mirrors"]:  # type: ignore[union-attr]
+            found = joint.get((entry["mirror"], entry["config"]))
+            if found is not None:
+                entry["covariance"], entry["cross_covariance_cam_base"] = found[0].tolist(), found[1].tolist()
     return result
 
 

@@ -39,8 +39,18 @@ REQUIRED: dict[str, Checker] = {"T_cam_base": _transform}
 _SIGMA3: dict[str, Checker] = {"rotation_deg": _sigma3, "position_mm": _sigma3}
 _MIRROR: tuple[dict[str, Checker], dict[str, Checker]] = (
     {"mirror": lambda x, p: _integer(x, p, 1), "config": lambda x, p: _integer(x, p, 0), "v": _vector3},
-    {"sigma3_mm": _sigma3, "camera": _text},  # camera: the frame of v (a result with cameras)
+    {"sigma3_mm": _sigma3, "camera": _text,  # camera: the frame of v (a result with cameras)
+     # v's covariance and its cross-covariance with the pose (docs/formats.md "Has it moved?")
+     "covariance": lambda x, p: _matrix(x, 3, p).tolist(),
+     "cross_covariance_cam_base": lambda x, p: _list_of(lambda row, q: _vector(row, 6, q))(_items3(x, p), p)},
 )
+
+
+def _items3(value: Any, path: str) -> Any:
+    """Three rows (the cross-covariance of ``v`` with the pose)."""
+    if not isinstance(value, list) or len(value) != 3:
+        raise _Invalid(path, "expected 3 rows of 6 numbers")
+    return value
 _OUTLIER: tuple[dict[str, Checker], dict[str, Checker]] = ({"image": _text, "point": _text, "sigmas": _statistic}, {})
 _OPTIMIZER: dict[str, Checker] = {
     "iterations": lambda x, p: _integer(x, p, 0),

@@ -1,6 +1,7 @@
 """``mirror-fg live --verify RESULT``: the verdict of ``verify`` (``analysis/verify.py``, docs/formats.md "Has it
 moved?") as frames arrive: after each frame a live session adds (a new mirror placement), the placements
-so far are tested against RESULT. Pixels as the session detected them; frames and units as verify's.
+so far are tested against RESULT (an arm's session: its frames with their joint states, against an arm's
+result, ``analysis/verify_arm.py``). Pixels as the session detected them; frames and units as verify's.
 """
 from __future__ import annotations
 
@@ -28,8 +29,11 @@ class LiveVerifier:
         self.waiting = "no placement yet"
 
     def dataset(self) -> Dataset:
-        """The session's added placements as a dataset@1 (one mirror, one placement per frame)."""
+        """The session's added placements as a dataset@1 (one mirror, one placement per frame; an arm's
+        session: its added frames with their joint states, ``LiveArmSession.dataset``)."""
         session = self.session
+        if getattr(session.capture, "robot", None) is not None:
+            return session.dataset()
         capture = session.capture
         return dataset_from_dict({
             "format": DATASET_FORMAT, "num_mirrors": 1, "camera": session.camera_dict,
@@ -41,7 +45,7 @@ class LiveVerifier:
         }, f"{capture.source} (live)")
 
     def update(self) -> Verification | None:
-        if not self.session.added:
+        if not getattr(self.session, "added", None) and not getattr(self.session, "images", None):
             return None
         try:
             self.last = verify(self.result, self.dataset(), alpha=self.alpha, tolerance_mm=self.tolerance_mm,

@@ -35,6 +35,8 @@ from mirror_fg.registry.schema import (
 
 __all__ = ["Registry", "RegistryError"]
 
+#: PostgreSQL's SQLSTATE of a full disk (``disk_full``: a file could not be extended or written).
+DISK_FULL_SQLSTATE = "53100"
 #: Seconds a SQLite writer keeps retrying a locked database (after each busy timeout) before it gives up.
 LOCKED_RETRY_S = 120.0
 _T = TypeVar("_T")
@@ -295,4 +297,7 @@ def _reason(error: BaseException) -> str:
     elif isinstance(error, SQLAlchemyError) and getattr(error, "orig", None) is not None:
         error = getattr(error, "orig")
     text = str(error).strip().splitlines()
-    return " ".join(text[0].split())[:200] if text else type(error).__name__
+    line = " ".join(text[0].split())[:200] if text else type(error).__name__
+    if getattr(error, "sqlstate", None) == DISK_FULL_SQLSTATE:  # PostgreSQL's disk_full, in the user's words
+        return f"the database server's disk is full: {line}"
+    return line

@@ -23,6 +23,7 @@ from mirror_fg.io.dataset import Dataset, dataset_from_dict
 from mirror_fg.solver.screen.camera_labels import check_camera_labels
 from mirror_fg.solver.result.calibration import Calibration
 from mirror_fg.solver.fit.dispersion import dispersion_of_calibration
+from mirror_fg.solver.fit.placement_covariance import placement_covariances
 from mirror_fg.solver.model.graph import InitialEstimate
 from mirror_fg.solver.options import STAGES, Linearization, Progress, SolveOptions
 from mirror_fg.solver.pipeline import run_pipeline
@@ -112,6 +113,7 @@ def calibrate(
         calibration = run_pipeline(TreeProblem(initial, options), dataset)
     if options.compute_covariance and calibration.covariance is not None:  # what verify divides its test by
         calibration.dispersion = dispersion_of_calibration(dataset, calibration)
+        calibration.placement_covariances = placement_covariances(dataset, calibration)  # a mirror that stands still
     return calibration
 
 

@@ -167,6 +167,9 @@ class Calibration:
     robot: dict | None = None
     #: The images' agreement with each other (``solver/fit/dispersion.py``), else None.
     dispersion: Any = None
+    #: Each placement's ``(covariance of v, cross-covariance with the pose)`` (``solver/fit/placement_covariance.py``),
+    #: else None.
+    placement_covariances: Any = None
 
     @property
     def T_cam_base(self) -> Transform:
