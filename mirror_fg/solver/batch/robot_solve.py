@@ -330,17 +330,21 @@ def lowest_pnp_minima(dataset: Dataset) -> dict[str, tuple[tuple[str, ...], list
     minimum only (the other minima are the twin candidates of the tree's analytical start, which an arm
     does not use); that search finds the same lowest minimum at about half the cost."""
     from mirror_fg.solver.screen.placement_consensus import fiducial_names
-    from mirror_fg.solver.start.pnp import pnp_minima
+    from mirror_fg.solver.start.pnp import is_planar, pnp_minima
 
     out = {}
+    planar: dict[tuple[str, ...], bool] = {}  # by the image's fiducials: most images see the same ones
     for image in dataset.images:
-        names = fiducial_names(dataset, image)
+        names = tuple(fiducial_names(dataset, image))
         if len(names) < 4:
             continue
         normalized = dataset.normalized(image)
         points = np.array([dataset.fiducials[n] for n in names])
         observed = np.array([normalized[n] for n in names])
-        out[image.id] = (tuple(names), pnp_minima(points, observed, len(image.reflections), collinear_p3p=False))
+        if names not in planar:
+            planar[names] = is_planar(points)
+        out[image.id] = (names, pnp_minima(points, observed, len(image.reflections), collinear_p3p=False,
+                                           planar=planar[names]))
     return out
 
 
