@@ -122,6 +122,63 @@ def camera_mount(robot: str, eye_in_hand: bool, placements: int, images: int, se
     return marginal, known_planes, _board_distance(dataset, truth) if not direct else distance, taken
 
 
+def chosen_camera_mount(robot: str, eye_in_hand: bool, placements: int, images: int, seed: int, folder: str,
+                        reference: np.ndarray, distance: float = 0.35, setup: tuple | None = None,
+                        pool: int = 5) -> np.ndarray:
+    """The camera mount's 3-sigma (as :func:`camera_mount`'s, at the truth) from ``images`` arm poses chosen
+    among ``pool`` times as many visible ones: two (direct: four) per placement drawn, then one at a time
+    the one that most lowers the larger of the largest rotation and position 3-sigma over ``reference``'s
+    (what ``plan --next`` does with the data's estimate, here at the truth: a bound on what it can reach)."""
+    import gtsam
+
+    from mirror_fg.solver.model.robot_views import RobotProblem
+
+    direct = placements == 0
+    mirror: dict = {} if setup is None else {"mirror_distance": setup[0], "mirror_tilt_deg": setup[1],
+                                             "check_occlusion": True}
+    if setup is not None and setup[2] is not None and not eye_in_hand:
+        mirror["board_position"] = setup[2]
+    per = images if direct else images // placements
+    dataset, truth = simulate_arm(robot, eye_in_hand, placements=max(placements, 1), arm_poses=pool * per,
+                                  pixel_sigma=0.5, seed=seed, direct=direct, direct_distance=distance, **mirror)
+    path = os.path.join(folder, f"{robot}_{placements}_{seed}_pool.json")
+    write_arm_simulation(path, dataset, truth)
+    problem = RobotProblem(load_dataset(path))
+    values = problem.values(RobotEstimate({role: pose for role, (_, pose) in truth.mounts.items()},
+                                          dict(truth.mirror_vectors)))
+    graph = gtsam.NonlinearFactorGraph()
+    for factor in problem.factors:  # one factor per image: the rows of each image together, in order
+        graph.add(factor.factor())
+    ordering, columns, start = gtsam.Ordering(), {}, 0
+    for key in problem.keys:
+        ordering.push_back(key)
+        columns[key] = slice(start, start + (6 if key in problem.mount_keys.values() else 3))
+        start += columns[key].stop - columns[key].start
+    A, _ = graph.linearize(values).jacobian(ordering)
+    rows = np.cumsum([0] + [2 * len(im.observations) for im in problem.dataset.images])
+    blocks = [A[rows[i]:rows[i + 1]].T @ A[rows[i]:rows[i + 1]] for i in range(len(rows) - 1)]
+    c, R = columns[problem.mount_keys["camera"]], truth.mounts["camera"][1][0]
+
+    def sigma3(information: np.ndarray) -> np.ndarray:
+        return _sigma3(np.linalg.inv(information)[c, c], R)
+
+    def score(information: np.ndarray) -> float:
+        try:
+            s3 = sigma3(information)
+        except np.linalg.LinAlgError:
+            return float("inf")
+        return float(max(s3[:3].max() / reference[:3].max(), s3[3:].max() / reference[3:].max()))
+
+    group = [im.reflections[0] if im.reflections else 0 for im in problem.dataset.images]
+    chosen = [i for g in sorted(set(group)) for i in [k for k in range(len(group)) if group[k] == g][:4 if direct else 2]]
+    information = sum(blocks[i] for i in chosen)
+    while len(chosen) < images:
+        best = min((i for i in range(len(blocks)) if i not in chosen), key=lambda i: score(information + blocks[i]))
+        chosen.append(best)
+        information = information + blocks[best]
+    return sigma3(information)
+
+
 def _line(setup: str, name: str, images: int, values: np.ndarray) -> str:
     return (f"{setup:22s} {name:46s} {images} images: camera mount 3-sigma rotation "
             f"{np.round(values[:3], 3).tolist()} deg, position {np.round(values[3:], 2).tolist()} mm "
@@ -136,6 +193,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--images", type=int, default=24)
     parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--chosen", action="store_true",
+                        help="also the arm poses chosen by their predicted bound (chosen_camera_mount), near set-ups")
     args = parser.parse_args()
     seeds = range(args.seeds)
     with tempfile.TemporaryDirectory() as folder:
@@ -172,6 +231,15 @@ def main() -> None:
                           f"{_ratio(mirror, direct[best])}; / direct view at {0.05 * round(float(seen) / 0.05):.2f} m: "
                           f"{_ratio(mirror, same_path)}; planes known: {known[:3].max():.3f} deg, "
                           f"{known[3:].max():.2f} mm")
+                    if args.chosen and name.startswith("near") and placements == 4:
+                        picked = np.mean([chosen_camera_mount(robot, eye_in_hand, placements, args.images, s, folder,
+                                                              direct[best], setup=setup) for s in seeds], axis=0)
+                        picked_direct = np.mean([chosen_camera_mount(robot, eye_in_hand, 0, args.images, s, folder,
+                                                                     direct[best], best) for s in seeds], axis=0)
+                        print(_line(arm, f"{name}, arm poses chosen", args.images, picked))
+                        print(_line(arm, f"direct view {best:.2f} m, arm poses chosen", args.images, picked_direct))
+                        print(f"{arm:22s}   chosen arm poses: / best direct view: {_ratio(picked, direct[best])}; "
+                              f"/ its arm poses chosen too: {_ratio(picked, picked_direct)}")
                     print(f"{arm:22s}   the planes take {100 * np.mean([r[3][1] for r in runs]):.0f} % of the "
                           f"information on the mount's turn about {np.round(axis / np.linalg.norm(axis), 2).tolist()} "
                           f"(camera frame)")

@@ -173,7 +173,7 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
         tries = 0
         while min(found.values()) < arm_poses:
             tries += 1
-            if tries > 2000 * len(roles):
+            if tries > max(2000, 300 * arm_poses) * len(roles):  # a scene of many poses draws longer
                 raise RuntimeError(f"no visible arm pose for placement {k} after {tries - 1} tries")
             step = rng.uniform(-spread_rad, spread_rad, len(q0))
             if moving is not None:
