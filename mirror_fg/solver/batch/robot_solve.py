@@ -123,18 +123,18 @@ def _joined(problem: RobotProblem, reference: str, chosen: dict, failures: dict,
 def _single_views(problem: RobotProblem, role: str, minima: dict | None) -> list:
     """``(placement, target points (N, 3), normalized (N, 2), T_B_camlink, T_B_targetlink, PnP minima or None)``
     of each image of the camera ``role`` seen through one mirror."""
-    dataset, kin = problem.dataset, problem.kinematics
+    dataset = problem.dataset
     links = (problem.links[role], problem.links["target"])
     placed = []
-    for image in dataset.images:
+    for index, image in enumerate(dataset.images):
         if len(image.reflections) != 1 or problem.role_of(image) != role:
             continue
+        fiducial = [k for k, n in enumerate(image.observations) if n in dataset.fiducials]
         names = [n for n in image.observations if n in dataset.fiducials]
-        normalized = dataset.normalized(image)
-        F = kin.placements(image.joints, list(dict.fromkeys(links)))
+        F = problem.recorded[index]  # at the recorded joints
         known = (minima or {}).get(image.id)
         placed.append((image.reflections[0], np.array([dataset.fiducials[n] for n in names]).reshape(-1, 3),
-                       np.array([normalized[n] for n in names]).reshape(-1, 2), F[links[0]][0],
+                       problem.normalized[index].T[fiducial].reshape(-1, 2), F[links[0]][0],
                        F[links[1]][0], known[1] if known is not None and known[0] == tuple(names) else None))
     return placed
 

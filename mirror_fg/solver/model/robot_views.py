@@ -92,6 +92,9 @@ class RobotProblem:
         self.offset_key = O(0) if self.offsets else None
         self.factors: list[RobotViewFactor] = []
         self.normalized: list[np.ndarray] = []
+        #: Each image's placements ``{link: (T_base_link, J)}`` of its camera's and the target's links at its
+        #: recorded joints (no Jacobian columns): the start and the motion check read them here.
+        self.recorded: list[dict] = []
         # an image's sigmas, target points and landmarks depend on its camera and point names only: built once
         # for the images that share them (a board's images mostly see the same corners)
         shared: dict[tuple, tuple[np.ndarray, np.ndarray, list[int]]] = {}
@@ -116,10 +119,12 @@ class RobotProblem:
             sigmas, points, landmarks = sigmas.copy(), points.copy(), list(landmarks)
             assert image.joints is not None
             role = self.role_of(image)
+            placed = self.kinematics.placements(image.joints, list(dict.fromkeys((self.links[role], self.links["target"]))))
+            self.recorded.append(placed)
             keys = {r: self.mount_keys[w] for r, w in (("camera", role), ("target", "target")) if w in self.mount_keys}
             known = {r: self.known[w] for r, w in (("camera", role), ("target", "target")) if w in self.known}
             self.factors.append(RobotViewFactor(
-                image.reflections, keys, known, self.mirror_keys, self.forward(image.joints, role),
+                image.reflections, keys, known, self.mirror_keys, self.forward(image.joints, role, placed),
                 self.offset_key, len(self.offsets), points, landmarks, observed, sigmas, robust))
         self._stacks: tuple | None = None
         # what :meth:`residuals` reads every time: each image's measured pixels (N, 2), and all images'
@@ -127,6 +132,7 @@ class RobotProblem:
         self._raw = [np.array([im.observations[n] for n in im.observations], float).reshape(-1, 2)
                      for im in dataset.images]
         self._observed = np.hstack(self.normalized) if self.normalized else np.zeros((2, 0))
+        self._labels = [(image.id, n) for image in dataset.images for n in image.observations]
         self._sigmas = np.hstack([f.sigmas for f in self.factors]) if self.factors else np.zeros((2, 0))
         #: Number of residual rows (2 per measurement).
         self.size = sum(2 * len(im.observations) for im in dataset.images)
@@ -155,15 +161,15 @@ class RobotProblem:
         """The mount role of the camera that took ``image``."""
         return self.camera_roles[image.camera] if self.setup.cameras is not None else self.camera
 
-    def forward(self, joints: dict[str, float], role: str | None = None):
+    def forward(self, joints: dict[str, float], role: str | None = None, placed: dict | None = None):
         """The image's forward kinematics for ``factors/robot.py``: at ``joints + delta``, the placements
         of the camera's (``role``, default the first camera) and the target's links in {B} and their
-        Jacobians in the offsets."""
+        Jacobians in the offsets (``placed``: those links' placements at ``joints``, when known)."""
         kin, offsets = self.kinematics, self.offsets
         camera_link, target_link = self.links[role or self.camera], self.links["target"]
         unique = list(dict.fromkeys((camera_link, target_link)))
         if not offsets:  # nothing moves the joints: the placements once
-            out = kin.placements(joints, unique)
+            out = placed if placed is not None else kin.placements(joints, unique)
             fixed = (out[camera_link], out[target_link])
             return lambda delta: fixed
 
@@ -252,7 +258,7 @@ class RobotProblem:
                 residuals.append(self._raw[i])  # the measured pixels, replaced below
             else:
                 residuals.append((z - observed).T)
-        labels = [(image.id, n) for image in self.dataset.images for n in image.observations]
+        labels = list(self._labels)
         for members in by_camera.values():
             camera = self.dataset.camera_of(self.dataset.images[members[0]])
             assert camera is not None

@@ -122,22 +122,22 @@ def _collinear(points: np.ndarray) -> bool:
 def _first_of_each(R: np.ndarray, t: np.ndarray, tolerance: float) -> list[int]:
     """Indices of the poses ``(R[k], t[k])`` kept when each is kept unless it is near one kept before it
     (rotations within ``tolerance`` entry-wise, translations within ``tolerance`` relative to its own)."""
-    near = _near_table(R, t, tolerance)
     kept: list[int] = []
-    for k in range(len(R)):
-        if not near[k, kept].any():
+    for k, near in enumerate(_near_table(R, t, tolerance)):
+        if not any(near[j] for j in kept):
             kept.append(k)
     return kept
 
 
-def _near_table(R: np.ndarray, t: np.ndarray, tolerance: float) -> np.ndarray:
-    """``near[k, j]``: pose k is within ``tolerance`` of pose j (rotation entries; translation relative to
+def _near_table(R: np.ndarray, t: np.ndarray, tolerance: float) -> list[list[bool]]:
+    """``near[k][j]``: pose k is within ``tolerance`` of pose j (rotation entries; translation relative to
     pose k's) -- all pairs at once."""
+    entries = R.reshape(len(R), 9)
+    rotation = np.abs(entries[:, None, :] - entries[None, :, :]).max(axis=2)
     scale = np.maximum(np.sqrt(np.einsum("ij,ij->i", t, t)), 1e-12)
-    rotation = np.abs(R[:, None] - R[None, :]).max(axis=(2, 3))
     difference = t[:, None] - t[None, :]
     translation = np.sqrt(np.einsum("ijk,ijk->ij", difference, difference))
-    return (rotation <= tolerance) & (translation <= tolerance * scale[:, None])
+    return ((rotation <= tolerance) & (translation <= tolerance * scale[:, None])).tolist()
 
 
 def pnp_minima(base_points: np.ndarray, normalized: np.ndarray, num_mirrors: int, collinear_p3p: bool = True,
