@@ -29,7 +29,9 @@ beyond the longer light path. The last figure, "planes known", is the mount's 3-
 were the placements' planes given; the line after it names the turn of the camera mount whose variance the
 unknown planes inflate most (its axis in the camera's frame) and the share of that turn's information they
 take (1 - planes-known variance / variance).
-Run: PYTHONPATH=. python scripts/robot_mirror_vs_direct.py [--images 24] [--seeds 5]
+``--chosen`` adds, for the near set-ups at 4 placements, the arm poses chosen rather than drawn
+(:func:`chosen_camera_mount`), for the mirror and the best direct view alike.
+Run: PYTHONPATH=. python scripts/robot_mirror_vs_direct.py [--images 24] [--seeds 5] [--chosen]
 """
 from __future__ import annotations
 
@@ -171,7 +173,7 @@ def chosen_camera_mount(robot: str, eye_in_hand: bool, placements: int, images: 
 
     group = [im.reflections[0] if im.reflections else 0 for im in problem.dataset.images]
     chosen = [i for g in sorted(set(group)) for i in [k for k in range(len(group)) if group[k] == g][:4 if direct else 2]]
-    information = sum(blocks[i] for i in chosen)
+    information = np.sum([blocks[i] for i in chosen], axis=0)
     while len(chosen) < images:
         best = min((i for i in range(len(blocks)) if i not in chosen), key=lambda i: score(information + blocks[i]))
         chosen.append(best)
@@ -223,7 +225,9 @@ def main() -> None:
                         print(f"{arm:22s} {name}, {placements} placements: blocked (no arm pose sees the board "
                               "through the mirror past the board itself, inside the image)")
                         continue
-                    mirror, known, seen = (np.mean([r[k] for r in runs], axis=0) for k in range(3))
+                    mirror = np.mean([r[0] for r in runs], axis=0)
+                    known = np.mean([r[1] for r in runs], axis=0)
+                    seen = float(np.mean([r[2] for r in runs]))
                     axis = np.mean([r[3][0] * np.sign(r[3][0][np.argmax(np.abs(r[3][0]))]) for r in runs], axis=0)
                     print(_line(arm, f"{name}, {placements} placements", args.images, mirror))
                     same_path = direct_at(0.05 * round(float(seen) / 0.05))
