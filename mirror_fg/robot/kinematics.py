@@ -123,6 +123,12 @@ class Kinematics:
         pin = self.pin
         names = names or []
         q = self._configuration(joints)
+        if not names:  # no Jacobian wanted: the placements alone (the same forward pass)
+            pin.framesForwardKinematics(self.model, self.data, q)
+            oMb = self.data.oMf[self._frame[self.base_link]]
+            none = np.zeros((6, 0))
+            return {link: (np.asarray(oMb.actInv(self.data.oMf[self._frame[link]]).homogeneous, float), none.copy())
+                    for link in links}
         pin.computeJointJacobians(self.model, self.data, q)
         pin.updateFramePlacements(self.model, self.data)
         oMb = self.data.oMf[self._frame[self.base_link]]

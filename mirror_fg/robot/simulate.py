@@ -90,7 +90,8 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
                  seed: int = 0, spread_rad: float = 0.25, estimate_offsets: bool = True,
                  moving: tuple[str, ...] | None = None, direct: bool = False, direct_distance: float = 0.9,
                  mirror_distance: tuple[float, float] = (0.45, 0.6), mirror_tilt_deg: tuple[float, float] = (6.0, 14.0),
-                 cameras: int = 1, camera_links: tuple[str, ...] = ()):
+                 cameras: int = 1, camera_links: tuple[str, ...] = (), board_position: tuple[float, float, float] | None = None,
+                 check_occlusion: bool = False):
     """A dataset@1 dictionary (its ``robot.urdf`` the arm's file name) and its :class:`ArmTruth`.
 
     ``arm_poses`` images per placement; ``joint_offsets_deg``: true encoder offsets, recorded joints are
@@ -103,7 +104,10 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
     ``cameras`` ``cam0``, ``cam1``, ... and ``mounts.cameras``: the first camera where one camera would be,
     camera k ``RIG_STEP`` further along its x axis (turned towards the others), on ``camera_links[k - 1]``
     where given (else the first camera's link); at each arm pose every camera that sees the target through
-    the mirror takes an image, ``arm_poses`` per camera and placement."""
+    the mirror takes an image, ``arm_poses`` per camera and placement. ``board_position``: the board's centre
+    in the camera's frame at the nominal pose (metres; default eye-to-hand 0.15 m aside and 0.3 m ahead,
+    eye-in-hand 0.12 m aside), facing the mirrors. ``check_occlusion``: also leave out arm poses where the
+    board's plate (3 cm beyond its corners) stands in the camera's line of sight to the mirror."""
     from mirror_fg.robot.kinematics import load_kinematics
 
     rng = np.random.default_rng(seed)
@@ -117,7 +121,8 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
     # in the camera's frame at the nominal pose, the board facing the mirrors (pattern normal -z_target):
     # eye-in-hand, the fixed board beside the wrist camera; eye-to-hand, the board on the tool held 0.3 m in
     # front of the camera and 0.15 m to its side (clear of its view of the mirror), as a user sets it up
-    T_cam_target = (_rot([0, 1, 0], math.pi), np.array([0.12, 0.0, 0.02] if eye_in_hand else [0.15, 0.0, 0.30]))
+    T_cam_target = (_rot([0, 1, 0], math.pi), np.array(board_position if board_position is not None
+                                                       else [0.12, 0.0, 0.02] if eye_in_hand else [0.15, 0.0, 0.30], float))
     if direct:  # the board's front (-z_target) faces the camera
         T_cam_target = (np.eye(3), np.array([0.0, 0.0, direct_distance]))
     if eye_in_hand:  # camera 6 cm off the flange, looking along the tool's z
@@ -168,7 +173,7 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
         tries = 0
         while min(found.values()) < arm_poses:
             tries += 1
-            if tries > 2000 * len(roles):
+            if tries > max(2000, 300 * arm_poses) * len(roles):  # a scene of many poses draws longer
                 raise RuntimeError(f"no visible arm pose for placement {k} after {tries - 1} tries")
             step = rng.uniform(-spread_rad, spread_rad, len(q0))
             if moving is not None:
@@ -189,6 +194,8 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
                 F_c = F[link][0]
                 poses = {"camera": compose((F_c[:3, :3], F_c[:3, 3]), mount), "target": target}
                 pix = _observe(poses, x_B, v_B)
+                if pix is not None and check_occlusion and v_B is not None and _occluded(poses, x_B, v_B):
+                    pix = None
                 if pix is None:
                     continue
                 pix = pix + rng.normal(0.0, pixel_sigma, pix.shape)
@@ -243,6 +250,32 @@ def _observe(poses, x_B: np.ndarray, v_B: np.ndarray | None) -> np.ndarray | Non
     if not CAMERA.contains(pix).all() or np.any((pix < 20) | (pix > [CAMERA.width - 20, CAMERA.height - 20])):
         return None
     return pix
+
+
+def _occluded(poses, x_B: np.ndarray, v_B: np.ndarray, margin: float = 0.03) -> bool:
+    """Whether the board's plate (its corners' rectangle grown by ``margin``, target frame z = 0) crosses
+    the camera's line of sight to the mirror point of any target point ``x_B`` ({B}) seen through the plane
+    of ``v_B``."""
+    R_t, t_t = poses["target"]
+    c = poses["camera"][1]
+    virtual = _reflect(x_B, v_B)  # eq. (3): the ray to each image point meets the mirror on the way
+    n_B, d_B = v_B / np.linalg.norm(v_B), float(np.linalg.norm(v_B))
+    ray = virtual - c[:, None]
+    at_mirror = c[:, None] + ray * ((d_B - n_B @ c) / (n_B @ ray))  # where each ray meets the plane
+    corners = R_t.T @ (x_B - t_t[:, None])  # the corners in the target frame (the plate's extent)
+    low, high = corners[:2].min(axis=1) - margin, corners[:2].max(axis=1) + margin
+    c_t = R_t.T @ (c - t_t)  # the camera and the mirror points in the target frame
+    m_t = R_t.T @ (at_mirror - t_t[:, None])
+    for k in range(m_t.shape[1]):
+        dz = m_t[2, k] - c_t[2]
+        if abs(dz) < 1e-12:
+            continue
+        s = -c_t[2] / dz  # the camera-to-mirror segment crosses the board's plane at s in (0, 1)
+        if 0.0 < s < 1.0:
+            p = c_t[:2] + s * (m_t[:2, k] - c_t[:2])
+            if np.all(p >= low) and np.all(p <= high):
+                return True
+    return False
 
 
 def _pose_dict(pose) -> dict:

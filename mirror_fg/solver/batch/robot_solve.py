@@ -123,18 +123,18 @@ def _joined(problem: RobotProblem, reference: str, chosen: dict, failures: dict,
 def _single_views(problem: RobotProblem, role: str, minima: dict | None) -> list:
     """``(placement, target points (N, 3), normalized (N, 2), T_B_camlink, T_B_targetlink, PnP minima or None)``
     of each image of the camera ``role`` seen through one mirror."""
-    dataset, kin = problem.dataset, problem.kinematics
+    dataset = problem.dataset
     links = (problem.links[role], problem.links["target"])
     placed = []
-    for image in dataset.images:
+    for index, image in enumerate(dataset.images):
         if len(image.reflections) != 1 or problem.role_of(image) != role:
             continue
+        fiducial = [k for k, n in enumerate(image.observations) if n in dataset.fiducials]
         names = [n for n in image.observations if n in dataset.fiducials]
-        normalized = dataset.normalized(image)
-        F = kin.placements(image.joints, list(dict.fromkeys(links)))
+        F = problem.recorded[index]  # at the recorded joints
         known = (minima or {}).get(image.id)
         placed.append((image.reflections[0], np.array([dataset.fiducials[n] for n in names]).reshape(-1, 3),
-                       np.array([normalized[n] for n in names]).reshape(-1, 2), F[links[0]][0],
+                       problem.normalized[index].T[fiducial].reshape(-1, 2), F[links[0]][0],
                        F[links[1]][0], known[1] if known is not None and known[0] == tuple(names) else None))
     return placed
 
@@ -330,17 +330,21 @@ def lowest_pnp_minima(dataset: Dataset) -> dict[str, tuple[tuple[str, ...], list
     minimum only (the other minima are the twin candidates of the tree's analytical start, which an arm
     does not use); that search finds the same lowest minimum at about half the cost."""
     from mirror_fg.solver.screen.placement_consensus import fiducial_names
-    from mirror_fg.solver.start.pnp import pnp_minima
+    from mirror_fg.solver.start.pnp import is_planar, pnp_minima
 
     out = {}
+    planar: dict[tuple[str, ...], bool] = {}  # by the image's fiducials: most images see the same ones
     for image in dataset.images:
-        names = fiducial_names(dataset, image)
+        names = tuple(fiducial_names(dataset, image))
         if len(names) < 4:
             continue
         normalized = dataset.normalized(image)
         points = np.array([dataset.fiducials[n] for n in names])
         observed = np.array([normalized[n] for n in names])
-        out[image.id] = (tuple(names), pnp_minima(points, observed, len(image.reflections), collinear_p3p=False))
+        if names not in planar:
+            planar[names] = is_planar(points)
+        out[image.id] = (names, pnp_minima(points, observed, len(image.reflections), collinear_p3p=False,
+                                           planar=planar[names]))
     return out
 
 

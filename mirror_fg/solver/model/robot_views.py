@@ -92,28 +92,48 @@ class RobotProblem:
         self.offset_key = O(0) if self.offsets else None
         self.factors: list[RobotViewFactor] = []
         self.normalized: list[np.ndarray] = []
+        #: Each image's placements ``{link: (T_base_link, J)}`` of its camera's and the target's links at its
+        #: recorded joints (no Jacobian columns): the start and the motion check read them here.
+        self.recorded: list[dict] = []
+        # an image's sigmas, target points and landmarks depend on its camera and point names only: built once
+        # for the images that share them (a board's images mostly see the same corners)
+        shared: dict[tuple, tuple[np.ndarray, np.ndarray, list[int]]] = {}
         for image in dataset.images:
             names = list(image.observations)
             normalized = dataset.normalized(image)
             observed = np.array([normalized[n] for n in names], float).reshape(-1, 2).T
             self.normalized.append(observed)
-            sigmas = normalized_sigmas(dataset.camera_of(image), dataset.pixel_sigma, dataset.point_sigma, names).T
-            points = np.full((3, len(names)), np.nan)
-            landmarks = []
-            for k, name in enumerate(names):
-                if name in dataset.fiducials:
-                    points[:, k] = dataset.fiducials[name]
-                    landmarks.append(-1)
-                else:
-                    landmarks.append(self.point_keys[name])
+            camera = dataset.camera_of(image)
+            if (id(camera), *names) not in shared:
+                sigmas = normalized_sigmas(camera, dataset.pixel_sigma, dataset.point_sigma, names).T
+                points = np.full((3, len(names)), np.nan)
+                landmarks = []
+                for k, name in enumerate(names):
+                    if name in dataset.fiducials:
+                        points[:, k] = dataset.fiducials[name]
+                        landmarks.append(-1)
+                    else:
+                        landmarks.append(self.point_keys[name])
+                shared[(id(camera), *names)] = (sigmas, points, landmarks)
+            sigmas, points, landmarks = shared[(id(camera), *names)]
+            sigmas, points, landmarks = sigmas.copy(), points.copy(), list(landmarks)
             assert image.joints is not None
             role = self.role_of(image)
+            placed = self.kinematics.placements(image.joints, list(dict.fromkeys((self.links[role], self.links["target"]))))
+            self.recorded.append(placed)
             keys = {r: self.mount_keys[w] for r, w in (("camera", role), ("target", "target")) if w in self.mount_keys}
             known = {r: self.known[w] for r, w in (("camera", role), ("target", "target")) if w in self.known}
             self.factors.append(RobotViewFactor(
-                image.reflections, keys, known, self.mirror_keys, self.forward(image.joints, role),
+                image.reflections, keys, known, self.mirror_keys, self.forward(image.joints, role, placed),
                 self.offset_key, len(self.offsets), points, landmarks, observed, sigmas, robust))
         self._stacks: tuple | None = None
+        # what :meth:`residuals` reads every time: each image's measured pixels (N, 2), and all images'
+        # normalized observations and sigmas side by side (2, total)
+        self._raw = [np.array([im.observations[n] for n in im.observations], float).reshape(-1, 2)
+                     for im in dataset.images]
+        self._observed = np.hstack(self.normalized) if self.normalized else np.zeros((2, 0))
+        self._labels = [(image.id, n) for image in dataset.images for n in image.observations]
+        self._sigmas = np.hstack([f.sigmas for f in self.factors]) if self.factors else np.zeros((2, 0))
         #: Number of residual rows (2 per measurement).
         self.size = sum(2 * len(im.observations) for im in dataset.images)
         self.constraints = 0
@@ -141,15 +161,15 @@ class RobotProblem:
         """The mount role of the camera that took ``image``."""
         return self.camera_roles[image.camera] if self.setup.cameras is not None else self.camera
 
-    def forward(self, joints: dict[str, float], role: str | None = None):
+    def forward(self, joints: dict[str, float], role: str | None = None, placed: dict | None = None):
         """The image's forward kinematics for ``factors/robot.py``: at ``joints + delta``, the placements
         of the camera's (``role``, default the first camera) and the target's links in {B} and their
-        Jacobians in the offsets."""
+        Jacobians in the offsets (``placed``: those links' placements at ``joints``, when known)."""
         kin, offsets = self.kinematics, self.offsets
         camera_link, target_link = self.links[role or self.camera], self.links["target"]
         unique = list(dict.fromkeys((camera_link, target_link)))
         if not offsets:  # nothing moves the joints: the placements once
-            out = kin.placements(joints, unique)
+            out = placed if placed is not None else kin.placements(joints, unique)
             fixed = (out[camera_link], out[target_link])
             return lambda delta: fixed
 
@@ -225,20 +245,20 @@ class RobotProblem:
         """Per measurement (file order): residuals (N, 2) in pixels with a camera (else normalized), whitened
         norms and ``(image, point)`` labels."""
         residuals: list[np.ndarray] = []
-        whitened: list[np.ndarray] = []
-        labels: list[tuple[str, str]] = []
         by_camera: dict[int, list[int]] = {}  # images distorted together, one call per camera
         predictions = self.predictions(values)
-        for i, (image, factor, observed, z) in enumerate(zip(self.dataset.images, self.factors, self.normalized, predictions)):
-            whitened.append(np.linalg.norm((z - observed) / factor.sigmas, axis=0))
+        if not predictions:
+            return np.zeros((0, 2)), np.zeros(0), []
+        # every image's whitened norms at once (each column on its own: the same numbers as image by image)
+        whitened = np.linalg.norm((np.hstack(predictions) - self._observed) / self._sigmas, axis=0)
+        for i, (image, observed, z) in enumerate(zip(self.dataset.images, self.normalized, predictions)):
             camera = self.dataset.camera_of(image)
-            names = list(image.observations)
             if camera is not None:
                 by_camera.setdefault(id(camera), []).append(i)
-                residuals.append(np.array([image.observations[n] for n in names], float).reshape(-1, 2))  # raw
+                residuals.append(self._raw[i])  # the measured pixels, replaced below
             else:
                 residuals.append((z - observed).T)
-            labels.extend((image.id, n) for n in names)
+        labels = list(self._labels)
         for members in by_camera.values():
             camera = self.dataset.camera_of(self.dataset.images[members[0]])
             assert camera is not None
@@ -248,7 +268,7 @@ class RobotProblem:
                 count = len(residuals[i])
                 residuals[i] = pixels[start:start + count] - residuals[i]
                 start += count
-        return np.vstack(residuals), np.concatenate(whitened), labels
+        return np.vstack(residuals), whitened, labels
 
     # ------------------------------------------------------------------ covariances
     def information(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> tuple[np.ndarray, dict]:

@@ -12,7 +12,7 @@ import numpy as np
 
 from mirror_fg.core.geometry import FLIP_Y, so3_exp_many
 
-__all__ = ["pnp_candidates", "pnp_candidates_many", "pnp_minima", "lowest_reprojection"]
+__all__ = ["pnp_candidates", "pnp_candidates_many", "pnp_minima", "is_planar", "lowest_reprojection"]
 
 #: Two refined poses are the same minimum when their rotations (entries) and translations (relative)
 #: differ by less than this (LM stops up to ~1e-4 apart in a shallow twin's valley); a planar target's twin
@@ -42,21 +42,21 @@ def _pnp_rotation_candidates(base_points: np.ndarray, normalized: np.ndarray) ->
     return minima[:1]
 
 
-def _pnp_minima(base_points: np.ndarray, normalized: np.ndarray, collinear_p3p: bool = True
-                ) -> list[tuple[np.ndarray, np.ndarray]]:
+def _pnp_minima(base_points: np.ndarray, normalized: np.ndarray, collinear_p3p: bool = True,
+                planar: bool | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
     """The distinct local minima (R, t) of the reprojection error of >= 4 points (eq. 10), lowest first:
     the starts of several solvers, each refined by LM (SQPnP alone can be wrong, STYLE.md). The rotations
     of all starts, and of all refined poses, are formed at once (``so3_exp_many``), and which start lies
     in which basin is decided from one table of distances (:func:`_near_table`). ``collinear_p3p``
-    False: no P3P start from three points on one line (:func:`pnp_minima`)."""
+    False: no P3P start from three points on one line (:func:`pnp_minima`). ``planar``: whether the points
+    lie on one plane, when the caller knows (else judged here)."""
     obj = np.ascontiguousarray(base_points, dtype=np.float64).reshape(-1, 1, 3)
     img = np.ascontiguousarray(normalized, dtype=np.float64).reshape(-1, 1, 2)
     K = _IDENTITY
     rvecs_all: list[np.ndarray] = []
     tvecs_all: list[np.ndarray] = []
     flags = [cv2.SOLVEPNP_SQPNP, cv2.SOLVEPNP_EPNP, cv2.SOLVEPNP_ITERATIVE]
-    centered = base_points - base_points.mean(axis=0)
-    if np.linalg.svd(centered, compute_uv=False)[2] < 1e-9 * max(1.0, np.abs(centered).max()):
+    if planar if planar is not None else is_planar(base_points):
         flags.append(cv2.SOLVEPNP_IPPE)  # both of a planar target's poses (its twin)
     for flag in flags:
         try:
@@ -103,6 +103,13 @@ def _pnp_minima(base_points: np.ndarray, normalized: np.ndarray, collinear_p3p: 
     return [(R_sorted[k], t_sorted[k]) for k in _first_of_each(R_sorted, t_sorted, SAME_MINIMUM)]
 
 
+def is_planar(base_points: np.ndarray) -> bool:
+    """Whether fiducials (N, 3) lie on one plane, relative to their spread (IPPE then gives both of the
+    target's poses)."""
+    centered = base_points - base_points.mean(axis=0)
+    return bool(np.linalg.svd(centered, compute_uv=False)[2] < 1e-9 * max(1.0, np.abs(centered).max()))
+
+
 def _collinear(points: np.ndarray) -> bool:
     """Whether three points (3, 3) lie on one line (relative to their spread): P3P's pose is then
     undetermined by a turn about it."""
@@ -115,10 +122,9 @@ def _collinear(points: np.ndarray) -> bool:
 def _first_of_each(R: np.ndarray, t: np.ndarray, tolerance: float) -> list[int]:
     """Indices of the poses ``(R[k], t[k])`` kept when each is kept unless it is near one kept before it
     (rotations within ``tolerance`` entry-wise, translations within ``tolerance`` relative to its own)."""
-    near = _near_table(R, t, tolerance)
     kept: list[int] = []
-    for k in range(len(R)):
-        if not any(near[k][j] for j in kept):
+    for k, near in enumerate(_near_table(R, t, tolerance)):
+        if not any(near[j] for j in kept):
             kept.append(k)
     return kept
 
@@ -126,14 +132,16 @@ def _first_of_each(R: np.ndarray, t: np.ndarray, tolerance: float) -> list[int]:
 def _near_table(R: np.ndarray, t: np.ndarray, tolerance: float) -> list[list[bool]]:
     """``near[k][j]``: pose k is within ``tolerance`` of pose j (rotation entries; translation relative to
     pose k's) -- all pairs at once."""
-    scale = np.array([max(float(np.linalg.norm(t_k)), 1e-12) for t_k in t])
-    rotation = np.abs(R[:, None] - R[None, :]).max(axis=(2, 3))
-    translation = np.linalg.norm(t[:, None] - t[None, :], axis=2)
+    entries = R.reshape(len(R), 9)
+    rotation = np.abs(entries[:, None, :] - entries[None, :, :]).max(axis=2)
+    scale = np.maximum(np.sqrt(np.einsum("ij,ij->i", t, t)), 1e-12)
+    difference = t[:, None] - t[None, :]
+    translation = np.sqrt(np.einsum("ijk,ijk->ij", difference, difference))
     return ((rotation <= tolerance) & (translation <= tolerance * scale[:, None])).tolist()
 
 
-def pnp_minima(base_points: np.ndarray, normalized: np.ndarray, num_mirrors: int, collinear_p3p: bool = True
-               ) -> list[tuple[np.ndarray, np.ndarray]]:
+def pnp_minima(base_points: np.ndarray, normalized: np.ndarray, num_mirrors: int, collinear_p3p: bool = True,
+               planar: bool | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
     """Every distinct local minimum ``(A_Nv, b_Nv)`` of the reprojection error of one image's >= 4
     fiducials (eqs. 5, 10-12), lowest first; the first is :func:`pnp_candidates`'. A small planar target
     far away has two minima that fit about equally (IPPE's twin poses): the caller tells them apart.
@@ -143,7 +151,7 @@ def pnp_minima(base_points: np.ndarray, normalized: np.ndarray, num_mirrors: int
     poses): about half the cost on a board, and the same lowest minimum on every board measured
     (``tests/test_pnp_collinear.py``); the search then misses some of the further, shallow minima of a far,
     noisy board that those arbitrary starts fall into. For a caller that needs the lowest minimum only."""
-    return _with_parity(lambda points, observed: _pnp_minima(points, observed, collinear_p3p), base_points,
+    return _with_parity(lambda points, observed: _pnp_minima(points, observed, collinear_p3p, planar), base_points,
                         normalized, num_mirrors)
 
 
