@@ -103,6 +103,33 @@ def _pnp_minima(base_points: np.ndarray, normalized: np.ndarray, collinear_p3p: 
     return [(R_sorted[k], t_sorted[k]) for k in _first_of_each(R_sorted, t_sorted, SAME_MINIMUM)]
 
 
+def _planar_minima(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """A planar target's minima: IPPE's two poses, each refined by LM, lowest first."""
+    obj = np.ascontiguousarray(base_points, dtype=np.float64).reshape(-1, 1, 3)
+    img = np.ascontiguousarray(normalized, dtype=np.float64).reshape(-1, 1, 2)
+    try:
+        ok, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, _IDENTITY, None, flags=cv2.SOLVEPNP_IPPE)
+    except cv2.error:
+        ok = False
+    if not ok or not len(rvecs):
+        return _pnp_minima(base_points, normalized, False, True)
+    refined_r, refined_t = [], []
+    for rvec, tvec in zip(rvecs, tvecs):
+        try:
+            rvec, tvec = cv2.solvePnPRefineLM(obj, img, _IDENTITY, None, rvec.copy(), tvec.copy(), criteria=_PNP_CRITERIA)
+        except cv2.error:
+            pass
+        refined_r.append(np.asarray(rvec, dtype=np.float64).reshape(3))
+        refined_t.append(np.asarray(tvec, dtype=np.float64).reshape(3))
+    R_ref, t_ref = so3_exp_many(np.array(refined_r)), np.array(refined_t)
+    errors = _reprojection_rms_many(R_ref, t_ref, base_points, normalized).tolist()
+    order = sorted((k for k in range(len(errors)) if np.isfinite(errors[k])), key=lambda k: errors[k])
+    if not order:
+        return _pnp_minima(base_points, normalized, False, True)
+    R_sorted, t_sorted = R_ref[order], t_ref[order]
+    return [(R_sorted[k], t_sorted[k]) for k in _first_of_each(R_sorted, t_sorted, SAME_MINIMUM)]
+
+
 def is_planar(base_points: np.ndarray) -> bool:
     """Whether fiducials (N, 3) lie on one plane, relative to their spread (IPPE then gives both of the
     target's poses)."""
@@ -151,6 +178,8 @@ def pnp_minima(base_points: np.ndarray, normalized: np.ndarray, num_mirrors: int
     poses): about half the cost on a board, and the same lowest minimum on every board measured
     (``tests/test_pnp_collinear.py``); the search then misses some of the further, shallow minima of a far,
     noisy board that those arbitrary starts fall into. For a caller that needs the lowest minimum only."""
+    if planar and not collinear_p3p:
+        return _with_parity(_planar_minima, base_points, normalized, num_mirrors)
     return _with_parity(lambda points, observed: _pnp_minima(points, observed, collinear_p3p, planar), base_points,
                         normalized, num_mirrors)
 
