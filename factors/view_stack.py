@@ -21,7 +21,8 @@ calls cost O(images x unknowns) per iteration. Here
 
 Each view's rows, whitening and robust kernel are those of its ``ViewFactor`` (per measurement, as
 ``batched.py`` does): a stack's error is its views' errors one after the other. Views with reconstruction
-points or estimated intrinsics stay ``ViewFactor`` s. ``tests/test_view_stack.py`` checks errors,
+points are stacked by ``view_points.py`` (these groups, compressed normal equations); views that estimate
+intrinsics stay ``ViewFactor`` s. ``tests/test_view_stack.py`` checks errors,
 Jacobians and whole calibrations against the per-view factors.
 """
 from __future__ import annotations
@@ -80,15 +81,29 @@ class _Group:
         self.observed = np.array([f.observed for f in factors])
         self.sigmas = np.array([f.sigmas for f in factors])
         self.robust, self.robust_k = first.robust, first.robust_k
+        #: each measurement's reconstruction point key (b, N), -1 for a fiducial (``ViewFactor.landmark_keys``)
+        self.landmarks = np.array([f.landmark_keys for f in factors], dtype=np.int64).reshape(len(factors), -1)
         self.error_rows: np.ndarray | None = None  # (b, 2N) indices into the error buffers
         self.jacobian_entries: np.ndarray | None = None  # (b, 2N, P) indices into the Jacobian buffer
 
+    def points(self, point_values: dict[int, np.ndarray]) -> np.ndarray:
+        """The views' points in {B} (b, 3, N): the fiducials as given, each reconstruction point at
+        ``point_values`` (``{key: (3,)}``)."""
+        if not (self.landmarks >= 0).any():
+            return self.base
+        B = self.base.transpose(0, 2, 1).copy()
+        where = self.landmarks >= 0
+        B[where] = np.array([point_values[int(k)] for k in self.landmarks[where]])
+        return B.transpose(0, 2, 1)
+
     def model(self, poses: dict[str, tuple[np.ndarray, np.ndarray]], vectors: dict[Placement, np.ndarray],
-              plane_jacobians: dict[Placement, np.ndarray], jacobians: bool):
+              plane_jacobians: dict[Placement, np.ndarray], jacobians: bool, base: np.ndarray | None = None):
         """``views.view_model`` of every view at once: predictions (b, 2, N) and, when asked, ``dz``
-        (b, 2, P, N) in the views' local coordinates (the same layout as each ``ViewFactor``'s)."""
+        (b, 2, P, N) in the views' local coordinates (the same layout as each ``ViewFactor``'s) and
+        ``dz/dBp`` (b, 2, 3, N), the derivative in the point (base frame). ``base``: the points (b, 3, N)
+        (:meth:`points`; the fiducials where not given)."""
         R_c, t_c = poses[self.camera]
-        B = self.base
+        B = self.base if base is None else base
         b, _, n = B.shape
         x = np.einsum("ij,bjn->bin", R_c, B) + t_c[None, :, None]  # eq. (2)
         size = self.slots.size
@@ -105,6 +120,7 @@ class _Group:
         v_all = np.array([[vectors[p] for p in ps] for ps in self.placements])  # (b, U, 3)
         J_all: Any = np.array([[plane_jacobians[p] for p in ps] for ps in self.placements]) if jacobians else None
         offset = 6 * len(self.pose_cols)
+        dB: Any = np.broadcast_to(R_c, (b, 3, 3)) if jacobians else None  # dx/dBp, the same for a view's points
         for owner, u in self.steps:
             v_o = v_all[:, u]
             col = offset + 3 * u
@@ -133,12 +149,14 @@ class _Group:
                 ds = (np.einsum("bi,bipn->bpn", v, dx) + np.einsum("bin,bip->bpn", x, dv)) / vv[:, None, None]
                 ds -= 2.0 * vdv[:, :, None] * vx[:, None, :] / (vv**2)[:, None, None]
                 dx = dx - 2.0 * v[:, :, None, None] * ds[:, None] - 2.0 * dv[:, :, :, None] * s[:, None, None, :]
+                dB = dB - 2.0 * v[:, :, None] * np.einsum("bi,bij->bj", v, dB)[:, None, :] / vv[:, None, None]  # M dB
             x = x - 2.0 * v[:, :, None] * s[:, None, :]  # eq. (3): M x + 2 v
         z = x[:, :2] / x[:, 2:3]  # eq. (9)
         if not jacobians:
-            return z, None
+            return z, None, None
         dz = (dx[:, :2] - z[:, :, None, :] * dx[:, 2][:, None]) / x[:, 2][:, None, None, :]
-        return z, dz
+        dzB = (dB[:, :2, :, None] - z[:, :, None, :] * dB[:, 2][:, None, :, None]) / x[:, 2][:, None, None, :]
+        return z, dz, dzB
 
     @staticmethod
     def _transfer(v_owner: np.ndarray, pose_c, pose_o, jacobians: bool):
@@ -296,7 +314,7 @@ class ViewStackEvaluator:
         for p, key in self.mirror_keys.items():
             vectors[p], plane_jacobians[p] = vector_of_plane(self._planes[key])
         for group in self.groups:
-            z, dz = group.model(poses, vectors, plane_jacobians, jacobians)
+            z, dz, _ = group.model(poses, vectors, plane_jacobians, jacobians)
             residual = z - group.observed  # (b, 2, N), h - z
             if group.robust is None:
                 self._err[group.error_rows] = residual.transpose(0, 2, 1).reshape(len(residual), -1)
@@ -336,10 +354,16 @@ class ViewStackEvaluator:
 
 
 def stacked_view_factors(view_factors: Sequence[ViewFactor]) -> list[gtsam.CustomFactor]:
-    """The factors of ``view_factors``: the stackable ones stacked (:class:`ViewStackEvaluator`), the
-    others their own ``ViewFactor`` s."""
+    """The factors of ``view_factors``: those of fiducials alone stacked (:class:`ViewStackEvaluator`),
+    those with reconstruction points stacked and compressed (``view_points.ViewPointStack``), those that
+    estimate intrinsics their own ``ViewFactor`` s."""
+    from mirror_fg.factors.view_points import ViewPointStack  # it stacks with this module's groups
+
     stack = [f for f in view_factors if stackable(f)]
-    factors = [f.factor() for f in view_factors if not stackable(f)]
+    with_points = [f for f in view_factors if f.intrinsics is None and f.unique_landmarks]
+    factors = [f.factor() for f in view_factors if f.intrinsics is not None]
     if stack:
         factors.extend(ViewStackEvaluator(stack, PLACEMENTS_PER_FACTOR).factors)
+    if with_points:
+        factors.extend(ViewPointStack(with_points).factors)
     return factors

@@ -30,6 +30,7 @@ from mirror_fg.factors.views import ViewFactor, plane_of, vector_of_plane, view_
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.model.graph import unknown_name
+from mirror_fg.solver.model.schur_marginals import marginals_of
 from mirror_fg.solver.start.propagation import Propagation, ViewObs, mirror_vector_in
 
 __all__ = ["SINGLE_CAMERA", "ViewProblem", "views_of", "camera_names", "scale_prior", "mirror_vector_at", "plane_of"]
@@ -237,7 +238,7 @@ class ViewProblem:
     def covariances(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, estimate: ViewEstimate):
         """``(pose covariances {camera: 6x6}, joint (6C, 6C), mirrors {p: 3x3}, points {name: 3x3})`` in
         docs/formats.md's conventions; a fixed camera's blocks are zero."""
-        marginals = gtsam.Marginals(graph, values) if self.dataset.scale is None else _GaugeHeld(self, graph, values)
+        marginals = marginals_of(graph, values) if self.dataset.scale is None else _GaugeHeld(self, graph, values)
         keys = list(self.pose_keys.values())
         joint = np.zeros((6 * len(self.cameras), 6 * len(self.cameras)))
         if keys:
