@@ -86,6 +86,10 @@ class _Group:
         self.error_rows: np.ndarray | None = None  # (b, 2N) indices into the error buffers
         self.jacobian_entries: np.ndarray | None = None  # (b, 2N, P) indices into the Jacobian buffer
 
+    def placement_index(self, index: dict[Placement, int]) -> np.ndarray:
+        """Each view's placements (b, U) as rows of arrays ordered by ``index`` (:meth:`model`'s ``arrays``)."""
+        return np.array([[index[p] for p in ps] for ps in self.placements], dtype=np.intp).reshape(len(self.factors), -1)
+
     def points(self, point_values: dict[int, np.ndarray]) -> np.ndarray:
         """The views' points in {B} (b, 3, N): the fiducials as given, each reconstruction point at
         ``point_values`` (``{key: (3,)}``)."""
@@ -97,18 +101,24 @@ class _Group:
         return B.transpose(0, 2, 1)
 
     def model(self, poses: dict[str, tuple[np.ndarray, np.ndarray]], vectors: dict[Placement, np.ndarray],
-              plane_jacobians: dict[Placement, np.ndarray], jacobians: bool, base: np.ndarray | None = None):
+              plane_jacobians: dict[Placement, np.ndarray], jacobians: bool, base: np.ndarray | None = None,
+              wrt: int | None = None, arrays: tuple | None = None):
         """``views.view_model`` of every view at once: predictions (b, 2, N) and, when asked, ``dz``
         (b, 2, P, N) in the views' local coordinates (the same layout as each ``ViewFactor``'s) and
         ``dz/dBp`` (b, 2, 3, N), the derivative in the point (base frame). ``base``: the points (b, 3, N)
-        (:meth:`points`; the fiducials where not given)."""
+        (:meth:`points`; the fiducials where not given). ``wrt``: ``dz`` in the views' ``wrt``-th placement
+        alone (b, 2, 3, N), e.g. to optimise that placement with the rest held. ``arrays``: the views'
+        placements' vectors (b, U, 3) and plane Jacobians (b, U, 3, 3) instead of looking each up in
+        ``vectors`` and ``plane_jacobians`` (:meth:`placement_arrays`)."""
         R_c, t_c = poses[self.camera]
         B = self.base if base is None else base
         b, _, n = B.shape
         x = np.einsum("ij,bjn->bin", R_c, B) + t_c[None, :, None]  # eq. (2)
-        size = self.slots.size
+        size = self.slots.size if wrt is None else 3
         dx: Any = None
-        if jacobians:
+        if jacobians and wrt is not None:
+            dx = np.zeros((b, 3, size, n))
+        elif jacobians:
             dx = np.zeros((b, 3, size, n))
             if self.camera in self.pose_cols:
                 c = self.pose_cols[self.camera]
@@ -117,26 +127,32 @@ class _Group:
                 S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = B[:, 2], -B[:, 1], B[:, 0]
                 dx[:, :, c:c + 3, :] = -np.einsum("ij,bjkn->bikn", R_c, S)  # d(R Exp(w) B)/dw = -R [B]x
                 dx[:, :, c + 3:c + 6, :] = R_c[None, :, :, None]  # d(t + R nu)/dnu = R
-        v_all = np.array([[vectors[p] for p in ps] for ps in self.placements])  # (b, U, 3)
-        J_all: Any = np.array([[plane_jacobians[p] for p in ps] for ps in self.placements]) if jacobians else None
-        offset = 6 * len(self.pose_cols)
+        if arrays is not None:
+            v_all, J_all = arrays
+        else:
+            v_all = np.array([[vectors[p] for p in ps] for ps in self.placements])  # (b, U, 3)
+            J_all = np.array([[plane_jacobians[p] for p in ps] for ps in self.placements]) if jacobians else None
+        offset = 6 * len(self.pose_cols) if wrt is None else 0
         dB: Any = np.broadcast_to(R_c, (b, 3, 3)) if jacobians else None  # dx/dBp, the same for a view's points
         for owner, u in self.steps:
             v_o = v_all[:, u]
-            col = offset + 3 * u
+            col = offset + 3 * u if wrt is None else 0
+            mine = wrt is None or wrt == u  # this placement's columns are wanted
             dv: Any = None
             if owner == self.camera:
                 v = v_o
                 if jacobians:
                     dv = np.zeros((b, 3, size))
-                    dv[:, :, col:col + 3] = J_all[:, u]
+                    if mine:
+                        dv[:, :, col:col + 3] = J_all[:, u]
             else:
                 v, parts = self._transfer(v_o, poses[self.camera], poses[owner], jacobians)
                 if jacobians:
                     dv_v, dv_wc, dv_nc, dv_wo, dv_no = parts
                     dv = np.zeros((b, 3, size))
-                    dv[:, :, col:col + 3] = dv_v @ J_all[:, u]
-                    for who, dw, dn in ((self.camera, dv_wc, dv_nc), (owner, dv_wo, dv_no)):
+                    if mine:
+                        dv[:, :, col:col + 3] = dv_v @ J_all[:, u]
+                    for who, dw, dn in ((self.camera, dv_wc, dv_nc), (owner, dv_wo, dv_no)) if wrt is None else ():
                         if who in self.pose_cols:
                             c = self.pose_cols[who]
                             dv[:, :, c:c + 3] += dw
@@ -274,6 +290,9 @@ class ViewStackEvaluator:
             group.error_rows, group.jacobian_entries = error_rows[g], entries[g]
         self._jac = np.zeros(jac0)
         self._placement_of_key = {k: p for p, k in self.mirror_keys.items()}
+        self._placement_order = list(self.mirror_keys)
+        order = {p: i for i, p in enumerate(self._placement_order)}
+        self._placement_rows = [group.placement_index(order) for group in self.groups]
         self._camera_of_key = {k: c for c, k in self.pose_keys.items()}
         # cache
         self._valid = False
@@ -313,8 +332,10 @@ class ViewStackEvaluator:
         vectors, plane_jacobians = {}, {}
         for p, key in self.mirror_keys.items():
             vectors[p], plane_jacobians[p] = vector_of_plane(self._planes[key])
-        for group in self.groups:
-            z, dz, _ = group.model(poses, vectors, plane_jacobians, jacobians)
+        V = np.array([vectors[p] for p in self._placement_order])
+        JV = np.array([plane_jacobians[p] for p in self._placement_order])
+        for group, at in zip(self.groups, self._placement_rows):
+            z, dz, _ = group.model(poses, vectors, plane_jacobians, jacobians, arrays=(V[at], JV[at] if jacobians else None))
             residual = z - group.observed  # (b, 2, N), h - z
             if group.robust is None:
                 self._err[group.error_rows] = residual.transpose(0, 2, 1).reshape(len(residual), -1)

@@ -34,7 +34,7 @@ from mirror_fg.solver.timing import timed
 
 __all__ = [
     "REFERENCE_NORMALIZED_SIGMA", "MAX_RESTARTS", "LMRun", "cost_scale", "lm_params", "plausible",
-    "levenberg_marquardt", "levenberg_marquardt_with_restarts",
+    "levenberg_marquardt", "levenberg_marquardt_with_restarts", "polished",
 ]
 
 logger = logging.getLogger("mirror_fg")
@@ -115,7 +115,7 @@ POLISH_STEPS = 5
 POLISH_STEP_TOLERANCE = 1e-11
 
 
-def _polished(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> gtsam.Values:
+def polished(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> gtsam.Values:
     """``values`` moved by Gauss-Newton steps while they lower the error: LM stops when an iteration
     lowers the cost by less than 1e-10 relative, which leaves the estimate ~1e-7 relative from the
     optimum; on the eliminated graph a few more steps are cheap and reach it to ~1e-12
@@ -223,7 +223,7 @@ def _levenberg_marquardt(
             graph, values, params, dataset.source, lambda error: unconstrained_message(error, layout), on_iteration)
         iterations = optimizer.iterations()
         if evaluator is not None:
-            result = _polished(graph, result)
+            result = polished(graph, result)
         final_error = graph.error(result)
         # LM also stops when its damping hits the upper bound: a stall unless a Gauss-Newton step
         # would no longer lower the error (then it is at a stationary point, e.g. noise-free data).
