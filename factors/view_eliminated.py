@@ -48,6 +48,10 @@ PLACEMENTS_PER_FACTOR = 256
 #: below which a placement is at its optimum (``eliminated.py``'s).
 INNER_MAX_ITERATIONS = 20
 INNER_STEP_TOLERANCE = 1e-12
+#: A Gauss-Newton step of every placement below this (metres) is taken without evaluating the cost again:
+#: Gauss-Newton converges linearly here (rate ~0.02-0.05, ``lm.polished``), so the next would be below
+#: :data:`INNER_STEP_TOLERANCE`, and the cost it leaves changes by O(step^2).
+FINAL_STEP = 1e-10
 
 
 def eliminable(factor: ViewFactor) -> bool:
@@ -191,34 +195,37 @@ class EliminatedViewStack:
         eliminated x eliminated to its ``D``, kept x eliminated nowhere (the last slot, dropped)."""
         P = group.slots.size
         b = len(members)
-        targets = np.full((b, P + 1, P + 1), self._total, dtype=np.intp)
+        stack_col = np.full((b, P + 1), -1, dtype=np.intp)  # each local column's column in its stack
         placement_of = np.full(b, -1, dtype=np.intp)
-        elim_cols = np.zeros((b, 3), dtype=np.intp)
+        elim_col = -1
         for r, (view, i) in enumerate(zip(group.factors, members)):
             s = stack_of_view[i]
-            columns, width, base = columns_of[s], self._widths[s], self._offsets[s]
-            stack_col = np.full(P + 1, -1, dtype=np.intp)
+            columns = columns_of[s]
             for name, key in view.pose_keys.items():
                 c = view.slots.pose_cols[name]
-                stack_col[c:c + 6] = columns[key] + np.arange(6)
-            elim = None
+                stack_col[r, c:c + 6] = columns[key] + np.arange(6)
             for p, key in view.mirror_keys.items():
                 c = view.slots.mirror_cols[p]
                 if p in index:
-                    elim = (index[p], c)
+                    placement_of[r], elim_col = index[p], c
                 else:
-                    stack_col[c:c + 3] = columns[key] + np.arange(3)
-            stack_col[P] = width  # e
-            kept = np.flatnonzero(stack_col >= 0)
-            targets[r][np.ix_(kept, kept)] = base + stack_col[kept][:, None] * (width + 1) + stack_col[kept][None, :]
-            if elim is not None:
-                e, c = elim
-                placement_of[r] = e
-                elim_cols[r] = c + np.arange(3)
-                rows = c + np.arange(3)
-                targets[r][np.ix_(rows, kept)] = (self._c_offsets[e] + np.arange(3)[:, None] * (width + 1)
-                                                  + stack_col[kept][None, :])
-                targets[r][np.ix_(rows, rows)] = self._d_offset + 9 * e + np.arange(9).reshape(3, 3)
+                    stack_col[r, c:c + 3] = columns[key] + np.arange(3)
+            stack_col[r, P] = self._widths[s]  # e
+        stride = np.array(self._widths)[stack_of_view[members]] + 1  # (b,)
+        base = np.array(self._offsets)[stack_of_view[members]]
+        kept = stack_col >= 0
+        targets = np.where(kept[:, :, None] & kept[:, None, :],
+                           base[:, None, None] + stack_col[:, :, None] * stride[:, None, None] + stack_col[:, None, :],
+                           self._total)
+        elim_cols = np.zeros((b, 3), dtype=np.intp)
+        if elim_col >= 0:  # the group's eliminated placement (one local position for all its views)
+            rows = elim_col + np.arange(3)
+            elim_cols[:] = rows
+            c_off = self._c_offsets[placement_of]
+            C = c_off[:, None, None] + np.arange(3)[None, :, None] * stride[:, None, None] + stack_col[:, None, :]
+            targets[:, rows, :] = np.where(kept[:, None, :], C, self._total)
+            targets[:, rows[:, None], rows[None, :]] = (self._d_offset + 9 * placement_of[:, None, None]
+                                                        + np.arange(9).reshape(3, 3)[None])
         return targets, placement_of, elim_cols
 
     # --- evaluation -------------------------------------------------------------------------------
@@ -302,6 +309,9 @@ class EliminatedViewStack:
             length = np.linalg.norm(step, axis=1)
             if float(length.max(initial=0.0)) < INNER_STEP_TOLERANCE:
                 break  # (the step would change the cost by O(step^2): nothing)
+            if float(length.max(initial=0.0)) < FINAL_STEP:  # taken without evaluating again (module docstring)
+                self._vectors += step
+                break
             limit = 0.5 * np.linalg.norm(self._vectors, axis=1)  # stay on its side of the camera centre
             before = self._vectors.copy()
             self._vectors += step * np.minimum(1.0, limit / np.maximum(length, 1e-300))[:, None]
@@ -382,6 +392,8 @@ class EliminatedViewStack:
         """The eliminated placements' mirror vectors (owner frames, metres) at ``values``' kept unknowns."""
         self._evaluate(values, False)
         return {p: v.copy() for p, v in zip(self.eliminated, self._vectors)}
+
+    mirror_vectors = vectors_at  # as the tree's ``EliminatedEvaluator`` names it
 
     def covariances(self, values: gtsam.Values, marginals) -> dict[Placement, np.ndarray]:
         """Each eliminated placement's mirror-vector covariance (3x3), from ``marginals`` of the kept
