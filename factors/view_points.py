@@ -15,9 +15,9 @@ Here, as the paper's tree factors do (``eliminated.py``, ``schur.py``):
   points at those values) and, when linearising, sums each factor's normal equations
   ``[J | e]^T [J | e]`` from the views' compact blocks (a view's pose and placement columns, each
   measurement's own point: never the factor's dense width) and compresses them to
-  ``d + 1`` rows ``[R | r]`` with ``[R | r]^T [R | r]`` that matrix (:func:`_rows_of`, a pivoted Cholesky
-  factor: exact where a factor alone leaves some unknowns free, e.g. a point seen along one ray, and without
-  ``schur.compressed_normal``'s shift, which would move the marginals by 1e-6): the same ``J^T J``,
+  ``d + 1`` rows ``[R | r]`` with ``[R | r]^T [R | r]`` that matrix (:func:`_rows_of`: its Cholesky factor,
+  or an eigendecomposition's root where a factor alone leaves some unknowns free, e.g. a point seen along
+  one ray; without ``schur.compressed_normal``'s shift, which would move the marginals by 1e-6): the same ``J^T J``,
   ``J^T e`` and ``||e||^2`` as the views' rows, hence the same Levenberg-Marquardt steps, marginals and cost as one ``ViewFactor`` per
   image, in a factor of ``d + 1`` rows;
 * the other factors check that their own variables are bit for bit those of the batch (a stale result is
@@ -35,9 +35,7 @@ import gtsam
 import numpy as np
 
 from mirror_fg.factors.robust import robust_row_scales
-from scipy.linalg.lapack import dpstrf
-
-from mirror_fg.factors.schur import compressed_normal, one_blas_thread, row_products
+from mirror_fg.factors.schur import one_blas_thread, row_products
 from mirror_fg.factors.view_stack import _Group
 from mirror_fg.factors.views import ViewFactor, vector_of_plane
 
@@ -269,14 +267,14 @@ def _products(group: _Group, e: np.ndarray, dz: np.ndarray, dzB: np.ndarray, sca
 
 def _rows_of(normal: np.ndarray) -> np.ndarray:
     """``[R | r]`` (d+1, d+1), Fortran-ordered, with ``[R | r]^T [R | r]`` the augmented normal matrix
-    ``[J | e]^T [J | e]`` (positive semidefinite): its pivoted Cholesky factor (LAPACK ``dpstrf``), rows
-    past its rank zero, columns back in their order; ``schur.compressed_normal`` where LAPACK refuses."""
-    factor, pivots, rank, info = dpstrf(normal, lower=0)
-    if info < 0 or not np.all(np.isfinite(factor)):
-        d = len(normal) - 1
-        return compressed_normal(np.ascontiguousarray(normal[:d, :d]), normal[:d, d].copy(), float(normal[d, d]))
-    rows = np.triu(factor)
-    rows[rank:] = 0.0
-    order = np.empty_like(pivots)
-    order[pivots - 1] = np.arange(len(pivots))
-    return np.asfortranarray(rows[:, order])
+    ``[J | e]^T [J | e]`` (positive semidefinite): its Cholesky factor where it is positive definite, else
+    ``sqrt(L) V^T`` of its eigendecomposition (negative rounding clipped): exact either way, without
+    ``schur.compressed_normal``'s shift."""
+    try:
+        lower = np.linalg.cholesky(normal)
+    except np.linalg.LinAlgError:
+        lower = None
+    if lower is not None and np.all(np.isfinite(lower)):
+        return np.asfortranarray(lower.T)
+    eigenvalues, V = np.linalg.eigh(normal)
+    return np.asfortranarray(np.sqrt(np.clip(eigenvalues, 0.0, None))[:, None] * V.T)

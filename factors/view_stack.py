@@ -113,7 +113,7 @@ class _Group:
         R_c, t_c = poses[self.camera]
         B = self.base if base is None else base
         b, _, n = B.shape
-        x = np.einsum("ij,bjn->bin", R_c, B) + t_c[None, :, None]  # eq. (2)
+        x = np.matmul(R_c, B) + t_c[None, :, None]  # eq. (2)
         size = self.slots.size if wrt is None else 3
         dx: Any = None
         if jacobians and wrt is not None:
@@ -125,7 +125,7 @@ class _Group:
                 S = np.zeros((b, 3, 3, n))
                 S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -B[:, 2], B[:, 1], -B[:, 0]
                 S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = B[:, 2], -B[:, 1], B[:, 0]
-                dx[:, :, c:c + 3, :] = -np.einsum("ij,bjkn->bikn", R_c, S)  # d(R Exp(w) B)/dw = -R [B]x
+                dx[:, :, c:c + 3, :] = -np.matmul(R_c, S.reshape(b, 3, 3 * n)).reshape(b, 3, 3, n)  # d(R Exp(w) B)/dw = -R [B]x
                 dx[:, :, c + 3:c + 6, :] = R_c[None, :, :, None]  # d(t + R nu)/dnu = R
         if arrays is not None:
             v_all, J_all = arrays
@@ -158,13 +158,16 @@ class _Group:
                             dv[:, :, c:c + 3] += dw
                             dv[:, :, c + 3:c + 6] += dn
             vv = np.einsum("bi,bi->b", v, v)
-            vx = np.einsum("bi,bin->bn", v, x)
+            vx = np.matmul(v[:, None, :], x)[:, 0]
             s = vx / vv[:, None] - 1.0
             if jacobians:
-                vdv = np.einsum("bi,bip->bp", v, dv)
-                ds = (np.einsum("bi,bipn->bpn", v, dx) + np.einsum("bin,bip->bpn", x, dv)) / vv[:, None, None]
+                vdv = np.matmul(v[:, None, :], dv)[:, 0]
+                ds = np.matmul(v[:, None, :], dx.reshape(b, 3, size * n)).reshape(b, size, n)  # v . dx
+                ds += np.matmul(dv.transpose(0, 2, 1), x)  # x . dv
+                ds /= vv[:, None, None]
                 ds -= 2.0 * vdv[:, :, None] * vx[:, None, :] / (vv**2)[:, None, None]
-                dx = dx - 2.0 * v[:, :, None, None] * ds[:, None] - 2.0 * dv[:, :, :, None] * s[:, None, None, :]
+                dx -= 2.0 * v[:, :, None, None] * ds[:, None]
+                dx -= 2.0 * dv[:, :, :, None] * s[:, None, None, :]
                 dB = dB - 2.0 * v[:, :, None] * np.einsum("bi,bij->bj", v, dB)[:, None, :] / vv[:, None, None]  # M dB
             x = x - 2.0 * v[:, :, None] * s[:, None, :]  # eq. (3): M x + 2 v
         z = x[:, :2] / x[:, 2:3]  # eq. (9)
