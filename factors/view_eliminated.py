@@ -109,7 +109,8 @@ class EliminatedViewStack:
     solved inside; ``kept_mirror_keys``: the plane keys the factors see; ``factors``: the
     ``gtsam.CustomFactor`` objects."""
 
-    def __init__(self, view_factors: Sequence[ViewFactor], start: dict[Placement, np.ndarray], keep: set = frozenset(),
+    def __init__(self, view_factors: Sequence[ViewFactor], start: dict[Placement, np.ndarray],
+                 keep: frozenset | set = frozenset(),
                  placements_per_factor: int = PLACEMENTS_PER_FACTOR):
         stacks = stacks_of(view_factors, placements_per_factor)
         self.eliminated = private_placements(view_factors, stacks, set(keep))
@@ -183,7 +184,7 @@ class EliminatedViewStack:
         self._cost = np.zeros(len(stacks))
         self._systems: list = []
         self._D_inv = np.zeros((len(self.eliminated), 3, 3))
-        self._C: np.ndarray = np.zeros(0)
+        self._C: list[tuple[np.ndarray, np.ndarray]] = []  # per stack: its placements, their C
         self.batches = 0
 
     # --- layout -----------------------------------------------------------------------------------

@@ -294,8 +294,8 @@ class ViewStackEvaluator:
         self._jac = np.zeros(jac0)
         self._placement_of_key = {k: p for p, k in self.mirror_keys.items()}
         self._placement_order = list(self.mirror_keys)
-        order = {p: i for i, p in enumerate(self._placement_order)}
-        self._placement_rows = [group.placement_index(order) for group in self.groups]
+        rows_of = {p: i for i, p in enumerate(self._placement_order)}
+        self._placement_rows = [group.placement_index(rows_of) for group in self.groups]
         self._camera_of_key = {k: c for c, k in self.pose_keys.items()}
         # cache
         self._valid = False

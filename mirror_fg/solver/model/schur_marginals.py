@@ -67,7 +67,7 @@ class SchurMarginals:
         information = np.zeros((size, size))
         blocks = []  # per factor with own unknowns: its own keys' columns, D^-1, B (own x shared rows), shared rows
         for keys, J in factors:
-            columns, own, own_keys, rows = {}, [], [], []
+            columns: dict[int, np.ndarray] = {}
             at = 0
             for key in keys:
                 columns[key] = np.arange(at, at + dims[key])

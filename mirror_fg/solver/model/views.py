@@ -151,7 +151,7 @@ class ViewProblem:
                             {p: v * f for p, v in estimate.mirror_vectors.items()},
                             {n: x * f for n, x in estimate.points.items()})
 
-    def values(self, estimate: ViewEstimate, skip: set = frozenset()) -> gtsam.Values:
+    def values(self, estimate: ViewEstimate, skip: frozenset | set = frozenset()) -> gtsam.Values:
         """Every unknown's value at ``estimate`` (``skip``: placements eliminated inside their factors)."""
         values = gtsam.Values()
         for name, key in self.pose_keys.items():
