@@ -21,7 +21,8 @@ calls cost O(images x unknowns) per iteration. Here
 
 Each view's rows, whitening and robust kernel are those of its ``ViewFactor`` (per measurement, as
 ``batched.py`` does): a stack's error is its views' errors one after the other. Views with reconstruction
-points or estimated intrinsics stay ``ViewFactor`` s. ``tests/test_view_stack.py`` checks errors,
+points are stacked by ``view_points.py`` (these groups, compressed normal equations); views that estimate
+intrinsics stay ``ViewFactor`` s. ``tests/test_view_stack.py`` checks errors,
 Jacobians and whole calibrations against the per-view factors.
 """
 from __future__ import annotations
@@ -80,65 +81,101 @@ class _Group:
         self.observed = np.array([f.observed for f in factors])
         self.sigmas = np.array([f.sigmas for f in factors])
         self.robust, self.robust_k = first.robust, first.robust_k
+        #: each measurement's reconstruction point key (b, N), -1 for a fiducial (``ViewFactor.landmark_keys``)
+        self.landmarks = np.array([f.landmark_keys for f in factors], dtype=np.int64).reshape(len(factors), -1)
         self.error_rows: np.ndarray | None = None  # (b, 2N) indices into the error buffers
         self.jacobian_entries: np.ndarray | None = None  # (b, 2N, P) indices into the Jacobian buffer
 
+    def placement_index(self, index: dict[Placement, int]) -> np.ndarray:
+        """Each view's placements (b, U) as rows of arrays ordered by ``index`` (:meth:`model`'s ``arrays``)."""
+        return np.array([[index[p] for p in ps] for ps in self.placements], dtype=np.intp).reshape(len(self.factors), -1)
+
+    def points(self, point_values: dict[int, np.ndarray]) -> np.ndarray:
+        """The views' points in {B} (b, 3, N): the fiducials as given, each reconstruction point at
+        ``point_values`` (``{key: (3,)}``)."""
+        if not (self.landmarks >= 0).any():
+            return self.base
+        B = self.base.transpose(0, 2, 1).copy()
+        where = self.landmarks >= 0
+        B[where] = np.array([point_values[int(k)] for k in self.landmarks[where]])
+        return B.transpose(0, 2, 1)
+
     def model(self, poses: dict[str, tuple[np.ndarray, np.ndarray]], vectors: dict[Placement, np.ndarray],
-              plane_jacobians: dict[Placement, np.ndarray], jacobians: bool):
+              plane_jacobians: dict[Placement, np.ndarray], jacobians: bool, base: np.ndarray | None = None,
+              wrt: int | None = None, arrays: tuple | None = None):
         """``views.view_model`` of every view at once: predictions (b, 2, N) and, when asked, ``dz``
-        (b, 2, P, N) in the views' local coordinates (the same layout as each ``ViewFactor``'s)."""
+        (b, 2, P, N) in the views' local coordinates (the same layout as each ``ViewFactor``'s) and
+        ``dz/dBp`` (b, 2, 3, N), the derivative in the point (base frame). ``base``: the points (b, 3, N)
+        (:meth:`points`; the fiducials where not given). ``wrt``: ``dz`` in the views' ``wrt``-th placement
+        alone (b, 2, 3, N), e.g. to optimise that placement with the rest held. ``arrays``: the views'
+        placements' vectors (b, U, 3) and plane Jacobians (b, U, 3, 3) instead of looking each up in
+        ``vectors`` and ``plane_jacobians`` (:meth:`placement_arrays`)."""
         R_c, t_c = poses[self.camera]
-        B = self.base
+        B = self.base if base is None else base
         b, _, n = B.shape
-        x = np.einsum("ij,bjn->bin", R_c, B) + t_c[None, :, None]  # eq. (2)
-        size = self.slots.size
+        x = np.matmul(R_c, B) + t_c[None, :, None]  # eq. (2)
+        size = self.slots.size if wrt is None else 3
         dx: Any = None
-        if jacobians:
+        if jacobians and wrt is not None:
+            dx = np.zeros((b, 3, size, n))
+        elif jacobians:
             dx = np.zeros((b, 3, size, n))
             if self.camera in self.pose_cols:
                 c = self.pose_cols[self.camera]
                 S = np.zeros((b, 3, 3, n))
                 S[:, 0, 1], S[:, 0, 2], S[:, 1, 2] = -B[:, 2], B[:, 1], -B[:, 0]
                 S[:, 1, 0], S[:, 2, 0], S[:, 2, 1] = B[:, 2], -B[:, 1], B[:, 0]
-                dx[:, :, c:c + 3, :] = -np.einsum("ij,bjkn->bikn", R_c, S)  # d(R Exp(w) B)/dw = -R [B]x
+                dx[:, :, c:c + 3, :] = -np.matmul(R_c, S.reshape(b, 3, 3 * n)).reshape(b, 3, 3, n)  # d(R Exp(w) B)/dw = -R [B]x
                 dx[:, :, c + 3:c + 6, :] = R_c[None, :, :, None]  # d(t + R nu)/dnu = R
-        v_all = np.array([[vectors[p] for p in ps] for ps in self.placements])  # (b, U, 3)
-        J_all: Any = np.array([[plane_jacobians[p] for p in ps] for ps in self.placements]) if jacobians else None
-        offset = 6 * len(self.pose_cols)
+        if arrays is not None:
+            v_all, J_all = arrays
+        else:
+            v_all = np.array([[vectors[p] for p in ps] for ps in self.placements])  # (b, U, 3)
+            J_all = np.array([[plane_jacobians[p] for p in ps] for ps in self.placements]) if jacobians else None
+        offset = 6 * len(self.pose_cols) if wrt is None else 0
+        dB: Any = np.broadcast_to(R_c, (b, 3, 3)) if jacobians else None  # dx/dBp, the same for a view's points
         for owner, u in self.steps:
             v_o = v_all[:, u]
-            col = offset + 3 * u
+            col = offset + 3 * u if wrt is None else 0
+            mine = wrt is None or wrt == u  # this placement's columns are wanted
             dv: Any = None
             if owner == self.camera:
                 v = v_o
                 if jacobians:
                     dv = np.zeros((b, 3, size))
-                    dv[:, :, col:col + 3] = J_all[:, u]
+                    if mine:
+                        dv[:, :, col:col + 3] = J_all[:, u]
             else:
                 v, parts = self._transfer(v_o, poses[self.camera], poses[owner], jacobians)
                 if jacobians:
                     dv_v, dv_wc, dv_nc, dv_wo, dv_no = parts
                     dv = np.zeros((b, 3, size))
-                    dv[:, :, col:col + 3] = dv_v @ J_all[:, u]
-                    for who, dw, dn in ((self.camera, dv_wc, dv_nc), (owner, dv_wo, dv_no)):
+                    if mine:
+                        dv[:, :, col:col + 3] = dv_v @ J_all[:, u]
+                    for who, dw, dn in ((self.camera, dv_wc, dv_nc), (owner, dv_wo, dv_no)) if wrt is None else ():
                         if who in self.pose_cols:
                             c = self.pose_cols[who]
                             dv[:, :, c:c + 3] += dw
                             dv[:, :, c + 3:c + 6] += dn
             vv = np.einsum("bi,bi->b", v, v)
-            vx = np.einsum("bi,bin->bn", v, x)
+            vx = np.matmul(v[:, None, :], x)[:, 0]
             s = vx / vv[:, None] - 1.0
             if jacobians:
-                vdv = np.einsum("bi,bip->bp", v, dv)
-                ds = (np.einsum("bi,bipn->bpn", v, dx) + np.einsum("bin,bip->bpn", x, dv)) / vv[:, None, None]
+                vdv = np.matmul(v[:, None, :], dv)[:, 0]
+                ds = np.matmul(v[:, None, :], dx.reshape(b, 3, size * n)).reshape(b, size, n)  # v . dx
+                ds += np.matmul(dv.transpose(0, 2, 1), x)  # x . dv
+                ds /= vv[:, None, None]
                 ds -= 2.0 * vdv[:, :, None] * vx[:, None, :] / (vv**2)[:, None, None]
-                dx = dx - 2.0 * v[:, :, None, None] * ds[:, None] - 2.0 * dv[:, :, :, None] * s[:, None, None, :]
+                dx -= 2.0 * v[:, :, None, None] * ds[:, None]
+                dx -= 2.0 * dv[:, :, :, None] * s[:, None, None, :]
+                dB = dB - 2.0 * v[:, :, None] * np.einsum("bi,bij->bj", v, dB)[:, None, :] / vv[:, None, None]  # M dB
             x = x - 2.0 * v[:, :, None] * s[:, None, :]  # eq. (3): M x + 2 v
         z = x[:, :2] / x[:, 2:3]  # eq. (9)
         if not jacobians:
-            return z, None
+            return z, None, None
         dz = (dx[:, :2] - z[:, :, None, :] * dx[:, 2][:, None]) / x[:, 2][:, None, None, :]
-        return z, dz
+        dzB = (dB[:, :2, :, None] - z[:, :, None, :] * dB[:, 2][:, None, :, None]) / x[:, 2][:, None, None, :]
+        return z, dz, dzB
 
     @staticmethod
     def _transfer(v_owner: np.ndarray, pose_c, pose_o, jacobians: bool):
@@ -256,6 +293,9 @@ class ViewStackEvaluator:
             group.error_rows, group.jacobian_entries = error_rows[g], entries[g]
         self._jac = np.zeros(jac0)
         self._placement_of_key = {k: p for p, k in self.mirror_keys.items()}
+        self._placement_order = list(self.mirror_keys)
+        rows_of = {p: i for i, p in enumerate(self._placement_order)}
+        self._placement_rows = [group.placement_index(rows_of) for group in self.groups]
         self._camera_of_key = {k: c for c, k in self.pose_keys.items()}
         # cache
         self._valid = False
@@ -295,8 +335,10 @@ class ViewStackEvaluator:
         vectors, plane_jacobians = {}, {}
         for p, key in self.mirror_keys.items():
             vectors[p], plane_jacobians[p] = vector_of_plane(self._planes[key])
-        for group in self.groups:
-            z, dz = group.model(poses, vectors, plane_jacobians, jacobians)
+        V = np.array([vectors[p] for p in self._placement_order])
+        JV = np.array([plane_jacobians[p] for p in self._placement_order])
+        for group, at in zip(self.groups, self._placement_rows):
+            z, dz, _ = group.model(poses, vectors, plane_jacobians, jacobians, arrays=(V[at], JV[at] if jacobians else None))
             residual = z - group.observed  # (b, 2, N), h - z
             if group.robust is None:
                 self._err[group.error_rows] = residual.transpose(0, 2, 1).reshape(len(residual), -1)
@@ -336,10 +378,16 @@ class ViewStackEvaluator:
 
 
 def stacked_view_factors(view_factors: Sequence[ViewFactor]) -> list[gtsam.CustomFactor]:
-    """The factors of ``view_factors``: the stackable ones stacked (:class:`ViewStackEvaluator`), the
-    others their own ``ViewFactor`` s."""
+    """The factors of ``view_factors``: those of fiducials alone stacked (:class:`ViewStackEvaluator`),
+    those with reconstruction points stacked and compressed (``view_points.ViewPointStack``), those that
+    estimate intrinsics their own ``ViewFactor`` s."""
+    from mirror_fg.factors.view_points import ViewPointStack  # it stacks with this module's groups
+
     stack = [f for f in view_factors if stackable(f)]
-    factors = [f.factor() for f in view_factors if not stackable(f)]
+    with_points = [f for f in view_factors if f.intrinsics is None and f.unique_landmarks]
+    factors = [f.factor() for f in view_factors if f.intrinsics is not None]
     if stack:
         factors.extend(ViewStackEvaluator(stack, PLACEMENTS_PER_FACTOR).factors)
+    if with_points:
+        factors.extend(ViewPointStack(with_points).factors)
     return factors

@@ -12,13 +12,14 @@ import gtsam
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError, SolveError
+from mirror_fg.factors.view_eliminated import EliminatedViewStack
 from mirror_fg.core.fit import expected_cost, plausible
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.solver.start.analytic import AnalyticSolution
 from mirror_fg.solver.result.calibration import POOR_FIT_RATIO, Calibration, CameraPose, EstimatedCamera, Exclusion
 from mirror_fg.solver.screen.camera_labels import lone_image_hint
 from mirror_fg.solver.screen.consensus import check_images, screen, without
-from mirror_fg.solver.model.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, run_optimizer
+from mirror_fg.solver.model.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, polished, run_optimizer
 from mirror_fg.solver.model.marginals import unconstrained_as_solve_error, unconstrained_message
 from mirror_fg.solver.options import STAGES, SolveOptions
 from mirror_fg.solver.pipeline import run_pipeline
@@ -161,6 +162,7 @@ class _Run:
     initial_error: float
     excluded: list[Exclusion]
     timings: dict[str, float]
+    eliminated: EliminatedViewStack | None = None  # the placements solved inside the factors, if any
 
 
 def calibrate_views(dataset: Dataset, initial=None, options: SolveOptions | None = None) -> Calibration:
@@ -249,32 +251,39 @@ class ViewsProblem:
         problem = ViewProblem(solved, options.robust, self.models)
         with timed(timings, "analytic"):
             begin = _start(problem, self.last, options, known_pnp=self.known_pnp, minima=self.minima)
-        graph = problem.graph()
         params = lm_params(options.max_iterations, cost_scale(solved), GENERAL_LAMBDA_UPPER_BOUND)
 
         def optimize(first: ViewEstimate):
-            return run_optimizer(graph, problem.values(first), params, solved.source,
-                                 lambda error: unconstrained_message(error, problem), options.iteration)
+            """LM from ``first`` on the graph with the placements one factor alone sees eliminated inside
+            it where the data allow (``ViewProblem.solve_graph``)."""
+            with timed(timings, "build"):
+                graph, values, eliminated = problem.solve_graph(first, options.eliminates(True))
+            with timed(timings, "optimize"):
+                optimizer, result, initial_error = run_optimizer(
+                    graph, values, params, solved.source, lambda error: unconstrained_message(error, problem),
+                    options.iteration)
+                if eliminated is not None:  # a few Gauss-Newton steps on the small system (lm._polished)
+                    result = polished(graph, result)
+            return optimizer, result, initial_error, graph, eliminated
 
         if self.analytic and self.last is None:
             self.analytic_start = begin
-        with timed(timings, "optimize"):
-            optimizer, result, initial_error = optimize(begin)
-            dimension = result.dim() - problem.constraints
-            if self.analytic and self.last is None and not plausible(graph.error(result),
-                                                                     expected_cost(problem.size, dimension)):
-                other = _other_start(problem, options, self.known_pnp, self.minima)  # the analytical start ended implausibly: try the other one
-                if other is not None:
-                    tried = optimize(other)
-                    if graph.error(tried[1]) < graph.error(result):
-                        logger.info("%s: the second analytical start fits better", solved.source)
-                        optimizer, result, initial_error = tried
-                        self.analytic_start = other
-        estimate = problem.read(result)
+        optimizer, result, initial_error, graph, eliminated = optimize(begin)
+        dimension = result.dim() + (eliminated.dimension if eliminated is not None else 0) - problem.constraints
+        if self.analytic and self.last is None and not plausible(graph.error(result),
+                                                                 expected_cost(problem.size, dimension)):
+            other = _other_start(problem, options, self.known_pnp, self.minima)  # the analytical start ended implausibly: try the other one
+            if other is not None:
+                tried = optimize(other)
+                if tried[3].error(tried[1]) < graph.error(result):
+                    logger.info("%s: the second analytical start fits better", solved.source)
+                    optimizer, result, initial_error, graph, eliminated = tried
+                    self.analytic_start = other
+        estimate = problem.read(result, eliminated)
         self.last = estimate  # the start of the next solve, after leaving some out
         residuals, whitened, labels = problem.residuals(estimate)
         return _Run(problem, graph, result, estimate, residuals, whitened, labels, dimension,
-                    int(optimizer.iterations()), initial_error, list(left_out), timings)
+                    int(optimizer.iterations()), initial_error, list(left_out), timings, eliminated)
 
     def check(self, run: _Run) -> Checked:
         return Checked([Label(i, p) for i, p in run.labels], run.whitened, run.dimension)
@@ -311,7 +320,7 @@ def _finish(run: _Run, options: SolveOptions) -> Calibration:
         report(STAGES[2], 0, 1)
         with timed(run.timings, "marginals"), unconstrained_as_solve_error(
                 problem.dataset.source, lambda error: unconstrained_message(error, problem)):
-            covariances = problem.covariances(run.graph, run.result, run.estimate)
+            covariances = problem.covariances(run.graph, run.result, run.estimate, run.eliminated)
         report(STAGES[2], 1, 1)
     return calibration_of(run.problem, run.estimate, covariances, run.residuals, run.whitened, run.labels,
                           iterations=run.iterations, initial_error=run.initial_error,

@@ -210,7 +210,7 @@ def image_ratios(dataset: Dataset, estimate: ViewEstimate, excluded: Sequence[tu
         linear.append((keys, A, -b))
         for key in keys:
             touches[key] = touches.get(key, 0) + 1
-    graph = problem.graph()
+    graph = problem.graph(stacked=False)  # one factor per image, then the priors
     priors = [graph.at(k) for k in range(len(problem.factors), graph.size())]
     for prior in priors:  # a prior's keys are shared whatever sees them
         for key in prior.keys():

@@ -34,7 +34,7 @@ from mirror_fg.solver.timing import timed
 
 __all__ = [
     "REFERENCE_NORMALIZED_SIGMA", "MAX_RESTARTS", "LMRun", "cost_scale", "lm_params", "plausible",
-    "levenberg_marquardt", "levenberg_marquardt_with_restarts",
+    "levenberg_marquardt", "levenberg_marquardt_with_restarts", "polished",
 ]
 
 logger = logging.getLogger("mirror_fg")
@@ -138,11 +138,19 @@ def _polished(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> gtsam.
     return values
 
 
+#: The polish of any small system (the view model's eliminated graph too).
+polished = _polished
+
 #: Solve with the last mirror's placements eliminated inside the factors (``factors/eliminated.py``)
 #: where the options ask for it and the data allow it (no robust kernel, ``SolveOptions.eliminates``):
 #: linear cost in the number of images. False: the stacked factors of ``factors/batched.py`` with
 #: every placement in the graph (same estimates).
 ELIMINATE = True
+
+#: The paper's tree solved on the general view model (``view_lm.py``: the view factors, a photograph's own
+#: placement eliminated inside them) instead of the tree's own factors (``factors/eliminated.py``,
+#: ``factors/batched.py``, ``factors/reflection.py``).
+VIEW_MODEL = False
 
 #: At most this many restarts of LM from the analytical solution's runner-up hypotheses.
 MAX_RESTARTS = 4
@@ -205,7 +213,21 @@ def _levenberg_marquardt(
     on_iteration: Callable[[int, float, float], None] | None, timings: dict[str, float],
 ) -> LMRun:
     """:func:`levenberg_marquardt` on the eliminated graph (``eliminate``, where the schedule allows it) or
-    on the graph with every placement an unknown."""
+    on the graph with every placement an unknown (the view model's where :data:`VIEW_MODEL`)."""
+    if VIEW_MODEL:
+        from mirror_fg.solver.model.view_lm import view_model_run
+
+        scale = cost_scale(dataset)
+        params = lm_params(options.max_iterations, scale)
+
+        def finish(graph, optimizer, result, eliminated: bool):
+            if eliminated:
+                result = polished(graph, result)
+            final_error = graph.error(result)
+            stalled = optimizer.lambda_() >= params.getlambdaUpperBound() and not _stationary(graph, result, final_error, scale)
+            return result, final_error, bool(np.isfinite(final_error)) and optimizer.iterations() < options.max_iterations and not stalled
+
+        return view_model_run(dataset, initial, options, eliminate, on_iteration, timings, params, finish)  # type: ignore[return-value]
     with timed(timings, "build"):
         eliminated = build_eliminated_graph(dataset, initial) if eliminate else None
         if eliminated is not None:

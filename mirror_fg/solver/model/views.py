@@ -25,11 +25,13 @@ from gtsam.symbol_shorthand import K, L, V, X
 from mirror_fg.core.camera import Camera
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_prior_factor, predict_pixels
+from mirror_fg.factors.view_eliminated import EliminatedViewStack, eliminable
 from mirror_fg.factors.view_stack import stacked_view_factors
 from mirror_fg.factors.views import ViewFactor, plane_of, vector_of_plane, view_model
 from mirror_fg.io.dataset import Dataset, Image
 from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.model.graph import unknown_name
+from mirror_fg.solver.model.schur_marginals import marginals_of
 from mirror_fg.solver.start.propagation import Propagation, ViewObs, mirror_vector_in
 
 __all__ = ["SINGLE_CAMERA", "ViewProblem", "views_of", "camera_names", "scale_prior", "mirror_vector_at", "plane_of"]
@@ -149,13 +151,15 @@ class ViewProblem:
                             {p: v * f for p, v in estimate.mirror_vectors.items()},
                             {n: x * f for n, x in estimate.points.items()})
 
-    def values(self, estimate: ViewEstimate) -> gtsam.Values:
+    def values(self, estimate: ViewEstimate, skip: frozenset | set = frozenset()) -> gtsam.Values:
+        """Every unknown's value at ``estimate`` (``skip``: placements eliminated inside their factors)."""
         values = gtsam.Values()
         for name, key in self.pose_keys.items():
             R, t = estimate.poses[name]
             values.insert(key, gtsam.Pose3(gtsam.Rot3(R), np.asarray(t, float)))
         for p, key in self.mirror_keys.items():
-            values.insert(key, plane_of(estimate.mirror_vectors[p]))
+            if p not in skip:
+                values.insert(key, plane_of(estimate.mirror_vectors[p]))
         for name, key in self.point_keys.items():
             values.insert(key, np.asarray(estimate.points[name], float))
         for name, key in self.intrinsics_keys.items():
@@ -163,14 +167,17 @@ class ViewProblem:
             values.insert(key, np.asarray(theta, float)[self.intrinsics[name].index])
         return values
 
-    def read(self, values: gtsam.Values) -> ViewEstimate:
+    def read(self, values: gtsam.Values, eliminated: EliminatedViewStack | None = None) -> ViewEstimate:
+        """The estimate at ``values`` (and the placements ``eliminated`` solves inside its factors)."""
+        inside = eliminated.vectors_at(values) if eliminated is not None else {}
         poses = dict(self.fixed)
         for name, key in self.pose_keys.items():
             pose = values.atPose3(key)
             poses[name] = (pose.rotation().matrix(), np.asarray(pose.translation(), float))
         theta = {name: self.intrinsics[name].theta(np.asarray(values.atVector(key), float))
                  for name, key in self.intrinsics_keys.items()}
-        return ViewEstimate(poses, {p: vector_of_plane(values.atOrientedPlane3(k))[0] for p, k in self.mirror_keys.items()},
+        return ViewEstimate(poses, {p: inside[p] if p in inside else vector_of_plane(values.atOrientedPlane3(k))[0]
+                                    for p, k in self.mirror_keys.items()},
                             {n: np.asarray(values.atPoint3(k), float) for n, k in self.point_keys.items()}, theta or None)
 
     # ------------------------------------------------------------------ graph
@@ -181,6 +188,31 @@ class ViewProblem:
         graph = gtsam.NonlinearFactorGraph()
         for factor in (stacked_view_factors(self.factors) if stacked else [f.factor() for f in self.factors]):
             graph.add(factor)
+        self._priors(graph)
+        return graph
+
+    def solve_graph(self, estimate: ViewEstimate, eliminate: bool = True):
+        """``(graph, values, eliminated)`` to solve from ``estimate``: where the data allow it (a known target,
+        intrinsics known, no robust kernel) the placements that one stacked factor alone sees eliminated
+        inside it (``factors/view_eliminated.py``; ``eliminated`` that evaluator, its placements not in
+        ``values``), else :meth:`graph` and :meth:`values` (``eliminated`` None)."""
+        if eliminate and self.dataset.scale is None and not self.intrinsics and self.robust is None:
+            views = [f for f in self.factors if eliminable(f)]
+            keep = {p for f in self.factors if not eliminable(f) for p in f.mirror_keys}
+            evaluator = EliminatedViewStack(views, estimate.mirror_vectors, keep) if views else None
+            if evaluator is not None and evaluator.eliminated:
+                graph = gtsam.NonlinearFactorGraph()
+                for factor in evaluator.factors:
+                    graph.add(factor)
+                for factor in stacked_view_factors([f for f in self.factors if not eliminable(f)]):
+                    graph.add(factor)
+                self._priors(graph)
+                values = self.values(estimate, skip=set(evaluator.eliminated))
+                return graph, values, evaluator
+        return self.graph(), self.values(estimate), None
+
+    def _priors(self, graph: gtsam.NonlinearFactorGraph) -> None:
+        """The intrinsics priors and the scale prior, added to ``graph``."""
         for name, key in self.intrinsics_keys.items():
             camera = self.dataset.cameras[name] if self.dataset.cameras is not None else self.dataset.camera
             assert camera is not None  # it estimates intrinsics
@@ -188,7 +220,6 @@ class ViewProblem:
             if prior is not None:
                 graph.add(prior)
         graph.push_back(scale_prior(self.dataset, self.mirror_keys, self.point_keys))
-        return graph
 
     @property
     def keys(self) -> list[int]:
@@ -234,10 +265,13 @@ class ViewProblem:
         return np.vstack(residuals), np.concatenate(whitened), labels
 
     # ------------------------------------------------------------------ covariances
-    def covariances(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, estimate: ViewEstimate):
+    def covariances(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, estimate: ViewEstimate,
+                    eliminated: EliminatedViewStack | None = None):
         """``(pose covariances {camera: 6x6}, joint (6C, 6C), mirrors {p: 3x3}, points {name: 3x3})`` in
-        docs/formats.md's conventions; a fixed camera's blocks are zero."""
-        marginals = gtsam.Marginals(graph, values) if self.dataset.scale is None else _GaugeHeld(self, graph, values)
+        docs/formats.md's conventions; a fixed camera's blocks are zero. ``eliminated``: the evaluator of
+        the placements solved inside the factors (:meth:`solve_graph`)."""
+        marginals = marginals_of(graph, values) if self.dataset.scale is None else _GaugeHeld(self, graph, values)
+        inside = eliminated.covariances(values, marginals) if eliminated is not None else {}
         keys = list(self.pose_keys.values())
         joint = np.zeros((6 * len(self.cameras), 6 * len(self.cameras)))
         if keys:
@@ -259,6 +293,9 @@ class ViewProblem:
             poses[name] = covariance_from_pose3(R, marginals.marginalCovariance(self.pose_keys[name]))
         mirrors = {}
         for p, k in self.mirror_keys.items():  # of v = d n, from the plane's local coordinates
+            if p in inside:
+                mirrors[p] = inside[p]
+                continue
             J = vector_of_plane(plane_of(estimate.mirror_vectors[p]))[1]
             mirrors[p] = J @ marginals.marginalCovariance(k) @ J.T
         points = {n: marginals.marginalCovariance(k) for n, k in self.point_keys.items()}

@@ -1,0 +1,413 @@
+"""View factors with the placements that one factor alone sees eliminated inside it (Schur complement), as the
+paper's tree factors eliminate the last mirror's placements (``eliminated.py``) and GTSAM's
+``SmartProjectionFactor`` its landmark (Hesch et al., eqs. 2, 3, 9, 23; the model of ``views.py``).
+
+Why: in the general view model every placement is an unknown of the graph; a photograph's own placement (a
+hand-held mirror, the paper's last mirror) is seen by its views only. With one plane variable per
+photograph each Python factor call copies a ``Values`` that grows with the images (``batched.py``'s
+docstring), and GTSAM eliminates every plane from a factor's dense rows: 15-30 s for 10,000 tree images
+against the tree pipeline's 1 s. Here those placements never enter the ``Values``:
+
+* views are stacked by the set of placements they see (``view_stack.py``'s groups and merging, at most
+  :data:`PLACEMENTS_PER_FACTOR` placements per factor); a placement all of whose views are in one factor,
+  and no other eliminated placement in any of those views, is eliminated: the factor's keys are the camera
+  poses and the other placements only;
+* evaluated at those values, each eliminated placement's mirror vector ``v`` is first optimised on its own
+  measurements (Gauss-Newton, vectorised over every placement, warm-started; variable projection), so a
+  factor's cost is ``min_v`` of the cost of eq. (23): the same minimiser as the joint graph;
+* linearised, each placement is eliminated from its views' normal equations
+  (``N_kk - C^T D^-1 C``, ``D = J_v^T J_v``, ``C = J_v^T [J_k | e]``) and the factor's rows compressed to
+  ``d + 1`` (``view_points._rows_of``): the same Levenberg-Marquardt steps as the joint graph with those
+  placements eliminated first.
+
+The placements and their covariances are recovered afterwards (:meth:`EliminatedViewStack.vectors_at`,
+:meth:`EliminatedViewStack.covariances`: ``Sigma_v = D^-1 + D^-1 C Sigma_k C^T D^-1``). Fiducials only,
+intrinsics known, no robust kernel (the other views keep ``view_stack.py`` / ``view_points.py``). Not
+thread-safe (GTSAM calls Python factors one at a time). ``tests/test_view_eliminated.py`` checks cost,
+reduced system and whole calibrations against the per-view factors.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import gtsam
+import numpy as np
+
+from mirror_fg.factors.schur import inverses, one_blas_thread
+from mirror_fg.factors.view_points import _rows_of
+from mirror_fg.factors.view_stack import _Group
+from mirror_fg.factors.views import ViewFactor, vector_of_plane
+
+__all__ = ["EliminatedViewStack", "eliminable", "PLACEMENTS_PER_FACTOR"]
+
+Placement = tuple[int, int]
+#: Placements of one factor at most: its width is its poses and kept placements only, so a factor can hold
+#: many photographs (few Python calls per iteration).
+PLACEMENTS_PER_FACTOR = 256
+#: Gauss-Newton iterations allowed per evaluation for the eliminated placements, and the step (metres)
+#: below which a placement is at its optimum (``eliminated.py``'s).
+INNER_MAX_ITERATIONS = 20
+INNER_STEP_TOLERANCE = 1e-12
+#: A Gauss-Newton step of every placement below this (metres) is taken without evaluating the cost again:
+#: Gauss-Newton converges linearly here (rate ~0.02-0.05, ``lm.polished``), so the next would be below
+#: :data:`INNER_STEP_TOLERANCE`, and the cost it leaves changes by O(step^2).
+FINAL_STEP = 1e-10
+
+
+def eliminable(factor: ViewFactor) -> bool:
+    """Whether a view can be in an eliminated stack: fiducials only, intrinsics known, no robust kernel."""
+    return factor.intrinsics is None and not factor.unique_landmarks and factor.robust is None
+
+
+def stacks_of(view_factors: Sequence[ViewFactor], cap: int) -> list[list[int]]:
+    """The views of each factor: views with the same placements together, in the order first seen,
+    consecutive sets merged while they hold at most ``cap`` placements (``view_stack.py``'s rule)."""
+    same: dict[tuple, list[int]] = {}
+    for i, f in enumerate(view_factors):
+        same.setdefault(tuple(sorted(f.mirror_keys)), []).append(i)
+    merged: list[tuple[set, list[int]]] = []
+    for placements, members in same.items():
+        if merged and len(merged[-1][0] | set(placements)) <= cap:
+            merged[-1][0].update(placements)
+            merged[-1][1].extend(members)
+        else:
+            merged.append((set(placements), list(members)))
+    return [members for _, members in merged]
+
+
+def private_placements(view_factors: Sequence[ViewFactor], stacks: list[list[int]], keep: set) -> list[Placement]:
+    """The placements to eliminate: seen by one stack's views only, not in ``keep``, and at most one per
+    view: those with the fewest views first (a photograph's own placement before a mirror placement that
+    many photographs share, which stays a variable)."""
+    stack_of: dict[Placement, set[int]] = {}
+    views_of: dict[Placement, list[int]] = {}
+    for s, members in enumerate(stacks):
+        for i in members:
+            for p in view_factors[i].mirror_keys:
+                stack_of.setdefault(p, set()).add(s)
+                views_of.setdefault(p, []).append(i)
+    # as the paper's last mirror: seen by its owner camera only and last in every view's reflections (in
+    # other places its cost in v alone is far from quadratic: Gauss-Newton on it crawled or diverged on a
+    # rig's two-mirror views, where the placements stay variables)
+    transferred = {p for f in view_factors for p in f.mirror_keys if f.owners[p] != f.camera or f.reflections[-1] != p}
+    candidates = sorted((p for p, s in stack_of.items() if len(s) == 1 and p not in keep and p not in transferred),
+                        key=lambda p: (len(views_of[p]), p))
+    taken: set[int] = set()  # views that have their eliminated placement
+    chosen = []
+    for p in candidates:
+        if not taken.intersection(views_of[p]):
+            chosen.append(p)
+            taken.update(views_of[p])
+    return sorted(chosen)
+
+
+class EliminatedViewStack:
+    """Views (all :func:`eliminable`) in factors with their own placements eliminated (module docstring).
+
+    ``start``: every eliminated placement's mirror vector to start from (owner frame, metres); ``keep``:
+    placements that stay variables whatever sees them (e.g. the scale's). ``eliminated``: the placements
+    solved inside; ``kept_mirror_keys``: the plane keys the factors see; ``factors``: the
+    ``gtsam.CustomFactor`` objects."""
+
+    def __init__(self, view_factors: Sequence[ViewFactor], start: dict[Placement, np.ndarray],
+                 keep: frozenset | set = frozenset(),
+                 placements_per_factor: int = PLACEMENTS_PER_FACTOR):
+        stacks = stacks_of(view_factors, placements_per_factor)
+        self.eliminated = private_placements(view_factors, stacks, set(keep))
+        index = {p: e for e, p in enumerate(self.eliminated)}
+        self._start = np.array([start[p] for p in self.eliminated], dtype=float).reshape(-1, 3)
+        self._vectors = self._start.copy()
+        self.fixed: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self.pose_keys: dict[str, int] = {}
+        self.kept_mirror_keys: dict[Placement, int] = {}
+        for f in view_factors:
+            self.fixed.update(f.fixed)
+            self.pose_keys.update(f.pose_keys)
+            self.kept_mirror_keys.update({p: k for p, k in f.mirror_keys.items() if p not in index})
+        pose_set = set(self.pose_keys.values())
+        self._keys, self._widths, self._offsets, columns_of = [], [], [], []
+        stack_of_view = np.zeros(len(view_factors), dtype=np.intp)
+        size = 0
+        for s, members in enumerate(stacks):
+            views = [view_factors[i] for i in members]
+            keys = list(dict.fromkeys(k for f in views for k in f.pose_keys.values()))
+            keys += list(dict.fromkeys(k for f in views for p, k in f.mirror_keys.items() if p not in index))
+            columns, width = {}, 0
+            for key in keys:
+                columns[key] = width
+                width += 6 if key in pose_set else 3
+            self._keys.append(keys)
+            self._widths.append(width)
+            self._offsets.append(size)
+            columns_of.append(columns)
+            size += (width + 1) ** 2
+            stack_of_view[members] = s
+        self._normal_size = size
+        # each eliminated placement: its stack, and where its C = J_v^T [J_k | e] (3 x (d+1)) starts
+        stack_of_placement = np.zeros(len(self.eliminated), dtype=np.intp)
+        for i, f in enumerate(view_factors):
+            for p in f.mirror_keys:
+                if p in index:
+                    stack_of_placement[index[p]] = stack_of_view[i]
+        self._stack_of_placement = stack_of_placement
+        widths = np.array(self._widths)
+        c_sizes = 3 * (widths[stack_of_placement] + 1)
+        self._c_offsets = size + np.concatenate([[0], np.cumsum(c_sizes)[:-1]]).astype(np.intp)
+        self._d_offset = size + int(c_sizes.sum())
+        d_of = widths[stack_of_placement]
+        self._gradient_at = (self._c_offsets[:, None] + np.arange(3)[None, :] * (d_of[:, None] + 1)
+                             + d_of[:, None]).astype(np.intp)  # C[:, d] = J_v^T e of each placement
+        self._total = self._d_offset + 9 * len(self.eliminated)
+        shapes: dict[tuple, list[int]] = {}
+        for i, f in enumerate(view_factors):
+            order = list(dict.fromkeys(f.reflections))
+            shape = (f.camera, tuple((f.owners[p], order.index(p)) for p in f.reflections), tuple(f.pose_keys),
+                     f.base_points.shape[1], tuple(p in index for p in order))
+            shapes.setdefault(shape, []).append(i)
+        self.groups = [_Group([view_factors[i] for i in members]) for members in shapes.values()]
+        self._targets, self._placement_of_view, self._elim_cols, self._elim_local = [], [], [], []
+        for group, members in zip(self.groups, shapes.values()):
+            targets, placement_of, elim_cols = self._layout(group, members, index, stack_of_view, columns_of)
+            self._targets.append(targets)
+            self._placement_of_view.append(placement_of)
+            self._elim_cols.append(elim_cols)
+            order = list(dict.fromkeys(group.factors[0].reflections))  # the group's eliminated placement, if any
+            self._elim_local.append(next((u for u, p in enumerate(order) if p in index), None))
+        self._pose_set = pose_set
+        self._order = {p: i for i, p in enumerate([*self.kept_mirror_keys, *self.eliminated])}
+        self._rows = [group.placement_index(self._order) for group in self.groups]
+        self._stack_rows = [stack_of_view[members] for members in shapes.values()]  # each group's views' stacks
+        self.factors = [gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(width + 1), keys, self._error_function(s))
+                        for s, (keys, width) in enumerate(zip(self._keys, self._widths))]
+        self._state: dict[int, bytes] = {}
+        self._valid = self._linearized = False
+        self._cost = np.zeros(len(stacks))
+        self._systems: list = []
+        self._D_inv = np.zeros((len(self.eliminated), 3, 3))
+        self._C: list[tuple[np.ndarray, np.ndarray]] = []  # per stack: its placements, their C
+        self.batches = 0
+
+    # --- layout -----------------------------------------------------------------------------------
+
+    def _layout(self, group: _Group, members: list[int], index: dict, stack_of_view: np.ndarray,
+                columns_of: list[dict[int, int]]):
+        """Where each entry of a view's local augmented normal matrix ``[A | e]^T [A | e]`` ((P+1)^2) goes:
+        kept x kept (and e) to its stack's normal, eliminated x kept (and e) to its placement's ``C``,
+        eliminated x eliminated to its ``D``, kept x eliminated nowhere (the last slot, dropped)."""
+        P = group.slots.size
+        b = len(members)
+        stack_col = np.full((b, P + 1), -1, dtype=np.intp)  # each local column's column in its stack
+        placement_of = np.full(b, -1, dtype=np.intp)
+        elim_col = -1
+        for r, (view, i) in enumerate(zip(group.factors, members)):
+            s = stack_of_view[i]
+            columns = columns_of[s]
+            for name, key in view.pose_keys.items():
+                c = view.slots.pose_cols[name]
+                stack_col[r, c:c + 6] = columns[key] + np.arange(6)
+            for p, key in view.mirror_keys.items():
+                c = view.slots.mirror_cols[p]
+                if p in index:
+                    placement_of[r], elim_col = index[p], c
+                else:
+                    stack_col[r, c:c + 3] = columns[key] + np.arange(3)
+            stack_col[r, P] = self._widths[s]  # e
+        stride = np.array(self._widths)[stack_of_view[members]] + 1  # (b,)
+        base = np.array(self._offsets)[stack_of_view[members]]
+        kept = stack_col >= 0
+        targets = np.where(kept[:, :, None] & kept[:, None, :],
+                           base[:, None, None] + stack_col[:, :, None] * stride[:, None, None] + stack_col[:, None, :],
+                           self._total)
+        elim_cols = np.zeros((b, 3), dtype=np.intp)
+        if elim_col >= 0:  # the group's eliminated placement (one local position for all its views)
+            rows = elim_col + np.arange(3)
+            elim_cols[:] = rows
+            c_off = self._c_offsets[placement_of]
+            C = c_off[:, None, None] + np.arange(3)[None, :, None] * stride[:, None, None] + stack_col[:, None, :]
+            targets[:, rows, :] = np.where(kept[:, None, :], C, self._total)
+            targets[:, rows[:, None], rows[None, :]] = (self._d_offset + 9 * placement_of[:, None, None]
+                                                        + np.arange(9).reshape(3, 3)[None])
+        return targets, placement_of, elim_cols
+
+    # --- evaluation -------------------------------------------------------------------------------
+
+    def _read(self, values: gtsam.Values):
+        poses = dict(self.fixed)
+        state: dict[int, bytes] = {}
+        for name, key in self.pose_keys.items():
+            pose = values.atPose3(key)
+            state[key] = pose.matrix().tobytes()
+            poses[name] = (pose.rotation().matrix(), np.asarray(pose.translation(), dtype=float))
+        vectors, jacobians = {}, {}
+        for p, key in self.kept_mirror_keys.items():
+            plane = values.atOrientedPlane3(key)
+            state[key] = plane.planeCoefficients().tobytes()
+            vectors[p], jacobians[p] = vector_of_plane(plane)
+        return poses, vectors, jacobians, state
+
+    def _arrays(self, vectors, jacobians) -> tuple[np.ndarray, np.ndarray]:
+        """Every placement's vector and plane Jacobian (kept ones, then the eliminated at their current
+        vectors, whose variable is ``v`` itself) as arrays in ``self._order``."""
+        kept = list(self.kept_mirror_keys)
+        V = np.concatenate([np.array([vectors[p] for p in kept]).reshape(-1, 3), self._vectors])
+        J = np.concatenate([np.array([jacobians[p] for p in kept]).reshape(-1, 3, 3),
+                            np.broadcast_to(np.eye(3), (len(self.eliminated), 3, 3))])
+        return V, J
+
+    def _normals(self, poses, vectors, jacobians) -> np.ndarray:
+        """Every entry of the stacks' normals, the placements' ``C`` and ``D`` at the current vectors."""
+        V, J = self._arrays(vectors, jacobians)
+        weights, targets = [], []
+        for group, target, at in zip(self.groups, self._targets, self._rows):
+            z, dz, _ = group.model(poses, vectors, jacobians, True, arrays=(V[at], J[at]))
+            e = (z - group.observed) / group.sigmas  # (b, 2, N) whitened
+            A = dz / group.sigmas[:, :, None, :]  # (b, 2, P, N)
+            b, _, P, n = A.shape
+            Ae = np.concatenate([A.transpose(0, 1, 3, 2).reshape(b, 2 * n, P), e.reshape(b, 2 * n, 1)], axis=2)
+            weights.append((Ae.transpose(0, 2, 1) @ Ae).ravel())
+            targets.append(target.ravel())
+        return np.bincount(np.concatenate(targets), np.concatenate(weights), minlength=self._total + 1)
+
+    def _moments(self, poses, vectors, jacobians) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``D = J_v^T J_v`` (E, 3, 3), ``J_v^T e`` (E, 3) and the cost ``||e||^2`` (E,) of every eliminated
+        placement's views, the rest held; and each stack's cost of its views without one."""
+        V, J = self._arrays(vectors, jacobians)
+        E = len(self.eliminated)
+        D, g, own = np.zeros((E, 3, 3)), np.zeros((E, 3)), np.zeros(E)
+        rest = np.zeros(len(self._keys))
+        for group, placement_of, wrt, at, members in zip(self.groups, self._placement_of_view, self._elim_local,
+                                                         self._rows, self._stack_rows):
+            if wrt is None:
+                z = group.model(poses, vectors, jacobians, False, arrays=(V[at], J[at]))[0]
+            else:
+                z, dz, _ = group.model(poses, vectors, jacobians, True, wrt=wrt, arrays=(V[at], J[at]))
+            e = ((z - group.observed) / group.sigmas).transpose(0, 2, 1).reshape(len(z), -1, 1)  # (b, 2N, 1)
+            cost = np.einsum("bki,bki->b", e, e)
+            if wrt is None:
+                rest += np.bincount(members, cost, minlength=len(rest))
+                continue
+            A = (dz / group.sigmas[:, :, None, :]).transpose(0, 3, 1, 2).reshape(len(z), -1, 3)  # (b, 2N, 3)
+            At = A.transpose(0, 2, 1)
+            np.add.at(D, placement_of, At @ A)
+            np.add.at(g, placement_of, (At @ e)[:, :, 0])
+            own += np.bincount(placement_of, cost, minlength=E)
+        return D, g, own, rest
+
+    def _solve(self, poses, vectors, jacobians) -> np.ndarray:
+        """The eliminated placements at their optimum given the rest (module docstring): Gauss-Newton per
+        placement, a step that raises its views' cost refused and the placement damped (Levenberg-Marquardt
+        on each placement alone: their costs are separate); each stack's cost there."""
+        collapsed = np.linalg.norm(self._vectors, axis=1) < 0.1 * np.linalg.norm(self._start, axis=1)
+        self._vectors[collapsed] = self._start[collapsed]  # a warm start run into the camera centre
+        D, g, own, rest = self._moments(poses, dict(vectors), dict(jacobians))
+        E = len(self.eliminated)
+        damping = np.zeros(E)
+        for _ in range(INNER_MAX_ITERATIONS if E else 0):
+            damped = D + damping[:, None, None] * (D * np.eye(3))
+            step = -np.einsum("eij,ej->ei", inverses(damped[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]].T), g)
+            if not np.all(np.isfinite(step)):
+                raise RuntimeError("an eliminated mirror placement has no finite optimum at these values")
+            length = np.linalg.norm(step, axis=1)
+            if float(length.max(initial=0.0)) < INNER_STEP_TOLERANCE:
+                break  # (the step would change the cost by O(step^2): nothing)
+            if float(length.max(initial=0.0)) < FINAL_STEP:  # taken without evaluating again (module docstring)
+                self._vectors += step
+                break
+            limit = 0.5 * np.linalg.norm(self._vectors, axis=1)  # stay on its side of the camera centre
+            before = self._vectors.copy()
+            self._vectors += step * np.minimum(1.0, limit / np.maximum(length, 1e-300))[:, None]
+            D_new, g_new, own_new, _ = self._moments(poses, dict(vectors), dict(jacobians))
+            better = own_new <= own * (1.0 + 1e-12) + 1e-300
+            self._vectors[~better] = before[~better]
+            D[better], g[better], own[better] = D_new[better], g_new[better], own_new[better]
+            damping = np.where(better, damping * 0.1, np.maximum(damping * 10.0, 1e-3))
+            damping[damping < 1e-8] = 0.0
+        return rest + np.bincount(self._stack_of_placement, own, minlength=len(rest))
+
+    def _evaluate(self, values: gtsam.Values, jacobians: bool) -> None:
+        same = self._valid and all(self._bytes(key, values) == self._state[key] for key in self._state)
+        if same and (self._linearized or not jacobians):
+            return
+        self.batches += 1
+        poses, vectors, plane_jacobians, state = self._read(values)
+        if not same:  # the placements are already at their optimum for these values otherwise
+            self._cost = self._solve(poses, vectors, plane_jacobians)
+        self._state, self._valid, self._linearized = state, True, False
+        if not jacobians:
+            return
+        normal = self._normals(poses, vectors, plane_jacobians)
+        E = len(self.eliminated)
+        D = normal[self._d_offset:self._d_offset + 9 * E].reshape(E, 3, 3)
+        self._D_inv = inverses(D[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]].T) if E else np.zeros((0, 3, 3))
+        systems, C_all = [], []
+        with one_blas_thread():
+            for s, (base, width) in enumerate(zip(self._offsets, self._widths)):
+                N = normal[base:base + (width + 1) ** 2].reshape(width + 1, width + 1).copy()
+                mine = np.flatnonzero(self._stack_of_placement == s)
+                if len(mine):
+                    C = np.stack([normal[self._c_offsets[e]:self._c_offsets[e] + 3 * (width + 1)].reshape(3, width + 1)
+                                  for e in mine])  # (m, 3, d+1)
+                    N -= np.einsum("mij,mik->jk", C, self._D_inv[mine] @ C)  # the Schur complement
+                    N = 0.5 * (N + N.T)
+                    C_all.append((mine, C))
+                R = _rows_of(N)
+                blocks, at = [], 0
+                for key in self._keys[s]:
+                    dim = 6 if key in self._pose_set else 3
+                    blocks.append(np.asfortranarray(R[:, at:at + dim]))
+                    at += dim
+                systems.append((np.ascontiguousarray(R[:, width]), blocks))
+        self._C = C_all
+        self._systems = systems
+        self._linearized = True
+
+    def _bytes(self, key: int, values: gtsam.Values) -> bytes:
+        if key in self._pose_set:
+            return values.atPose3(key).matrix().tobytes()
+        return values.atOrientedPlane3(key).planeCoefficients().tobytes()
+
+    def _error_function(self, s: int):
+        width = self._widths[s]
+
+        def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
+            self._evaluate(values, H is not None)
+            if H is None:
+                out = np.zeros(width + 1)
+                out[-1] = np.sqrt(self._cost[s])
+                return out
+            rhs, blocks = self._systems[s]
+            H.clear()
+            H.extend(blocks)
+            return rhs
+
+        return error
+
+    # --- after the optimisation -------------------------------------------------------------------
+
+    @property
+    def dimension(self) -> int:
+        """The scalar unknowns solved inside the factors (3 per eliminated placement)."""
+        return 3 * len(self.eliminated)
+
+    def vectors_at(self, values: gtsam.Values) -> dict[Placement, np.ndarray]:
+        """The eliminated placements' mirror vectors (owner frames, metres) at ``values``' kept unknowns."""
+        self._evaluate(values, False)
+        return {p: v.copy() for p, v in zip(self.eliminated, self._vectors)}
+
+    mirror_vectors = vectors_at  # as the tree's ``EliminatedEvaluator`` names it
+
+    def covariances(self, values: gtsam.Values, marginals) -> dict[Placement, np.ndarray]:
+        """Each eliminated placement's mirror-vector covariance (3x3), from ``marginals`` of the kept
+        unknowns (``jointMarginalCovariance``): ``D^-1 + D^-1 C Sigma_k C^T D^-1`` (module docstring)."""
+        self._evaluate(values, True)
+        out = {}
+        for mine, C in self._C:
+            s = int(self._stack_of_placement[mine[0]])
+            width = self._widths[s]
+            keys = gtsam.KeyVector(self._keys[s])
+            joint = marginals.jointMarginalCovariance(keys).fullMatrix() if self._keys[s] else np.zeros((0, 0))
+            K = self._D_inv[mine] @ C[:, :, :width]  # (m, 3, d)
+            sigma = self._D_inv[mine] + K @ joint @ K.transpose(0, 2, 1)
+            for e, block in zip(mine, sigma):
+                out[self.eliminated[e]] = block
+        return out
