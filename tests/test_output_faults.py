@@ -32,6 +32,9 @@ CHILD = r"""
 import os, signal, sys
 from mirror_fg.cli import main
 hook, signame, n, directory = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4]
+# Python's own SIGINT handler even where the tests run in the background (a shell without job control starts
+# them with SIGINT ignored, which the child inherits and mirror-fg rightly keeps)
+signal.signal(signal.SIGINT, signal.default_int_handler)
 real, calls = getattr(os, hook), []
 
 def path_of(args):

@@ -48,7 +48,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, Protocol
 
 import gtsam
 import numpy as np
@@ -468,7 +468,18 @@ def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.0
     return Verification(verdicts, alpha, tolerance_mm, tolerance_deg, fused)
 
 
-def _verdict(name: str, d2: float, dof: int, p: float, free: gtsam.Values, fits: _Fits, ncp: float, alpha: float,
+class TestedFits(Protocol):
+    """What a verdict reads of the fits (``_Fits`` here, the arm's ``verify_arm._ArmFits``)."""
+
+    stored: Any
+    noun: str
+
+    def pose_key(self, name: str) -> int: ...
+
+    def pose_information(self, name: str, values: gtsam.Values) -> np.ndarray: ...
+
+
+def _verdict(name: str, d2: float, dof: int, p: float, free: gtsam.Values, fits: TestedFits, ncp: float, alpha: float,
              tolerance_mm: float, tolerance_deg: float, scale: float = 1.0) -> CameraVerdict:
     R_s, t_s, S = fits.stored[name]
     ncp = ncp * scale  # the detectable d2 in the stored units: the test divides d2 by scale

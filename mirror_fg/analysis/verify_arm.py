@@ -140,7 +140,7 @@ def _verification_dataset(result: Mapping[str, Any], dataset: Dataset, source: s
                                f"{camera.width}x{camera.height}: the result and the data are from different set-ups")
         camera = replace(found, estimate=(), prior_sigma=())
     offsets, sigmas = _stored_offsets(result, dataset, source)
-    images = [replace(im, joints={j: x + offsets.get(j, 0.0) for j, x in im.joints.items()}) for im in dataset.images]
+    images = [replace(im, joints={j: x + offsets.get(j, 0.0) for j, x in (im.joints or {}).items()}) for im in dataset.images]
     used = {n: points[n] for n in dataset.reconstruction_point_names}
     return replace(dataset, camera=camera, fiducials={**dataset.fiducials, **used}, images=images,
                    robot=replace(setup, mounts=mounts, offsets=tuple(offsets), offset_sigma=sigmas))

@@ -218,7 +218,7 @@ def result_dict(calibration: CalibrationLike) -> dict:
         result["dispersion"] = dispersion.to_dict()
     joint = getattr(c, "placement_covariances", None)
     if joint:  # docs/formats.md "Has it moved?": a mirror that stands still, jointly with the camera
-        for entry in result["mirrors"]:  # type: ignore[union-attr]
+        for entry in result["mirrors"]:  # type: ignore[union-attr,assignment]
             found = joint.get((entry["mirror"], entry["config"]))
             if found is not None:
                 entry["covariance"], entry["cross_covariance_cam_base"] = found[0].tolist(), found[1].tolist()

@@ -64,7 +64,7 @@ class RobotSetup:
         """``{camera name: Mount}`` of every camera: ``{None: mounts["camera"]}`` with one camera."""
         if self.cameras is None:
             return {None: self.mounts["camera"]}
-        return dict(self.cameras)
+        return {name: mount for name, mount in self.cameras.items()}
 
     @property
     def kinematics(self):
