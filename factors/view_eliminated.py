@@ -35,8 +35,8 @@ import numpy as np
 
 from mirror_fg.factors.schur import inverses, one_blas_thread
 from mirror_fg.factors.view_points import _rows_of
-from mirror_fg.factors.view_stack import _Group
-from mirror_fg.factors.views import ViewFactor, vector_of_plane
+from mirror_fg.factors.view_stack import _Group, read_poses_and_planes
+from mirror_fg.factors.views import ViewFactor
 
 __all__ = ["EliminatedViewStack", "eliminable", "PLACEMENTS_PER_FACTOR"]
 
@@ -232,18 +232,7 @@ class EliminatedViewStack:
     # --- evaluation -------------------------------------------------------------------------------
 
     def _read(self, values: gtsam.Values):
-        poses = dict(self.fixed)
-        state: dict[int, bytes] = {}
-        for name, key in self.pose_keys.items():
-            pose = values.atPose3(key)
-            state[key] = pose.matrix().tobytes()
-            poses[name] = (pose.rotation().matrix(), np.asarray(pose.translation(), dtype=float))
-        vectors, jacobians = {}, {}
-        for p, key in self.kept_mirror_keys.items():
-            plane = values.atOrientedPlane3(key)
-            state[key] = plane.planeCoefficients().tobytes()
-            vectors[p], jacobians[p] = vector_of_plane(plane)
-        return poses, vectors, jacobians, state
+        return read_poses_and_planes(values, self.fixed, self.pose_keys, self.kept_mirror_keys)
 
     def _arrays(self, vectors, jacobians) -> tuple[np.ndarray, np.ndarray]:
         """Every placement's vector and plane Jacobian (kept ones, then the eliminated at their current

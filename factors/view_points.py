@@ -36,8 +36,8 @@ import numpy as np
 
 from mirror_fg.factors.robust import robust_row_scales
 from mirror_fg.factors.schur import one_blas_thread, row_products
-from mirror_fg.factors.view_stack import _Group
-from mirror_fg.factors.views import ViewFactor, vector_of_plane
+from mirror_fg.factors.view_stack import _Group, read_poses_and_planes
+from mirror_fg.factors.views import ViewFactor
 
 __all__ = ["ViewPointStack", "PLACEMENTS_PER_FACTOR"]
 
@@ -176,17 +176,8 @@ class ViewPointStack:
 
     def _compute(self, values: gtsam.Values, jacobians: bool) -> None:
         self.batches += 1
-        poses = dict(self.fixed)
-        state: dict[int, bytes] = {}
-        for name, key in self.pose_keys.items():
-            pose = values.atPose3(key)
-            state[key] = pose.matrix().tobytes()
-            poses[name] = (pose.rotation().matrix(), np.asarray(pose.translation(), dtype=float))
-        vectors, plane_jacobians = {}, {}
-        for p, key in self.mirror_keys.items():
-            plane = values.atOrientedPlane3(key)
-            state[key] = plane.planeCoefficients().tobytes()
-            vectors[p], plane_jacobians[p] = vector_of_plane(plane)
+        poses, vectors, plane_jacobians, state = read_poses_and_planes(values, self.fixed, self.pose_keys,
+                                                                       self.mirror_keys)
         points = {}
         for key in self.point_keys:
             points[key] = np.asarray(values.atPoint3(key), dtype=float)

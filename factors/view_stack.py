@@ -36,7 +36,7 @@ import numpy as np
 from mirror_fg.factors.robust import robust_row_scales
 from mirror_fg.factors.views import ViewFactor, vector_of_plane
 
-__all__ = ["stackable", "stacked_view_factors", "ViewStackEvaluator"]
+__all__ = ["stackable", "stacked_view_factors", "ViewStackEvaluator", "read_poses_and_planes"]
 
 Placement = tuple[int, int]
 #: Placements of one stacked factor at most: the views of a few photographs (their own placements) in one
@@ -49,6 +49,25 @@ PLACEMENTS_PER_FACTOR = 16
 def stackable(factor: ViewFactor) -> bool:
     """Whether a view's factor can be evaluated in a stack: fiducials only, intrinsics known."""
     return factor.intrinsics is None and not factor.unique_landmarks
+
+
+def read_poses_and_planes(values: gtsam.Values, fixed: dict, pose_keys: dict[str, int],
+                          mirror_keys: dict[Placement, int]) -> tuple[dict, dict, dict, dict[int, bytes]]:
+    """The cameras' poses ``{name: (R, t)}`` (the fixed ones too), each placement's mirror vector and its
+    plane Jacobian (``views.vector_of_plane``) from ``values``, and each variable's bytes (what a stacked
+    factor's cache compares its next values with)."""
+    poses = dict(fixed)
+    state: dict[int, bytes] = {}
+    for name, key in pose_keys.items():
+        pose = values.atPose3(key)
+        state[key] = pose.matrix().tobytes()
+        poses[name] = (pose.rotation().matrix(), np.asarray(pose.translation(), dtype=float))
+    vectors, jacobians = {}, {}
+    for p, key in mirror_keys.items():
+        plane = values.atOrientedPlane3(key)
+        state[key] = plane.planeCoefficients().tobytes()
+        vectors[p], jacobians[p] = vector_of_plane(plane)
+    return poses, vectors, jacobians, state
 
 
 def _skew_rows(a: np.ndarray) -> np.ndarray:
