@@ -34,7 +34,7 @@ import gtsam
 import numpy as np
 
 from mirror_fg.factors.schur import inverses, one_blas_thread
-from mirror_fg.factors.view_points import _rows_of
+from mirror_fg.factors.view_points import _rows_of, compressed_rows
 from mirror_fg.factors.view_stack import _Group, read_poses_and_planes
 from mirror_fg.factors.views import ViewFactor
 
@@ -360,14 +360,7 @@ class EliminatedViewStack:
 
         def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
             self._evaluate(values, H is not None)
-            if H is None:
-                out = np.zeros(width + 1)
-                out[-1] = np.sqrt(self._cost[s])
-                return out
-            rhs, blocks = self._systems[s]
-            H.clear()
-            H.extend(blocks)
-            return rhs
+            return compressed_rows(self._cost[s], width, None if H is None else self._systems[s], H)
 
         return error
 

@@ -224,16 +224,23 @@ class ViewPointStack:
         def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
             if not self._matches(s, values) or (H is not None and not self._linearized):
                 self._compute(values, H is not None)
-            if H is None:
-                out = np.zeros(width + 1)
-                out[-1] = np.sqrt(self._cost[s])
-                return out
-            rhs, blocks = self._systems[s]
-            H.clear()
-            H.extend(blocks)
-            return rhs
+            return compressed_rows(self._cost[s], width, None if H is None else self._systems[s], H)
 
         return error
+
+
+def compressed_rows(cost: float, width: int, system: tuple | None, H: list[np.ndarray] | None) -> np.ndarray:
+    """A compressed factor's answer to GTSAM: without Jacobians, ``width + 1`` rows whose squared norm is the
+    factor's ``cost`` (its error); with them, the compressed right-hand side, its blocks put in ``H``."""
+    if H is None:
+        out = np.zeros(width + 1)
+        out[-1] = np.sqrt(cost)
+        return out
+    assert system is not None
+    rhs, blocks = system
+    H.clear()
+    H.extend(blocks)
+    return rhs
 
 
 def _products(group: _Group, e: np.ndarray, dz: np.ndarray, dzB: np.ndarray, scale: np.ndarray | None) -> list:

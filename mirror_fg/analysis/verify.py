@@ -251,18 +251,7 @@ def _verification_dataset(result: Mapping[str, Any], dataset: Dataset,
         if not np.all(np.isfinite(covariance)) or np.linalg.eigvalsh(0.5 * (covariance + covariance.T))[0] <= 0:
             raise DatasetError(f"{source}: camera {name!r}: covariance_cam_base is not positive definite (a camera "
                                "whose frame is the base frame cannot have moved against it)")
-    if not dataset.fiducials:
-        raise DatasetError(f"{dataset.source}: no fiducials: verify needs the known target the result was made with")
-    units = (result.get("residuals") or {}).get("units")
-    if units is not None and (units == "px") != (dataset.camera is not None or dataset.cameras is not None):
-        raise DatasetError(f"{source}: its residuals are in {units} but the data are "
-                           f"{'pixels' if units != 'px' else 'normalized'}: the result and the data are from "
-                           "different set-ups")
-    points = {n: np.array(e["xyz"], dtype=float) for n, e in (result.get("points") or {}).items()}
-    missing = [n for n in dataset.reconstruction_point_names if n not in points]
-    if missing:
-        raise DatasetError(f"{dataset.source}: point {missing[0]!r} is neither a fiducial nor a point of the result "
-                           f"{source}: verify takes the points from the result")
+    points = stored_points(result, dataset, source)
 
     def fixed(camera):
         return None if camera is None else replace(camera, estimate=(), prior_sigma=())
@@ -284,6 +273,24 @@ def _verification_dataset(result: Mapping[str, Any], dataset: Dataset,
 
 # --------------------------------------------------------------------------------------------------
 # The fits
+
+
+def stored_points(result: Mapping[str, Any], dataset: Dataset, source: str) -> dict[str, np.ndarray]:
+    """The result's reconstruction points, once the new data are checked to be of its set-up: a known target,
+    the residuals' units (pixels or normalized) as the data's, every unknown point of the data in the result."""
+    if not dataset.fiducials:
+        raise DatasetError(f"{dataset.source}: no fiducials: verify needs the known target the result was made with")
+    units = (result.get("residuals") or {}).get("units")
+    if units is not None and (units == "px") != (dataset.camera is not None or dataset.cameras is not None):
+        raise DatasetError(f"{source}: its residuals are in {units} but the data are "
+                           f"{'pixels' if units != 'px' else 'normalized'}: the result and the data are from "
+                           "different set-ups")
+    points = {n: np.array(e["xyz"], dtype=float) for n, e in (result.get("points") or {}).items()}
+    missing = [n for n in dataset.reconstruction_point_names if n not in points]
+    if missing:
+        raise DatasetError(f"{dataset.source}: point {missing[0]!r} is neither a fiducial nor a point of the result "
+                           f"{source}: verify takes the points from the result")
+    return points
 
 
 class _Fits:

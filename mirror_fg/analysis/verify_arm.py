@@ -120,18 +120,7 @@ def _verification_dataset(result: Mapping[str, Any], dataset: Dataset, source: s
                                "result and the data are from different set-ups")
         else:
             mounts[role] = mount
-    if not dataset.fiducials:
-        raise DatasetError(f"{dataset.source}: no fiducials: verify needs the known target the result was made with")
-    units = (result.get("residuals") or {}).get("units")
-    if units is not None and (units == "px") != (dataset.camera is not None):
-        raise DatasetError(f"{source}: its residuals are in {units} but the data are "
-                           f"{'pixels' if units != 'px' else 'normalized'}: the result and the data are from "
-                           "different set-ups")
-    points = {n: np.array(e["xyz"], dtype=float) for n, e in (result.get("points") or {}).items()}
-    missing = [n for n in dataset.reconstruction_point_names if n not in points]
-    if missing:
-        raise DatasetError(f"{dataset.source}: point {missing[0]!r} is neither a fiducial nor a point of the result "
-                           f"{source}: verify takes the points from the result")
+    points = base.stored_points(result, dataset, source)  # a camera per image counts as pixels too
     camera = dataset.camera
     found = estimated_camera(result, source, camera)
     if found is not None:
