@@ -28,11 +28,11 @@ _moved.install()  # the old import paths of moved modules, for one release
 #: Each public name and the module it lives in (imported on first access).
 _PUBLIC = {
     "AnalyticSolution": "mirror_fg.solver.start.analytic",
-    "Calibration": "mirror_fg.solver.result.calibration",
+    "Calibration": "mirror_fg.data.calibration",
     "Camera": "mirror_fg.core.camera",
-    "Dataset": "mirror_fg.io.dataset",
+    "Dataset": "mirror_fg.data.dataset",
     "DatasetError": "mirror_fg.core.errors",
-    "Image": "mirror_fg.io.dataset",
+    "Image": "mirror_fg.data.dataset",
     "IncrementalCalibrator": "mirror_fg.solver.incremental.calibrator",
     "MirrorFgError": "mirror_fg.core.errors",
     "Registry": "mirror_fg.registry.store",
@@ -97,12 +97,13 @@ if _TYPE_CHECKING:  # the names as static analysers and IDEs see them
     from mirror_fg.core.camera import Camera  # noqa: F401 - re-exported
     from mirror_fg.core.errors import DatasetError, MirrorFgError, SolveError  # noqa: F401 - re-exported
     from mirror_fg.core.transform import Transform  # noqa: F401 - re-exported
-    from mirror_fg.io.dataset import Dataset, Image, dataset_from_dict, load_dataset, save_dataset  # noqa: F401 - re-exported
+    from mirror_fg.io.dataset import dataset_from_dict, load_dataset, save_dataset  # noqa: F401 - re-exported
+    from mirror_fg.data import Dataset, Image  # noqa: F401 - re-exported
     from mirror_fg.io.result import load_result, write_result  # noqa: F401 - re-exported
     from mirror_fg.registry.store import Registry  # noqa: F401 - re-exported
     from mirror_fg.solver.start.analytic import AnalyticSolution, solve_analytic  # noqa: F401 - re-exported
     from mirror_fg.solver.calibrate import calibrate  # noqa: F401 - re-exported
-    from mirror_fg.solver.result.calibration import Calibration  # noqa: F401 - re-exported
+    from mirror_fg.data import Calibration  # noqa: F401 - re-exported
     from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator, calibrate_incremental  # noqa: F401 - re-exported
     from mirror_fg.solver.start.initial import initial_estimate  # noqa: F401 - re-exported
     from mirror_fg.solver.options import IncrementalOptions, SolveOptions  # noqa: F401 - re-exported

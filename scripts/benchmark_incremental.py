@@ -26,7 +26,7 @@ import time
 import numpy as np
 
 from mirror_fg import calibrate
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.data import Dataset
 from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator
 from mirror_fg.solver.information.crb import pose_error
 from mirror_fg.simulate.tree import simulate_base_case

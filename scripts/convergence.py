@@ -39,7 +39,7 @@ import numpy as np
 from mirror_fg import calibrate, initial_estimate
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.transform import rotation_angle
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.data import Dataset
 from mirror_fg.solver.start.analytic import solve_analytic
 from mirror_fg.solver.model.graph import Estimate
 from mirror_fg.analysis.montecarlo import run_script, run_trials

@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mirror_fg.core.geometry import nested_transform, project  # noqa: E402
 from mirror_fg.core.transform import Transform  # noqa: E402
-from mirror_fg.io.dataset import Dataset, Image  # noqa: E402
+from mirror_fg.data import Dataset, Image  # noqa: E402
 from mirror_fg.solver.calibrate import calibrate  # noqa: E402
 from mirror_fg.solver.model.graph import Estimate  # noqa: E402
 from mirror_fg.solver.information.crb import cramer_rao_bound  # noqa: E402

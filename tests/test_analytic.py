@@ -16,7 +16,7 @@ from mirror_fg.solver.start.analytic import (
     triangulate_point,
 )
 from mirror_fg.solver.start.pnp import pnp_candidates
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.data import Dataset, Image
 from mirror_fg.core.geometry import apply_transform, nested_transform, project, so3_exp
 from mirror_fg.simulate.tree import simulate_base_case, simulate_tree
 from mirror_fg.core.transform import rotation_angle

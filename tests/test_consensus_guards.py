@@ -10,7 +10,8 @@ from test_intrinsics import reference_pixels, seen_points
 
 from mirror_fg import calibrate
 from mirror_fg.core.geometry import apply_transform
-from mirror_fg.io.dataset import Dataset, Image, dataset_from_dict
+from mirror_fg.io.dataset import dataset_from_dict
+from mirror_fg.data import Dataset, Image
 from mirror_fg.solver.screen.consensus import screen
 from mirror_fg.solver.incremental.calibrator import calibrate_incremental
 from mirror_fg.simulate.tree import measure, simulate_base_case, visible

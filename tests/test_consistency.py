@@ -7,7 +7,7 @@ from scipy.stats import chi2
 from conftest import pose_difference
 from mirror_fg import calibrate
 from mirror_fg.core.transform import rotation_angle
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.data import Dataset
 from test_consensus import board_scene
 
 BUMP_AXIS = np.array([0.3, 1.0, -0.2]) / np.linalg.norm([0.3, 1.0, -0.2])

@@ -10,7 +10,7 @@ from mirror_fg.solver.information.crb import (
     UnknownIndex, chi2_quantile, cramer_rao_bound, fisher_information, linearize, nees, nees_band, pose_error,
     weakest_direction,
 )
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.data import Dataset, Image
 from mirror_fg.core.geometry import measurement, so3_exp
 from mirror_fg import calibrate
 from mirror_fg.solver.model.graph import build_graph

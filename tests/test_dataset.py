@@ -17,14 +17,13 @@ import yaml
 from conftest import TAKAHASHI
 from mirror_fg.io.dataset import (
     DATASET_FORMAT,
-    Dataset,
-    Image,
     dataset_from_dict,
     dataset_to_dict,
     load_dataset,
     save_dataset,
     validate_image,
 )
+from mirror_fg.data import Dataset, Image
 from mirror_fg.io.result import RESULT_FORMAT, load_result, write_result
 from mirror_fg.core.camera import Camera
 from mirror_fg.core.errors import DatasetError

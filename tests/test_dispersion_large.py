@@ -61,7 +61,7 @@ def test_a_placement_a_prior_holds_is_not_eliminated_as_the_image_s_own(monkeypa
     prior on such a placement: the route through the marginals still equals the dense route."""
     from dataclasses import replace
 
-    from mirror_fg.io.dataset import Scale
+    from mirror_fg.data import Scale
     from mirror_fg.solver.fit.validation import _problem
     from mirror_fg.solver.model import views as view_model
 

@@ -14,7 +14,8 @@ from mirror_fg import calibrate
 from mirror_fg.core.camera import Camera, camera_from_dict, camera_to_dict, check_camera
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.camera_files import camera_from_file
-from mirror_fg.io.dataset import Dataset, dataset_from_dict, dataset_to_dict
+from mirror_fg.io.dataset import dataset_from_dict, dataset_to_dict
+from mirror_fg.data import Dataset
 from mirror_fg.simulate.tree import simulate_base_case
 
 DIST = (0.08, -0.03, 0.01, -0.002)  # k1..k4: theta_d = theta (1 + k1 theta^2 + ... + k4 theta^8)

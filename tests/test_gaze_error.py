@@ -24,7 +24,7 @@ from mirror_fg.core.camera import Camera
 from mirror_fg.core.gaze_error import gaze_error
 from mirror_fg.core.screen import Screen
 from mirror_fg.core.transform import Transform
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.data import Dataset, Image
 from mirror_fg.io.screen_target import screen_target_from_dict
 
 SCREEN_PX = (1920, 1080)

@@ -19,7 +19,7 @@ from mirror_fg import calibrate
 from mirror_fg.core.camera import Camera
 from mirror_fg.core.screen import Screen
 from mirror_fg.core.transform import Transform
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.data import Dataset, Image
 from mirror_fg.io.result import load_result, result_text
 from mirror_fg.io.screen_result import screen_block
 from mirror_fg.io.screen_target import screen_target_from_dict

@@ -13,7 +13,8 @@ from conftest import pose_difference
 
 from mirror_fg.core.errors import SolveError
 from mirror_fg.solver.start.analytic import solve_analytic
-from mirror_fg.io.dataset import Dataset, Image, dataset_to_dict
+from mirror_fg.io.dataset import dataset_to_dict
+from mirror_fg.data import Dataset, Image
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.solver.calibrate import calibrate
 from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator, complete_tree

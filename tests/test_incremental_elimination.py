@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from mirror_fg.factors.reflection import noise_model
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.data import Dataset, Image
 from mirror_fg.solver.calibrate import calibrate
 from mirror_fg.solver.model.graph import measurement_factor, measurement_sigmas
 from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator

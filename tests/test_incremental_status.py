@@ -6,7 +6,8 @@ from collections import defaultdict
 import pytest
 
 from mirror_fg.cli import main
-from mirror_fg.io.dataset import Image, dataset_to_dict
+from mirror_fg.io.dataset import dataset_to_dict
+from mirror_fg.data import Image
 from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator
 from mirror_fg.solver.start.placement_tree import tree_shortfall
 from mirror_fg.simulate.tree import simulate_base_case

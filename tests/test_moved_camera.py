@@ -9,7 +9,7 @@ from scipy.stats import chi2
 from conftest import pose_difference
 from mirror_fg import calibrate
 from mirror_fg.core.geometry import so3_exp
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.data import Dataset, Image
 from mirror_fg.solver.screen import consistency
 from mirror_fg.solver.screen.consistency import MAX_MOVE_SPLITS, MOVE_SIGNIFICANCE
 from mirror_fg.simulate.tree import GroundTruth, default_camera, default_fiducials, measure, simulate_base_case

@@ -11,7 +11,8 @@ import pytest
 from mirror_fg import calibrate
 from mirror_fg.cli import main
 from mirror_fg.core.errors import DatasetError, SolveError
-from mirror_fg.io.dataset import Dataset, dataset_to_dict, load_dataset
+from mirror_fg.io.dataset import dataset_to_dict, load_dataset
+from mirror_fg.data import Dataset
 from mirror_fg.solver.result.calibration import POOR_FIT_RATIO, require_converged
 from mirror_fg.simulate.tree import simulate_base_case
 

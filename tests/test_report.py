@@ -14,7 +14,7 @@ import pytest
 from mirror_fg import calibrate
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.camera import Camera
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.data import Dataset, Image
 from mirror_fg.core.geometry import nested_transform, project, so3_exp
 from mirror_fg.report.residuals import OUTLIER_FACTOR, compute_residuals
 from mirror_fg.report.writer import write_report

@@ -19,7 +19,7 @@ from scipy.stats import chi2
 from conftest import load_script, pose_difference
 from mirror_fg.core.camera import Camera
 from mirror_fg.core.transform import Transform
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.data import Dataset, Image
 from mirror_fg.io.screen_target import screen_target_from_dict
 from mirror_fg.solver.batch.screens import calibrate_screens, relative_pose
 

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from mirror_fg.simulate import tree as simulate
-from mirror_fg.io.dataset import DATASET_FORMAT, Dataset
+from mirror_fg.io.dataset import DATASET_FORMAT
+from mirror_fg.data import Dataset
 from mirror_fg.core.geometry import apply_transform, nested_transform, project
 from mirror_fg.simulate.tree import (
     GroundTruth,

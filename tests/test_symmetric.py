@@ -21,7 +21,7 @@ from conftest import pose_difference
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.geometry import nested_transform
 from mirror_fg.io.capture import capture_from_dict, load_capture
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.data import Dataset, Image
 from mirror_fg.io.target import ChessboardTarget, target_from_dict
 from mirror_fg.solver.screen.labelling import choose_labellings
 from mirror_fg.vision.detect import detect_capture

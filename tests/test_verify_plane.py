@@ -13,7 +13,7 @@ from mirror_fg.analysis.verify import CANNOT_TELL, MOVED, NOT_MOVED, verify
 from mirror_fg.analysis.verify_plane import base_vector
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.geometry import so3_exp
-from mirror_fg.io.dataset import Image
+from mirror_fg.data import Image
 from mirror_fg.simulate.tree import measure, simulate_base_case
 from mirror_fg.solver.calibrate import calibrate
 

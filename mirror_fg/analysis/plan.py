@@ -23,7 +23,8 @@ import numpy as np
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.transform import Transform
 from mirror_fg.core.geometry import apply_transform
-from mirror_fg.io.dataset import Dataset, Image, fiducials_from_dict
+from mirror_fg.io.dataset import fiducials_from_dict
+from mirror_fg.data import Dataset, Image
 from mirror_fg.io.fileio import load_structured
 from mirror_fg.core.camera import INTRINSIC_NAMES
 from mirror_fg.solver.information.crb import (

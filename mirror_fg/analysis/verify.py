@@ -58,7 +58,7 @@ from scipy import stats
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.fit import expected_cost, plausible
 from mirror_fg.core.transform import covariance_from_pose3, covariance_to_pose3
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.data import Dataset
 from mirror_fg.io.result import estimated_camera, pose
 from mirror_fg.solver.model.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, run_optimizer
 from mirror_fg.solver.model.marginals import unconstrained_message
@@ -408,7 +408,7 @@ def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.0
            tolerance_deg: float = 0.2, source: str = "result", options: SolveOptions | None = None,
            standing: bool = False) -> Verification:
     """Whether each camera of ``dataset``'s images is still where ``result`` (a validated result@1
-    dictionary, or a :class:`~mirror_fg.solver.result.calibration.Calibration`) puts it (module docstring).
+    dictionary, or a :class:`~mirror_fg.data.Calibration`) puts it (module docstring).
     ``source`` names the result in messages; ``options``: its ``max_iterations`` bounds each LM fit;
     ``standing``: the new images' placements the result holds (the same labels) are the same mirrors, standing
     where they stood (``verify_plane.py``: one of them is held at its stored plane).

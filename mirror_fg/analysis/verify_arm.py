@@ -44,7 +44,7 @@ from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.fit import expected_cost, plausible
 from mirror_fg.core.transform import covariance_to_pose3
 from mirror_fg.factors.robot import compose
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.data import Dataset
 from mirror_fg.io.result import estimated_camera, pose
 from mirror_fg.io.robot_fields import Mount
 from mirror_fg.solver.model.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, run_optimizer

@@ -17,7 +17,8 @@ import numpy as np
 
 from mirror_fg.core.geometry import so3_exp
 from mirror_fg.factors.robot import compose, inverse
-from mirror_fg.io.dataset import dataset_from_dict, Dataset
+from mirror_fg.io.dataset import dataset_from_dict
+from mirror_fg.data import Dataset
 from mirror_fg.robot import arm_urdf
 from mirror_fg.robot.kinematics import load_kinematics
 from mirror_fg.robot.simulate import CAMERA, ArmTruth, simulate_arm

@@ -31,7 +31,7 @@ import numpy as np
 
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.factors.views import vector_of_plane
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.data import Dataset
 from mirror_fg.solver.model.views import SINGLE_CAMERA
 
 __all__ = ["StoredPlane", "stored_plane", "standing_plane", "base_vector"]

@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from mirror_fg.core.geometry import so3_exp
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.data import Dataset, Image
 from mirror_fg.solver.calibrate import calibrate
 from mirror_fg.analysis.verify import MOVED, verify
 from mirror_fg.simulate.tree import GroundTruth, measure, simulate_base_case

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 from mirror_fg.core.errors import DatasetError
 
 if TYPE_CHECKING:
-    from mirror_fg.io.dataset import Dataset
+    from mirror_fg.data import Dataset
     from mirror_fg.io.output import OutputPlan
     from mirror_fg.vision.tracking import Track
 

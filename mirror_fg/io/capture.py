@@ -49,7 +49,7 @@ A capture file is YAML or JSON. Paths in it are relative to the capture file. To
     ``feature``: ``corner`` (default), ``blob`` / ``dot`` or ``template`` (what the refinement fits);
     ``sigma``: the track's pixel sigma (pixels), overriding the tracker's own estimate.
 
-Everything is checked on loading; :func:`load_capture` raises :class:`~mirror_fg.io.dataset.DatasetError`
+Everything is checked on loading; :func:`load_capture` raises :class:`~mirror_fg.data.DatasetError`
 with one line naming the file, the entry and the problem.
 """
 from __future__ import annotations

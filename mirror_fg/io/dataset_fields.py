@@ -16,7 +16,7 @@ from mirror_fg.core.values import (
     MAX_INDEX, MAX_TARGET_EXTENT_M, MIN_LENGTH_M, check_extent, check_keys, clip, coordinates, is_index, is_int, is_number, short, type_name,
 )
 
-__all__ = ["fiducials_from_dict", "check_scale", "image_camera", "named_camera", "check_cameras_named", "dataset_summary", "names_text", "Placement", "check_reflections", "tree_configs", "cameras_from_dict", "scale_from_dict",
+__all__ = ["fiducials_from_dict", "check_scale", "image_camera", "named_camera", "check_cameras_named", "Placement", "check_reflections", "tree_configs", "cameras_from_dict", "scale_from_dict",
            "scale_to_dict", "reflections_to_list"]
 
 #: Fiducials all within this fraction of their extent from one line are collinear.
@@ -228,32 +228,3 @@ def image_camera(ds: Any, name: Any, prefix: str) -> Camera | None:
     """The camera that took an image of ``ds`` naming ``name`` (:func:`named_camera`)."""
     named = named_camera(name, ds.cameras, prefix)
     return ds.camera if named is None else ds.cameras[named]
-
-
-def dataset_summary(ds: Any) -> list[tuple[str, str]]:
-    """(label, value) pairs describing the dataset in bounded text."""
-    per_mirror = [sorted({m for l, m in ds.configurations if l == k + 1}) for k in range(ds.num_mirrors)]
-    points = ds.reconstruction_point_names
-    camera = "none (normalized coordinates)"
-    if ds.camera is not None:
-        c = ds.camera
-        camera = f"{c.model} {c.width}x{c.height} fx={c.fx:.6g} fy={c.fy:.6g} cx={c.cx:.6g} cy={c.cy:.6g}"
-        if any(k != 0.0 for k in c.dist):
-            camera += f" dist={short([round(k, 6) for k in c.dist], 70)}"
-    return [
-        ("source", short(ds.source)),
-        ("num_mirrors", f"{ds.num_mirrors} (placements: {', '.join(str(len(p)) for p in per_mirror[:8])})"),
-        ("camera", camera if ds.cameras is None else f"{len(ds.cameras)} cameras ({', '.join(clip(n, 20) for n in ds.cameras)})"),
-        ("pixel_sigma", f"{ds.pixel_sigma:.6g}{' px' if ds.camera is not None else ' (normalized)'}"),
-        ("fiducials", names_text(list(ds.fiducials))),
-        ("images", str(len(ds.images))),
-        ("observations", str(sum(len(image.observations) for image in ds.images))),
-        ("points", names_text(points)),
-    ]
-
-
-def names_text(names: list[str], limit: int = 6) -> str:
-    """``count (a, b, ...)`` with at most ``limit`` names, each bounded."""
-    shown = ", ".join(clip(n, 20) for n in names[:limit])
-    more = ", ..." if len(names) > limit else ""
-    return f"{len(names)} ({shown}{more})" if names else "0"

@@ -16,7 +16,7 @@ Every file the user gives goes through here:
   write to file descriptor 2 while they read a user's file, so that the problem is reported in our one
   line; :data:`MAX_IMAGE_PIXELS` bounds what an image or video frame may decode to.
 
-Every problem is a :class:`~mirror_fg.io.dataset.DatasetError` with one line that names the file.
+Every problem is a :class:`~mirror_fg.data.DatasetError` with one line that names the file.
 Formats: ``docs/formats.md``.
 """
 from __future__ import annotations

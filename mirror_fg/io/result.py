@@ -82,7 +82,7 @@ class _Pose(Protocol):
 
 
 class CalibrationLike(Protocol):
-    """What :func:`result_dict` reads of a calibration (:class:`mirror_fg.solver.result.calibration.Calibration`).
+    """What :func:`result_dict` reads of a calibration (:class:`mirror_fg.data.Calibration`).
 
     ``R_cam_base``, ``t_cam_base`` (metres): ``Cp = R Bp + t``; ``covariance`` 6x6 ``[dtheta, dt]`` or
     None; mirror vectors ``(l, m) -> v`` (camera frame, metres) and points (base frame, metres) with

@@ -9,7 +9,8 @@ from collections.abc import Mapping
 from typing import Any
 
 from mirror_fg.core.errors import MirrorFgError
-from mirror_fg.io.dataset import DATASET_FORMAT, Dataset, dataset_from_dict
+from mirror_fg.io.dataset import DATASET_FORMAT, dataset_from_dict
+from mirror_fg.data import Dataset
 from mirror_fg.analysis.verify import Verification, verify
 
 __all__ = ["LiveVerifier"]

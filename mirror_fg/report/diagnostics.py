@@ -19,7 +19,7 @@ from mirror_fg.report.residuals import RADIAL_P_VALUE, RADIAL_RATIO, RadialProfi
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-    from mirror_fg.io.dataset import Dataset
+    from mirror_fg.data import Dataset
 
 __all__ = ["image_centre", "radial_verdict", "figure_radial", "figure_tracks", "MAX_TRACKS_DRAWN"]
 

@@ -23,7 +23,7 @@ from mirror_fg.report.residuals import OUTLIER_FACTOR, Residuals
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-    from mirror_fg.io.dataset import Dataset
+    from mirror_fg.data import Dataset
 
 __all__ = [
     "new_figure",

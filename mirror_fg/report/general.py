@@ -28,7 +28,7 @@ from mirror_fg.report.views import (
 )
 
 if TYPE_CHECKING:
-    from mirror_fg.io.dataset import Dataset
+    from mirror_fg.data import Dataset
 
 __all__ = ["base_is_first_camera", "no_target_text", "console_result", "view_unknown_count", "dataset_line",
            "view_blocks", "console_lines", "camera_input_rows", "rig_ros_blocks", "MAX_PLACEMENT_ROWS"]

@@ -21,7 +21,7 @@ from mirror_fg.io.result import estimated_camera, mirror_vectors, transforms, va
 from mirror_fg.io.result import points as reconstruction_points
 
 if TYPE_CHECKING:
-    from mirror_fg.io.dataset import Dataset
+    from mirror_fg.data import Dataset
 
 __all__ = ["Residuals", "RadialProfile", "compute_residuals", "residuals_of_valid_result", "OUTLIER_FACTOR",
            "RADIAL_P_VALUE", "RADIAL_RATIO"]

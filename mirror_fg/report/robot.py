@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.data import Dataset
 from mirror_fg.report.figures import new_figure
 from mirror_fg.report.residuals import Residuals
 

@@ -36,7 +36,7 @@ from mirror_fg.report.views import mirror_owners, placement_ties, result_camera_
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-    from mirror_fg.io.dataset import Dataset
+    from mirror_fg.data import Dataset
 
 __all__ = ["figure_views_scene", "camera_position_covariances", "pose_is_estimated", "MAX_PLACEMENT_LABELS"]
 

@@ -21,7 +21,7 @@ from mirror_fg.io.result import base_cam_pose_covariance, transforms
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-    from mirror_fg.io.dataset import Dataset
+    from mirror_fg.data import Dataset
     from mirror_fg.solver.fit.validation import Validation
 
 __all__ = ["units_lines", "largest_sigma3_map", "figure_point_error_map", "figure_validation", "units_blocks",

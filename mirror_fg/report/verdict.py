@@ -31,7 +31,7 @@ import numpy as np
 from mirror_fg.core.fit import plausible
 
 if TYPE_CHECKING:
-    from mirror_fg.io.dataset import Dataset
+    from mirror_fg.data import Dataset
     from mirror_fg.report.residuals import Residuals
 
 __all__ = ["Verdict", "Finding", "judge", "with_verdict", "stored_verdict", "noise_band", "noise_note",

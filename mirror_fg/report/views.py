@@ -28,7 +28,7 @@ from mirror_fg.report.residuals import Residuals
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-    from mirror_fg.io.dataset import Dataset
+    from mirror_fg.data import Dataset
 
 __all__ = [
     "ViewResiduals", "GroupStats", "view_residuals", "order_name", "order_stats", "camera_stats",

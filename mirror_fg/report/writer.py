@@ -81,7 +81,7 @@ from mirror_fg.report.summary import RMS_DEFINITION, camera_lines
 from mirror_fg.report.verdict import Verdict, judge, stored_verdict
 
 if TYPE_CHECKING:
-    from mirror_fg.io.dataset import Dataset
+    from mirror_fg.data import Dataset
 
 __all__ = ["write_report"]
 

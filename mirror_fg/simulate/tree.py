@@ -26,7 +26,7 @@ import numpy as np
 
 from mirror_fg.core.camera import Camera
 from mirror_fg.core.geometry import apply_transform, nested_transform, project, reflect, so3_exp
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.data import Dataset, Image
 from mirror_fg.io.output import OutputPlan
 
 __all__ = [

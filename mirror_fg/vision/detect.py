@@ -37,7 +37,8 @@ from mirror_fg.io.robot_capture import add_robot_fields
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.capture import CAPTURE_FORMAT, Capture, ImageEntry, capture_from_file_data, open_video
 from mirror_fg.io.capture_views import is_mirrored
-from mirror_fg.io.dataset import Dataset, dataset_from_dict
+from mirror_fg.io.dataset import dataset_from_dict
+from mirror_fg.data import Dataset
 from mirror_fg.io.fileio import MAX_IMAGE_PIXELS, NotTextError, load_structured, native_stderr
 from mirror_fg.io.output import OutputPlan
 from mirror_fg.io.result import RESULT_FORMAT
@@ -149,7 +150,7 @@ def detect_capture(
 ) -> tuple[Dataset, list[ImageReport]]:
     """Detect the target in every image (or video frame) of ``capture``.
 
-    Returns the validated :class:`~mirror_fg.io.dataset.Dataset` (pixel observations with the capture's
+    Returns the validated :class:`~mirror_fg.data.Dataset` (pixel observations with the capture's
     camera(s), fiducials in the base frame, images with ids = file stems or ``stem:frame`` (a view of a
     photograph: ``stem#k``), ``each`` placements expanded into fresh integers
     (:mod:`mirror_fg.vision.detect_views`); ``source`` is ``capture.source``) and one

@@ -36,7 +36,7 @@ from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.intrinsics import (
     IntrinsicsModel, intrinsics_factors, intrinsics_key, intrinsics_prior_factor,
 )
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.data import Dataset
 from mirror_fg.solver.batch.intrinsics_observability import (  # noqa: F401 (public here too)
     ADVICE, UNOBSERVABLE_FRACTION, UNOBSERVABLE_RCOND, WEAK_CORNER_PX, IntrinsicsObservability, WeakIntrinsicsWarning,
     corner_sensitivity, intrinsics_observability, unobservable_refusal, warn_weak,

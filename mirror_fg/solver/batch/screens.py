@@ -33,9 +33,9 @@ from gtsam.symbol_shorthand import V, X
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.transform import Transform
 from mirror_fg.factors.views import ViewFactor, plane_of, vector_of_plane
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.data import Dataset
 from mirror_fg.io.point_sigma import normalized_sigmas
-from mirror_fg.solver.result.calibration import Calibration
+from mirror_fg.data import Calibration
 
 __all__ = ["ScreensCalibration", "calibrate_screens", "relative_pose"]
 

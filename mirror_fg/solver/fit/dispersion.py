@@ -36,7 +36,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.data import Dataset
 from mirror_fg.solver.fit.validation import _problem, estimate_of_calibration
 from mirror_fg.solver.model.views import ViewEstimate, scale_prior, tangent_dimension
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.data import Dataset
 from mirror_fg.factors.views import vector_of_plane
 from mirror_fg.solver.fit.validation import _problem, estimate_of_calibration
 from mirror_fg.solver.model.views import SINGLE_CAMERA, tangent_dimension

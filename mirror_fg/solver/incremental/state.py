@@ -16,7 +16,7 @@ from gtsam.symbol_shorthand import X
 
 from mirror_fg.core.errors import SolveError
 from mirror_fg.factors.eliminated import EliminatedEvaluator
-from mirror_fg.io.dataset import Image
+from mirror_fg.data import Image
 from mirror_fg.solver.model.graph import GraphLayout, Measurement
 
 __all__ = ["GraphState", "PlacementBlock", "RelinearizeThresholds"]

@@ -55,10 +55,11 @@ from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.geometry import nested_transform
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.robust import check_kernel
-from mirror_fg.io.dataset import Dataset, Image, validate_image
+from mirror_fg.io.dataset import validate_image
+from mirror_fg.data import Dataset, Image
 from mirror_fg.solver.start.analytic import AnalyticSolution
 from mirror_fg.solver.calibrate import as_dataset
-from mirror_fg.solver.result.calibration import Calibration, Exclusion
+from mirror_fg.data import Calibration, Exclusion
 from mirror_fg.solver.screen.consensus import BEHIND, CONSENSUS_MIN_SIGMAS, board_side, check_image, misfit_sigmas, screen
 from mirror_fg.solver.incremental.graph import IncrementalGraph
 from mirror_fg.solver.incremental.startup import DIVERGENCE_SIGMAS, FINAL_LM_ITERATIONS, STARTUP_LM_ITERATIONS, start_graph

@@ -25,7 +25,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L
 
 from mirror_fg.core.geometry import householder, nested_transform
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.data import Dataset, Image
 from mirror_fg.solver.start.analytic import triangulate_point
 from mirror_fg.solver.model.graph import Measurement
 from mirror_fg.solver.incremental.state import GraphState

@@ -42,9 +42,11 @@ from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.robust import check_kernel
 from mirror_fg.factors.views import ViewFactor, vector_of_plane
-from mirror_fg.io.dataset import Dataset, Image, validate_image
+from mirror_fg.io.dataset import validate_image
+from mirror_fg.data import Dataset, Image
 from mirror_fg.io.point_sigma import normalized_sigmas
-from mirror_fg.solver.result.calibration import POOR_FIT_RATIO, Calibration, Exclusion, require_converged
+from mirror_fg.solver.result.calibration import POOR_FIT_RATIO, require_converged
+from mirror_fg.data import Calibration, Exclusion
 from mirror_fg.solver.screen.consensus import final_check, without
 from mirror_fg.solver.incremental.state import RelinearizeThresholds, new_isam2
 from mirror_fg.solver.incremental.views_start import (

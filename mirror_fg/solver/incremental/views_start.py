@@ -26,7 +26,7 @@ from dataclasses import dataclass, replace
 import gtsam
 import numpy as np
 
-from mirror_fg.io.dataset import Dataset, Image, Scale
+from mirror_fg.data import Dataset, Image, Scale
 from mirror_fg.solver.model.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params
 from mirror_fg.solver.options import SolveOptions
 from mirror_fg.solver.start.propagation import ViewObs, _Propagator, mirror_vector_in, plane_from_camera, takahashi_start

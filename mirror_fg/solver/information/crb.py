@@ -24,7 +24,7 @@ import numpy as np
 from mirror_fg.core.errors import SolveError
 from mirror_fg.core.geometry import measurement_jacobians
 from mirror_fg.core.transform import covariance_from_pose3
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.data import Dataset
 from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.model.graph import InitialEstimate as Unknowns  # any values of every unknown (truth, analytic, MLE)
 

@@ -17,7 +17,7 @@ from gtsam.symbol_shorthand import L, V, X
 from mirror_fg.factors.batched import batched_factors
 from mirror_fg.factors.eliminated import EliminatedEvaluator, NotEliminable, eliminated_evaluator
 from mirror_fg.factors.reflection import ReflectionFactor, noise_model
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.data import Dataset
 from mirror_fg.io.point_sigma import normalized_sigmas
 
 __all__ = [

@@ -13,7 +13,7 @@ import numpy as np
 from mirror_fg.core.errors import SolveError
 from mirror_fg.core.fit import expected_cost, plausible
 from mirror_fg.factors.eliminated import EliminatedEvaluator, collapsed
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.data import Dataset
 from mirror_fg.solver.start.analytic import AnalyticSolution, reconstruct_points
 from mirror_fg.solver.model.graph import (
     GraphLayout,

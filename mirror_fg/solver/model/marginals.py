@@ -18,7 +18,7 @@ import numpy as np
 from mirror_fg.core.errors import SolveError
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.eliminated import EliminatedEvaluator
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.data import Dataset
 from mirror_fg.solver.model.graph import GraphLayout, build_graph, extract_values
 
 __all__ = ["marginal_covariances", "eliminated_covariances", "unconstrained_message", "unconstrained_as_solve_error"]

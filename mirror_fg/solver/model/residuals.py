@@ -11,7 +11,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from mirror_fg.core.geometry import nested_transforms, predict_camera_points, project
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.data import Dataset
 from mirror_fg.solver.model.graph import Labelled, Measurement, measurement_sigmas
 
 __all__ = ["OUTLIER_SIGMAS", "predicted_normalized", "residual_statistics", "outliers_of"]

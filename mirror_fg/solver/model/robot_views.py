@@ -23,7 +23,7 @@ from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.robot import RobotViewFactor, adjoint, inverse
 from mirror_fg.factors.robot_stack import robot_stacks
 from mirror_fg.factors.views import plane_of, vector_of_plane
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.data import Dataset
 from mirror_fg.io.point_sigma import normalized_sigmas
 
 __all__ = ["RobotProblem", "RobotEstimate", "ROLES", "camera_base_pose", "camera_role", "is_camera", "camera_name",

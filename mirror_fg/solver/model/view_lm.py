@@ -15,7 +15,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from mirror_fg.io.dataset import Dataset
+from mirror_fg.data import Dataset
 from mirror_fg.solver.model.graph import InitialEstimate, measurements_of
 from mirror_fg.solver.options import Linearization, SolveOptions
 

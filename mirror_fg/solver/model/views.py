@@ -28,7 +28,7 @@ from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_prior_facto
 from mirror_fg.factors.view_eliminated import EliminatedViewStack, eliminable
 from mirror_fg.factors.view_stack import stacked_view_factors
 from mirror_fg.factors.views import ViewFactor, plane_of, vector_of_plane, view_model
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.data import Dataset, Image
 from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.model.graph import unknown_name
 from mirror_fg.solver.model.schur_marginals import marginals_of

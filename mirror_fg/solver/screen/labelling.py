@@ -33,7 +33,7 @@ from itertools import product
 import numpy as np
 
 from mirror_fg.core.geometry import reflect
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.data import Dataset, Image
 from mirror_fg.io.target import Symmetry
 from mirror_fg.solver.start.peeling import reflection_fit, solve_children
 from mirror_fg.solver.screen.placement_consensus import fit_mirrors, sample_triples

@@ -22,7 +22,7 @@ import numpy as np
 
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.geometry import FLIP_Y, nested_transforms, predict_camera_points, project, project_to_orthogonal
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.data import Dataset, Image
 from mirror_fg.solver.start.analytic_solution import AnalyticSolution
 from mirror_fg.solver.start.peeling import (
     MIN_NORMAL_SPREAD, NodeSolution, StackedCandidates, choose_candidates, consistent_mirror_vectors, solve_children_many,

@@ -22,7 +22,7 @@ import gtsam
 import numpy as np
 
 from mirror_fg.core.errors import SolveError
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.data import Dataset, Image
 from mirror_fg.solver.start.analytic import AnalyticSolution, TreeNode, TreeWalk, Hypothesis, complete_last_mirror
 from mirror_fg.solver.model.graph import (
     Measurement, build_eliminated_graph, build_graph, extract_values, measurement_sigmas, measurements_of,

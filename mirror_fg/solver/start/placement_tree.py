@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections import defaultdict
 from collections.abc import Iterable
 
-from mirror_fg.io.dataset import Image
+from mirror_fg.data import Image
 
 __all__ = ["MIN_CHILDREN", "complete_tree", "tree_shortfall"]
 

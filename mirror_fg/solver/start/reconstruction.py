@@ -9,7 +9,7 @@ import numpy as np
 
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.core.geometry import nested_transform
-from mirror_fg.io.dataset import Dataset, Image
+from mirror_fg.data import Dataset, Image
 
 if TYPE_CHECKING:
     from mirror_fg.solver.start.analytic_solution import AnalyticSolution
