@@ -220,8 +220,8 @@ def _levenberg_marquardt(
         scale = cost_scale(dataset)
         params = lm_params(options.max_iterations, scale)
 
-        def finish(graph, optimizer, result, eliminated: bool):
-            if eliminated:
+        def finish(graph, optimizer, result, polish: bool):
+            if polish:  # polished to the optimum (LM stops ~1e-7 from it), whatever the linearisation
                 result = polished(graph, result)
             final_error = graph.error(result)
             stalled = optimizer.lambda_() >= params.getlambdaUpperBound() and not _stationary(graph, result, final_error, scale)

@@ -88,7 +88,7 @@ def view_model_run(dataset: Dataset, initial: InitialEstimate, options: SolveOpt
     with timed(timings, "optimize"):
         optimizer, result, initial_error = run_optimizer(
             graph, values, params, dataset.source, lambda error: unconstrained_message(error, problem), on_iteration)
-        result, final_error, converged = finish(graph, optimizer, result, evaluator is not None)
+        result, final_error, converged = finish(graph, optimizer, result, True)
     dimension = result.dim() + (evaluator.dimension if evaluator is not None else 0)
     return ViewLMRun(graph, values, result, problem, measurements_of(dataset), float(initial_error), float(final_error),
                      int(optimizer.iterations()), converged, dimension, evaluator)
