@@ -36,7 +36,7 @@ import numpy as np
 
 from mirror_fg.factors.robust import robust_row_scales
 from mirror_fg.factors.schur import one_blas_thread, row_products
-from mirror_fg.factors.view_stack import _Group, read_poses_and_planes
+from mirror_fg.factors.view_stack import _Group, read_poses_and_planes, stacks_by_placements
 from mirror_fg.factors.views import ViewFactor
 
 __all__ = ["ViewPointStack", "PLACEMENTS_PER_FACTOR"]
@@ -62,24 +62,13 @@ class ViewPointStack:
             self.mirror_keys.update(f.mirror_keys)
         self.point_keys = list(dict.fromkeys(k for f in view_factors for k in f.unique_landmarks))
         self._pose_key_set, self._plane_key_set = set(self.pose_keys.values()), set(self.mirror_keys.values())
-        # stacks: views with the same placements, in the order first seen, consecutive ones merged
-        same: dict[tuple, list[int]] = {}
-        for i, f in enumerate(view_factors):
-            same.setdefault(tuple(sorted(f.mirror_keys)), []).append(i)
-        merged: list[tuple[set, list[int]]] = []
-        for placements, members in same.items():
-            if merged and len(merged[-1][0] | set(placements)) <= placements_per_factor:
-                merged[-1][0].update(placements)
-                merged[-1][1].extend(members)
-            else:
-                merged.append((set(placements), list(members)))
         stack_of_view = np.zeros(len(view_factors), dtype=np.intp)
         self._keys: list[list[int]] = []
         self._widths: list[int] = []
         self._offsets: list[int] = []  # where each stack's augmented normal (d+1)^2 starts in the buffer
         self._columns: list[dict[int, int]] = []  # key -> first column, per stack
         size = 0
-        for s, (_, members) in enumerate(merged):
+        for s, members in enumerate(stacks_by_placements(view_factors, placements_per_factor)):
             views = [view_factors[i] for i in members]
             keys = list(dict.fromkeys(k for f in views for k in f.pose_keys.values()))
             keys += list(dict.fromkeys(k for f in views for k in f.mirror_keys.values()))

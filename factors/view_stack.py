@@ -70,6 +70,23 @@ def read_poses_and_planes(values: gtsam.Values, fixed: dict, pose_keys: dict[str
     return poses, vectors, jacobians, state
 
 
+def stacks_by_placements(view_factors: Sequence[ViewFactor], placements_per_factor: int) -> list[list[int]]:
+    """The views (indices) of each stack: views with the same placements, in the order first seen;
+    consecutive ones merged up to ``placements_per_factor`` placements (fewer factor calls, each of which
+    copies the Values)."""
+    same: dict[tuple, list[int]] = {}
+    for i, f in enumerate(view_factors):
+        same.setdefault(tuple(sorted(f.mirror_keys)), []).append(i)
+    merged: list[tuple[set, list[int]]] = []
+    for placements, members in same.items():
+        if merged and len(merged[-1][0] | set(placements)) <= placements_per_factor:
+            merged[-1][0].update(placements)
+            merged[-1][1].extend(members)
+        else:
+            merged.append((set(placements), list(members)))
+    return [members for _, members in merged]
+
+
 def _skew_rows(a: np.ndarray) -> np.ndarray:
     """[a]x of each row of ``a`` (b, 3): (b, 3, 3)."""
     S = np.zeros((len(a), 3, 3))
@@ -239,19 +256,7 @@ class ViewStackEvaluator:
         for f in view_factors:
             self.pose_keys.update(f.pose_keys)
             self.mirror_keys.update(f.mirror_keys)
-        # stacks: views with the same placements, in the order first seen; consecutive ones merged up to
-        # ``placements_per_factor`` placements (fewer factor calls, each of which copies the Values)
-        same: dict[tuple, list[int]] = {}
-        for i, f in enumerate(view_factors):
-            same.setdefault(tuple(sorted(f.mirror_keys)), []).append(i)
-        merged: list[tuple[set, list[int]]] = []
-        for placements, members in same.items():
-            if merged and len(merged[-1][0] | set(placements)) <= placements_per_factor:
-                merged[-1][0].update(placements)
-                merged[-1][1].extend(members)
-            else:
-                merged.append((set(placements), list(members)))
-        stacks = {k: members for k, (_, members) in enumerate(merged)}
+        stacks = dict(enumerate(stacks_by_placements(view_factors, placements_per_factor)))
         shapes: dict[tuple, list[int]] = {}
         for i, f in enumerate(view_factors):
             order = list(dict.fromkeys(f.reflections))

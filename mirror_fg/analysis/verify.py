@@ -293,6 +293,23 @@ def stored_points(result: Mapping[str, Any], dataset: Dataset, source: str) -> d
     return points
 
 
+def lowest_fit(data: gtsam.NonlinearFactorGraph, priors: list, starts: list[gtsam.Values],
+               params: gtsam.LevenbergMarquardtParams, source: str, unconstrained) -> tuple[gtsam.Values, float]:
+    """LM on ``data`` and ``priors`` from each of ``starts``: the lowest ``(values, cost)``;
+    ``unconstrained(error)`` words an unknown the graph leaves free."""
+    graph = gtsam.NonlinearFactorGraph(data)
+    for factor in priors:
+        graph.add(factor)
+    best: tuple[gtsam.Values, float] | None = None
+    for start in starts:
+        _, values, _ = run_optimizer(graph, start, params, source, unconstrained)
+        cost = float(graph.error(values))
+        if best is None or cost < best[1]:
+            best = (values, cost)
+    assert best is not None
+    return best
+
+
 class _Fits:
     """The new data's graph and the priors of the test, and LM on them."""
 
@@ -348,18 +365,8 @@ class _Fits:
 
     def fit(self, priors: list, starts: list[gtsam.Values]) -> tuple[gtsam.Values, float]:
         """LM on the data and ``priors`` from each start: the lowest ``(values, cost)``."""
-        graph = gtsam.NonlinearFactorGraph(self.data)
-        for factor in priors:
-            graph.add(factor)
-        best: tuple[gtsam.Values, float] | None = None
-        for start in starts:
-            _, values, _ = run_optimizer(graph, start, self.params, self.source,
-                                         lambda error: unconstrained_message(error, self.problem))
-            cost = float(graph.error(values))
-            if best is None or cost < best[1]:
-                best = (values, cost)
-        assert best is not None
-        return best
+        return lowest_fit(self.data, priors, starts, self.params, self.source,
+                          lambda error: unconstrained_message(error, self.problem))
 
     def information(self, values: gtsam.Values) -> tuple[np.ndarray, dict[int, slice]]:
         """The data's Gauss-Newton information over every unknown (tangent) and each key's columns."""

@@ -47,7 +47,7 @@ from mirror_fg.factors.robot import compose
 from mirror_fg.data import Dataset
 from mirror_fg.io.result import estimated_camera, pose
 from mirror_fg.io.robot_fields import Mount
-from mirror_fg.solver.model.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, run_optimizer
+from mirror_fg.solver.model.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params
 from mirror_fg.solver.model.robot_views import RobotEstimate, RobotProblem
 from mirror_fg.solver.start.pnp import lowest_reprojection, pnp_candidates
 from mirror_fg.analysis import verify as base
@@ -196,18 +196,8 @@ class _ArmFits:
 
     def fit(self, priors: list, starts: list[gtsam.Values]) -> tuple[gtsam.Values, float]:
         """LM on the data and ``priors`` from each start: the lowest ``(values, cost)``."""
-        graph = gtsam.NonlinearFactorGraph(self.data)
-        for factor in priors:
-            graph.add(factor)
-        best: tuple[gtsam.Values, float] | None = None
-        for start in starts:
-            _, values, _ = run_optimizer(graph, start, self.params, self.source,
-                                         lambda error: f"the new images do not determine the unknowns ({error})")
-            cost = float(graph.error(values))
-            if best is None or cost < best[1]:
-                best = (values, cost)
-        assert best is not None
-        return best
+        return base.lowest_fit(self.data, priors, starts, self.params, self.source,
+                               lambda error: f"the new images do not determine the unknowns ({error})")
 
     def pose_information(self, role: str, values: gtsam.Values) -> np.ndarray:
         """What the new data (and the offsets' stored prior) say about mount ``role``, the planes, the other

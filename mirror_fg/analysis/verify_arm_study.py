@@ -24,31 +24,18 @@ from mirror_fg.robot.kinematics import load_kinematics
 from mirror_fg.robot.simulate import CAMERA, ArmTruth, simulate_arm
 from mirror_fg.solver.calibrate import calibrate
 from mirror_fg.analysis.verify import MOVED, verify
+from mirror_fg.analysis.verify_study import PowerCounts
 
 __all__ = ["ArmPowerFigures", "arm_power_study", "render_arm", "arm_trial"]
 
 
 @dataclass(frozen=True)
-class ArmPowerFigures:
-    """How often each case was called ``moved`` out of ``trials``; ``d2_still`` every unmoved ``d2``."""
+class ArmPowerFigures(PowerCounts):
+    """:class:`~mirror_fg.analysis.verify_study.PowerCounts` of an arm's mount; ``d2_still`` every unmoved
+    ``d2``, ``dof`` each one's degrees of freedom."""
 
-    trials: int
-    alpha: float
-    move_sigmas: float
-    false_alarms: int
-    detections: int
-    verdicts_still: dict[str, int]
-    verdicts_moved: dict[str, int]
     d2_still: tuple[float, ...]
     dof: tuple[int, ...]
-
-    @property
-    def false_alarm_rate(self) -> float:
-        return self.false_alarms / self.trials
-
-    @property
-    def detection_rate(self) -> float:
-        return self.detections / self.trials
 
 
 def render_arm(data: dict, truth: ArmTruth, role: str, move: np.ndarray, pixel_sigma: float,

@@ -20,12 +20,12 @@ from mirror_fg.solver.calibrate import calibrate
 from mirror_fg.analysis.verify import MOVED, verify
 from mirror_fg.simulate.tree import GroundTruth, measure, simulate_base_case
 
-__all__ = ["PowerFigures", "power_study", "moved_data"]
+__all__ = ["PowerCounts", "PowerFigures", "power_study", "moved_data"]
 
 
 @dataclass(frozen=True)
-class PowerFigures:
-    """How often each case was called ``moved``, out of ``trials``; ``verdicts`` counts every verdict."""
+class PowerCounts:
+    """How often each case was called ``moved``, out of ``trials``; ``verdicts_*`` counts every verdict."""
 
     trials: int
     alpha: float
@@ -34,8 +34,6 @@ class PowerFigures:
     detections: int
     verdicts_still: dict[str, int]
     verdicts_moved: dict[str, int]
-    #: The mean ``d2`` without a move: ``dof`` (6) where the test is calibrated.
-    mean_d2_still: float
 
     @property
     def false_alarm_rate(self) -> float:
@@ -44,6 +42,14 @@ class PowerFigures:
     @property
     def detection_rate(self) -> float:
         return self.detections / self.trials
+
+
+@dataclass(frozen=True)
+class PowerFigures(PowerCounts):
+    """:class:`PowerCounts` of the camera's study."""
+
+    #: The mean ``d2`` without a move: ``dof`` (6) where the test is calibrated.
+    mean_d2_still: float
 
 
 def moved_data(new: Dataset, truth: GroundTruth, move: np.ndarray, pixel_sigma: float,
