@@ -17,7 +17,8 @@ Life of an image (``TreeIncrementalCalibrator.add_image``):
    the calibrator as it was. Then the batch consensus checks it (``consensus.py``; images with >= 4
    fiducials): its gross fiducials are dropped, and an image whose corner order is wrong (bad PnP fit,
    the board seen from behind unlike the images so far) or that misfits the settled estimate of at
-   least ``MIN_IMAGES_TO_JUDGE`` images by more than ``CONSENSUS_MIN_SIGMAS`` is refused; each start-up
+   least ``MIN_IMAGES_TO_JUDGE`` images by more than ``CONSENSUS_MIN_SIGMAS`` (judged with that estimate's
+   uncertainty, ``misfit.py``) is refused; each start-up
    runs the batch consensus on its images. Each image refused is named in ``excluded`` with its reason.
 2. Until start-up every image waits. Start-up happens at the first image where the images with >= 3
    fiducials contain a complete configuration tree (:func:`complete_tree`: every kept placement of
@@ -62,6 +63,7 @@ from mirror_fg.solver.calibrate import as_dataset
 from mirror_fg.data import Calibration, Exclusion
 from mirror_fg.solver.screen.consensus import BEHIND, CONSENSUS_MIN_SIGMAS, board_side, check_image, misfit_sigmas, screen
 from mirror_fg.solver.incremental.graph import IncrementalGraph
+from mirror_fg.solver.incremental.misfit import misfit_sigmas_with_uncertainty
 from mirror_fg.solver.incremental.startup import DIVERGENCE_SIGMAS, FINAL_LM_ITERATIONS, STARTUP_LM_ITERATIONS, start_graph
 from mirror_fg.solver.incremental.state import GraphState, RelinearizeThresholds
 from mirror_fg.solver.incremental.values import MIN_PNP_FIDUCIALS
@@ -425,6 +427,8 @@ class TreeIncrementalCalibrator:
                 A_parent, b_parent = nested_transform(self._g.R, self._g.t, known)  # eqs. (6)-(8)
                 last = self._g.mirrors.get((len(configs), configs[-1]))
                 sigmas = misfit_sigmas(self._ds, kept, candidates, A_parent, b_parent, last)
+                if sigmas > CONSENSUS_MIN_SIGMAS:  # judged again with the estimate's uncertainty (never larger)
+                    sigmas = self._misfit_with_uncertainty(kept, candidates, configs, known, last)
                 if sigmas > CONSENSUS_MIN_SIGMAS:
                     reason = f"inconsistent with the estimate so far ({sigmas:.3g} sigma RMS)"
                     self.excluded.append(Exclusion(image.id, f"{BEHIND}; {reason}" if behind else reason, None, sigmas))
@@ -432,6 +436,19 @@ class TreeIncrementalCalibrator:
                     self._sides.pop(image.id, None)
                     return None
         return kept
+
+    def _misfit_with_uncertainty(self, image: Image, candidates, configs: tuple[int, ...], parents: list[np.ndarray],
+                                 last: np.ndarray | None) -> float:
+        """:func:`~mirror_fg.solver.incremental.misfit.misfit_sigmas_with_uncertainty` of ``image`` at the
+        estimate, with the joint marginal of the pose and its parent placements from iSAM2."""
+        layout = self._g.layout
+        keys = [layout.pose_key, *(layout.mirror_keys[(level + 1, m)] for level, m in enumerate(configs[:-1]))]
+        try:
+            covariance = self._g.require_isam().jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
+        except RuntimeError:  # an indeterminant system: judged at the estimate's value alone
+            covariance = np.zeros((6 + 3 * len(parents), 6 + 3 * len(parents)))
+        pose = gtsam.Pose3(gtsam.Rot3(self._g.R), np.asarray(self._g.t, float))
+        return misfit_sigmas_with_uncertainty(self._ds, image, candidates, pose, parents, last, covariance)
 
     def _process_waiting(self) -> None:
         values = gtsam.Values()
