@@ -164,8 +164,8 @@ def test_web_page_shows_the_picture_the_bars_and_the_suggestion(session_dir, tmp
                 url = line.split()[-1]
             ended = "until Ctrl-C" in line
         assert url and ended, proc.stderr.read() if proc.poll() is not None else "no page"
-        profile = tmp_path / "profile"
-        dom = chromium(f"--user-data-dir={profile}", "--virtual-time-budget=1500", "--dump-dom", url)
+        # a profile per run: a second run on the killed first one's profile can wait out its timeout
+        dom = chromium(f"--user-data-dir={tmp_path / 'profile-dom'}", "--virtual-time-budget=1500", "--dump-dom", url)
         polar = dom[dom.index('<svg id="polar"'):]
         polar = polar[:polar.index("</svg>")]  # as drawn (the script in the DOM names the classes too)
         assert '<div class="bar">' in dom and "mm" in dom and 'class="placement"' in polar  # bars, the polar plot
@@ -175,7 +175,7 @@ def test_web_page_shows_the_picture_the_bars_and_the_suggestion(session_dir, tmp
             assert "tilt it" in dom and 'class="suggested"' in polar
         assert "/frame.jpg?seq=" in dom
         shot = tmp_path / "page.png"
-        chromium(f"--user-data-dir={profile}", "--virtual-time-budget=1500", "--window-size=1280,900",
+        chromium(f"--user-data-dir={tmp_path / 'profile-shot'}", "--virtual-time-budget=1500", "--window-size=1280,900",
                  f"--screenshot={shot}", url)
         picture = np.asarray(Image.open(shot).convert("RGB")).astype(int)
         left = picture[80:500, 20:700]  # the live picture's panel

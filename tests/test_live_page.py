@@ -64,10 +64,12 @@ def page(tmp_path, state: StubState) -> tuple[str, np.ndarray]:
     server = LiveServer(0, lambda: state)
     server.start()
     try:
-        common = [f"--user-data-dir={tmp_path / 'profile'}", "--virtual-time-budget=1500", "--window-size=1280,900"]
-        dom = chromium(*common, "--dump-dom", server.url)
+        # a profile of its own per run: the first run's group is killed when it returns, and a second run
+        # on its profile can wait out its timeout on the lock the killed one left
+        common = ["--virtual-time-budget=1500", "--window-size=1280,900"]
+        dom = chromium(f"--user-data-dir={tmp_path / 'profile-dom'}", *common, "--dump-dom", server.url)
         shot = tmp_path / "page.png"
-        chromium(*common, f"--screenshot={shot}", server.url)
+        chromium(f"--user-data-dir={tmp_path / 'profile-shot'}", *common, f"--screenshot={shot}", server.url)
         return dom, np.asarray(Image.open(shot).convert("RGB")).astype(int)
     finally:
         server.stop()
