@@ -66,7 +66,6 @@ from mirror_fg.solver.model.views import (
     ViewEstimate,
     ViewProblem,
     camera_names,
-    mirror_vector_at,
     plane_of,
     scale_prior,
     views_of,
@@ -193,7 +192,8 @@ class ViewsIncrementalCalibrator:
         assert isam is not None
         values, converged = self._polish() if full else (isam.calculateEstimate(), True)
         problem = self._problem(full)
-        estimate = problem.read(values)
+        # the cheap one: the estimate read at the last update (every placement's vector, once per update)
+        estimate = problem.read(values) if full else self._estimate
         if full:
             with unconstrained_as_solve_error(self._ds.source, lambda error: unconstrained_message(error, problem)):
                 covariances = problem.covariances(self._graph, values, estimate)
@@ -417,8 +417,8 @@ class ViewsIncrementalCalibrator:
             if values.exists(key):
                 pose = values.atPose3(key)
                 poses[name] = (pose.rotation().matrix(), np.asarray(pose.translation(), float))
-        return ViewEstimate(poses, {p: mirror_vector_at(values, k) for p, k in self.mirror_keys.items()
-                                    if values.exists(k)},
+        placements = [(p, k) for p, k in self.mirror_keys.items() if values.exists(k)]
+        return ViewEstimate(poses, _mirror_vectors(values, placements),
                             {n: np.asarray(values.atPoint3(k), float) for n, k in self.point_keys.items()
                              if values.exists(k)})
 
@@ -477,3 +477,15 @@ def calibrate_views_incremental(dataset: Dataset, *, robust: str | None = None,
                        dataset.source, len(calibrator.excluded))
         calibration = calibrator.calibration(full=True)
     return require_converged(calibration, dataset.source, "iSAM2", accept_poor_fit=accept_poor_fit)
+
+
+def _mirror_vectors(values: gtsam.Values, placements: list[tuple[tuple[int, int], int]]
+                    ) -> dict[tuple[int, int], np.ndarray]:
+    """``{placement: mirror_vector_at(values, key)}`` of ``placements`` (``(placement, key)``), read after
+    every update: ``d n`` from the planes' coefficients ``(n, d)`` at once (the same numbers), without the
+    planes' Jacobians."""
+    if not placements:
+        return {}
+    coefficients = np.array([values.atOrientedPlane3(k).planeCoefficients() for _, k in placements])
+    vectors = coefficients[:, 3:] * coefficients[:, :3]
+    return {p: v for (p, _), v in zip(placements, vectors)}
