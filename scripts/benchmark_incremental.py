@@ -100,15 +100,16 @@ def rig_mode(shared: int, own: int, seed: int) -> None:
 
     ds = dataset_from_dict(simulate_rig_mixed(3, own=[own] * 3, shared=shared, seed=seed)[0])
     calibrator = IncrementalCalibrator(ds)
-    latency, first = [], None
+    latency, cpu, first = [], [], None
     for n, image in enumerate(ds.images, start=1):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         estimate = calibrator.add_image(image)
         if estimate is not None:
             if first is None:
                 first = n
             else:
                 latency.append(time.perf_counter() - start)
+                cpu.append(time.process_time() - start_cpu)
     if first is None:
         raise SystemExit("the rig stream never started")
     ms = np.asarray(latency) * 1e3
@@ -117,6 +118,9 @@ def rig_mode(shared: int, own: int, seed: int) -> None:
           f"max {ms.max():6.1f} ms")
     print(f"  first 100 median {np.median(ms[:100]):6.1f} ms   last 100 median {np.median(ms[-100:]):6.1f} ms   "
           f"ratio {np.median(ms[-100:]) / np.median(ms[:100]):.2f}")
+    cpu_ms = np.asarray(cpu) * 1e3  # the same in CPU time (what the machine's other processes do not change)
+    print(f"  CPU: first 100 median {np.median(cpu_ms[:100]):6.1f} ms   last 100 median {np.median(cpu_ms[-100:]):6.1f} ms"
+          f"   ratio {np.median(cpu_ms[-100:]) / np.median(cpu_ms[:100]):.2f}")
 
 
 def main() -> None:
