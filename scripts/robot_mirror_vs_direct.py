@@ -88,15 +88,16 @@ def _board_distance(dataset: dict, truth) -> float:
 
 
 def camera_mount(robot: str, eye_in_hand: bool, placements: int, images: int, seed: int, folder: str,
-                 distance: float = 0.9, setup: tuple | None = None
+                 distance: float = 0.9, setup: tuple | None = None, mirror_size: tuple[float, float] | None = None
                  ) -> tuple[np.ndarray, np.ndarray, float, tuple[np.ndarray, float]]:
     """The camera mount's 3-sigma ``[rotation (deg) x3, position (mm) x3]`` at the truth, the same with the
     planes known, the board's distance as seen and the mount's turn the planes take most of (its axis in
     the camera's frame, the share of its information they take); ``placements`` 0: the direct view at
-    ``distance``. RuntimeError where no arm pose sees the board."""
+    ``distance``. ``mirror_size``: the glass's width and height (metres; None: no edges). RuntimeError where
+    no arm pose sees the board."""
     direct = placements == 0
     mirror: dict = {} if setup is None else {"mirror_distance": setup[0], "mirror_tilt_deg": setup[1],
-                                             "check_occlusion": True}
+                                             "check_occlusion": True, "mirror_size": mirror_size}
     if setup is not None and setup[2] is not None and not eye_in_hand:
         mirror["board_position"] = setup[2]
     dataset, truth = simulate_arm(robot, eye_in_hand, placements=max(placements, 1),
@@ -126,7 +127,7 @@ def camera_mount(robot: str, eye_in_hand: bool, placements: int, images: int, se
 
 def chosen_camera_mount(robot: str, eye_in_hand: bool, placements: int, images: int, seed: int, folder: str,
                         reference: np.ndarray, distance: float = 0.35, setup: tuple | None = None,
-                        pool: int = 5) -> np.ndarray:
+                        pool: int = 5, mirror_size: tuple[float, float] | None = None) -> np.ndarray:
     """The camera mount's 3-sigma (as :func:`camera_mount`'s, at the truth) from ``images`` arm poses chosen
     among ``pool`` times as many visible ones: two (direct: four) per placement drawn, then one at a time
     the one that most lowers the larger of the largest rotation and position 3-sigma over ``reference``'s
@@ -137,7 +138,7 @@ def chosen_camera_mount(robot: str, eye_in_hand: bool, placements: int, images: 
 
     direct = placements == 0
     mirror: dict = {} if setup is None else {"mirror_distance": setup[0], "mirror_tilt_deg": setup[1],
-                                             "check_occlusion": True}
+                                             "check_occlusion": True, "mirror_size": mirror_size}
     if setup is not None and setup[2] is not None and not eye_in_hand:
         mirror["board_position"] = setup[2]
     per = images if direct else images // placements
@@ -197,10 +198,17 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--chosen", action="store_true",
                         help="also the arm poses chosen by their predicted bound (chosen_camera_mount), near set-ups")
+    parser.add_argument("--mirror-size", type=float, nargs=2, metavar=("WIDTH", "HEIGHT"),
+                        help="a glass of this size (metres): arm poses whose board is not seen within it are left out")
+    parser.add_argument("--only", default="", help="only the set-ups whose name contains this text")
+    parser.add_argument("--arm", choices=("arm6", "panda"), help="only this arm (arm6 eye-to-hand, panda eye-in-hand)")
     args = parser.parse_args()
+    size = tuple(args.mirror_size) if args.mirror_size else None
     seeds = range(args.seeds)
     with tempfile.TemporaryDirectory() as folder:
         for robot, eye_in_hand in (("arm6", False), ("panda", True)):
+            if args.arm and robot != args.arm:
+                continue
             arm = f"{robot} {'eye-in-hand' if eye_in_hand else 'eye-to-hand'}"
             direct: dict[float, np.ndarray] = {}
 
@@ -217,10 +225,12 @@ def main() -> None:
             best = min(DIRECT_DISTANCES, key=lambda d: direct[d][:3].max() / direct[0.9][:3].max()
                        + direct[d][3:].max() / direct[0.9][3:].max())
             for name, setup in SETUPS.items():
+                if args.only not in name:
+                    continue
                 for placements in (3, 4):
                     try:
-                        runs = [camera_mount(robot, eye_in_hand, placements, args.images, s, folder, setup=setup)
-                                for s in seeds]
+                        runs = [camera_mount(robot, eye_in_hand, placements, args.images, s, folder, setup=setup,
+                                             mirror_size=size) for s in seeds]
                     except RuntimeError:
                         print(f"{arm:22s} {name}, {placements} placements: blocked (no arm pose sees the board "
                               "through the mirror past the board itself, inside the image)")
@@ -237,7 +247,8 @@ def main() -> None:
                           f"{known[3:].max():.2f} mm")
                     if args.chosen and name.startswith("near") and placements == 4:
                         picked = np.mean([chosen_camera_mount(robot, eye_in_hand, placements, args.images, s, folder,
-                                                              direct[best], setup=setup) for s in seeds], axis=0)
+                                                              direct[best], setup=setup, mirror_size=size)
+                                          for s in seeds], axis=0)
                         picked_direct = np.mean([chosen_camera_mount(robot, eye_in_hand, 0, args.images, s, folder,
                                                                      direct[best], best) for s in seeds], axis=0)
                         print(_line(arm, f"{name}, arm poses chosen", args.images, picked))

@@ -31,3 +31,43 @@ def test_the_example_is_the_simulators_output() -> None:
 
     dataset, truth = simulate_arm("arm6", False, placements=3, arm_poses=6, pixel_sigma=0.5, seed=0)
     assert json.loads((REPO / "examples" / "arm6" / "arm6_mirror.json").read_text()) == json.loads(json.dumps(dataset))
+
+
+@pytest.mark.parametrize("eye_in_hand, robot", [(True, "panda"), (False, "arm6")])
+def test_with_a_glass_every_corner_is_seen_within_it(eye_in_hand, robot) -> None:
+    """``mirror_size``: in every image the camera's ray to each corner's image meets the plane within the
+    glass (its centre where the nominal pose sees the board's centre, its width along the camera's x axis),
+    checked here by intersecting the rays again; a glass too small for any arm pose is said."""
+    size = (0.3, 0.2)
+    scene = dict(placements=3, arm_poses=4, seed=2, check_occlusion=True, mirror_distance=(0.3, 0.35),
+                 mirror_tilt_deg=(20.0, 30.0), **({} if eye_in_hand else {"board_position": (0.15, 0.0, 0.05)}))
+    data, truth = simulate_arm(robot, eye_in_hand, mirror_size=size, **scene)
+    kin = load_kinematics(arm_urdf(robot))
+    (link_c, mount_c), (link_t, mount_t) = truth.mounts["camera"], truth.mounts["target"]
+    nominal = kin.placements(dict(zip(kin.chain(TOOL_LINK[robot]), NOMINAL[robot])), list({link_c, link_t}))
+    pose = {link: (F[0][:3, :3], F[0][:3, 3]) for link, F in nominal.items()}
+    C0, D0 = compose(pose[link_c], mount_c), compose(pose[link_t], mount_t)
+    points = np.array(list(data["fiducials"].values())).T
+    centre_B = D0[0] @ points.mean(axis=1) + D0[1]
+
+    def hit(camera_centre, x, v):  # where the ray to x's image in the plane of v meets it
+        n, d = v / np.linalg.norm(v), np.linalg.norm(v)
+        image = x - 2.0 * v * ((v @ x) / (v @ v) - 1.0)  # eq. (3)
+        ray = image - camera_centre
+        return camera_centre + ray * (d - n @ camera_centre) / (n @ ray)
+
+    for image in data["images"]:
+        v = truth.mirror_vectors[(1, image["mirror_configs"][0])]
+        n = v / np.linalg.norm(v)
+        width = C0[0][:, 0] - (C0[0][:, 0] @ n) * n
+        width /= np.linalg.norm(width)
+        height = np.cross(n, width)
+        middle = hit(C0[1], centre_B, v)
+        F = kin.placements(image["joints"], list({link_c, link_t}))
+        C = compose((F[link_c][0][:3, :3], F[link_c][0][:3, 3]), mount_c)
+        D = compose((F[link_t][0][:3, :3], F[link_t][0][:3, 3]), mount_t)
+        for x in (D[0] @ points + D[1][:, None]).T:
+            at = hit(C[1], x, v) - middle
+            assert abs(at @ width) <= size[0] / 2 + 1e-9 and abs(at @ height) <= size[1] / 2 + 1e-9
+    with pytest.raises(RuntimeError, match="no visible arm pose"):
+        simulate_arm(robot, eye_in_hand, mirror_size=(0.02, 0.02), **scene)

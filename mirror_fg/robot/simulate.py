@@ -91,7 +91,7 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
                  moving: tuple[str, ...] | None = None, direct: bool = False, direct_distance: float = 0.9,
                  mirror_distance: tuple[float, float] = (0.45, 0.6), mirror_tilt_deg: tuple[float, float] = (6.0, 14.0),
                  cameras: int = 1, camera_links: tuple[str, ...] = (), board_position: tuple[float, float, float] | None = None,
-                 check_occlusion: bool = False):
+                 check_occlusion: bool = False, mirror_size: tuple[float, float] | None = None):
     """A dataset@1 dictionary (its ``robot.urdf`` the arm's file name) and its :class:`ArmTruth`.
 
     ``arm_poses`` images per placement; ``joint_offsets_deg``: true encoder offsets, recorded joints are
@@ -107,7 +107,10 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
     the mirror takes an image, ``arm_poses`` per camera and placement. ``board_position``: the board's centre
     in the camera's frame at the nominal pose (metres; default eye-to-hand 0.15 m aside and 0.3 m ahead,
     eye-in-hand 0.12 m aside), facing the mirrors. ``check_occlusion``: also leave out arm poses where the
-    board's plate (3 cm beyond its corners) stands in the camera's line of sight to the mirror."""
+    board's plate (3 cm beyond its corners) stands in the camera's line of sight to the mirror.
+    ``mirror_size``: the glass's width and height (metres; None: a plane without edges): an arm pose is
+    left out unless every point's image is seen within the glass, which stands where the camera sees the
+    board's centre in it at the nominal pose, its width along the camera's x axis laid onto the plane."""
     from mirror_fg.robot.kinematics import load_kinematics
 
     rng = np.random.default_rng(seed)
@@ -164,6 +167,9 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
     delta = {n: math.radians(x) for n, x in (joint_offsets_deg or {}).items()}
     board = _board()
     points = np.array(list(board.values())).T
+    board_centre = D[0] @ points.mean(axis=1) + D[1]  # {B}, at the nominal pose
+    glasses = ({} if mirror_size is None or direct else
+               {k: _glass(C, board_centre, v, mirror_size) for k, v in enumerate(mirror_vectors.values())})
     images, truth_joints = [], []
     roles = list(camera_mounts) if camera_mounts else ["camera"]
     links = list(dict.fromkeys([tool, kin.base_link, *(link for link, _ in camera_mounts.values())]))
@@ -195,6 +201,8 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
                 poses = {"camera": compose((F_c[:3, :3], F_c[:3, 3]), mount), "target": target}
                 pix = _observe(poses, x_B, v_B)
                 if pix is not None and check_occlusion and v_B is not None and _occluded(poses, x_B, v_B):
+                    pix = None
+                if pix is not None and k in glasses and not _within_glass(poses, x_B, v_B, glasses[k]):
                     pix = None
                 if pix is None:
                     continue
@@ -276,6 +284,31 @@ def _occluded(poses, x_B: np.ndarray, v_B: np.ndarray, margin: float = 0.03) -> 
             if np.all(p >= low) and np.all(p <= high):
                 return True
     return False
+
+
+def _mirror_points(camera_centre: np.ndarray, x_B: np.ndarray, v_B: np.ndarray) -> np.ndarray:
+    """Where the camera's rays to the images of points ``x_B`` (3, N; {B}) in the plane of ``v_B`` meet it."""
+    n_B, d_B = v_B / np.linalg.norm(v_B), float(np.linalg.norm(v_B))
+    ray = _reflect(x_B, v_B) - camera_centre[:, None]  # eq. (3)
+    return camera_centre[:, None] + ray * ((d_B - n_B @ camera_centre) / (n_B @ ray))
+
+
+def _glass(camera, board_centre: np.ndarray, v_B: np.ndarray, size: tuple[float, float]):
+    """A glass of ``size`` (width, height; metres) in the plane of ``v_B`` ({B}): its centre where the camera
+    at ``camera`` sees the board's centre ``board_centre`` ({B}) in it, its width along the camera's x axis
+    laid onto the plane. ``(centre, width axis, height axis, half sizes)``."""
+    n_B = v_B / np.linalg.norm(v_B)
+    centre = _mirror_points(camera[1], np.asarray(board_centre, float).reshape(3, 1), v_B)[:, 0]
+    x = camera[0][:, 0] - (camera[0][:, 0] @ n_B) * n_B
+    x /= np.linalg.norm(x)
+    return centre, x, np.cross(n_B, x), 0.5 * np.asarray(size, float)
+
+
+def _within_glass(poses, x_B: np.ndarray, v_B: np.ndarray, glass) -> bool:
+    """Whether the camera at ``poses["camera"]`` sees every point ``x_B`` within ``glass`` (:func:`_glass`)."""
+    centre, x, y, half = glass
+    at = _mirror_points(poses["camera"][1], x_B, v_B) - centre[:, None]
+    return bool(np.all(np.abs(x @ at) <= half[0]) and np.all(np.abs(y @ at) <= half[1]))
 
 
 def _pose_dict(pose) -> dict:
