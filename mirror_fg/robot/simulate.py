@@ -202,7 +202,7 @@ def simulate_arm(robot: str = "arm6", eye_in_hand: bool = False, placements: int
                 pix = _observe(poses, x_B, v_B)
                 if pix is not None and check_occlusion and v_B is not None and _occluded(poses, x_B, v_B):
                     pix = None
-                if pix is not None and k in glasses and not _within_glass(poses, x_B, v_B, glasses[k]):
+                if pix is not None and v_B is not None and k in glasses and not _within_glass(poses, x_B, v_B, glasses[k]):
                     pix = None
                 if pix is None:
                     continue

@@ -66,9 +66,9 @@ def joining_views(dataset: Dataset, waiting: list[tuple[Image, ViewObs]], estima
     propagator = _Propagator(views, dataset.fiducials, cameras, fixed, tree_start)
     known = propagator.known
     known.poses.update(estimate.poses)
-    seen = {p for view in views for p in view.reflections}  # the propagation runs over the waiting views alone
+    reflected = {p for view in views for p in view.reflections}  # the propagation runs over the waiting views alone
     for p, v in estimate.mirror_vectors.items():
-        if p in seen:  # (every placement so far: a cost that grew with the images in the graph)
+        if p in reflected:  # (every placement so far: a cost that grew with the images in the graph)
             known.planes[p] = plane_from_camera(v, estimate.poses[owners[p]])
     known.points.update(estimate.points)
     lacking = any(p not in estimate.mirror_vectors for view in views for p in view.reflections) or any(
