@@ -1,6 +1,6 @@
 """The tree's dispersion in one pass of its own model (solver/fit/tree_dispersion.py) gives what the view
 model's routes give (solver/fit/dispersion.py): every image (the dense route) and an even subset (the
-route through GTSAM's marginals), with images left out, and with three mirrors."""
+route through GTSAM's marginals), with images left out, with three mirrors, with reconstruction points."""
 import pytest
 
 from mirror_fg.simulate.tree import simulate_base_case
@@ -39,9 +39,22 @@ def test_three_mirrors_four_fiducials(monkeypatch):
     assert fast.dof == pytest.approx(views.dof, rel=1e-10)
 
 
-def test_not_taken_with_reconstruction_points_or_a_point_left_out():
-    data, _ = simulate_base_case(num_images=12, num_points=2, seed=1)
-    assert not dispersion.tree_dispersion_applies(data, [], {})
+def test_reconstruction_points(monkeypatch):
+    """Points seen by every image (shared columns), by all but one, and a point that only one of the images
+    counted sees (eliminated with that image's own placement)."""
+    from dataclasses import replace
+
+    data, _ = simulate_base_case(num_images=40, num_points=6, mirror1_placements=3, seed=4)
+    images = [replace(image, observations={n: z for n, z in image.observations.items()
+                                           if (n != "P0" or k != 5) and (n != "P1" or k in (7, 8))})
+              for k, image in enumerate(data.images)]  # P0 not in image 5; P1 in images 7 and 8 alone
+    fast, views = _both(replace(data, images=images), monkeypatch, left_out=["img00008"])
+    assert fast.images == views.images == 39
+    assert fast.cost == pytest.approx(views.cost, rel=1e-10)
+    assert fast.dof == pytest.approx(views.dof, rel=1e-10)
+
+
+def test_not_taken_with_a_point_left_out():
     data, _ = simulate_base_case(num_images=12, seed=1)
     assert dispersion.tree_dispersion_applies(data, [("img00003", None)], {})
     assert not dispersion.tree_dispersion_applies(data, [("img00003", "F0")], {})

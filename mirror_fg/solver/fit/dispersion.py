@@ -36,6 +36,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
+from mirror_fg.factors.schur import one_blas_thread
 from mirror_fg.io.dataset import Dataset
 from mirror_fg.solver.fit.tree_dispersion import tree_dispersion, tree_dispersion_applies  # noqa: F401 (tests patch them here)
 from mirror_fg.solver.fit.validation import _problem, estimate_of_calibration
@@ -80,12 +81,19 @@ def image_dispersion(dataset: Dataset, estimate: ViewEstimate, excluded: Sequenc
                      estimated_cameras: Mapping[str, Any] | None = None) -> Dispersion:
     """``B`` and ``nu`` (module docstring) of ``dataset``'s images at ``estimate``; arguments as
     :func:`~mirror_fg.solver.fit.validation.validate`. The paper's tree is linearised in one pass of its
-    own model (``tree_dispersion.py``: the same ``B`` and ``nu`` to rounding)."""
+    own model (``tree_dispersion.py``: the same ``B`` and ``nu`` to rounding). BLAS on one thread: the
+    matrices are small and many (``factors/schur.one_blas_thread``)."""
+    with one_blas_thread():
+        return _image_dispersion(dataset, estimate, excluded, estimated_cameras)
+
+
+def _image_dispersion(dataset: Dataset, estimate: ViewEstimate, excluded: Sequence[tuple[str, str | None]],
+                      estimated_cameras: Mapping[str, Any] | None) -> Dispersion:
     if (tree_dispersion_applies(dataset, excluded, estimated_cameras) and SINGLE_CAMERA in estimate.poses
             and not _has_priors(dataset)):
         R, t = estimate.poses[SINGLE_CAMERA]
-        fast = tree_dispersion(dataset, R, t, estimate.mirror_vectors, {image for image, _ in excluded}, MAX_IMAGES,
-                               MAX_DENSE_COLUMNS)
+        fast = tree_dispersion(dataset, R, t, estimate.mirror_vectors, estimate.points,
+                               {image for image, _ in excluded}, MAX_IMAGES, MAX_DENSE_COLUMNS)
         if fast is not None:
             return Dispersion(*fast)
     used, problem, values, masks = _problem(dataset, estimate, excluded, estimated_cameras)
