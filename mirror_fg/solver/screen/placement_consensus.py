@@ -90,25 +90,28 @@ class _NodeObservations:
         b: list[np.ndarray] = []
         owner: list[int] = []
         index: list[int] = []
+        point_rows: list[np.ndarray] = []  # per candidate: its image's fiducials (rows of ``points``)
         points: list[np.ndarray] = []
         observed: list[np.ndarray] = []
         for k, image in enumerate(images):
             normalized = dataset.normalized(image)
             names = fiducial_names(dataset, image)
-            image_points = [dataset.fiducials[name] for name in names]
-            image_observed = [normalized[name] for name in names]
+            rows = np.arange(len(points), len(points) + len(names))
+            points.extend(dataset.fiducials[name] for name in names)
+            observed.extend(normalized[name] for name in names)
             for A_c, b_c in candidates[image.id]:
                 index.extend([len(A)] * len(names))
                 A.append(A_c)
                 b.append(b_c)
                 owner.append(k)
-                points.extend(image_points)
-                observed.extend(image_observed)
+                point_rows.append(rows)
         self.A, self.b = np.array(A).reshape(-1, 3, 3), np.array(b).reshape(-1, 3)
         self.owner = np.array(owner, dtype=np.intp)
         self.index = np.array(index, dtype=np.intp)
-        self.points = np.array(points, dtype=float).reshape(-1, 3)
-        self.observed = np.array(observed, dtype=float).reshape(-1, 2)
+        # each candidate's copy of its image's fiducials and observations (one gather: the same values)
+        rows = np.concatenate(point_rows) if point_rows else np.zeros(0, dtype=np.intp)
+        self.points = np.array(points, dtype=float).reshape(-1, 3)[rows]
+        self.observed = np.array(observed, dtype=float).reshape(-1, 2)[rows]
         self.counts = np.maximum(np.bincount(self.index, minlength=len(self.A)), 1)
         # candidates sorted by image: the index of each image's first (its best is first after a lexsort)
         self.first_candidate = np.searchsorted(self.owner, np.arange(self.num_images))
@@ -239,19 +242,28 @@ def _hypotheses(
     by_child: dict[int, list[Image]] = defaultdict(list)
     for image in images:
         by_child[image.mirror_configs[-1]].append(image)
-    rotations: list[list[np.ndarray]] = []
-    offsets: list[list[np.ndarray]] = []
+    poses: dict[str, int] = {}  # each image drawn: the row of its first candidate in the stacks below
+    stacked_A: list[np.ndarray] = []
+    stacked_b: list[np.ndarray] = []
+    combos: list[tuple[int, ...]] = []  # per hypothesis: the rows of its three children's candidates
     owner: list[int] = []
     for t, triple in enumerate(triples):
-        picks = [candidates[by_child[c][int(rng.integers(len(by_child[c])))].id] for c in triple]
+        picks = []
+        for c in triple:
+            image_id = by_child[c][int(rng.integers(len(by_child[c])))].id
+            if image_id not in poses:
+                poses[image_id] = len(stacked_A)
+                stacked_A.extend(A for A, _ in candidates[image_id])
+                stacked_b.extend(b for _, b in candidates[image_id])
+            picks.append(range(poses[image_id], poses[image_id] + len(candidates[image_id])))
         for choice in product(*picks):
-            rotations.append([A for A, _ in choice])
-            offsets.append([b for _, b in choice])
+            combos.append(choice)
             owner.append(t)
-    if not rotations:
+    if not combos:
         return np.zeros((0, 3, 3)), np.zeros((0, 3))
-    rotations_array: np.ndarray = np.array(rotations)
-    offsets_array: np.ndarray = np.array(offsets)
+    chosen = np.array(combos, dtype=np.intp)
+    rotations_array: np.ndarray = np.array(stacked_A)[chosen]
+    offsets_array: np.ndarray = np.array(stacked_b)[chosen]
     A_parent, b_parent, residual = solve_triples(rotations_array, offsets_array, parent_det)
     owner_array = np.array(owner)
     order = np.lexsort((residual, owner_array))
