@@ -83,8 +83,9 @@ def tree_dispersion(dataset: Dataset, R: np.ndarray, t: np.ndarray, mirror_vecto
     chosen = np.zeros(count, dtype=bool)
     chosen[sorted(set(np.linspace(0, count - 1, min(max_images, count)).round().astype(int).tolist()))] = True
     groups: dict[tuple, list[int]] = {}
-    for i in range(count):
-        groups.setdefault((rows.slots[i], tuple(rows.touches[rows.keys[i]] > 1)), []).append(i)
+    seen_by_others = (rows.touches > 1).tolist()
+    for i, (slot, keys) in enumerate(zip(rows.slots, rows.keys)):
+        groups.setdefault((slot, tuple(seen_by_others[k] for k in keys)), []).append(i)
     information = np.zeros(size * size)
     stacks = []
     chunks = []  # each group in stacks of at most CHUNK_ENTRIES entries of their information
@@ -144,41 +145,43 @@ class _Rows:
 
     def __init__(self, dataset: Dataset, mirror_vectors: Mapping, points: Mapping, images_out: set[str]):
         known = set(dataset.fiducials) | set(points)
-        used = []  # per image: its placements, its known points' names and normalized observations (N, 2)
+        reflections, names_of, observed = [], [], []  # per image counted; each measurement's observation
         for image in dataset.images:
             if image.id in images_out or not all(p in mirror_vectors for p in image.reflections):
                 continue
-            names = [n for n in image.observations if n in known]
+            names = tuple(n for n in image.observations if n in known)
             if names:
                 normalized = dataset.normalized(image)
-                used.append((image.reflections, names, np.array([normalized[n] for n in names], dtype=float)))
-        self.count = len(used)
-        if not used:
+                reflections.append(image.reflections)
+                names_of.append(names)
+                observed.extend(normalized[n] for n in names)
+        self.count = len(reflections)
+        if not self.count:
             return
-        self.placements = sorted({p for reflections, _, _ in used for p in reflections})
-        self.point_names = sorted({n for _, names, _ in used for n in names if n not in dataset.fiducials})
+        self.placements = sorted(set().union(*reflections))
+        self.point_names = sorted({n for names in set(names_of) for n in names if n not in dataset.fiducials})
         row_of: dict = {p: k for k, p in enumerate(self.placements)}
         row_of.update({n: len(self.placements) + j for j, n in enumerate(self.point_names)})
-        self.levels = len(used[0][0])
-        counts = np.array([len(names) for _, names, _ in used])
+        self.levels = len(reflections[0])
+        shapes: dict[tuple[str, ...], tuple[tuple[int, ...], list[int]]] = {}  # names -> point slots, their rows
+        for names in set(names_of):
+            own: dict[str, int] = {}  # the image's points, in the order first seen
+            slot = tuple(own.setdefault(n, len(own)) if n not in dataset.fiducials else -1 for n in names)
+            shapes[names] = slot, [row_of[n] for n in own]
+        self.slots = [shapes[names][0] for names in names_of]
+        self.keys = [[row_of[p] for p in placements] + shapes[names][1]
+                     for placements, names in zip(reflections, names_of)]  # rows of ``touches``
+        counts = np.array([len(names) for names in names_of])
         self.starts = np.concatenate([[0], np.cumsum(counts)])
-        self.names = [n for _, names, _ in used for n in names]
-        self.mirror_rows = np.repeat(np.array([[row_of[p] for p in reflections] for reflections, _, _ in used],
-                                              dtype=np.intp).T, counts, axis=1)  # (levels, M)
-        self.landmark_rows = np.array([row_of.get(n, -1) if n not in dataset.fiducials else -1 for n in self.names],
-                                      dtype=np.intp)
-        self.base = np.array([dataset.fiducials.get(n, np.zeros(3)) for n in self.names], dtype=float).T  # (3, M)
-        self.observed = np.concatenate([z for _, _, z in used]).T  # (2, M)
+        self.names = [n for names in names_of for n in names]
+        self.mirror_rows = np.repeat(np.array([keys[:self.levels] for keys in self.keys], dtype=np.intp).T, counts,
+                                     axis=1)  # (levels, M)
+        self.landmark_rows = np.array([-1 if n in dataset.fiducials else row_of[n] for n in self.names], dtype=np.intp)
+        fiducial = {n: np.asarray(p, dtype=float) for n, p in dataset.fiducials.items()}
+        self.base = np.array([fiducial.get(n, np.zeros(3)) for n in self.names], dtype=float).T  # (3, M)
+        self.observed = np.array(observed, dtype=float).reshape(-1, 2).T  # (2, M)
         self.whiten = 1.0 / normalized_sigmas(dataset.camera, dataset.pixel_sigma, dataset.point_sigma, self.names)
-        self.keys, self.slots = [], []
-        for (reflections, names, _), first in zip(used, self.starts[:-1]):
-            own: dict[int, int] = {}  # the image's points: row -> slot
-            slot = tuple(own.setdefault(int(k), len(own)) if k >= 0 else -1
-                         for k in self.landmark_rows[first:first + len(names)].tolist())
-            self.keys.append([row_of[p] for p in reflections] + list(own))
-            self.slots.append(slot)
-        self.touches = np.bincount(np.concatenate([np.array(k, dtype=np.intp) for k in self.keys]),
-                                   minlength=len(row_of))  # images per placement / point
+        self.touches = np.bincount([k for keys in self.keys for k in keys], minlength=len(row_of))  # images per unknown
 
     def linearised(self, R: np.ndarray, t: np.ndarray, mirror_vectors: Mapping, points: Mapping):
         """Each measurement's whitened Jacobian (M, 2, 6 + 3 levels) in the pose and its placements (planes'
