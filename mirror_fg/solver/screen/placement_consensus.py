@@ -116,6 +116,20 @@ class _NodeObservations:
         # candidates sorted by image: the index of each image's first (its best is first after a lexsort)
         self.first_candidate = np.searchsorted(self.owner, np.arange(self.num_images))
 
+    def subset(self, images: np.ndarray) -> _NodeObservations:
+        """The same of some of the images (indices into ``images``, increasing), as built from them alone."""
+        keep = np.isin(self.owner, images)
+        rows = np.isin(self.index, np.flatnonzero(keep))
+        out = object.__new__(_NodeObservations)
+        out.sigma, out.num_images = self.sigma, len(images)
+        out.A, out.b = self.A[keep], self.b[keep]
+        out.owner = np.searchsorted(images, self.owner[keep])
+        out.index = np.searchsorted(np.flatnonzero(keep), self.index[rows])
+        out.points, out.observed = self.points[rows], self.observed[rows]
+        out.counts = self.counts[keep]
+        out.first_candidate = np.searchsorted(out.owner, np.arange(out.num_images))
+        return out
+
     def scores(self, A_parents: np.ndarray, b_parents: np.ndarray, fit: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """For each of H hypotheses ``(A_{Nv-1}, b_{Nv-1})`` of the node (stacked (H, 3, 3), (H, 3)) and
         each image, the RMS whitened reprojection of its fiducials through the hypothesis and its last
@@ -296,8 +310,8 @@ def check_node(
         return [], {}
     observations = _NodeObservations(dataset, images, candidates)
     if len(images) > MAX_RANKING_IMAGES:  # the hypotheses ranked on spread images, the best one judges all
-        ranking = [images[k] for k in spread_subset(len(images), MAX_RANKING_IMAGES)]
-        ranked = _NodeObservations(dataset, ranking, candidates).scores(A_parents, b_parents, fit=False)[0]
+        ranked = observations.subset(spread_subset(len(images), MAX_RANKING_IMAGES)).scores(A_parents, b_parents,
+                                                                                             fit=False)[0]
         best = int(np.argmin(np.median(ranked, axis=1)))
         A_parents, b_parents = A_parents[best:best + 1], b_parents[best:best + 1]
     all_scores, all_chosen = observations.scores(A_parents, b_parents)
