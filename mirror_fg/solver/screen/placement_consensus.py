@@ -89,27 +89,32 @@ class _NodeObservations:
         A: list[np.ndarray] = []
         b: list[np.ndarray] = []
         owner: list[int] = []
-        index: list[int] = []
-        point_rows: list[np.ndarray] = []  # per candidate: its image's fiducials (rows of ``points``)
+        first_row: list[int] = []  # per candidate: its image's first fiducial (row of ``points``) and how many
+        count: list[int] = []
         points: list[np.ndarray] = []
         observed: list[np.ndarray] = []
+        names_of: dict[tuple[str, ...], list[str]] = {}  # the fiducials among an image's observed names
         for k, image in enumerate(images):
+            observed_names = tuple(image.observations)
+            names = names_of.get(observed_names)
+            if names is None:
+                names = names_of[observed_names] = fiducial_names(dataset, image)
             normalized = dataset.normalized(image)
-            names = fiducial_names(dataset, image)
-            rows = np.arange(len(points), len(points) + len(names))
+            start = len(points)
             points.extend(dataset.fiducials[name] for name in names)
             observed.extend(normalized[name] for name in names)
             for A_c, b_c in candidates[image.id]:
-                index.extend([len(A)] * len(names))
                 A.append(A_c)
                 b.append(b_c)
                 owner.append(k)
-                point_rows.append(rows)
+                first_row.append(start)
+                count.append(len(names))
         self.A, self.b = np.array(A).reshape(-1, 3, 3), np.array(b).reshape(-1, 3)
         self.owner = np.array(owner, dtype=np.intp)
-        self.index = np.array(index, dtype=np.intp)
+        counts = np.array(count, dtype=np.intp)
+        self.index = np.repeat(np.arange(len(counts)), counts)  # each copied fiducial's candidate
         # each candidate's copy of its image's fiducials and observations (one gather: the same values)
-        rows = np.concatenate(point_rows) if point_rows else np.zeros(0, dtype=np.intp)
+        rows = np.repeat(np.array(first_row, dtype=np.intp) - (np.cumsum(counts) - counts), counts) + np.arange(counts.sum())
         self.points = np.array(points, dtype=float).reshape(-1, 3)[rows]
         self.observed = np.array(observed, dtype=float).reshape(-1, 2)[rows]
         self.counts = np.maximum(np.bincount(self.index, minlength=len(self.A)), 1)
