@@ -84,9 +84,9 @@ def tree_dispersion(dataset: Dataset, R: np.ndarray, t: np.ndarray, mirror_vecto
     chosen[sorted(set(np.linspace(0, count - 1, min(max_images, count)).round().astype(int).tolist()))] = True
     groups: dict[tuple, list[int]] = {}
     seen_by_others = (rows.touches > 1).tolist()
-    for i, (slot, keys) in enumerate(zip(rows.slots, rows.keys)):
-        groups.setdefault((slot, tuple(seen_by_others[k] for k in keys)), []).append(i)
-    information = np.zeros(size * size)
+    for i, (slot, unknowns) in enumerate(zip(rows.slots, rows.keys)):
+        groups.setdefault((slot, tuple(seen_by_others[k] for k in unknowns)), []).append(i)
+    information_entries = np.zeros(size * size)  # the shared columns' information, summed over the images
     stacks = []
     chunks = []  # each group in stacks of at most CHUNK_ENTRIES entries of their information
     for (slot, shared_keys), members in groups.items():
@@ -112,12 +112,12 @@ def tree_dispersion(dataset: Dataset, R: np.ndarray, t: np.ndarray, mirror_vecto
         else:
             H_ll_inv, K = np.zeros((len(members), 0, 0)), np.zeros((len(members), 0, len(s_cols)))
         flat = (s_at[:, :, None] * size + s_at[:, None, :]).reshape(-1)
-        information += np.bincount(flat, weights=H_ss.reshape(-1), minlength=size * size)
+        information_entries += np.bincount(flat, weights=H_ss.reshape(-1), minlength=size * size)
         pick = chosen[index]
         if pick.any():
             stacks.append((blocks.subset(pick), r[measurements[pick]].reshape(int(pick.sum()), -1), s_at[pick],
                            s_cols, l_cols, H_ll_inv[pick], K[pick]))
-    information = information.reshape(size, size)
+    information = information_entries.reshape(size, size)
     Sigma_shared = np.linalg.pinv(0.5 * (information + information.T), hermitian=True)
     cost, rank_sum, explained, images = 0.0, 0, 0.0, 0
     for blocks, e, s_at, s_cols, l_cols, H_ll_inv, K in stacks:
@@ -145,7 +145,9 @@ class _Rows:
 
     def __init__(self, dataset: Dataset, mirror_vectors: Mapping, points: Mapping, images_out: set[str]):
         known = set(dataset.fiducials) | set(points)
-        reflections, names_of, observed = [], [], []  # per image counted; each measurement's observation
+        reflections: list[tuple[tuple[int, int], ...]] = []  # per image counted: its placements, its points' names
+        names_of: list[tuple[str, ...]] = []
+        observed: list[np.ndarray] = []  # each measurement's normalized observation
         for image in dataset.images:
             if image.id in images_out or not all(p in mirror_vectors for p in image.reflections):
                 continue
@@ -177,8 +179,9 @@ class _Rows:
         self.mirror_rows = np.repeat(np.array([keys[:self.levels] for keys in self.keys], dtype=np.intp).T, counts,
                                      axis=1)  # (levels, M)
         self.landmark_rows = np.array([-1 if n in dataset.fiducials else row_of[n] for n in self.names], dtype=np.intp)
-        fiducial = {n: np.asarray(p, dtype=float) for n, p in dataset.fiducials.items()}
-        self.base = np.array([fiducial.get(n, np.zeros(3)) for n in self.names], dtype=float).T  # (3, M)
+        no_point = np.zeros(3)  # a reconstruction point's column: reflection_model takes it from the points
+        self.base = np.array([dataset.fiducials[n] if n in dataset.fiducials else no_point for n in self.names],
+                             dtype=np.float64).reshape(-1, 3).T  # (3, M)
         self.observed = np.array(observed, dtype=float).reshape(-1, 2).T  # (2, M)
         self.whiten = 1.0 / normalized_sigmas(dataset.camera, dataset.pixel_sigma, dataset.point_sigma, self.names)
         self.touches = np.bincount([k for keys in self.keys for k in keys], minlength=len(row_of))  # images per unknown

@@ -342,8 +342,8 @@ def _search(
     combos_of = []  # per triple: each combination of its images' candidates, as rows of ``stacked``
     for triple in triples:
         images = [first_image_of_child[k] for k in triple]
-        firsts = [int(stacked.first[i]) for i in images]
-        combos_of.append([tuple(first + c for first, c in zip(firsts, combo))
+        first_rows = [int(stacked.first[i]) for i in images]
+        combos_of.append([tuple(first + c for first, c in zip(first_rows, combo))
                           for combo in product(*(range(len(image_candidates[i])) for i in images))])
     flat = np.array([combo for combos in combos_of for combo in combos], dtype=np.intp).reshape(-1, 3)
     A_parents, b_parents, residuals = solve_triples(stacked.A[flat], stacked.b[flat], parent_det)
