@@ -222,6 +222,7 @@ class _Blocks:
         self.width = self.own.shape[2] + 3 * len(self.rows)
 
     def subset(self, pick: np.ndarray) -> _Blocks:
+        """The images ``pick`` (a mask over the stack) of this stack."""
         out = object.__new__(_Blocks)
         out.own, out.rows, out.width = self.own[pick], self.rows, self.width
         out.by_slot = [block[pick] for block in self.by_slot]
