@@ -166,8 +166,16 @@ class EliminatedEvaluator:
                 "landmark_starts": landmark_starts, "landmark_unique": sorted_columns[landmark_starts],
             })
 
-        # State: the full point array (eliminated rows = the placements' current optimum).
         self._P = np.zeros((len(point_keys), 3))
+        self.restart(initial_vectors)
+        self.factors: list[gtsam.CustomFactor] = []
+
+    def restart(self, initial_vectors: Mapping[tuple[int, int], np.ndarray]) -> None:
+        """The state of a new evaluator of the same measurements whose last-level placements start at
+        ``initial_vectors`` (``(Nv, m) -> v``): one subtree refined from several hypotheses builds its
+        arrays and factors once."""
+        # State: the full point array (eliminated rows = the placements' current optimum).
+        self._P = np.zeros_like(self._P)
         for r in self._elim_rows.tolist():
             self._P[r] = np.asarray(initial_vectors[self._config_of_row[r]], dtype=float)
         self._P_start = self._P[self._elim_rows].copy()  # warm start of the next evaluation
@@ -180,7 +188,6 @@ class EliminatedEvaluator:
         self._blocks: dict | None = None
         self.evaluations = 0  # for tests and benchmarks
         self.inner_iterations = 0
-        self.factors: list[gtsam.CustomFactor] = []
 
     # --- reading the values ------------------------------------------------------------------------
 

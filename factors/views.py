@@ -203,13 +203,15 @@ def scaled_error(residual: np.ndarray, sigmas: np.ndarray, robust: str | None, r
 
 def landmark_blocks(dzB: np.ndarray, scale: np.ndarray, landmark_keys: np.ndarray, unique_landmarks: list[int]):
     """The Jacobian block (2N, 3) of each unknown point in ``unique_landmarks``' order: its measurements'
-    rows of ``dzB`` (2, 3, N), scaled as :func:`scaled_error` scales the residuals."""
-    JB = np.transpose(dzB * scale, (2, 0, 1))  # (N, 2, 3)
-    for key in unique_landmarks:
-        block = np.zeros((2 * dzB.shape[2], 3))
-        for j in np.flatnonzero(landmark_keys == key):
-            block[2 * j:2 * j + 2] = JB[j]
-        yield block
+    rows of ``dzB`` (2, 3, N), scaled as :func:`scaled_error` scales the residuals (zeros elsewhere)."""
+    n = dzB.shape[2]
+    slot = {key: u for u, key in enumerate(unique_landmarks)}
+    measured = [(j, slot[key]) for j, key in enumerate(landmark_keys.tolist()) if key in slot]
+    blocks = np.zeros((len(unique_landmarks), n, 2, 3))  # every block filled at once (a view had hundreds)
+    if measured:
+        rows, slots = np.array(measured).T
+        blocks[slots, rows] = np.transpose(dzB[:, :, rows] * scale[rows], (2, 0, 1))
+    yield from blocks.reshape(len(unique_landmarks), 2 * n, 3)
 
 
 class ViewFactor:

@@ -25,7 +25,9 @@ inverting the rest densely, cubic in the shared unknowns. With more than :data:`
 more than :data:`MAX_DENSE_COLUMNS` shared columns, ``B`` and ``nu`` are summed over
 :data:`MAX_IMAGES` images evenly spread through the capture instead, ``Sigma``'s blocks from GTSAM's
 marginals (its Bayes tree): the factor is then estimated from those images' redundancy, and ``dof``
-and ``images`` say so (an F-test takes that ``dof``).
+and ``images`` say so (an F-test takes that ``dof``). The paper's tree (intrinsics known, no single
+measurement left out) is linearised in one vectorised pass of its own model and its shared columns
+inverted densely (``tree_dispersion.py``), over the same images.
 """
 from __future__ import annotations
 
@@ -36,9 +38,11 @@ from typing import Any
 import gtsam
 import numpy as np
 
+from mirror_fg.factors.schur import one_blas_thread
 from mirror_fg.data import Dataset
+from mirror_fg.solver.fit.tree_dispersion import tree_dispersion, tree_dispersion_applies  # noqa: F401 (tests patch them here)
 from mirror_fg.solver.fit.validation import _problem, estimate_of_calibration
-from mirror_fg.solver.model.views import ViewEstimate, scale_prior, tangent_dimension
+from mirror_fg.solver.model.views import SINGLE_CAMERA, ViewEstimate, scale_prior, tangent_dimension
 
 __all__ = ["Dispersion", "image_dispersion", "dispersion_of_calibration", "MAX_IMAGES", "MAX_DENSE_COLUMNS"]
 
@@ -78,7 +82,22 @@ def dispersion_of_calibration(dataset: Dataset, calibration: Any) -> Dispersion:
 def image_dispersion(dataset: Dataset, estimate: ViewEstimate, excluded: Sequence[tuple[str, str | None]],
                      estimated_cameras: Mapping[str, Any] | None = None) -> Dispersion:
     """``B`` and ``nu`` (module docstring) of ``dataset``'s images at ``estimate``; arguments as
-    :func:`~mirror_fg.solver.fit.validation.validate`."""
+    :func:`~mirror_fg.solver.fit.validation.validate`. The paper's tree is linearised in one pass of its
+    own model (``tree_dispersion.py``: the same ``B`` and ``nu`` to rounding). BLAS on one thread: the
+    matrices are small and many (``factors/schur.one_blas_thread``)."""
+    with one_blas_thread():
+        return _image_dispersion(dataset, estimate, excluded, estimated_cameras)
+
+
+def _image_dispersion(dataset: Dataset, estimate: ViewEstimate, excluded: Sequence[tuple[str, str | None]],
+                      estimated_cameras: Mapping[str, Any] | None) -> Dispersion:
+    if (tree_dispersion_applies(dataset, excluded, estimated_cameras) and SINGLE_CAMERA in estimate.poses
+            and not _has_priors(dataset)):
+        R, t = estimate.poses[SINGLE_CAMERA]
+        fast = tree_dispersion(dataset, R, t, estimate.mirror_vectors, estimate.points,
+                               {image for image, _ in excluded}, MAX_IMAGES, MAX_DENSE_COLUMNS)
+        if fast is not None:
+            return Dispersion(*fast)
     used, problem, values, masks = _problem(dataset, estimate, excluded, estimated_cameras)
     if len(problem.factors) > MAX_IMAGES or _shared_columns(problem, values) > MAX_DENSE_COLUMNS:
         if all(mask.all() for mask in masks):  # no measurement left out: this very problem
@@ -119,6 +138,12 @@ def image_dispersion(dataset: Dataset, estimate: ViewEstimate, excluded: Sequenc
         columns = [i for key in gaussian.keys() for i in range(offset[key], offset[key] + tangent_dimension(key, values))]
         blocks.append((np.array(columns, dtype=int), A.T @ A))
     return Dispersion(cost, max(rank_sum - _explained(blocks, parts, size), 0.0), len(parts))
+
+
+def _has_priors(dataset: Dataset) -> bool:
+    """Whether a prior (the scale's) adds information beyond the images' (``tree_dispersion.py`` has none)."""
+    placements = {p: k for k, p in enumerate(dataset.configurations)}
+    return scale_prior(dataset, placements, {n: k for k, n in enumerate(dataset.reconstruction_point_names)}).size() > 0
 
 
 def _explained(blocks: list[tuple[np.ndarray, np.ndarray]], parts: list[tuple[int, np.ndarray]], size: int) -> float:

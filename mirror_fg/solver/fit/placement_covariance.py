@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 from mirror_fg.data import Dataset
+from mirror_fg.factors.schur import one_blas_thread
 from mirror_fg.factors.views import vector_of_plane
 from mirror_fg.solver.fit.validation import _problem, estimate_of_calibration
 from mirror_fg.solver.model.views import SINGLE_CAMERA, tangent_dimension
@@ -35,6 +36,11 @@ def placement_covariances(dataset: Dataset, calibration: Any) -> dict[tuple[int,
         return None
     if 6 + 3 * (len(calibration.mirror_vectors) + len(calibration.points)) > MAX_COLUMNS:  # before building anything
         return None
+    with one_blas_thread():  # small matrices, many of them: a second BLAS thread only spins (same results)
+        return _placement_covariances(dataset, calibration)
+
+
+def _placement_covariances(dataset: Dataset, calibration: Any) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] | None:
     estimate, estimated = estimate_of_calibration(calibration)
     excluded = [(e.image, e.point) for e in calibration.excluded]
     _, problem, values, masks = _problem(dataset, estimate, excluded, estimated)

@@ -89,29 +89,51 @@ class _NodeObservations:
         A: list[np.ndarray] = []
         b: list[np.ndarray] = []
         owner: list[int] = []
-        index: list[int] = []
+        first_row: list[int] = []  # per candidate: its image's first fiducial (row of ``points``) and how many
+        count: list[int] = []
         points: list[np.ndarray] = []
         observed: list[np.ndarray] = []
+        names_of: dict[tuple[str, ...], list[str]] = {}  # the fiducials among an image's observed names
         for k, image in enumerate(images):
+            observed_names = tuple(image.observations)
+            names = names_of.get(observed_names)
+            if names is None:
+                names = names_of[observed_names] = fiducial_names(dataset, image)
             normalized = dataset.normalized(image)
-            names = fiducial_names(dataset, image)
-            image_points = [dataset.fiducials[name] for name in names]
-            image_observed = [normalized[name] for name in names]
+            start = len(points)
+            points.extend(dataset.fiducials[name] for name in names)
+            observed.extend(normalized[name] for name in names)
             for A_c, b_c in candidates[image.id]:
-                index.extend([len(A)] * len(names))
                 A.append(A_c)
                 b.append(b_c)
                 owner.append(k)
-                points.extend(image_points)
-                observed.extend(image_observed)
+                first_row.append(start)
+                count.append(len(names))
         self.A, self.b = np.array(A).reshape(-1, 3, 3), np.array(b).reshape(-1, 3)
         self.owner = np.array(owner, dtype=np.intp)
-        self.index = np.array(index, dtype=np.intp)
-        self.points = np.array(points, dtype=float).reshape(-1, 3)
-        self.observed = np.array(observed, dtype=float).reshape(-1, 2)
+        counts = np.array(count, dtype=np.intp)
+        self.index = np.repeat(np.arange(len(counts)), counts)  # each copied fiducial's candidate
+        # each candidate's copy of its image's fiducials and observations (one gather: the same values)
+        rows = np.repeat(np.array(first_row, dtype=np.intp) - (np.cumsum(counts) - counts), counts) + np.arange(counts.sum())
+        self.points = np.array(points, dtype=float).reshape(-1, 3)[rows]
+        self.observed = np.array(observed, dtype=float).reshape(-1, 2)[rows]
         self.counts = np.maximum(np.bincount(self.index, minlength=len(self.A)), 1)
         # candidates sorted by image: the index of each image's first (its best is first after a lexsort)
         self.first_candidate = np.searchsorted(self.owner, np.arange(self.num_images))
+
+    def subset(self, images: np.ndarray) -> _NodeObservations:
+        """The same of some of the images (indices into ``images``, increasing), as built from them alone."""
+        keep = np.isin(self.owner, images)
+        rows = np.isin(self.index, np.flatnonzero(keep))
+        out = object.__new__(_NodeObservations)
+        out.sigma, out.num_images = self.sigma, len(images)
+        out.A, out.b = self.A[keep], self.b[keep]
+        out.owner = np.searchsorted(images, self.owner[keep])
+        out.index = np.searchsorted(np.flatnonzero(keep), self.index[rows])
+        out.points, out.observed = self.points[rows], self.observed[rows]
+        out.counts = self.counts[keep]
+        out.first_candidate = np.searchsorted(out.owner, np.arange(out.num_images))
+        return out
 
     def scores(self, A_parents: np.ndarray, b_parents: np.ndarray, fit: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """For each of H hypotheses ``(A_{Nv-1}, b_{Nv-1})`` of the node (stacked (H, 3, 3), (H, 3)) and
@@ -239,19 +261,28 @@ def _hypotheses(
     by_child: dict[int, list[Image]] = defaultdict(list)
     for image in images:
         by_child[image.mirror_configs[-1]].append(image)
-    rotations: list[list[np.ndarray]] = []
-    offsets: list[list[np.ndarray]] = []
+    poses: dict[str, int] = {}  # each image drawn: the row of its first candidate in the stacks below
+    stacked_A: list[np.ndarray] = []
+    stacked_b: list[np.ndarray] = []
+    combos: list[tuple[int, ...]] = []  # per hypothesis: the rows of its three children's candidates
     owner: list[int] = []
     for t, triple in enumerate(triples):
-        picks = [candidates[by_child[c][int(rng.integers(len(by_child[c])))].id] for c in triple]
+        picks = []
+        for c in triple:
+            image_id = by_child[c][int(rng.integers(len(by_child[c])))].id
+            if image_id not in poses:
+                poses[image_id] = len(stacked_A)
+                stacked_A.extend(A for A, _ in candidates[image_id])
+                stacked_b.extend(b for _, b in candidates[image_id])
+            picks.append(range(poses[image_id], poses[image_id] + len(candidates[image_id])))
         for choice in product(*picks):
-            rotations.append([A for A, _ in choice])
-            offsets.append([b for _, b in choice])
+            combos.append(choice)
             owner.append(t)
-    if not rotations:
+    if not combos:
         return np.zeros((0, 3, 3)), np.zeros((0, 3))
-    rotations_array: np.ndarray = np.array(rotations)
-    offsets_array: np.ndarray = np.array(offsets)
+    chosen = np.array(combos, dtype=np.intp)
+    rotations_array: np.ndarray = np.array(stacked_A)[chosen]
+    offsets_array: np.ndarray = np.array(stacked_b)[chosen]
     A_parent, b_parent, residual = solve_triples(rotations_array, offsets_array, parent_det)
     owner_array = np.array(owner)
     order = np.lexsort((residual, owner_array))
@@ -284,8 +315,8 @@ def check_node(
         return [], {}
     observations = _NodeObservations(dataset, images, candidates)
     if len(images) > MAX_RANKING_IMAGES:  # the hypotheses ranked on spread images, the best one judges all
-        ranking = [images[k] for k in spread_subset(len(images), MAX_RANKING_IMAGES)]
-        ranked = _NodeObservations(dataset, ranking, candidates).scores(A_parents, b_parents, fit=False)[0]
+        ranked = observations.subset(spread_subset(len(images), MAX_RANKING_IMAGES)).scores(A_parents, b_parents,
+                                                                                             fit=False)[0]
         best = int(np.argmin(np.median(ranked, axis=1)))
         A_parents, b_parents = A_parents[best:best + 1], b_parents[best:best + 1]
     all_scores, all_chosen = observations.scores(A_parents, b_parents)

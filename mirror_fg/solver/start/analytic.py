@@ -87,11 +87,12 @@ def _node_proposals(
         stacked = np.array(node.mirror_vectors)
         normals = stacked / np.linalg.norm(stacked, axis=1, keepdims=True)
         degenerate.append(bool(np.linalg.svd(normals, compute_uv=False)[2] < MIN_NORMAL_SPREAD))
-        hypothesis = Hypothesis(node.A_parent, node.b_parent, defaultdict(list), {})
-        for (_, hyps), p in zip(entries, picks):
-            for config, vectors in hyps[p].mirror_vectors.items():
+        chosen = [hyps[p] for (_, hyps), p in zip(entries, picks)]
+        hypothesis = Hypothesis(node.A_parent, node.b_parent, defaultdict(list),
+                                {image: pose for h in chosen for image, pose in h.image_transforms.items()})
+        for h in chosen:
+            for config, vectors in h.mirror_vectors.items():
                 hypothesis.mirror_vectors[config].extend(vectors)
-            hypothesis.image_transforms.update(hyps[p].image_transforms)
         for m, v in zip(child_ids, node.mirror_vectors):
             hypothesis.mirror_vectors[(level, m)].append(v)
         proposals.append(hypothesis)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import replace
 
 import gtsam
 import numpy as np
@@ -25,7 +26,7 @@ from mirror_fg.core.errors import SolveError
 from mirror_fg.data import Dataset, Image
 from mirror_fg.solver.start.analytic import AnalyticSolution, TreeNode, TreeWalk, Hypothesis, complete_last_mirror
 from mirror_fg.solver.model.graph import (
-    Measurement, build_eliminated_graph, build_graph, extract_values, measurement_sigmas, measurements_of,
+    Measurement, build_eliminated_graph, build_graph, extract_values, initial_values, measurement_sigmas, measurements_of,
 )
 from mirror_fg.solver.model.lm import cost_scale, lm_params
 from mirror_fg.solver.start.peeling import spread_subset
@@ -93,16 +94,28 @@ def _optimize(
 def _refine_subtree(
     subtree: Dataset, closed_form: AnalyticSolution, optima: Sequence[tuple[float, AnalyticSolution]] = (),
     measurements: list[Measurement] | None = None, sigmas: np.ndarray | None = None,
+    built: dict | None = None,
 ) -> tuple[float, AnalyticSolution] | None:
     """The MLE (eq. 23) of one subtree's own images from its closed-form hypothesis: its cost and values.
 
     ``optima``: ``(cost, solution)`` of this subtree already refined from other hypotheses; when the
     refinement comes near one of them (:data:`SAME_OPTIMUM_TOLERANCE`) it stops and returns that one.
     ``measurements``, ``sigmas``: ``graph.measurements_of(subtree)`` and their ``measurement_sigmas``,
-    when already computed.
+    when already computed. ``built``: an empty dict the first time a subtree is refined, then the same
+    dict for its other hypotheses: its eliminated graph is built once and restarted from each hypothesis
+    (``EliminatedEvaluator.restart``: the state of a new one).
     """
     try:
-        eliminated = build_eliminated_graph(subtree, closed_form, measurements, sigmas)  # its placements solved inside
+        if built is not None and "graph" in built:
+            eliminated = built["graph"]
+            if eliminated is not None:
+                eliminated.evaluator.restart(closed_form.mirror_vectors)
+                eliminated = replace(eliminated, values=initial_values(eliminated.layout, closed_form,
+                                                                       frozenset(eliminated.evaluator.eliminated)))
+        else:
+            eliminated = build_eliminated_graph(subtree, closed_form, measurements, sigmas)  # its placements solved inside
+            if built is not None:
+                built["graph"] = eliminated
         if eliminated is not None:
             graph, values, layout, evaluator = eliminated.graph, eliminated.values, eliminated.layout, eliminated.evaluator
         else:
@@ -146,9 +159,10 @@ def _refined_scores(node: TreeNode, ranking: list[Image]) -> list[tuple[float, H
     scores = []
     optima: list[tuple[float, AnalyticSolution]] = []  # reached by earlier proposals (not degenerate ones)
     completed: dict[int, Hypothesis] = {}  # each optimum's hypothesis with every placement, made once
+    built: dict = {}  # the subtree's eliminated graph, built once for every proposal
     for proposal, degenerate in zip(node.proposals, node.degenerate):
         refined = _refine_subtree(subtree, node.subtree_solution(proposal), () if degenerate else optima,
-                                  measurements, sigmas)
+                                  measurements, sigmas, built)
         if refined is None or not np.isfinite(refined[0]):
             scores.append((np.inf, proposal))
         else:

@@ -339,15 +339,14 @@ def _search(
         triples = [tuple(sorted(rng.choice(children, size=3, replace=False))) for _ in range(NUM_TRIPLE_HYPOTHESES)]
     # every candidate combination of every triple solved at once (solve_children of each, vectorised)
     stacked = StackedCandidates(image_candidates)
-    combos_of = []
+    combos_of = []  # per triple: each combination of its images' candidates, as rows of ``stacked``
     for triple in triples:
         images = [first_image_of_child[k] for k in triple]
-        combos_of.append([[image_candidates[i][c] for i, c in zip(images, combo)]
+        first_rows = [int(stacked.first[i]) for i in images]
+        combos_of.append([tuple(first + c for first, c in zip(first_rows, combo))
                           for combo in product(*(range(len(image_candidates[i])) for i in images))])
-    flat = [combo for combos in combos_of for combo in combos]
-    A_parents, b_parents, residuals = solve_triples(
-        np.array([[A for A, _ in combo] for combo in flat]), np.array([[b for _, b in combo] for combo in flat]), parent_det
-    )
+    flat = np.array([combo for combos in combos_of for combo in combos], dtype=np.intp).reshape(-1, 3)
+    A_parents, b_parents, residuals = solve_triples(stacked.A[flat], stacked.b[flat], parent_det)
     hypotheses: dict[tuple[int, ...], float] = {}
     start = 0
     for combos in combos_of:
@@ -365,11 +364,8 @@ def _search(
         todo = [choice for choice in dict.fromkeys(choices) if choice not in solved]
         if not todo:
             return
-        picked = [[candidates[c] for candidates, c in zip(image_candidates, choice)] for choice in todo]
-        nodes = solve_children_many(
-            children_index, np.array([[A for A, _ in p] for p in picked]), np.array([[b for _, b in p] for p in picked]),
-            num_children, parent_det,
-        )
+        rows = stacked.first[None, :] + np.array(todo, dtype=np.intp)  # each choice's candidates' rows
+        nodes = solve_children_many(children_index, stacked.A[rows], stacked.b[rows], num_children, parent_det)
         for choice, node in zip(todo, nodes):
             solved[choice] = (node, _consistent_choice(stacked, node.A_parent, node.b_parent)[0])
 
