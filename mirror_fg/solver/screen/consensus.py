@@ -54,6 +54,7 @@ from mirror_fg.solver.screen.placement_consensus import (  # noqa: F401 (the nod
     reflected_errors,
 )
 from mirror_fg.solver.start.pnp import pnp_candidates, pnp_candidates_many, pnp_minima
+from mirror_fg.solver.start.pnp_screen import screen_minima_many
 
 __all__ = [
     "PNP_POINT_SIGMAS", "MAX_BAD_POINT_FRACTION", "CONSENSUS_MIN_SIGMAS", "CONSENSUS_FACTOR", "FINAL_SIGMAS",
@@ -217,8 +218,23 @@ def check_images(dataset: Dataset, known: dict[str, tuple[tuple[str, ...], list[
     candidates: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     three: list[tuple[str, tuple[np.ndarray, np.ndarray]]] = []
     tree = dataset.is_tree  # once: it looks at every image
+    names_of = {image.id: fiducial_names(dataset, image) for image in dataset.images}
+    solve = []  # the images with >= 4 fiducials whose minima are not known: all solved at once
     for image in dataset.images:
-        names = fiducial_names(dataset, image)
+        names = names_of[image.id]
+        found = known.get(image.id)
+        if len(names) >= 4 and (found is None or found[0] != tuple(names)):
+            solve.append(image)
+    problems = []
+    for image in solve:
+        normalized = dataset.normalized(image)
+        problems.append((np.array([dataset.fiducials[n] for n in names_of[image.id]]),
+                         np.array([normalized[n] for n in names_of[image.id]])))
+    # the lowest minimum alone where nothing else could be kept as a twin (TWIN_COST_GAP), else every one
+    solved = dict(zip((image.id for image in solve), screen_minima_many(
+        problems, [len(image.reflections) for image in solve], dataset.normalized_sigma, TWIN_COST_GAP)))
+    for image in dataset.images:
+        names = names_of[image.id]
         if len(names) == 3:
             if not tree:  # P3P's candidates feed only the tree's analytical solution
                 continue
@@ -230,7 +246,7 @@ def check_images(dataset: Dataset, known: dict[str, tuple[tuple[str, ...], list[
             continue
         found = known.get(image.id)
         poses, points_out, image_out, minima_of_image = _check_pnp(
-            dataset, image, names, found[1] if found is not None and found[0] == tuple(names) else None)
+            dataset, image, names, found[1] if found is not None and found[0] == tuple(names) else solved[image.id])
         minima[image.id] = (tuple(names), minima_of_image)
         if image_out is not None:
             excluded.append(image_out)

@@ -1,0 +1,233 @@
+"""The screen's PnP minima of many images at once (Sect. 4.1, eq. 10): for each image, its lowest minimum
+alone where none of the search's other starts (:func:`~mirror_fg.solver.start.pnp.pnp_starts`) can end at
+a minimum the screen keeps; else every minimum of the full search (:func:`~mirror_fg.solver.start.pnp.pnp_minima`).
+
+The full search refines each of ~10 starts with OpenCV's LM (a fixed cost of ~70 us a call); on a clear
+view all of them end at one minimum. Here the starts of every image are formed and judged together
+(numpy, all images at once), only the lowest-cost start of each image is refined, and the others are
+vouched for from it:
+
+- a start in the minimum's basin: one Gauss-Newton step from it, with the minimum's Jacobian, lands within
+  ``CONTRACTION`` of its distance from the minimum (both measured as whitened residual changes);
+- a P3P start far from every pose the screen keeps: a pose the screen keeps (the lowest minimum or one
+  ``relevant_cost`` above it, ``consensus.TWIN_COST_GAP``) puts each fiducial within
+  ``b = sqrt(c0 + relevant_cost)`` sigma, so it nearly solves the start's three fiducials and lies near
+  that P3P solution, where the other fiducials' errors are those of the pose give or take
+  ``|J_O J_T^-1| b sqrt(3)`` (linearised: ``J_T`` the three fiducials' Jacobian, ``J_O`` the others');
+  an other fiducial missing by more than ``b`` plus that (``MISS_MARGIN`` times) leaves no kept pose there;
+- the minimum itself well determined: its cost's ellipsoid ``|J d|^2 <= c0 + relevant_cost`` reaches no
+  further than ``ELLIPSOID_REACH`` (a far, small target's flat valley of twins fails this and gets the full
+  search, as does a planar target: IPPE's twin).
+
+An image where any start is vouched for by neither gets the full search, bit for bit as before.
+``tests/test_pnp_screen.py`` compares with the full search on thousands of random and adversarial views:
+the lowest minimum is the same and every twin the full search keeps is kept, but for twins that are LM's
+early stops (a second LM from them moves on), not minima.
+
+Frames and units: base-frame fiducials (metres), normalized image coordinates, whitened by ``sigma``; the
+search sees rigid poses ``(R, t)`` (an odd number of mirrors flips the image in y, eq. 11, and the pose
+back, eq. 12).
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from mirror_fg.core.geometry import FLIP_Y, so3_exp_many
+from mirror_fg.solver.start.pnp import PNP_CRITERIA, SAME_BASIN, first_of_each, pnp_minima, pnp_starts
+
+__all__ = ["screen_minima_many", "CONTRACTION", "MISS_MARGIN", "ELLIPSOID_REACH"]
+
+#: A start is in the lowest minimum's basin when a Gauss-Newton step from it (the minimum's Jacobian) misses
+#: the minimum by at most this fraction of its distance (whitened residual change, the Jacobian's range).
+CONTRACTION = 0.5
+#: A P3P start's other fiducial must miss by ``b`` plus this many times what the triple's error can move it.
+MISS_MARGIN = 1.0
+#: The lowest minimum's cost ellipsoid reaches at most this far (radians; translations relative to depth).
+ELLIPSOID_REACH = 0.2
+
+Pose = tuple[np.ndarray, np.ndarray]
+
+
+def _whitened(R: np.ndarray, t: np.ndarray, points: np.ndarray, observed: np.ndarray, sigma: np.ndarray):
+    """Whitened residuals (M, N, 2) of ``points`` (M, N, 3) under poses ``(R, t)`` ((M, 3, 3), (M, 3)) against
+    ``observed`` (M, N, 2) (eqs. 2, 9), their Jacobians (M, N, 2, 6) in a left turn and a shift ``(w, v)``
+    (``R <- exp(w) R``, ``t <- t + v``) and the depths (M, N)."""
+    turned = np.einsum("mab,mnb->mna", R, points)
+    camera = turned + t[:, None, :]
+    depth = camera[..., 2]
+    safe = np.where(depth > 0, depth, 1.0)
+    projected = camera[..., :2] / safe[..., None]
+    # row a of d(x/z, y/z)/dX: e_a - (x/z, y/z)_a e_z over z; times dX/dw = -[R p]x: (R p) x row, dX/dv = I
+    rows = np.zeros(camera.shape[:2] + (2, 3))
+    rows[..., 0, 0] = rows[..., 1, 1] = 1.0
+    rows[..., :, 2] = -projected
+    rows /= (safe[..., None, None] * sigma[:, None])
+    jacobian = np.concatenate([np.cross(turned[..., None, :], rows), rows], axis=-1)
+    return (projected - observed) / sigma, jacobian, depth
+
+
+def _so3_log_many(R: np.ndarray) -> np.ndarray:
+    """Axis-angle vectors (M, 3) of rotations (M, 3, 3) by less than pi, and their angles (M,)."""
+    angle = np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
+    axis = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    sine = np.sin(angle)
+    scale = np.where(angle < 1e-8, 0.5, angle / (2.0 * np.where(sine > 1e-12, sine, 1.0)))
+    return scale[:, None] * axis, angle
+
+
+def _finite(*arrays: np.ndarray) -> np.ndarray:
+    """Per leading index: every entry of every array finite."""
+    ok = np.ones(len(arrays[0]), dtype=bool)
+    for a in arrays:
+        ok &= np.all(np.isfinite(a.reshape(len(a), -1)), axis=1)
+    return ok
+
+
+def _vouched(points: np.ndarray, observed: np.ndarray, sigma: np.ndarray, relevant_cost: float,
+             R0: np.ndarray, t0: np.ndarray, R_start: np.ndarray, t_start: np.ndarray, owner: np.ndarray,
+             triples: np.ndarray) -> np.ndarray:
+    """Whether each image (``points`` (M, N, 3), ``observed`` (M, N, 2)) with lowest minimum ``(R0, t0)`` has
+    every other start ``(R_start, t_start)`` of image ``owner`` (``triples`` (S, 3): the P3P start's three
+    fiducials, -1 for the solvers') vouched for (module docstring)."""
+    count = len(points)
+    residual, jacobian, depth = _whitened(R0, t0, points, observed, sigma)
+    ok = np.all(depth > 0, axis=1) & _finite(residual, jacobian)
+    residual, jacobian = np.where(ok[:, None, None], residual, 0.0), np.where(ok[:, None, None, None], jacobian, 1.0)
+    cost = np.sum(residual**2, axis=(1, 2))
+    reach = np.sqrt(cost + relevant_cost)  # b: the largest whitened error of one fiducial under a kept pose
+    J = jacobian.reshape(count, -1, 6)
+    _, singular, vt = np.linalg.svd(J, full_matrices=False)
+    ok &= singular[:, -1] > 1e-12 * singular[:, 0]
+    axes = reach[:, None, None] * vt / np.where(singular > 0, singular, 1.0)[:, :, None]  # the ellipsoid's semi-axes
+    depth_scale = np.mean(depth, axis=1)
+    ok &= (np.linalg.norm(axes[..., :3], axis=2).max(axis=1) <= ELLIPSOID_REACH)
+    ok &= (np.linalg.norm(axes[..., 3:], axis=2).max(axis=1) <= ELLIPSOID_REACH * depth_scale)
+    basis, _ = np.linalg.qr(J)  # the Jacobian's range
+
+    def contracts(R: np.ndarray, t: np.ndarray, of: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Whether a Gauss-Newton step from each pose ``(R, t)`` of image ``of``, with its minimum's Jacobian,
+        lands within ``CONTRACTION`` of the way to the minimum; the poses' residuals, Jacobians, depths."""
+        turn, angle = _so3_log_many(R @ np.transpose(R0[of], (0, 2, 1)))
+        step = np.concatenate([turn, t - t0[of]], axis=1)
+        s_residual, s_jacobian, s_depth = _whitened(R, t, points[of], observed[of], sigma)
+        linear = np.einsum("sk,sjk->sj", step, J[of])
+        change = (s_residual - residual[of]).reshape(len(of), -1)
+        miss = np.einsum("sjk,sk->sj", basis[of], np.einsum("sjk,sj->sk", basis[of], change - linear))
+        ratio = np.linalg.norm(miss, axis=1) / np.linalg.norm(linear, axis=1)
+        return ((angle <= 2.0) & np.all(s_depth > 0, axis=1) & _finite(s_residual) & (ratio <= CONTRACTION),
+                s_residual, s_jacobian, s_depth)
+
+    # one minimum in the ellipsoid: the steps from its ends (twice as far) contract too
+    ends = np.concatenate([axes, -axes], axis=1).reshape(-1, 6) * 2.0
+    end_of = np.repeat(np.arange(count), 12)
+    ok &= contracts(so3_exp_many(ends[:, :3]) @ R0[end_of], t0[end_of] + ends[:, 3:], end_of)[0].reshape(count, 12).all(axis=1)
+    if not len(owner):
+        return ok
+    contracted, s_residual, s_jacobian, s_depth = contracts(R_start, t_start, owner)
+    # a P3P start far from every kept pose: an other fiducial misses by more than a kept pose's could
+    p3p = triples[:, 0] >= 0
+    rows = np.arange(len(owner))[:, None]
+    triple = np.where(p3p[:, None], triples, np.arange(3)[None, :])
+    in_triple = np.zeros(s_depth.shape, dtype=bool)
+    in_triple[rows, triple] = True
+    J_T = s_jacobian[rows, triple].reshape(-1, 6, 6)
+    J_O = s_jacobian[~in_triple].reshape(len(owner), -1, 6)
+    clear = p3p & _finite(s_jacobian, s_residual) & np.all(s_depth[rows, triple] > 0, axis=1)
+    J_T = np.where(clear[:, None, None], J_T, np.eye(6))
+    t_singular = np.linalg.svd(J_T, compute_uv=False)
+    clear &= t_singular[:, -1] > 1e-9 * t_singular[:, 0]
+    J_inverse = np.linalg.inv(np.where(clear[:, None, None], J_T, np.eye(6)))
+    clear &= _finite(J_inverse)
+    moved = np.linalg.norm(np.where(clear[:, None, None], J_O, 0.0) @ np.where(clear[:, None, None], J_inverse, 0.0),
+                           ord=2, axis=(1, 2)) * reach[owner] * np.sqrt(3.0)
+    others = np.linalg.norm(s_residual[~in_triple].reshape(len(owner), -1, 2), axis=2)
+    behind = s_depth[~in_triple].reshape(len(owner), -1) <= 0
+    far = clear & np.any(behind | (others > (reach[owner] + MISS_MARGIN * moved)[:, None]), axis=1)
+    every = np.ones(count, dtype=bool)
+    np.logical_and.at(every, owner, contracted | far)
+    return ok & every
+
+
+def screen_minima_many(problems: list[tuple[np.ndarray, np.ndarray]], parities: list[int], sigma: np.ndarray,
+                       relevant_cost: float) -> list[list[Pose]]:
+    """:func:`~mirror_fg.solver.start.pnp.pnp_minima` of many images (``(base_points, normalized)`` each, >= 4
+    fiducials, with its number of mirrors ``parities``) for a screen that keeps the lowest minimum and those
+    less than ``relevant_cost`` (whitened squared reprojection, ``sigma`` (2,) normalized) above it: the
+    lowest minimum alone where every other start is vouched for (module docstring), else the full search."""
+    sigma = np.asarray(sigma, dtype=float)
+    results: list[list[Pose] | None] = [None] * len(problems)
+    groups: dict[int, list[int]] = {}
+    for i, (base_points, _) in enumerate(problems):
+        groups.setdefault(len(base_points), []).append(i)
+    for count, members in groups.items():
+        points = np.array([np.asarray(problems[i][0], dtype=np.float64) for i in members])
+        observed = np.array([np.asarray(problems[i][1], dtype=np.float64) for i in members])
+        flips = np.array([parities[i] % 2 == 1 for i in members])
+        observed[flips, :, 1] *= -1.0  # eq. (11)
+        centred = points - points.mean(axis=1, keepdims=True)
+        spreads = np.linalg.svd(centred, compute_uv=False)
+        planar = spreads[:, 2] < 1e-9 * np.maximum(1.0, np.abs(centred).max(axis=(1, 2)))  # as pnp.is_planar
+        owner, rvecs, tvecs, triples, judged = [], [], [], [], []
+        for k in range(len(members)):
+            if count < 4 or planar[k]:  # a planar target's twin: the full search
+                continue
+            r, t, of = pnp_starts(points[k], observed[k], True, False, spreads[k])
+            if not r:
+                continue
+            judged.append(k)
+            owner.extend([k] * len(r))
+            rvecs.extend(r)
+            tvecs.extend(t)
+            triples.extend(triple if triple is not None else (-1, -1, -1) for triple in of)
+        if judged:
+            _judge(members, points, observed, flips, judged, np.array(owner), rvecs, tvecs, np.array(triples),
+                   sigma, relevant_cost, results)
+    for i, found in enumerate(results):
+        if found is None:
+            results[i] = pnp_minima(problems[i][0], problems[i][1], parities[i])
+    return results  # type: ignore[return-value]
+
+
+def _judge(members, points, observed, flips, judged, owner, rvecs, tvecs, triples, sigma, relevant_cost, results):
+    """The starts of the ``judged`` images of one fiducial count: refine each image's lowest-cost start and
+    give the image that minimum alone where the others are vouched for (:func:`_vouched`)."""
+    R_all = so3_exp_many(np.array([np.asarray(r, dtype=np.float64).reshape(3) for r in rvecs]))
+    t_all = np.array([np.asarray(t, dtype=np.float64).reshape(3) for t in tvecs])
+    chosen: list[int] = []
+    starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
+    ends = np.r_[starts[1:], len(owner)]
+    for a, b in zip(starts.tolist(), ends.tolist()):  # the search's starts of one basin: the first (pnp._pnp_minima)
+        chosen.extend(a + j for j in first_of_each(R_all[a:b], t_all[a:b], SAME_BASIN))
+    chosen_index = np.array(chosen)
+    R_s, t_s, of = R_all[chosen_index], t_all[chosen_index], owner[chosen_index]
+    residual, _, depth = _whitened(R_s, t_s, points[of], observed[of], sigma)
+    cost = np.where(np.all(depth > 0, axis=1) & _finite(residual), np.sum(residual**2, axis=(1, 2)), np.inf)
+    lowest: dict[int, int] = {}
+    for s, (k, c) in enumerate(zip(of.tolist(), cost.tolist())):
+        if c < np.inf and (k not in lowest or c < cost[lowest[k]]):
+            lowest[k] = s
+    if not lowest:
+        return
+    images = np.array(sorted(lowest))
+    refined_r, refined_t = [], []
+    for k in images.tolist():
+        obj, img = points[k].reshape(-1, 1, 3), observed[k].reshape(-1, 1, 2)
+        rvec, tvec = cv2.Rodrigues(R_s[lowest[k]])[0], t_s[lowest[k]].reshape(3, 1).copy()
+        try:
+            rvec, tvec = cv2.solvePnPRefineLM(obj, img, np.eye(3), None, rvec, tvec, criteria=PNP_CRITERIA)
+        except cv2.error:
+            pass
+        refined_r.append(np.asarray(rvec, dtype=np.float64).reshape(3))
+        refined_t.append(np.asarray(tvec, dtype=np.float64).reshape(3))
+    R0, t0 = so3_exp_many(np.array(refined_r)), np.array(refined_t)
+    position = {k: j for j, k in enumerate(images.tolist())}
+    others = np.array([s for s in range(len(of)) if of[s] in position and s != lowest[of[s]]], dtype=int)
+    other_owner = np.array([position[k] for k in of[others].tolist()], dtype=int)
+    with np.errstate(all="ignore"):
+        vouched = _vouched(points[images], observed[images], sigma, relevant_cost, R0, t0, R_s[others], t_s[others],
+                           other_owner, triples[chosen_index][others])
+    for j, k in enumerate(images.tolist()):
+        if vouched[j]:
+            R, t = R0[j], t0[j]
+            results[members[k]] = [(FLIP_Y @ R, FLIP_Y @ t) if flips[k] else (R, t)]  # eq. (12)
