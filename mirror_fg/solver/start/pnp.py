@@ -13,7 +13,7 @@ import numpy as np
 from mirror_fg.core.geometry import FLIP_Y, so3_exp_many
 
 __all__ = ["pnp_candidates", "pnp_candidates_many", "pnp_minima", "pnp_starts", "first_of_each", "is_planar",
-           "lowest_reprojection", "PNP_CRITERIA"]
+           "lowest_reprojection", "reprojection_rms_many", "PNP_CRITERIA"]
 
 #: Two refined poses are the same minimum when their rotations (entries) and translations (relative)
 #: differ by less than this (LM stops up to ~1e-4 apart in a shallow twin's valley); a planar target's twin
@@ -25,7 +25,7 @@ SAME_BASIN = 1e-3
 PNP_CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
 
 
-def _reprojection_rms_many(R: np.ndarray, t: np.ndarray, base_points: np.ndarray, normalized: np.ndarray) -> np.ndarray:
+def reprojection_rms_many(R: np.ndarray, t: np.ndarray, base_points: np.ndarray, normalized: np.ndarray) -> np.ndarray:
     """RMS reprojection error (normalized coordinates) of base points (N, 3) under each pose ``(R[k], t[k])``
     (eqs. 2, 9); inf where a point is behind the camera."""
     camera_points = np.asarray(base_points, dtype=float) @ np.transpose(R, (0, 2, 1)) + t[:, None, :]
@@ -74,7 +74,7 @@ def _pnp_minima(base_points: np.ndarray, normalized: np.ndarray, collinear_p3p: 
         refined_t.append(np.asarray(tvec, dtype=np.float64).reshape(3))
     R_ref = so3_exp_many(np.array(refined_r))
     t_ref = np.array(refined_t)
-    errors = _reprojection_rms_many(R_ref, t_ref, base_points, normalized).tolist()
+    errors = reprojection_rms_many(R_ref, t_ref, base_points, normalized).tolist()
     finite = [k for k in range(len(chosen)) if np.isfinite(errors[k])]
     order = sorted(finite, key=lambda k: errors[k])  # stable: as the list of (error, R, t) sorted by error
     if not order:
@@ -147,7 +147,7 @@ def _planar_minima(base_points: np.ndarray, normalized: np.ndarray) -> list[tupl
         refined_r.append(np.asarray(rvec, dtype=np.float64).reshape(3))
         refined_t.append(np.asarray(tvec, dtype=np.float64).reshape(3))
     R_ref, t_ref = so3_exp_many(np.array(refined_r)), np.array(refined_t)
-    errors = _reprojection_rms_many(R_ref, t_ref, base_points, normalized).tolist()
+    errors = reprojection_rms_many(R_ref, t_ref, base_points, normalized).tolist()
     order = sorted((k for k in range(len(errors)) if np.isfinite(errors[k])), key=lambda k: errors[k])
     if not order:
         return _pnp_minima(base_points, normalized, False, True)

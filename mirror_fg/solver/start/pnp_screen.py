@@ -34,7 +34,8 @@ import cv2
 import numpy as np
 
 from mirror_fg.core.geometry import FLIP_Y, so3_exp_many
-from mirror_fg.solver.start.pnp import PNP_CRITERIA, SAME_BASIN, first_of_each, pnp_minima, pnp_starts
+from mirror_fg.solver.start.pnp import (PNP_CRITERIA, SAME_BASIN, SAME_MINIMUM, first_of_each, pnp_minima, pnp_starts,
+                                        reprojection_rms_many)
 
 __all__ = ["screen_minima_many", "CONTRACTION", "MISS_MARGIN", "ELLIPSOID_REACH"]
 
@@ -86,10 +87,11 @@ def _finite(*arrays: np.ndarray) -> np.ndarray:
 
 def _vouched(points: np.ndarray, observed: np.ndarray, sigma: np.ndarray, relevant_cost: float,
              R0: np.ndarray, t0: np.ndarray, R_start: np.ndarray, t_start: np.ndarray, owner: np.ndarray,
-             triples: np.ndarray) -> np.ndarray:
-    """Whether each image (``points`` (M, N, 3), ``observed`` (M, N, 2)) with lowest minimum ``(R0, t0)`` has
-    every other start ``(R_start, t_start)`` of image ``owner`` (``triples`` (S, 3): the P3P start's three
-    fiducials, -1 for the solvers') vouched for (module docstring)."""
+             triples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For images (``points`` (M, N, 3), ``observed`` (M, N, 2)) with lowest-cost refined start ``(R0, t0)``
+    and their other starts ``(R_start, t_start)`` of image ``owner`` (``triples`` (S, 3): a P3P start's three
+    fiducials, -1 for the solvers'): whether each image's minimum is well determined (M,) and whether each
+    start is vouched for (S,) (module docstring)."""
     count = len(points)
     residual, jacobian, depth = _whitened(R0, t0, points, observed, sigma)
     ok = np.all(depth > 0, axis=1) & _finite(residual, jacobian)
@@ -123,30 +125,27 @@ def _vouched(points: np.ndarray, observed: np.ndarray, sigma: np.ndarray, releva
     end_of = np.repeat(np.arange(count), 12)
     ok &= contracts(so3_exp_many(ends[:, :3]) @ R0[end_of], t0[end_of] + ends[:, 3:], end_of)[0].reshape(count, 12).all(axis=1)
     if not len(owner):
-        return ok
+        return ok, np.zeros(0, dtype=bool)
     contracted, s_residual, s_jacobian, s_depth = contracts(R_start, t_start, owner)
     # a P3P start far from every kept pose: an other fiducial misses by more than a kept pose's could
+    # (Frobenius norms: above the spectral ones, so on the safe side)
     p3p = triples[:, 0] >= 0
     rows = np.arange(len(owner))[:, None]
     triple = np.where(p3p[:, None], triples, np.arange(3)[None, :])
     in_triple = np.zeros(s_depth.shape, dtype=bool)
     in_triple[rows, triple] = True
-    J_T = s_jacobian[rows, triple].reshape(-1, 6, 6)
-    J_O = s_jacobian[~in_triple].reshape(len(owner), -1, 6)
-    clear = p3p & _finite(s_jacobian, s_residual) & np.all(s_depth[rows, triple] > 0, axis=1)
-    J_T = np.where(clear[:, None, None], J_T, np.eye(6))
-    t_singular = np.linalg.svd(J_T, compute_uv=False)
-    clear &= t_singular[:, -1] > 1e-9 * t_singular[:, 0]
-    J_inverse = np.linalg.inv(np.where(clear[:, None, None], J_T, np.eye(6)))
+    clear = p3p & ~contracted & _finite(s_jacobian, s_residual) & np.all(s_depth[rows, triple] > 0, axis=1)
+    J_T = np.where(clear[:, None, None], s_jacobian[rows, triple].reshape(-1, 6, 6), np.eye(6))
+    J_O = np.where(clear[:, None, None], s_jacobian[~in_triple].reshape(len(owner), -1, 6), 0.0)
+    J_inverse = np.linalg.inv(J_T)
     clear &= _finite(J_inverse)
-    moved = np.linalg.norm(np.where(clear[:, None, None], J_O, 0.0) @ np.where(clear[:, None, None], J_inverse, 0.0),
-                           ord=2, axis=(1, 2)) * reach[owner] * np.sqrt(3.0)
+    J_inverse = np.where(clear[:, None, None], J_inverse, 0.0)
+    clear &= np.linalg.norm(J_T, axis=(1, 2)) * np.linalg.norm(J_inverse, axis=(1, 2)) < 1e9  # not singular
+    moved = np.linalg.norm(J_O @ J_inverse, axis=(1, 2)) * reach[owner] * np.sqrt(3.0)
     others = np.linalg.norm(s_residual[~in_triple].reshape(len(owner), -1, 2), axis=2)
     behind = s_depth[~in_triple].reshape(len(owner), -1) <= 0
     far = clear & np.any(behind | (others > (reach[owner] + MISS_MARGIN * moved)[:, None]), axis=1)
-    every = np.ones(count, dtype=bool)
-    np.logical_and.at(every, owner, contracted | far)
-    return ok & every
+    return ok, contracted | far
 
 
 def screen_minima_many(problems: list[tuple[np.ndarray, np.ndarray]], parities: list[int], sigma: np.ndarray,
@@ -225,9 +224,41 @@ def _judge(members, points, observed, flips, judged, owner, rvecs, tvecs, triple
     others = np.array([s for s in range(len(of)) if of[s] in position and s != lowest[of[s]]], dtype=int)
     other_owner = np.array([position[k] for k in of[others].tolist()], dtype=int)
     with np.errstate(all="ignore"):
-        vouched = _vouched(points[images], observed[images], sigma, relevant_cost, R0, t0, R_s[others], t_s[others],
-                           other_owner, triples[chosen_index][others])
+        determined, vouched = _vouched(points[images], observed[images], sigma, relevant_cost, R0, t0, R_s[others],
+                                       t_s[others], other_owner, triples[chosen_index][others])
+    # the starts not vouched for are refined too (those of an image whose minimum is not well determined:
+    # the full search, pnp.pnp_minima)
+    unvouched: dict[int, list[int]] = {}
+    for s, j in zip(others[~vouched].tolist(), other_owner[~vouched].tolist()):
+        if determined[j]:
+            unvouched.setdefault(j, []).append(s)
     for j, k in enumerate(images.tolist()):
-        if vouched[j]:
-            R, t = R0[j], t0[j]
-            results[members[k]] = [(FLIP_Y @ R, FLIP_Y @ t) if flips[k] else (R, t)]  # eq. (12)
+        if not determined[j]:
+            continue
+        if j not in unvouched:
+            minima = [(R0[j], t0[j])]
+        else:
+            minima = _minima(points[k], observed[k], R0[j], t0[j], R_s[unvouched[j]], t_s[unvouched[j]])
+        results[members[k]] = [(FLIP_Y @ R, FLIP_Y @ t) for R, t in minima] if flips[k] else minima  # eq. (12)
+
+
+def _minima(points: np.ndarray, observed: np.ndarray, R0: np.ndarray, t0: np.ndarray, R_starts: np.ndarray,
+            t_starts: np.ndarray) -> list[Pose]:
+    """The distinct minima, lowest first, of the refined start ``(R0, t0)`` and the starts ``(R_starts,
+    t_starts)`` refined by LM (as :func:`~mirror_fg.solver.start.pnp.pnp_minima` sorts and merges them)."""
+    obj, img = points.reshape(-1, 1, 3), observed.reshape(-1, 1, 2)
+    refined_r, refined_t = [], []
+    for R, t in zip(R_starts, t_starts):
+        rvec, tvec = cv2.Rodrigues(R)[0], t.reshape(3, 1).copy()
+        try:
+            rvec, tvec = cv2.solvePnPRefineLM(obj, img, np.eye(3), None, rvec, tvec, criteria=PNP_CRITERIA)
+        except cv2.error:
+            pass
+        refined_r.append(np.asarray(rvec, dtype=np.float64).reshape(3))
+        refined_t.append(np.asarray(tvec, dtype=np.float64).reshape(3))
+    R_all = np.concatenate([R0[None], so3_exp_many(np.array(refined_r))])
+    t_all = np.concatenate([t0[None], np.array(refined_t)])
+    errors = reprojection_rms_many(R_all, t_all, points, observed).tolist()
+    order = sorted((k for k in range(len(errors)) if np.isfinite(errors[k])), key=lambda k: errors[k])
+    R_sorted, t_sorted = R_all[order], t_all[order]
+    return [(R_sorted[k], t_sorted[k]) for k in first_of_each(R_sorted, t_sorted, SAME_MINIMUM)]
