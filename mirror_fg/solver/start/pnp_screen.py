@@ -50,15 +50,18 @@ ELLIPSOID_REACH = 0.2
 Pose = tuple[np.ndarray, np.ndarray]
 
 
-def _whitened(R: np.ndarray, t: np.ndarray, points: np.ndarray, observed: np.ndarray, sigma: np.ndarray):
+def _whitened(R: np.ndarray, t: np.ndarray, points: np.ndarray, observed: np.ndarray, sigma: np.ndarray,
+              with_jacobian: bool = True):
     """Whitened residuals (M, N, 2) of ``points`` (M, N, 3) under poses ``(R, t)`` ((M, 3, 3), (M, 3)) against
     ``observed`` (M, N, 2) (eqs. 2, 9), their Jacobians (M, N, 2, 6) in a left turn and a shift ``(w, v)``
-    (``R <- exp(w) R``, ``t <- t + v``) and the depths (M, N)."""
+    (``R <- exp(w) R``, ``t <- t + v``; None without ``with_jacobian``) and the depths (M, N)."""
     turned = np.einsum("mab,mnb->mna", R, points)
     camera = turned + t[:, None, :]
     depth = camera[..., 2]
     safe = np.where(depth > 0, depth, 1.0)
     projected = camera[..., :2] / safe[..., None]
+    if not with_jacobian:
+        return (projected - observed) / sigma, None, depth
     # row a of d(x/z, y/z)/dX: e_a - (x/z, y/z)_a e_z over z; times dX/dw = -[R p]x: (R p) x row, dX/dv = I
     rows = np.zeros(camera.shape[:2] + (2, 3))
     rows[..., 0, 0] = rows[..., 1, 1] = 1.0
@@ -115,7 +118,7 @@ def _vouched(points: np.ndarray, observed: np.ndarray, sigma: np.ndarray, releva
         s_residual, s_jacobian, s_depth = _whitened(R, t, points[of], observed[of], sigma)
         linear = np.einsum("sk,sjk->sj", step, J[of])
         change = (s_residual - residual[of]).reshape(len(of), -1)
-        miss = np.einsum("sjk,sk->sj", basis[of], np.einsum("sjk,sj->sk", basis[of], change - linear))
+        miss = np.einsum("sjk,sj->sk", basis[of], change - linear)  # in the range's basis: as long as in it
         ratio = np.linalg.norm(miss, axis=1) / np.linalg.norm(linear, axis=1)
         return ((angle <= 2.0) & np.all(s_depth > 0, axis=1) & _finite(s_residual) & (ratio <= CONTRACTION),
                 s_residual, s_jacobian, s_depth)
@@ -200,7 +203,7 @@ def _judge(members, points, observed, flips, judged, owner, rvecs, tvecs, triple
         chosen.extend(a + j for j in first_of_each(R_all[a:b], t_all[a:b], SAME_BASIN))
     chosen_index = np.array(chosen)
     R_s, t_s, of = R_all[chosen_index], t_all[chosen_index], owner[chosen_index]
-    residual, _, depth = _whitened(R_s, t_s, points[of], observed[of], sigma)
+    residual, _, depth = _whitened(R_s, t_s, points[of], observed[of], sigma, with_jacobian=False)
     cost = np.where(np.all(depth > 0, axis=1) & _finite(residual), np.sum(residual**2, axis=(1, 2)), np.inf)
     lowest: dict[int, int] = {}
     for s, (k, c) in enumerate(zip(of.tolist(), cost.tolist())):
