@@ -233,6 +233,7 @@ def check_images(dataset: Dataset, known: dict[str, tuple[tuple[str, ...], list[
     # the lowest minimum alone where nothing else could be kept as a twin (TWIN_COST_GAP), else every one
     solved = dict(zip((image.id for image in solve), screen_minima_many(
         problems, [len(image.reflections) for image in solve], dataset.normalized_sigma, TWIN_COST_GAP)))
+    fits = _lone_minimum_fits(dataset, solve, problems, [solved[image.id] for image in solve])
     for image in dataset.images:
         names = names_of[image.id]
         if len(names) == 3:
@@ -243,6 +244,10 @@ def check_images(dataset: Dataset, known: dict[str, tuple[tuple[str, ...], list[
                                      np.array([normalized[n] for n in names]))))
             continue
         if len(names) < 3:
+            continue
+        if image.id in fits:  # one minimum, every fiducial within PNP_POINT_SIGMAS: _check_pnp's answer
+            minima[image.id] = (tuple(names), solved[image.id])
+            candidates[image.id] = solved[image.id][:1]
             continue
         found = known.get(image.id)
         poses, points_out, image_out, minima_of_image = _check_pnp(
@@ -257,6 +262,30 @@ def check_images(dataset: Dataset, known: dict[str, tuple[tuple[str, ...], list[
         if poses:
             candidates[image_id] = poses
     return ImageChecks(candidates, excluded, minima)
+
+
+def _lone_minimum_fits(dataset: Dataset, images: list[Image], problems: list[tuple[np.ndarray, np.ndarray]],
+                       found: list[list[tuple[np.ndarray, np.ndarray]]]) -> set[str]:
+    """The images (of ``images``, their fiducials and observations ``problems``) whose PnP has one minimum
+    that reprojects every fiducial within ``PNP_POINT_SIGMAS`` (eqs. 5, 9), judged all at once; one near
+    the bound is left to :func:`_check_pnp`."""
+    groups: dict[int, list[int]] = defaultdict(list)
+    for k, minima in enumerate(found):
+        if len(minima) == 1:
+            groups[len(problems[k][0])].append(k)
+    fitting: set[str] = set()
+    for members in groups.values():
+        points = np.array([problems[k][0] for k in members])
+        observed = np.array([problems[k][1] for k in members])
+        A = np.array([found[k][0][0] for k in members])
+        b = np.array([found[k][0][1] for k in members])
+        camera_points = np.einsum("mab,mnb->mna", A, points) + b[:, None, :]
+        depth = camera_points[..., 2]
+        predicted = camera_points[..., :2] / np.where(depth > 0, depth, 1.0)[..., None]
+        errors = np.linalg.norm((predicted - observed) / dataset.normalized_sigma, axis=2)
+        clear = np.all((depth > 0) & (errors <= PNP_POINT_SIGMAS * (1.0 - 1e-9)), axis=1)
+        fitting.update(images[k].id for k, ok in zip(members, clear.tolist()) if ok)
+    return fitting
 
 
 def screen(dataset: Dataset, seed: int = 0, checked: ImageChecks | None = None) -> tuple[Dataset, list[Exclusion], PnPCandidates]:
