@@ -5,6 +5,7 @@ image is mirror-imaged, so PnP runs on the y-flipped image and the flip is put b
 """
 from __future__ import annotations
 
+from functools import lru_cache
 from itertools import combinations, islice
 
 import cv2
@@ -114,18 +115,24 @@ def pnp_starts(base_points: np.ndarray, normalized: np.ndarray, collinear_p3p: b
             rvecs_all.extend(rvecs)
             tvecs_all.extend(tvecs)
             triples.extend([None] * len(rvecs))
-    for triple in islice(combinations(range(len(base_points)), 3), 4):  # not list(): C(70, 3) tuples cost 3 ms
-        if not collinear_p3p and _collinear(base_points[list(triple)]):
+    for triple, index in _first_triples(len(base_points)):
+        if not collinear_p3p and _collinear(base_points[index]):
             continue
         try:
-            count, rvecs, tvecs = cv2.solveP3P(obj[list(triple)], img[list(triple)], _IDENTITY, None,
-                                               flags=cv2.SOLVEPNP_P3P)
+            count, rvecs, tvecs = cv2.solveP3P(obj[index], img[index], _IDENTITY, None, flags=cv2.SOLVEPNP_P3P)
         except cv2.error:
             continue
         rvecs_all.extend(rvecs[:count])
         tvecs_all.extend(tvecs[:count])
         triples.extend([triple] * count)
     return rvecs_all, tvecs_all, triples
+
+
+@lru_cache(maxsize=64)
+def _first_triples(count: int) -> tuple[tuple[tuple[int, ...], np.ndarray], ...]:
+    """The search's triples of ``count`` fiducials (the first four), each with its index array."""
+    # not list(combinations(...)): C(70, 3) tuples cost 3 ms
+    return tuple((triple, np.array(triple)) for triple in islice(combinations(range(count), 3), 4))
 
 
 def _planar_minima(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:

@@ -84,7 +84,7 @@ def _finite(*arrays: np.ndarray) -> np.ndarray:
     """Per leading index: every entry of every array finite."""
     ok = np.ones(len(arrays[0]), dtype=bool)
     for a in arrays:
-        ok &= np.all(np.isfinite(a.reshape(len(a), -1)), axis=1)
+        ok &= np.all(np.isfinite(a), axis=tuple(range(1, a.ndim)))
     return ok
 
 
@@ -110,18 +110,18 @@ def _vouched(points: np.ndarray, observed: np.ndarray, sigma: np.ndarray, releva
     ok &= (np.linalg.norm(axes[..., 3:], axis=2).max(axis=1) <= ELLIPSOID_REACH * depth_scale)
     basis, _ = np.linalg.qr(J)  # the Jacobian's range
 
-    def contracts(R: np.ndarray, t: np.ndarray, of: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def contracts(R: np.ndarray, t: np.ndarray, of: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Whether a Gauss-Newton step from each pose ``(R, t)`` of image ``of``, with its minimum's Jacobian,
-        lands within ``CONTRACTION`` of the way to the minimum; the poses' residuals, Jacobians, depths."""
+        lands within ``CONTRACTION`` of the way to the minimum; the poses' residuals and depths."""
         turn, angle = _so3_log_many(R @ np.transpose(R0[of], (0, 2, 1)))
         step = np.concatenate([turn, t - t0[of]], axis=1)
-        s_residual, s_jacobian, s_depth = _whitened(R, t, points[of], observed[of], sigma)
+        s_residual, _, s_depth = _whitened(R, t, points[of], observed[of], sigma, with_jacobian=False)
         linear = np.einsum("sk,sjk->sj", step, J[of])
         change = (s_residual - residual[of]).reshape(len(of), -1)
         miss = np.einsum("sjk,sj->sk", basis[of], change - linear)  # in the range's basis: as long as in it
         ratio = np.linalg.norm(miss, axis=1) / np.linalg.norm(linear, axis=1)
         return ((angle <= 2.0) & np.all(s_depth > 0, axis=1) & _finite(s_residual) & (ratio <= CONTRACTION),
-                s_residual, s_jacobian, s_depth)
+                s_residual, s_depth)
 
     # one minimum in the ellipsoid: the steps from its ends (twice as far) contract too
     ends = np.concatenate([axes, -axes], axis=1).reshape(-1, 6) * 2.0
@@ -129,16 +129,28 @@ def _vouched(points: np.ndarray, observed: np.ndarray, sigma: np.ndarray, releva
     ok &= contracts(so3_exp_many(ends[:, :3]) @ R0[end_of], t0[end_of] + ends[:, 3:], end_of)[0].reshape(count, 12).all(axis=1)
     if not len(owner):
         return ok, np.zeros(0, dtype=bool)
-    contracted, s_residual, s_jacobian, s_depth = contracts(R_start, t_start, owner)
+    contracted, s_residual, s_depth = contracts(R_start, t_start, owner)
     # a P3P start far from every kept pose: an other fiducial misses by more than a kept pose's could
-    # (Frobenius norms: above the spectral ones, so on the safe side)
-    p3p = triples[:, 0] >= 0
+    judged = np.flatnonzero((triples[:, 0] >= 0) & ~contracted)
+    far = np.zeros(len(owner), dtype=bool)
+    if len(judged):
+        far[judged] = _far(points, observed, sigma, reach, R_start[judged], t_start[judged], owner[judged],
+                           triples[judged], s_residual[judged], s_depth[judged])
+    return ok, contracted | far
+
+
+def _far(points: np.ndarray, observed: np.ndarray, sigma: np.ndarray, reach: np.ndarray, R_start: np.ndarray,
+         t_start: np.ndarray, owner: np.ndarray, triples: np.ndarray, s_residual: np.ndarray,
+         s_depth: np.ndarray) -> np.ndarray:
+    """Whether each P3P start (of its ``triples``' fiducials) is far from every pose the screen keeps: an other
+    fiducial misses by more than ``reach`` plus ``MISS_MARGIN`` times what the triple's error can move it
+    (module docstring; Frobenius norms, above the spectral ones: on the safe side)."""
+    _, s_jacobian, _ = _whitened(R_start, t_start, points[owner], observed[owner], sigma)
     rows = np.arange(len(owner))[:, None]
-    triple = np.where(p3p[:, None], triples, np.arange(3)[None, :])
     in_triple = np.zeros(s_depth.shape, dtype=bool)
-    in_triple[rows, triple] = True
-    clear = p3p & ~contracted & _finite(s_jacobian, s_residual) & np.all(s_depth[rows, triple] > 0, axis=1)
-    J_T = np.where(clear[:, None, None], s_jacobian[rows, triple].reshape(-1, 6, 6), np.eye(6))
+    in_triple[rows, triples] = True
+    clear = _finite(s_jacobian, s_residual) & np.all(s_depth[rows, triples] > 0, axis=1)
+    J_T = np.where(clear[:, None, None], s_jacobian[rows, triples].reshape(-1, 6, 6), np.eye(6))
     J_O = np.where(clear[:, None, None], s_jacobian[~in_triple].reshape(len(owner), -1, 6), 0.0)
     J_inverse = np.linalg.inv(J_T)
     clear &= _finite(J_inverse)
@@ -147,8 +159,7 @@ def _vouched(points: np.ndarray, observed: np.ndarray, sigma: np.ndarray, releva
     moved = np.linalg.norm(J_O @ J_inverse, axis=(1, 2)) * reach[owner] * np.sqrt(3.0)
     others = np.linalg.norm(s_residual[~in_triple].reshape(len(owner), -1, 2), axis=2)
     behind = s_depth[~in_triple].reshape(len(owner), -1) <= 0
-    far = clear & np.any(behind | (others > (reach[owner] + MISS_MARGIN * moved)[:, None]), axis=1)
-    return ok, contracted | far
+    return clear & np.any(behind | (others > (reach[owner] + MISS_MARGIN * moved)[:, None]), axis=1)
 
 
 def screen_minima_many(problems: list[tuple[np.ndarray, np.ndarray]], parities: list[int], sigma: np.ndarray,
