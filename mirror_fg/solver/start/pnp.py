@@ -181,14 +181,17 @@ def _collinear(points: np.ndarray) -> bool:
 def first_of_each(R: np.ndarray, t: np.ndarray, tolerance: float) -> list[int]:
     """Indices of the poses ``(R[k], t[k])`` kept when each is kept unless it is near one kept before it
     (rotations within ``tolerance`` entry-wise, translations within ``tolerance`` relative to its own)."""
+    table = _near_table(R, t, tolerance)
+    if np.count_nonzero(table) == len(table) and table.diagonal().all():  # each near itself alone: all kept
+        return list(range(len(table)))
     kept: list[int] = []
-    for k, near in enumerate(_near_table(R, t, tolerance)):
+    for k, near in enumerate(table.tolist()):
         if not any(near[j] for j in kept):
             kept.append(k)
     return kept
 
 
-def _near_table(R: np.ndarray, t: np.ndarray, tolerance: float) -> list[list[bool]]:
+def _near_table(R: np.ndarray, t: np.ndarray, tolerance: float) -> np.ndarray:
     """``near[k][j]``: pose k is within ``tolerance`` of pose j (rotation entries; translation relative to
     pose k's) -- all pairs at once."""
     entries = R.reshape(len(R), 9)
@@ -196,7 +199,7 @@ def _near_table(R: np.ndarray, t: np.ndarray, tolerance: float) -> list[list[boo
     scale = np.maximum(np.sqrt(np.einsum("ij,ij->i", t, t)), 1e-12)
     difference = t[:, None] - t[None, :]
     translation = np.sqrt(np.einsum("ijk,ijk->ij", difference, difference))
-    return ((rotation <= tolerance) & (translation <= tolerance * scale[:, None])).tolist()
+    return (rotation <= tolerance) & (translation <= tolerance * scale[:, None])
 
 
 def pnp_minima(base_points: np.ndarray, normalized: np.ndarray, num_mirrors: int, collinear_p3p: bool = True,
