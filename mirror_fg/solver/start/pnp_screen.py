@@ -1,28 +1,31 @@
-"""The screen's PnP minima of many images at once (Sect. 4.1, eq. 10): for each image, its lowest minimum
-alone where none of the search's other starts (:func:`~mirror_fg.solver.start.pnp.pnp_starts`) can end at
-a minimum the screen keeps; else every minimum of the full search (:func:`~mirror_fg.solver.start.pnp.pnp_minima`).
+"""The screen's PnP minima of many images at once (Sect. 4.1, eq. 10): the minima the full search
+(:func:`~mirror_fg.solver.start.pnp.pnp_minima`) would let the screen keep, from fewer refinements.
 
-The full search refines each of ~10 starts with OpenCV's LM (a fixed cost of ~70 us a call); on a clear
-view all of them end at one minimum. Here the starts of every image are formed and judged together
-(numpy, all images at once), only the lowest-cost start of each image is refined, and the others are
-vouched for from it:
+The full search refines each of its ~10 starts (:func:`~mirror_fg.solver.start.pnp.pnp_starts`) with
+OpenCV's LM, a fixed cost of ~70 us a call; on a clear view all of them end at one minimum. Here the starts
+of every image are formed and judged together (numpy, all images at once), each image's lowest-cost start
+is refined, and every other start is refined too unless it is vouched for:
 
-- a start in the minimum's basin: one Gauss-Newton step from it, with the minimum's Jacobian, lands within
+- a start in that minimum's basin: one Gauss-Newton step from it, with the minimum's Jacobian, lands within
   ``CONTRACTION`` of its distance from the minimum (both measured as whitened residual changes);
 - a P3P start far from every pose the screen keeps: a pose the screen keeps (the lowest minimum or one
   ``relevant_cost`` above it, ``consensus.TWIN_COST_GAP``) puts each fiducial within
   ``b = sqrt(c0 + relevant_cost)`` sigma, so it nearly solves the start's three fiducials and lies near
   that P3P solution, where the other fiducials' errors are those of the pose give or take
   ``|J_O J_T^-1| b sqrt(3)`` (linearised: ``J_T`` the three fiducials' Jacobian, ``J_O`` the others');
-  an other fiducial missing by more than ``b`` plus that (``MISS_MARGIN`` times) leaves no kept pose there;
-- the minimum itself well determined: its cost's ellipsoid ``|J d|^2 <= c0 + relevant_cost`` reaches no
-  further than ``ELLIPSOID_REACH`` (a far, small target's flat valley of twins fails this and gets the full
-  search, as does a planar target: IPPE's twin).
+  an other fiducial missing by more than ``b`` plus that (``MISS_MARGIN`` times) leaves no kept pose there.
 
-An image where any start is vouched for by neither gets the full search, bit for bit as before.
-``tests/test_pnp_screen.py`` compares with the full search on thousands of random and adversarial views:
-the lowest minimum is the same and every twin the full search keeps is kept, but for twins that are LM's
-early stops (a second LM from them moves on), not minima.
+The image's minima are then those of the refined starts, sorted and merged as the full search does (on a
+clear view: the lowest alone, one LM call). Only where that minimum is well determined: its cost's
+ellipsoid ``|J d|^2 <= c0 + relevant_cost`` reaches no further than ``ELLIPSOID_REACH`` and the steps from
+twice its ends contract too; else (a far, small target's flat valley of twins), and for a planar target
+(IPPE's twin), the full search as before, the same numbers.
+
+``tests/test_pnp_screen.py`` compares with the full search on thousands of random and adversarial views
+(far, noisy, nearly flat or on a line, a rig's target, boards): polished by an independent least squares,
+the lowest minimum and the twins the screen keeps are the same; the full search's other "twins" there are
+its LM's early stops, the lowest minimum again. Estimates of whole calibrations (rigs, kaleidoscopes,
+mixed views, the examples) move by at most ~5e-11 relative: a different start of the same minimum.
 
 Frames and units: base-frame fiducials (metres), normalized image coordinates, whitened by ``sigma``; the
 search sees rigid poses ``(R, t)`` (an odd number of mirrors flips the image in y, eq. 11, and the pose
@@ -71,7 +74,7 @@ def _whitened(R: np.ndarray, t: np.ndarray, points: np.ndarray, observed: np.nda
     return (projected - observed) / sigma, jacobian, depth
 
 
-def _so3_log_many(R: np.ndarray) -> np.ndarray:
+def _so3_log_many(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Axis-angle vectors (M, 3) of rotations (M, 3, 3) by less than pi, and their angles (M,)."""
     angle = np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0))
     axis = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
@@ -167,7 +170,8 @@ def screen_minima_many(problems: list[tuple[np.ndarray, np.ndarray]], parities: 
     """:func:`~mirror_fg.solver.start.pnp.pnp_minima` of many images (``(base_points, normalized)`` each, >= 4
     fiducials, with its number of mirrors ``parities``) for a screen that keeps the lowest minimum and those
     less than ``relevant_cost`` (whitened squared reprojection, ``sigma`` (2,) normalized) above it: the
-    lowest minimum alone where every other start is vouched for (module docstring), else the full search."""
+    minima of the starts refined (module docstring: the lowest alone where every other start is vouched
+    for), or the full search's."""
     sigma = np.asarray(sigma, dtype=float)
     results: list[list[Pose] | None] = [None] * len(problems)
     groups: dict[int, list[int]] = {}
@@ -181,7 +185,11 @@ def screen_minima_many(problems: list[tuple[np.ndarray, np.ndarray]], parities: 
         centred = points - points.mean(axis=1, keepdims=True)
         spreads = np.linalg.svd(centred, compute_uv=False)
         planar = spreads[:, 2] < 1e-9 * np.maximum(1.0, np.abs(centred).max(axis=(1, 2)))  # as pnp.is_planar
-        owner, rvecs, tvecs, triples, judged = [], [], [], [], []
+        owner: list[int] = []
+        rvecs: list[np.ndarray] = []
+        tvecs: list[np.ndarray] = []
+        triples: list[tuple[int, ...]] = []
+        judged: list[int] = []
         for k in range(len(members)):
             if count < 4 or planar[k]:  # a planar target's twin: the full search
                 continue
@@ -202,9 +210,12 @@ def screen_minima_many(problems: list[tuple[np.ndarray, np.ndarray]], parities: 
     return results  # type: ignore[return-value]
 
 
-def _judge(members, points, observed, flips, judged, owner, rvecs, tvecs, triples, sigma, relevant_cost, results):
-    """The starts of the ``judged`` images of one fiducial count: refine each image's lowest-cost start and
-    give the image that minimum alone where the others are vouched for (:func:`_vouched`)."""
+def _judge(members: list[int], points: np.ndarray, observed: np.ndarray, flips: np.ndarray, judged: list[int],
+           owner: np.ndarray, rvecs: list[np.ndarray], tvecs: list[np.ndarray], triples: np.ndarray,
+           sigma: np.ndarray, relevant_cost: float, results: list[list[Pose] | None]) -> None:
+    """The starts of the ``judged`` images of one fiducial count: refine each image's lowest-cost start, and
+    those of its other starts that are not vouched for (:func:`_vouched`), where its minimum is well
+    determined; the others are left to the full search (``results`` None)."""
     R_all = so3_exp_many(np.array([np.asarray(r, dtype=np.float64).reshape(3) for r in rvecs]))
     t_all = np.array([np.asarray(t, dtype=np.float64).reshape(3) for t in tvecs])
     chosen: list[int] = []
@@ -223,25 +234,16 @@ def _judge(members, points, observed, flips, judged, owner, rvecs, tvecs, triple
     if not lowest:
         return
     images = np.array(sorted(lowest))
-    refined_r, refined_t = [], []
-    for k in images.tolist():
-        obj, img = points[k].reshape(-1, 1, 3), observed[k].reshape(-1, 1, 2)
-        rvec, tvec = cv2.Rodrigues(R_s[lowest[k]])[0], t_s[lowest[k]].reshape(3, 1).copy()
-        try:
-            rvec, tvec = cv2.solvePnPRefineLM(obj, img, np.eye(3), None, rvec, tvec, criteria=PNP_CRITERIA)
-        except cv2.error:
-            pass
-        refined_r.append(np.asarray(rvec, dtype=np.float64).reshape(3))
-        refined_t.append(np.asarray(tvec, dtype=np.float64).reshape(3))
-    R0, t0 = so3_exp_many(np.array(refined_r)), np.array(refined_t)
+    refined = [_refined(points[k], observed[k], R_s[lowest[k]], t_s[lowest[k]]) for k in images.tolist()]
+    R0, t0 = so3_exp_many(np.array([r for r, _ in refined])), np.array([t for _, t in refined])
     position = {k: j for j, k in enumerate(images.tolist())}
     others = np.array([s for s in range(len(of)) if of[s] in position and s != lowest[of[s]]], dtype=int)
     other_owner = np.array([position[k] for k in of[others].tolist()], dtype=int)
     with np.errstate(all="ignore"):
         determined, vouched = _vouched(points[images], observed[images], sigma, relevant_cost, R0, t0, R_s[others],
                                        t_s[others], other_owner, triples[chosen_index][others])
-    # the starts not vouched for are refined too (those of an image whose minimum is not well determined:
-    # the full search, pnp.pnp_minima)
+    # the starts not vouched for are refined too (an image whose minimum is not well determined: the full
+    # search, pnp.pnp_minima)
     unvouched: dict[int, list[int]] = {}
     for s, j in zip(others[~vouched].tolist(), other_owner[~vouched].tolist()):
         if determined[j]:
@@ -256,22 +258,24 @@ def _judge(members, points, observed, flips, judged, owner, rvecs, tvecs, triple
         results[members[k]] = [(FLIP_Y @ R, FLIP_Y @ t) for R, t in minima] if flips[k] else minima  # eq. (12)
 
 
+def _refined(points: np.ndarray, observed: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's LM from the start ``(R, t)`` (as ``pnp._pnp_minima`` refines each start): ``(rvec, tvec)``."""
+    rvec, tvec = cv2.Rodrigues(R)[0], t.reshape(3, 1).copy()
+    try:
+        rvec, tvec = cv2.solvePnPRefineLM(points.reshape(-1, 1, 3), observed.reshape(-1, 1, 2), np.eye(3), None,
+                                          rvec, tvec, criteria=PNP_CRITERIA)
+    except cv2.error:
+        pass
+    return np.asarray(rvec, dtype=np.float64).reshape(3), np.asarray(tvec, dtype=np.float64).reshape(3)
+
+
 def _minima(points: np.ndarray, observed: np.ndarray, R0: np.ndarray, t0: np.ndarray, R_starts: np.ndarray,
             t_starts: np.ndarray) -> list[Pose]:
     """The distinct minima, lowest first, of the refined start ``(R0, t0)`` and the starts ``(R_starts,
     t_starts)`` refined by LM (as :func:`~mirror_fg.solver.start.pnp.pnp_minima` sorts and merges them)."""
-    obj, img = points.reshape(-1, 1, 3), observed.reshape(-1, 1, 2)
-    refined_r, refined_t = [], []
-    for R, t in zip(R_starts, t_starts):
-        rvec, tvec = cv2.Rodrigues(R)[0], t.reshape(3, 1).copy()
-        try:
-            rvec, tvec = cv2.solvePnPRefineLM(obj, img, np.eye(3), None, rvec, tvec, criteria=PNP_CRITERIA)
-        except cv2.error:
-            pass
-        refined_r.append(np.asarray(rvec, dtype=np.float64).reshape(3))
-        refined_t.append(np.asarray(tvec, dtype=np.float64).reshape(3))
-    R_all = np.concatenate([R0[None], so3_exp_many(np.array(refined_r))])
-    t_all = np.concatenate([t0[None], np.array(refined_t)])
+    refined = [_refined(points, observed, R, t) for R, t in zip(R_starts, t_starts)]
+    R_all = np.concatenate([R0[None], so3_exp_many(np.array([r for r, _ in refined]))])
+    t_all = np.concatenate([t0[None], np.array([t for _, t in refined])])
     errors = reprojection_rms_many(R_all, t_all, points, observed).tolist()
     order = sorted((k for k in range(len(errors)) if np.isfinite(errors[k])), key=lambda k: errors[k])
     R_sorted, t_sorted = R_all[order], t_all[order]
