@@ -199,9 +199,10 @@ class ImageChecks:
 
     candidates: dict[str, list[tuple[np.ndarray, np.ndarray]]]
     excluded: list[Exclusion]
-    #: ``{image_id: (fiducial names, PnP minima)}`` of the images with >= 4 fiducials (``pnp.pnp_minima``,
-    #: before the check judged them): another check of the same photographs (the same cameras and
-    #: parity) takes them instead of solving again (:func:`check_images`' ``known``).
+    #: ``{image_id: (fiducial names, PnP minima)}`` of the images with >= 4 fiducials (those the check can
+    #: keep: ``pnp_screen.screen_minima_many``, before the check judged them): another check of the same
+    #: photographs (the same cameras and parity) takes them instead of solving again (:func:`check_images`'
+    #: ``known``).
     minima: dict[str, tuple[tuple[str, ...], list[tuple[np.ndarray, np.ndarray]]]] = field(default_factory=dict)
 
 
@@ -209,9 +210,12 @@ def check_images(dataset: Dataset, known: dict[str, tuple[tuple[str, ...], list[
                  ) -> ImageChecks:
     """Each image's PnP and its check (module docstring, step 1): with >= 4 fiducials the PnP fit (gross
     fiducials, wrong corner orders left out; a planar target's twin kept as a candidate), with three
-    P3P's candidates (all images at once, nothing to check), with fewer nothing. ``known``: another
-    check's :attr:`ImageChecks.minima` of the same photographs seen by the same cameras with the same
-    parity: an image with those very fiducials is judged from them instead of solving its PnP again."""
+    P3P's candidates (all images at once, nothing to check), with fewer nothing. The PnP minima of all
+    images are found at once (``pnp_screen.screen_minima_many``: the minima the check can keep, the lowest
+    and its twins within ``TWIN_COST_GAP``, from fewer refinements than ``pnp.pnp_minima``), and the images
+    whose one minimum fits every fiducial are judged at once too. ``known``: another check's
+    :attr:`ImageChecks.minima` of the same photographs seen by the same cameras with the same parity: an
+    image with those very fiducials is judged from them instead of solving its PnP again."""
     known = known or {}
     minima: dict[str, tuple[tuple[str, ...], list[tuple[np.ndarray, np.ndarray]]]] = {}
     excluded: list[Exclusion] = []
