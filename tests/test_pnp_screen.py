@@ -121,7 +121,7 @@ def _compare(rng: np.random.Generator, cases: int) -> dict[str, int]:
     return counts
 
 
-def test_the_lowest_minimum_alone_drops_nothing_the_check_keeps() -> None:
+def test_fewer_refinements_drop_nothing_the_check_keeps() -> None:
     counts = _compare(np.random.default_rng(0), 40)
     assert counts["dropped"] == 0
     assert counts["alone"] >= 0.15 * counts["views"]
@@ -129,7 +129,7 @@ def test_the_lowest_minimum_alone_drops_nothing_the_check_keeps() -> None:
 
 
 @pytest.mark.slow
-def test_the_lowest_minimum_alone_drops_nothing_the_check_keeps_thousands() -> None:
+def test_fewer_refinements_drop_nothing_the_check_keeps_thousands() -> None:
     counts = _compare(np.random.default_rng(1), 600)
     assert counts["dropped"] == 0
 
