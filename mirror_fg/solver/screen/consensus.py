@@ -54,6 +54,7 @@ from mirror_fg.solver.screen.placement_consensus import (  # noqa: F401 (the nod
     reflected_errors,
 )
 from mirror_fg.solver.start.pnp import pnp_candidates, pnp_candidates_many, pnp_minima
+from mirror_fg.solver.start.pnp_screen import screen_minima_many
 
 __all__ = [
     "PNP_POINT_SIGMAS", "MAX_BAD_POINT_FRACTION", "CONSENSUS_MIN_SIGMAS", "CONSENSUS_FACTOR", "FINAL_SIGMAS",
@@ -198,9 +199,10 @@ class ImageChecks:
 
     candidates: dict[str, list[tuple[np.ndarray, np.ndarray]]]
     excluded: list[Exclusion]
-    #: ``{image_id: (fiducial names, PnP minima)}`` of the images with >= 4 fiducials (``pnp.pnp_minima``,
-    #: before the check judged them): another check of the same photographs (the same cameras and
-    #: parity) takes them instead of solving again (:func:`check_images`' ``known``).
+    #: ``{image_id: (fiducial names, PnP minima)}`` of the images with >= 4 fiducials (those the check can
+    #: keep: ``pnp_screen.screen_minima_many``, before the check judged them): another check of the same
+    #: photographs (the same cameras and parity) takes them instead of solving again (:func:`check_images`'
+    #: ``known``).
     minima: dict[str, tuple[tuple[str, ...], list[tuple[np.ndarray, np.ndarray]]]] = field(default_factory=dict)
 
 
@@ -208,17 +210,36 @@ def check_images(dataset: Dataset, known: dict[str, tuple[tuple[str, ...], list[
                  ) -> ImageChecks:
     """Each image's PnP and its check (module docstring, step 1): with >= 4 fiducials the PnP fit (gross
     fiducials, wrong corner orders left out; a planar target's twin kept as a candidate), with three
-    P3P's candidates (all images at once, nothing to check), with fewer nothing. ``known``: another
-    check's :attr:`ImageChecks.minima` of the same photographs seen by the same cameras with the same
-    parity: an image with those very fiducials is judged from them instead of solving its PnP again."""
+    P3P's candidates (all images at once, nothing to check), with fewer nothing. The PnP minima of all
+    images are found at once (``pnp_screen.screen_minima_many``: the minima the check can keep, the lowest
+    and its twins within ``TWIN_COST_GAP``, from fewer refinements than ``pnp.pnp_minima``), and the images
+    whose one minimum fits every fiducial are judged at once too. ``known``: another check's
+    :attr:`ImageChecks.minima` of the same photographs seen by the same cameras with the same parity: an
+    image with those very fiducials is judged from them instead of solving its PnP again."""
     known = known or {}
     minima: dict[str, tuple[tuple[str, ...], list[tuple[np.ndarray, np.ndarray]]]] = {}
     excluded: list[Exclusion] = []
     candidates: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     three: list[tuple[str, tuple[np.ndarray, np.ndarray]]] = []
     tree = dataset.is_tree  # once: it looks at every image
+    names_of = {image.id: fiducial_names(dataset, image) for image in dataset.images}
+    solve = []  # the images with >= 4 fiducials whose minima are not known: all solved at once
     for image in dataset.images:
-        names = fiducial_names(dataset, image)
+        names = names_of[image.id]
+        found = known.get(image.id)
+        if len(names) >= 4 and (found is None or found[0] != tuple(names)):
+            solve.append(image)
+    problems = []
+    for image in solve:
+        normalized = dataset.normalized(image)
+        problems.append((np.array([dataset.fiducials[n] for n in names_of[image.id]]),
+                         np.array([normalized[n] for n in names_of[image.id]])))
+    # the lowest minimum alone where nothing else could be kept as a twin (TWIN_COST_GAP), else every one
+    solved = dict(zip((image.id for image in solve), screen_minima_many(
+        problems, [len(image.reflections) for image in solve], dataset.normalized_sigma, TWIN_COST_GAP)))
+    fits = _lone_minimum_fits(dataset, solve, problems, [solved[image.id] for image in solve])
+    for image in dataset.images:
+        names = names_of[image.id]
         if len(names) == 3:
             if not tree:  # P3P's candidates feed only the tree's analytical solution
                 continue
@@ -228,9 +249,13 @@ def check_images(dataset: Dataset, known: dict[str, tuple[tuple[str, ...], list[
             continue
         if len(names) < 3:
             continue
+        if image.id in fits:  # one minimum, every fiducial within PNP_POINT_SIGMAS: _check_pnp's answer
+            minima[image.id] = (tuple(names), solved[image.id])
+            candidates[image.id] = solved[image.id][:1]
+            continue
         found = known.get(image.id)
         poses, points_out, image_out, minima_of_image = _check_pnp(
-            dataset, image, names, found[1] if found is not None and found[0] == tuple(names) else None)
+            dataset, image, names, found[1] if found is not None and found[0] == tuple(names) else solved[image.id])
         minima[image.id] = (tuple(names), minima_of_image)
         if image_out is not None:
             excluded.append(image_out)
@@ -241,6 +266,30 @@ def check_images(dataset: Dataset, known: dict[str, tuple[tuple[str, ...], list[
         if poses:
             candidates[image_id] = poses
     return ImageChecks(candidates, excluded, minima)
+
+
+def _lone_minimum_fits(dataset: Dataset, images: list[Image], problems: list[tuple[np.ndarray, np.ndarray]],
+                       found: list[list[tuple[np.ndarray, np.ndarray]]]) -> set[str]:
+    """The images (of ``images``, their fiducials and observations ``problems``) whose PnP has one minimum
+    that reprojects every fiducial within ``PNP_POINT_SIGMAS`` (eqs. 5, 9), judged all at once; one near
+    the bound is left to :func:`_check_pnp`."""
+    groups: dict[int, list[int]] = defaultdict(list)
+    for k, minima in enumerate(found):
+        if len(minima) == 1:
+            groups[len(problems[k][0])].append(k)
+    fitting: set[str] = set()
+    for members in groups.values():
+        points = np.array([problems[k][0] for k in members])
+        observed = np.array([problems[k][1] for k in members])
+        A = np.array([found[k][0][0] for k in members])
+        b = np.array([found[k][0][1] for k in members])
+        camera_points = np.einsum("mab,mnb->mna", A, points) + b[:, None, :]
+        depth = camera_points[..., 2]
+        predicted = camera_points[..., :2] / np.where(depth > 0, depth, 1.0)[..., None]
+        errors = np.linalg.norm((predicted - observed) / dataset.normalized_sigma, axis=2)
+        clear = np.all((depth > 0) & (errors <= PNP_POINT_SIGMAS * (1.0 - 1e-9)), axis=1)
+        fitting.update(images[k].id for k, ok in zip(members, clear.tolist()) if ok)
+    return fitting
 
 
 def screen(dataset: Dataset, seed: int = 0, checked: ImageChecks | None = None) -> tuple[Dataset, list[Exclusion], PnPCandidates]:

@@ -5,6 +5,7 @@ image is mirror-imaged, so PnP runs on the y-flipped image and the flip is put b
 """
 from __future__ import annotations
 
+from functools import lru_cache
 from itertools import combinations, islice
 
 import cv2
@@ -12,7 +13,8 @@ import numpy as np
 
 from mirror_fg.core.geometry import FLIP_Y, so3_exp_many
 
-__all__ = ["pnp_candidates", "pnp_candidates_many", "pnp_minima", "is_planar", "lowest_reprojection"]
+__all__ = ["pnp_candidates", "pnp_candidates_many", "pnp_minima", "pnp_starts", "first_of_each", "is_planar",
+           "lowest_reprojection", "reprojection_rms_many", "PNP_CRITERIA"]
 
 #: Two refined poses are the same minimum when their rotations (entries) and translations (relative)
 #: differ by less than this (LM stops up to ~1e-4 apart in a shallow twin's valley); a planar target's twin
@@ -20,10 +22,11 @@ __all__ = ["pnp_candidates", "pnp_candidates_many", "pnp_minima", "is_planar", "
 SAME_MINIMUM = 1e-3
 #: Two solvers' starts this close (same measure) lie in one basin: only the better one is refined.
 SAME_BASIN = 1e-3
-_PNP_CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+#: OpenCV LM's stop (iterations, error change) for every refinement of the search.
+PNP_CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
 
 
-def _reprojection_rms_many(R: np.ndarray, t: np.ndarray, base_points: np.ndarray, normalized: np.ndarray) -> np.ndarray:
+def reprojection_rms_many(R: np.ndarray, t: np.ndarray, base_points: np.ndarray, normalized: np.ndarray) -> np.ndarray:
     """RMS reprojection error (normalized coordinates) of base points (N, 3) under each pose ``(R[k], t[k])``
     (eqs. 2, 9); inf where a point is behind the camera."""
     camera_points = np.asarray(base_points, dtype=float) @ np.transpose(R, (0, 2, 1)) + t[:, None, :]
@@ -53,54 +56,83 @@ def _pnp_minima(base_points: np.ndarray, normalized: np.ndarray, collinear_p3p: 
     obj = np.ascontiguousarray(base_points, dtype=np.float64).reshape(-1, 1, 3)
     img = np.ascontiguousarray(normalized, dtype=np.float64).reshape(-1, 1, 2)
     K = _IDENTITY
-    rvecs_all: list[np.ndarray] = []
-    tvecs_all: list[np.ndarray] = []
-    flags = [cv2.SOLVEPNP_SQPNP, cv2.SOLVEPNP_EPNP, cv2.SOLVEPNP_ITERATIVE]
-    if planar if planar is not None else is_planar(base_points):
-        flags.append(cv2.SOLVEPNP_IPPE)  # both of a planar target's poses (its twin)
-    for flag in flags:
-        try:
-            ok, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, K, None, flags=flag)
-        except cv2.error:
-            continue
-        if ok:
-            rvecs_all.extend(rvecs)
-            tvecs_all.extend(tvecs)
-    for triple in islice(combinations(range(len(base_points)), 3), 4):  # not list(): C(70, 3) tuples cost 3 ms
-        if not collinear_p3p and _collinear(base_points[list(triple)]):
-            continue
-        try:
-            count, rvecs, tvecs = cv2.solveP3P(obj[list(triple)], img[list(triple)], K, None, flags=cv2.SOLVEPNP_P3P)
-        except cv2.error:
-            continue
-        rvecs_all.extend(rvecs[:count])
-        tvecs_all.extend(tvecs[:count])
+    rvecs_all, tvecs_all, _ = pnp_starts(base_points, normalized, collinear_p3p, planar)
     if not rvecs_all:
         return []
     R_starts = so3_exp_many(np.array([np.asarray(r, dtype=np.float64).reshape(3) for r in rvecs_all]))
     t_starts = np.array([np.asarray(t, dtype=np.float64).reshape(3) for t in tvecs_all])
     # Starts of one basin (the solvers agree on a clear view) are refined once, from the first of them.
-    chosen = _first_of_each(R_starts, t_starts, SAME_BASIN)
+    chosen = first_of_each(R_starts, t_starts, SAME_BASIN)
     refined_r, refined_t = [], []
     for k in chosen:
         rvec = cv2.Rodrigues(R_starts[k])[0]
         tvec = t_starts[k].reshape(3, 1).copy()
         try:
-            rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, None, rvec, tvec, criteria=_PNP_CRITERIA)
+            rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, None, rvec, tvec, criteria=PNP_CRITERIA)
         except cv2.error:
             pass
         refined_r.append(np.asarray(rvec, dtype=np.float64).reshape(3))
         refined_t.append(np.asarray(tvec, dtype=np.float64).reshape(3))
     R_ref = so3_exp_many(np.array(refined_r))
     t_ref = np.array(refined_t)
-    errors = _reprojection_rms_many(R_ref, t_ref, base_points, normalized).tolist()
+    errors = reprojection_rms_many(R_ref, t_ref, base_points, normalized).tolist()
     finite = [k for k in range(len(chosen)) if np.isfinite(errors[k])]
     order = sorted(finite, key=lambda k: errors[k])  # stable: as the list of (error, R, t) sorted by error
     if not order:
         return []
     R_sorted, t_sorted = R_ref[order], t_ref[order]
     # the same minimum reached from several starts once
-    return [(R_sorted[k], t_sorted[k]) for k in _first_of_each(R_sorted, t_sorted, SAME_MINIMUM)]
+    return [(R_sorted[k], t_sorted[k]) for k in first_of_each(R_sorted, t_sorted, SAME_MINIMUM)]
+
+
+def pnp_starts(base_points: np.ndarray, normalized: np.ndarray, collinear_p3p: bool = True, planar: bool | None = None,
+               spread: np.ndarray | None = None) -> tuple[list[np.ndarray], list[np.ndarray], list[tuple[int, ...] | None]]:
+    """The starts of :func:`_pnp_minima`'s search, in its order: each solver's poses ``(rvec, tvec)`` (OpenCV's
+    SQPnP, EPnP, ITERATIVE, a planar target's IPPE), then P3P's of the first four triples of fiducials, with
+    the triple each P3P pose solves (None for the others). ``spread``: the fiducials' centred singular values
+    (descending), when the caller has them (ITERATIVE is not asked where OpenCV refuses it: fewer than six
+    fiducials off a plane)."""
+    obj = np.ascontiguousarray(base_points, dtype=np.float64).reshape(-1, 1, 3)
+    img = np.ascontiguousarray(normalized, dtype=np.float64).reshape(-1, 1, 2)
+    rvecs_all: list[np.ndarray] = []
+    tvecs_all: list[np.ndarray] = []
+    triples: list[tuple[int, ...] | None] = []
+    if spread is None:
+        spread = np.linalg.svd(base_points - base_points.mean(axis=0), compute_uv=False)
+    flags = [cv2.SOLVEPNP_SQPNP, cv2.SOLVEPNP_EPNP]
+    # OpenCV's ITERATIVE takes the fiducials as planar where its scatter's eigenvalues fall below 1e-3 of the
+    # next (a homography), else it needs six (DLT): ten times clear of that, it would refuse
+    if len(base_points) >= 6 or spread[2] ** 2 < 1e-2 * spread[1] ** 2:
+        flags.append(cv2.SOLVEPNP_ITERATIVE)
+    if planar if planar is not None else bool(spread[2] < 1e-9 * max(1.0, np.abs(base_points - base_points.mean(axis=0)).max())):
+        flags.append(cv2.SOLVEPNP_IPPE)  # both of a planar target's poses (its twin)
+    for flag in flags:
+        try:
+            ok, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, _IDENTITY, None, flags=flag)
+        except cv2.error:
+            continue
+        if ok:
+            rvecs_all.extend(rvecs)
+            tvecs_all.extend(tvecs)
+            triples.extend([None] * len(rvecs))
+    for triple, index in _first_triples(len(base_points)):
+        if not collinear_p3p and _collinear(base_points[index]):
+            continue
+        try:
+            count, rvecs, tvecs = cv2.solveP3P(obj[index], img[index], _IDENTITY, None, flags=cv2.SOLVEPNP_P3P)
+        except cv2.error:
+            continue
+        rvecs_all.extend(rvecs[:count])
+        tvecs_all.extend(tvecs[:count])
+        triples.extend([triple] * count)
+    return rvecs_all, tvecs_all, triples
+
+
+@lru_cache(maxsize=64)
+def _first_triples(count: int) -> tuple[tuple[tuple[int, ...], np.ndarray], ...]:
+    """The search's triples of ``count`` fiducials (the first four), each with its index array."""
+    # not list(combinations(...)): C(70, 3) tuples cost 3 ms
+    return tuple((triple, np.array(triple)) for triple in islice(combinations(range(count), 3), 4))
 
 
 def _planar_minima(base_points: np.ndarray, normalized: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -116,18 +148,18 @@ def _planar_minima(base_points: np.ndarray, normalized: np.ndarray) -> list[tupl
     refined_r, refined_t = [], []
     for rvec, tvec in zip(rvecs, tvecs):
         try:
-            rvec, tvec = cv2.solvePnPRefineLM(obj, img, _IDENTITY, None, rvec.copy(), tvec.copy(), criteria=_PNP_CRITERIA)
+            rvec, tvec = cv2.solvePnPRefineLM(obj, img, _IDENTITY, None, rvec.copy(), tvec.copy(), criteria=PNP_CRITERIA)
         except cv2.error:
             pass
         refined_r.append(np.asarray(rvec, dtype=np.float64).reshape(3))
         refined_t.append(np.asarray(tvec, dtype=np.float64).reshape(3))
     R_ref, t_ref = so3_exp_many(np.array(refined_r)), np.array(refined_t)
-    errors = _reprojection_rms_many(R_ref, t_ref, base_points, normalized).tolist()
+    errors = reprojection_rms_many(R_ref, t_ref, base_points, normalized).tolist()
     order = sorted((k for k in range(len(errors)) if np.isfinite(errors[k])), key=lambda k: errors[k])
     if not order:
         return _pnp_minima(base_points, normalized, False, True)
     R_sorted, t_sorted = R_ref[order], t_ref[order]
-    return [(R_sorted[k], t_sorted[k]) for k in _first_of_each(R_sorted, t_sorted, SAME_MINIMUM)]
+    return [(R_sorted[k], t_sorted[k]) for k in first_of_each(R_sorted, t_sorted, SAME_MINIMUM)]
 
 
 def is_planar(base_points: np.ndarray) -> bool:
@@ -146,17 +178,20 @@ def _collinear(points: np.ndarray) -> bool:
     return cross <= 1e-18 * (ux * ux + uy * uy + uz * uz) * (wx * wx + wy * wy + wz * wz)  # |u x w| <= 1e-9 |u| |w|
 
 
-def _first_of_each(R: np.ndarray, t: np.ndarray, tolerance: float) -> list[int]:
+def first_of_each(R: np.ndarray, t: np.ndarray, tolerance: float) -> list[int]:
     """Indices of the poses ``(R[k], t[k])`` kept when each is kept unless it is near one kept before it
     (rotations within ``tolerance`` entry-wise, translations within ``tolerance`` relative to its own)."""
+    table = _near_table(R, t, tolerance)
+    if np.count_nonzero(table) == len(table) and table.diagonal().all():  # each near itself alone: all kept
+        return list(range(len(table)))
     kept: list[int] = []
-    for k, near in enumerate(_near_table(R, t, tolerance)):
+    for k, near in enumerate(table.tolist()):
         if not any(near[j] for j in kept):
             kept.append(k)
     return kept
 
 
-def _near_table(R: np.ndarray, t: np.ndarray, tolerance: float) -> list[list[bool]]:
+def _near_table(R: np.ndarray, t: np.ndarray, tolerance: float) -> np.ndarray:
     """``near[k][j]``: pose k is within ``tolerance`` of pose j (rotation entries; translation relative to
     pose k's) -- all pairs at once."""
     entries = R.reshape(len(R), 9)
@@ -164,7 +199,7 @@ def _near_table(R: np.ndarray, t: np.ndarray, tolerance: float) -> list[list[boo
     scale = np.maximum(np.sqrt(np.einsum("ij,ij->i", t, t)), 1e-12)
     difference = t[:, None] - t[None, :]
     translation = np.sqrt(np.einsum("ijk,ijk->ij", difference, difference))
-    return ((rotation <= tolerance) & (translation <= tolerance * scale[:, None])).tolist()
+    return (rotation <= tolerance) & (translation <= tolerance * scale[:, None])
 
 
 def pnp_minima(base_points: np.ndarray, normalized: np.ndarray, num_mirrors: int, collinear_p3p: bool = True,

@@ -248,12 +248,17 @@ class _Propagator:
             for camera in self.cameras:
                 self.tree_for_camera(camera)
         changed = True
+        # a view whose camera is posed gives rule 1 nothing more, one whose planes are all known rule 3
+        # nothing more (poses and planes are only ever added): each pass takes the others, in order
+        posing, placing = list(self.views), list(self.views)
         while changed:
             changed = False
-            for view in self.views:
+            for view in posing:
                 changed |= self.pose_from_view(view)
-            for view in self.views:
+            posing = [view for view in posing if view.camera not in self.known.poses]
+            for view in placing:
                 changed |= self.plane_from_view(view)
+            placing = [view for view in placing if any(p not in self.known.planes for p in view.reflections)]
             changed |= self.triangulate_points()
             if not changed:
                 for camera in self.cameras:
