@@ -33,6 +33,7 @@ from collections.abc import Sequence
 import gtsam
 import numpy as np
 
+from mirror_fg.factors import view_last_reflection as last
 from mirror_fg.factors.schur import inverses, one_blas_thread
 from mirror_fg.factors.view_points import _rows_of, compressed_rows
 from mirror_fg.factors.view_stack import _Group, read_poses_and_planes
@@ -105,13 +106,15 @@ class EliminatedViewStack:
     """Views (all :func:`eliminable`) in factors with their own placements eliminated (module docstring).
 
     ``start``: every eliminated placement's mirror vector to start from (owner frame, metres); ``keep``:
-    placements that stay variables whatever sees them (e.g. the scale's). ``eliminated``: the placements
+    placements that stay variables whatever sees them (e.g. the scale's); ``closed_form``: the last reflection
+    in closed form where it is the eliminated placement's (``view_last_reflection.py``; else the general
+    model everywhere, as a reference). ``eliminated``: the placements
     solved inside; ``kept_mirror_keys``: the plane keys the factors see; ``factors``: the
     ``gtsam.CustomFactor`` objects."""
 
     def __init__(self, view_factors: Sequence[ViewFactor], start: dict[Placement, np.ndarray],
                  keep: frozenset | set = frozenset(),
-                 placements_per_factor: int = PLACEMENTS_PER_FACTOR):
+                 placements_per_factor: int = PLACEMENTS_PER_FACTOR, closed_form: bool = True):
         stacks = stacks_of(view_factors, placements_per_factor)
         self.eliminated = private_placements(view_factors, stacks, set(keep))
         index = {p: e for e, p in enumerate(self.eliminated)}
@@ -173,6 +176,15 @@ class EliminatedViewStack:
             self._elim_cols.append(elim_cols)
             order = list(dict.fromkeys(group.factors[0].reflections))  # the group's eliminated placement, if any
             self._elim_local.append(next((u for u, p in enumerate(order) if p in index), None))
+        # the closed form of the last reflection (``view_last_reflection.py``) where a group's eliminated
+        # placement is its last reflection and not an earlier one too (always its own camera's: see
+        # private_placements); the general model with ``wrt`` elsewhere
+        self._fast = [closed_form and u is not None and group.steps[-1][1] == u and [w for _, w in group.steps].count(u) == 1
+                      for group, u in zip(self.groups, self._elim_local)]
+        self._observed_soa = [np.ascontiguousarray(group.observed.transpose(1, 0, 2)) for group in self.groups]
+        self._sigmas_soa = [np.ascontiguousarray(group.sigmas.transpose(1, 0, 2)) for group in self.groups]
+        self._mine = [np.flatnonzero(stack_of_placement == s) for s in range(len(stacks))]
+        self._c_index = [self._c_offsets[m][:, None] + np.arange(3 * (w + 1))[None] for m, w in zip(self._mine, self._widths)]
         self._pose_set = pose_set
         self._order = {p: i for i, p in enumerate([*self.kept_mirror_keys, *self.eliminated])}
         self._rows = [group.placement_index(self._order) for group in self.groups]
@@ -243,11 +255,25 @@ class EliminatedViewStack:
                             np.broadcast_to(np.eye(3), (len(self.eliminated), 3, 3))])
         return V, J
 
-    def _normals(self, poses, vectors, jacobians) -> np.ndarray:
+    def _prefixes(self, poses, vectors, jacobians, derivatives: bool) -> list:
+        """Each fast group's points before its last mirror ``y`` (3, b, N) and, with ``derivatives``, their
+        derivative in the local columns (3, P, b, N) (``view_last_reflection.py``); None for the others."""
+        V, J = self._arrays(vectors, jacobians)
+        return [group.reflected_soa(poses, (V[at], J[at]), group.steps[:-1], derivatives) if fast else None
+                for group, at, fast in zip(self.groups, self._rows, self._fast)]
+
+    def _normals(self, poses, vectors, jacobians, prefixes: list) -> np.ndarray:
         """Every entry of the stacks' normals, the placements' ``C`` and ``D`` at the current vectors."""
         V, J = self._arrays(vectors, jacobians)
         weights, targets = [], []
-        for group, target, at in zip(self.groups, self._targets, self._rows):
+        for i, (group, target, at) in enumerate(zip(self.groups, self._targets, self._rows)):
+            if prefixes[i] is not None:
+                y, dy = prefixes[i]
+                normals = last.augmented_normals(y, dy, self._vectors[self._placement_of_view[i]],
+                                                 int(self._elim_cols[i][0, 0]), self._observed_soa[i], self._sigmas_soa[i])
+                weights.append(normals.ravel())
+                targets.append(target.ravel())
+                continue
             z, dz, _ = group.model(poses, vectors, jacobians, True, arrays=(V[at], J[at]))
             e = (z - group.observed) / group.sigmas  # (b, 2, N) whitened
             A = dz / group.sigmas[:, :, None, :]  # (b, 2, P, N)
@@ -257,15 +283,27 @@ class EliminatedViewStack:
             targets.append(target.ravel())
         return np.bincount(np.concatenate(targets), np.concatenate(weights), minlength=self._total + 1)
 
-    def _moments(self, poses, vectors, jacobians) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _moments(self, poses, vectors, jacobians, prefixes: list,
+                 rest_too: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``D = J_v^T J_v`` (E, 3, 3), ``J_v^T e`` (E, 3) and the cost ``||e||^2`` (E,) of every eliminated
-        placement's views, the rest held; and each stack's cost of its views without one."""
+        placement's views, the rest held; and (``rest_too``) each stack's cost of its views without one."""
         V, J = self._arrays(vectors, jacobians)
         E = len(self.eliminated)
         D, g, own = np.zeros((E, 3, 3)), np.zeros((E, 3)), np.zeros(E)
         rest = np.zeros(len(self._keys))
-        for group, placement_of, wrt, at, members in zip(self.groups, self._placement_of_view, self._elim_local,
-                                                         self._rows, self._stack_rows):
+        for i, (group, placement_of, wrt, at, members) in enumerate(zip(
+                self.groups, self._placement_of_view, self._elim_local, self._rows, self._stack_rows)):
+            if prefixes[i] is not None:
+                D_views, g_views, cost = last.moments(prefixes[i][0], self._vectors[placement_of],
+                                                      self._observed_soa[i], self._sigmas_soa[i])
+                for j in range(3):
+                    g[:, j] += np.bincount(placement_of, g_views[:, j], minlength=E)
+                    for k in range(3):
+                        D[:, j, k] += np.bincount(placement_of, D_views[:, j, k], minlength=E)
+                own += np.bincount(placement_of, cost, minlength=E)
+                continue
+            if wrt is None and not rest_too:
+                continue
             if wrt is None:
                 z = group.model(poses, vectors, jacobians, False, arrays=(V[at], J[at]))[0]
             else:
@@ -282,13 +320,13 @@ class EliminatedViewStack:
             own += np.bincount(placement_of, cost, minlength=E)
         return D, g, own, rest
 
-    def _solve(self, poses, vectors, jacobians) -> np.ndarray:
+    def _solve(self, poses, vectors, jacobians, prefixes: list) -> np.ndarray:
         """The eliminated placements at their optimum given the rest (module docstring): Gauss-Newton per
         placement, a step that raises its views' cost refused and the placement damped (Levenberg-Marquardt
         on each placement alone: their costs are separate); each stack's cost there."""
         collapsed = np.linalg.norm(self._vectors, axis=1) < 0.1 * np.linalg.norm(self._start, axis=1)
         self._vectors[collapsed] = self._start[collapsed]  # a warm start run into the camera centre
-        D, g, own, rest = self._moments(poses, dict(vectors), dict(jacobians))
+        D, g, own, rest = self._moments(poses, vectors, jacobians, prefixes, True)
         E = len(self.eliminated)
         damping = np.zeros(E)
         for _ in range(INNER_MAX_ITERATIONS if E else 0):
@@ -305,7 +343,7 @@ class EliminatedViewStack:
             limit = 0.5 * np.linalg.norm(self._vectors, axis=1)  # stay on its side of the camera centre
             before = self._vectors.copy()
             self._vectors += step * np.minimum(1.0, limit / np.maximum(length, 1e-300))[:, None]
-            D_new, g_new, own_new, _ = self._moments(poses, dict(vectors), dict(jacobians))
+            D_new, g_new, own_new, _ = self._moments(poses, vectors, jacobians, prefixes, False)
             better = own_new <= own * (1.0 + 1e-12) + 1e-300
             self._vectors[~better] = before[~better]
             D[better], g[better], own[better] = D_new[better], g_new[better], own_new[better]
@@ -319,12 +357,14 @@ class EliminatedViewStack:
             return
         self.batches += 1
         poses, vectors, plane_jacobians, state = self._read(values)
+        # the points before each eliminated mirror: they depend on the kept unknowns only
+        prefixes = self._prefixes(poses, vectors, plane_jacobians, jacobians)
         if not same:  # the placements are already at their optimum for these values otherwise
-            self._cost = self._solve(poses, vectors, plane_jacobians)
+            self._cost = self._solve(poses, vectors, plane_jacobians, prefixes)
         self._state, self._valid, self._linearized = state, True, False
         if not jacobians:
             return
-        normal = self._normals(poses, vectors, plane_jacobians)
+        normal = self._normals(poses, vectors, plane_jacobians, prefixes)
         E = len(self.eliminated)
         D = normal[self._d_offset:self._d_offset + 9 * E].reshape(E, 3, 3)
         self._D_inv = inverses(D[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]].T) if E else np.zeros((0, 3, 3))
@@ -332,11 +372,10 @@ class EliminatedViewStack:
         with one_blas_thread():
             for s, (base, width) in enumerate(zip(self._offsets, self._widths)):
                 N = normal[base:base + (width + 1) ** 2].reshape(width + 1, width + 1).copy()
-                mine = np.flatnonzero(self._stack_of_placement == s)
+                mine = self._mine[s]
                 if len(mine):
-                    C = np.stack([normal[self._c_offsets[e]:self._c_offsets[e] + 3 * (width + 1)].reshape(3, width + 1)
-                                  for e in mine])  # (m, 3, d+1)
-                    N -= np.einsum("mij,mik->jk", C, self._D_inv[mine] @ C)  # the Schur complement
+                    C = normal[self._c_index[s]].reshape(len(mine), 3, width + 1)  # (m, 3, d+1)
+                    N -= C.reshape(-1, width + 1).T @ (self._D_inv[mine] @ C).reshape(-1, width + 1)  # the Schur complement
                     N = 0.5 * (N + N.T)
                     C_all.append((mine, C))
                 R = _rows_of(N)

@@ -1,0 +1,80 @@
+"""The last reflection of a view in closed form, for the placement that ``view_eliminated.py`` eliminates
+(Hesch et al., eqs. 3, 9, 23; the model of ``views.py``): with the points ``y`` as they reach the last
+mirror (camera frame, metres; ``view_stack._Group.reflected_soa`` of the other reflections), the view's
+prediction is one reflection ``x = y - 2 v (v.y / v.v - 1)`` (eq. 3) and the projection ``z = x_xy / x_z``
+(eq. 9), ``v`` the eliminated placement's mirror vector (camera frame: its owner is the view's camera).
+
+Why: the inner Gauss-Newton of the eliminated placements (``view_eliminated._solve``) evaluates its views
+a few times per evaluation with everything but ``v`` held. The points before the last mirror do not
+change meanwhile, so they are computed once per evaluation and each inner iteration is this reflection,
+its derivative in ``v`` and the projection, elementwise over the views in a structure-of-arrays layout
+((3, b, N) for b views of N points) as the tree's eliminated factor does (``eliminated.py``). The same
+closed form linearises the kept unknowns (through ``dy``, the reflection's linear part
+``M = I - 2 v v^T / v.v``).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["last_reflection", "moments", "augmented_normals"]
+
+
+def last_reflection(y: np.ndarray, v: np.ndarray, observed: np.ndarray, sigmas: np.ndarray):
+    """``(x, z, e, A_v)`` of each view through its last mirror: the reflected points ``x`` (3, b, N), the
+    predictions ``z`` (2, b, N), whitened residuals ``e = (z - observed) / sigmas`` (2, b, N) and their
+    whitened derivative in ``v`` ``A_v`` (2, 3, b, N). ``y``: the points before the mirror (3, b, N);
+    ``v``: each view's mirror vector (b, 3); ``observed``, ``sigmas``: (2, b, N)."""
+    v = v.T  # (3, b)
+    vv = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2])[:, None]  # (b, 1)
+    vy = v[0][:, None] * y[0] + v[1][:, None] * y[1] + v[2][:, None] * y[2]  # (b, N)
+    s = vy / vv - 1.0
+    x = y - 2.0 * v[:, :, None] * s[None]  # eq. (3): M y + 2 v
+    inverse_depth = 1.0 / x[2]
+    z = x[:2] * inverse_depth  # eq. (9)
+    e = (z - observed) / sigmas
+    # ds/dv_j = y_j / v.v - 2 v_j (v.y) / (v.v)^2; dx_i/dv_j = -2 (delta_ij s + v_i ds_j);
+    # dz_a/dv_j = (dx_a/dv_j - z_a dx_z/dv_j) / x_z
+    ds = (y - 2.0 * (s + 1.0)[None] * v[:, :, None]) / vv[None]  # (3, b, N)
+    f = -2.0 * inverse_depth / sigmas  # (2, b, N)
+    q = (v[:2, :, None] - z * v[2][None, :, None]) * f  # (2, b, N)
+    A_v = q[:, None] * ds[None]  # (2, 3, b, N)
+    for a in range(2):
+        A_v[a, a] += f[a] * s
+        A_v[a, 2] -= f[a] * s * z[a]
+    return x, z, e, A_v
+
+
+def moments(y: np.ndarray, v: np.ndarray, observed: np.ndarray, sigmas: np.ndarray):
+    """Each view's ``A_v^T A_v`` (b, 3, 3), ``A_v^T e`` (b, 3) and ``e.e`` (b,) (:func:`last_reflection`):
+    its share of its placement's Gauss-Newton system with the rest held."""
+    _, _, e, A_v = last_reflection(y, v, observed, sigmas)
+    b = e.shape[1]
+    D = np.empty((b, 3, 3))
+    for j in range(3):
+        for k in range(j, 3):
+            D[:, j, k] = D[:, k, j] = np.einsum("abn,abn->b", A_v[:, j], A_v[:, k])
+    g = np.stack([np.einsum("abn,abn->b", A_v[:, j], e) for j in range(3)], axis=1)
+    return D, g, np.einsum("abn,abn->b", e, e)
+
+
+def augmented_normals(y: np.ndarray, dy: np.ndarray, v: np.ndarray, column: int, observed: np.ndarray,
+                      sigmas: np.ndarray) -> np.ndarray:
+    """Each view's augmented normal matrix ``[A | e]^T [A | e]`` (b, P+1, P+1) in its local columns (the
+    layout of ``views.ViewSlots``): ``dy`` (3, P, b, N) the derivative of ``y`` in the local columns (zero
+    in the eliminated placement's), ``column`` the first of the eliminated placement's three columns (its
+    variable is ``v`` itself)."""
+    x, z, e, A_v = last_reflection(y, v, observed, sigmas)
+    P, b, n = dy.shape[1:]
+    v = v.T
+    vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    vdy = (v[0][:, None] * dy[0] + v[1][:, None] * dy[1] + v[2][:, None] * dy[2]) * (2.0 / vv)[:, None]  # (P, b, N)
+    dx_z = dy[2] - v[2][:, None] * vdy  # M dy, its depth
+    rows = np.empty((b, P + 1, 2, n))
+    inverse_depth = 1.0 / x[2]
+    for a in range(2):  # dz_a = (dx_a - z_a dx_z) / x_z, whitened
+        dx_a = dy[a] - v[a][:, None] * vdy
+        rows[:, :P, a] = ((dx_a - z[a] * dx_z) * (inverse_depth / sigmas[a])).transpose(1, 0, 2)
+        rows[:, column:column + 3, a] = A_v[a].transpose(1, 0, 2)
+        rows[:, P, a] = e[a]
+    rows = rows.reshape(b, P + 1, 2 * n)
+    return np.matmul(rows, np.ascontiguousarray(rows.transpose(0, 2, 1)))
