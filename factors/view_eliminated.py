@@ -36,7 +36,7 @@ import numpy as np
 from mirror_fg.factors import view_last_reflection as last
 from mirror_fg.factors.schur import inverses, one_blas_thread
 from mirror_fg.factors.view_points import _rows_of, compressed_rows
-from mirror_fg.factors.view_stack import _Group, read_poses_and_planes
+from mirror_fg.factors.view_stack import _Group, read_poses_and_planes, stacks_by_placements
 from mirror_fg.factors.views import ViewFactor
 
 __all__ = ["EliminatedViewStack", "eliminable", "PLACEMENTS_PER_FACTOR"]
@@ -63,17 +63,7 @@ def eliminable(factor: ViewFactor) -> bool:
 def stacks_of(view_factors: Sequence[ViewFactor], cap: int) -> list[list[int]]:
     """The views of each factor: views with the same placements together, in the order first seen,
     consecutive sets merged while they hold at most ``cap`` placements (``view_stack.py``'s rule)."""
-    same: dict[tuple, list[int]] = {}
-    for i, f in enumerate(view_factors):
-        same.setdefault(tuple(sorted(f.mirror_keys)), []).append(i)
-    merged: list[tuple[set, list[int]]] = []
-    for placements, members in same.items():
-        if merged and len(merged[-1][0] | set(placements)) <= cap:
-            merged[-1][0].update(placements)
-            merged[-1][1].extend(members)
-        else:
-            merged.append((set(placements), list(members)))
-    return [members for _, members in merged]
+    return stacks_by_placements(view_factors, cap)
 
 
 def private_placements(view_factors: Sequence[ViewFactor], stacks: list[list[int]], keep: set) -> list[Placement]:
@@ -208,22 +198,24 @@ class EliminatedViewStack:
         eliminated x eliminated to its ``D``, kept x eliminated nowhere (the last slot, dropped)."""
         P = group.slots.size
         b = len(members)
+        stacks = stack_of_view[members].tolist()
         stack_col = np.full((b, P + 1), -1, dtype=np.intp)  # each local column's column in its stack
         placement_of = np.full(b, -1, dtype=np.intp)
         elim_col = -1
-        for r, (view, i) in enumerate(zip(group.factors, members)):
-            s = stack_of_view[i]
-            columns = columns_of[s]
-            for name, key in view.pose_keys.items():
-                c = view.slots.pose_cols[name]
-                stack_col[r, c:c + 6] = columns[key] + np.arange(6)
-            for p, key in view.mirror_keys.items():
-                c = view.slots.mirror_cols[p]
-                if p in index:
-                    placement_of[r], elim_col = index[p], c
-                else:
-                    stack_col[r, c:c + 3] = columns[key] + np.arange(3)
-            stack_col[r, P] = self._widths[s]  # e
+        first = group.factors[0]  # a group's views share their cameras and the local order of placements
+        for name, c in first.slots.pose_cols.items():
+            key = first.pose_keys[name]
+            stack_col[:, c:c + 6] = np.array([columns_of[s][key] for s in stacks])[:, None] + np.arange(6)
+        offset = 6 * len(first.slots.pose_cols)
+        for u in range(group.placement_count):
+            placements = [ps[u] for ps in group.placements]
+            c = offset + 3 * u  # (views.ViewSlots: the placements' columns in their order of first reflection)
+            if placements[0] in index:  # (the group's shape says which local placement is eliminated)
+                placement_of[:], elim_col = [index[p] for p in placements], c
+            else:
+                stack_col[:, c:c + 3] = np.array([columns_of[s][view.mirror_keys[p]] for s, view, p in
+                                                  zip(stacks, group.factors, placements)])[:, None] + np.arange(3)
+        stack_col[:, P] = np.array(self._widths)[stacks]  # e
         stride = np.array(self._widths)[stack_of_view[members]] + 1  # (b,)
         base = np.array(self._offsets)[stack_of_view[members]]
         kept = stack_col >= 0

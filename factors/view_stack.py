@@ -79,7 +79,7 @@ def stacks_by_placements(view_factors: Sequence[ViewFactor], placements_per_fact
         same.setdefault(tuple(sorted(f.mirror_keys)), []).append(i)
     merged: list[tuple[set, list[int]]] = []
     for placements, members in same.items():
-        if merged and len(merged[-1][0] | set(placements)) <= placements_per_factor:
+        if merged and len(merged[-1][0]) + sum(p not in merged[-1][0] for p in placements) <= placements_per_factor:
             merged[-1][0].update(placements)
             merged[-1][1].extend(members)
         else:

@@ -107,26 +107,37 @@ class ViewProblem:
         self.intrinsics = dict(intrinsics or {})
         self.intrinsics_keys = {name: K(k) for k, name in enumerate(self.cameras) if name in self.intrinsics}
         self.factors: list[ViewFactor] = []
+        # the sigmas, base points and point keys of each (camera, points seen): the same for most images
+        known: dict[tuple, tuple[np.ndarray, np.ndarray, list[int]]] = {}
         for image, view in zip(dataset.images, self.views):
             camera = dataset.camera_of(image)
             pixel = view.camera in self.intrinsics
-            sigmas = normalized_sigmas(None if pixel else camera, dataset.pixel_sigma, dataset.point_sigma, view.names).T
+            shape = (view.camera, pixel, tuple(view.names))
+            if shape not in known:
+                known[shape] = self._points_of(dataset, None if pixel else camera, view.names)
+            sigmas, base, landmarks = known[shape]
             observed = (np.array([image.observations[n] for n in view.names], dtype=float).reshape(-1, 2).T if pixel
                         else view.normalized.T)
             model = (self.intrinsics[view.camera], self.intrinsics_keys[view.camera]) if pixel else None
-            base = np.full((3, len(view.names)), np.nan)
-            landmarks = []
-            for k, name in enumerate(view.names):
-                if name in dataset.fiducials:
-                    base[:, k] = dataset.fiducials[name]
-                    landmarks.append(-1)
-                else:
-                    landmarks.append(self.point_keys[name])
             self.factors.append(ViewFactor(view.camera, view.reflections, self.pose_keys, self.fixed, self.mirror_keys,
                                            self.owners, base, landmarks, observed, sigmas, robust, intrinsics=model))
         self.constraints = 1 if dataset.scale is not None else 0
         #: Number of residual rows (2 per measurement).
         self.size = sum(2 * len(v.names) for v in self.views)
+
+    def _points_of(self, dataset: Dataset, camera: Camera | None, names: list[str]):
+        """A view's sigmas (2, N) (normalized with ``camera``, else pixels), base points (3, N) (NaN where a
+        reconstruction point) and point keys (-1 for a fiducial) of the points ``names``."""
+        sigmas = normalized_sigmas(camera, dataset.pixel_sigma, dataset.point_sigma, names).T
+        base = np.full((3, len(names)), np.nan)
+        landmarks = []
+        for k, name in enumerate(names):
+            if name in dataset.fiducials:
+                base[:, k] = dataset.fiducials[name]
+                landmarks.append(-1)
+            else:
+                landmarks.append(self.point_keys[name])
+        return sigmas, base, landmarks
 
     # ------------------------------------------------------------------ estimates
     def estimate_from(self, known: Propagation) -> ViewEstimate:
