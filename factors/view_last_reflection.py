@@ -69,12 +69,13 @@ def augmented_normals(y: np.ndarray, dy: np.ndarray, v: np.ndarray, column: int,
     vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
     vdy = (v[0][:, None] * dy[0] + v[1][:, None] * dy[1] + v[2][:, None] * dy[2]) * (2.0 / vv)[:, None]  # (P, b, N)
     dx_z = dy[2] - v[2][:, None] * vdy  # M dy, its depth
-    rows = np.empty((b, P + 1, 2, n))
-    inverse_depth = 1.0 / x[2]
-    for a in range(2):  # dz_a = (dx_a - z_a dx_z) / x_z, whitened
-        dx_a = dy[a] - v[a][:, None] * vdy
-        rows[:, :P, a] = ((dx_a - z[a] * dx_z) * (inverse_depth / sigmas[a])).transpose(1, 0, 2)
-        rows[:, column:column + 3, a] = A_v[a].transpose(1, 0, 2)
-        rows[:, P, a] = e[a]
-    rows = rows.reshape(b, P + 1, 2 * n)
-    return np.matmul(rows, np.ascontiguousarray(rows.transpose(0, 2, 1)))
+    # dz_a = (dx_a - z_a dx_z) / x_z, whitened (2, P, b, N); dx_a = (M dy)_a
+    dz = dy[:2] - v[:2, None, :, None] * vdy[None]
+    dz -= z[:, None] * dx_z[None]
+    dz *= (1.0 / (x[2][None] * sigmas))[:, None]
+    dz[:, column:column + 3] = A_v
+    rows = np.empty((P + 1, b, 2, n))  # [A | e], each view's rows (2N) last
+    rows[:P] = dz.transpose(1, 2, 0, 3)
+    rows[P] = e.transpose(1, 0, 2)
+    rows = rows.reshape(P + 1, b, 2 * n).transpose(1, 0, 2)  # (b, P+1, 2N)
+    return np.matmul(rows, rows.transpose(0, 2, 1))
