@@ -173,8 +173,15 @@ class EliminatedViewStack:
                       for group, u in zip(self.groups, self._elim_local)]
         self._observed_soa = [np.ascontiguousarray(group.observed.transpose(1, 0, 2)) for group in self.groups]
         self._sigmas_soa = [np.ascontiguousarray(group.sigmas.transpose(1, 0, 2)) for group in self.groups]
+        seen = np.bincount(np.concatenate([np.zeros(0, dtype=np.intp)] + [
+            placement_of for placement_of, u in zip(self._placement_of_view, self._elim_local) if u is not None]),
+            minlength=len(self.eliminated))  # each eliminated placement's views
+        self._one_view = [fast and bool(np.all(seen[placement_of] == 1)) for fast, placement_of
+                          in zip(self._fast, self._placement_of_view)]
         self._mine = [np.flatnonzero(stack_of_placement == s) for s in range(len(stacks))]
         self._c_index = [self._c_offsets[m][:, None] + np.arange(3 * (w + 1))[None] for m, w in zip(self._mine, self._widths)]
+        self._all_targets = np.concatenate([target.ravel() for target in self._targets])
+        self._work: list[dict] = [{} for _ in self.groups]  # buffers of each group's normals
         self._pose_set = pose_set
         self._order = {p: i for i, p in enumerate([*self.kept_mirror_keys, *self.eliminated])}
         self._rows = [group.placement_index(self._order) for group in self.groups]
@@ -257,14 +264,13 @@ class EliminatedViewStack:
     def _normals(self, poses, vectors, jacobians, prefixes: list) -> np.ndarray:
         """Every entry of the stacks' normals, the placements' ``C`` and ``D`` at the current vectors."""
         V, J = self._arrays(vectors, jacobians)
-        weights, targets = [], []
-        for i, (group, target, at) in enumerate(zip(self.groups, self._targets, self._rows)):
+        weights = []
+        for i, (group, at) in enumerate(zip(self.groups, self._rows)):
             if prefixes[i] is not None:
                 y, dy = prefixes[i]
-                normals = last.augmented_normals(y, dy, self._vectors[self._placement_of_view[i]],
-                                                 int(self._elim_cols[i][0, 0]), self._observed_soa[i], self._sigmas_soa[i])
+                normals = last.augmented_normals(y, dy, self._vectors[self._placement_of_view[i]], int(self._elim_cols[i][0, 0]),
+                                                 self._observed_soa[i], self._sigmas_soa[i], self._work[i])
                 weights.append(normals.ravel())
-                targets.append(target.ravel())
                 continue
             z, dz, _ = group.model(poses, vectors, jacobians, True, arrays=(V[at], J[at]))
             e = (z - group.observed) / group.sigmas  # (b, 2, N) whitened
@@ -272,14 +278,14 @@ class EliminatedViewStack:
             b, _, P, n = A.shape
             Ae = np.concatenate([A.transpose(0, 1, 3, 2).reshape(b, 2 * n, P), e.reshape(b, 2 * n, 1)], axis=2)
             weights.append((Ae.transpose(0, 2, 1) @ Ae).ravel())
-            targets.append(target.ravel())
-        return np.bincount(np.concatenate(targets), np.concatenate(weights), minlength=self._total + 1)
+        return np.bincount(self._all_targets, weights[0] if len(weights) == 1 else np.concatenate(weights),
+                           minlength=self._total + 1)
 
     def _moments(self, poses, vectors, jacobians, prefixes: list,
                  rest_too: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``D = J_v^T J_v`` (E, 3, 3), ``J_v^T e`` (E, 3) and the cost ``||e||^2`` (E,) of every eliminated
         placement's views, the rest held; and (``rest_too``) each stack's cost of its views without one."""
-        V, J = self._arrays(vectors, jacobians)
+        V, J = self._arrays(vectors, jacobians) if not all(self._fast) else (None, None)
         E = len(self.eliminated)
         D, g, own = np.zeros((E, 3, 3)), np.zeros((E, 3)), np.zeros(E)
         rest = np.zeros(len(self._keys))
@@ -288,6 +294,11 @@ class EliminatedViewStack:
             if prefixes[i] is not None:
                 D_views, g_views, cost = last.moments(prefixes[i][0], self._vectors[placement_of],
                                                       self._observed_soa[i], self._sigmas_soa[i])
+                if self._one_view[i]:  # each of the group's placements seen by this view alone
+                    D[placement_of] += D_views
+                    g[placement_of] += g_views
+                    own[placement_of] += cost
+                    continue
                 for j in range(3):
                     g[:, j] += np.bincount(placement_of, g_views[:, j], minlength=E)
                     for k in range(3):

@@ -48,34 +48,45 @@ def moments(y: np.ndarray, v: np.ndarray, observed: np.ndarray, sigmas: np.ndarr
     """Each view's ``A_v^T A_v`` (b, 3, 3), ``A_v^T e`` (b, 3) and ``e.e`` (b,) (:func:`last_reflection`):
     its share of its placement's Gauss-Newton system with the rest held."""
     _, _, e, A_v = last_reflection(y, v, observed, sigmas)
-    b = e.shape[1]
-    D = np.empty((b, 3, 3))
+
+    def dot(p: np.ndarray, q: np.ndarray) -> np.ndarray:  # each view's sum over its rows (2, b, N) -> (b,)
+        return (p[0] * q[0] + p[1] * q[1]).sum(axis=1)
+
+    D = np.empty((e.shape[1], 3, 3))
     for j in range(3):
         for k in range(j, 3):
-            D[:, j, k] = D[:, k, j] = np.einsum("abn,abn->b", A_v[:, j], A_v[:, k])
-    g = np.stack([np.einsum("abn,abn->b", A_v[:, j], e) for j in range(3)], axis=1)
-    return D, g, np.einsum("abn,abn->b", e, e)
+            D[:, j, k] = D[:, k, j] = dot(A_v[:, j], A_v[:, k])
+    return D, np.stack([dot(A_v[:, j], e) for j in range(3)], axis=1), dot(e, e)
 
 
 def augmented_normals(y: np.ndarray, dy: np.ndarray, v: np.ndarray, column: int, observed: np.ndarray,
-                      sigmas: np.ndarray) -> np.ndarray:
+                      sigmas: np.ndarray, work: dict | None = None) -> np.ndarray:
     """Each view's augmented normal matrix ``[A | e]^T [A | e]`` (b, P+1, P+1) in its local columns (the
     layout of ``views.ViewSlots``): ``dy`` (3, P, b, N) the derivative of ``y`` in the local columns (zero
     in the eliminated placement's), ``column`` the first of the eliminated placement's three columns (its
-    variable is ``v`` itself)."""
+    variable is ``v`` itself). ``work``: buffers kept between calls (a dict, filled here; the result is one
+    of them, valid until the next call): a fresh array of this size per call costs its pages again."""
     x, z, e, A_v = last_reflection(y, v, observed, sigmas)
     P, b, n = dy.shape[1:]
+    work = {} if work is None else work
+    if work.get("shape") != (P, b, n):
+        work.update(shape=(P, b, n), rows=np.empty((P + 1, b, 2, n)), gram=np.empty((b, P + 1, P + 1)),
+                    vdy=np.empty((P, b, n)), dx_z=np.empty((P, b, n)), tmp=np.empty((P, b, n)))
+    vdy, dx_z, tmp, rows = work["vdy"], work["dx_z"], work["tmp"], work["rows"]
     v = v.T
     vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
-    vdy = (v[0][:, None] * dy[0] + v[1][:, None] * dy[1] + v[2][:, None] * dy[2]) * (2.0 / vv)[:, None]  # (P, b, N)
-    dx_z = dy[2] - v[2][:, None] * vdy  # M dy, its depth
-    # dz_a = (dx_a - z_a dx_z) / x_z, whitened (2, P, b, N); dx_a = (M dy)_a
-    dz = dy[:2] - v[:2, None, :, None] * vdy[None]
-    dz -= z[:, None] * dx_z[None]
-    dz *= (1.0 / (x[2][None] * sigmas))[:, None]
-    dz[:, column:column + 3] = A_v
-    rows = np.empty((P + 1, b, 2, n))  # [A | e], each view's rows (2N) last
-    rows[:P] = dz.transpose(1, 2, 0, 3)
-    rows[P] = e.transpose(1, 0, 2)
-    rows = rows.reshape(P + 1, b, 2 * n).transpose(1, 0, 2)  # (b, P+1, 2N)
-    return np.matmul(rows, rows.transpose(0, 2, 1))
+    np.multiply(v[0][:, None], dy[0], out=vdy)  # 2 v.dy / v.v (P, b, N)
+    vdy += np.multiply(v[1][:, None], dy[1], out=tmp)
+    vdy += np.multiply(v[2][:, None], dy[2], out=tmp)
+    vdy *= (2.0 / vv)[:, None]
+    np.subtract(dy[2], np.multiply(v[2][:, None], vdy, out=tmp), out=dx_z)  # M dy, its depth
+    scale = 1.0 / (x[2][None] * sigmas)  # (2, b, N)
+    for a in range(2):  # dz_a = (dx_a - z_a dx_z) / x_z, whitened, into [A | e] (each view's rows (2N) last)
+        dz = rows[:P, :, a]
+        np.subtract(dy[a], np.multiply(v[a][:, None], vdy, out=tmp), out=dz)  # dx_a = (M dy)_a
+        dz -= np.multiply(z[a], dx_z, out=tmp)
+        dz *= scale[a]
+        rows[column:column + 3, :, a] = A_v[a]
+        rows[P, :, a] = e[a]
+    stacked = rows.reshape(P + 1, b, 2 * n).transpose(1, 0, 2)  # (b, P+1, 2N)
+    return np.matmul(stacked, stacked.transpose(0, 2, 1), out=work["gram"])

@@ -251,33 +251,38 @@ class _Group:
                 dx[:, c + j] = np.tensordot(R_c, e_j_x_B, axes=(1, 0))
                 dx[:, c + 3 + j] = R_c[:, j, None, None]  # d(t + R nu)/dnu = R
         offset = 6 * len(self.pose_cols)
+        scratch = np.empty((size, b, n))
         for owner, u in steps:
             col = offset + 3 * u
-            dv = np.zeros((3, size, b))
+            columns: Any = [col, col + 1, col + 2]  # where dv is not zero: this placement's, and a transfer's poses
             if owner == self.camera:
                 v = v_all[:, u].T
-                dv[:, col:col + 3] = J_all[:, u].transpose(1, 2, 0)
+                dv = J_all[:, u].transpose(1, 2, 0)  # (3, 3, b)
+                columns = slice(col, col + 3)
             else:
                 v_rows, parts = self._transfer(v_all[:, u], poses[self.camera], poses[owner], True)
                 v = v_rows.T
                 dv_v, dv_wc, dv_nc, dv_wo, dv_no = parts
-                dv[:, col:col + 3] = (dv_v @ J_all[:, u]).transpose(1, 2, 0)
+                blocks = [(dv_v @ J_all[:, u]).transpose(1, 2, 0)]
                 for who, dw, dn in ((self.camera, dv_wc, dv_nc), (owner, dv_wo, dv_no)):
                     if who in self.pose_cols:
                         c = self.pose_cols[who]
-                        dv[:, c:c + 3] += dw.transpose(1, 2, 0)
-                        dv[:, c + 3:c + 6] += dn.transpose(1, 2, 0)
+                        columns += range(c, c + 6)
+                        blocks.append(np.concatenate([dw, dn], axis=2).transpose(1, 2, 0))
+                dv = np.concatenate(blocks, axis=1)  # (3, k, b)
             vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]  # (b,)
             vx = v[0][:, None] * x[0] + v[1][:, None] * x[1] + v[2][:, None] * x[2]  # (b, N)
             s = vx / vv[:, None] - 1.0
-            vdv = v[0] * dv[0] + v[1] * dv[1] + v[2] * dv[2]  # (P, b)
-            ds = v[0][:, None] * dx[0] + v[1][:, None] * dx[1] + v[2][:, None] * dx[2]  # v . dx
-            ds += dv[0][:, :, None] * x[0] + dv[1][:, :, None] * x[1] + dv[2][:, :, None] * x[2]  # x . dv
+            vdv = v[0] * dv[0] + v[1] * dv[1] + v[2] * dv[2]  # (k, b)
+            ds = v[0][:, None] * dx[0]  # v . dx
+            ds += np.multiply(v[1][:, None], dx[1], out=scratch)
+            ds += np.multiply(v[2][:, None], dx[2], out=scratch)
+            ds[columns] += dv[0][:, :, None] * x[0] + dv[1][:, :, None] * x[1] + dv[2][:, :, None] * x[2]  # x . dv
             ds /= vv[:, None]
-            ds -= 2.0 * vdv[:, :, None] * (vx / (vv**2)[:, None])
+            ds[columns] -= 2.0 * vdv[:, :, None] * (vx / (vv**2)[:, None])
             for i in range(3):
-                dx[i] -= 2.0 * v[i][:, None] * ds
-                dx[i] -= 2.0 * dv[i][:, :, None] * s
+                dx[i] -= np.multiply(2.0 * v[i][:, None], ds, out=scratch)
+                dx[i, columns] -= 2.0 * dv[i][:, :, None] * s
             x -= 2.0 * v[:, :, None] * s[None]  # eq. (3): M x + 2 v
         return x, dx
 
