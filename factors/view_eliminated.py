@@ -171,8 +171,8 @@ class EliminatedViewStack:
         # private_placements); the general model with ``wrt`` elsewhere
         self._fast = [closed_form and u is not None and group.steps[-1][1] == u and [w for _, w in group.steps].count(u) == 1
                       for group, u in zip(self.groups, self._elim_local)]
-        self._observed_soa = [np.ascontiguousarray(group.observed.transpose(1, 0, 2)) for group in self.groups]
-        self._sigmas_soa = [np.ascontiguousarray(group.sigmas.transpose(1, 0, 2)) for group in self.groups]
+        self._observed_soa = [np.ascontiguousarray(group.observed.transpose(1, 2, 0)) for group in self.groups]
+        self._sigmas_soa = [np.ascontiguousarray(group.sigmas.transpose(1, 2, 0)) for group in self.groups]
         seen = np.bincount(np.concatenate([np.zeros(0, dtype=np.intp)] + [
             placement_of for placement_of, u in zip(self._placement_of_view, self._elim_local) if u is not None]),
             minlength=len(self.eliminated))  # each eliminated placement's views
@@ -182,6 +182,7 @@ class EliminatedViewStack:
         self._c_index = [self._c_offsets[m][:, None] + np.arange(3 * (w + 1))[None] for m, w in zip(self._mine, self._widths)]
         self._all_targets = np.concatenate([target.ravel() for target in self._targets])
         self._work: list[dict] = [{} for _ in self.groups]  # buffers of each group's normals
+        self._prefix_work: list[dict] = [{} for _ in self.groups]  # and of its points' derivatives
         self._pose_set = pose_set
         self._order = {p: i for i, p in enumerate([*self.kept_mirror_keys, *self.eliminated])}
         self._rows = [group.placement_index(self._order) for group in self.groups]
@@ -258,8 +259,8 @@ class EliminatedViewStack:
         """Each fast group's points before its last mirror ``y`` (3, b, N) and, with ``derivatives``, their
         derivative in the local columns (3, P, b, N) (``view_last_reflection.py``); None for the others."""
         V, J = self._arrays(vectors, jacobians)
-        return [group.reflected_soa(poses, (V[at], J[at]), group.steps[:-1], derivatives) if fast else None
-                for group, at, fast in zip(self.groups, self._rows, self._fast)]
+        return [group.reflected_soa(poses, (V[at], J[at]), group.steps[:-1], derivatives, work) if fast else None
+                for group, at, fast, work in zip(self.groups, self._rows, self._fast, self._prefix_work)]
 
     def _normals(self, poses, vectors, jacobians, prefixes: list) -> np.ndarray:
         """Every entry of the stacks' normals, the placements' ``C`` and ``D`` at the current vectors."""

@@ -114,7 +114,7 @@ class _Group:
         self.factors = factors
         self.placements = [list(dict.fromkeys(f.reflections)) for f in factors]  # (b, U) per view
         self.base = np.array([f.base_points for f in factors])
-        self.base_soa = np.ascontiguousarray(self.base.transpose(1, 0, 2))  # (3, b, N)
+        self.base_soa = np.ascontiguousarray(self.base.transpose(1, 2, 0))  # (3, N, b)
         self.observed = np.array([f.observed for f in factors])
         self.sigmas = np.array([f.sigmas for f in factors])
         self.robust, self.robust_k = first.robust, first.robust_k
@@ -224,12 +224,13 @@ class _Group:
         return x, dx, dB
 
     def reflected_soa(self, poses: dict[str, tuple[np.ndarray, np.ndarray]], arrays: tuple, steps: list[tuple[str, int]],
-                      jacobians: bool) -> tuple[np.ndarray, np.ndarray | None]:
-        """:meth:`reflected` of the fiducials in a structure-of-arrays layout (no reconstruction points, no
-        ``wrt``): ``x`` (3, b, N) and when asked ``dx`` (3, P, b, N), with only elementwise products over the
-        views (a batched (3 x 3) product per view is one Python-level loop step inside numpy each, far slower
-        at thousands of views). ``arrays``: the views' placements' vectors (b, U, 3) and plane Jacobians
-        (b, U, 3, 3)."""
+                      jacobians: bool, work: dict | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """:meth:`reflected` of the fiducials in a structure-of-arrays layout, the views last (no
+        reconstruction points, no ``wrt``): ``x`` (3, N, b) and when asked ``dx`` (3, P, N, b), with only
+        elementwise operations whose inner loop runs over the views (a batched (3 x 3) product per view, or
+        an inner loop over a view's few points, is one step of numpy's outer loop each: far slower at
+        thousands of views). ``arrays``: the views' placements' vectors (b, U, 3) and plane Jacobians
+        (b, U, 3, 3). ``work``: buffers kept between calls (``dx`` is one of them: valid until the next)."""
         R_c, t_c = poses[self.camera]
         B = self.base_soa
         x = np.tensordot(R_c, B, axes=(1, 0)) + t_c[:, None, None]  # eq. (2)
@@ -238,20 +239,23 @@ class _Group:
             for owner, u in steps:
                 v = (v_all[:, u] if owner == self.camera else self._transfer(v_all[:, u], poses[self.camera], poses[owner], False)[0]).T
                 vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
-                s = (v[0][:, None] * x[0] + v[1][:, None] * x[1] + v[2][:, None] * x[2]) / vv[:, None] - 1.0
-                x -= 2.0 * v[:, :, None] * s[None]  # eq. (3): M x + 2 v
+                s = (v[0] * x[0] + v[1] * x[1] + v[2] * x[2]) / vv - 1.0
+                x -= 2.0 * v[:, None, :] * s[None]  # eq. (3): M x + 2 v
             return x, None
-        size, (_, b, n) = self.slots.size, x.shape
-        dx = np.zeros((3, size, b, n))
+        size, (_, n, b) = self.slots.size, x.shape
+        work = {} if work is None else work
+        if work.get("shape") != (size, n, b):
+            work.update(shape=(size, n, b), dx=np.empty((3, size, n, b)), scratch=np.empty((size, n, b)))
+        dx, scratch = work["dx"], work["scratch"]
+        dx.fill(0.0)
         if self.camera in self.pose_cols:
             c = self.pose_cols[self.camera]
             for j in range(3):  # d(R Exp(w) B)/dw = -R [B]x: column j is -R (B x e_j) = R (e_j x B)
-                e_j_x_B = np.zeros((3, b, n))
+                e_j_x_B = np.zeros((3, n, b))
                 e_j_x_B[(j + 1) % 3], e_j_x_B[(j + 2) % 3] = -B[(j + 2) % 3], B[(j + 1) % 3]
                 dx[:, c + j] = np.tensordot(R_c, e_j_x_B, axes=(1, 0))
                 dx[:, c + 3 + j] = R_c[:, j, None, None]  # d(t + R nu)/dnu = R
         offset = 6 * len(self.pose_cols)
-        scratch = np.empty((size, b, n))
         for owner, u in steps:
             col = offset + 3 * u
             columns: Any = [col, col + 1, col + 2]  # where dv is not zero: this placement's, and a transfer's poses
@@ -271,19 +275,19 @@ class _Group:
                         blocks.append(np.concatenate([dw, dn], axis=2).transpose(1, 2, 0))
                 dv = np.concatenate(blocks, axis=1)  # (3, k, b)
             vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]  # (b,)
-            vx = v[0][:, None] * x[0] + v[1][:, None] * x[1] + v[2][:, None] * x[2]  # (b, N)
-            s = vx / vv[:, None] - 1.0
+            vx = v[0] * x[0] + v[1] * x[1] + v[2] * x[2]  # (N, b)
+            s = vx / vv - 1.0
             vdv = v[0] * dv[0] + v[1] * dv[1] + v[2] * dv[2]  # (k, b)
-            ds = v[0][:, None] * dx[0]  # v . dx
-            ds += np.multiply(v[1][:, None], dx[1], out=scratch)
-            ds += np.multiply(v[2][:, None], dx[2], out=scratch)
-            ds[columns] += dv[0][:, :, None] * x[0] + dv[1][:, :, None] * x[1] + dv[2][:, :, None] * x[2]  # x . dv
-            ds /= vv[:, None]
-            ds[columns] -= 2.0 * vdv[:, :, None] * (vx / (vv**2)[:, None])
+            ds = v[0] * dx[0]  # v . dx (P, N, b)
+            ds += np.multiply(v[1], dx[1], out=scratch)
+            ds += np.multiply(v[2], dx[2], out=scratch)
+            ds[columns] += dv[0][:, None] * x[0] + dv[1][:, None] * x[1] + dv[2][:, None] * x[2]  # x . dv
+            ds /= vv
+            ds[columns] -= 2.0 * vdv[:, None] * (vx / vv**2)
             for i in range(3):
-                dx[i] -= np.multiply(2.0 * v[i][:, None], ds, out=scratch)
-                dx[i, columns] -= 2.0 * dv[i][:, :, None] * s
-            x -= 2.0 * v[:, :, None] * s[None]  # eq. (3): M x + 2 v
+                dx[i] -= np.multiply(2.0 * v[i], ds, out=scratch)
+                dx[i, columns] -= 2.0 * dv[i][:, None] * s
+            x -= 2.0 * v[:, None, :] * s[None]  # eq. (3): M x + 2 v
         return x, dx
 
     @staticmethod
