@@ -70,18 +70,27 @@ def private_placements(view_factors: Sequence[ViewFactor], stacks: list[list[int
     """The placements to eliminate: seen by one stack's views only, not in ``keep``, and at most one per
     view: those with the fewest views first (a photograph's own placement before a mirror placement that
     many photographs share, which stays a variable)."""
-    stack_of: dict[Placement, set[int]] = {}
+    first_stack: dict[Placement, int] = {}
     views_of: dict[Placement, list[int]] = {}
-    for s, members in enumerate(stacks):
-        for i in members:
-            for p in view_factors[i].mirror_keys:
-                stack_of.setdefault(p, set()).add(s)
-                views_of.setdefault(p, []).append(i)
+    shared: set[Placement] = set()  # seen in more than one stack
     # as the paper's last mirror: seen by its owner camera only and last in every view's reflections (in
     # other places its cost in v alone is far from quadratic: Gauss-Newton on it crawled or diverged on a
     # rig's two-mirror views, where the placements stay variables)
-    transferred = {p for f in view_factors for p in f.mirror_keys if f.owners[p] != f.camera or f.reflections[-1] != p}
-    candidates = sorted((p for p, s in stack_of.items() if len(s) == 1 and p not in keep and p not in transferred),
+    transferred: set[Placement] = set()
+    for s, members in enumerate(stacks):
+        for i in members:
+            f = view_factors[i]
+            last, camera, owners = f.reflections[-1], f.camera, f.owners
+            for p in f.mirror_keys:
+                if p in views_of:
+                    views_of[p].append(i)
+                    if first_stack[p] != s:
+                        shared.add(p)
+                else:
+                    views_of[p], first_stack[p] = [i], s
+                if p != last or owners[p] != camera:
+                    transferred.add(p)
+    candidates = sorted((p for p in views_of if p not in shared and p not in keep and p not in transferred),
                         key=lambda p: (len(views_of[p]), p))
     taken: set[int] = set()  # views that have their eliminated placement
     chosen = []
@@ -116,7 +125,9 @@ class EliminatedViewStack:
         for f in view_factors:
             self.fixed.update(f.fixed)
             self.pose_keys.update(f.pose_keys)
-            self.kept_mirror_keys.update({p: k for p, k in f.mirror_keys.items() if p not in index})
+            for p, k in f.mirror_keys.items():
+                if p not in index:
+                    self.kept_mirror_keys[p] = k
         pose_set = set(self.pose_keys.values())
         self._keys, self._widths, self._offsets, columns_of = [], [], [], []
         stack_of_view = np.zeros(len(view_factors), dtype=np.intp)
@@ -152,10 +163,14 @@ class EliminatedViewStack:
                              + d_of[:, None]).astype(np.intp)  # C[:, d] = J_v^T e of each placement
         self._total = self._d_offset + 9 * len(self.eliminated)
         shapes: dict[tuple, list[int]] = {}
+        seen = index.__contains__
         for i, f in enumerate(view_factors):
-            order = list(dict.fromkeys(f.reflections))
-            shape = (f.camera, tuple((f.owners[p], order.index(p)) for p in f.reflections), tuple(f.pose_keys),
-                     f.base_points.shape[1], tuple(p in index for p in order))
+            # the camera, the owner and local placement at each reflection, the poses, the points, which
+            # placement is eliminated (f.mirror_keys: the placements in order of first reflection)
+            order = list(f.mirror_keys)
+            owners = tuple(f.owners[p] for p in f.reflections)
+            local = tuple(range(len(order))) if len(order) == len(f.reflections) else tuple(map(order.index, f.reflections))
+            shape = (f.camera, owners, local, tuple(f.pose_keys), f.base_points.shape[1], tuple(map(seen, order)))
             shapes.setdefault(shape, []).append(i)
         self.groups = [_Group([view_factors[i] for i in members]) for members in shapes.values()]
         self._targets, self._placement_of_view, self._elim_cols, self._elim_local = [], [], [], []

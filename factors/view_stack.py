@@ -74,9 +74,9 @@ def stacks_by_placements(view_factors: Sequence[ViewFactor], placements_per_fact
     """The views (indices) of each stack: views with the same placements, in the order first seen;
     consecutive ones merged up to ``placements_per_factor`` placements (fewer factor calls, each of which
     copies the Values)."""
-    same: dict[tuple, list[int]] = {}
+    same: dict[frozenset, list[int]] = {}
     for i, f in enumerate(view_factors):
-        same.setdefault(tuple(sorted(f.mirror_keys)), []).append(i)
+        same.setdefault(frozenset(f.mirror_keys), []).append(i)
     merged: list[tuple[set, list[int]]] = []
     for placements, members in same.items():
         if merged and len(merged[-1][0]) + sum(p not in merged[-1][0] for p in placements) <= placements_per_factor:
@@ -112,7 +112,7 @@ class _Group:
         self.pose_cols = dict(first.slots.pose_cols)
         self.placement_count = len(placements)
         self.factors = factors
-        self.placements = [list(dict.fromkeys(f.reflections)) for f in factors]  # (b, U) per view
+        self.placements = [list(f.mirror_keys) for f in factors]  # (b, U) per view, in order of first reflection
         self.base = np.array([f.base_points for f in factors])
         self.base_soa = np.ascontiguousarray(self.base.transpose(1, 2, 0))  # (3, N, b)
         self.observed = np.array([f.observed for f in factors])
