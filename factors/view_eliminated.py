@@ -15,6 +15,10 @@ against the tree pipeline's 1 s. Here those placements never enter the ``Values`
 * evaluated at those values, each eliminated placement's mirror vector ``v`` is first optimised on its own
   measurements (Gauss-Newton, vectorised over every placement, warm-started; variable projection), so a
   factor's cost is ``min_v`` of the cost of eq. (23): the same minimiser as the joint graph;
+* where a view's eliminated placement is its last reflection (and no earlier one), the points as they reach
+  that mirror are computed once per evaluation and each inner iteration is that one reflection and the
+  projection in closed form (``view_last_reflection.py``, as the tree's factors do); the general model
+  (``view_stack._Group.model``) otherwise;
 * linearised, each placement is eliminated from its views' normal equations
   (``N_kk - C^T D^-1 C``, ``D = J_v^T J_v``, ``C = J_v^T [J_k | e]``) and the factor's rows compressed to
   ``d + 1`` (``view_points._rows_of``): the same Levenberg-Marquardt steps as the joint graph with those
@@ -80,6 +84,8 @@ def private_placements(view_factors: Sequence[ViewFactor], stacks: list[list[int
     for s, members in enumerate(stacks):
         for i in members:
             f = view_factors[i]
+            if not f.reflections:  # a direct view
+                continue
             last, camera, owners = f.reflections[-1], f.camera, f.owners
             for p in f.mirror_keys:
                 if p in views_of:
@@ -195,7 +201,8 @@ class EliminatedViewStack:
                           in zip(self._fast, self._placement_of_view)]
         self._mine = [np.flatnonzero(stack_of_placement == s) for s in range(len(stacks))]
         self._c_index = [self._c_offsets[m][:, None] + np.arange(3 * (w + 1))[None] for m, w in zip(self._mine, self._widths)]
-        self._all_targets = np.concatenate([target.ravel() for target in self._targets])
+        self._all_targets = (self._targets[0].ravel() if len(self._targets) == 1
+                             else np.concatenate([target.ravel() for target in self._targets]))
         self._work: list[dict] = [{} for _ in self.groups]  # buffers of each group's normals
         self._prefix_work: list[dict] = [{} for _ in self.groups]  # and of its points' derivatives
         self._pose_set = pose_set

@@ -111,27 +111,29 @@ class ViewProblem:
         # the sigmas, base points and point keys of each (camera, points seen): the same for most images
         known: dict[tuple, tuple[np.ndarray, np.ndarray, list[int]]] = {}
         templates: dict[tuple, ViewFactor] = {}  # the first factor of each shape (view_factor_like)
+        owners = self.owners
         for image, view in zip(dataset.images, self.views):
-            camera = dataset.camera_of(image)
             pixel = view.camera in self.intrinsics
             shape = (view.camera, pixel, tuple(view.names))
-            if shape not in known:
-                known[shape] = self._points_of(dataset, None if pixel else camera, view.names)
-            sigmas, base, landmarks = known[shape]
             observed = (np.array([image.observations[n] for n in view.names], dtype=float).reshape(-1, 2).T if pixel
                         else view.normalized.T)
-            model = (self.intrinsics[view.camera], self.intrinsics_keys[view.camera]) if pixel else None
             placements = list(dict.fromkeys(view.reflections))
-            like = (shape, tuple(self.owners[p] for p in view.reflections), tuple(map(placements.index, view.reflections)))
+            local = (tuple(range(len(placements))) if len(placements) == len(view.reflections)
+                     else tuple(map(placements.index, view.reflections)))
+            like = (shape, tuple([owners[p] for p in view.reflections]), local)
             template = templates.get(like)
-            if template is None:
-                template = templates[like] = ViewFactor(view.camera, view.reflections, self.pose_keys, self.fixed,
-                                                        self.mirror_keys, self.owners, base, landmarks, observed, sigmas,
-                                                        robust, intrinsics=model)
-                self.factors.append(template)
-            else:
+            if template is not None:
                 self.factors.append(view_factor_like(template, view.reflections, placements, self.mirror_keys,
-                                                     self.owners, observed))
+                                                     owners, observed))
+                continue
+            if shape not in known:
+                known[shape] = self._points_of(dataset, None if pixel else dataset.camera_of(image), view.names)
+            sigmas, base, landmarks = known[shape]
+            model = (self.intrinsics[view.camera], self.intrinsics_keys[view.camera]) if pixel else None
+            template = templates[like] = ViewFactor(view.camera, view.reflections, self.pose_keys, self.fixed,
+                                                    self.mirror_keys, owners, base, landmarks, observed, sigmas,
+                                                    robust, intrinsics=model)
+            self.factors.append(template)
         self.constraints = 1 if dataset.scale is not None else 0
         #: Number of residual rows (2 per measurement).
         self.size = sum(2 * len(v.names) for v in self.views)
