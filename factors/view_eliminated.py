@@ -249,9 +249,9 @@ class EliminatedViewStack:
         stride = np.array(self._widths)[stack_of_view[members]] + 1  # (b,)
         base = np.array(self._offsets)[stack_of_view[members]]
         kept = stack_col >= 0
-        targets = np.where(kept[:, :, None] & kept[:, None, :],
-                           base[:, None, None] + stack_col[:, :, None] * stride[:, None, None] + stack_col[:, None, :],
-                           self._total)
+        targets = (base[:, None] + stack_col * stride[:, None])[:, :, None] + stack_col[:, None, :]
+        targets[~kept] = self._total  # (rows, then columns, of the eliminated placement: set below)
+        targets.transpose(0, 2, 1)[~kept] = self._total
         elim_cols = np.zeros((b, 3), dtype=np.intp)
         if elim_col >= 0:  # the group's eliminated placement (one local position for all its views)
             rows = elim_col + np.arange(3)
