@@ -235,7 +235,8 @@ class EliminatedViewStack:
         first = group.factors[0]  # a group's views share their cameras and the local order of placements
         for name, c in first.slots.pose_cols.items():
             key = first.pose_keys[name]
-            stack_col[:, c:c + 6] = np.array([columns_of[s][key] for s in stacks])[:, None] + np.arange(6)
+            in_stack = np.array([columns.get(key, -1) for columns in columns_of])  # its column in each stack
+            stack_col[:, c:c + 6] = in_stack[stack_of_view[members]][:, None] + np.arange(6)
         offset = 6 * len(first.slots.pose_cols)
         for u in range(group.placement_count):
             placements = [ps[u] for ps in group.placements]
