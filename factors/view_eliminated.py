@@ -169,14 +169,14 @@ class EliminatedViewStack:
                              + d_of[:, None]).astype(np.intp)  # C[:, d] = J_v^T e of each placement
         self._total = self._d_offset + 9 * len(self.eliminated)
         shapes: dict[tuple, list[int]] = {}
-        seen = index.__contains__
+        is_eliminated = index.__contains__
         for i, f in enumerate(view_factors):
             # the camera, the owner and local placement at each reflection, the poses, the points, which
             # placement is eliminated (f.mirror_keys: the placements in order of first reflection)
             order = list(f.mirror_keys)
             owners = tuple(f.owners[p] for p in f.reflections)
             local = tuple(range(len(order))) if len(order) == len(f.reflections) else tuple(map(order.index, f.reflections))
-            shape = (f.camera, owners, local, tuple(f.pose_keys), f.base_points.shape[1], tuple(map(seen, order)))
+            shape = (f.camera, owners, local, tuple(f.pose_keys), f.base_points.shape[1], tuple(map(is_eliminated, order)))
             shapes.setdefault(shape, []).append(i)
         self.groups = [_Group([view_factors[i] for i in members]) for members in shapes.values()]
         self._targets, self._placement_of_view, self._elim_cols, self._elim_local = [], [], [], []
@@ -331,6 +331,7 @@ class EliminatedViewStack:
                 continue
             if wrt is None and not rest_too:
                 continue
+            assert V is not None and J is not None  # (a group not in closed form)
             if wrt is None:
                 z = group.model(poses, vectors, jacobians, False, arrays=(V[at], J[at]))[0]
             else:
