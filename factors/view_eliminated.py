@@ -15,6 +15,10 @@ against the tree pipeline's 1 s. Here those placements never enter the ``Values`
 * evaluated at those values, each eliminated placement's mirror vector ``v`` is first optimised on its own
   measurements (Gauss-Newton, vectorised over every placement, warm-started; variable projection), so a
   factor's cost is ``min_v`` of the cost of eq. (23): the same minimiser as the joint graph;
+* where a view's eliminated placement is its last reflection (and no earlier one), the points as they reach
+  that mirror are computed once per evaluation and each inner iteration is that one reflection and the
+  projection in closed form (``view_last_reflection.py``, as the tree's factors do); the general model
+  (``view_stack._Group.model``) otherwise;
 * linearised, each placement is eliminated from its views' normal equations
   (``N_kk - C^T D^-1 C``, ``D = J_v^T J_v``, ``C = J_v^T [J_k | e]``) and the factor's rows compressed to
   ``d + 1`` (``view_points._rows_of``): the same Levenberg-Marquardt steps as the joint graph with those
@@ -33,9 +37,10 @@ from collections.abc import Sequence
 import gtsam
 import numpy as np
 
+from mirror_fg.factors import view_last_reflection as last
 from mirror_fg.factors.schur import inverses, one_blas_thread
 from mirror_fg.factors.view_points import _rows_of, compressed_rows
-from mirror_fg.factors.view_stack import _Group, read_poses_and_planes
+from mirror_fg.factors.view_stack import _Group, read_poses_and_planes, stacks_by_placements
 from mirror_fg.factors.views import ViewFactor
 
 __all__ = ["EliminatedViewStack", "eliminable", "PLACEMENTS_PER_FACTOR"]
@@ -62,35 +67,36 @@ def eliminable(factor: ViewFactor) -> bool:
 def stacks_of(view_factors: Sequence[ViewFactor], cap: int) -> list[list[int]]:
     """The views of each factor: views with the same placements together, in the order first seen,
     consecutive sets merged while they hold at most ``cap`` placements (``view_stack.py``'s rule)."""
-    same: dict[tuple, list[int]] = {}
-    for i, f in enumerate(view_factors):
-        same.setdefault(tuple(sorted(f.mirror_keys)), []).append(i)
-    merged: list[tuple[set, list[int]]] = []
-    for placements, members in same.items():
-        if merged and len(merged[-1][0] | set(placements)) <= cap:
-            merged[-1][0].update(placements)
-            merged[-1][1].extend(members)
-        else:
-            merged.append((set(placements), list(members)))
-    return [members for _, members in merged]
+    return stacks_by_placements(view_factors, cap)
 
 
 def private_placements(view_factors: Sequence[ViewFactor], stacks: list[list[int]], keep: set) -> list[Placement]:
     """The placements to eliminate: seen by one stack's views only, not in ``keep``, and at most one per
     view: those with the fewest views first (a photograph's own placement before a mirror placement that
     many photographs share, which stays a variable)."""
-    stack_of: dict[Placement, set[int]] = {}
+    first_stack: dict[Placement, int] = {}
     views_of: dict[Placement, list[int]] = {}
-    for s, members in enumerate(stacks):
-        for i in members:
-            for p in view_factors[i].mirror_keys:
-                stack_of.setdefault(p, set()).add(s)
-                views_of.setdefault(p, []).append(i)
+    shared: set[Placement] = set()  # seen in more than one stack
     # as the paper's last mirror: seen by its owner camera only and last in every view's reflections (in
     # other places its cost in v alone is far from quadratic: Gauss-Newton on it crawled or diverged on a
     # rig's two-mirror views, where the placements stay variables)
-    transferred = {p for f in view_factors for p in f.mirror_keys if f.owners[p] != f.camera or f.reflections[-1] != p}
-    candidates = sorted((p for p, s in stack_of.items() if len(s) == 1 and p not in keep and p not in transferred),
+    transferred: set[Placement] = set()
+    for s, members in enumerate(stacks):
+        for i in members:
+            f = view_factors[i]
+            if not f.reflections:  # a direct view
+                continue
+            last, camera, owners = f.reflections[-1], f.camera, f.owners
+            for p in f.mirror_keys:
+                if p in views_of:
+                    views_of[p].append(i)
+                    if first_stack[p] != s:
+                        shared.add(p)
+                else:
+                    views_of[p], first_stack[p] = [i], s
+                if p != last or owners[p] != camera:
+                    transferred.add(p)
+    candidates = sorted((p for p in views_of if p not in shared and p not in keep and p not in transferred),
                         key=lambda p: (len(views_of[p]), p))
     taken: set[int] = set()  # views that have their eliminated placement
     chosen = []
@@ -105,13 +111,15 @@ class EliminatedViewStack:
     """Views (all :func:`eliminable`) in factors with their own placements eliminated (module docstring).
 
     ``start``: every eliminated placement's mirror vector to start from (owner frame, metres); ``keep``:
-    placements that stay variables whatever sees them (e.g. the scale's). ``eliminated``: the placements
+    placements that stay variables whatever sees them (e.g. the scale's); ``closed_form``: the last reflection
+    in closed form where it is the eliminated placement's (``view_last_reflection.py``; else the general
+    model everywhere, as a reference). ``eliminated``: the placements
     solved inside; ``kept_mirror_keys``: the plane keys the factors see; ``factors``: the
     ``gtsam.CustomFactor`` objects."""
 
     def __init__(self, view_factors: Sequence[ViewFactor], start: dict[Placement, np.ndarray],
                  keep: frozenset | set = frozenset(),
-                 placements_per_factor: int = PLACEMENTS_PER_FACTOR):
+                 placements_per_factor: int = PLACEMENTS_PER_FACTOR, closed_form: bool = True):
         stacks = stacks_of(view_factors, placements_per_factor)
         self.eliminated = private_placements(view_factors, stacks, set(keep))
         index = {p: e for e, p in enumerate(self.eliminated)}
@@ -123,7 +131,9 @@ class EliminatedViewStack:
         for f in view_factors:
             self.fixed.update(f.fixed)
             self.pose_keys.update(f.pose_keys)
-            self.kept_mirror_keys.update({p: k for p, k in f.mirror_keys.items() if p not in index})
+            for p, k in f.mirror_keys.items():
+                if p not in index:
+                    self.kept_mirror_keys[p] = k
         pose_set = set(self.pose_keys.values())
         self._keys, self._widths, self._offsets, columns_of = [], [], [], []
         stack_of_view = np.zeros(len(view_factors), dtype=np.intp)
@@ -159,10 +169,14 @@ class EliminatedViewStack:
                              + d_of[:, None]).astype(np.intp)  # C[:, d] = J_v^T e of each placement
         self._total = self._d_offset + 9 * len(self.eliminated)
         shapes: dict[tuple, list[int]] = {}
+        is_eliminated = index.__contains__
         for i, f in enumerate(view_factors):
-            order = list(dict.fromkeys(f.reflections))
-            shape = (f.camera, tuple((f.owners[p], order.index(p)) for p in f.reflections), tuple(f.pose_keys),
-                     f.base_points.shape[1], tuple(p in index for p in order))
+            # the camera, the owner and local placement at each reflection, the poses, the points, which
+            # placement is eliminated (f.mirror_keys: the placements in order of first reflection)
+            order = list(f.mirror_keys)
+            owners = tuple(f.owners[p] for p in f.reflections)
+            local = tuple(range(len(order))) if len(order) == len(f.reflections) else tuple(map(order.index, f.reflections))
+            shape = (f.camera, owners, local, tuple(f.pose_keys), f.base_points.shape[1], tuple(map(is_eliminated, order)))
             shapes.setdefault(shape, []).append(i)
         self.groups = [_Group([view_factors[i] for i in members]) for members in shapes.values()]
         self._targets, self._placement_of_view, self._elim_cols, self._elim_local = [], [], [], []
@@ -173,6 +187,24 @@ class EliminatedViewStack:
             self._elim_cols.append(elim_cols)
             order = list(dict.fromkeys(group.factors[0].reflections))  # the group's eliminated placement, if any
             self._elim_local.append(next((u for u, p in enumerate(order) if p in index), None))
+        # the closed form of the last reflection (``view_last_reflection.py``) where a group's eliminated
+        # placement is its last reflection and not an earlier one too (always its own camera's: see
+        # private_placements); the general model with ``wrt`` elsewhere
+        self._fast = [closed_form and u is not None and group.steps[-1][1] == u and [w for _, w in group.steps].count(u) == 1
+                      for group, u in zip(self.groups, self._elim_local)]
+        self._observed_soa = [np.ascontiguousarray(group.observed.transpose(1, 2, 0)) for group in self.groups]
+        self._sigmas_soa = [np.ascontiguousarray(group.sigmas.transpose(1, 2, 0)) for group in self.groups]
+        seen = np.bincount(np.concatenate([np.zeros(0, dtype=np.intp)] + [
+            placement_of for placement_of, u in zip(self._placement_of_view, self._elim_local) if u is not None]),
+            minlength=len(self.eliminated))  # each eliminated placement's views
+        self._one_view = [fast and bool(np.all(seen[placement_of] == 1)) for fast, placement_of
+                          in zip(self._fast, self._placement_of_view)]
+        self._mine = [np.flatnonzero(stack_of_placement == s) for s in range(len(stacks))]
+        self._c_index = [self._c_offsets[m][:, None] + np.arange(3 * (w + 1))[None] for m, w in zip(self._mine, self._widths)]
+        self._all_targets = (self._targets[0].ravel() if len(self._targets) == 1
+                             else np.concatenate([target.ravel() for target in self._targets]))
+        self._work: list[dict] = [{} for _ in self.groups]  # buffers of each group's normals
+        self._prefix_work: list[dict] = [{} for _ in self.groups]  # and of its points' derivatives
         self._pose_set = pose_set
         self._order = {p: i for i, p in enumerate([*self.kept_mirror_keys, *self.eliminated])}
         self._rows = [group.placement_index(self._order) for group in self.groups]
@@ -196,28 +228,31 @@ class EliminatedViewStack:
         eliminated x eliminated to its ``D``, kept x eliminated nowhere (the last slot, dropped)."""
         P = group.slots.size
         b = len(members)
+        stacks = stack_of_view[members].tolist()
         stack_col = np.full((b, P + 1), -1, dtype=np.intp)  # each local column's column in its stack
         placement_of = np.full(b, -1, dtype=np.intp)
         elim_col = -1
-        for r, (view, i) in enumerate(zip(group.factors, members)):
-            s = stack_of_view[i]
-            columns = columns_of[s]
-            for name, key in view.pose_keys.items():
-                c = view.slots.pose_cols[name]
-                stack_col[r, c:c + 6] = columns[key] + np.arange(6)
-            for p, key in view.mirror_keys.items():
-                c = view.slots.mirror_cols[p]
-                if p in index:
-                    placement_of[r], elim_col = index[p], c
-                else:
-                    stack_col[r, c:c + 3] = columns[key] + np.arange(3)
-            stack_col[r, P] = self._widths[s]  # e
+        first = group.factors[0]  # a group's views share their cameras and the local order of placements
+        for name, c in first.slots.pose_cols.items():
+            key = first.pose_keys[name]
+            in_stack = np.array([columns.get(key, -1) for columns in columns_of])  # its column in each stack
+            stack_col[:, c:c + 6] = in_stack[stack_of_view[members]][:, None] + np.arange(6)
+        offset = 6 * len(first.slots.pose_cols)
+        for u in range(group.placement_count):
+            placements = [ps[u] for ps in group.placements]
+            c = offset + 3 * u  # (views.ViewSlots: the placements' columns in their order of first reflection)
+            if placements[0] in index:  # (the group's shape says which local placement is eliminated)
+                placement_of[:], elim_col = [index[p] for p in placements], c
+            else:
+                stack_col[:, c:c + 3] = np.array([columns_of[s][view.mirror_keys[p]] for s, view, p in
+                                                  zip(stacks, group.factors, placements)])[:, None] + np.arange(3)
+        stack_col[:, P] = np.array(self._widths)[stacks]  # e
         stride = np.array(self._widths)[stack_of_view[members]] + 1  # (b,)
         base = np.array(self._offsets)[stack_of_view[members]]
         kept = stack_col >= 0
-        targets = np.where(kept[:, :, None] & kept[:, None, :],
-                           base[:, None, None] + stack_col[:, :, None] * stride[:, None, None] + stack_col[:, None, :],
-                           self._total)
+        targets = (base[:, None] + stack_col * stride[:, None])[:, :, None] + stack_col[:, None, :]
+        targets[~kept] = self._total  # (rows, then columns, of the eliminated placement: set below)
+        targets.transpose(0, 2, 1)[~kept] = self._total
         elim_cols = np.zeros((b, 3), dtype=np.intp)
         if elim_col >= 0:  # the group's eliminated placement (one local position for all its views)
             rows = elim_col + np.arange(3)
@@ -243,29 +278,60 @@ class EliminatedViewStack:
                             np.broadcast_to(np.eye(3), (len(self.eliminated), 3, 3))])
         return V, J
 
-    def _normals(self, poses, vectors, jacobians) -> np.ndarray:
+    def _prefixes(self, poses, vectors, jacobians, derivatives: bool) -> list:
+        """Each fast group's points before its last mirror ``y`` (3, b, N) and, with ``derivatives``, their
+        derivative in the local columns (3, P, b, N) (``view_last_reflection.py``); None for the others."""
+        V, J = self._arrays(vectors, jacobians)
+        return [group.reflected_soa(poses, (V[at], J[at]), group.steps[:-1], derivatives, work) if fast else None
+                for group, at, fast, work in zip(self.groups, self._rows, self._fast, self._prefix_work)]
+
+    def _normals(self, poses, vectors, jacobians, prefixes: list) -> np.ndarray:
         """Every entry of the stacks' normals, the placements' ``C`` and ``D`` at the current vectors."""
         V, J = self._arrays(vectors, jacobians)
-        weights, targets = [], []
-        for group, target, at in zip(self.groups, self._targets, self._rows):
+        weights = []
+        for i, (group, at) in enumerate(zip(self.groups, self._rows)):
+            if prefixes[i] is not None:
+                y, dy = prefixes[i]
+                normals = last.augmented_normals(y, dy, self._vectors[self._placement_of_view[i]], int(self._elim_cols[i][0, 0]),
+                                                 self._observed_soa[i], self._sigmas_soa[i], self._work[i])
+                weights.append(normals.ravel())
+                continue
             z, dz, _ = group.model(poses, vectors, jacobians, True, arrays=(V[at], J[at]))
             e = (z - group.observed) / group.sigmas  # (b, 2, N) whitened
             A = dz / group.sigmas[:, :, None, :]  # (b, 2, P, N)
             b, _, P, n = A.shape
             Ae = np.concatenate([A.transpose(0, 1, 3, 2).reshape(b, 2 * n, P), e.reshape(b, 2 * n, 1)], axis=2)
             weights.append((Ae.transpose(0, 2, 1) @ Ae).ravel())
-            targets.append(target.ravel())
-        return np.bincount(np.concatenate(targets), np.concatenate(weights), minlength=self._total + 1)
+        return np.bincount(self._all_targets, weights[0] if len(weights) == 1 else np.concatenate(weights),
+                           minlength=self._total + 1)
 
-    def _moments(self, poses, vectors, jacobians) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _moments(self, poses, vectors, jacobians, prefixes: list,
+                 rest_too: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``D = J_v^T J_v`` (E, 3, 3), ``J_v^T e`` (E, 3) and the cost ``||e||^2`` (E,) of every eliminated
-        placement's views, the rest held; and each stack's cost of its views without one."""
-        V, J = self._arrays(vectors, jacobians)
+        placement's views, the rest held; and (``rest_too``) each stack's cost of its views without one."""
+        V, J = self._arrays(vectors, jacobians) if not all(self._fast) else (None, None)
         E = len(self.eliminated)
         D, g, own = np.zeros((E, 3, 3)), np.zeros((E, 3)), np.zeros(E)
         rest = np.zeros(len(self._keys))
-        for group, placement_of, wrt, at, members in zip(self.groups, self._placement_of_view, self._elim_local,
-                                                         self._rows, self._stack_rows):
+        for i, (group, placement_of, wrt, at, members) in enumerate(zip(
+                self.groups, self._placement_of_view, self._elim_local, self._rows, self._stack_rows)):
+            if prefixes[i] is not None:
+                D_views, g_views, cost = last.moments(prefixes[i][0], self._vectors[placement_of],
+                                                      self._observed_soa[i], self._sigmas_soa[i])
+                if self._one_view[i]:  # each of the group's placements seen by this view alone
+                    D[placement_of] += D_views
+                    g[placement_of] += g_views
+                    own[placement_of] += cost
+                    continue
+                for j in range(3):
+                    g[:, j] += np.bincount(placement_of, g_views[:, j], minlength=E)
+                    for k in range(3):
+                        D[:, j, k] += np.bincount(placement_of, D_views[:, j, k], minlength=E)
+                own += np.bincount(placement_of, cost, minlength=E)
+                continue
+            if wrt is None and not rest_too:
+                continue
+            assert V is not None and J is not None  # (a group not in closed form)
             if wrt is None:
                 z = group.model(poses, vectors, jacobians, False, arrays=(V[at], J[at]))[0]
             else:
@@ -282,13 +348,13 @@ class EliminatedViewStack:
             own += np.bincount(placement_of, cost, minlength=E)
         return D, g, own, rest
 
-    def _solve(self, poses, vectors, jacobians) -> np.ndarray:
+    def _solve(self, poses, vectors, jacobians, prefixes: list) -> np.ndarray:
         """The eliminated placements at their optimum given the rest (module docstring): Gauss-Newton per
         placement, a step that raises its views' cost refused and the placement damped (Levenberg-Marquardt
         on each placement alone: their costs are separate); each stack's cost there."""
         collapsed = np.linalg.norm(self._vectors, axis=1) < 0.1 * np.linalg.norm(self._start, axis=1)
         self._vectors[collapsed] = self._start[collapsed]  # a warm start run into the camera centre
-        D, g, own, rest = self._moments(poses, dict(vectors), dict(jacobians))
+        D, g, own, rest = self._moments(poses, vectors, jacobians, prefixes, True)
         E = len(self.eliminated)
         damping = np.zeros(E)
         for _ in range(INNER_MAX_ITERATIONS if E else 0):
@@ -305,7 +371,7 @@ class EliminatedViewStack:
             limit = 0.5 * np.linalg.norm(self._vectors, axis=1)  # stay on its side of the camera centre
             before = self._vectors.copy()
             self._vectors += step * np.minimum(1.0, limit / np.maximum(length, 1e-300))[:, None]
-            D_new, g_new, own_new, _ = self._moments(poses, dict(vectors), dict(jacobians))
+            D_new, g_new, own_new, _ = self._moments(poses, vectors, jacobians, prefixes, False)
             better = own_new <= own * (1.0 + 1e-12) + 1e-300
             self._vectors[~better] = before[~better]
             D[better], g[better], own[better] = D_new[better], g_new[better], own_new[better]
@@ -319,12 +385,14 @@ class EliminatedViewStack:
             return
         self.batches += 1
         poses, vectors, plane_jacobians, state = self._read(values)
+        # the points before each eliminated mirror: they depend on the kept unknowns only
+        prefixes = self._prefixes(poses, vectors, plane_jacobians, jacobians)
         if not same:  # the placements are already at their optimum for these values otherwise
-            self._cost = self._solve(poses, vectors, plane_jacobians)
+            self._cost = self._solve(poses, vectors, plane_jacobians, prefixes)
         self._state, self._valid, self._linearized = state, True, False
         if not jacobians:
             return
-        normal = self._normals(poses, vectors, plane_jacobians)
+        normal = self._normals(poses, vectors, plane_jacobians, prefixes)
         E = len(self.eliminated)
         D = normal[self._d_offset:self._d_offset + 9 * E].reshape(E, 3, 3)
         self._D_inv = inverses(D[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]].T) if E else np.zeros((0, 3, 3))
@@ -332,11 +400,10 @@ class EliminatedViewStack:
         with one_blas_thread():
             for s, (base, width) in enumerate(zip(self._offsets, self._widths)):
                 N = normal[base:base + (width + 1) ** 2].reshape(width + 1, width + 1).copy()
-                mine = np.flatnonzero(self._stack_of_placement == s)
+                mine = self._mine[s]
                 if len(mine):
-                    C = np.stack([normal[self._c_offsets[e]:self._c_offsets[e] + 3 * (width + 1)].reshape(3, width + 1)
-                                  for e in mine])  # (m, 3, d+1)
-                    N -= np.einsum("mij,mik->jk", C, self._D_inv[mine] @ C)  # the Schur complement
+                    C = normal[self._c_index[s]].reshape(len(mine), 3, width + 1)  # (m, 3, d+1)
+                    N -= C.reshape(-1, width + 1).T @ (self._D_inv[mine] @ C).reshape(-1, width + 1)  # the Schur complement
                     N = 0.5 * (N + N.T)
                     C_all.append((mine, C))
                 R = _rows_of(N)

@@ -74,12 +74,12 @@ def stacks_by_placements(view_factors: Sequence[ViewFactor], placements_per_fact
     """The views (indices) of each stack: views with the same placements, in the order first seen;
     consecutive ones merged up to ``placements_per_factor`` placements (fewer factor calls, each of which
     copies the Values)."""
-    same: dict[tuple, list[int]] = {}
+    same: dict[frozenset, list[int]] = {}
     for i, f in enumerate(view_factors):
-        same.setdefault(tuple(sorted(f.mirror_keys)), []).append(i)
+        same.setdefault(frozenset(f.mirror_keys), []).append(i)
     merged: list[tuple[set, list[int]]] = []
     for placements, members in same.items():
-        if merged and len(merged[-1][0] | set(placements)) <= placements_per_factor:
+        if merged and len(merged[-1][0]) + sum(p not in merged[-1][0] for p in placements) <= placements_per_factor:
             merged[-1][0].update(placements)
             merged[-1][1].extend(members)
         else:
@@ -112,8 +112,9 @@ class _Group:
         self.pose_cols = dict(first.slots.pose_cols)
         self.placement_count = len(placements)
         self.factors = factors
-        self.placements = [list(dict.fromkeys(f.reflections)) for f in factors]  # (b, U) per view
+        self.placements = [list(f.mirror_keys) for f in factors]  # (b, U) per view, in order of first reflection
         self.base = np.array([f.base_points for f in factors])
+        self.base_soa = np.ascontiguousarray(self.base.transpose(1, 2, 0))  # (3, N, b)
         self.observed = np.array([f.observed for f in factors])
         self.sigmas = np.array([f.sigmas for f in factors])
         self.robust, self.robust_k = first.robust, first.robust_k
@@ -146,6 +147,20 @@ class _Group:
         alone (b, 2, 3, N), e.g. to optimise that placement with the rest held. ``arrays``: the views'
         placements' vectors (b, U, 3) and plane Jacobians (b, U, 3, 3) instead of looking each up in
         ``vectors`` and ``plane_jacobians`` (:meth:`placement_arrays`)."""
+        x, dx, dB = self.reflected(poses, vectors, plane_jacobians, jacobians, base, wrt, arrays, self.steps)
+        z = x[:, :2] / x[:, 2:3]  # eq. (9)
+        if not jacobians:
+            return z, None, None
+        dz = (dx[:, :2] - z[:, :, None, :] * dx[:, 2][:, None]) / x[:, 2][:, None, None, :]
+        dzB = (dB[:, :2, :, None] - z[:, :, None, :] * dB[:, 2][:, None, :, None]) / x[:, 2][:, None, None, :]
+        return z, dz, dzB
+
+    def reflected(self, poses: dict[str, tuple[np.ndarray, np.ndarray]], vectors: dict[Placement, np.ndarray],
+                  plane_jacobians: dict[Placement, np.ndarray], jacobians: bool, base: np.ndarray | None,
+                  wrt: int | None, arrays: tuple | None, steps: list[tuple[str, int]]):
+        """The views' points in the camera frame after the reflections ``steps`` (a prefix of
+        ``self.steps``), ``x`` (b, 3, N), and when asked ``dx`` (b, 3, P, N) (or (b, 3, 3, N) with ``wrt``)
+        and ``dx/dBp`` (b, 3, 3): :meth:`model` before its projection (its arguments)."""
         R_c, t_c = poses[self.camera]
         B = self.base if base is None else base
         b, _, n = B.shape
@@ -170,7 +185,7 @@ class _Group:
             J_all = np.array([[plane_jacobians[p] for p in ps] for ps in self.placements]) if jacobians else None
         offset = 6 * len(self.pose_cols) if wrt is None else 0
         dB: Any = np.broadcast_to(R_c, (b, 3, 3)) if jacobians else None  # dx/dBp, the same for a view's points
-        for owner, u in self.steps:
+        for owner, u in steps:
             v_o = v_all[:, u]
             col = offset + 3 * u if wrt is None else 0
             mine = wrt is None or wrt == u  # this placement's columns are wanted
@@ -206,12 +221,74 @@ class _Group:
                 dx -= 2.0 * dv[:, :, :, None] * s[:, None, None, :]
                 dB = dB - 2.0 * v[:, :, None] * np.einsum("bi,bij->bj", v, dB)[:, None, :] / vv[:, None, None]  # M dB
             x = x - 2.0 * v[:, :, None] * s[:, None, :]  # eq. (3): M x + 2 v
-        z = x[:, :2] / x[:, 2:3]  # eq. (9)
+        return x, dx, dB
+
+    def reflected_soa(self, poses: dict[str, tuple[np.ndarray, np.ndarray]], arrays: tuple, steps: list[tuple[str, int]],
+                      jacobians: bool, work: dict | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """:meth:`reflected` of the fiducials in a structure-of-arrays layout, the views last (no
+        reconstruction points, no ``wrt``): ``x`` (3, N, b) and when asked ``dx`` (3, P, N, b), with only
+        elementwise operations whose inner loop runs over the views (a batched (3 x 3) product per view, or
+        an inner loop over a view's few points, is one step of numpy's outer loop each: far slower at
+        thousands of views). ``arrays``: the views' placements' vectors (b, U, 3) and plane Jacobians
+        (b, U, 3, 3). ``work``: buffers kept between calls (``dx`` is one of them: valid until the next)."""
+        R_c, t_c = poses[self.camera]
+        B = self.base_soa
+        x = np.tensordot(R_c, B, axes=(1, 0)) + t_c[:, None, None]  # eq. (2)
+        v_all, J_all = arrays
         if not jacobians:
-            return z, None, None
-        dz = (dx[:, :2] - z[:, :, None, :] * dx[:, 2][:, None]) / x[:, 2][:, None, None, :]
-        dzB = (dB[:, :2, :, None] - z[:, :, None, :] * dB[:, 2][:, None, :, None]) / x[:, 2][:, None, None, :]
-        return z, dz, dzB
+            for owner, u in steps:
+                v = (v_all[:, u] if owner == self.camera else self._transfer(v_all[:, u], poses[self.camera], poses[owner], False)[0]).T
+                vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+                s = (v[0] * x[0] + v[1] * x[1] + v[2] * x[2]) / vv - 1.0
+                x -= 2.0 * v[:, None, :] * s[None]  # eq. (3): M x + 2 v
+            return x, None
+        size, (_, n, b) = self.slots.size, x.shape
+        work = {} if work is None else work
+        if work.get("shape") != (size, n, b):
+            work.update(shape=(size, n, b), dx=np.empty((3, size, n, b)), scratch=np.empty((size, n, b)))
+        dx, scratch = work["dx"], work["scratch"]
+        dx.fill(0.0)
+        if self.camera in self.pose_cols:
+            c = self.pose_cols[self.camera]
+            for j in range(3):  # d(R Exp(w) B)/dw = -R [B]x: column j is -R (B x e_j) = R (e_j x B)
+                e_j_x_B = np.zeros((3, n, b))
+                e_j_x_B[(j + 1) % 3], e_j_x_B[(j + 2) % 3] = -B[(j + 2) % 3], B[(j + 1) % 3]
+                dx[:, c + j] = np.tensordot(R_c, e_j_x_B, axes=(1, 0))
+                dx[:, c + 3 + j] = R_c[:, j, None, None]  # d(t + R nu)/dnu = R
+        offset = 6 * len(self.pose_cols)
+        for owner, u in steps:
+            col = offset + 3 * u
+            columns: Any = [col, col + 1, col + 2]  # where dv is not zero: this placement's, and a transfer's poses
+            if owner == self.camera:
+                v = v_all[:, u].T
+                dv = J_all[:, u].transpose(1, 2, 0)  # (3, 3, b)
+                columns = slice(col, col + 3)
+            else:
+                v_rows, parts = self._transfer(v_all[:, u], poses[self.camera], poses[owner], True)
+                v = v_rows.T
+                dv_v, dv_wc, dv_nc, dv_wo, dv_no = parts
+                blocks = [(dv_v @ J_all[:, u]).transpose(1, 2, 0)]
+                for who, dw, dn in ((self.camera, dv_wc, dv_nc), (owner, dv_wo, dv_no)):
+                    if who in self.pose_cols:
+                        c = self.pose_cols[who]
+                        columns += range(c, c + 6)
+                        blocks.append(np.concatenate([dw, dn], axis=2).transpose(1, 2, 0))
+                dv = np.concatenate(blocks, axis=1)  # (3, k, b)
+            vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]  # (b,)
+            vx = v[0] * x[0] + v[1] * x[1] + v[2] * x[2]  # (N, b)
+            s = vx / vv - 1.0
+            vdv = v[0] * dv[0] + v[1] * dv[1] + v[2] * dv[2]  # (k, b)
+            ds = v[0] * dx[0]  # v . dx (P, N, b)
+            ds += np.multiply(v[1], dx[1], out=scratch)
+            ds += np.multiply(v[2], dx[2], out=scratch)
+            ds[columns] += dv[0][:, None] * x[0] + dv[1][:, None] * x[1] + dv[2][:, None] * x[2]  # x . dv
+            ds /= vv
+            ds[columns] -= 2.0 * vdv[:, None] * (vx / vv**2)
+            for i in range(3):
+                dx[i] -= np.multiply(2.0 * v[i], ds, out=scratch)
+                dx[i, columns] -= 2.0 * dv[i][:, None] * s
+            x -= 2.0 * v[:, None, :] * s[None]  # eq. (3): M x + 2 v
+        return x, dx
 
     @staticmethod
     def _transfer(v_owner: np.ndarray, pose_c, pose_o, jacobians: bool):

@@ -27,7 +27,7 @@ from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_prior_factor, predict_pixels
 from mirror_fg.factors.view_eliminated import EliminatedViewStack, eliminable
 from mirror_fg.factors.view_stack import stacked_view_factors
-from mirror_fg.factors.views import ViewFactor, plane_of, vector_of_plane, view_model
+from mirror_fg.factors.views import ViewFactor, ViewSlots, plane_of, vector_of_plane, view_model
 from mirror_fg.data import Dataset, Image
 from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.model.graph import unknown_name
@@ -107,26 +107,49 @@ class ViewProblem:
         self.intrinsics = dict(intrinsics or {})
         self.intrinsics_keys = {name: K(k) for k, name in enumerate(self.cameras) if name in self.intrinsics}
         self.factors: list[ViewFactor] = []
+        # the sigmas, base points and point keys of each (camera, points seen): the same for most images
+        known: dict[tuple, tuple[np.ndarray, np.ndarray, list[int]]] = {}
+        templates: dict[tuple, ViewFactor] = {}  # the first factor of each shape (view_factor_like)
+        owners = self.owners
         for image, view in zip(dataset.images, self.views):
-            camera = dataset.camera_of(image)
             pixel = view.camera in self.intrinsics
-            sigmas = normalized_sigmas(None if pixel else camera, dataset.pixel_sigma, dataset.point_sigma, view.names).T
+            shape = (view.camera, pixel, tuple(view.names))
             observed = (np.array([image.observations[n] for n in view.names], dtype=float).reshape(-1, 2).T if pixel
                         else view.normalized.T)
+            placements = list(dict.fromkeys(view.reflections))
+            local = (tuple(range(len(placements))) if len(placements) == len(view.reflections)
+                     else tuple(map(placements.index, view.reflections)))
+            like = (shape, tuple([owners[p] for p in view.reflections]), local)
+            template = templates.get(like)
+            if template is not None:
+                self.factors.append(view_factor_like(template, view.reflections, placements, self.mirror_keys,
+                                                     owners, observed))
+                continue
+            if shape not in known:
+                known[shape] = self._points_of(dataset, None if pixel else dataset.camera_of(image), view.names)
+            sigmas, base, landmarks = known[shape]
             model = (self.intrinsics[view.camera], self.intrinsics_keys[view.camera]) if pixel else None
-            base = np.full((3, len(view.names)), np.nan)
-            landmarks = []
-            for k, name in enumerate(view.names):
-                if name in dataset.fiducials:
-                    base[:, k] = dataset.fiducials[name]
-                    landmarks.append(-1)
-                else:
-                    landmarks.append(self.point_keys[name])
-            self.factors.append(ViewFactor(view.camera, view.reflections, self.pose_keys, self.fixed, self.mirror_keys,
-                                           self.owners, base, landmarks, observed, sigmas, robust, intrinsics=model))
+            template = templates[like] = ViewFactor(view.camera, view.reflections, self.pose_keys, self.fixed,
+                                                    self.mirror_keys, owners, base, landmarks, observed, sigmas,
+                                                    robust, intrinsics=model)
+            self.factors.append(template)
         self.constraints = 1 if dataset.scale is not None else 0
         #: Number of residual rows (2 per measurement).
         self.size = sum(2 * len(v.names) for v in self.views)
+
+    def _points_of(self, dataset: Dataset, camera: Camera | None, names: list[str]):
+        """A view's sigmas (2, N) (normalized with ``camera``, else pixels), base points (3, N) (NaN where a
+        reconstruction point) and point keys (-1 for a fiducial) of the points ``names``."""
+        sigmas = normalized_sigmas(camera, dataset.pixel_sigma, dataset.point_sigma, names).T
+        base = np.full((3, len(names)), np.nan)
+        landmarks = []
+        for k, name in enumerate(names):
+            if name in dataset.fiducials:
+                base[:, k] = dataset.fiducials[name]
+                landmarks.append(-1)
+            else:
+                landmarks.append(self.point_keys[name])
+        return sigmas, base, landmarks
 
     # ------------------------------------------------------------------ estimates
     def estimate_from(self, known: Propagation) -> ViewEstimate:
@@ -312,6 +335,28 @@ class ViewProblem:
             else:
                 intrinsics[name] = (marginals.marginalCovariance(key), None)
         return poses, joint, mirrors, points, intrinsics
+
+
+def view_factor_like(template: ViewFactor, reflections: tuple, placements: list, mirror_keys: dict,
+                     owners: dict, observed: np.ndarray) -> ViewFactor:
+    """The ``ViewFactor`` of a view of the same shape as ``template`` (camera, owners at each reflection,
+    pattern of repeated placements, points seen, intrinsics, kernel) through other placements: its own
+    reflections, owners, columns, keys and observations, the rest shared with the template (read only):
+    ``ViewFactor.__init__`` per image was half of building a problem of thousands of images.
+    ``placements``: the reflections' placements in order of first reflection."""
+    factor = object.__new__(type(template))  # a shallow copy (copy.copy's generic protocol costs more here)
+    factor.__dict__.update(template.__dict__)
+    factor.reflections = tuple(reflections)
+    factor.owners = {p: owners[p] for p in factor.reflections}
+    slots = template.slots
+    offset = 6 * len(slots.pose_cols)
+    factor.slots = ViewSlots(slots.pose_cols, {p: offset + 3 * k for k, p in enumerate(placements)}, slots.size)
+    factor.mirror_keys = {p: mirror_keys[p] for p in placements}
+    factor.base_points = template.base_points.copy()
+    factor.observed = np.asarray(observed, dtype=float)
+    factor.keys = [*template.pose_keys.values(), *factor.mirror_keys.values(), *template.unique_landmarks,
+                   *([template.intrinsics[1]] if template.intrinsics is not None else [])]
+    return factor
 
 
 def scale_prior(dataset: Dataset, mirror_keys: dict, point_keys: dict) -> gtsam.NonlinearFactorGraph:
