@@ -37,7 +37,7 @@ from collections.abc import Sequence
 import gtsam
 import numpy as np
 
-from mirror_fg.factors import view_last_reflection as last
+import mirror_fg.factors.view_last_reflection as last
 from mirror_fg.factors.schur import inverses, one_blas_thread
 from mirror_fg.factors.view_points import _rows_of, compressed_rows
 from mirror_fg.factors.view_stack import _Group, read_poses_and_planes, stacks_by_placements
