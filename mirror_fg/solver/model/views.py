@@ -26,8 +26,8 @@ from mirror_fg.core.camera import Camera
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_prior_factor, predict_pixels
 from mirror_fg.factors.view_eliminated import EliminatedViewStack, eliminable
-from mirror_fg.factors.view_stack import stacked_view_factors
-from mirror_fg.factors.views import ViewFactor, ViewSlots, plane_of, vector_of_plane, view_model
+from mirror_fg.factors.view_stack import _Group, stacked_view_factors
+from mirror_fg.factors.views import ViewFactor, ViewSlots, plane_of, vector_of_plane
 from mirror_fg.data import Dataset, Image
 from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.model.graph import unknown_name
@@ -265,12 +265,8 @@ class ViewProblem:
         residuals: list[np.ndarray] = []
         whitened: list[np.ndarray] = []
         labels: list[tuple[str, str]] = []
-        for image, view, factor in zip(self.dataset.images, self.views, self.factors):
-            B = factor.base_points.copy()
-            for k, name in enumerate(view.names):
-                if name in self.point_keys:
-                    B[:, k] = estimate.points[name]
-            z = view_model(view.camera, view.reflections, estimate.poses, estimate.mirror_vectors, self.owners, B)[0].T
+        predicted = self._predictions(estimate)
+        for image, view, factor, z in zip(self.dataset.images, self.views, self.factors, predicted):
             camera: Camera | None = self.dataset.camera_of(image)
             if factor.intrinsics is not None:  # pixels through the estimated intrinsics
                 assert estimate.theta is not None
@@ -286,6 +282,24 @@ class ViewProblem:
             residuals.append(residual)
             labels.extend((image.id, n) for n in view.names)
         return np.vstack(residuals), np.concatenate(whitened), labels
+
+    def _predictions(self, estimate: ViewEstimate) -> list[np.ndarray]:
+        """Every view's predicted normalized coordinates (N, 2) at ``estimate`` (``views.view_model``, eqs. 2, 3,
+        9), the views of one shape at once (``view_stack._Group``)."""
+        shapes: dict[tuple, list[int]] = {}
+        for i, factor in enumerate(self.factors):
+            order = list(dict.fromkeys(factor.reflections))
+            shape = (factor.camera, tuple((factor.owners[p], order.index(p)) for p in factor.reflections),
+                     factor.base_points.shape[1])
+            shapes.setdefault(shape, []).append(i)
+        values = {self.point_keys[n]: np.asarray(x, float) for n, x in estimate.points.items() if n in self.point_keys}
+        predicted: list[np.ndarray] = [np.zeros((0, 2))] * len(self.factors)
+        for members in shapes.values():
+            group = _Group([self.factors[i] for i in members])
+            z = group.model(estimate.poses, estimate.mirror_vectors, {}, False, base=group.points(values))[0]
+            for row, i in enumerate(members):
+                predicted[i] = z[row].T
+        return predicted
 
     # ------------------------------------------------------------------ covariances
     def covariances(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, estimate: ViewEstimate,
