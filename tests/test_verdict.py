@@ -88,3 +88,24 @@ def test_the_report_and_its_console_block_say_the_one_verdict(takahashi_dir, tmp
 
     console = [line.removesuffix("</pre>") for line in html.unescape(page).splitlines() if line.startswith("verdict:")]
     assert console == [verdict.line] and console[0].startswith("verdict: CHECK:") and "distortion" in console[0]
+
+
+def test_the_noise_band_without_scipy_is_the_chi_square_interval():
+    """Where the chi-square's Laurent-Massart bounds lie inside NOISE_BAND, noise_band returns it without
+    SciPy's quantiles: the same band as the exact interval at every dof and confidence tried."""
+    import math
+
+    import numpy as np
+    from scipy.special import chdtri
+
+    from mirror_fg.report.verdict import NOISE_BAND, noise_band
+
+    def exact(dof, confidence):
+        tail = (1.0 - confidence) / 2.0
+        low = math.sqrt(float(chdtri(dof, 1.0 - tail)) / dof)
+        high = math.sqrt(float(chdtri(dof, tail)) / dof)
+        return min(low, NOISE_BAND[0]), max(high, NOISE_BAND[1])
+
+    for confidence in (0.9, 0.99, 0.999):
+        for dof in [*np.arange(0.25, 60.0, 0.25), *range(60, 20000, 97)]:
+            assert noise_band(float(dof), confidence) == exact(float(dof), confidence), (dof, confidence)

@@ -45,17 +45,17 @@ class RegistryTarget:
 def registry_target(args: Any, per_input: bool = False) -> RegistryTarget | None:
     """The registry a command records in (None: no recording), checked before any work: a URL from
     ``--registry`` or the environment, ``--robot`` to record (calibrate-many: optional with ``--registry``)."""
-    from mirror_fg.registry.schema import RegistryError, registry_url
-
     url = getattr(args, "registry", None)
     robot = getattr(args, "robot", None)
     explicit = url is not None
     if url is None:
         url = os.environ.get(ENV_VAR) or None
+    if robot is None and not (per_input and explicit) and not explicit:
+        return None  # no recording: the database layer (SQLAlchemy, 0.2 s to import) is not loaded
+    from mirror_fg.registry.schema import RegistryError, registry_url
+
     if robot is None and not (per_input and explicit):
-        if explicit:
-            raise RegistryError("--registry needs --robot ID (the robot the run is recorded for)")
-        return None
+        raise RegistryError("--registry needs --robot ID (the robot the run is recorded for)")
     if url is None:
         raise RegistryError(f"--robot needs a registry: --registry URL or ${ENV_VAR}")
     registry_url(url)  # a malformed URL before the work

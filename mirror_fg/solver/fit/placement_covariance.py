@@ -27,6 +27,9 @@ __all__ = ["placement_covariances", "MAX_COLUMNS"]
 
 #: Above this many unknown columns no joint covariance is stored.
 MAX_COLUMNS = 1500
+#: Up to this many columns the pose's columns of ``H^-1`` come from a dense Cholesky factor, above from a
+#: sparse LU (scipy).
+DENSE_COLUMNS = 1000
 
 
 def placement_covariances(dataset: Dataset, calibration: Any) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] | None:
@@ -62,16 +65,23 @@ def _placement_covariances(dataset: Dataset, calibration: Any) -> dict[tuple[int
             A = A[masks[k]]
         index = np.concatenate([columns[key] for key in gaussian.keys()])
         H[np.ix_(index, index)] += A.T @ A
-    from scipy.sparse import csc_matrix  # here: `calibrate`'s import loads no scipy (start-up time)
-    from scipy.sparse.linalg import splu
-
     pose = problem.pose_keys[SINGLE_CAMERA]
     unit = np.zeros((size, 6))
     unit[columns[pose], np.arange(6)] = 1.0
-    try:  # sparse (each plane meets the pose and the planes seen with it): the pose's columns of H^-1 alone
-        pose_columns = splu(csc_matrix(H)).solve(unit)
-    except RuntimeError:  # singular: a direction no image determines
-        return None
+    if size <= DENSE_COLUMNS:  # small: a dense Cholesky (and no scipy to import: a few photographs' start-up)
+        try:
+            factor = np.linalg.cholesky(H)
+        except np.linalg.LinAlgError:  # not positive definite: a direction no image determines
+            return None
+        pose_columns = np.linalg.solve(factor.T, np.linalg.solve(factor, unit))
+    else:
+        from scipy.sparse import csc_matrix  # here: `calibrate`'s import loads no scipy (start-up time)
+        from scipy.sparse.linalg import splu
+
+        try:  # sparse (each plane meets the pose and the planes seen with it): the pose's columns of H^-1 alone
+            pose_columns = splu(csc_matrix(H)).solve(unit)
+        except RuntimeError:  # singular: a direction no image determines
+            return None
     R = values.atPose3(pose).rotation().matrix()
     to_convention = np.kron(np.eye(2), R)  # [dtheta, dt] = blkdiag(R, R) [w, nu] (GTSAM's right perturbation)
     out = {}
