@@ -34,7 +34,7 @@ import gtsam
 import numpy as np
 
 from mirror_fg.factors.robust import robust_row_scales
-from mirror_fg.factors.views import ViewFactor, vector_of_plane
+from mirror_fg.factors.views import ViewFactor, vectors_of_planes
 
 __all__ = ["stackable", "stacked_view_factors", "ViewStackEvaluator", "read_poses_and_planes"]
 
@@ -62,12 +62,13 @@ def read_poses_and_planes(values: gtsam.Values, fixed: dict, pose_keys: dict[str
         pose = values.atPose3(key)
         state[key] = pose.matrix().tobytes()
         poses[name] = (pose.rotation().matrix(), np.asarray(pose.translation(), dtype=float))
-    vectors, jacobians = {}, {}
-    for p, key in mirror_keys.items():
-        plane = values.atOrientedPlane3(key)
-        state[key] = plane.planeCoefficients().tobytes()
-        vectors[p], jacobians[p] = vector_of_plane(plane)
-    return poses, vectors, jacobians, state
+    placements = list(mirror_keys)
+    coefficients = np.array([values.atOrientedPlane3(mirror_keys[p]).planeCoefficients() for p in placements]
+                            ).reshape(-1, 4)
+    for p, row in zip(placements, coefficients):
+        state[mirror_keys[p]] = row.tobytes()
+    V, J = vectors_of_planes(coefficients)  # as views.vector_of_plane of each, bit for bit
+    return poses, dict(zip(placements, V)), dict(zip(placements, J)), state
 
 
 def stacks_by_placements(view_factors: Sequence[ViewFactor], placements_per_factor: int) -> list[list[int]]:
@@ -433,11 +434,10 @@ class ViewStackEvaluator:
         for name, key in self.pose_keys.items():
             pose = self._poses[key]
             poses[name] = (pose.rotation().matrix(), np.asarray(pose.translation(), dtype=float))
-        vectors, plane_jacobians = {}, {}
-        for p, key in self.mirror_keys.items():
-            vectors[p], plane_jacobians[p] = vector_of_plane(self._planes[key])
-        V = np.array([vectors[p] for p in self._placement_order])
-        JV = np.array([plane_jacobians[p] for p in self._placement_order])
+        order = self._placement_order
+        V, JV = vectors_of_planes(np.array([self._planes[self.mirror_keys[p]].planeCoefficients() for p in order])
+                                  .reshape(-1, 4))
+        vectors, plane_jacobians = dict(zip(order, V)), dict(zip(order, JV))
         for group, at in zip(self.groups, self._placement_rows):
             z, dz, _ = group.model(poses, vectors, plane_jacobians, jacobians, arrays=(V[at], JV[at] if jacobians else None))
             residual = z - group.observed  # (b, 2, N), h - z

@@ -35,7 +35,7 @@ import numpy as np
 from mirror_fg.factors.intrinsics import IntrinsicsModel, pixel_jacobians
 from mirror_fg.factors.robust import ROBUST_K, check_kernel, robust_row_scales
 
-__all__ = ["ViewSlots", "view_model", "ViewFactor", "transfer_mirror_vector", "plane_of", "vector_of_plane", "planes_at",
+__all__ = ["ViewSlots", "view_model", "ViewFactor", "transfer_mirror_vector", "plane_of", "vector_of_plane", "vectors_of_planes", "planes_at",
            "points_at", "scaled_error", "landmark_blocks"]
 
 
@@ -52,6 +52,21 @@ def vector_of_plane(plane: gtsam.OrientedPlane3) -> tuple[np.ndarray, np.ndarray
     n = np.asarray(plane.normal().point3(), dtype=float)
     d = float(plane.distance())
     return d * n, np.column_stack([d * np.asarray(plane.normal().basis(), dtype=float), n])
+
+
+def vectors_of_planes(coefficients: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`vector_of_plane` of many planes at once from their coefficients ``(n, d)`` (P, 4)
+    (``OrientedPlane3.planeCoefficients``): vectors (P, 3) and Jacobians (P, 3, 3), the tangent basis
+    chosen as GTSAM's ``Unit3::basis`` does (``n x e`` normalised, ``e`` the axis of ``n``'s smallest
+    component, ties to the earlier axis; then ``n x b1``)."""
+    n, d = coefficients[:, :3], coefficients[:, 3]
+    m = np.abs(n)
+    axis = np.where((m[:, 0] <= m[:, 1]) & (m[:, 0] <= m[:, 2]), 0,
+                    np.where((m[:, 1] <= m[:, 0]) & (m[:, 1] <= m[:, 2]), 1, 2))
+    b1 = np.cross(n, np.eye(3)[axis])
+    b1 = b1 / np.sqrt(np.einsum("pi,pi->p", b1, b1))[:, None]
+    b2 = np.cross(n, b1)
+    return d[:, None] * n, np.stack([d[:, None] * b1, d[:, None] * b2, n], axis=2)
 
 
 def _skew(a: np.ndarray) -> np.ndarray:
