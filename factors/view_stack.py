@@ -342,55 +342,62 @@ class ViewStackEvaluator:
                      tuple(f.pose_keys), f.base_points.shape[1], f.robust, f.robust_k)
             shapes.setdefault(shape, []).append(i)
         self.groups = [_Group([view_factors[i] for i in members]) for members in shapes.values()]
-        where = {}  # view index -> (group, row in group)
-        for g, members in enumerate(shapes.values()):
-            for r, i in enumerate(members):
-                where[i] = (g, r)
         # buffers: each stack's rows consecutive; each stack's key blocks (rows, dim) consecutive
         err_size = sum(2 * f.base_points.shape[1] for f in view_factors)
         self._err = np.zeros(err_size)
         self._err_lin = np.zeros(err_size) if first.robust is not None else self._err
-        error_rows = [np.zeros((len(g.factors), 2 * g.base.shape[2]), dtype=np.intp) for g in self.groups]
-        entries = [np.zeros((len(g.factors), 2 * g.base.shape[2], g.slots.size), dtype=np.intp) for g in self.groups]
         self._stack_keys: list[list[int]] = []
         self._stack_rows: list[slice] = []
         self._stack_blocks: list[list[tuple[int, int]]] = []  # (offset, dim) of each key's block
+        row_start = np.zeros(len(view_factors), dtype=np.intp)  # each view's first row (error buffer)
+        local_start = np.zeros(len(view_factors), dtype=np.intp)  # ... counted from its stack's first row
+        block_at: list[dict[int, int]] = []  # per stack: each key's block offset (Jacobian buffer)
+        stack_of = np.zeros(len(view_factors), dtype=np.intp)
         row0, jac0 = 0, 0
         self.factors: list[gtsam.CustomFactor] = []
-        for members in stacks.values():
+        for s, members in stacks.items():
             views = [view_factors[i] for i in members]
             pose_keys = list(dict.fromkeys(k for f in views for k in f.pose_keys.values()))
             mirror_keys = list(dict.fromkeys(k for f in views for k in f.mirror_keys.values()))
             keys = pose_keys + mirror_keys
             dims = [6] * len(pose_keys) + [3] * len(mirror_keys)
-            rows = sum(2 * f.base_points.shape[1] for f in views)
+            sizes = np.array([2 * f.base_points.shape[1] for f in views], dtype=np.intp)
+            rows = int(sizes.sum())
             blocks, offset = [], jac0
             for dim in dims:
                 blocks.append((offset, dim))
                 offset += rows * dim
-            block_of = dict(zip(keys, blocks))
-            r = row0
-            for i, f in zip(members, views):
-                g, gr = where[i]
-                m = 2 * f.base_points.shape[1]
-                error_rows[g][gr] = np.arange(r, r + m)
-                local = np.arange(m)[:, None]
-                for name, key in f.pose_keys.items():
-                    off, dim = block_of[key]
-                    c = f.slots.pose_cols[name]
-                    entries[g][gr][:, c:c + 6] = off + (r - row0 + local) * dim + np.arange(6)[None]
-                for p, key in f.mirror_keys.items():
-                    off, dim = block_of[key]
-                    c = f.slots.mirror_cols[p]
-                    entries[g][gr][:, c:c + 3] = off + (r - row0 + local) * dim + np.arange(3)[None]
-                r += m
+            block_at.append(dict(zip(keys, (o for o, _ in blocks))))
+            starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.intp)
+            row_start[members] = row0 + starts
+            local_start[members] = starts
+            stack_of[members] = s
             self._stack_keys.append(keys)
             self._stack_rows.append(slice(row0, row0 + rows))
             self._stack_blocks.append(blocks)
             sigmas = np.concatenate([f.sigmas.T.reshape(-1) for f in views])
             noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
             self.factors.append(gtsam.CustomFactor(noise, keys, self._error_function(len(self.factors))))
-            row0, jac0 = r, offset
+            row0, jac0 = row0 + rows, offset
+        # each group's rows and Jacobian entries at once: a view's entry (row j, its column c + k of a key's
+        # block) is the block's offset + (its first row in the stack + j) * dim + k
+        error_rows, entries = [], []
+        for group, members in zip(self.groups, shapes.values()):
+            m = 2 * group.base.shape[2]
+            error_rows.append(row_start[members][:, None] + np.arange(m)[None, :])
+            table = np.zeros((len(members), m, group.slots.size), dtype=np.intp)
+            local = local_start[members][:, None, None] + np.arange(m)[None, :, None]  # (b, m, 1)
+            columns: dict[int, tuple[int, list[int]]] = {}  # first column -> (dim, each view's block offset)
+            for i in members:
+                f, at = view_factors[i], block_at[stack_of[i]]
+                for name, key in f.pose_keys.items():
+                    columns.setdefault(f.slots.pose_cols[name], (6, []))[1].append(at[key])
+                for p, key in f.mirror_keys.items():
+                    columns.setdefault(f.slots.mirror_cols[p], (3, []))[1].append(at[key])
+            for c, (dim, offsets) in columns.items():
+                table[:, :, c:c + dim] = (np.array(offsets, dtype=np.intp)[:, None, None] + local * dim
+                                          + np.arange(dim)[None, None, :])
+            entries.append(table)
         for g, group in enumerate(self.groups):
             group.error_rows, group.jacobian_entries = error_rows[g], entries[g]
         self._jac = np.zeros(jac0)
