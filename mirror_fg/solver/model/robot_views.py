@@ -24,7 +24,7 @@ from mirror_fg.factors.robot import RobotViewFactor, adjoint, inverse
 from mirror_fg.factors.robot_stack import robot_stacks
 from mirror_fg.factors.views import plane_of, vector_of_plane
 from mirror_fg.data import Dataset
-from mirror_fg.io.point_sigma import normalized_sigmas
+from mirror_fg.solver.model.views import points_of
 
 __all__ = ["RobotProblem", "RobotEstimate", "ROLES", "camera_base_pose", "camera_role", "is_camera", "camera_name",
            "mount_words"]
@@ -105,16 +105,7 @@ class RobotProblem:
             self.normalized.append(observed)
             camera = dataset.camera_of(image)
             if (id(camera), *names) not in shared:
-                sigmas = normalized_sigmas(camera, dataset.pixel_sigma, dataset.point_sigma, names).T
-                points = np.full((3, len(names)), np.nan)
-                landmarks = []
-                for k, name in enumerate(names):
-                    if name in dataset.fiducials:
-                        points[:, k] = dataset.fiducials[name]
-                        landmarks.append(-1)
-                    else:
-                        landmarks.append(self.point_keys[name])
-                shared[(id(camera), *names)] = (sigmas, points, landmarks)
+                shared[(id(camera), *names)] = points_of(dataset, camera, names, self.point_keys)
             sigmas, points, landmarks = shared[(id(camera), *names)]
             sigmas, points, landmarks = sigmas.copy(), points.copy(), list(landmarks)
             assert image.joints is not None

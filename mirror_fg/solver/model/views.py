@@ -138,18 +138,7 @@ class ViewProblem:
         self.size = sum(2 * len(v.names) for v in self.views)
 
     def _points_of(self, dataset: Dataset, camera: Camera | None, names: list[str]):
-        """A view's sigmas (2, N) (normalized with ``camera``, else pixels), base points (3, N) (NaN where a
-        reconstruction point) and point keys (-1 for a fiducial) of the points ``names``."""
-        sigmas = normalized_sigmas(camera, dataset.pixel_sigma, dataset.point_sigma, names).T
-        base = np.full((3, len(names)), np.nan)
-        landmarks = []
-        for k, name in enumerate(names):
-            if name in dataset.fiducials:
-                base[:, k] = dataset.fiducials[name]
-                landmarks.append(-1)
-            else:
-                landmarks.append(self.point_keys[name])
-        return sigmas, base, landmarks
+        return points_of(dataset, camera, names, self.point_keys)
 
     # ------------------------------------------------------------------ estimates
     def estimate_from(self, known: Propagation) -> ViewEstimate:
@@ -477,3 +466,17 @@ def tangent_dimension(key: int, values: gtsam.Values | None = None) -> int:
         return len(values.atVector(key))
     return 3
 
+def points_of(dataset: Dataset, camera: Camera | None, names: list[str], point_keys: dict[str, int]):
+    """A view's sigmas (2, N) (normalized with ``camera``, else pixels), base points (3, N) (NaN where a
+    reconstruction point) and point keys (-1 for a fiducial; ``point_keys`` the others') of the points
+    ``names``."""
+    sigmas = normalized_sigmas(camera, dataset.pixel_sigma, dataset.point_sigma, names).T
+    base = np.full((3, len(names)), np.nan)
+    landmarks = []
+    for k, name in enumerate(names):
+        if name in dataset.fiducials:
+            base[:, k] = dataset.fiducials[name]
+            landmarks.append(-1)
+        else:
+            landmarks.append(point_keys[name])
+    return sigmas, base, landmarks
