@@ -40,7 +40,7 @@ import numpy as np
 import mirror_fg.factors.view_last_reflection as last
 from mirror_fg.factors.schur import inverses, one_blas_thread
 from mirror_fg.factors.view_points import _rows_of, compressed_rows
-from mirror_fg.factors.view_stack import _Group, read_poses_and_planes, stacks_by_placements
+from mirror_fg.factors.view_stack import _Group, collected_keys, groups_by_shape, read_poses_and_planes, stacks_by_placements
 from mirror_fg.factors.views import ViewFactor
 
 __all__ = ["EliminatedViewStack", "eliminable", "PLACEMENTS_PER_FACTOR"]
@@ -62,12 +62,6 @@ FINAL_STEP = 1e-10
 def eliminable(factor: ViewFactor) -> bool:
     """Whether a view can be in an eliminated stack: fiducials only, intrinsics known, no robust kernel."""
     return factor.intrinsics is None and not factor.unique_landmarks and factor.robust is None
-
-
-def stacks_of(view_factors: Sequence[ViewFactor], cap: int) -> list[list[int]]:
-    """The views of each factor: views with the same placements together, in the order first seen,
-    consecutive sets merged while they hold at most ``cap`` placements (``view_stack.py``'s rule)."""
-    return stacks_by_placements(view_factors, cap)
 
 
 def private_placements(view_factors: Sequence[ViewFactor], stacks: list[list[int]], keep: set) -> list[Placement]:
@@ -120,20 +114,13 @@ class EliminatedViewStack:
     def __init__(self, view_factors: Sequence[ViewFactor], start: dict[Placement, np.ndarray],
                  keep: frozenset | set = frozenset(),
                  placements_per_factor: int = PLACEMENTS_PER_FACTOR, closed_form: bool = True):
-        stacks = stacks_of(view_factors, placements_per_factor)
+        stacks = stacks_by_placements(view_factors, placements_per_factor)
         self.eliminated = private_placements(view_factors, stacks, set(keep))
         index = {p: e for e, p in enumerate(self.eliminated)}
         self._start = np.array([start[p] for p in self.eliminated], dtype=float).reshape(-1, 3)
         self._vectors = self._start.copy()
-        self.fixed: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        self.pose_keys: dict[str, int] = {}
-        self.kept_mirror_keys: dict[Placement, int] = {}
-        for f in view_factors:
-            self.fixed.update(f.fixed)
-            self.pose_keys.update(f.pose_keys)
-            for p, k in f.mirror_keys.items():
-                if p not in index:
-                    self.kept_mirror_keys[p] = k
+        self.fixed, self.pose_keys, mirror_keys = collected_keys(view_factors)
+        self.kept_mirror_keys: dict[Placement, int] = {p: k for p, k in mirror_keys.items() if p not in index}
         pose_set = set(self.pose_keys.values())
         self._keys, self._widths, self._offsets, columns_of = [], [], [], []
         stack_of_view = np.zeros(len(view_factors), dtype=np.intp)
@@ -168,19 +155,11 @@ class EliminatedViewStack:
         self._gradient_at = (self._c_offsets[:, None] + np.arange(3)[None, :] * (d_of[:, None] + 1)
                              + d_of[:, None]).astype(np.intp)  # C[:, d] = J_v^T e of each placement
         self._total = self._d_offset + 9 * len(self.eliminated)
-        shapes: dict[tuple, list[int]] = {}
-        is_eliminated = index.__contains__
-        for i, f in enumerate(view_factors):
-            # the camera, the owner and local placement at each reflection, the poses, the points, which
-            # placement is eliminated (f.mirror_keys: the placements in order of first reflection)
-            order = list(f.mirror_keys)
-            owners = tuple(f.owners[p] for p in f.reflections)
-            local = tuple(range(len(order))) if len(order) == len(f.reflections) else tuple(map(order.index, f.reflections))
-            shape = (f.camera, owners, local, tuple(f.pose_keys), f.base_points.shape[1], tuple(map(is_eliminated, order)))
-            shapes.setdefault(shape, []).append(i)
-        self.groups = [_Group([view_factors[i] for i in members]) for members in shapes.values()]
+        # views of one shape and the same placement eliminated (f.mirror_keys: in order of first reflection)
+        shapes = groups_by_shape(view_factors, lambda f: tuple(p in index for p in f.mirror_keys))
+        self.groups = [_Group([view_factors[i] for i in members]) for members in shapes]
         self._targets, self._placement_of_view, self._elim_cols, self._elim_local = [], [], [], []
-        for group, members in zip(self.groups, shapes.values()):
+        for group, members in zip(self.groups, shapes):
             targets, placement_of, elim_cols = self._layout(group, members, index, stack_of_view, columns_of)
             self._targets.append(targets)
             self._placement_of_view.append(placement_of)
@@ -208,7 +187,7 @@ class EliminatedViewStack:
         self._pose_set = pose_set
         self._order = {p: i for i, p in enumerate([*self.kept_mirror_keys, *self.eliminated])}
         self._rows = [group.placement_index(self._order) for group in self.groups]
-        self._stack_rows = [stack_of_view[members] for members in shapes.values()]  # each group's views' stacks
+        self._stack_rows = [stack_of_view[members] for members in shapes]  # each group's views' stacks
         self.factors = [gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(width + 1), keys, self._error_function(s))
                         for s, (keys, width) in enumerate(zip(self._keys, self._widths))]
         self._state: dict[int, bytes] = {}

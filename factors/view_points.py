@@ -36,7 +36,8 @@ import numpy as np
 
 from mirror_fg.factors.robust import robust_row_scales
 from mirror_fg.factors.schur import one_blas_thread, row_products
-from mirror_fg.factors.view_stack import _Group, read_poses_and_planes, stacks_by_placements
+from mirror_fg.factors.view_stack import (_Group, collected_keys, groups_by_shape, read_poses_and_planes,
+                                          stacks_by_placements)
 from mirror_fg.factors.views import ViewFactor
 
 __all__ = ["ViewPointStack", "PLACEMENTS_PER_FACTOR"]
@@ -53,13 +54,7 @@ class ViewPointStack:
     ``factors``: one ``gtsam.CustomFactor`` per set of placements (hand them to a graph)."""
 
     def __init__(self, view_factors: Sequence[ViewFactor], placements_per_factor: int = PLACEMENTS_PER_FACTOR):
-        self.fixed: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        self.pose_keys: dict[str, int] = {}
-        self.mirror_keys: dict[Placement, int] = {}
-        for f in view_factors:
-            self.fixed.update(f.fixed)
-            self.pose_keys.update(f.pose_keys)
-            self.mirror_keys.update(f.mirror_keys)
+        self.fixed, self.pose_keys, self.mirror_keys = collected_keys(view_factors)
         self.point_keys = list(dict.fromkeys(k for f in view_factors for k in f.unique_landmarks))
         self._pose_key_set, self._plane_key_set = set(self.pose_keys.values()), set(self.mirror_keys.values())
         stack_of_view = np.zeros(len(view_factors), dtype=np.intp)
@@ -85,14 +80,9 @@ class ViewPointStack:
             stack_of_view[members] = s
         self._size = size
         self._stack_of_view = stack_of_view
-        shapes: dict[tuple, list[int]] = {}
-        for i, f in enumerate(view_factors):
-            order = list(dict.fromkeys(f.reflections))
-            shape = (f.camera, tuple((f.owners[p], order.index(p)) for p in f.reflections),
-                     tuple(f.pose_keys), f.base_points.shape[1], f.robust, f.robust_k)
-            shapes.setdefault(shape, []).append(i)
-        self.groups = [_Group([view_factors[i] for i in members]) for members in shapes.values()]
-        self._members = [np.asarray(members, dtype=np.intp) for members in shapes.values()]
+        shapes = groups_by_shape(view_factors)
+        self.groups = [_Group([view_factors[i] for i in members]) for members in shapes]
+        self._members = [np.asarray(members, dtype=np.intp) for members in shapes]
         self._indices = np.concatenate([self._scatter(g, view_factors) for g in range(len(self.groups))])
         self.factors = [gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(width + 1), keys, self._error_function(s))
                         for s, (keys, width) in enumerate(zip(self._keys, self._widths))]

@@ -36,7 +36,8 @@ import numpy as np
 from mirror_fg.factors.robust import robust_row_scales
 from mirror_fg.factors.views import ViewFactor, vectors_of_planes
 
-__all__ = ["stackable", "stacked_view_factors", "ViewStackEvaluator", "read_poses_and_planes"]
+__all__ = ["stackable", "stacked_view_factors", "ViewStackEvaluator", "read_poses_and_planes", "collected_keys",
+           "groups_by_shape", "stacks_by_placements"]
 
 Placement = tuple[int, int]
 #: Placements of one stacked factor at most: the views of a few photographs (their own placements) in one
@@ -69,6 +70,33 @@ def read_poses_and_planes(values: gtsam.Values, fixed: dict, pose_keys: dict[str
         state[mirror_keys[p]] = row.tobytes()
     V, J = vectors_of_planes(coefficients)  # as views.vector_of_plane of each, bit for bit
     return poses, dict(zip(placements, V)), dict(zip(placements, J)), state
+
+
+def collected_keys(view_factors: Sequence[ViewFactor]) -> tuple[dict, dict[str, int], dict[Placement, int]]:
+    """The fixed poses, the pose keys and the plane keys of ``view_factors`` (each in order first seen)."""
+    fixed: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    pose_keys: dict[str, int] = {}
+    mirror_keys: dict[Placement, int] = {}
+    for f in view_factors:
+        fixed.update(f.fixed)
+        pose_keys.update(f.pose_keys)
+        mirror_keys.update(f.mirror_keys)
+    return fixed, pose_keys, mirror_keys
+
+
+def groups_by_shape(view_factors: Sequence[ViewFactor], extra: Any = None) -> list[list[int]]:
+    """The views (indices) of each shape, in order first seen: one camera, the same owner and placement
+    position at each reflection, the same pose keys, as many points, one kernel (and the same
+    ``extra(view)``, where given): what a :class:`_Group` evaluates at once."""
+    shapes: dict[tuple, list[int]] = {}
+    for i, f in enumerate(view_factors):
+        order = list(f.mirror_keys)  # the placements in order of first reflection
+        owners = tuple(f.owners[p] for p in f.reflections)
+        local = tuple(range(len(order))) if len(order) == len(f.reflections) else tuple(map(order.index, f.reflections))
+        shape = (f.camera, owners, local, tuple(f.pose_keys), f.base_points.shape[1], f.robust, f.robust_k,
+                 None if extra is None else extra(f))
+        shapes.setdefault(shape, []).append(i)
+    return list(shapes.values())
 
 
 def stacks_by_placements(view_factors: Sequence[ViewFactor], placements_per_factor: int) -> list[list[int]]:
@@ -326,22 +354,10 @@ class ViewStackEvaluator:
 
     def __init__(self, view_factors: Sequence[ViewFactor], placements_per_factor: int = 1):
         first = view_factors[0]
-        self.fixed = dict(first.fixed)
-        for f in view_factors:
-            self.fixed.update(f.fixed)
-        self.pose_keys: dict[str, int] = {}
-        self.mirror_keys: dict[Placement, int] = {}
-        for f in view_factors:
-            self.pose_keys.update(f.pose_keys)
-            self.mirror_keys.update(f.mirror_keys)
+        self.fixed, self.pose_keys, self.mirror_keys = collected_keys(view_factors)
         stacks = dict(enumerate(stacks_by_placements(view_factors, placements_per_factor)))
-        shapes: dict[tuple, list[int]] = {}
-        for i, f in enumerate(view_factors):
-            order = list(dict.fromkeys(f.reflections))
-            shape = (f.camera, tuple((f.owners[p], order.index(p)) for p in f.reflections),
-                     tuple(f.pose_keys), f.base_points.shape[1], f.robust, f.robust_k)
-            shapes.setdefault(shape, []).append(i)
-        self.groups = [_Group([view_factors[i] for i in members]) for members in shapes.values()]
+        shapes = groups_by_shape(view_factors)
+        self.groups = [_Group([view_factors[i] for i in members]) for members in shapes]
         # buffers: each stack's rows consecutive; each stack's key blocks (rows, dim) consecutive
         err_size = sum(2 * f.base_points.shape[1] for f in view_factors)
         self._err = np.zeros(err_size)
@@ -382,7 +398,7 @@ class ViewStackEvaluator:
         # each group's rows and Jacobian entries at once: a view's entry (row j, its column c + k of a key's
         # block) is the block's offset + (its first row in the stack + j) * dim + k
         error_rows, entries = [], []
-        for group, members in zip(self.groups, shapes.values()):
+        for group, members in zip(self.groups, shapes):
             m = 2 * group.base.shape[2]
             error_rows.append(row_start[members][:, None] + np.arange(m)[None, :])
             table = np.zeros((len(members), m, group.slots.size), dtype=np.intp)

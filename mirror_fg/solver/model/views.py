@@ -26,7 +26,7 @@ from mirror_fg.core.camera import Camera
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_prior_factor, predict_pixels
 from mirror_fg.factors.view_eliminated import EliminatedViewStack, eliminable
-from mirror_fg.factors.view_stack import _Group, stacked_view_factors
+from mirror_fg.factors.view_stack import _Group, groups_by_shape, stacked_view_factors
 from mirror_fg.factors.views import ViewFactor, ViewSlots, plane_of, vector_of_plane
 from mirror_fg.data import Dataset, Image
 from mirror_fg.io.point_sigma import normalized_sigmas
@@ -275,15 +275,9 @@ class ViewProblem:
     def _predictions(self, estimate: ViewEstimate) -> list[np.ndarray]:
         """Every view's predicted normalized coordinates (N, 2) at ``estimate`` (``views.view_model``, eqs. 2, 3,
         9), the views of one shape at once (``view_stack._Group``)."""
-        shapes: dict[tuple, list[int]] = {}
-        for i, factor in enumerate(self.factors):
-            order = list(dict.fromkeys(factor.reflections))
-            shape = (factor.camera, tuple((factor.owners[p], order.index(p)) for p in factor.reflections),
-                     factor.base_points.shape[1])
-            shapes.setdefault(shape, []).append(i)
         values = {self.point_keys[n]: np.asarray(x, float) for n, x in estimate.points.items() if n in self.point_keys}
         predicted: list[np.ndarray] = [np.zeros((0, 2))] * len(self.factors)
-        for members in shapes.values():
+        for members in groups_by_shape(self.factors):
             group = _Group([self.factors[i] for i in members])
             z = group.model(estimate.poses, estimate.mirror_vectors, {}, False, base=group.points(values))[0]
             for row, i in enumerate(members):
