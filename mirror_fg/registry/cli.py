@@ -50,7 +50,7 @@ def registry_target(args: Any, per_input: bool = False) -> RegistryTarget | None
     explicit = url is not None
     if url is None:
         url = os.environ.get(ENV_VAR) or None
-    if robot is None and not (per_input and explicit) and not explicit:
+    if robot is None and not explicit:
         return None  # no recording: the database layer (SQLAlchemy, 0.2 s to import) is not loaded
     from mirror_fg.registry.schema import RegistryError, registry_url
 

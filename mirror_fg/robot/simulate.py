@@ -266,10 +266,7 @@ def _occluded(poses, x_B: np.ndarray, v_B: np.ndarray, margin: float = 0.03) -> 
     of ``v_B``."""
     R_t, t_t = poses["target"]
     c = poses["camera"][1]
-    virtual = _reflect(x_B, v_B)  # eq. (3): the ray to each image point meets the mirror on the way
-    n_B, d_B = v_B / np.linalg.norm(v_B), float(np.linalg.norm(v_B))
-    ray = virtual - c[:, None]
-    at_mirror = c[:, None] + ray * ((d_B - n_B @ c) / (n_B @ ray))  # where each ray meets the plane
+    at_mirror = _mirror_points(c, x_B, v_B)  # the ray to each image point meets the mirror on the way
     corners = R_t.T @ (x_B - t_t[:, None])  # the corners in the target frame (the plate's extent)
     low, high = corners[:2].min(axis=1) - margin, corners[:2].max(axis=1) + margin
     c_t = R_t.T @ (c - t_t)  # the camera and the mirror points in the target frame

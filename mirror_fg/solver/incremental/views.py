@@ -41,7 +41,7 @@ from gtsam.symbol_shorthand import L, V, X
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.robust import check_kernel
-from mirror_fg.factors.views import ViewFactor, vector_of_plane
+from mirror_fg.factors.views import ViewFactor, vector_of_plane, vectors_of_planes
 from mirror_fg.io.dataset import validate_image
 from mirror_fg.data import Dataset, Image
 from mirror_fg.io.point_sigma import normalized_sigmas
@@ -482,10 +482,6 @@ def calibrate_views_incremental(dataset: Dataset, *, robust: str | None = None,
 def _mirror_vectors(values: gtsam.Values, placements: list[tuple[tuple[int, int], int]]
                     ) -> dict[tuple[int, int], np.ndarray]:
     """``{placement: mirror_vector_at(values, key)}`` of ``placements`` (``(placement, key)``), read after
-    every update: ``d n`` from the planes' coefficients ``(n, d)`` at once (the same numbers), without the
-    planes' Jacobians."""
-    if not placements:
-        return {}
-    coefficients = np.array([values.atOrientedPlane3(k).planeCoefficients() for _, k in placements])
-    vectors = coefficients[:, 3:] * coefficients[:, :3]
-    return {p: v for (p, _), v in zip(placements, vectors)}
+    every update: every plane at once (``views.vectors_of_planes``, the same numbers)."""
+    coefficients = np.array([values.atOrientedPlane3(k).planeCoefficients() for _, k in placements]).reshape(-1, 4)
+    return {p: v for (p, _), v in zip(placements, vectors_of_planes(coefficients)[0])}
