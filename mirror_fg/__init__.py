@@ -28,7 +28,7 @@ _moved.install()  # the old import paths of moved modules, for one release
 #: Each public name and the module it lives in (imported on first access).
 _PUBLIC = {
     "AnalyticSolution": "mirror_fg.solver.start.analytic",
-    "Calibration": "mirror_fg.data.calibration",
+    "Calibration": "mirror_fg.solver.result.calibration",
     "Camera": "mirror_fg.core.camera",
     "Dataset": "mirror_fg.data.dataset",
     "DatasetError": "mirror_fg.core.errors",
@@ -103,7 +103,7 @@ if _TYPE_CHECKING:  # the names as static analysers and IDEs see them
     from mirror_fg.registry.store import Registry  # noqa: F401 - re-exported
     from mirror_fg.solver.start.analytic import AnalyticSolution, solve_analytic  # noqa: F401 - re-exported
     from mirror_fg.solver.calibrate import calibrate  # noqa: F401 - re-exported
-    from mirror_fg.data import Calibration  # noqa: F401 - re-exported
+    from mirror_fg.solver.result.calibration import Calibration  # noqa: F401 - re-exported
     from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator, calibrate_incremental  # noqa: F401 - re-exported
     from mirror_fg.solver.start.initial import initial_estimate  # noqa: F401 - re-exported
     from mirror_fg.solver.options import IncrementalOptions, SolveOptions  # noqa: F401 - re-exported

@@ -6,7 +6,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mirror_fg.core.camera import Camera
-from mirror_fg.data import Calibration, CameraPose, EstimatedCamera
+from mirror_fg.solver.result.calibration import Calibration, CameraPose, EstimatedCamera
 from mirror_fg.solver.model.rig import rig_transforms
 
 NAMES = ("left", "right", "wrist")

@@ -7,7 +7,7 @@ from scipy.stats import chi2
 
 from conftest import pose_difference
 from mirror_fg import calibrate, load_dataset
-from mirror_fg.data import Calibration
+from mirror_fg.solver.result.calibration import Calibration
 from mirror_fg.simulate.tree import simulate_base_case
 from mirror_fg.core.transform import rotation_angle
 

@@ -6,7 +6,7 @@ import pytest
 from conftest import pose_difference
 from mirror_fg import DatasetError, calibrate, load_dataset
 from mirror_fg.data import Dataset, Image
-from mirror_fg.data import Calibration
+from mirror_fg.solver.result.calibration import Calibration
 from mirror_fg.solver.screen.consensus import FINAL_SIGMAS, PNP_POINT_SIGMAS, screen, without
 from mirror_fg.simulate.tree import GroundTruth, default_camera, measure, simulate_base_case
 

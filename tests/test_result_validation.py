@@ -21,7 +21,7 @@ import mirror_fg
 from mirror_fg.cli import main
 from mirror_fg.core.camera import Camera
 from mirror_fg.core.errors import DatasetError
-from mirror_fg.data import EstimatedCamera, Exclusion, Inconsistency
+from mirror_fg.solver.result.calibration import EstimatedCamera, Exclusion, Inconsistency
 from mirror_fg.io.dataset import dataset_to_dict
 from mirror_fg.report.writer import _summary, write_report
 from mirror_fg.report.residuals import compute_residuals

@@ -415,7 +415,7 @@ def verify(result: Mapping[str, Any] | Any, dataset: Dataset, alpha: float = 0.0
            tolerance_deg: float = 0.2, source: str = "result", options: SolveOptions | None = None,
            standing: bool = False) -> Verification:
     """Whether each camera of ``dataset``'s images is still where ``result`` (a validated result@1
-    dictionary, or a :class:`~mirror_fg.data.Calibration`) puts it (module docstring).
+    dictionary, or a :class:`~mirror_fg.solver.result.calibration.Calibration`) puts it (module docstring).
     ``source`` names the result in messages; ``options``: its ``max_iterations`` bounds each LM fit;
     ``standing``: the new images' placements the result holds (the same labels) are the same mirrors, standing
     where they stood (``verify_plane.py``: one of them is held at its stored plane).

@@ -45,7 +45,7 @@ def load_input_with_reports(path: Path, out: _Printer, plan: OutputPlan, tracks:
 
 def detection_exclusions(reports: list) -> list:
     """Images of a capture that detection left out, as result@1 ``excluded`` entries (nothing dropped silently)."""
-    from mirror_fg.data import Exclusion
+    from mirror_fg.solver.result.calibration import Exclusion
     from mirror_fg.vision.detectors import FOUND
 
     return [Exclusion(r.id, f"detection: {r.status}: {r.reason}") for r in reports if r.status != FOUND]

@@ -71,7 +71,7 @@ def _calibrate(args, out: _Printer, data: dict, source: str) -> int:
 
 
 def _as_dicts(exclusions: list) -> list[dict]:
-    """result@1 ``excluded`` entries of :class:`~mirror_fg.data.Exclusion` values."""
+    """result@1 ``excluded`` entries of :class:`~mirror_fg.solver.result.calibration.Exclusion` values."""
     return [{"image": e.image, "point": e.point, "reason": e.reason, "sigmas": e.sigmas} for e in exclusions]
 
 

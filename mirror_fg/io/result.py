@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -43,13 +43,11 @@ from mirror_fg.io.result_poses import (
 from mirror_fg.io.result_schema import OPTIONAL, REQUIRED
 from mirror_fg.io.screen_result import check_screen_pose
 
-if TYPE_CHECKING:  # (the value lives below io: data/, and imports this writer where it is written)
-    from mirror_fg.data.calibration import Calibration
-
 RESULT_FORMAT = "mirror-fg/result@1"
 
 __all__ = [
     "RESULT_FORMAT",
+    "CalibrationLike",
     "result_dict",
     "write_result",
     "result_text",
@@ -78,6 +76,52 @@ INVERSE_TOL = 1e-6
 # --------------------------------------------------------------------------------------------------
 
 
+class _Pose(Protocol):
+    R_cam_base: np.ndarray
+    t_cam_base: np.ndarray
+
+
+class CalibrationLike(Protocol):
+    """What :func:`result_dict` reads of a calibration (:class:`mirror_fg.solver.result.calibration.Calibration`).
+
+    ``R_cam_base``, ``t_cam_base`` (metres): ``Cp = R Bp + t``; ``covariance`` 6x6 ``[dtheta, dt]`` or
+    None; mirror vectors ``(l, m) -> v`` (camera frame, metres) and points (base frame, metres) with
+    their 3x3 covariances; ``analytic``: the analytical solution's pose or None. A calibration of several
+    cameras also has ``cameras`` (name -> CameraPose), ``rig`` (solver.model.rig.rig_transforms of them) and
+    ``mirror_frames`` ((l, m) -> camera name), read where present (``cameras`` None: one camera).
+    """
+
+    R_cam_base: np.ndarray
+    t_cam_base: np.ndarray
+    covariance: np.ndarray | None
+    mirror_vectors: dict[tuple[int, int], np.ndarray]
+    mirror_covariances: dict[tuple[int, int], np.ndarray]
+    points: dict[str, np.ndarray]
+    point_covariances: dict[str, np.ndarray]
+    iterations: int
+    initial_error: float
+    final_error: float
+    expected_final_error: float
+    converged: bool
+    residual_units: str
+    outliers: list[tuple[str, str, float]]
+    excluded: list[Any]  # Exclusion: image, reason, point, sigmas
+    inconsistency: Any  # Inconsistency or None: groups, rotation_deg, position_mm, message
+    camera: Any  # EstimatedCamera or None: camera, estimated, covariance, pose_cross_covariance, sigma3
+
+    @property
+    def analytic(self) -> _Pose | None: ...  # read-only: any object with a pose (an AnalyticSolution)
+
+    @property
+    def R_base_cam(self) -> np.ndarray: ...
+
+    @property
+    def t_base_cam(self) -> np.ndarray: ...
+
+    @property
+    def residual_norms(self) -> np.ndarray: ...
+
+
 def analytic_entry(analytic: Any) -> dict[str, Any] | None:
     """The result's ``analytic``: the analytical solution's (or the propagation's start's) ``T_cam_base``, and
     with several cameras every camera's under ``cameras`` (docs/formats.md); None without one."""
@@ -90,7 +134,7 @@ def analytic_entry(analytic: Any) -> dict[str, Any] | None:
     return entry
 
 
-def result_dict(calibration: Calibration) -> dict:
+def result_dict(calibration: CalibrationLike) -> dict:
     """The ``mirror-fg/result@1`` dictionary of ``calibration`` (docs/formats.md)."""
 
     transform = transform_entry

@@ -77,7 +77,7 @@ def _kept_camera_block(camera: Any) -> dict[str, Any]:
 
 
 def camera_entries(cameras: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
-    """result@1's ``cameras``: per camera (a :class:`~mirror_fg.data.CameraPose`, in the
+    """result@1's ``cameras``: per camera (a :class:`~mirror_fg.solver.result.calibration.CameraPose`, in the
     dataset's order) both transforms, both covariances and both bounds, and its ``camera`` block: the
     estimated intrinsics (as the top-level ``camera``) or, where it estimated none, the ones used."""
     out: dict[str, dict[str, Any]] = {}

@@ -32,7 +32,7 @@ from mirror_fg.core.errors import DatasetError, MirrorFgError, SolveError
 from mirror_fg.core.transform import Transform
 from mirror_fg.io.capture import Capture
 from mirror_fg.data import Dataset
-from mirror_fg.data import Calibration
+from mirror_fg.solver.result.calibration import Calibration
 from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator
 from mirror_fg.solver.start.pnp import pnp_candidates
 from mirror_fg.solver.information.suggest import Reach, Suggestion

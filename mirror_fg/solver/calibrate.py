@@ -9,7 +9,7 @@ driven by a :class:`~mirror_fg.solver.options.SolveOptions` and the problem the 
 - anything else (``views_solve.py``): direct views, fixed mirrors, any order of reflections, no known
   target, several cameras, by the general view model (``views.py``).
 
-Each gives a :class:`~mirror_fg.data.Calibration`, with everything left out in ``excluded``.
+Each gives a :class:`~mirror_fg.solver.result.calibration.Calibration`, with everything left out in ``excluded``.
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from mirror_fg.io.dataset_fields import check_cameras_named
 from mirror_fg.io.dataset import dataset_from_dict
 from mirror_fg.data import Dataset
 from mirror_fg.solver.screen.camera_labels import check_camera_labels
-from mirror_fg.data import Calibration
+from mirror_fg.solver.result.calibration import Calibration
 from mirror_fg.solver.fit.dispersion import dispersion_of_calibration
 from mirror_fg.solver.fit.placement_covariance import placement_covariances
 from mirror_fg.solver.model.graph import InitialEstimate

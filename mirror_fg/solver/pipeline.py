@@ -1,7 +1,7 @@
 """The one batch pipeline of ``calibrate()``, whatever the problem: screen (consensus: what disagrees
 with the rest left out, named) -> solve (the start, then the MLE by Levenberg-Marquardt with its restarts,
 eq. 23) -> final check (``rechecks.py``: what ends far off the solution left out, solved again) ->
-finish (marginals, what the data contradict, the :class:`~mirror_fg.data.Calibration`).
+finish (marginals, what the data contradict, the :class:`~mirror_fg.solver.result.calibration.Calibration`).
 
 A *problem* says how each step is done for its kind of data; three implement it:
 ``tree_problem.TreeProblem`` (the paper's tree, normalized measurements, stacked or eliminated factors),
@@ -16,7 +16,7 @@ from typing import Protocol, TypeVar
 from mirror_fg.core.errors import SolveError
 from mirror_fg.core.values import clip
 from mirror_fg.data import Dataset
-from mirror_fg.data import Calibration, Exclusion
+from mirror_fg.solver.result.calibration import Calibration, Exclusion
 from mirror_fg.solver.screen.rechecks import Checked, Rechecked, solve_with_rechecks
 
 __all__ = ["Problem", "run_pipeline"]

@@ -25,7 +25,7 @@ from mirror_fg.core.camera import Camera
 from mirror_fg.core.errors import SolveError
 from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_key, predict_pixels
 from mirror_fg.data import Dataset
-from mirror_fg.data import Calibration, EstimatedCamera, Exclusion
+from mirror_fg.solver.result.calibration import Calibration, EstimatedCamera, Exclusion
 from mirror_fg.solver.screen.consensus import without
 from mirror_fg.solver.model.graph import Estimate, GraphLayout, InitialEstimate, Measurement, extract_values
 from mirror_fg.solver.batch.intrinsics import (

@@ -19,7 +19,7 @@ from mirror_fg.core.fit import expected_cost, plausible
 from mirror_fg.core.transform import rotation_to_quaternion_xyzw
 from mirror_fg.factors.robot import compose
 from mirror_fg.data import Dataset
-from mirror_fg.data import Calibration, Exclusion
+from mirror_fg.solver.result.calibration import Calibration, Exclusion
 from mirror_fg.solver.model.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, run_optimizer
 from mirror_fg.solver.options import STAGES, SolveOptions
 from mirror_fg.solver.pipeline import run_pipeline

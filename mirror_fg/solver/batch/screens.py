@@ -35,7 +35,7 @@ from mirror_fg.core.transform import Transform
 from mirror_fg.factors.views import ViewFactor, plane_of, vector_of_plane
 from mirror_fg.data import Dataset
 from mirror_fg.io.point_sigma import normalized_sigmas
-from mirror_fg.data import Calibration
+from mirror_fg.solver.result.calibration import Calibration
 
 __all__ = ["ScreensCalibration", "calibrate_screens", "relative_pose"]
 

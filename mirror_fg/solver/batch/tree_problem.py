@@ -16,7 +16,7 @@ import numpy as np
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.data import Dataset
 from mirror_fg.solver.start.analytic import AnalyticSolution
-from mirror_fg.data import Calibration, Exclusion
+from mirror_fg.solver.result.calibration import Calibration, Exclusion
 from mirror_fg.solver.screen.consensus import PnPCandidates, check_images, screen
 from mirror_fg.solver.screen.consistency import diagnose_inconsistency
 from mirror_fg.solver.model.graph import InitialEstimate, Measurement

@@ -1,7 +1,7 @@
 """The batch solve of the general view model (``solver/model/views.py``'s problem), as ``calibrate()`` runs
 it for data the paper's tree does not describe: analytical start by propagation
 (``solver/start/propagation.py``) -> Levenberg-Marquardt (eq. 23) -> final check (measurements far off the
-solution left out, solved again) -> Marginals -> :class:`~mirror_fg.data.Calibration`.
+solution left out, solved again) -> Marginals -> :class:`~mirror_fg.solver.result.calibration.Calibration`.
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from mirror_fg.core.fit import expected_cost, plausible
 from mirror_fg.data import Dataset, Image
 from mirror_fg.solver.start.analytic import AnalyticSolution
 from mirror_fg.solver.result.calibration import POOR_FIT_RATIO
-from mirror_fg.data import Calibration, CameraPose, EstimatedCamera, Exclusion
+from mirror_fg.solver.result.calibration import Calibration, CameraPose, EstimatedCamera, Exclusion
 from mirror_fg.solver.screen.camera_labels import lone_image_hint
 from mirror_fg.solver.screen.consensus import check_images, screen, without
 from mirror_fg.solver.model.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params, polished, run_optimizer

@@ -85,7 +85,7 @@ def sampled(count: int, limit: int = MAX_IMAGES) -> list[int]:
 
 
 def estimate_of_calibration(calibration: Any) -> tuple[ViewEstimate, dict[str, Any]]:
-    """The estimate of a :class:`~mirror_fg.data.Calibration` as the view model's values, and
+    """The estimate of a :class:`~mirror_fg.solver.result.calibration.Calibration` as the view model's values, and
     ``{camera: Camera}`` of the cameras whose intrinsics it estimated (as estimated)."""
     estimated: dict[str, Any] = {}
     if calibration.cameras:

@@ -29,7 +29,7 @@ from mirror_fg.io.dataset_fields import check_cameras_named
 from mirror_fg.solver.start.analytic import AnalyticSolution
 from mirror_fg.solver.calibrate import as_dataset
 from mirror_fg.solver.result.calibration import require_converged
-from mirror_fg.data import Calibration, Exclusion
+from mirror_fg.solver.result.calibration import Calibration, Exclusion
 from mirror_fg.solver.screen.consistency import diagnose_inconsistency, misfits_split
 from mirror_fg.solver.incremental.state import RelinearizeThresholds
 from mirror_fg.solver.incremental.tree import LeavesTheTree, TreeIncrementalCalibrator

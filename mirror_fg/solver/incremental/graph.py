@@ -37,7 +37,7 @@ from mirror_fg.factors.batched import batched_factors
 from mirror_fg.factors.eliminated import collapsed, eliminated_evaluator
 from mirror_fg.data import Dataset, Image
 from mirror_fg.solver.start.analytic import AnalyticSolution
-from mirror_fg.data import Calibration, Exclusion
+from mirror_fg.solver.result.calibration import Calibration, Exclusion
 from mirror_fg.solver.model.graph import GraphLayout, Measurement, measurement_sigmas
 from mirror_fg.solver.incremental.state import GraphState, PlacementBlock, RelinearizeThresholds, new_isam2
 from mirror_fg.solver.incremental.values import (

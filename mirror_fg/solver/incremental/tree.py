@@ -60,7 +60,7 @@ from mirror_fg.io.dataset import validate_image
 from mirror_fg.data import Dataset, Image
 from mirror_fg.solver.start.analytic import AnalyticSolution
 from mirror_fg.solver.calibrate import as_dataset
-from mirror_fg.data import Calibration, Exclusion
+from mirror_fg.solver.result.calibration import Calibration, Exclusion
 from mirror_fg.solver.screen.consensus import BEHIND, CONSENSUS_MIN_SIGMAS, board_side, check_image, misfit_sigmas, screen
 from mirror_fg.solver.incremental.graph import IncrementalGraph
 from mirror_fg.solver.incremental.misfit import misfit_sigmas_with_uncertainty

@@ -46,7 +46,7 @@ from mirror_fg.io.dataset import validate_image
 from mirror_fg.data import Dataset, Image
 from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.result.calibration import POOR_FIT_RATIO, require_converged
-from mirror_fg.data import Calibration, Exclusion
+from mirror_fg.solver.result.calibration import Calibration, Exclusion
 from mirror_fg.solver.screen.consensus import final_check, without
 from mirror_fg.solver.incremental.state import RelinearizeThresholds, new_isam2
 from mirror_fg.solver.incremental.views_start import (

@@ -358,7 +358,7 @@ def estimate_from_result(result: dict, dataset: Dataset, source: str) -> tuple[D
     """The data a result@1 was calibrated from (without what it left out) and its estimate, to suggest from
     without calibrating again; DatasetError when the result does not belong to the data."""
     from mirror_fg.io.result import mirror_vectors, points, pose
-    from mirror_fg.data import Exclusion
+    from mirror_fg.solver.result.calibration import Exclusion
     from mirror_fg.solver.screen.consensus import without
 
     excluded = [Exclusion(e["image"], e["reason"], e.get("point"), e.get("sigmas")) for e in result.get("excluded") or []]

@@ -1,4 +1,4 @@
-"""The one builder of a solve's :class:`~mirror_fg.data.Calibration`.
+"""The one builder of a solve's :class:`~mirror_fg.solver.result.calibration.Calibration`.
 
 Every solve (the tree's batch and its incremental graph, the view model's batch and incremental, the
 joint solve with intrinsics, the arm) hands its estimate here, so that the residuals' units, the outlier
@@ -14,7 +14,7 @@ import numpy as np
 
 from mirror_fg.core.fit import expected_cost
 from mirror_fg.data import Dataset
-from mirror_fg.data import Calibration
+from mirror_fg.solver.result.calibration import Calibration
 from mirror_fg.solver.model.residuals import outliers_of
 
 __all__ = ["build_calibration", "Label"]

@@ -1,4 +1,4 @@
-"""What a solved :class:`~mirror_fg.data.Calibration` must satisfy before it is written:
+"""What a solved :class:`~mirror_fg.solver.result.calibration.Calibration` must satisfy before it is written:
 every estimate and bound a finite number, and every mirror and point within reach of the camera.
 
 Frames and units as docs/formats.md: mirror vectors in the frame of the camera that saw them (metres,

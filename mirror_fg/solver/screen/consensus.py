@@ -26,7 +26,7 @@ After LM (:func:`final_check`): measurements above ``FINAL_SIGMAS``, or whole im
 their measurements are, are left out and the caller solves again.
 
 Nothing left out is dropped silently: every image or measurement is an
-:class:`~mirror_fg.data.Exclusion` with its reason and residual.
+:class:`~mirror_fg.solver.result.calibration.Exclusion` with its reason and residual.
 """
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ import numpy as np
 from mirror_fg.core.fit import expected_cost, plausible
 from mirror_fg.core.geometry import apply_transform
 from mirror_fg.data import Dataset, Image
-from mirror_fg.data import Exclusion
+from mirror_fg.solver.result.calibration import Exclusion
 from mirror_fg.solver.model.graph import Labelled
 from mirror_fg.solver.screen.placement_consensus import (  # noqa: F401 (the node's constants: public here too)
     CONSENSUS_FACTOR,

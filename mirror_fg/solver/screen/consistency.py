@@ -30,7 +30,7 @@ from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.geometry import nested_transform
 from mirror_fg.core.transform import rotation_angle
 from mirror_fg.data import Dataset, Image
-from mirror_fg.data import Calibration, Inconsistency
+from mirror_fg.solver.result.calibration import Calibration, Inconsistency
 from mirror_fg.solver.screen.consensus import PnPCandidates, fit_last_mirror
 from mirror_fg.solver.start.initial import initial_estimate
 from mirror_fg.solver.model.lm import levenberg_marquardt

@@ -22,7 +22,7 @@ import numpy as np
 
 from mirror_fg.data import Dataset, Image
 from mirror_fg.solver.start.analytic import Hypothesis, hypothesis_of_subtree, subtree_dataset, subtree_solution
-from mirror_fg.data import Exclusion
+from mirror_fg.solver.result.calibration import Exclusion
 from mirror_fg.solver.start.initial import refine_subtree
 from mirror_fg.solver.start.peeling import (
     MIN_NORMAL_SPREAD, reflection_fit, smallest_eigenvectors, solve_children, solve_triples, spread_subset,

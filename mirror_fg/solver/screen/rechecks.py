@@ -13,7 +13,7 @@ from typing import Generic, TypeVar
 import numpy as np
 
 from mirror_fg.data import Dataset
-from mirror_fg.data import Exclusion
+from mirror_fg.solver.result.calibration import Exclusion
 from mirror_fg.solver.screen.consensus import final_check, without
 from mirror_fg.solver.model.graph import Labelled
 
