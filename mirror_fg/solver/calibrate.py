@@ -113,7 +113,8 @@ def calibrate(
     else:
         calibration = run_pipeline(TreeProblem(initial, options), dataset)
     if options.compute_covariance and calibration.covariance is not None:  # what verify divides its test by
-        calibration.dispersion = dispersion_of_calibration(dataset, calibration)
+        if calibration.dispersion is None:  # else the solve's own model gave it (views_solve.py)
+            calibration.dispersion = dispersion_of_calibration(dataset, calibration)
         calibration.placement_covariances = placement_covariances(dataset, calibration)  # a mirror that stands still
     return calibration
 

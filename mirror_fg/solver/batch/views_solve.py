@@ -29,6 +29,7 @@ from mirror_fg.solver.start.propagation import KnownPnP, Unsolvable, propagate
 from mirror_fg.solver.screen.rechecks import Checked, Rechecked, solve_with_rechecks
 from mirror_fg.solver.result.builder import Label, build_calibration
 from mirror_fg.solver.model.rig import rig_transforms
+from mirror_fg.solver.fit.dispersion import dispersion_of_solve
 from mirror_fg.solver.timing import timed
 from mirror_fg.solver.batch.tree_problem import TreeProblem
 from mirror_fg.solver.model.views import SINGLE_CAMERA, ViewEstimate, ViewProblem, camera_names
@@ -294,6 +295,9 @@ class ViewsProblem:
         run.excluded = rechecked.excluded
         calibration = _finish(run, self.options)
         calibration.analytic = analytic_of(self.analytic_start, run.problem)
+        if calibration.covariance is not None and not any(e.point is not None for e in run.excluded):
+            # every measurement of the kept images used: the solve's own problem is the dispersion's
+            calibration.dispersion = dispersion_of_solve(run.problem, run.estimate)
         return calibration
 
 

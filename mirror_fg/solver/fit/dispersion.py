@@ -44,7 +44,7 @@ from mirror_fg.solver.fit.tree_dispersion import tree_dispersion, tree_dispersio
 from mirror_fg.solver.fit.validation import _problem, estimate_of_calibration
 from mirror_fg.solver.model.views import SINGLE_CAMERA, ViewEstimate, scale_prior, tangent_dimension
 
-__all__ = ["Dispersion", "image_dispersion", "dispersion_of_calibration", "MAX_IMAGES", "MAX_DENSE_COLUMNS"]
+__all__ = ["Dispersion", "image_dispersion", "dispersion_of_calibration", "dispersion_of_solve", "MAX_IMAGES", "MAX_DENSE_COLUMNS"]
 
 #: Above this many images the dispersion is summed over this many, evenly spread (module docstring).
 MAX_IMAGES = 400
@@ -103,6 +103,26 @@ def _image_dispersion(dataset: Dataset, estimate: ViewEstimate, excluded: Sequen
         if all(mask.all() for mask in masks):  # no measurement left out: this very problem
             return _sampled_from(problem, values)
         return _sampled_dispersion(dataset, estimate, excluded, estimated_cameras)
+    return _dense(problem, values, masks)
+
+
+def dispersion_of_solve(problem: Any, estimate: ViewEstimate) -> Dispersion | None:
+    """:func:`image_dispersion` from the general view model's own solve (``views_solve.py``): ``problem`` the
+    view problem it solved (the images it kept, every measurement of them used), ``estimate`` its solution,
+    without building the problem again; None where that problem is not the dispersion's (a robust kernel
+    weighs its factors: :func:`image_dispersion` then builds the Gaussian one)."""
+    if problem.robust is not None:
+        return None
+    with one_blas_thread():
+        values = problem.values(estimate)
+        if len(problem.factors) > MAX_IMAGES or _shared_columns(problem, values) > MAX_DENSE_COLUMNS:
+            return _sampled_from(problem, values)
+        return _dense(problem, values, [np.ones(2 * len(view.names), dtype=bool) for view in problem.views])
+
+
+def _dense(problem: Any, values: gtsam.Values, masks: Sequence[np.ndarray]) -> Dispersion:
+    """``B`` and ``nu`` over every image of ``problem`` at ``values`` (``masks``: each image's rows the solve
+    used), ``Sigma``'s blocks from :func:`_explained`."""
     graph = problem.graph(stacked=False)  # one factor per view, in order, then the priors
     offset: dict[int, int] = {}
     size = 0
