@@ -155,3 +155,32 @@ def test_many_images_at_once_as_one_at_a_time() -> None:
         alone = pnp_screen.screen_minima_many([problem], [parity], sigma, TWIN_COST_GAP)[0]
         assert len(found) == len(alone)
         assert all(np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) for a, b in zip(found, alone))
+
+
+def test_first_of_each_of_every_group_at_once_as_group_by_group() -> None:
+    """The starts of one basin merged for all images at once keep what the search keeps image by image
+    (``pnp.first_of_each``): groups of 1-12 poses, some repeated within the tolerance, some just outside."""
+    from mirror_fg.solver.start.pnp import SAME_BASIN, first_of_each, first_of_each_grouped
+
+    rng = np.random.default_rng(7)
+    R_parts, t_parts, owner = [], [], []
+    for group in range(300):
+        size = int(rng.integers(1, 13))
+        R = so3_exp_many(rng.normal(scale=1.0, size=(size, 3)))
+        t = rng.normal(size=(size, 3)) + np.array([0.0, 0.0, 3.0])
+        for k in range(1, size):  # a near copy of an earlier pose, within or just beyond the tolerance
+            if rng.random() < 0.5:
+                j = int(rng.integers(0, k))
+                factor = rng.choice([0.3, 0.9, 1.5])
+                R[k] = so3_exp_many((factor * SAME_BASIN * rng.uniform(-1, 1, size=(1, 3))))[0] @ R[j]
+                t[k] = t[j] * (1.0 + factor * SAME_BASIN * rng.uniform(-0.5, 0.5))
+        R_parts.append(R)
+        t_parts.append(t)
+        owner += [group] * size
+    R_all, t_all, owner_array = np.concatenate(R_parts), np.concatenate(t_parts), np.array(owner)
+    expected, at = [], 0
+    for R, t in zip(R_parts, t_parts):
+        expected += [at + k for k in first_of_each(R, t, SAME_BASIN)]
+        at += len(R)
+    assert len(expected) < len(owner)  # some merged: the comparison means something
+    assert first_of_each_grouped(R_all, t_all, owner_array, SAME_BASIN).tolist() == expected

@@ -5,16 +5,20 @@ image is mirror-imaged, so PnP runs on the y-flipped image and the flip is put b
 """
 from __future__ import annotations
 
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from functools import lru_cache
 from itertools import combinations, islice
+from typing import TypeVar
 
 import cv2
 import numpy as np
 
 from mirror_fg.core.geometry import FLIP_Y, so3_exp_many
 
-__all__ = ["pnp_candidates", "pnp_candidates_many", "pnp_minima", "pnp_starts", "first_of_each", "is_planar",
-           "lowest_reprojection", "reprojection_rms_many", "PNP_CRITERIA"]
+__all__ = ["pnp_candidates", "pnp_candidates_many", "pnp_minima", "pnp_starts", "first_of_each", "first_of_each_grouped", "is_planar",
+           "lowest_reprojection", "reprojection_rms_many", "solved_in_threads", "PNP_CRITERIA", "PNP_THREADS"]
 
 #: Two refined poses are the same minimum when their rotations (entries) and translations (relative)
 #: differ by less than this (LM stops up to ~1e-4 apart in a shallow twin's valley); a planar target's twin
@@ -24,6 +28,27 @@ SAME_MINIMUM = 1e-3
 SAME_BASIN = 1e-3
 #: OpenCV LM's stop (iterations, error change) for every refinement of the search.
 PNP_CRITERIA = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 200, 1e-15)
+
+
+#: Threads that run the PnP of many images side by side: OpenCV releases Python's lock inside each solver,
+#: so two images' solvers run at once on two cores (the Python around them still takes turns).
+PNP_THREADS = max(1, min(4, os.cpu_count() or 1))
+#: Fewer problems than this are solved in the calling thread (a pool costs more than it gains).
+THREADED_FROM = 64
+
+_Item = TypeVar("_Item")
+_Answer = TypeVar("_Answer")
+
+
+def solved_in_threads(solve: Callable[[_Item], _Answer], problems: Sequence[_Item]) -> list[_Answer]:
+    """``[solve(p) for p in problems]``, in order, the problems in :data:`PNP_THREADS` contiguous runs solved
+    side by side (each answer depends on its problem alone: the same answers as one at a time)."""
+    if PNP_THREADS < 2 or len(problems) < THREADED_FROM:
+        return [solve(p) for p in problems]
+    bounds = np.linspace(0, len(problems), PNP_THREADS + 1).round().astype(int).tolist()
+    with ThreadPoolExecutor(PNP_THREADS) as pool:
+        runs = pool.map(lambda a_b: [solve(p) for p in problems[a_b[0]:a_b[1]]], zip(bounds[:-1], bounds[1:]))
+        return [answer for run in runs for answer in run]
 
 
 def reprojection_rms_many(R: np.ndarray, t: np.ndarray, base_points: np.ndarray, normalized: np.ndarray) -> np.ndarray:
@@ -191,6 +216,35 @@ def first_of_each(R: np.ndarray, t: np.ndarray, tolerance: float) -> list[int]:
     return kept
 
 
+def first_of_each_grouped(R: np.ndarray, t: np.ndarray, owner: np.ndarray, tolerance: float) -> np.ndarray:
+    """:func:`first_of_each` of every group of poses at once: ``owner`` (S,) the group of each pose
+    ``(R[k], t[k])``, a group's poses contiguous; the indices (into all S poses, ascending) kept, each pose
+    compared with the poses of its own group alone (the same tables, padded to the largest group)."""
+    count = len(owner)
+    if not count:
+        return np.zeros(0, dtype=int)
+    starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
+    sizes = np.diff(np.r_[starts, count])
+    width = int(sizes.max())
+    slot = np.arange(count) - np.repeat(starts, sizes)  # each pose's place in its group
+    group = np.repeat(np.arange(len(starts)), sizes)
+    entries = np.zeros((len(starts), width, 9))
+    shift = np.zeros((len(starts), width, 3))
+    present = np.zeros((len(starts), width), dtype=bool)
+    entries[group, slot] = R.reshape(count, 9)
+    shift[group, slot] = t
+    present[group, slot] = True
+    rotation = np.abs(entries[:, :, None, :] - entries[:, None, :, :]).max(axis=3)
+    scale = np.maximum(np.sqrt(np.einsum("gij,gij->gi", shift, shift)), 1e-12)
+    difference = shift[:, :, None] - shift[:, None, :]
+    translation = np.sqrt(np.einsum("gijk,gijk->gij", difference, difference))
+    near = (rotation <= tolerance) & (translation <= tolerance * scale[:, :, None])  # as _near_table
+    kept = np.zeros_like(present)
+    for k in range(width):  # as first_of_each: kept unless near one kept before it in its group
+        kept[:, k] = present[:, k] & ~np.any(near[:, k, :k] & kept[:, :k], axis=1)
+    return np.flatnonzero(kept[group, slot])
+
+
 def _near_table(R: np.ndarray, t: np.ndarray, tolerance: float) -> np.ndarray:
     """``near[k][j]``: pose k is within ``tolerance`` of pose j (rotation entries; translation relative to
     pose k's) -- all pairs at once."""
@@ -265,8 +319,7 @@ def _p3p_candidates_many(problems: list[tuple[np.ndarray, np.ndarray]]) -> list[
     all problems checked together."""
     results: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in problems]
     poses, owner = [], []
-    for j, (base_points, normalized) in enumerate(problems):
-        found = _p3p_poses(base_points, normalized)
+    for j, found in enumerate(solved_in_threads(lambda problem: _p3p_poses(*problem), problems)):
         poses.extend(found)
         owner.extend([j] * len(found))
     if not poses:

@@ -37,8 +37,8 @@ import cv2
 import numpy as np
 
 from mirror_fg.core.geometry import FLIP_Y, so3_exp_many
-from mirror_fg.solver.start.pnp import (PNP_CRITERIA, SAME_BASIN, SAME_MINIMUM, first_of_each, pnp_minima, pnp_starts,
-                                        reprojection_rms_many)
+from mirror_fg.solver.start.pnp import (PNP_CRITERIA, SAME_BASIN, SAME_MINIMUM, first_of_each, first_of_each_grouped,
+                                        pnp_minima, pnp_starts, reprojection_rms_many, solved_in_threads)
 
 __all__ = ["screen_minima_many", "CONTRACTION", "MISS_MARGIN", "ELLIPSOID_REACH"]
 
@@ -190,10 +190,9 @@ def screen_minima_many(problems: list[tuple[np.ndarray, np.ndarray]], parities: 
         tvecs: list[np.ndarray] = []
         triples: list[tuple[int, ...]] = []
         judged: list[int] = []
-        for k in range(len(members)):
-            if count < 4 or planar[k]:  # a planar target's twin: the full search
-                continue
-            r, t, of = pnp_starts(points[k], observed[k], True, False, spreads[k])
+        searched = [k for k in range(len(members)) if count >= 4 and not planar[k]]  # planar: its twin, the full search
+        found = solved_in_threads(lambda k: pnp_starts(points[k], observed[k], True, False, spreads[k]), searched)
+        for k, (r, t, of) in zip(searched, found):
             if not r:
                 continue
             judged.append(k)
@@ -204,9 +203,10 @@ def screen_minima_many(problems: list[tuple[np.ndarray, np.ndarray]], parities: 
         if judged:
             _judge(members, points, observed, flips, judged, np.array(owner), rvecs, tvecs, np.array(triples),
                    sigma, relevant_cost, results)
-    for i, found in enumerate(results):
-        if found is None:
-            results[i] = pnp_minima(problems[i][0], problems[i][1], parities[i])
+    missing = [i for i, result in enumerate(results) if result is None]
+    for i, minima in zip(missing, solved_in_threads(lambda i: pnp_minima(problems[i][0], problems[i][1], parities[i]),
+                                                     missing)):
+        results[i] = minima
     return results  # type: ignore[return-value]
 
 
@@ -216,14 +216,10 @@ def _judge(members: list[int], points: np.ndarray, observed: np.ndarray, flips: 
     """The starts of the ``judged`` images of one fiducial count: refine each image's lowest-cost start, and
     those of its other starts that are not vouched for (:func:`_vouched`), where its minimum is well
     determined; the others are left to the full search (``results`` None)."""
-    R_all = so3_exp_many(np.array([np.asarray(r, dtype=np.float64).reshape(3) for r in rvecs]))
-    t_all = np.array([np.asarray(t, dtype=np.float64).reshape(3) for t in tvecs])
-    chosen: list[int] = []
-    starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
-    ends = np.r_[starts[1:], len(owner)]
-    for a, b in zip(starts.tolist(), ends.tolist()):  # the search's starts of one basin: the first (pnp._pnp_minima)
-        chosen.extend(a + j for j in first_of_each(R_all[a:b], t_all[a:b], SAME_BASIN))
-    chosen_index = np.array(chosen)
+    R_all = so3_exp_many(np.array(rvecs, dtype=np.float64).reshape(-1, 3))
+    t_all = np.array(tvecs, dtype=np.float64).reshape(-1, 3)
+    # the search's starts of one basin: the first (pnp._pnp_minima), every image's at once
+    chosen_index = first_of_each_grouped(R_all, t_all, owner, SAME_BASIN)
     R_s, t_s, of = R_all[chosen_index], t_all[chosen_index], owner[chosen_index]
     residual, _, depth = _whitened(R_s, t_s, points[of], observed[of], sigma, with_jacobian=False)
     cost = np.where(np.all(depth > 0, axis=1) & _finite(residual), np.sum(residual**2, axis=(1, 2)), np.inf)
@@ -234,7 +230,8 @@ def _judge(members: list[int], points: np.ndarray, observed: np.ndarray, flips: 
     if not lowest:
         return
     images = np.array(sorted(lowest))
-    refined = [_refined(points[k], observed[k], R_s[lowest[k]], t_s[lowest[k]]) for k in images.tolist()]
+    refined = solved_in_threads(lambda k: _refined(points[k], observed[k], R_s[lowest[k]], t_s[lowest[k]]),
+                                images.tolist())
     R0, t0 = so3_exp_many(np.array([r for r, _ in refined])), np.array([t for _, t in refined])
     position = {k: j for j, k in enumerate(images.tolist())}
     others = np.array([s for s in range(len(of)) if of[s] in position and s != lowest[of[s]]], dtype=int)
