@@ -219,30 +219,31 @@ def first_of_each(R: np.ndarray, t: np.ndarray, tolerance: float) -> list[int]:
 def first_of_each_grouped(R: np.ndarray, t: np.ndarray, owner: np.ndarray, tolerance: float) -> np.ndarray:
     """:func:`first_of_each` of every group of poses at once: ``owner`` (S,) the group of each pose
     ``(R[k], t[k])``, a group's poses contiguous; the indices (into all S poses, ascending) kept, each pose
-    compared with the poses of its own group alone (the same tables, padded to the largest group)."""
+    compared with the poses before it in its own group (``_near_table``'s test), those ``d`` back for one
+    ``d`` at a time."""
     count = len(owner)
     if not count:
         return np.zeros(0, dtype=int)
     starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
     sizes = np.diff(np.r_[starts, count])
-    width = int(sizes.max())
     slot = np.arange(count) - np.repeat(starts, sizes)  # each pose's place in its group
-    group = np.repeat(np.arange(len(starts)), sizes)
-    entries = np.zeros((len(starts), width, 9))
-    shift = np.zeros((len(starts), width, 3))
-    present = np.zeros((len(starts), width), dtype=bool)
-    entries[group, slot] = R.reshape(count, 9)
-    shift[group, slot] = t
-    present[group, slot] = True
-    rotation = np.abs(entries[:, :, None, :] - entries[:, None, :, :]).max(axis=3)
-    scale = np.maximum(np.sqrt(np.einsum("gij,gij->gi", shift, shift)), 1e-12)
-    difference = shift[:, :, None] - shift[:, None, :]
-    translation = np.sqrt(np.einsum("gijk,gijk->gij", difference, difference))
-    near = (rotation <= tolerance) & (translation <= tolerance * scale[:, :, None])  # as _near_table
-    kept = np.zeros_like(present)
+    entries = R.reshape(count, 9)
+    scale = np.maximum(np.sqrt(np.einsum("ij,ij->i", t, t)), 1e-12)
+    width = int(sizes.max())
+    near_back = np.zeros((count, width), dtype=bool)  # [k, d]: pose k is near pose k - d of its group
+    for d in range(1, width):
+        later = slot[d:] >= d  # pose k - d is in k's group
+        rotation = np.abs(entries[d:] - entries[:-d]).max(axis=1)
+        difference = t[d:] - t[:-d]
+        translation = np.sqrt(np.einsum("ij,ij->i", difference, difference))
+        near_back[d:, d] = later & (rotation <= tolerance) & (translation <= tolerance * scale[d:])
+    kept = np.zeros(count, dtype=bool)
     for k in range(width):  # as first_of_each: kept unless near one kept before it in its group
-        kept[:, k] = present[:, k] & ~np.any(near[:, k, :k] & kept[:, :k], axis=1)
-    return np.flatnonzero(kept[group, slot])
+        at = np.flatnonzero(slot == k)
+        back = at[:, None] - np.arange(width)[None, :]
+        earlier_kept = kept[np.maximum(back, 0)] & (np.arange(width)[None, :] >= 1) & (back >= 0)
+        kept[at] = ~np.any(near_back[at] & earlier_kept, axis=1)
+    return np.flatnonzero(kept)
 
 
 def _near_table(R: np.ndarray, t: np.ndarray, tolerance: float) -> np.ndarray:
