@@ -141,7 +141,7 @@ class Dataset:
         raw = observation_array(image.observations, names)
         stored = image.normalized_from
         camera = self.camera_of(image)
-        if (image.normalized is None or stored is None or stored[0] != camera
+        if (image.normalized is None or stored is None or (stored[0] is not camera and stored[0] != camera)
                 or list(image.normalized) != names or not np.array_equal(stored[1], raw)):
             image.normalized = normalize_observations(camera, names, raw)
             image.normalized_from = (camera, raw)
