@@ -133,28 +133,55 @@ class _Group:
     sigmas (b, 2, N), and where their rows and Jacobian entries go in the evaluator's buffers."""
 
     def __init__(self, factors: list[ViewFactor]):
-        first = factors[0]
+        self._arrays(factors[0], np.array([f.base_points for f in factors]), np.array([f.observed for f in factors]),
+                     np.array([f.sigmas for f in factors]),
+                     np.array([f.landmark_keys for f in factors], dtype=np.int64).reshape(len(factors), -1))
+        self.factors = factors
+        self.placements = [list(f.mirror_keys) for f in factors]  # (b, U) per view, in order of first reflection
+
+    @classmethod
+    def of_arrays(cls, first: ViewFactor, placement_ids: np.ndarray, placements: list[Placement], base: np.ndarray,
+                  observed: np.ndarray, sigmas: np.ndarray, landmarks: np.ndarray) -> _Group:
+        """The group of views of ``first``'s shape given as arrays (``view_table.ViewTable.groups``): their
+        placements (b, U) as indices into ``placements``, base points (b, 3, N), observations and sigmas
+        (b, 2, N) and point keys (b, N)."""
+        group = cls.__new__(cls)
+        group._arrays(first, base, observed, sigmas, landmarks)
+        group.placement_ids, group.placement_names = placement_ids, placements
+        return group
+
+    def _arrays(self, first: ViewFactor, base: np.ndarray, observed: np.ndarray, sigmas: np.ndarray,
+                landmarks: np.ndarray) -> None:
+        self.first = first  # its camera, owners, pattern of placements, pose keys and kernel are the group's
         self.camera = first.camera
         placements = list(dict.fromkeys(first.reflections))
         self.steps = [(first.owners[p], placements.index(p)) for p in first.reflections]
         self.slots = first.slots
         self.pose_cols = dict(first.slots.pose_cols)
         self.placement_count = len(placements)
-        self.factors = factors
-        self.placements = [list(f.mirror_keys) for f in factors]  # (b, U) per view, in order of first reflection
-        self.base = np.array([f.base_points for f in factors])
+        self.base = base
         self.base_soa = np.ascontiguousarray(self.base.transpose(1, 2, 0))  # (3, N, b)
-        self.observed = np.array([f.observed for f in factors])
-        self.sigmas = np.array([f.sigmas for f in factors])
+        self.observed = observed
+        self.sigmas = sigmas
         self.robust, self.robust_k = first.robust, first.robust_k
         #: each measurement's reconstruction point key (b, N), -1 for a fiducial (``ViewFactor.landmark_keys``)
-        self.landmarks = np.array([f.landmark_keys for f in factors], dtype=np.int64).reshape(len(factors), -1)
+        self.landmarks = landmarks
+        self.placement_ids: np.ndarray | None = None  # (b, U) indices into placement_names, where built of arrays
+        self.placement_names: list[Placement] = []
         self.error_rows: np.ndarray | None = None  # (b, 2N) indices into the error buffers
         self.jacobian_entries: np.ndarray | None = None  # (b, 2N, P) indices into the Jacobian buffer
 
+    @property
+    def size(self) -> int:
+        """The number of views."""
+        return len(self.base)
+
     def placement_index(self, index: dict[Placement, int]) -> np.ndarray:
         """Each view's placements (b, U) as rows of arrays ordered by ``index`` (:meth:`model`'s ``arrays``)."""
-        return np.array([[index[p] for p in ps] for ps in self.placements], dtype=np.intp).reshape(len(self.factors), -1)
+        if self.placement_ids is not None:
+            rows = np.array([index.get(p, -1) for p in self.placement_names], dtype=np.intp)
+            return rows[self.placement_ids].reshape(self.size, -1)
+        return np.array([[index[p] for p in ps] for ps in self.placements], dtype=np.intp).reshape(self.size, -1)
 
     def points(self, point_values: dict[int, np.ndarray]) -> np.ndarray:
         """The views' points in {B} (b, 3, N): the fiducials as given, each reconstruction point at
@@ -210,8 +237,10 @@ class _Group:
         if arrays is not None:
             v_all, J_all = arrays
         else:
-            v_all = np.array([[vectors[p] for p in ps] for ps in self.placements])  # (b, U, 3)
-            J_all = np.array([[plane_jacobians[p] for p in ps] for ps in self.placements]) if jacobians else None
+            lists = (self.placements if self.placement_ids is None
+                     else [[self.placement_names[u] for u in row] for row in self.placement_ids.tolist()])
+            v_all = np.array([[vectors[p] for p in ps] for ps in lists]).reshape(b, -1, 3)  # (b, U, 3)
+            J_all = np.array([[plane_jacobians[p] for p in ps] for ps in lists]).reshape(b, -1, 3, 3) if jacobians else None
         offset = 6 * len(self.pose_cols) if wrt is None else 0
         dB: Any = np.broadcast_to(R_c, (b, 3, 3)) if jacobians else None  # dx/dBp, the same for a view's points
         for owner, u in steps:

@@ -25,9 +25,10 @@ from gtsam.symbol_shorthand import K, L, V, X
 from mirror_fg.core.camera import Camera
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_prior_factor, predict_pixels
-from mirror_fg.factors.view_eliminated import EliminatedViewStack, eliminable
-from mirror_fg.factors.view_stack import _Group, groups_by_shape, stacked_view_factors
-from mirror_fg.factors.views import ViewFactor, ViewSlots, plane_of, vector_of_plane
+from mirror_fg.factors.view_eliminated import EliminatedViewStack
+from mirror_fg.factors.view_stack import stacked_view_factors
+from mirror_fg.factors.view_table import ViewBlock, ViewTable, view_factor_like  # noqa: F401 (view_factor_like: its home was here)
+from mirror_fg.factors.views import ViewFactor, plane_of, vector_of_plane
 from mirror_fg.data import Dataset, Image
 from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.model.graph import unknown_name
@@ -106,36 +107,51 @@ class ViewProblem:
         self.robust = robust
         self.intrinsics = dict(intrinsics or {})
         self.intrinsics_keys = {name: K(k) for k, name in enumerate(self.cameras) if name in self.intrinsics}
-        self.factors: list[ViewFactor] = []
-        # the sigmas, base points and point keys of each (camera, points seen): the same for most images
+        # the views as blocks of one shape (factors/view_table.py): the first view of each shape gets its
+        # ViewFactor (the sigmas, base points and point keys of each (camera, points seen) read once), the
+        # others only their placements and observations (a ViewFactor per image was most of building a
+        # problem of thousands of images)
         known: dict[tuple, tuple[np.ndarray, np.ndarray, list[int]]] = {}
-        templates: dict[tuple, ViewFactor] = {}  # the first factor of each shape (view_factor_like)
+        blocks: dict[tuple, tuple[ViewFactor, list[int], list[tuple], list[np.ndarray]]] = {}
         owners = self.owners
-        for image, view in zip(dataset.images, self.views):
+        for i, (image, view) in enumerate(zip(dataset.images, self.views)):
             pixel = view.camera in self.intrinsics
-            shape = (view.camera, pixel, tuple(view.names))
             observed = (np.array([image.observations[n] for n in view.names], dtype=float).reshape(-1, 2).T if pixel
                         else view.normalized.T)
-            placements = list(dict.fromkeys(view.reflections))
-            local = (tuple(range(len(placements))) if len(placements) == len(view.reflections)
-                     else tuple(map(placements.index, view.reflections)))
-            like = (shape, tuple([owners[p] for p in view.reflections]), local)
-            template = templates.get(like)
-            if template is not None:
-                self.factors.append(view_factor_like(template, view.reflections, placements, self.mirror_keys,
-                                                     owners, observed))
-                continue
-            if shape not in known:
-                known[shape] = self._points_of(dataset, None if pixel else dataset.camera_of(image), view.names)
-            sigmas, base, landmarks = known[shape]
-            model = (self.intrinsics[view.camera], self.intrinsics_keys[view.camera]) if pixel else None
-            template = templates[like] = ViewFactor(view.camera, view.reflections, self.pose_keys, self.fixed,
-                                                    self.mirror_keys, owners, base, landmarks, observed, sigmas,
-                                                    robust, intrinsics=model)
-            self.factors.append(template)
+            reflections = view.reflections
+            placements = tuple(dict.fromkeys(reflections))
+            local = (None if len(placements) == len(reflections) else tuple(map(placements.index, reflections)))
+            like = (view.camera, pixel, tuple(view.names), tuple([owners[p] for p in reflections]), local)
+            block = blocks.get(like)
+            if block is None:
+                shape = like[:3]
+                if shape not in known:
+                    known[shape] = self._points_of(dataset, None if pixel else dataset.camera_of(image), view.names)
+                sigmas, base, landmarks = known[shape]
+                model = (self.intrinsics[view.camera], self.intrinsics_keys[view.camera]) if pixel else None
+                template = ViewFactor(view.camera, reflections, self.pose_keys, self.fixed, self.mirror_keys, owners,
+                                      base, landmarks, observed, sigmas, robust, intrinsics=model)
+                block = blocks[like] = (template, [], [], [])
+            block[1].append(i)
+            block[2].append(placements)
+            block[3].append(observed)
+        index = {p: u for u, p in enumerate(self.placements)}
+        self.table = ViewTable(
+            [ViewBlock(template, np.array(members, dtype=np.intp),
+                       np.array([[index[p] for p in ps] for ps in placements], dtype=np.intp).reshape(len(members), -1),
+                       np.array(observed)) for template, members, placements, observed in blocks.values()],
+            self.placements, self.mirror_keys, owners, len(self.views))
+        self._factors: list[ViewFactor] | None = None
         self.constraints = 1 if dataset.scale is not None else 0
         #: Number of residual rows (2 per measurement).
         self.size = sum(2 * len(v.names) for v in self.views)
+
+    @property
+    def factors(self) -> list[ViewFactor]:
+        """Every image's ``ViewFactor``, in file order (made when first asked: ``ViewTable.factors``)."""
+        if self._factors is None:
+            self._factors = self.table.factors()
+        return self._factors
 
     def _points_of(self, dataset: Dataset, camera: Camera | None, names: list[str]):
         return points_of(dataset, camera, names, self.point_keys)
@@ -209,15 +225,18 @@ class ViewProblem:
         inside it (``factors/view_eliminated.py``; ``eliminated`` that evaluator, its placements not in
         ``values``), else :meth:`graph` and :meth:`values` (``eliminated`` None)."""
         if eliminate and self.dataset.scale is None and not self.intrinsics and self.robust is None:
-            views = [f for f in self.factors if eliminable(f)]
-            keep = {p for f in self.factors if not eliminable(f) for p in f.mirror_keys}
-            evaluator = EliminatedViewStack(views, estimate.mirror_vectors, keep) if views else None
+            views = self.table.subset(lambda block: block.eliminable)
+            others = [block for block in self.table.blocks if not block.eliminable]
+            keep = {self.placements[u] for block in others for u in np.unique(block.placements).tolist()}
+            evaluator = EliminatedViewStack(views, estimate.mirror_vectors, keep) if views.count else None
             if evaluator is not None and evaluator.eliminated:
                 graph = gtsam.NonlinearFactorGraph()
                 for factor in evaluator.factors:
                     graph.add(factor)
-                for factor in stacked_view_factors([f for f in self.factors if not eliminable(f)]):
-                    graph.add(factor)
+                if others:
+                    rest = sorted(int(i) for block in others for i in block.members)
+                    for factor in stacked_view_factors([self.factors[i] for i in rest]):
+                        graph.add(factor)
                 self._priors(graph)
                 values = self.values(estimate, skip=set(evaluator.eliminated))
                 return graph, values, evaluator
@@ -255,11 +274,15 @@ class ViewProblem:
         whitened: list[np.ndarray] = []
         labels: list[tuple[str, str]] = []
         predicted = self._predictions(estimate)
-        for image, view, factor, z in zip(self.dataset.images, self.views, self.factors, predicted):
+        views: list[tuple[ViewFactor, np.ndarray]] = [None] * len(self.views)  # type: ignore[list-item]
+        for block in self.table.blocks:  # each view's shape and observations
+            for row, i in enumerate(block.members.tolist()):
+                views[i] = (block.template, block.observed[row])
+        for image, view, (factor, observed), z in zip(self.dataset.images, self.views, views, predicted):
             camera: Camera | None = self.dataset.camera_of(image)
             if factor.intrinsics is not None:  # pixels through the estimated intrinsics
                 assert estimate.theta is not None
-                residual = predict_pixels(estimate.theta[view.camera], z) - factor.observed.T
+                residual = predict_pixels(estimate.theta[view.camera], z) - observed.T
                 whitened.append(np.linalg.norm(residual / factor.sigmas.T, axis=1))
             else:
                 whitened.append(np.linalg.norm((z - view.normalized) / factor.sigmas.T, axis=1))
@@ -276,11 +299,11 @@ class ViewProblem:
         """Every view's predicted normalized coordinates (N, 2) at ``estimate`` (``views.view_model``, eqs. 2, 3,
         9), the views of one shape at once (``view_stack._Group``)."""
         values = {self.point_keys[n]: np.asarray(x, float) for n, x in estimate.points.items() if n in self.point_keys}
-        predicted: list[np.ndarray] = [np.zeros((0, 2))] * len(self.factors)
-        for members in groups_by_shape(self.factors):
-            group = _Group([self.factors[i] for i in members])
+        predicted: list[np.ndarray] = [np.zeros((0, 2))] * self.table.count
+        for first, members, parts in self.table.groups():
+            group = self.table.group_of(first, parts)
             z = group.model(estimate.poses, estimate.mirror_vectors, {}, False, base=group.points(values))[0]
-            for row, i in enumerate(members):
+            for row, i in enumerate(members.tolist()):
                 predicted[i] = z[row].T
         return predicted
 
@@ -332,28 +355,6 @@ class ViewProblem:
             else:
                 intrinsics[name] = (marginals.marginalCovariance(key), None)
         return poses, joint, mirrors, points, intrinsics
-
-
-def view_factor_like(template: ViewFactor, reflections: tuple, placements: list, mirror_keys: dict,
-                     owners: dict, observed: np.ndarray) -> ViewFactor:
-    """The ``ViewFactor`` of a view of the same shape as ``template`` (camera, owners at each reflection,
-    pattern of repeated placements, points seen, intrinsics, kernel) through other placements: its own
-    reflections, owners, columns, keys and observations, the rest shared with the template (read only):
-    ``ViewFactor.__init__`` per image was half of building a problem of thousands of images.
-    ``placements``: the reflections' placements in order of first reflection."""
-    factor = object.__new__(type(template))  # a shallow copy (copy.copy's generic protocol costs more here)
-    factor.__dict__.update(template.__dict__)
-    factor.reflections = tuple(reflections)
-    factor.owners = {p: owners[p] for p in factor.reflections}
-    slots = template.slots
-    offset = 6 * len(slots.pose_cols)
-    factor.slots = ViewSlots(slots.pose_cols, {p: offset + 3 * k for k, p in enumerate(placements)}, slots.size)
-    factor.mirror_keys = {p: mirror_keys[p] for p in placements}
-    factor.base_points = template.base_points.copy()
-    factor.observed = np.asarray(observed, dtype=float)
-    factor.keys = [*template.pose_keys.values(), *factor.mirror_keys.values(), *template.unique_landmarks,
-                   *([template.intrinsics[1]] if template.intrinsics is not None else [])]
-    return factor
 
 
 def scale_prior(dataset: Dataset, mirror_keys: dict, point_keys: dict) -> gtsam.NonlinearFactorGraph:
