@@ -205,9 +205,11 @@ class EliminatedViewStack:
         stride = np.array(self._widths)[stacks] + 1  # (b,)
         base = np.array(self._offsets)[stacks]
         kept = stack_col >= 0
-        targets = (base[:, None] + stack_col * stride[:, None])[:, :, None] + stack_col[:, None, :]
-        targets[~kept] = self._total  # (rows, then columns, of the eliminated placement: set below)
-        targets.transpose(0, 2, 1)[~kept] = self._total
+        # (one array of this size written in place: a fresh one costs its pages, more than the arithmetic)
+        targets = np.empty((b, P + 1, P + 1), dtype=np.intp)
+        np.add((base[:, None] + stack_col * stride[:, None])[:, :, None], stack_col[:, None, :], out=targets)
+        np.copyto(targets, self._total, where=~(kept[:, :, None] & kept[:, None, :]))  # (rows and columns of the
+        # eliminated placement: below)
         elim_cols = np.zeros((b, 3), dtype=np.intp)
         if elim_col >= 0:  # the group's eliminated placement (one local position for all its views)
             rows = elim_col + np.arange(3)

@@ -30,6 +30,7 @@ from mirror_fg.factors.view_stack import stacked_view_factors
 from mirror_fg.factors.view_table import ViewBlock, ViewTable, view_factor_like  # noqa: F401 (view_factor_like: its home was here)
 from mirror_fg.factors.views import ViewFactor, plane_of, vector_of_plane
 from mirror_fg.data import Dataset, Image
+from mirror_fg.data.dataset import observation_array
 from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.model.graph import unknown_name
 from mirror_fg.solver.model.schur_marginals import marginals_of
@@ -56,13 +57,13 @@ def _camera_name(image: Image) -> str:
 
 def views_of(dataset: Dataset) -> list[ViewObs]:
     """Every image as a view, observations normalized with its own camera."""
-    views = []
-    for image in dataset.images:
-        normalized = dataset.normalized(image)
-        names = list(image.observations)
-        views.append(ViewObs(image.id, _camera_name(image), tuple(image.reflections), names,
-                             np.array([normalized[n] for n in names], dtype=float).reshape(-1, 2)))
-    return views
+    return [_view_of(image, dataset.normalized(image)) for image in dataset.images]
+
+
+def _view_of(image: Image, normalized: dict[str, np.ndarray]) -> ViewObs:
+    """An image as a view, given its normalized observations (``Dataset.normalized``: in file order)."""
+    names = list(normalized)
+    return ViewObs(image.id, _camera_name(image), tuple(image.reflections), names, observation_array(normalized, names))
 
 
 @dataclass
@@ -86,21 +87,28 @@ class ViewProblem:
                  intrinsics: dict[str, IntrinsicsModel] | None = None):
         self.dataset = dataset
         self.cameras = camera_names(dataset)
-        self.views = views_of(dataset)
+        images = dataset.images
+        # every image's normalized observations ({name: (2,)} in file order, dataset.normalized), camera and
+        # reflections: what views_of reads, the views themselves made when first asked (:attr:`views`)
+        self._normalized = [dataset.normalized(image) for image in images]
+        cameras = [_camera_name(image) for image in images]
         self.fixed: dict[str, tuple[np.ndarray, np.ndarray]] = (
             {} if dataset.fiducials else {self.cameras[0]: (np.eye(3), np.zeros(3))})
-        seen = [v.camera for v in self.views]
+        seen = set(cameras)
         self.pose_keys = {name: X(k) for k, name in enumerate(self.cameras) if name not in self.fixed and name in seen}
-        self.placements = sorted({p for v in self.views for p in v.reflections})
-        order = {name: k for k, name in enumerate(self.cameras)}
+        self.placements = sorted({p for image in images for p in image.reflections})
         # each placement's owner: the first camera (in ``cameras`` order) with a view through it; one pass
         # over the views (a pass per placement was quadratic: 1.7 s of 3,000 tree images)
-        self.owners: dict[Placement, str] = {}
-        for v in self.views:
-            for p in v.reflections:
-                if p not in self.owners or order[v.camera] < order[self.owners[p]]:
-                    self.owners[p] = v.camera
-        self.owners = {p: self.owners[p] for p in self.placements}
+        if len(seen) == 1:
+            self.owners: dict[Placement, str] = dict.fromkeys(self.placements, cameras[0])
+        else:
+            order = {name: k for k, name in enumerate(self.cameras)}
+            owners: dict[Placement, str] = {}
+            for image, camera in zip(images, cameras):
+                for p in image.reflections:
+                    if p not in owners or order[camera] < order[owners[p]]:
+                        owners[p] = camera
+            self.owners = {p: owners[p] for p in self.placements}
         self.mirror_keys = {p: V(i) for i, p in enumerate(self.placements)}
         self.point_names = dataset.reconstruction_point_names
         self.point_keys = {name: L(j) for j, name in enumerate(self.point_names)}
@@ -112,39 +120,52 @@ class ViewProblem:
         # others only their placements and observations (a ViewFactor per image was most of building a
         # problem of thousands of images)
         known: dict[tuple, tuple[np.ndarray, np.ndarray, list[int]]] = {}
-        blocks: dict[tuple, tuple[ViewFactor, list[int], list[tuple], list[np.ndarray]]] = {}
-        owners = self.owners
-        for i, (image, view) in enumerate(zip(dataset.images, self.views)):
-            pixel = view.camera in self.intrinsics
-            observed = (np.array([image.observations[n] for n in view.names], dtype=float).reshape(-1, 2).T if pixel
-                        else view.normalized.T)
-            reflections = view.reflections
+        blocks: dict[tuple, tuple[ViewFactor, list[int], list[tuple], list[int]]] = {}
+        owner_of = self.owners
+        one_owner = len(seen) == 1  # every owner the one camera: the number of reflections says them
+        for i, (image, camera) in enumerate(zip(images, cameras)):
+            reflections = image.reflections
             placements = tuple(dict.fromkeys(reflections))
-            local = (None if len(placements) == len(reflections) else tuple(map(placements.index, reflections)))
-            like = (view.camera, pixel, tuple(view.names), tuple([owners[p] for p in reflections]), local)
+            local = None if len(placements) == len(reflections) else tuple(map(placements.index, reflections))
+            like = (camera, tuple(image.observations),
+                    len(reflections) if one_owner else tuple([owner_of[p] for p in reflections]), local)
             block = blocks.get(like)
             if block is None:
-                shape = like[:3]
-                if shape not in known:
-                    known[shape] = self._points_of(dataset, None if pixel else dataset.camera_of(image), view.names)
-                sigmas, base, landmarks = known[shape]
-                model = (self.intrinsics[view.camera], self.intrinsics_keys[view.camera]) if pixel else None
-                template = ViewFactor(view.camera, reflections, self.pose_keys, self.fixed, self.mirror_keys, owners,
-                                      base, landmarks, observed, sigmas, robust, intrinsics=model)
+                pixel = camera in self.intrinsics
+                names = list(like[1])
+                if like[:2] not in known:
+                    known[like[:2]] = self._points_of(dataset, None if pixel else dataset.camera_of(image), names)
+                sigmas, base, landmarks = known[like[:2]]
+                model = (self.intrinsics[camera], self.intrinsics_keys[camera]) if pixel else None
+                observed = (observation_array(image.observations, names) if pixel
+                            else observation_array(self._normalized[i], names)).T
+                template = ViewFactor(camera, tuple(reflections), self.pose_keys, self.fixed, self.mirror_keys,
+                                      owner_of, base, landmarks, observed, sigmas, robust, intrinsics=model)
                 block = blocks[like] = (template, [], [], [])
             block[1].append(i)
             block[2].append(placements)
-            block[3].append(observed)
-        index = {p: u for u, p in enumerate(self.placements)}
-        self.table = ViewTable(
-            [ViewBlock(template, np.array(members, dtype=np.intp),
-                       np.array([[index[p] for p in ps] for ps in placements], dtype=np.intp).reshape(len(members), -1),
-                       np.array(observed)) for template, members, placements, observed in blocks.values()],
-            self.placements, self.mirror_keys, owners, len(self.views))
+        table = []
+        for template, members, placements, _ in blocks.values():
+            if template.intrinsics is not None:  # pixels, as given (factors/intrinsics.py)
+                rows = [list(images[i].observations.values()) for i in members]
+            else:
+                rows = [list(self._normalized[i].values()) for i in members]  # (file order: dataset.normalized)
+            observed = np.array(rows, dtype=float).reshape(len(members), -1, 2).transpose(0, 2, 1)
+            table.append(ViewBlock(template, np.array(members, dtype=np.intp),
+                                   _placement_indices(self.placements, placements), observed))
+        self.table = ViewTable(table, self.placements, self.mirror_keys, self.owners, len(images))
         self._factors: list[ViewFactor] | None = None
+        self._views: list[ViewObs] | None = None
         self.constraints = 1 if dataset.scale is not None else 0
         #: Number of residual rows (2 per measurement).
-        self.size = sum(2 * len(v.names) for v in self.views)
+        self.size = sum(2 * len(image.observations) for image in images)
+
+    @property
+    def views(self) -> list[ViewObs]:
+        """Every image as a view (:func:`views_of`), made when first asked."""
+        if self._views is None:
+            self._views = [_view_of(image, normalized) for image, normalized in zip(self.dataset.images, self._normalized)]
+        return self._views
 
     @property
     def factors(self) -> list[ViewFactor]:
@@ -233,6 +254,7 @@ class ViewProblem:
                 graph = gtsam.NonlinearFactorGraph()
                 for factor in evaluator.factors:
                     graph.add(factor)
+                evaluator.factors = []  # the factors hold the evaluator: no cycle through C++ (freed with the graph)
                 if others:
                     rest = sorted(int(i) for block in others for i in block.members)
                     for factor in stacked_view_factors([self.factors[i] for i in rest]):
@@ -355,6 +377,17 @@ class ViewProblem:
             else:
                 intrinsics[name] = (marginals.marginalCovariance(key), None)
         return poses, joint, mirrors, points, intrinsics
+
+
+def _placement_indices(placements: list[Placement], rows: list[tuple[Placement, ...]]) -> np.ndarray:
+    """Each row's placements (b, U) as indices into ``placements`` (sorted, as ``ViewProblem.placements``)."""
+    if not placements:
+        return np.zeros((len(rows), 0), dtype=np.intp)
+    known = np.array(placements, dtype=np.int64).reshape(-1, 2)
+    low, span = known.min(axis=0), int(np.ptp(known[:, 1])) + 1  # (l, m) -> (l - l0) span + (m - m0): sorted as the tuples
+    asked = np.array(rows, dtype=np.int64).reshape(len(rows), -1, 2)
+    codes = (known[:, 0] - low[0]) * span + (known[:, 1] - low[1])
+    return np.searchsorted(codes, (asked[..., 0] - low[0]) * span + (asked[..., 1] - low[1])).astype(np.intp)
 
 
 def scale_prior(dataset: Dataset, mirror_keys: dict, point_keys: dict) -> gtsam.NonlinearFactorGraph:
