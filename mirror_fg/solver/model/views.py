@@ -115,50 +115,57 @@ class ViewProblem:
         self.robust = robust
         self.intrinsics = dict(intrinsics or {})
         self.intrinsics_keys = {name: K(k) for k, name in enumerate(self.cameras) if name in self.intrinsics}
-        # the views as blocks of one shape (factors/view_table.py): the first view of each shape gets its
-        # ViewFactor (the sigmas, base points and point keys of each (camera, points seen) read once), the
-        # others only their placements and observations (a ViewFactor per image was most of building a
-        # problem of thousands of images)
-        known: dict[tuple, tuple[np.ndarray, np.ndarray, list[int]]] = {}
-        blocks: dict[tuple, tuple[ViewFactor, list[int], list[tuple], list[int]]] = {}
-        owner_of = self.owners
-        one_owner = len(seen) == 1  # every owner the one camera: the number of reflections says them
-        for i, (image, camera) in enumerate(zip(images, cameras)):
-            reflections = image.reflections
-            placements = tuple(dict.fromkeys(reflections))
-            local = None if len(placements) == len(reflections) else tuple(map(placements.index, reflections))
-            like = (camera, tuple(image.observations),
-                    len(reflections) if one_owner else tuple([owner_of[p] for p in reflections]), local)
-            block = blocks.get(like)
-            if block is None:
-                pixel = camera in self.intrinsics
-                names = list(like[1])
-                if like[:2] not in known:
-                    known[like[:2]] = self._points_of(dataset, None if pixel else dataset.camera_of(image), names)
-                sigmas, base, landmarks = known[like[:2]]
-                model = (self.intrinsics[camera], self.intrinsics_keys[camera]) if pixel else None
-                observed = (observation_array(image.observations, names) if pixel
-                            else observation_array(self._normalized[i], names)).T
-                template = ViewFactor(camera, tuple(reflections), self.pose_keys, self.fixed, self.mirror_keys,
-                                      owner_of, base, landmarks, observed, sigmas, robust, intrinsics=model)
-                block = blocks[like] = (template, [], [], [])
-            block[1].append(i)
-            block[2].append(placements)
-        table = []
-        for template, members, placements, _ in blocks.values():
-            if template.intrinsics is not None:  # pixels, as given (factors/intrinsics.py)
-                rows = [list(images[i].observations.values()) for i in members]
-            else:
-                rows = [list(self._normalized[i].values()) for i in members]  # (file order: dataset.normalized)
-            observed = np.array(rows, dtype=float).reshape(len(members), -1, 2).transpose(0, 2, 1)
-            table.append(ViewBlock(template, np.array(members, dtype=np.intp),
-                                   _placement_indices(self.placements, placements), observed))
-        self.table = ViewTable(table, self.placements, self.mirror_keys, self.owners, len(images))
+        self.table = ViewTable(self._blocks(cameras), self.placements, self.mirror_keys, self.owners, len(images))
         self._factors: list[ViewFactor] | None = None
         self._views: list[ViewObs] | None = None
         self.constraints = 1 if dataset.scale is not None else 0
         #: Number of residual rows (2 per measurement).
         self.size = sum(2 * len(image.observations) for image in images)
+
+    def _blocks(self, cameras: list[str]) -> list[ViewBlock]:
+        """The views as blocks of one shape (factors/view_table.py: one camera, the same points seen, owner at
+        each reflection and pattern of repeated placements), grouped with array operations: the first view of
+        each block gets its ViewFactor (the sigmas, base points and point keys of each (camera, points seen)
+        read once), the others only their placements and observations (a ViewFactor, or a key of Python
+        objects, per image was most of building a problem of thousands of images)."""
+        images, dataset = self.dataset.images, self.dataset
+        camera_index = {name: k for k, name in enumerate(self.cameras)}
+        seen: dict[tuple, int] = {}
+        shape = np.array([[camera_index[c] for c in cameras],
+                          [seen.setdefault(tuple(image.observations), len(seen)) for image in images]],
+                         dtype=np.intp).reshape(2, -1).T  # (camera, points seen) of each view
+        lengths = np.array([len(image.reflections) for image in images], dtype=np.intp)
+        owner_index = np.array([camera_index[self.owners[p]] for p in self.placements], dtype=np.intp)
+        known: dict[tuple, tuple[np.ndarray, np.ndarray, list[int]]] = {}
+        blocks = []
+        for k in np.unique(lengths).tolist():
+            rows = np.flatnonzero(lengths == k)
+            ids = _placement_indices(self.placements, [images[i].reflections for i in rows])  # (m, k)
+            first = (ids[:, :, None] == ids[:, None, :]).argmax(axis=2) if k else ids  # first reflection through each
+            new = first == np.arange(k)  # a placement's first reflection
+            local = np.take_along_axis(np.cumsum(new, axis=1) - 1, first, axis=1)  # its place among the view's placements
+            key = np.concatenate([shape[rows], owner_index[ids], local], axis=1)
+            _, which = np.unique(key, axis=0, return_inverse=True)
+            which = which.reshape(-1)
+            order = np.argsort(which, kind="stable")  # each block's views in file order
+            for part in np.split(order, np.cumsum(np.bincount(which))[:-1]):
+                members = rows[part]
+                i, camera = int(members[0]), cameras[int(members[0])]
+                pixel = camera in self.intrinsics
+                names = list(images[i].observations)
+                if (camera, *names) not in known:
+                    known[(camera, *names)] = self._points_of(dataset, None if pixel else dataset.camera_of(images[i]), names)
+                sigmas, base, landmarks = known[(camera, *names)]
+                if pixel:  # pixels, as given (factors/intrinsics.py)
+                    observed = [list(images[j].observations.values()) for j in members.tolist()]
+                else:  # (in file order: dataset.normalized)
+                    observed = [list(self._normalized[j].values()) for j in members.tolist()]
+                observed_array = np.array(observed, dtype=float).reshape(len(members), -1, 2).transpose(0, 2, 1)
+                model = (self.intrinsics[camera], self.intrinsics_keys[camera]) if pixel else None
+                template = ViewFactor(camera, tuple(images[i].reflections), self.pose_keys, self.fixed, self.mirror_keys,
+                                      self.owners, base, landmarks, observed_array[0], sigmas, self.robust, intrinsics=model)
+                blocks.append(ViewBlock(template, members, ids[part][:, new[part[0]]], observed_array))
+        return blocks
 
     @property
     def views(self) -> list[ViewObs]:
@@ -379,9 +386,10 @@ class ViewProblem:
         return poses, joint, mirrors, points, intrinsics
 
 
-def _placement_indices(placements: list[Placement], rows: list[tuple[Placement, ...]]) -> np.ndarray:
-    """Each row's placements (b, U) as indices into ``placements`` (sorted, as ``ViewProblem.placements``)."""
-    if not placements:
+def _placement_indices(placements: list[Placement], rows: list) -> np.ndarray:
+    """Each row's placements (b, U) (rows of one length) as indices into ``placements`` (sorted, as
+    ``ViewProblem.placements``)."""
+    if not placements or not rows or not rows[0]:
         return np.zeros((len(rows), 0), dtype=np.intp)
     known = np.array(placements, dtype=np.int64).reshape(-1, 2)
     low, span = known.min(axis=0), int(np.ptp(known[:, 1])) + 1  # (l, m) -> (l - l0) span + (m - m0): sorted as the tuples
