@@ -24,7 +24,7 @@ import numpy as np
 from mirror_fg.factors.view_stack import _Group
 from mirror_fg.factors.views import ViewFactor, ViewSlots
 
-__all__ = ["ViewBlock", "ViewTable", "view_factor_like"]
+__all__ = ["ViewBlock", "ViewTable", "merged_sets", "view_factor_like"]
 
 Placement = tuple[int, int]
 
@@ -79,6 +79,36 @@ class ViewBlock:
         return t.intrinsics is None and not t.unique_landmarks and t.robust is None
 
 
+def merged_sets(sets: np.ndarray, limit: int) -> np.ndarray:
+    """Each set's stack: ``sets`` (S, w) (placements, -1 pads) in order, consecutive ones merged while their
+    union has at most ``limit`` placements, the next set starting a new stack (``view_stack.stacks_by_placements``).
+    A stack's union after each of its sets is the number of its placements not seen since it began: a
+    cumulative sum, so each stack is found by one search (over a window that doubles until the stack ends)."""
+    count, width = sets.shape
+    flat = sets.reshape(-1)
+    mine = flat >= 0
+    set_of, flat = np.repeat(np.arange(count), width)[mine], flat[mine]
+    by_placement = np.lexsort((np.arange(len(flat)), flat))
+    previous = np.full(len(flat), -1, dtype=np.intp)  # each pair's previous pair of the same placement
+    same = flat[by_placement[1:]] == flat[by_placement[:-1]]
+    previous[by_placement[1:][same]] = by_placement[:-1][same]
+    starts = np.searchsorted(set_of, np.arange(count + 1))  # each set's first pair
+    stack = np.zeros(count, dtype=np.intp)
+    begin, k, window = 0, 0, max(4 * limit, 16)
+    while begin < count:
+        end = min(count, begin + window)
+        q0 = starts[begin]
+        union = np.concatenate([[0], np.cumsum(previous[q0:starts[end]] < q0)])[starts[begin + 1:end + 1] - q0]
+        fits = int(np.searchsorted(union, limit, side="right"))  # the union only grows
+        if fits == end - begin and end < count:
+            window *= 2  # the stack may go on past the window
+            continue
+        stop = begin + max(fits, 1)  # (a set alone beyond the limit is a stack of its own)
+        stack[begin:stop] = k
+        k, begin = k + 1, stop
+    return stack
+
+
 class ViewTable:
     """Views as blocks of one shape (module docstring). ``placements``: every placement, indexed by the
     blocks' ``placements``; ``mirror_keys``, ``owners``: each placement's plane key and owner camera;
@@ -88,6 +118,7 @@ class ViewTable:
                  owners: dict[Placement, str], count: int):
         self.blocks, self.placements, self.count = blocks, placements, count
         self.mirror_keys, self.owners = mirror_keys, owners
+        self._pairs_cache: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
 
     @classmethod
     def of_factors(cls, view_factors: Sequence[ViewFactor]) -> ViewTable:
@@ -135,7 +166,12 @@ class ViewTable:
 
     def _pairs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Every (view, its u-th placement) pair, in view order then ``u``: views, ``u``, placements and
-        each pair's block."""
+        each pair's block (computed once: the blocks are not changed)."""
+        if self._pairs_cache is None:
+            self._pairs_cache = self._pairs_of_blocks()
+        return self._pairs_cache
+
+    def _pairs_of_blocks(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         views, us, ids, blocks = [], [], [], []
         for k, block in enumerate(self.blocks):
             b, U = block.placements.shape
@@ -168,17 +204,7 @@ class ViewTable:
         rank = np.empty(len(first), dtype=np.intp)  # each set's rank in order first seen
         rank[np.argsort(first, kind="stable")] = np.arange(len(first))
         in_order = sets[np.sort(first)]
-        stack_of_set = np.zeros(len(first), dtype=np.intp)
-        merged: set[int] = {-1}  # (-1 pads the rows: counted out)
-        s = -1
-        for r, row in enumerate(in_order.tolist()):
-            union = merged.union(row)
-            if s >= 0 and len(union) - 1 <= placements_per_factor:
-                merged = union
-            else:
-                s += 1
-                merged = {-1, *row}
-            stack_of_set[r] = s
+        stack_of_set = merged_sets(in_order, placements_per_factor)
         set_rank = rank[which]
         order = np.lexsort((np.arange(self.count), set_rank))  # by set (first seen), then view
         stack_of_view = stack_of_set[set_rank[order]]

@@ -157,10 +157,10 @@ class ViewProblem:
                     known[(camera, *names)] = self._points_of(dataset, None if pixel else dataset.camera_of(images[i]), names)
                 sigmas, base, landmarks = known[(camera, *names)]
                 if pixel:  # pixels, as given (factors/intrinsics.py)
-                    observed = [list(images[j].observations.values()) for j in members.tolist()]
-                else:  # (in file order: dataset.normalized)
-                    observed = [list(self._normalized[j].values()) for j in members.tolist()]
-                observed_array = np.array(observed, dtype=float).reshape(len(members), -1, 2).transpose(0, 2, 1)
+                    observed = np.array([list(images[j].observations.values()) for j in members.tolist()], dtype=float)
+                else:  # (in file order: dataset.normalized; each a (2,) array)
+                    observed = np.concatenate([z for j in members.tolist() for z in self._normalized[j].values()])
+                observed_array = observed.astype(float, copy=False).reshape(len(members), -1, 2).transpose(0, 2, 1)
                 model = (self.intrinsics[camera], self.intrinsics_keys[camera]) if pixel else None
                 template = ViewFactor(camera, tuple(images[i].reflections), self.pose_keys, self.fixed, self.mirror_keys,
                                       self.owners, base, landmarks, observed_array[0], sigmas, self.robust, intrinsics=model)
