@@ -34,6 +34,7 @@ import gtsam
 import numpy as np
 
 from mirror_fg.factors.robust import robust_row_scales
+from mirror_fg.factors.view_table import ViewTable
 from mirror_fg.factors.views import ViewFactor, vectors_of_planes
 
 __all__ = ["stackable", "stacked_view_factors", "ViewStackEvaluator", "read_poses_and_planes", "collected_keys",
@@ -381,38 +382,48 @@ class ViewStackEvaluator:
     """Every stackable view's factor evaluated together (module docstring); ``factors``: one
     ``gtsam.CustomFactor`` per set of placements (hand them to a graph)."""
 
-    def __init__(self, view_factors: Sequence[ViewFactor], placements_per_factor: int = 1):
-        first = view_factors[0]
-        self.fixed, self.pose_keys, self.mirror_keys = collected_keys(view_factors)
-        stacks = dict(enumerate(stacks_by_placements(view_factors, placements_per_factor)))
-        shapes = groups_by_shape(view_factors)
-        self.groups = [_Group([view_factors[i] for i in members]) for members in shapes]
+    def __init__(self, view_factors: Sequence[ViewFactor] | ViewTable, placements_per_factor: int = 1):
+        table = view_factors if isinstance(view_factors, ViewTable) else ViewTable.of_factors(view_factors)
+        first = table.blocks[0].template
+        self.fixed, self.pose_keys, self.mirror_keys = table.collected_keys()
+        stacks = table.stacks(placements_per_factor)
+        shapes = table.groups()
+        self.groups = [table.group_of(template, parts) for template, _, parts in shapes]
+        rows_of_view = np.zeros(table.count, dtype=np.intp)  # 2 per measurement
+        sigmas_of_view: list = [None] * table.count  # each view's sigmas, measurement-major
+        for block in table.blocks:
+            rows_of_view[block.members] = 2 * block.template.base_points.shape[1]
+            whitening = block.template.sigmas.T.reshape(-1)
+            for i in block.members.tolist():
+                sigmas_of_view[i] = whitening
         # buffers: each stack's rows consecutive; each stack's key blocks (rows, dim) consecutive
-        err_size = sum(2 * f.base_points.shape[1] for f in view_factors)
+        err_size = int(rows_of_view.sum())
         self._err = np.zeros(err_size)
         self._err_lin = np.zeros(err_size) if first.robust is not None else self._err
         self._stack_keys: list[list[int]] = []
         self._stack_rows: list[slice] = []
         self._stack_blocks: list[list[tuple[int, int]]] = []  # (offset, dim) of each key's block
-        row_start = np.zeros(len(view_factors), dtype=np.intp)  # each view's first row (error buffer)
-        local_start = np.zeros(len(view_factors), dtype=np.intp)  # ... counted from its stack's first row
+        row_start = np.zeros(table.count, dtype=np.intp)  # each view's first row (error buffer)
+        local_start = np.zeros(table.count, dtype=np.intp)  # ... counted from its stack's first row
         block_at: list[dict[int, int]] = []  # per stack: each key's block offset (Jacobian buffer)
-        stack_of = np.zeros(len(view_factors), dtype=np.intp)
+        plane_codes: list[int] = []  # (stack, placement) of each stack's planes, and their blocks' offsets
+        plane_offsets: list[int] = []
+        stack_of = np.zeros(table.count, dtype=np.intp)
         row0, jac0 = 0, 0
         self.factors: list[gtsam.CustomFactor] = []
-        for s, members in stacks.items():
-            views = [view_factors[i] for i in members]
-            pose_keys = list(dict.fromkeys(k for f in views for k in f.pose_keys.values()))
-            mirror_keys = list(dict.fromkeys(k for f in views for k in f.mirror_keys.values()))
-            keys = pose_keys + mirror_keys
-            dims = [6] * len(pose_keys) + [3] * len(mirror_keys)
-            sizes = np.array([2 * f.base_points.shape[1] for f in views], dtype=np.intp)
+        for s, (members, pose_keys, placements) in enumerate(
+                zip(stacks, *table.stack_keys(stacks, np.zeros(len(table.placements), dtype=bool)))):
+            keys = pose_keys + [table.mirror_keys[table.placements[u]] for u in placements]
+            dims = [6] * len(pose_keys) + [3] * len(placements)
+            sizes = rows_of_view[members]
             rows = int(sizes.sum())
             blocks, offset = [], jac0
             for dim in dims:
                 blocks.append((offset, dim))
                 offset += rows * dim
             block_at.append(dict(zip(keys, (o for o, _ in blocks))))
+            plane_codes.extend(s * len(table.placements) + u for u in placements)
+            plane_offsets.extend(o for o, _ in blocks[len(pose_keys):])
             starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.intp)
             row_start[members] = row0 + starts
             local_start[members] = starts
@@ -420,29 +431,34 @@ class ViewStackEvaluator:
             self._stack_keys.append(keys)
             self._stack_rows.append(slice(row0, row0 + rows))
             self._stack_blocks.append(blocks)
-            sigmas = np.concatenate([f.sigmas.T.reshape(-1) for f in views])
+            sigmas = np.concatenate([sigmas_of_view[i] for i in members.tolist()])
             noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
             self.factors.append(gtsam.CustomFactor(noise, keys, self._error_function(len(self.factors))))
             row0, jac0 = row0 + rows, offset
+        order = np.argsort(np.array(plane_codes, dtype=np.intp), kind="stable")
+        codes, code_offsets = np.array(plane_codes, dtype=np.intp)[order], np.array(plane_offsets, dtype=np.intp)[order]
         # each group's rows and Jacobian entries at once: a view's entry (row j, its column c + k of a key's
         # block) is the block's offset + (its first row in the stack + j) * dim + k
         error_rows, entries = [], []
-        for group, members in zip(self.groups, shapes):
+        for group, (_, members, _) in zip(self.groups, shapes):
             m = 2 * group.base.shape[2]
             error_rows.append(row_start[members][:, None] + np.arange(m)[None, :])
-            table = np.zeros((len(members), m, group.slots.size), dtype=np.intp)
+            entry = np.zeros((len(members), m, group.slots.size), dtype=np.intp)
             local = local_start[members][:, None, None] + np.arange(m)[None, :, None]  # (b, m, 1)
-            columns: dict[int, tuple[int, list[int]]] = {}  # first column -> (dim, each view's block offset)
-            for i in members:
-                f, at = view_factors[i], block_at[stack_of[i]]
-                for name, key in f.pose_keys.items():
-                    columns.setdefault(f.slots.pose_cols[name], (6, []))[1].append(at[key])
-                for p, key in f.mirror_keys.items():
-                    columns.setdefault(f.slots.mirror_cols[p], (3, []))[1].append(at[key])
-            for c, (dim, offsets) in columns.items():
-                table[:, :, c:c + dim] = (np.array(offsets, dtype=np.intp)[:, None, None] + local * dim
-                                          + np.arange(dim)[None, None, :])
-            entries.append(table)
+            stacks_of = stack_of[members]
+            columns: list[tuple[int, int, np.ndarray]] = []  # (first column, dim, each view's block offset)
+            for name, c in group.first.slots.pose_cols.items():
+                key = group.first.pose_keys[name]
+                columns.append((c, 6, np.array([at.get(key, -1) for at in block_at], dtype=np.intp)[stacks_of]))
+            ids = group.placement_ids
+            assert ids is not None
+            offset = 6 * len(group.first.slots.pose_cols)
+            for u in range(group.placement_count):  # (views.ViewSlots: in their order of first reflection)
+                at = np.searchsorted(codes, stacks_of * len(table.placements) + ids[:, u])
+                columns.append((offset + 3 * u, 3, code_offsets[at]))
+            for c, dim, offsets in columns:
+                entry[:, :, c:c + dim] = offsets[:, None, None] + local * dim + np.arange(dim)[None, None, :]
+            entries.append(entry)
         for g, group in enumerate(self.groups):
             group.error_rows, group.jacobian_entries = error_rows[g], entries[g]
         self._jac = np.zeros(jac0)
@@ -530,16 +546,24 @@ class ViewStackEvaluator:
         return error
 
 
-def stacked_view_factors(view_factors: Sequence[ViewFactor]) -> list[gtsam.CustomFactor]:
-    """The factors of ``view_factors``: those of fiducials alone stacked (:class:`ViewStackEvaluator`),
+def stacked_view_factors(view_factors: Sequence[ViewFactor] | ViewTable) -> list[gtsam.CustomFactor]:
+    """The factors of ``view_factors`` (or of a table's views, ``view_table.py``: the per-image factors made
+    only for the views not stacked here): those of fiducials alone stacked (:class:`ViewStackEvaluator`),
     those with reconstruction points stacked and compressed (``view_points.ViewPointStack``), those that
     estimate intrinsics their own ``ViewFactor`` s."""
     from mirror_fg.factors.view_points import ViewPointStack  # it stacks with this module's groups
 
-    stack = [f for f in view_factors if stackable(f)]
-    with_points = [f for f in view_factors if f.intrinsics is None and f.unique_landmarks]
-    factors = [f.factor() for f in view_factors if f.intrinsics is not None]
-    if stack:
+    if isinstance(view_factors, ViewTable):
+        table = view_factors
+        stack: Sequence[ViewFactor] | ViewTable = table.subset(lambda block: stackable(block.template))
+        others = table.subset(lambda block: not stackable(block.template)).factors()
+        with_points = [f for f in others if f.intrinsics is None and f.unique_landmarks]
+        factors = [f.factor() for f in others if f.intrinsics is not None]
+    else:
+        stack = [f for f in view_factors if stackable(f)]
+        with_points = [f for f in view_factors if f.intrinsics is None and f.unique_landmarks]
+        factors = [f.factor() for f in view_factors if f.intrinsics is not None]
+    if (stack.count if isinstance(stack, ViewTable) else stack):
         factors.extend(ViewStackEvaluator(stack, PLACEMENTS_PER_FACTOR).factors)
     if with_points:
         factors.extend(ViewPointStack(with_points).factors)

@@ -18,11 +18,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mirror_fg.factors.view_stack import _Group
 from mirror_fg.factors.views import ViewFactor, ViewSlots
+
+if TYPE_CHECKING:
+    from mirror_fg.factors.view_stack import _Group
 
 __all__ = ["ViewBlock", "ViewTable", "merged_sets", "view_factor_like"]
 
@@ -312,6 +315,8 @@ class ViewTable:
 
     def group_of(self, first: ViewFactor, parts: list[tuple[ViewBlock, np.ndarray]]) -> _Group:
         """The ``view_stack._Group`` of one of :meth:`groups`' groups (its views in order)."""
+        from mirror_fg.factors.view_stack import _Group  # (view_stack builds its stacks of tables)
+
         members = np.concatenate([block.members[rows] for block, rows in parts])
         order = np.argsort(members, kind="stable")
 

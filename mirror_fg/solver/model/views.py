@@ -242,7 +242,7 @@ class ViewProblem:
         ``factors/view_stack.py``; else one ``ViewFactor`` per image), the intrinsics priors and the
         scale prior."""
         graph = gtsam.NonlinearFactorGraph()
-        for factor in (stacked_view_factors(self.factors) if stacked else [f.factor() for f in self.factors]):
+        for factor in (stacked_view_factors(self.table) if stacked else [f.factor() for f in self.factors]):
             graph.add(factor)
         self._priors(graph)
         return graph
@@ -263,8 +263,7 @@ class ViewProblem:
                     graph.add(factor)
                 evaluator.factors = []  # the factors hold the evaluator: no cycle through C++ (freed with the graph)
                 if others:
-                    rest = sorted(int(i) for block in others for i in block.members)
-                    for factor in stacked_view_factors([self.factors[i] for i in rest]):
+                    for factor in stacked_view_factors(self.table.subset(lambda block: not block.eliminable)):
                         graph.add(factor)
                 self._priors(graph)
                 values = self.values(estimate, skip=set(evaluator.eliminated))
