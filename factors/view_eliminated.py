@@ -66,7 +66,8 @@ def eliminable(factor: ViewFactor) -> bool:
 
 
 class EliminatedViewStack:
-    """Views (all :func:`eliminable`) in factors with their own placements eliminated (module docstring).
+    """Views (all :func:`eliminable`: their per-image factors, or a ``view_table.ViewTable``) in factors with
+    their own placements eliminated (module docstring).
 
     ``start``: every eliminated placement's mirror vector to start from (owner frame, metres); ``keep``:
     placements that stay variables whatever sees them (e.g. the scale's); ``closed_form``: the last reflection

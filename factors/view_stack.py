@@ -34,7 +34,7 @@ import gtsam
 import numpy as np
 
 from mirror_fg.factors.robust import robust_row_scales
-from mirror_fg.factors.view_table import ViewTable
+from mirror_fg.factors.view_table import ViewTable, collected_keys, groups_by_shape, stacks_by_placements
 from mirror_fg.factors.views import ViewFactor, vectors_of_planes
 
 __all__ = ["stackable", "stacked_view_factors", "ViewStackEvaluator", "read_poses_and_planes", "collected_keys",
@@ -71,50 +71,6 @@ def read_poses_and_planes(values: gtsam.Values, fixed: dict, pose_keys: dict[str
         state[mirror_keys[p]] = row.tobytes()
     V, J = vectors_of_planes(coefficients)  # as views.vector_of_plane of each, bit for bit
     return poses, dict(zip(placements, V)), dict(zip(placements, J)), state
-
-
-def collected_keys(view_factors: Sequence[ViewFactor]) -> tuple[dict, dict[str, int], dict[Placement, int]]:
-    """The fixed poses, the pose keys and the plane keys of ``view_factors`` (each in order first seen)."""
-    fixed: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    pose_keys: dict[str, int] = {}
-    mirror_keys: dict[Placement, int] = {}
-    for f in view_factors:
-        fixed.update(f.fixed)
-        pose_keys.update(f.pose_keys)
-        mirror_keys.update(f.mirror_keys)
-    return fixed, pose_keys, mirror_keys
-
-
-def groups_by_shape(view_factors: Sequence[ViewFactor], extra: Any = None) -> list[list[int]]:
-    """The views (indices) of each shape, in order first seen: one camera, the same owner and placement
-    position at each reflection, the same pose keys, as many points, one kernel (and the same
-    ``extra(view)``, where given): what a :class:`_Group` evaluates at once."""
-    shapes: dict[tuple, list[int]] = {}
-    for i, f in enumerate(view_factors):
-        order = list(f.mirror_keys)  # the placements in order of first reflection
-        owners = tuple(f.owners[p] for p in f.reflections)
-        local = tuple(range(len(order))) if len(order) == len(f.reflections) else tuple(map(order.index, f.reflections))
-        shape = (f.camera, owners, local, tuple(f.pose_keys), f.base_points.shape[1], f.robust, f.robust_k,
-                 None if extra is None else extra(f))
-        shapes.setdefault(shape, []).append(i)
-    return list(shapes.values())
-
-
-def stacks_by_placements(view_factors: Sequence[ViewFactor], placements_per_factor: int) -> list[list[int]]:
-    """The views (indices) of each stack: views with the same placements, in the order first seen;
-    consecutive ones merged up to ``placements_per_factor`` placements (fewer factor calls, each of which
-    copies the Values)."""
-    same: dict[frozenset, list[int]] = {}
-    for i, f in enumerate(view_factors):
-        same.setdefault(frozenset(f.mirror_keys), []).append(i)
-    merged: list[tuple[set, list[int]]] = []
-    for placements, members in same.items():
-        if merged and len(merged[-1][0]) + sum(p not in merged[-1][0] for p in placements) <= placements_per_factor:
-            merged[-1][0].update(placements)
-            merged[-1][1].extend(members)
-        else:
-            merged.append((set(placements), list(members)))
-    return [members for _, members in merged]
 
 
 def _skew_rows(a: np.ndarray) -> np.ndarray:
@@ -379,8 +335,9 @@ class _Group:
 
 
 class ViewStackEvaluator:
-    """Every stackable view's factor evaluated together (module docstring); ``factors``: one
-    ``gtsam.CustomFactor`` per set of placements (hand them to a graph)."""
+    """Every stackable view's factor evaluated together (module docstring), the views given as their
+    per-image factors or as a ``view_table.ViewTable``; ``factors``: one ``gtsam.CustomFactor`` per set of
+    placements (hand them to a graph)."""
 
     def __init__(self, view_factors: Sequence[ViewFactor] | ViewTable, placements_per_factor: int = 1):
         table = view_factors if isinstance(view_factors, ViewTable) else ViewTable.of_factors(view_factors)

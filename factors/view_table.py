@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,7 +27,16 @@ from mirror_fg.factors.views import ViewFactor, ViewSlots
 if TYPE_CHECKING:
     from mirror_fg.factors.view_stack import _Group
 
-__all__ = ["ViewBlock", "ViewTable", "merged_sets", "view_factor_like"]
+__all__ = [
+    "ViewBlock",
+    "ViewTable",
+    "collected_keys",
+    "groups_by_shape",
+    "merged_sets",
+    "placement_indices",
+    "stacks_by_placements",
+    "view_factor_like",
+]
 
 Placement = tuple[int, int]
 
@@ -80,6 +89,62 @@ class ViewBlock:
         """Whether its views can be in an eliminated stack: fiducials only, intrinsics known, no kernel."""
         t = self.template
         return t.intrinsics is None and not t.unique_landmarks and t.robust is None
+
+
+def collected_keys(view_factors: Sequence[ViewFactor]) -> tuple[dict, dict[str, int], dict[Placement, int]]:
+    """The fixed poses, the pose keys and the plane keys of ``view_factors`` (each in order first seen)."""
+    fixed: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    pose_keys: dict[str, int] = {}
+    mirror_keys: dict[Placement, int] = {}
+    for f in view_factors:
+        fixed.update(f.fixed)
+        pose_keys.update(f.pose_keys)
+        mirror_keys.update(f.mirror_keys)
+    return fixed, pose_keys, mirror_keys
+
+
+def groups_by_shape(view_factors: Sequence[ViewFactor], extra: Any = None) -> list[list[int]]:
+    """The views (indices) of each shape, in order first seen: one camera, the same owner and placement
+    position at each reflection, the same pose keys, as many points, one kernel (and the same
+    ``extra(view)``, where given): what a :class:`_Group` evaluates at once."""
+    shapes: dict[tuple, list[int]] = {}
+    for i, f in enumerate(view_factors):
+        order = list(f.mirror_keys)  # the placements in order of first reflection
+        owners = tuple(f.owners[p] for p in f.reflections)
+        local = tuple(range(len(order))) if len(order) == len(f.reflections) else tuple(map(order.index, f.reflections))
+        shape = (f.camera, owners, local, tuple(f.pose_keys), f.base_points.shape[1], f.robust, f.robust_k,
+                 None if extra is None else extra(f))
+        shapes.setdefault(shape, []).append(i)
+    return list(shapes.values())
+
+
+def stacks_by_placements(view_factors: Sequence[ViewFactor], placements_per_factor: int) -> list[list[int]]:
+    """The views (indices) of each stack: views with the same placements, in the order first seen;
+    consecutive ones merged up to ``placements_per_factor`` placements (fewer factor calls, each of which
+    copies the Values)."""
+    same: dict[frozenset, list[int]] = {}
+    for i, f in enumerate(view_factors):
+        same.setdefault(frozenset(f.mirror_keys), []).append(i)
+    merged: list[tuple[set, list[int]]] = []
+    for placements, members in same.items():
+        if merged and len(merged[-1][0]) + sum(p not in merged[-1][0] for p in placements) <= placements_per_factor:
+            merged[-1][0].update(placements)
+            merged[-1][1].extend(members)
+        else:
+            merged.append((set(placements), list(members)))
+    return [members for _, members in merged]
+
+
+def placement_indices(placements: list[Placement], rows: list) -> np.ndarray:
+    """Each row's placements (b, U) (rows of one length) as indices into ``placements`` (sorted, as
+    ``ViewProblem.placements``)."""
+    if not placements or not rows or not rows[0]:
+        return np.zeros((len(rows), 0), dtype=np.intp)
+    known = np.array(placements, dtype=np.int64).reshape(-1, 2)
+    low, span = known.min(axis=0), int(np.ptp(known[:, 1])) + 1  # (l, m) -> (l - l0) span + (m - m0): sorted as the tuples
+    asked = np.array(rows, dtype=np.int64).reshape(len(rows), -1, 2)
+    codes = (known[:, 0] - low[0]) * span + (known[:, 1] - low[1])
+    return np.searchsorted(codes, (asked[..., 0] - low[0]) * span + (asked[..., 1] - low[1])).astype(np.intp)
 
 
 def merged_sets(sets: np.ndarray, limit: int) -> np.ndarray:
@@ -315,7 +380,9 @@ class ViewTable:
 
     def group_of(self, first: ViewFactor, parts: list[tuple[ViewBlock, np.ndarray]]) -> _Group:
         """The ``view_stack._Group`` of one of :meth:`groups`' groups (its views in order)."""
-        from mirror_fg.factors.view_stack import _Group  # (view_stack builds its stacks of tables)
+        from mirror_fg.factors.view_stack import (
+            _Group,  # (view_stack builds its stacks of tables)
+        )
 
         members = np.concatenate([block.members[rows] for block, rows in parts])
         order = np.argsort(members, kind="stable")

@@ -9,8 +9,8 @@ Printed per tree size (``simulate_base_case(num_images=n, num_points=0, mirror1_
 settings of ``benchmark.py``): the median and the range of ``timings['build']`` of whole calibrations,
 then of the build alone from the same start (tree: ``build_eliminated_graph``; view model:
 ``ViewProblem`` + ``solve_graph``); then ``ViewProblem(dataset)`` of the rig
-``simulate_rig_mixed(3, own=[200] * 3, shared=200, seed=0)``. The machine is shared: the load average is
-printed with the figures.
+``simulate_rig_mixed(3, own=[200] * 3, shared=200, seed=0)``, alone and with its graph (the stacked
+factors). The machine is shared: the load average is printed with the figures.
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ import time
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from benchmark import COMMON  # noqa: E402
+from benchmark import COMMON
 
 
 def _figures(times: list[float]) -> str:
@@ -32,9 +32,8 @@ def _figures(times: list[float]) -> str:
 
 def _start_of(dataset):
     """The analytical start calibrate() hands to LM (captured from one calibration on the view model)."""
-    import mirror_fg.solver.model.lm as lm
-    import mirror_fg.solver.model.view_lm as view_lm
     from mirror_fg import calibrate
+    from mirror_fg.solver.model import lm, view_lm
 
     captured: dict = {}
     run = view_lm.view_model_run
@@ -53,9 +52,9 @@ def _start_of(dataset):
 
 
 def tree(size: int, repeats: int) -> None:
-    import mirror_fg.solver.model.lm as lm
     from mirror_fg import calibrate
     from mirror_fg.simulate.tree import simulate_base_case
+    from mirror_fg.solver.model import lm
     from mirror_fg.solver.model.graph import build_eliminated_graph
     from mirror_fg.solver.model.views import ViewEstimate, ViewProblem
 
@@ -93,13 +92,16 @@ def rig(repeats: int) -> None:
     from mirror_fg.solver.model.views import ViewProblem
 
     dataset = dataset_from_dict(simulate_rig_mixed(3, own=[200] * 3, shared=200, seed=0)[0])
-    times = []
+    times, graphs = [], []
     for _ in range(3 * repeats):
         begin = time.perf_counter()
-        ViewProblem(dataset, None)
+        problem = ViewProblem(dataset, None)
         times.append(time.perf_counter() - begin)
+        problem.graph()
+        graphs.append(time.perf_counter() - begin)
     print(f"rig, 3 cameras, {len(dataset.images)} images (load {os.getloadavg()[0]:.1f})")
     print(f"  ViewProblem(dataset)            : {_figures(times)}")
+    print(f"  ViewProblem(dataset).graph()    : {_figures(graphs)}")
 
 
 def main() -> None:

@@ -82,7 +82,7 @@ def test_table_as_the_per_image_factors(make):
         mask = np.arange(len(table.placements)) % 2 == 0  # any placements "eliminated"
         chosen = {p for p, m in zip(table.placements, mask) if m}
         assert ([members.tolist() for _, members, _ in table.groups(mask)]
-                == groups_by_shape(factors, lambda f: tuple(p in chosen for p in f.mirror_keys)))
+                == groups_by_shape(factors, lambda f, chosen=chosen: tuple(p in chosen for p in f.mirror_keys)))
         fixed, poses, planes = collected_keys(factors)
         fixed_t, poses_t, planes_t = table.collected_keys()
         assert list(fixed_t) == list(fixed) and poses_t == poses and list(planes_t.items()) == list(planes.items())

@@ -27,7 +27,7 @@ from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_prior_factor, predict_pixels
 from mirror_fg.factors.view_eliminated import EliminatedViewStack
 from mirror_fg.factors.view_stack import stacked_view_factors
-from mirror_fg.factors.view_table import ViewBlock, ViewTable, view_factor_like  # noqa: F401 (view_factor_like: its home was here)
+from mirror_fg.factors.view_table import ViewBlock, ViewTable, placement_indices, view_factor_like  # noqa: F401 (view_factor_like: its home was here)
 from mirror_fg.factors.views import ViewFactor, plane_of, vector_of_plane
 from mirror_fg.data import Dataset, Image
 from mirror_fg.data.dataset import observation_array
@@ -140,7 +140,7 @@ class ViewProblem:
         blocks = []
         for k in np.unique(lengths).tolist():
             rows = np.flatnonzero(lengths == k)
-            ids = _placement_indices(self.placements, [images[i].reflections for i in rows])  # (m, k)
+            ids = placement_indices(self.placements, [images[i].reflections for i in rows])  # (m, k)
             first = (ids[:, :, None] == ids[:, None, :]).argmax(axis=2) if k else ids  # first reflection through each
             new = first == np.arange(k)  # a placement's first reflection
             local = np.take_along_axis(np.cumsum(new, axis=1) - 1, first, axis=1)  # its place among the view's placements
@@ -383,18 +383,6 @@ class ViewProblem:
             else:
                 intrinsics[name] = (marginals.marginalCovariance(key), None)
         return poses, joint, mirrors, points, intrinsics
-
-
-def _placement_indices(placements: list[Placement], rows: list) -> np.ndarray:
-    """Each row's placements (b, U) (rows of one length) as indices into ``placements`` (sorted, as
-    ``ViewProblem.placements``)."""
-    if not placements or not rows or not rows[0]:
-        return np.zeros((len(rows), 0), dtype=np.intp)
-    known = np.array(placements, dtype=np.int64).reshape(-1, 2)
-    low, span = known.min(axis=0), int(np.ptp(known[:, 1])) + 1  # (l, m) -> (l - l0) span + (m - m0): sorted as the tuples
-    asked = np.array(rows, dtype=np.int64).reshape(len(rows), -1, 2)
-    codes = (known[:, 0] - low[0]) * span + (known[:, 1] - low[1])
-    return np.searchsorted(codes, (asked[..., 0] - low[0]) * span + (asked[..., 1] - low[1])).astype(np.intp)
 
 
 def scale_prior(dataset: Dataset, mirror_keys: dict, point_keys: dict) -> gtsam.NonlinearFactorGraph:
