@@ -35,6 +35,7 @@ __all__ = [
     "merged_sets",
     "placement_indices",
     "stacks_by_placements",
+    "unique_rows",
     "view_factor_like",
 ]
 
@@ -141,10 +142,24 @@ def placement_indices(placements: list[Placement], rows: list) -> np.ndarray:
     if not placements or not rows or not rows[0]:
         return np.zeros((len(rows), 0), dtype=np.intp)
     known = np.array(placements, dtype=np.int64).reshape(-1, 2)
-    low, span = known.min(axis=0), int(np.ptp(known[:, 1])) + 1  # (l, m) -> (l - l0) span + (m - m0): sorted as the tuples
+    low, span = known.min(axis=0), int(np.ptp(known[:, 1])) + 1  # (l, m) -> (l - l0) span + m - m0: as the tuples
     asked = np.array(rows, dtype=np.int64).reshape(len(rows), -1, 2)
     codes = (known[:, 0] - low[0]) * span + (known[:, 1] - low[1])
     return np.searchsorted(codes, (asked[..., 0] - low[0]) * span + (asked[..., 1] - low[1])).astype(np.intp)
+
+
+def unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(rows, axis=0, return_index=True, return_inverse=True)`` of integer rows (n, w) without the
+    rows themselves, by one lexicographic sort of the columns (``np.unique`` sorts the rows as opaque records:
+    several times slower): each distinct row's first index, and each row's distinct row (in sorted order)."""
+    count = len(rows)
+    order = np.lexsort(rows.T[::-1]) if rows.shape[1] else np.arange(count)  # (stable: the first of equal rows first)
+    ordered = rows[order]
+    new = np.ones(count, dtype=bool)
+    new[1:] = np.any(ordered[1:] != ordered[:-1], axis=1)
+    which = np.empty(count, dtype=np.intp)
+    which[order] = np.cumsum(new) - 1
+    return order[new], which
 
 
 def merged_sets(sets: np.ndarray, limit: int) -> np.ndarray:
@@ -267,8 +282,7 @@ class ViewTable:
             repeated[:, 1:] = sets[:, 1:] == sets[:, :-1]
             sets[repeated] = -1
             sets = np.sort(sets, axis=1)
-        _, first, which = np.unique(sets, axis=0, return_index=True, return_inverse=True)
-        which = which.reshape(-1)
+        first, which = unique_rows(sets)
         rank = np.empty(len(first), dtype=np.intp)  # each set's rank in order first seen
         rank[np.argsort(first, kind="stable")] = np.arange(len(first))
         in_order = sets[np.sort(first)]
@@ -321,7 +335,8 @@ class ViewTable:
         chosen = seen & (low == high) & ~bad & ~kept
         return [self.placements[u] for u in np.flatnonzero(chosen).tolist()]
 
-    def groups(self, eliminated: np.ndarray | None = None) -> list[tuple[ViewFactor, np.ndarray, list[tuple[ViewBlock, np.ndarray]]]]:
+    def groups(self, eliminated: np.ndarray | None = None
+               ) -> list[tuple[ViewFactor, np.ndarray, list[tuple[ViewBlock, np.ndarray]]]]:
         """The views of each shape (``view_stack.groups_by_shape``; with ``eliminated``, a mask over the
         placements, also the same placements eliminated): ``(first view's block template, members (sorted),
         [(block, its rows in the group)])`` in order first seen."""
@@ -334,9 +349,8 @@ class ViewTable:
                 shapes.setdefault(shape, []).append((block, np.arange(len(block.members))))
                 continue
             pattern = eliminated[block.placements]  # (b, U)
-            patterns, which = np.unique(pattern, axis=0, return_inverse=True)
-            which = which.reshape(-1)
-            for k, row in enumerate(patterns):
+            firsts, which = unique_rows(pattern.astype(np.intp))
+            for k, row in enumerate(pattern[firsts]):
                 shapes.setdefault((*shape, tuple(row.tolist())), []).append((block, np.flatnonzero(which == k)))
         out = []
         for parts in shapes.values():

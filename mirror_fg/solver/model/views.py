@@ -27,7 +27,8 @@ from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_prior_factor, predict_pixels
 from mirror_fg.factors.view_eliminated import EliminatedViewStack
 from mirror_fg.factors.view_stack import stacked_view_factors
-from mirror_fg.factors.view_table import ViewBlock, ViewTable, placement_indices, view_factor_like  # noqa: F401 (view_factor_like: its home was here)
+from mirror_fg.factors.view_table import ViewBlock, ViewTable, placement_indices, unique_rows
+from mirror_fg.factors.view_table import view_factor_like  # noqa: F401 (its home was here: importers keep working)
 from mirror_fg.factors.views import ViewFactor, plane_of, vector_of_plane
 from mirror_fg.data import Dataset, Image
 from mirror_fg.data.dataset import observation_array
@@ -141,12 +142,13 @@ class ViewProblem:
         for k in np.unique(lengths).tolist():
             rows = np.flatnonzero(lengths == k)
             ids = placement_indices(self.placements, [images[i].reflections for i in rows])  # (m, k)
-            first = (ids[:, :, None] == ids[:, None, :]).argmax(axis=2) if k else ids  # first reflection through each
-            new = first == np.arange(k)  # a placement's first reflection
-            local = np.take_along_axis(np.cumsum(new, axis=1) - 1, first, axis=1)  # its place among the view's placements
+            # each reflection's first reflection through its placement, whether it is that first one, and
+            # its placement's place among the view's placements (in order of first reflection)
+            first = (ids[:, :, None] == ids[:, None, :]).argmax(axis=2) if k else ids
+            new = first == np.arange(k)
+            local = np.take_along_axis(np.cumsum(new, axis=1) - 1, first, axis=1)
             key = np.concatenate([shape[rows], owner_index[ids], local], axis=1)
-            _, which = np.unique(key, axis=0, return_inverse=True)
-            which = which.reshape(-1)
+            which = unique_rows(key)[1]
             order = np.argsort(which, kind="stable")  # each block's views in file order
             for part in np.split(order, np.cumsum(np.bincount(which))[:-1]):
                 members = rows[part]
@@ -154,16 +156,19 @@ class ViewProblem:
                 pixel = camera in self.intrinsics
                 names = list(images[i].observations)
                 if (camera, *names) not in known:
-                    known[(camera, *names)] = self._points_of(dataset, None if pixel else dataset.camera_of(images[i]), names)
+                    camera_model = None if pixel else dataset.camera_of(images[i])
+                    known[(camera, *names)] = self._points_of(dataset, camera_model, names)
                 sigmas, base, landmarks = known[(camera, *names)]
+                views = members.tolist()
                 if pixel:  # pixels, as given (factors/intrinsics.py)
-                    observed = np.array([list(images[j].observations.values()) for j in members.tolist()], dtype=float)
+                    observed = np.array([list(images[j].observations.values()) for j in views], dtype=float)
                 else:  # (in file order: dataset.normalized; each a (2,) array)
-                    observed = np.concatenate([z for j in members.tolist() for z in self._normalized[j].values()])
-                observed_array = observed.astype(float, copy=False).reshape(len(members), -1, 2).transpose(0, 2, 1)
+                    observed = np.concatenate([z for j in views for z in self._normalized[j].values()])
+                observed_array = observed.astype(float, copy=False).reshape(len(views), -1, 2).transpose(0, 2, 1)
                 model = (self.intrinsics[camera], self.intrinsics_keys[camera]) if pixel else None
-                template = ViewFactor(camera, tuple(images[i].reflections), self.pose_keys, self.fixed, self.mirror_keys,
-                                      self.owners, base, landmarks, observed_array[0], sigmas, self.robust, intrinsics=model)
+                template = ViewFactor(camera, tuple(images[i].reflections), self.pose_keys, self.fixed,
+                                      self.mirror_keys, self.owners, base, landmarks, observed_array[0], sigmas,
+                                      self.robust, intrinsics=model)
                 blocks.append(ViewBlock(template, members, ids[part][:, new[part[0]]], observed_array))
         return blocks
 
@@ -171,7 +176,8 @@ class ViewProblem:
     def views(self) -> list[ViewObs]:
         """Every image as a view (:func:`views_of`), made when first asked."""
         if self._views is None:
-            self._views = [_view_of(image, normalized) for image, normalized in zip(self.dataset.images, self._normalized)]
+            self._views = [_view_of(image, normalized)
+                           for image, normalized in zip(self.dataset.images, self._normalized)]
         return self._views
 
     @property
