@@ -1,9 +1,9 @@
 """The view model's views as blocks of one shape (factors/view_table.py) against the per-image factors: the
 stacks, the groups of one shape and the keys that ``view_stack`` computes from the per-image ``ViewFactor`` s
 (``stacks_by_placements``, ``groups_by_shape``, ``collected_keys``), the placements a stack alone sees against
-their definition (a greedy pass over the views), and the stacks' merging against a set per view, on the
-paper's tree (with reconstruction points), a kaleidoscope with repeated placements, a rig whose cameras see
-each other's placements, direct views, and random sets."""
+their definition (a greedy pass over the views), on the paper's tree (with reconstruction points), a
+kaleidoscope with repeated placements, rigs whose cameras see each other's placements and direct views; the
+stacks' merging against a set per view and the distinct rows against numpy's, on random sets."""
 from __future__ import annotations
 
 import numpy as np
@@ -11,7 +11,7 @@ import pytest
 
 import views_scenes as scenes
 from mirror_fg.factors.view_stack import collected_keys, groups_by_shape, stacks_by_placements
-from mirror_fg.factors.view_table import ViewTable, merged_sets
+from mirror_fg.factors.view_table import ViewTable, merged_sets, unique_rows
 from mirror_fg.io.dataset import dataset_from_dict
 from mirror_fg.simulate.rig import simulate_rig_mixed
 from mirror_fg.simulate.tree import simulate_base_case
@@ -114,3 +114,12 @@ def test_merging_as_a_set_per_view():
         sets = rng.integers(-1, int(rng.integers(1, 30)), (int(rng.integers(1, 80)), int(rng.integers(1, 4))))
         limit = int(rng.integers(1, 8))
         assert merged_sets(sets, limit).tolist() == reference(sets, limit)
+
+
+def test_unique_rows_as_numpy():
+    rng = np.random.default_rng(2)
+    for _ in range(200):
+        rows = rng.integers(-1, 4, (int(rng.integers(1, 40)), int(rng.integers(0, 4))))
+        _, first, which = np.unique(rows, axis=0, return_index=True, return_inverse=True)
+        mine_first, mine_which = unique_rows(rows)
+        assert mine_first.tolist() == first.tolist() and mine_which.tolist() == which.reshape(-1).tolist()
