@@ -40,7 +40,8 @@ import numpy as np
 import mirror_fg.factors.view_last_reflection as last
 from mirror_fg.factors.schur import inverses, one_blas_thread
 from mirror_fg.factors.view_points import _rows_of, compressed_rows
-from mirror_fg.factors.view_stack import _Group, collected_keys, groups_by_shape, read_poses_and_planes, stacks_by_placements
+from mirror_fg.factors.view_stack import _Group, read_poses_and_planes
+from mirror_fg.factors.view_table import ViewTable
 from mirror_fg.factors.views import ViewFactor
 
 __all__ = ["EliminatedViewStack", "eliminable", "PLACEMENTS_PER_FACTOR"]
@@ -64,45 +65,9 @@ def eliminable(factor: ViewFactor) -> bool:
     return factor.intrinsics is None and not factor.unique_landmarks and factor.robust is None
 
 
-def private_placements(view_factors: Sequence[ViewFactor], stacks: list[list[int]], keep: set) -> list[Placement]:
-    """The placements to eliminate: seen by one stack's views only, not in ``keep``, and at most one per
-    view: those with the fewest views first (a photograph's own placement before a mirror placement that
-    many photographs share, which stays a variable)."""
-    first_stack: dict[Placement, int] = {}
-    views_of: dict[Placement, list[int]] = {}
-    shared: set[Placement] = set()  # seen in more than one stack
-    # as the paper's last mirror: seen by its owner camera only and last in every view's reflections (in
-    # other places its cost in v alone is far from quadratic: Gauss-Newton on it crawled or diverged on a
-    # rig's two-mirror views, where the placements stay variables)
-    transferred: set[Placement] = set()
-    for s, members in enumerate(stacks):
-        for i in members:
-            f = view_factors[i]
-            if not f.reflections:  # a direct view
-                continue
-            last, camera, owners = f.reflections[-1], f.camera, f.owners
-            for p in f.mirror_keys:
-                if p in views_of:
-                    views_of[p].append(i)
-                    if first_stack[p] != s:
-                        shared.add(p)
-                else:
-                    views_of[p], first_stack[p] = [i], s
-                if p != last or owners[p] != camera:
-                    transferred.add(p)
-    candidates = sorted((p for p in views_of if p not in shared and p not in keep and p not in transferred),
-                        key=lambda p: (len(views_of[p]), p))
-    taken: set[int] = set()  # views that have their eliminated placement
-    chosen = []
-    for p in candidates:
-        if not taken.intersection(views_of[p]):
-            chosen.append(p)
-            taken.update(views_of[p])
-    return sorted(chosen)
-
-
 class EliminatedViewStack:
-    """Views (all :func:`eliminable`) in factors with their own placements eliminated (module docstring).
+    """Views (all :func:`eliminable`: their per-image factors, or a ``view_table.ViewTable``) in factors with
+    their own placements eliminated (module docstring).
 
     ``start``: every eliminated placement's mirror vector to start from (owner frame, metres); ``keep``:
     placements that stay variables whatever sees them (e.g. the scale's); ``closed_form``: the last reflection
@@ -111,28 +76,33 @@ class EliminatedViewStack:
     solved inside; ``kept_mirror_keys``: the plane keys the factors see; ``factors``: the
     ``gtsam.CustomFactor`` objects."""
 
-    def __init__(self, view_factors: Sequence[ViewFactor], start: dict[Placement, np.ndarray],
+    def __init__(self, view_factors: Sequence[ViewFactor] | ViewTable, start: dict[Placement, np.ndarray],
                  keep: frozenset | set = frozenset(),
                  placements_per_factor: int = PLACEMENTS_PER_FACTOR, closed_form: bool = True):
-        stacks = stacks_by_placements(view_factors, placements_per_factor)
-        self.eliminated = private_placements(view_factors, stacks, set(keep))
+        table = view_factors if isinstance(view_factors, ViewTable) else ViewTable.of_factors(view_factors)
+        stacks = table.stacks(placements_per_factor)
+        self.eliminated = table.private_placements(stacks, set(keep))
         index = {p: e for e, p in enumerate(self.eliminated)}
+        # each placement's eliminated index (-1: kept), by the table's placement indices
+        eliminated_of = np.array([index.get(p, -1) for p in table.placements], dtype=np.intp)
         self._start = np.array([start[p] for p in self.eliminated], dtype=float).reshape(-1, 3)
         self._vectors = self._start.copy()
-        self.fixed, self.pose_keys, mirror_keys = collected_keys(view_factors)
+        self.fixed, self.pose_keys, mirror_keys = table.collected_keys()
         self.kept_mirror_keys: dict[Placement, int] = {p: k for p, k in mirror_keys.items() if p not in index}
         pose_set = set(self.pose_keys.values())
         self._keys, self._widths, self._offsets, columns_of = [], [], [], []
-        stack_of_view = np.zeros(len(view_factors), dtype=np.intp)
+        stack_of_view = np.zeros(table.count, dtype=np.intp)
         size = 0
-        for s, members in enumerate(stacks):
-            views = [view_factors[i] for i in members]
-            keys = list(dict.fromkeys(k for f in views for k in f.pose_keys.values()))
-            keys += list(dict.fromkeys(k for f in views for p, k in f.mirror_keys.items() if p not in index))
+        kept_columns: list[int] = []  # of each (stack, kept placement), in the order of kept_codes
+        kept_codes: list[int] = []
+        for s, (members, pose_keys, kept) in enumerate(zip(stacks, *table.stack_keys(stacks, eliminated_of >= 0))):
+            keys = pose_keys + [table.mirror_keys[table.placements[u]] for u in kept]
             columns, width = {}, 0
             for key in keys:
                 columns[key] = width
                 width += 6 if key in pose_set else 3
+            kept_codes.extend(s * len(table.placements) + u for u in kept)
+            kept_columns.extend(6 * len(pose_keys) + 3 * np.arange(len(kept)))
             self._keys.append(keys)
             self._widths.append(width)
             self._offsets.append(size)
@@ -140,12 +110,14 @@ class EliminatedViewStack:
             size += (width + 1) ** 2
             stack_of_view[members] = s
         self._normal_size = size
+        order = np.argsort(np.array(kept_codes, dtype=np.intp), kind="stable")
+        kept_lookup = (np.array(kept_codes, dtype=np.intp)[order], np.array(kept_columns, dtype=np.intp)[order])
         # each eliminated placement: its stack, and where its C = J_v^T [J_k | e] (3 x (d+1)) starts
         stack_of_placement = np.zeros(len(self.eliminated), dtype=np.intp)
-        for i, f in enumerate(view_factors):
-            for p in f.mirror_keys:
-                if p in index:
-                    stack_of_placement[index[p]] = stack_of_view[i]
+        for block in table.blocks:
+            at = eliminated_of[block.placements]  # (b, U)
+            mine = at >= 0
+            stack_of_placement[at[mine]] = np.broadcast_to(stack_of_view[block.members][:, None], at.shape)[mine]
         self._stack_of_placement = stack_of_placement
         widths = np.array(self._widths)
         c_sizes = 3 * (widths[stack_of_placement] + 1)
@@ -155,20 +127,22 @@ class EliminatedViewStack:
         self._gradient_at = (self._c_offsets[:, None] + np.arange(3)[None, :] * (d_of[:, None] + 1)
                              + d_of[:, None]).astype(np.intp)  # C[:, d] = J_v^T e of each placement
         self._total = self._d_offset + 9 * len(self.eliminated)
-        # views of one shape and the same placement eliminated (f.mirror_keys: in order of first reflection)
-        shapes = groups_by_shape(view_factors, lambda f: tuple(p in index for p in f.mirror_keys))
-        self.groups = [_Group([view_factors[i] for i in members]) for members in shapes]
+        # views of one shape and the same placement eliminated (in order of first reflection)
+        shapes = table.groups(eliminated_of >= 0)
+        self.groups = [table.group_of(first, parts) for first, _, parts in shapes]
         self._targets, self._placement_of_view, self._elim_cols, self._elim_local = [], [], [], []
-        for group, members in zip(self.groups, shapes):
-            targets, placement_of, elim_cols = self._layout(group, members, index, stack_of_view, columns_of)
+        for group, (_, members, _) in zip(self.groups, shapes):
+            targets, placement_of, elim_cols = self._layout(group, members, eliminated_of, stack_of_view, columns_of,
+                                                            kept_lookup, len(table.placements))
             self._targets.append(targets)
             self._placement_of_view.append(placement_of)
             self._elim_cols.append(elim_cols)
-            order = list(dict.fromkeys(group.factors[0].reflections))  # the group's eliminated placement, if any
-            self._elim_local.append(next((u for u, p in enumerate(order) if p in index), None))
+            ids = group.placement_ids  # the group's eliminated placement, if any (one local position for all)
+            assert ids is not None
+            self._elim_local.append(next((u for u in range(ids.shape[1]) if eliminated_of[ids[0, u]] >= 0), None))
         # the closed form of the last reflection (``view_last_reflection.py``) where a group's eliminated
         # placement is its last reflection and not an earlier one too (always its own camera's: see
-        # private_placements); the general model with ``wrt`` elsewhere
+        # ViewTable.private_placements); the general model with ``wrt`` elsewhere
         self._fast = [closed_form and u is not None and group.steps[-1][1] == u and [w for _, w in group.steps].count(u) == 1
                       for group, u in zip(self.groups, self._elim_local)]
         self._observed_soa = [np.ascontiguousarray(group.observed.transpose(1, 2, 0)) for group in self.groups]
@@ -187,7 +161,7 @@ class EliminatedViewStack:
         self._pose_set = pose_set
         self._order = {p: i for i, p in enumerate([*self.kept_mirror_keys, *self.eliminated])}
         self._rows = [group.placement_index(self._order) for group in self.groups]
-        self._stack_rows = [stack_of_view[members] for members in shapes]  # each group's views' stacks
+        self._stack_rows = [stack_of_view[members] for _, members, _ in shapes]  # each group's views' stacks
         self.factors = [gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(width + 1), keys, self._error_function(s))
                         for s, (keys, width) in enumerate(zip(self._keys, self._widths))]
         self._state: dict[int, bytes] = {}
@@ -200,38 +174,43 @@ class EliminatedViewStack:
 
     # --- layout -----------------------------------------------------------------------------------
 
-    def _layout(self, group: _Group, members: list[int], index: dict, stack_of_view: np.ndarray,
-                columns_of: list[dict[int, int]]):
+    def _layout(self, group: _Group, members: np.ndarray, eliminated_of: np.ndarray, stack_of_view: np.ndarray,
+                columns_of: list[dict[int, int]], kept_lookup: tuple[np.ndarray, np.ndarray], placements: int):
         """Where each entry of a view's local augmented normal matrix ``[A | e]^T [A | e]`` ((P+1)^2) goes:
         kept x kept (and e) to its stack's normal, eliminated x kept (and e) to its placement's ``C``,
-        eliminated x eliminated to its ``D``, kept x eliminated nowhere (the last slot, dropped)."""
+        eliminated x eliminated to its ``D``, kept x eliminated nowhere (the last slot, dropped).
+        ``kept_lookup``: the codes ``stack * placements + placement`` of each stack's kept placements (sorted)
+        and their first columns in the stack."""
         P = group.slots.size
         b = len(members)
-        stacks = stack_of_view[members].tolist()
+        stacks = stack_of_view[members]
         stack_col = np.full((b, P + 1), -1, dtype=np.intp)  # each local column's column in its stack
         placement_of = np.full(b, -1, dtype=np.intp)
         elim_col = -1
-        first = group.factors[0]  # a group's views share their cameras and the local order of placements
+        first = group.first  # a group's views share their cameras and the local order of placements
         for name, c in first.slots.pose_cols.items():
             key = first.pose_keys[name]
             in_stack = np.array([columns.get(key, -1) for columns in columns_of])  # its column in each stack
-            stack_col[:, c:c + 6] = in_stack[stack_of_view[members]][:, None] + np.arange(6)
+            stack_col[:, c:c + 6] = in_stack[stacks][:, None] + np.arange(6)
         offset = 6 * len(first.slots.pose_cols)
+        ids = group.placement_ids
+        assert ids is not None
         for u in range(group.placement_count):
-            placements = [ps[u] for ps in group.placements]
             c = offset + 3 * u  # (views.ViewSlots: the placements' columns in their order of first reflection)
-            if placements[0] in index:  # (the group's shape says which local placement is eliminated)
-                placement_of[:], elim_col = [index[p] for p in placements], c
+            if eliminated_of[ids[0, u]] >= 0:  # (the group's shape says which local placement is eliminated)
+                placement_of[:], elim_col = eliminated_of[ids[:, u]], c
             else:
-                stack_col[:, c:c + 3] = np.array([columns_of[s][view.mirror_keys[p]] for s, view, p in
-                                                  zip(stacks, group.factors, placements)])[:, None] + np.arange(3)
+                codes, columns = kept_lookup
+                stack_col[:, c:c + 3] = columns[np.searchsorted(codes, stacks * placements + ids[:, u])][:, None] + np.arange(3)
         stack_col[:, P] = np.array(self._widths)[stacks]  # e
-        stride = np.array(self._widths)[stack_of_view[members]] + 1  # (b,)
-        base = np.array(self._offsets)[stack_of_view[members]]
+        stride = np.array(self._widths)[stacks] + 1  # (b,)
+        base = np.array(self._offsets)[stacks]
         kept = stack_col >= 0
-        targets = (base[:, None] + stack_col * stride[:, None])[:, :, None] + stack_col[:, None, :]
-        targets[~kept] = self._total  # (rows, then columns, of the eliminated placement: set below)
-        targets.transpose(0, 2, 1)[~kept] = self._total
+        # (one array of this size written in place: a fresh one costs its pages, more than the arithmetic)
+        targets = np.empty((b, P + 1, P + 1), dtype=np.intp)
+        np.add((base[:, None] + stack_col * stride[:, None])[:, :, None], stack_col[:, None, :], out=targets)
+        np.copyto(targets, self._total, where=~(kept[:, :, None] & kept[:, None, :]))  # (rows and columns of the
+        # eliminated placement: below)
         elim_cols = np.zeros((b, 3), dtype=np.intp)
         if elim_col >= 0:  # the group's eliminated placement (one local position for all its views)
             rows = elim_col + np.arange(3)

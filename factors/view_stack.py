@@ -34,6 +34,7 @@ import gtsam
 import numpy as np
 
 from mirror_fg.factors.robust import robust_row_scales
+from mirror_fg.factors.view_table import ViewTable, collected_keys, groups_by_shape, stacks_by_placements
 from mirror_fg.factors.views import ViewFactor, vectors_of_planes
 
 __all__ = ["stackable", "stacked_view_factors", "ViewStackEvaluator", "read_poses_and_planes", "collected_keys",
@@ -72,50 +73,6 @@ def read_poses_and_planes(values: gtsam.Values, fixed: dict, pose_keys: dict[str
     return poses, dict(zip(placements, V)), dict(zip(placements, J)), state
 
 
-def collected_keys(view_factors: Sequence[ViewFactor]) -> tuple[dict, dict[str, int], dict[Placement, int]]:
-    """The fixed poses, the pose keys and the plane keys of ``view_factors`` (each in order first seen)."""
-    fixed: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    pose_keys: dict[str, int] = {}
-    mirror_keys: dict[Placement, int] = {}
-    for f in view_factors:
-        fixed.update(f.fixed)
-        pose_keys.update(f.pose_keys)
-        mirror_keys.update(f.mirror_keys)
-    return fixed, pose_keys, mirror_keys
-
-
-def groups_by_shape(view_factors: Sequence[ViewFactor], extra: Any = None) -> list[list[int]]:
-    """The views (indices) of each shape, in order first seen: one camera, the same owner and placement
-    position at each reflection, the same pose keys, as many points, one kernel (and the same
-    ``extra(view)``, where given): what a :class:`_Group` evaluates at once."""
-    shapes: dict[tuple, list[int]] = {}
-    for i, f in enumerate(view_factors):
-        order = list(f.mirror_keys)  # the placements in order of first reflection
-        owners = tuple(f.owners[p] for p in f.reflections)
-        local = tuple(range(len(order))) if len(order) == len(f.reflections) else tuple(map(order.index, f.reflections))
-        shape = (f.camera, owners, local, tuple(f.pose_keys), f.base_points.shape[1], f.robust, f.robust_k,
-                 None if extra is None else extra(f))
-        shapes.setdefault(shape, []).append(i)
-    return list(shapes.values())
-
-
-def stacks_by_placements(view_factors: Sequence[ViewFactor], placements_per_factor: int) -> list[list[int]]:
-    """The views (indices) of each stack: views with the same placements, in the order first seen;
-    consecutive ones merged up to ``placements_per_factor`` placements (fewer factor calls, each of which
-    copies the Values)."""
-    same: dict[frozenset, list[int]] = {}
-    for i, f in enumerate(view_factors):
-        same.setdefault(frozenset(f.mirror_keys), []).append(i)
-    merged: list[tuple[set, list[int]]] = []
-    for placements, members in same.items():
-        if merged and len(merged[-1][0]) + sum(p not in merged[-1][0] for p in placements) <= placements_per_factor:
-            merged[-1][0].update(placements)
-            merged[-1][1].extend(members)
-        else:
-            merged.append((set(placements), list(members)))
-    return [members for _, members in merged]
-
-
 def _skew_rows(a: np.ndarray) -> np.ndarray:
     """[a]x of each row of ``a`` (b, 3): (b, 3, 3)."""
     S = np.zeros((len(a), 3, 3))
@@ -133,28 +90,55 @@ class _Group:
     sigmas (b, 2, N), and where their rows and Jacobian entries go in the evaluator's buffers."""
 
     def __init__(self, factors: list[ViewFactor]):
-        first = factors[0]
+        self._arrays(factors[0], np.array([f.base_points for f in factors]), np.array([f.observed for f in factors]),
+                     np.array([f.sigmas for f in factors]),
+                     np.array([f.landmark_keys for f in factors], dtype=np.int64).reshape(len(factors), -1))
+        self.factors = factors
+        self.placements = [list(f.mirror_keys) for f in factors]  # (b, U) per view, in order of first reflection
+
+    @classmethod
+    def of_arrays(cls, first: ViewFactor, placement_ids: np.ndarray, placements: list[Placement], base: np.ndarray,
+                  observed: np.ndarray, sigmas: np.ndarray, landmarks: np.ndarray) -> _Group:
+        """The group of views of ``first``'s shape given as arrays (``view_table.ViewTable.groups``): their
+        placements (b, U) as indices into ``placements``, base points (b, 3, N), observations and sigmas
+        (b, 2, N) and point keys (b, N)."""
+        group = cls.__new__(cls)
+        group._arrays(first, base, observed, sigmas, landmarks)
+        group.placement_ids, group.placement_names = placement_ids, placements
+        return group
+
+    def _arrays(self, first: ViewFactor, base: np.ndarray, observed: np.ndarray, sigmas: np.ndarray,
+                landmarks: np.ndarray) -> None:
+        self.first = first  # its camera, owners, pattern of placements, pose keys and kernel are the group's
         self.camera = first.camera
         placements = list(dict.fromkeys(first.reflections))
         self.steps = [(first.owners[p], placements.index(p)) for p in first.reflections]
         self.slots = first.slots
         self.pose_cols = dict(first.slots.pose_cols)
         self.placement_count = len(placements)
-        self.factors = factors
-        self.placements = [list(f.mirror_keys) for f in factors]  # (b, U) per view, in order of first reflection
-        self.base = np.array([f.base_points for f in factors])
+        self.base = base
         self.base_soa = np.ascontiguousarray(self.base.transpose(1, 2, 0))  # (3, N, b)
-        self.observed = np.array([f.observed for f in factors])
-        self.sigmas = np.array([f.sigmas for f in factors])
+        self.observed = observed
+        self.sigmas = sigmas
         self.robust, self.robust_k = first.robust, first.robust_k
         #: each measurement's reconstruction point key (b, N), -1 for a fiducial (``ViewFactor.landmark_keys``)
-        self.landmarks = np.array([f.landmark_keys for f in factors], dtype=np.int64).reshape(len(factors), -1)
+        self.landmarks = landmarks
+        self.placement_ids: np.ndarray | None = None  # (b, U) indices into placement_names, where built of arrays
+        self.placement_names: list[Placement] = []
         self.error_rows: np.ndarray | None = None  # (b, 2N) indices into the error buffers
         self.jacobian_entries: np.ndarray | None = None  # (b, 2N, P) indices into the Jacobian buffer
 
+    @property
+    def size(self) -> int:
+        """The number of views."""
+        return len(self.base)
+
     def placement_index(self, index: dict[Placement, int]) -> np.ndarray:
         """Each view's placements (b, U) as rows of arrays ordered by ``index`` (:meth:`model`'s ``arrays``)."""
-        return np.array([[index[p] for p in ps] for ps in self.placements], dtype=np.intp).reshape(len(self.factors), -1)
+        if self.placement_ids is not None:
+            rows = np.array([index.get(p, -1) for p in self.placement_names], dtype=np.intp)
+            return rows[self.placement_ids].reshape(self.size, -1)
+        return np.array([[index[p] for p in ps] for ps in self.placements], dtype=np.intp).reshape(self.size, -1)
 
     def points(self, point_values: dict[int, np.ndarray]) -> np.ndarray:
         """The views' points in {B} (b, 3, N): the fiducials as given, each reconstruction point at
@@ -210,8 +194,10 @@ class _Group:
         if arrays is not None:
             v_all, J_all = arrays
         else:
-            v_all = np.array([[vectors[p] for p in ps] for ps in self.placements])  # (b, U, 3)
-            J_all = np.array([[plane_jacobians[p] for p in ps] for ps in self.placements]) if jacobians else None
+            lists = (self.placements if self.placement_ids is None
+                     else [[self.placement_names[u] for u in row] for row in self.placement_ids.tolist()])
+            v_all = np.array([[vectors[p] for p in ps] for ps in lists]).reshape(b, -1, 3)  # (b, U, 3)
+            J_all = np.array([[plane_jacobians[p] for p in ps] for ps in lists]).reshape(b, -1, 3, 3) if jacobians else None
         offset = 6 * len(self.pose_cols) if wrt is None else 0
         dB: Any = np.broadcast_to(R_c, (b, 3, 3)) if jacobians else None  # dx/dBp, the same for a view's points
         for owner, u in steps:
@@ -349,41 +335,52 @@ class _Group:
 
 
 class ViewStackEvaluator:
-    """Every stackable view's factor evaluated together (module docstring); ``factors``: one
-    ``gtsam.CustomFactor`` per set of placements (hand them to a graph)."""
+    """Every stackable view's factor evaluated together (module docstring), the views given as their
+    per-image factors or as a ``view_table.ViewTable``; ``factors``: one ``gtsam.CustomFactor`` per set of
+    placements (hand them to a graph)."""
 
-    def __init__(self, view_factors: Sequence[ViewFactor], placements_per_factor: int = 1):
-        first = view_factors[0]
-        self.fixed, self.pose_keys, self.mirror_keys = collected_keys(view_factors)
-        stacks = dict(enumerate(stacks_by_placements(view_factors, placements_per_factor)))
-        shapes = groups_by_shape(view_factors)
-        self.groups = [_Group([view_factors[i] for i in members]) for members in shapes]
+    def __init__(self, view_factors: Sequence[ViewFactor] | ViewTable, placements_per_factor: int = 1):
+        table = view_factors if isinstance(view_factors, ViewTable) else ViewTable.of_factors(view_factors)
+        first = table.blocks[0].template
+        self.fixed, self.pose_keys, self.mirror_keys = table.collected_keys()
+        stacks = table.stacks(placements_per_factor)
+        shapes = table.groups()
+        self.groups = [table.group_of(template, parts) for template, _, parts in shapes]
+        rows_of_view = np.zeros(table.count, dtype=np.intp)  # 2 per measurement
+        sigmas_of_view: list = [None] * table.count  # each view's sigmas, measurement-major
+        for block in table.blocks:
+            rows_of_view[block.members] = 2 * block.template.base_points.shape[1]
+            whitening = block.template.sigmas.T.reshape(-1)
+            for i in block.members.tolist():
+                sigmas_of_view[i] = whitening
         # buffers: each stack's rows consecutive; each stack's key blocks (rows, dim) consecutive
-        err_size = sum(2 * f.base_points.shape[1] for f in view_factors)
+        err_size = int(rows_of_view.sum())
         self._err = np.zeros(err_size)
         self._err_lin = np.zeros(err_size) if first.robust is not None else self._err
         self._stack_keys: list[list[int]] = []
         self._stack_rows: list[slice] = []
         self._stack_blocks: list[list[tuple[int, int]]] = []  # (offset, dim) of each key's block
-        row_start = np.zeros(len(view_factors), dtype=np.intp)  # each view's first row (error buffer)
-        local_start = np.zeros(len(view_factors), dtype=np.intp)  # ... counted from its stack's first row
+        row_start = np.zeros(table.count, dtype=np.intp)  # each view's first row (error buffer)
+        local_start = np.zeros(table.count, dtype=np.intp)  # ... counted from its stack's first row
         block_at: list[dict[int, int]] = []  # per stack: each key's block offset (Jacobian buffer)
-        stack_of = np.zeros(len(view_factors), dtype=np.intp)
+        plane_codes: list[int] = []  # (stack, placement) of each stack's planes, and their blocks' offsets
+        plane_offsets: list[int] = []
+        stack_of = np.zeros(table.count, dtype=np.intp)
         row0, jac0 = 0, 0
         self.factors: list[gtsam.CustomFactor] = []
-        for s, members in stacks.items():
-            views = [view_factors[i] for i in members]
-            pose_keys = list(dict.fromkeys(k for f in views for k in f.pose_keys.values()))
-            mirror_keys = list(dict.fromkeys(k for f in views for k in f.mirror_keys.values()))
-            keys = pose_keys + mirror_keys
-            dims = [6] * len(pose_keys) + [3] * len(mirror_keys)
-            sizes = np.array([2 * f.base_points.shape[1] for f in views], dtype=np.intp)
+        for s, (members, pose_keys, placements) in enumerate(
+                zip(stacks, *table.stack_keys(stacks, np.zeros(len(table.placements), dtype=bool)))):
+            keys = pose_keys + [table.mirror_keys[table.placements[u]] for u in placements]
+            dims = [6] * len(pose_keys) + [3] * len(placements)
+            sizes = rows_of_view[members]
             rows = int(sizes.sum())
             blocks, offset = [], jac0
             for dim in dims:
                 blocks.append((offset, dim))
                 offset += rows * dim
             block_at.append(dict(zip(keys, (o for o, _ in blocks))))
+            plane_codes.extend(s * len(table.placements) + u for u in placements)
+            plane_offsets.extend(o for o, _ in blocks[len(pose_keys):])
             starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.intp)
             row_start[members] = row0 + starts
             local_start[members] = starts
@@ -391,29 +388,34 @@ class ViewStackEvaluator:
             self._stack_keys.append(keys)
             self._stack_rows.append(slice(row0, row0 + rows))
             self._stack_blocks.append(blocks)
-            sigmas = np.concatenate([f.sigmas.T.reshape(-1) for f in views])
+            sigmas = np.concatenate([sigmas_of_view[i] for i in members.tolist()])
             noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
             self.factors.append(gtsam.CustomFactor(noise, keys, self._error_function(len(self.factors))))
             row0, jac0 = row0 + rows, offset
+        order = np.argsort(np.array(plane_codes, dtype=np.intp), kind="stable")
+        codes, code_offsets = np.array(plane_codes, dtype=np.intp)[order], np.array(plane_offsets, dtype=np.intp)[order]
         # each group's rows and Jacobian entries at once: a view's entry (row j, its column c + k of a key's
         # block) is the block's offset + (its first row in the stack + j) * dim + k
         error_rows, entries = [], []
-        for group, members in zip(self.groups, shapes):
+        for group, (_, members, _) in zip(self.groups, shapes):
             m = 2 * group.base.shape[2]
             error_rows.append(row_start[members][:, None] + np.arange(m)[None, :])
-            table = np.zeros((len(members), m, group.slots.size), dtype=np.intp)
+            entry = np.zeros((len(members), m, group.slots.size), dtype=np.intp)
             local = local_start[members][:, None, None] + np.arange(m)[None, :, None]  # (b, m, 1)
-            columns: dict[int, tuple[int, list[int]]] = {}  # first column -> (dim, each view's block offset)
-            for i in members:
-                f, at = view_factors[i], block_at[stack_of[i]]
-                for name, key in f.pose_keys.items():
-                    columns.setdefault(f.slots.pose_cols[name], (6, []))[1].append(at[key])
-                for p, key in f.mirror_keys.items():
-                    columns.setdefault(f.slots.mirror_cols[p], (3, []))[1].append(at[key])
-            for c, (dim, offsets) in columns.items():
-                table[:, :, c:c + dim] = (np.array(offsets, dtype=np.intp)[:, None, None] + local * dim
-                                          + np.arange(dim)[None, None, :])
-            entries.append(table)
+            stacks_of = stack_of[members]
+            columns: list[tuple[int, int, np.ndarray]] = []  # (first column, dim, each view's block offset)
+            for name, c in group.first.slots.pose_cols.items():
+                key = group.first.pose_keys[name]
+                columns.append((c, 6, np.array([at.get(key, -1) for at in block_at], dtype=np.intp)[stacks_of]))
+            ids = group.placement_ids
+            assert ids is not None
+            offset = 6 * len(group.first.slots.pose_cols)
+            for u in range(group.placement_count):  # (views.ViewSlots: in their order of first reflection)
+                at = np.searchsorted(codes, stacks_of * len(table.placements) + ids[:, u])
+                columns.append((offset + 3 * u, 3, code_offsets[at]))
+            for c, dim, offsets in columns:
+                entry[:, :, c:c + dim] = offsets[:, None, None] + local * dim + np.arange(dim)[None, None, :]
+            entries.append(entry)
         for g, group in enumerate(self.groups):
             group.error_rows, group.jacobian_entries = error_rows[g], entries[g]
         self._jac = np.zeros(jac0)
@@ -501,16 +503,24 @@ class ViewStackEvaluator:
         return error
 
 
-def stacked_view_factors(view_factors: Sequence[ViewFactor]) -> list[gtsam.CustomFactor]:
-    """The factors of ``view_factors``: those of fiducials alone stacked (:class:`ViewStackEvaluator`),
+def stacked_view_factors(view_factors: Sequence[ViewFactor] | ViewTable) -> list[gtsam.CustomFactor]:
+    """The factors of ``view_factors`` (or of a table's views, ``view_table.py``: the per-image factors made
+    only for the views not stacked here): those of fiducials alone stacked (:class:`ViewStackEvaluator`),
     those with reconstruction points stacked and compressed (``view_points.ViewPointStack``), those that
     estimate intrinsics their own ``ViewFactor`` s."""
     from mirror_fg.factors.view_points import ViewPointStack  # it stacks with this module's groups
 
-    stack = [f for f in view_factors if stackable(f)]
-    with_points = [f for f in view_factors if f.intrinsics is None and f.unique_landmarks]
-    factors = [f.factor() for f in view_factors if f.intrinsics is not None]
-    if stack:
+    if isinstance(view_factors, ViewTable):
+        table = view_factors
+        stack: Sequence[ViewFactor] | ViewTable = table.subset(lambda block: stackable(block.template))
+        others = table.subset(lambda block: not stackable(block.template)).factors()
+        with_points = [f for f in others if f.intrinsics is None and f.unique_landmarks]
+        factors = [f.factor() for f in others if f.intrinsics is not None]
+    else:
+        stack = [f for f in view_factors if stackable(f)]
+        with_points = [f for f in view_factors if f.intrinsics is None and f.unique_landmarks]
+        factors = [f.factor() for f in view_factors if f.intrinsics is not None]
+    if (stack.count if isinstance(stack, ViewTable) else stack):
         factors.extend(ViewStackEvaluator(stack, PLACEMENTS_PER_FACTOR).factors)
     if with_points:
         factors.extend(ViewPointStack(with_points).factors)

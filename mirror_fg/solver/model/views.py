@@ -25,10 +25,13 @@ from gtsam.symbol_shorthand import K, L, V, X
 from mirror_fg.core.camera import Camera
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_prior_factor, predict_pixels
-from mirror_fg.factors.view_eliminated import EliminatedViewStack, eliminable
-from mirror_fg.factors.view_stack import _Group, groups_by_shape, stacked_view_factors
-from mirror_fg.factors.views import ViewFactor, ViewSlots, plane_of, vector_of_plane
+from mirror_fg.factors.view_eliminated import EliminatedViewStack
+from mirror_fg.factors.view_stack import stacked_view_factors
+from mirror_fg.factors.view_table import ViewBlock, ViewTable, placement_indices, unique_rows
+from mirror_fg.factors.view_table import view_factor_like  # noqa: F401 (its home was here: importers keep working)
+from mirror_fg.factors.views import ViewFactor, plane_of, vector_of_plane
 from mirror_fg.data import Dataset, Image
+from mirror_fg.data.dataset import observation_array
 from mirror_fg.io.point_sigma import normalized_sigmas
 from mirror_fg.solver.model.graph import unknown_name
 from mirror_fg.solver.model.schur_marginals import marginals_of
@@ -55,13 +58,13 @@ def _camera_name(image: Image) -> str:
 
 def views_of(dataset: Dataset) -> list[ViewObs]:
     """Every image as a view, observations normalized with its own camera."""
-    views = []
-    for image in dataset.images:
-        normalized = dataset.normalized(image)
-        names = list(image.observations)
-        views.append(ViewObs(image.id, _camera_name(image), tuple(image.reflections), names,
-                             np.array([normalized[n] for n in names], dtype=float).reshape(-1, 2)))
-    return views
+    return [_view_of(image, dataset.normalized(image)) for image in dataset.images]
+
+
+def _view_of(image: Image, normalized: dict[str, np.ndarray]) -> ViewObs:
+    """An image as a view, given its normalized observations (``Dataset.normalized``: in file order)."""
+    names = list(normalized)
+    return ViewObs(image.id, _camera_name(image), tuple(image.reflections), names, observation_array(normalized, names))
 
 
 @dataclass
@@ -85,57 +88,104 @@ class ViewProblem:
                  intrinsics: dict[str, IntrinsicsModel] | None = None):
         self.dataset = dataset
         self.cameras = camera_names(dataset)
-        self.views = views_of(dataset)
+        images = dataset.images
+        # every image's normalized observations ({name: (2,)} in file order, dataset.normalized), camera and
+        # reflections: what views_of reads, the views themselves made when first asked (:attr:`views`)
+        self._normalized = [dataset.normalized(image) for image in images]
+        cameras = [_camera_name(image) for image in images]
         self.fixed: dict[str, tuple[np.ndarray, np.ndarray]] = (
             {} if dataset.fiducials else {self.cameras[0]: (np.eye(3), np.zeros(3))})
-        seen = [v.camera for v in self.views]
+        seen = set(cameras)
         self.pose_keys = {name: X(k) for k, name in enumerate(self.cameras) if name not in self.fixed and name in seen}
-        self.placements = sorted({p for v in self.views for p in v.reflections})
-        order = {name: k for k, name in enumerate(self.cameras)}
+        self.placements = sorted({p for image in images for p in image.reflections})
         # each placement's owner: the first camera (in ``cameras`` order) with a view through it; one pass
         # over the views (a pass per placement was quadratic: 1.7 s of 3,000 tree images)
-        self.owners: dict[Placement, str] = {}
-        for v in self.views:
-            for p in v.reflections:
-                if p not in self.owners or order[v.camera] < order[self.owners[p]]:
-                    self.owners[p] = v.camera
-        self.owners = {p: self.owners[p] for p in self.placements}
+        if len(seen) == 1:
+            self.owners: dict[Placement, str] = dict.fromkeys(self.placements, cameras[0])
+        else:
+            order = {name: k for k, name in enumerate(self.cameras)}
+            owners: dict[Placement, str] = {}
+            for image, camera in zip(images, cameras):
+                for p in image.reflections:
+                    if p not in owners or order[camera] < order[owners[p]]:
+                        owners[p] = camera
+            self.owners = {p: owners[p] for p in self.placements}
         self.mirror_keys = {p: V(i) for i, p in enumerate(self.placements)}
         self.point_names = dataset.reconstruction_point_names
         self.point_keys = {name: L(j) for j, name in enumerate(self.point_names)}
         self.robust = robust
         self.intrinsics = dict(intrinsics or {})
         self.intrinsics_keys = {name: K(k) for k, name in enumerate(self.cameras) if name in self.intrinsics}
-        self.factors: list[ViewFactor] = []
-        # the sigmas, base points and point keys of each (camera, points seen): the same for most images
-        known: dict[tuple, tuple[np.ndarray, np.ndarray, list[int]]] = {}
-        templates: dict[tuple, ViewFactor] = {}  # the first factor of each shape (view_factor_like)
-        owners = self.owners
-        for image, view in zip(dataset.images, self.views):
-            pixel = view.camera in self.intrinsics
-            shape = (view.camera, pixel, tuple(view.names))
-            observed = (np.array([image.observations[n] for n in view.names], dtype=float).reshape(-1, 2).T if pixel
-                        else view.normalized.T)
-            placements = list(dict.fromkeys(view.reflections))
-            local = (tuple(range(len(placements))) if len(placements) == len(view.reflections)
-                     else tuple(map(placements.index, view.reflections)))
-            like = (shape, tuple([owners[p] for p in view.reflections]), local)
-            template = templates.get(like)
-            if template is not None:
-                self.factors.append(view_factor_like(template, view.reflections, placements, self.mirror_keys,
-                                                     owners, observed))
-                continue
-            if shape not in known:
-                known[shape] = self._points_of(dataset, None if pixel else dataset.camera_of(image), view.names)
-            sigmas, base, landmarks = known[shape]
-            model = (self.intrinsics[view.camera], self.intrinsics_keys[view.camera]) if pixel else None
-            template = templates[like] = ViewFactor(view.camera, view.reflections, self.pose_keys, self.fixed,
-                                                    self.mirror_keys, owners, base, landmarks, observed, sigmas,
-                                                    robust, intrinsics=model)
-            self.factors.append(template)
+        self.table = ViewTable(self._blocks(cameras), self.placements, self.mirror_keys, self.owners, len(images))
+        self._factors: list[ViewFactor] | None = None
+        self._views: list[ViewObs] | None = None
         self.constraints = 1 if dataset.scale is not None else 0
         #: Number of residual rows (2 per measurement).
-        self.size = sum(2 * len(v.names) for v in self.views)
+        self.size = sum(2 * len(image.observations) for image in images)
+
+    def _blocks(self, cameras: list[str]) -> list[ViewBlock]:
+        """The views as blocks of one shape (factors/view_table.py: one camera, the same points seen, owner at
+        each reflection and pattern of repeated placements), grouped with array operations: the first view of
+        each block gets its ViewFactor (the sigmas, base points and point keys of each (camera, points seen)
+        read once), the others only their placements and observations (a ViewFactor, or a key of Python
+        objects, per image was most of building a problem of thousands of images)."""
+        images, dataset = self.dataset.images, self.dataset
+        camera_index = {name: k for k, name in enumerate(self.cameras)}
+        seen: dict[tuple, int] = {}
+        shape = np.array([[camera_index[c] for c in cameras],
+                          [seen.setdefault(tuple(image.observations), len(seen)) for image in images]],
+                         dtype=np.intp).reshape(2, -1).T  # (camera, points seen) of each view
+        lengths = np.array([len(image.reflections) for image in images], dtype=np.intp)
+        owner_index = np.array([camera_index[self.owners[p]] for p in self.placements], dtype=np.intp)
+        known: dict[tuple, tuple[np.ndarray, np.ndarray, list[int]]] = {}
+        blocks = []
+        for k in np.unique(lengths).tolist():
+            rows = np.flatnonzero(lengths == k)
+            ids = placement_indices(self.placements, [images[i].reflections for i in rows])  # (m, k)
+            # each reflection's first reflection through its placement, whether it is that first one, and
+            # its placement's place among the view's placements (in order of first reflection)
+            first = (ids[:, :, None] == ids[:, None, :]).argmax(axis=2) if k else ids
+            new = first == np.arange(k)
+            local = np.take_along_axis(np.cumsum(new, axis=1) - 1, first, axis=1)
+            key = np.concatenate([shape[rows], owner_index[ids], local], axis=1)
+            which = unique_rows(key)[1]
+            order = np.argsort(which, kind="stable")  # each block's views in file order
+            for part in np.split(order, np.cumsum(np.bincount(which))[:-1]):
+                members = rows[part]
+                i, camera = int(members[0]), cameras[int(members[0])]
+                pixel = camera in self.intrinsics
+                names = list(images[i].observations)
+                if (camera, *names) not in known:
+                    camera_model = None if pixel else dataset.camera_of(images[i])
+                    known[(camera, *names)] = self._points_of(dataset, camera_model, names)
+                sigmas, base, landmarks = known[(camera, *names)]
+                views = members.tolist()
+                if pixel:  # pixels, as given (factors/intrinsics.py)
+                    observed = np.array([list(images[j].observations.values()) for j in views], dtype=float)
+                else:  # (in file order: dataset.normalized; each a (2,) array)
+                    observed = np.concatenate([z for j in views for z in self._normalized[j].values()])
+                observed_array = observed.astype(float, copy=False).reshape(len(views), -1, 2).transpose(0, 2, 1)
+                model = (self.intrinsics[camera], self.intrinsics_keys[camera]) if pixel else None
+                template = ViewFactor(camera, tuple(images[i].reflections), self.pose_keys, self.fixed,
+                                      self.mirror_keys, self.owners, base, landmarks, observed_array[0], sigmas,
+                                      self.robust, intrinsics=model)
+                blocks.append(ViewBlock(template, members, ids[part][:, new[part[0]]], observed_array))
+        return blocks
+
+    @property
+    def views(self) -> list[ViewObs]:
+        """Every image as a view (:func:`views_of`), made when first asked."""
+        if self._views is None:
+            self._views = [_view_of(image, normalized)
+                           for image, normalized in zip(self.dataset.images, self._normalized)]
+        return self._views
+
+    @property
+    def factors(self) -> list[ViewFactor]:
+        """Every image's ``ViewFactor``, in file order (made when first asked: ``ViewTable.factors``)."""
+        if self._factors is None:
+            self._factors = self.table.factors()
+        return self._factors
 
     def _points_of(self, dataset: Dataset, camera: Camera | None, names: list[str]):
         return points_of(dataset, camera, names, self.point_keys)
@@ -198,7 +248,7 @@ class ViewProblem:
         ``factors/view_stack.py``; else one ``ViewFactor`` per image), the intrinsics priors and the
         scale prior."""
         graph = gtsam.NonlinearFactorGraph()
-        for factor in (stacked_view_factors(self.factors) if stacked else [f.factor() for f in self.factors]):
+        for factor in (stacked_view_factors(self.table) if stacked else [f.factor() for f in self.factors]):
             graph.add(factor)
         self._priors(graph)
         return graph
@@ -209,15 +259,18 @@ class ViewProblem:
         inside it (``factors/view_eliminated.py``; ``eliminated`` that evaluator, its placements not in
         ``values``), else :meth:`graph` and :meth:`values` (``eliminated`` None)."""
         if eliminate and self.dataset.scale is None and not self.intrinsics and self.robust is None:
-            views = [f for f in self.factors if eliminable(f)]
-            keep = {p for f in self.factors if not eliminable(f) for p in f.mirror_keys}
-            evaluator = EliminatedViewStack(views, estimate.mirror_vectors, keep) if views else None
+            views = self.table.subset(lambda block: block.eliminable)
+            others = [block for block in self.table.blocks if not block.eliminable]
+            keep = {self.placements[u] for block in others for u in np.unique(block.placements).tolist()}
+            evaluator = EliminatedViewStack(views, estimate.mirror_vectors, keep) if views.count else None
             if evaluator is not None and evaluator.eliminated:
                 graph = gtsam.NonlinearFactorGraph()
                 for factor in evaluator.factors:
                     graph.add(factor)
-                for factor in stacked_view_factors([f for f in self.factors if not eliminable(f)]):
-                    graph.add(factor)
+                evaluator.factors = []  # the factors hold the evaluator: no cycle through C++ (freed with the graph)
+                if others:
+                    for factor in stacked_view_factors(self.table.subset(lambda block: not block.eliminable)):
+                        graph.add(factor)
                 self._priors(graph)
                 values = self.values(estimate, skip=set(evaluator.eliminated))
                 return graph, values, evaluator
@@ -255,11 +308,15 @@ class ViewProblem:
         whitened: list[np.ndarray] = []
         labels: list[tuple[str, str]] = []
         predicted = self._predictions(estimate)
-        for image, view, factor, z in zip(self.dataset.images, self.views, self.factors, predicted):
+        views: list[tuple[ViewFactor, np.ndarray]] = [None] * len(self.views)  # type: ignore[list-item]
+        for block in self.table.blocks:  # each view's shape and observations
+            for row, i in enumerate(block.members.tolist()):
+                views[i] = (block.template, block.observed[row])
+        for image, view, (factor, observed), z in zip(self.dataset.images, self.views, views, predicted):
             camera: Camera | None = self.dataset.camera_of(image)
             if factor.intrinsics is not None:  # pixels through the estimated intrinsics
                 assert estimate.theta is not None
-                residual = predict_pixels(estimate.theta[view.camera], z) - factor.observed.T
+                residual = predict_pixels(estimate.theta[view.camera], z) - observed.T
                 whitened.append(np.linalg.norm(residual / factor.sigmas.T, axis=1))
             else:
                 whitened.append(np.linalg.norm((z - view.normalized) / factor.sigmas.T, axis=1))
@@ -276,11 +333,11 @@ class ViewProblem:
         """Every view's predicted normalized coordinates (N, 2) at ``estimate`` (``views.view_model``, eqs. 2, 3,
         9), the views of one shape at once (``view_stack._Group``)."""
         values = {self.point_keys[n]: np.asarray(x, float) for n, x in estimate.points.items() if n in self.point_keys}
-        predicted: list[np.ndarray] = [np.zeros((0, 2))] * len(self.factors)
-        for members in groups_by_shape(self.factors):
-            group = _Group([self.factors[i] for i in members])
+        predicted: list[np.ndarray] = [np.zeros((0, 2))] * self.table.count
+        for first, members, parts in self.table.groups():
+            group = self.table.group_of(first, parts)
             z = group.model(estimate.poses, estimate.mirror_vectors, {}, False, base=group.points(values))[0]
-            for row, i in enumerate(members):
+            for row, i in enumerate(members.tolist()):
                 predicted[i] = z[row].T
         return predicted
 
@@ -332,28 +389,6 @@ class ViewProblem:
             else:
                 intrinsics[name] = (marginals.marginalCovariance(key), None)
         return poses, joint, mirrors, points, intrinsics
-
-
-def view_factor_like(template: ViewFactor, reflections: tuple, placements: list, mirror_keys: dict,
-                     owners: dict, observed: np.ndarray) -> ViewFactor:
-    """The ``ViewFactor`` of a view of the same shape as ``template`` (camera, owners at each reflection,
-    pattern of repeated placements, points seen, intrinsics, kernel) through other placements: its own
-    reflections, owners, columns, keys and observations, the rest shared with the template (read only):
-    ``ViewFactor.__init__`` per image was half of building a problem of thousands of images.
-    ``placements``: the reflections' placements in order of first reflection."""
-    factor = object.__new__(type(template))  # a shallow copy (copy.copy's generic protocol costs more here)
-    factor.__dict__.update(template.__dict__)
-    factor.reflections = tuple(reflections)
-    factor.owners = {p: owners[p] for p in factor.reflections}
-    slots = template.slots
-    offset = 6 * len(slots.pose_cols)
-    factor.slots = ViewSlots(slots.pose_cols, {p: offset + 3 * k for k, p in enumerate(placements)}, slots.size)
-    factor.mirror_keys = {p: mirror_keys[p] for p in placements}
-    factor.base_points = template.base_points.copy()
-    factor.observed = np.asarray(observed, dtype=float)
-    factor.keys = [*template.pose_keys.values(), *factor.mirror_keys.values(), *template.unique_landmarks,
-                   *([template.intrinsics[1]] if template.intrinsics is not None else [])]
-    return factor
 
 
 def scale_prior(dataset: Dataset, mirror_keys: dict, point_keys: dict) -> gtsam.NonlinearFactorGraph:
