@@ -29,10 +29,13 @@ checks cost, ``J^T J`` and ``J^T e`` against the per-view factors, and whole cal
 """
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Sequence
 
 import gtsam
 import numpy as np
+from scipy.linalg import solve_triangular
+from scipy.linalg.lapack import dpstrf
 
 from mirror_fg.factors.robust import robust_row_scales
 from mirror_fg.factors.schur import one_blas_thread, row_products
@@ -51,14 +54,15 @@ PLACEMENTS_PER_FACTOR = 32
 
 class ViewPointStack:
     """Views with reconstruction points (intrinsics known) in a few compressed factors (module docstring);
-    ``factors``: one ``gtsam.CustomFactor`` per set of placements (hand them to a graph)."""
+    ``factors``: the ``gtsam.CustomFactor`` objects (hand them to a graph): each stack's own placements'
+    rows, then the shared rows of one or a few groups of stacks."""
 
     def __init__(self, view_factors: Sequence[ViewFactor], placements_per_factor: int = PLACEMENTS_PER_FACTOR):
         self.fixed, self.pose_keys, self.mirror_keys = collected_keys(view_factors)
         self.point_keys = list(dict.fromkeys(k for f in view_factors for k in f.unique_landmarks))
         self._pose_key_set, self._plane_key_set = set(self.pose_keys.values()), set(self.mirror_keys.values())
         stack_of_view = np.zeros(len(view_factors), dtype=np.intp)
-        self._keys: list[list[int]] = []
+        self._stack_keys: list[list[int]] = []
         self._widths: list[int] = []
         self._offsets: list[int] = []  # where each stack's augmented normal (d+1)^2 starts in the buffer
         self._columns: list[dict[int, int]] = []  # key -> first column, per stack
@@ -71,8 +75,8 @@ class ViewPointStack:
             columns, width = {}, 0
             for key in keys:
                 columns[key] = width
-                width += 6 if key in self.pose_keys.values() else 3
-            self._keys.append(keys)
+                width += self._dim(key)
+            self._stack_keys.append(keys)
             self._columns.append(columns)
             self._widths.append(width)
             self._offsets.append(size)
@@ -84,14 +88,75 @@ class ViewPointStack:
         self.groups = [_Group([view_factors[i] for i in members]) for members in shapes]
         self._members = [np.asarray(members, dtype=np.intp) for members in shapes]
         self._indices = np.concatenate([self._scatter(g, view_factors) for g in range(len(self.groups))])
-        self.factors = [gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(width + 1), keys, self._error_function(s))
-                        for s, (keys, width) in enumerate(zip(self._keys, self._widths))]
+        self._split_stacks()
+        self.factors = [gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows), keys, self._error_function(f))
+                        for f, (keys, rows) in enumerate(zip(self._keys, self._rows))]
         self._valid = False
         self._linearized = False
         self._state: dict[int, bytes] = {}
         self._cost = np.zeros(len(self._keys))
         self._systems: list[tuple[np.ndarray, list[np.ndarray]]] = []
         self.batches = 0
+
+    def _dim(self, key: int) -> int:
+        return 6 if key in self._pose_key_set else 3
+
+    def _split_stacks(self) -> None:
+        """Each stack's own placements (seen by its views only, the paper's last mirror) and the rest: one
+        factor of the own placements' rows per stack that has both, and the rest's Schur complements summed
+        into shared factors, stacks merged while no wider than the widest stack (module docstring)."""
+        seen = Counter(k for keys in self._stack_keys for k in keys if k in self._plane_key_set)
+        self._own: list[np.ndarray] = []  # per stack: its own placements' columns
+        self._rest: list[np.ndarray] = []  # the other columns and e (last)
+        self._keys: list[list[int]] = []  # per factor: its keys
+        self._rows: list[int] = []  # per factor: its rows
+        self._own_factor: list[int] = []  # per stack: its factor of own rows (-1: none)
+        rest_keys = []
+        for keys, columns, width in zip(self._stack_keys, self._columns, self._widths):
+            own = [k for k in keys if k in self._plane_key_set and seen[k] == 1]
+            rest = [k for k in keys if k not in own]
+            if not rest:  # nothing shared: the stack is a factor of its own
+                own, rest = [], keys
+            self._own.append(np.array([columns[k] + c for k in own for c in range(3)], dtype=np.intp))
+            self._rest.append(np.array([columns[k] + c for k in rest for c in range(self._dim(k))] + [width],
+                                       dtype=np.intp))
+            if own:
+                self._own_factor.append(len(self._keys))
+                self._keys.append(own + rest)
+                self._rows.append(3 * len(own))
+            else:
+                self._own_factor.append(-1)
+            rest_keys.append(rest)
+        limit = max(self._widths, default=0)
+        merged: list[tuple[list[int], list[int]]] = []  # (stacks, keys) of each shared factor
+        for s, rest in enumerate(rest_keys):
+            if merged:
+                union = list(dict.fromkeys(merged[-1][1] + rest))
+                if sum(map(self._dim, union)) <= limit:
+                    merged[-1] = (merged[-1][0] + [s], union)
+                    continue
+            merged.append(([s], list(rest)))
+        kind = {**{k: 0 for k in self._pose_key_set}, **{k: 1 for k in self._plane_key_set}}
+        self._shared_factor = np.zeros(len(self._stack_keys), dtype=np.intp)  # per stack: its shared factor
+        self._positions: list[np.ndarray] = [np.zeros(0, dtype=np.intp)] * len(self._stack_keys)
+        self._shared_widths: list[int] = []
+        for stacks, union in merged:
+            union.sort(key=lambda k: kind.get(k, 2))  # poses, placements, points
+            at, width = {}, 0
+            for key in union:
+                at[key] = width
+                width += self._dim(key)
+            for s in stacks:
+                self._shared_factor[s] = len(self._shared_widths)
+                self._positions[s] = np.array([at[k] + c for k in rest_keys[s] for c in range(self._dim(k))] + [width],
+                                              dtype=np.intp)
+            self._shared_widths.append(width)
+            self._keys.append(union)
+            self._rows.append(width + 1)
+        self._first_shared = len(self._keys) - len(merged)
+        # a stack's cost: its own rows' factor's error, else its shared factor's (their sum is the graph's)
+        self._cost_factor = np.array([f if f >= 0 else self._first_shared + g
+                                      for f, g in zip(self._own_factor, self._shared_factor)], dtype=np.intp)
 
     # --- layout -----------------------------------------------------------------------------------
 
@@ -161,7 +226,7 @@ class ViewPointStack:
         for key in self.point_keys:
             points[key] = np.asarray(values.atPoint3(key), dtype=float)
             state[key] = points[key].tobytes()
-        cost = np.zeros(len(self._keys))
+        stack_cost = np.zeros(len(self._stack_keys))
         weights = []
         for group, members in zip(self.groups, self._members):
             z, dz, dzB = group.model(poses, vectors, plane_jacobians, jacobians, group.points(points))
@@ -177,35 +242,51 @@ class ViewPointStack:
                 view_cost = np.einsum("bn,bn->b", norms * loss_scale, norms * loss_scale)
                 lin = residual * sqrt_w[:, None]
                 scale = sqrt_w
-            cost += np.bincount(self._stack_of_view[members], view_cost, minlength=len(cost))
+            stack_cost += np.bincount(self._stack_of_view[members], view_cost, minlength=len(stack_cost))
             if jacobians:
                 weights += _products(group, lin, dz, dzB, scale)
-        self._cost = cost
+        self._cost = np.bincount(self._cost_factor, stack_cost, minlength=len(self._keys))
         self._state, self._valid, self._linearized = state, True, jacobians
         if not jacobians:
             return
         normal = np.bincount(self._indices, np.concatenate(weights), minlength=self._size)
-        systems = []
+        systems: list = [None] * len(self._keys)
+        shared = [np.zeros((w + 1, w + 1)) for w in self._shared_widths]
         with one_blas_thread():
-            for base, width, keys in zip(self._offsets, self._widths, self._keys):
-                R = _rows_of(normal[base:base + (width + 1) ** 2].reshape(width + 1, width + 1))
-                blocks, at = [], 0
-                for key in keys:
-                    dim = 6 if key in self._pose_key_set else 3
-                    blocks.append(np.asfortranarray(R[:, at:at + dim]))
-                    at += dim
-                systems.append((np.ascontiguousarray(R[:, width]), blocks))
+            for s, (base, width) in enumerate(zip(self._offsets, self._widths)):
+                N = normal[base:base + (width + 1) ** 2].reshape(width + 1, width + 1)
+                own, rest = self._own[s], self._rest[s]
+                N_rest = N[np.ix_(rest, rest)]
+                if len(own):  # eq. (23)'s rows of the own placements, and the rest's Schur complement
+                    rows = _own_rows(N[np.ix_(own, own)], N[np.ix_(own, rest)])
+                    N_rest -= rows[:, len(own):].T @ rows[:, len(own):]
+                    systems[self._own_factor[s]] = _split(rows, self._keys[self._own_factor[s]], self._dim)
+                at = self._positions[s]
+                shared[self._shared_factor[s]][np.ix_(at, at)] += N_rest
+            for g, N in enumerate(shared):
+                f = self._first_shared + g
+                systems[f] = _split(_rows_of(N), self._keys[f], self._dim)
         self._systems = systems
 
-    def _error_function(self, s: int):
-        width = self._widths[s]
+    def _error_function(self, f: int):
+        rows = self._rows[f]
 
         def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list[np.ndarray] | None) -> np.ndarray:
-            if not self._matches(s, values) or (H is not None and not self._linearized):
+            if not self._matches(f, values) or (H is not None and not self._linearized):
                 self._compute(values, H is not None)
-            return compressed_rows(self._cost[s], width, None if H is None else self._systems[s], H)
+            return compressed_rows(self._cost[f], rows - 1, None if H is None else self._systems[f], H)
 
         return error
+
+
+def _split(rows: np.ndarray, keys: list[int], dim) -> tuple[np.ndarray, list[np.ndarray]]:
+    """A factor's answer from its rows ``[R | r]``: ``r`` and ``R``'s block of each key, in ``keys``' order."""
+    blocks, at = [], 0
+    for key in keys:
+        d = dim(key)
+        blocks.append(np.asfortranarray(rows[:, at:at + d]))
+        at += d
+    return np.ascontiguousarray(rows[:, at]), blocks
 
 
 def compressed_rows(cost: float, width: int, system: tuple | None, H: list[np.ndarray] | None) -> np.ndarray:
@@ -242,16 +323,42 @@ def _products(group: _Group, e: np.ndarray, dz: np.ndarray, dzB: np.ndarray, sca
     return out
 
 
+def _pivoted(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """LAPACK's Cholesky factorisation with complete pivoting of a positive semidefinite ``normal``:
+    ``(U, piv, rank)`` with ``normal[piv][:, piv] = U[:rank]^T U[:rank]`` to rounding (the pivots below
+    ``n eps max(diag)`` are the rounding of a singular matrix's zeros, left out)."""
+    U, piv, rank, info = dpstrf(normal, lower=0)
+    if info < 0:
+        raise ValueError(f"dpstrf: argument {-info} invalid")
+    return np.triu(U[:rank]), piv - 1, int(rank)
+
+
 def _rows_of(normal: np.ndarray) -> np.ndarray:
     """``[R | r]`` (d+1, d+1), Fortran-ordered, with ``[R | r]^T [R | r]`` the augmented normal matrix
-    ``[J | e]^T [J | e]`` (positive semidefinite): its Cholesky factor where it is positive definite, else
-    ``sqrt(L) V^T`` of its eigendecomposition (negative rounding clipped): exact either way, without
-    ``schur.compressed_normal``'s shift."""
-    try:
-        lower = np.linalg.cholesky(normal)
-    except np.linalg.LinAlgError:
-        lower = None
-    if lower is not None and np.all(np.isfinite(lower)):
-        return np.asfortranarray(lower.T)
-    eigenvalues, V = np.linalg.eigh(normal)
-    return np.asfortranarray(np.sqrt(np.clip(eigenvalues, 0.0, None))[:, None] * V.T)
+    ``[J | e]^T [J | e]`` (positive semidefinite): its pivoted Cholesky factor (:func:`_pivoted`), the
+    rows past its rank zero: exact where a factor alone leaves some unknowns free (a point seen along one
+    ray), without ``schur.compressed_normal``'s shift. Not finite: NaN rows."""
+    n = len(normal)
+    R = np.zeros((n, n), order="F")
+    if not np.all(np.isfinite(normal)):
+        R[:] = np.nan
+        return R
+    U, piv, rank = _pivoted(normal)
+    R[:rank, piv] = U
+    return R
+
+
+def _own_rows(N_own: np.ndarray, N_cross: np.ndarray) -> np.ndarray:
+    """The rows ``[R_o | R_c]`` (o, o + c) of a stack's own placements (``o`` columns) over them and the rest
+    (``c`` columns, ``e`` last): ``R_o^T R_o = N_own``, ``R_o^T R_c = N_cross``, so that with the rest's rows
+    ``N_rest - R_c^T R_c`` (its Schur complement) the stack's augmented normal matrix is whole. Pivoted
+    (:func:`_pivoted`): rows past ``N_own``'s rank are zero (a placement its views leave partly free)."""
+    o = len(N_own)
+    rows = np.zeros((o, o + N_cross.shape[1]))
+    if not (np.all(np.isfinite(N_own)) and np.all(np.isfinite(N_cross))):
+        rows[:] = np.nan
+        return rows
+    U, piv, rank = _pivoted(N_own)
+    rows[:rank, piv] = U
+    rows[:rank, o:] = solve_triangular(U[:, :rank], N_cross[piv[:rank]], trans="T")
+    return rows

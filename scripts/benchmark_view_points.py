@@ -1,0 +1,82 @@
+#!/usr/bin/env python
+"""The LM stage of ``calibrate()`` on the paper's tree with reconstruction points, on the tree's factors
+(``factors/eliminated.py``) and on the general view model (``lm.VIEW_MODEL``: ``factors/view_points.py``),
+alternating in one process (the same contention for both), and the two results compared.
+
+    python scripts/benchmark_view_points.py [--repeats 7] [--images 200] [--points 60]
+
+Problem: scripts/benchmark.py's case "200img+60pts" (simulator, Sect. 7: two mirrors, mirror 1 in three
+placements, 3 fiducials, 1 px). Printed: each run's ``timings['optimize']`` (seconds) per model, their
+medians and the median of the per-pair ratios (view / tree), the iterations and final costs, and the largest
+relative differences of the estimates (pose, mirror vectors, points) and of the covariances (pose, mirrors,
+points) between the models.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+COMMON = {"pixel_sigma": 1.0, "mirror_distance": 0.5, "tilt_deg": 30.0, "seed": 0, "num_mirrors": 2, "num_fiducials": 3}
+
+
+def _relative(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest difference relative to the largest entry of ``b``."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return float(np.abs(a - b).max() / max(np.abs(b).max(), 1e-300))
+
+
+def compare(view, tree) -> dict[str, float]:
+    """Largest relative differences of the view model's calibration from the tree's."""
+    out = {"pose": max(_relative(view.R_cam_base, tree.R_cam_base), _relative(view.t_cam_base, tree.t_cam_base)),
+           "mirrors": max(_relative(view.mirror_vectors[p], v) for p, v in tree.mirror_vectors.items()),
+           "points": max((_relative(view.points[n], x) for n, x in tree.points.items()), default=0.0),
+           "pose covariance": _relative(view.covariance, tree.covariance),
+           "mirror covariances": max(_relative(view.mirror_covariances[p], c) for p, c in tree.mirror_covariances.items()),
+           "point covariances": max((_relative(view.point_covariances[n], c) for n, c in tree.point_covariances.items()),
+                                    default=0.0)}
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--images", type=int, default=200)
+    parser.add_argument("--points", type=int, default=60)
+    args = parser.parse_args(argv)
+
+    import mirror_fg.solver.model.lm as lm
+    from mirror_fg import calibrate, initial_estimate
+    from mirror_fg.simulate.tree import simulate_base_case
+
+    dataset, _ = simulate_base_case(num_images=args.images, num_points=args.points, mirror1_placements=3, **COMMON)
+    initial = initial_estimate(dataset)
+    times: dict[bool, list[float]] = {False: [], True: []}
+    results = {}
+    for _ in range(args.repeats + 1):  # the first pair warms up (imports, caches), not counted
+        for view_model in (False, True):
+            lm.VIEW_MODEL = view_model
+            try:
+                cal = calibrate(dataset, initial=initial)
+            finally:
+                lm.VIEW_MODEL = False
+            times[view_model].append(cal.timings["optimize"])
+            results[view_model] = cal
+    tree, view = np.array(times[False][1:]), np.array(times[True][1:])
+    print(f"{args.images} images + {args.points} points, {args.repeats} runs each, alternating; load {os.getloadavg()[0]:.2f}")
+    print("tree  optimize (s): " + " ".join(f"{t:.3f}" for t in tree) + f"   median {np.median(tree):.3f}")
+    print("view  optimize (s): " + " ".join(f"{t:.3f}" for t in view) + f"   median {np.median(view):.3f}")
+    print(f"view / tree: median of pairs {np.median(view / tree):.2f}x")
+    for name, cal in (("tree", results[False]), ("view", results[True])):
+        print(f"{name}: {cal.iterations} iterations, final cost {cal.final_error:.9f}")
+    for name, value in compare(results[True], results[False]).items():
+        print(f"largest relative difference, {name}: {value:.1e}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
