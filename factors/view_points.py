@@ -88,6 +88,10 @@ class ViewPointStack:
         self.groups = [_Group([view_factors[i] for i in members]) for members in shapes]
         self._members = [np.asarray(members, dtype=np.intp) for members in shapes]
         self._indices = np.concatenate([self._scatter(g, view_factors) for g in range(len(self.groups))])
+        row = {key: j for j, key in enumerate(self.point_keys)}  # each point's row in the points' array
+        self._seen = [group.landmarks >= 0 for group in self.groups]
+        self._point_rows = [np.array([row[int(k)] for k in group.landmarks[where]], dtype=np.intp)
+                            for group, where in zip(self.groups, self._seen)]
         self._split_stacks()
         self.factors = [gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows), keys, self._error_function(f))
                         for f, (keys, rows) in enumerate(zip(self._keys, self._rows))]
@@ -222,14 +226,16 @@ class ViewPointStack:
         self.batches += 1
         poses, vectors, plane_jacobians, state = read_poses_and_planes(values, self.fixed, self.pose_keys,
                                                                        self.mirror_keys)
-        points = {}
-        for key in self.point_keys:
-            points[key] = np.asarray(values.atPoint3(key), dtype=float)
-            state[key] = points[key].tobytes()
+        points = np.zeros((len(self.point_keys), 3))
+        for j, key in enumerate(self.point_keys):
+            points[j] = values.atPoint3(key)
+            state[key] = points[j].tobytes()
         stack_cost = np.zeros(len(self._stack_keys))
         weights = []
-        for group, members in zip(self.groups, self._members):
-            z, dz, dzB = group.model(poses, vectors, plane_jacobians, jacobians, group.points(points))
+        for group, members, seen, rows in zip(self.groups, self._members, self._seen, self._point_rows):
+            base = group.base.transpose(0, 2, 1).copy()  # (b, N, 3): as _Group.points, one gather
+            base[seen] = points[rows]
+            z, dz, dzB = group.model(poses, vectors, plane_jacobians, jacobians, base.transpose(0, 2, 1))
             residual = (z - group.observed) / group.sigmas  # (b, 2, N) whitened, h - z
             if group.robust is None:
                 lin = residual
@@ -354,7 +360,7 @@ def _own_rows(N_own: np.ndarray, N_cross: np.ndarray) -> np.ndarray:
     ``N_rest - R_c^T R_c`` (its Schur complement) the stack's augmented normal matrix is whole. Pivoted
     (:func:`_pivoted`): rows past ``N_own``'s rank are zero (a placement its views leave partly free)."""
     o = len(N_own)
-    rows = np.zeros((o, o + N_cross.shape[1]))
+    rows = np.zeros((o, o + N_cross.shape[1]), order="F")  # (its blocks of columns: Fortran-ordered views)
     if not (np.all(np.isfinite(N_own)) and np.all(np.isfinite(N_cross))):
         rows[:] = np.nan
         return rows
