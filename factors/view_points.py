@@ -165,9 +165,11 @@ class ViewPointStack:
     # --- layout -----------------------------------------------------------------------------------
 
     def _scatter(self, g: int, view_factors: Sequence[ViewFactor]) -> np.ndarray:
-        """Group ``g``'s entries of the normal-equation buffer, in the order :meth:`_weights` gives its
-        products: ``A^T A`` (b, P, P), ``A^T e`` and ``e^T A`` (b, P), ``e^T e`` (b,), then per point
-        measurement ``A^T L``, ``L^T A`` (m, P, 3), ``L^T L`` (m, 3, 3), ``L^T e``, ``e^T L`` (m, 3)."""
+        """Group ``g``'s entries of the normal-equation buffer, in the order :func:`_products` gives them:
+        ``A^T A`` (b, P, P), ``A^T e`` (b, P), ``e^T e`` (b,), then per point measurement ``A^T L`` (m, P, 3),
+        ``L^T L`` (m, 3, 3), ``L^T e`` (m, 3). The upper triangle only where a block's transpose is below the
+        diagonal (a point's columns follow the poses' and placements', ``e`` is last): :meth:`_compute`
+        reads its mirror image (40% fewer entries to sum)."""
         group, members = self.groups[g], self._members[g]
         P = group.slots.size
         colmaps, ends, bases = [], [], []
@@ -191,7 +193,6 @@ class ViewPointStack:
         parts = [
             (base[:, :, None] + colmap[:, :, None] * stride[:, :, None] + colmap[:, None, :]).ravel(),
             (base + colmap * stride + d).ravel(),
-            (base + d * stride + colmap).ravel(),
             (base + d * stride + d).ravel(),
         ]
         where = group.landmarks >= 0
@@ -201,10 +202,8 @@ class ViewPointStack:
         sm = dm + 1
         parts += [
             (bm[:, :, None] + cm[:, :, None] * sm[:, :, None] + lcol[:, None, :]).ravel(),
-            (bm[:, :, None] + lcol[:, None, :] * sm[:, :, None] + cm[:, :, None]).ravel(),  # L^T A, as A^T L's layout
             (bm[:, :, None] + lcol[:, :, None] * sm[:, :, None] + lcol[:, None, :]).ravel(),
             (bm + lcol * sm + dm).ravel(),
-            (bm + dm * sm + lcol).ravel(),
         ]
         return np.concatenate(parts)
 
@@ -263,6 +262,7 @@ class ViewPointStack:
                 N = normal[base:base + (width + 1) ** 2].reshape(width + 1, width + 1)
                 own, rest = self._own[s], self._rest[s]
                 N_rest = N[np.ix_(rest, rest)]
+                N_rest = np.triu(N_rest) + np.triu(N_rest, 1).T  # (the buffer holds its upper triangle)
                 if len(own):  # eq. (23)'s rows of the own placements, and the rest's Schur complement
                     rows = _own_rows(N[np.ix_(own, own)], N[np.ix_(own, rest)])
                     N_rest -= rows[:, len(own):].T @ rows[:, len(own):]
@@ -317,7 +317,7 @@ def _products(group: _Group, e: np.ndarray, dz: np.ndarray, dzB: np.ndarray, sca
     AA = np.einsum("bkpn,bkqn->bpq", A, A)
     Ae = np.einsum("bkpn,bkn->bp", A, e)
     ee = np.einsum("bkn,bkn->b", e, e)
-    out = [AA.ravel(), Ae.ravel(), Ae.ravel(), ee]
+    out = [AA.ravel(), Ae.ravel(), ee]
     where = group.landmarks >= 0
     if where.any():
         L = (dzB * w[:, :, None, :]).transpose(0, 3, 1, 2)[where]  # (m, 2, 3)
@@ -325,7 +325,7 @@ def _products(group: _Group, e: np.ndarray, dz: np.ndarray, dzB: np.ndarray, sca
         em = e.transpose(0, 2, 1)[where]  # (m, 2)
         AL = row_products(Am, L)  # (m, P, 3)
         Le = np.einsum("mk,mkq->mq", em, L)
-        out += [AL.ravel(), AL.ravel(), row_products(L, L).ravel(), Le.ravel(), Le.ravel()]
+        out += [AL.ravel(), row_products(L, L).ravel(), Le.ravel()]
     return out
 
 
