@@ -100,7 +100,7 @@ class ViewPointStack:
         self._seen = [group.landmarks >= 0 for group in self.groups]
         self._point_rows = [np.array([row[int(k)] for k in group.landmarks[where]], dtype=np.intp)
                             for group, where in zip(self.groups, self._seen)]
-        self._split_stacks()
+        self._split_stacks(view_factors)
         self.factors = [gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(rows), keys, self._error_function(f))
                         for f, (keys, rows) in enumerate(zip(self._keys, self._rows))]
         self._valid = False
@@ -113,7 +113,7 @@ class ViewPointStack:
     def _dim(self, key: int) -> int:
         return 6 if key in self._pose_key_set else 3
 
-    def _split_stacks(self) -> None:
+    def _split_stacks(self, view_factors: Sequence[ViewFactor]) -> None:
         """Each stack's own placements (seen by its views only, the paper's last mirror) and the rest: one
         factor of the own placements' rows per stack that has both, and the rest's Schur complements summed
         into shared factors, stacks merged while no wider than the widest stack (module docstring)."""
@@ -166,6 +166,23 @@ class ViewPointStack:
             self._keys.append(union)
             self._rows.append(width + 1)
         self._first_shared = len(self._keys) - len(merged)
+        # each stack's blocks as indices into the normal buffer (its upper triangle: min, max of the columns)
+        self._take_rest, self._take_own, self._take_cross, self._put = [], [], [], []
+        for s, (base, width) in enumerate(zip(self._offsets, self._widths)):
+            own_columns, rest_columns = self._own[s], self._rest[s]
+            self._take_rest.append(_upper(base, width, rest_columns, rest_columns))
+            self._take_own.append(_upper(base, width, own_columns, own_columns))
+            self._take_cross.append(_upper(base, width, own_columns, rest_columns))
+            position = self._positions[s]
+            self._put.append(position[:, None] * (self._shared_widths[self._shared_factor[s]] + 1) + position[None, :])
+        # stacks whose own placements share no view: their own block is 3 x 3 blocks on its diagonal
+        own_keys = [set(keys) - set(self._keys[self._first_shared + g]) for keys, g in
+                    zip(self._stack_keys, self._shared_factor)]
+        self._diagonal = [True] * len(self._stack_keys)
+        for i, view in enumerate(view_factors):
+            s = int(self._stack_of_view[i])
+            if sum(k in own_keys[s] for k in view.mirror_keys.values()) > 1:
+                self._diagonal[s] = False
         # a stack's cost: its own rows' factor's error, else its shared factor's (their sum is the graph's)
         self._cost_factor = np.array([f if f >= 0 else self._first_shared + g
                                       for f, g in zip(self._own_factor, self._shared_factor)], dtype=np.intp)
@@ -266,17 +283,16 @@ class ViewPointStack:
         systems: list = [None] * len(self._keys)
         shared = [np.zeros((w + 1, w + 1)) for w in self._shared_widths]
         with one_blas_thread():
-            for s, (base, width) in enumerate(zip(self._offsets, self._widths)):
-                N = normal[base:base + (width + 1) ** 2].reshape(width + 1, width + 1)
-                own, rest = self._own[s], self._rest[s]
-                N_rest = N[np.ix_(rest, rest)]
-                N_rest = np.triu(N_rest) + np.triu(N_rest, 1).T  # (the buffer holds its upper triangle)
-                if len(own):  # eq. (23)'s rows of the own placements, and the rest's Schur complement
-                    rows = _own_rows(N[np.ix_(own, own)], N[np.ix_(own, rest)])
-                    N_rest -= rows[:, len(own):].T @ rows[:, len(own):]
+            for s in range(len(self._stack_keys)):
+                N_rest = normal[self._take_rest[s]]  # (the buffer holds its upper triangle)
+                o = len(self._own[s])
+                if o:  # eq. (23)'s rows of the own placements, and the rest's Schur complement
+                    N_own, N_cross = normal[self._take_own[s]], normal[self._take_cross[s]]
+                    diagonal = _diagonal_own_rows(N_own, N_cross) if self._diagonal[s] else None
+                    rows = diagonal if diagonal is not None else _own_rows(N_own, N_cross)
+                    N_rest -= rows[:, o:].T @ rows[:, o:]
                     systems[self._own_factor[s]] = _split(rows, self._keys[self._own_factor[s]], self._dim)
-                at = self._positions[s]
-                shared[self._shared_factor[s]][np.ix_(at, at)] += N_rest
+                shared[self._shared_factor[s]].reshape(-1)[self._put[s]] += N_rest
             for g, matrix in enumerate(shared):
                 f = self._first_shared + g
                 systems[f] = _split(_rows_of(matrix), self._keys[f], self._dim)
@@ -361,6 +377,33 @@ def _rows_of(normal: np.ndarray) -> np.ndarray:
     U, piv, rank = _pivoted(normal)
     R[:rank, piv] = U
     return R
+
+
+def _upper(base: int, width: int, rows: np.ndarray, columns: np.ndarray) -> np.ndarray:
+    """Indices into the normal buffer of the block ``(rows, columns)`` of a stack's augmented matrix
+    (``width + 1`` square from ``base``), each entry read from the upper triangle."""
+    low, high = np.minimum.outer(rows, columns), np.maximum.outer(rows, columns)
+    return (base + low * (width + 1) + high).astype(np.intp)
+
+
+def _diagonal_own_rows(N_own: np.ndarray, N_cross: np.ndarray) -> np.ndarray | None:
+    """:func:`_own_rows` where ``N_own`` is 3 x 3 blocks on its diagonal (no view sees two of the own
+    placements): each block's Cholesky factor ``L`` (``R_o`` block ``L^T``, ``R_c`` rows ``L^-1 C``), all
+    at once; None where a block is not positive definite (then :func:`_own_rows`)."""
+    E = len(N_own) // 3
+    at = np.arange(E)
+    D = N_own.reshape(E, 3, E, 3)[at, :, at, :]  # (E, 3, 3)
+    if not (np.all(np.isfinite(D)) and np.all(np.isfinite(N_cross))):
+        return None
+    try:
+        lower = np.linalg.cholesky(D)
+    except np.linalg.LinAlgError:
+        return None
+    rows = np.zeros((3 * E, 3 * E + N_cross.shape[1]), order="F")
+    first = 3 * at[:, None, None]
+    rows[first + np.arange(3)[None, :, None], first + np.arange(3)[None, None, :]] = lower.transpose(0, 2, 1)
+    rows[:, 3 * E:] = np.linalg.solve(lower, N_cross.reshape(E, 3, -1)).reshape(3 * E, -1)
+    return rows
 
 
 def _own_rows(N_own: np.ndarray, N_cross: np.ndarray) -> np.ndarray:

@@ -9,7 +9,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from mirror_fg.factors.view_points import ViewPointStack, _own_rows, _rows_of
+from mirror_fg.factors.view_points import ViewPointStack, _diagonal_own_rows, _own_rows, _rows_of
 from mirror_fg.simulate.tree import simulate_base_case
 from mirror_fg.solver.batch.views_solve import _start
 from mirror_fg.solver.model.views import ViewProblem, tangent_dimension
@@ -100,3 +100,26 @@ def test_split_factors_solve_as_the_reference(placements_per_factor):
     for key in problem.keys:
         a, b = marginals.marginalCovariance(key), marginals_ref.marginalCovariance(key)
         assert np.abs(a - b).max() <= 1e-8 * np.abs(b).max()
+
+
+def test_diagonal_own_rows_as_the_general_ones():
+    """Own placements that share no view (3 x 3 blocks on the diagonal): the same products as _own_rows;
+    a block that is not positive definite leaves it to _own_rows."""
+    rng = np.random.default_rng(5)
+    E, rest = 4, 7
+    J = np.zeros((6 * E, 3 * E + rest))  # each placement's 6 rows: its own 3 columns and the rest
+    for e in range(E):
+        J[6 * e:6 * e + 6, 3 * e:3 * e + 3] = rng.normal(size=(6, 3))
+        J[6 * e:6 * e + 6, 3 * E:] = rng.normal(size=(6, rest))
+    normal = J.T @ J
+    own, others = np.arange(3 * E), np.arange(3 * E, 3 * E + rest)
+    N_own, N_cross = normal[np.ix_(own, own)], normal[np.ix_(own, others)]
+    rows = _diagonal_own_rows(N_own, N_cross)
+    assert rows is not None and rows.flags.f_contiguous
+    assert np.abs(rows[:, :3 * E].T @ rows[:, :3 * E] - N_own).max() <= 1e-13 * np.abs(N_own).max()
+    assert np.abs(rows[:, :3 * E].T @ rows[:, 3 * E:] - N_cross).max() <= 1e-13 * np.abs(N_cross).max()
+    general = _own_rows(N_own, N_cross)
+    schur, schur_general = (r[:, 3 * E:].T @ r[:, 3 * E:] for r in (rows, general))
+    assert np.abs(schur - schur_general).max() <= 1e-12 * np.abs(schur_general).max()
+    N_own[3:6, 3:6] = 0.0  # the second placement left free
+    assert _diagonal_own_rows(N_own, N_cross) is None
