@@ -402,7 +402,13 @@ def _diagonal_own_rows(N_own: np.ndarray, N_cross: np.ndarray) -> np.ndarray | N
     rows = np.zeros((3 * E, 3 * E + N_cross.shape[1]), order="F")
     first = 3 * at[:, None, None]
     rows[first + np.arange(3)[None, :, None], first + np.arange(3)[None, None, :]] = lower.transpose(0, 2, 1)
-    rows[:, 3 * E:] = np.linalg.solve(lower, N_cross.reshape(E, 3, -1)).reshape(3 * E, -1)
+    a, b, c, d, e, f = (lower[:, i, j] for i, j in ((0, 0), (1, 0), (1, 1), (2, 0), (2, 1), (2, 2)))
+    inverse = np.zeros((E, 3, 3))  # L^-1 of each block in closed form (a batched solve costs 10x more)
+    inverse[:, 0, 0], inverse[:, 1, 1], inverse[:, 2, 2] = 1.0 / a, 1.0 / c, 1.0 / f
+    inverse[:, 1, 0] = -b / (a * c)
+    inverse[:, 2, 1] = -e / (c * f)
+    inverse[:, 2, 0] = (b * e - c * d) / (a * c * f)
+    rows[:, 3 * E:] = (inverse @ N_cross.reshape(E, 3, -1)).reshape(3 * E, -1)
     return rows
 
 
