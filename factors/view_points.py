@@ -113,11 +113,23 @@ class ViewPointStack:
     def _dim(self, key: int) -> int:
         return 6 if key in self._pose_key_set else 3
 
+    #: Whether the own placements' rows are factors of the graph (else kept: ``view_points_eliminated.py``).
+    _own_factors = True
+
+    def _is_own(self, key: int, seen: Counter) -> bool:
+        """Whether ``key`` is an own placement of its stack (``seen``: stacks that see each placement)."""
+        return key in self._plane_key_set and seen[key] == 1
+
+    def _read(self, values: gtsam.Values) -> tuple[dict, dict, dict, dict[int, bytes]]:
+        """``view_stack.read_poses_and_planes`` of the stack's poses and placements in ``values``."""
+        return read_poses_and_planes(values, self.fixed, self.pose_keys, self.mirror_keys)
+
     def _split_stacks(self, view_factors: Sequence[ViewFactor]) -> None:
         """Each stack's own placements (seen by its views only, the paper's last mirror) and the rest: one
         factor of the own placements' rows per stack that has both, and the rest's Schur complements summed
         into shared factors, stacks merged while no wider than the widest stack (module docstring)."""
         seen = Counter(k for keys in self._stack_keys for k in keys if k in self._plane_key_set)
+        self._rest_keys: list[list[int]] = []  # per stack: the keys of its rest columns
         self._own: list[np.ndarray] = []  # per stack: its own placements' columns
         self._rest: list[np.ndarray] = []  # the other columns and e (last)
         self._keys: list[list[int]] = []  # per factor: its keys
@@ -125,20 +137,21 @@ class ViewPointStack:
         self._own_factor: list[int] = []  # per stack: its factor of own rows (-1: none)
         rest_keys = []
         for keys, columns, width in zip(self._stack_keys, self._columns, self._widths):
-            own = [k for k in keys if k in self._plane_key_set and seen[k] == 1]
+            own = [k for k in keys if self._is_own(k, seen)]
             rest = [k for k in keys if k not in own]
             if not rest:  # nothing shared: the stack is a factor of its own
                 own, rest = [], keys
             self._own.append(np.array([columns[k] + c for k in own for c in range(3)], dtype=np.intp))
             self._rest.append(np.array([columns[k] + c for k in rest for c in range(self._dim(k))] + [width],
                                        dtype=np.intp))
-            if own:
+            if own and self._own_factors:
                 self._own_factor.append(len(self._keys))
                 self._keys.append(own + rest)
                 self._rows.append(3 * len(own))
             else:
                 self._own_factor.append(-1)
             rest_keys.append(rest)
+            self._rest_keys.append(rest)
         limit = max(self._widths, default=0)
         merged: list[tuple[list[int], list[int]]] = []  # (stacks, keys) of each shared factor
         for s, rest in enumerate(rest_keys):
@@ -248,8 +261,7 @@ class ViewPointStack:
 
     def _compute(self, values: gtsam.Values, jacobians: bool) -> None:
         self.batches += 1
-        poses, vectors, plane_jacobians, state = read_poses_and_planes(values, self.fixed, self.pose_keys,
-                                                                       self.mirror_keys)
+        poses, vectors, plane_jacobians, state = self._read(values)
         points = np.zeros((len(self.point_keys), 3))
         for j, key in enumerate(self.point_keys):
             points[j] = values.atPoint3(key)
@@ -281,6 +293,7 @@ class ViewPointStack:
             return
         normal = np.bincount(self._indices, np.concatenate(weights), minlength=self._size)
         systems: list = [None] * len(self._keys)
+        self._own_rows_of: dict[int, np.ndarray] = {}  # per stack with own placements: their rows
         shared = [np.zeros((w + 1, w + 1)) for w in self._shared_widths]
         with one_blas_thread():
             for s in range(len(self._stack_keys)):
@@ -291,7 +304,9 @@ class ViewPointStack:
                     diagonal = _diagonal_own_rows(N_own, N_cross) if self._diagonal[s] else None
                     rows = diagonal if diagonal is not None else _own_rows(N_own, N_cross)
                     N_rest -= rows[:, o:].T @ rows[:, o:]
-                    systems[self._own_factor[s]] = _split(rows, self._keys[self._own_factor[s]], self._dim)
+                    self._own_rows_of[s] = rows
+                    if self._own_factor[s] >= 0:
+                        systems[self._own_factor[s]] = _split(rows, self._keys[self._own_factor[s]], self._dim)
                 shared[self._shared_factor[s]].reshape(-1)[self._put[s]] += N_rest
             for g, matrix in enumerate(shared):
                 f = self._first_shared + g
