@@ -29,6 +29,7 @@ from collections.abc import Sequence
 import gtsam
 import numpy as np
 
+import mirror_fg.factors.view_last_reflection as last
 from mirror_fg.factors.schur import inverses
 from mirror_fg.factors.view_eliminated import (FINAL_STEP, INNER_MAX_ITERATIONS, INNER_STEP_TOLERANCE,
                                                private_placements)
@@ -78,6 +79,12 @@ class EliminatedViewPointStack(ViewPointStack):
             rows = np.array([row[int(k)] for k in group.landmarks[seen]], dtype=np.intp)
             placement_of = np.array([index[list(view_factors[i].mirror_keys)[u]] for i in members], dtype=np.intp)
             self._inner.append((group, u, placement_of, rows, seen, len(np.unique(placement_of)) == len(placement_of)))
+        # the closed form of the last reflection (view_last_reflection.py) where the group's eliminated
+        # placement is its last reflection and no earlier one (private_placements: its own camera's)
+        self._fast = [group.steps[-1][1] == u and [w for _, w in group.steps].count(u) == 1
+                      for group, u, *_ in self._inner]
+        self._soa = [(np.ascontiguousarray(group.observed.transpose(1, 2, 0)),
+                      np.ascontiguousarray(group.sigmas.transpose(1, 2, 0))) for group, *_ in self._inner]
         self._solved_state: dict[int, bytes] | None = None
         self._own_rows_of: dict[int, np.ndarray] = {}
 
@@ -102,21 +109,38 @@ class EliminatedViewPointStack(ViewPointStack):
             vectors[p], jacobians[p] = v, np.eye(3)
         return poses, vectors, jacobians, state
 
-    def _moments(self, poses, vectors, jacobians, points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _bases(self, points: np.ndarray) -> list[np.ndarray]:
+        """Each inner group's points (b, 3, N): the fiducials, the reconstruction points at ``points``."""
+        out = []
+        for group, _, _, rows, seen, _ in self._inner:
+            base = group.base.transpose(0, 2, 1).copy()
+            base[seen] = points[rows]
+            out.append(base.transpose(0, 2, 1))
+        return out
+
+    def _prefixes(self, poses, vectors, jacobians, bases) -> list[np.ndarray | None]:
+        """Each fast group's points before its last mirror (3, N, b): they depend on the kept unknowns."""
+        return [np.ascontiguousarray(group.reflected(poses, vectors, jacobians, False, base, None, None,
+                                                     group.steps[:-1])[0].transpose(1, 2, 0)) if fast else None
+                for (group, *_), base, fast in zip(self._inner, bases, self._fast)]
+
+    def _moments(self, poses, vectors, jacobians, bases, prefixes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``D = J_v^T J_v`` (E, 3, 3), ``J_v^T e`` (E, 3) and the cost (E,) of each eliminated placement's
         views at the current vectors, the rest held."""
         for p, v in zip(self.eliminated, self._vectors):
             vectors[p], jacobians[p] = v, np.eye(3)
         E = len(self.eliminated)
         D, g, cost = np.zeros((E, 3, 3)), np.zeros((E, 3)), np.zeros(E)
-        for group, u, placement_of, rows, seen, unique in self._inner:
-            base = group.base.transpose(0, 2, 1).copy()
-            base[seen] = points[rows]
-            z, dz, _ = group.model(poses, vectors, jacobians, True, base.transpose(0, 2, 1), wrt=u)
-            e = (z - group.observed) / group.sigmas  # (b, 2, N) whitened
-            A = (dz / group.sigmas[:, :, None, :]).transpose(0, 2, 1, 3).reshape(len(z), 3, -1)  # (b, 3, 2N)
-            D_views, g_views = A @ A.transpose(0, 2, 1), (A @ e.reshape(len(z), -1, 1))[:, :, 0]
-            cost_views = np.einsum("bkn,bkn->b", e, e)
+        for (group, u, placement_of, _, _, unique), base, y, (observed, sigmas) in zip(
+                self._inner, bases, prefixes, self._soa):
+            if y is not None:
+                D_views, g_views, cost_views = last.moments(y, self._vectors[placement_of], observed, sigmas)
+            else:
+                z, dz, _ = group.model(poses, vectors, jacobians, True, base, wrt=u)
+                e = (z - group.observed) / group.sigmas  # (b, 2, N) whitened
+                A = (dz / group.sigmas[:, :, None, :]).transpose(0, 2, 1, 3).reshape(len(z), 3, -1)  # (b, 3, 2N)
+                D_views, g_views = A @ A.transpose(0, 2, 1), (A @ e.reshape(len(z), -1, 1))[:, :, 0]
+                cost_views = np.einsum("bkn,bkn->b", e, e)
             if unique:  # each placement seen by one of these views (a photograph's own): no sum
                 D[placement_of] += D_views
                 g[placement_of] += g_views
@@ -133,7 +157,11 @@ class EliminatedViewPointStack(ViewPointStack):
         collapsed = np.linalg.norm(self._vectors, axis=1) < 0.1 * np.linalg.norm(self._start, axis=1)
         self._vectors[collapsed] = self._start[collapsed]  # a warm start run into the camera centre
         vectors, jacobians = dict(vectors), dict(jacobians)
-        D, g, own = self._moments(poses, vectors, jacobians, points)
+        bases = self._bases(points)
+        for p, v in zip(self.eliminated, self._vectors):
+            vectors[p], jacobians[p] = v, np.eye(3)
+        prefixes = self._prefixes(poses, vectors, jacobians, bases)
+        D, g, own = self._moments(poses, vectors, jacobians, bases, prefixes)
         E = len(self.eliminated)
         damping = np.zeros(E)
         for _ in range(INNER_MAX_ITERATIONS if E else 0):
@@ -150,7 +178,7 @@ class EliminatedViewPointStack(ViewPointStack):
             limit = 0.5 * np.linalg.norm(self._vectors, axis=1)  # stay on its side of the camera centre
             before = self._vectors.copy()
             self._vectors += step * np.minimum(1.0, limit / np.maximum(length, 1e-300))[:, None]
-            D_new, g_new, own_new = self._moments(poses, vectors, jacobians, points)
+            D_new, g_new, own_new = self._moments(poses, vectors, jacobians, bases, prefixes)
             better = own_new <= own * (1.0 + 1e-12) + 1e-300
             self._vectors[~better] = before[~better]
             D[better], g[better], own[better] = D_new[better], g_new[better], own_new[better]

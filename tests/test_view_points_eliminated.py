@@ -20,13 +20,19 @@ def _relative(a, b) -> float:
     return float(np.abs(np.asarray(a) - np.asarray(b)).max() / np.abs(np.asarray(b)).max())
 
 
-def test_eliminated_points_as_per_view():
+@pytest.mark.parametrize("closed_form", [True, False])
+def test_eliminated_points_as_per_view(closed_form):
+    """``closed_form``: the inner solve's last reflection in closed form (view_last_reflection.py), else the
+    general model."""
     dataset = simulate_base_case(num_images=30, num_points=8, mirror1_placements=3, pixel_sigma=1.0,
                                  mirror_distance=0.5, tilt_deg=30.0, seed=4, num_mirrors=2, num_fiducials=3)[0]
     problem = ViewProblem(dataset)
     start = _start(problem, None, SolveOptions())
     evaluator = EliminatedViewPointStack(problem.factors, start.mirror_vectors)
     assert len(evaluator.eliminated) == len(dataset.images)  # each photograph's own placement
+    assert all(evaluator._fast)
+    if not closed_form:
+        evaluator._fast = [False] * len(evaluator._fast)
     graph = gtsam.NonlinearFactorGraph()
     for factor in evaluator.factors:
         graph.add(factor)
