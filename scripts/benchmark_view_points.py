@@ -19,12 +19,13 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from typing import Any
 
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-COMMON = {"pixel_sigma": 1.0, "mirror_distance": 0.5, "tilt_deg": 30.0, "seed": 0, "num_mirrors": 2, "num_fiducials": 3}
+COMMON: dict[str, Any] = {"pixel_sigma": 1.0, "mirror_distance": 0.5, "tilt_deg": 30.0, "seed": 0, "num_mirrors": 2, "num_fiducials": 3}
 
 
 def _relative(a: np.ndarray, b: np.ndarray) -> float:
