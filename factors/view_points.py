@@ -24,7 +24,8 @@ Here, as the paper's tree factors do (``eliminated.py``, ``schur.py``):
   image. GTSAM then eliminates each stack's own placements from a few rows, and the shared unknowns
   (the poses, the placements several stacks see, the points) from one dense factor, as from the tree's
   factors (``eliminated.py``; one 283 x 282 factor per stack before: 60-80 ms per damped solve of 200
-  images and 60 points, 30-40 ms now, the tree's 10 ms: its own placements are not GTSAM's unknowns). Every factor is exact: LAPACK's Cholesky factorisation with complete
+  images and 60 points, 30-40 ms now, the tree's 10 ms: its own placements are not GTSAM's unknowns;
+  ``view_points_eliminated.py`` eliminates them inside the factors, as the tree does). Every factor is exact: LAPACK's Cholesky factorisation with complete
   pivoting (``dpstrf``), where a stack alone leaves some unknowns free (a point seen along one ray) too,
   without ``schur.compressed_normal``'s shift, which would move the marginals by 1e-6;
 * the other factors check that their own variables are bit for bit those of the batch (a stale result is
