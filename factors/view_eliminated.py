@@ -44,7 +44,7 @@ from mirror_fg.factors.view_stack import _Group, read_poses_and_planes
 from mirror_fg.factors.view_table import ViewTable
 from mirror_fg.factors.views import ViewFactor
 
-__all__ = ["EliminatedViewStack", "eliminable", "PLACEMENTS_PER_FACTOR"]
+__all__ = ["EliminatedViewStack", "eliminable", "private_placements", "PLACEMENTS_PER_FACTOR"]
 
 Placement = tuple[int, int]
 #: Placements of one factor at most: its width is its poses and kept placements only, so a factor can hold
@@ -64,6 +64,44 @@ def eliminable(factor: ViewFactor) -> bool:
     """Whether a view can be in an eliminated stack: fiducials only, intrinsics known, no robust kernel."""
     return factor.intrinsics is None and not factor.unique_landmarks and factor.robust is None
 
+
+
+def private_placements(view_factors: Sequence[ViewFactor], stacks: list[list[int]], keep: set) -> list[Placement]:
+    """The placements to eliminate: seen by one stack's views only, not in ``keep``, and at most one per
+    view: those with the fewest views first (a photograph's own placement before a mirror placement that
+    many photographs share, which stays a variable). Of views given one by one (``view_points_eliminated.py``);
+    ``ViewTable.private_placements`` chooses the same of a view problem's arrays."""
+    first_stack: dict[Placement, int] = {}
+    views_of: dict[Placement, list[int]] = {}
+    shared: set[Placement] = set()  # seen in more than one stack
+    # as the paper's last mirror: seen by its owner camera only and last in every view's reflections (in
+    # other places its cost in v alone is far from quadratic: Gauss-Newton on it crawled or diverged on a
+    # rig's two-mirror views, where the placements stay variables)
+    transferred: set[Placement] = set()
+    for s, members in enumerate(stacks):
+        for i in members:
+            f = view_factors[i]
+            if not f.reflections:  # a direct view
+                continue
+            last, camera, owners = f.reflections[-1], f.camera, f.owners
+            for p in f.mirror_keys:
+                if p in views_of:
+                    views_of[p].append(i)
+                    if first_stack[p] != s:
+                        shared.add(p)
+                else:
+                    views_of[p], first_stack[p] = [i], s
+                if p != last or owners[p] != camera:
+                    transferred.add(p)
+    candidates = sorted((p for p in views_of if p not in shared and p not in keep and p not in transferred),
+                        key=lambda p: (len(views_of[p]), p))
+    taken: set[int] = set()  # views that have their eliminated placement
+    chosen = []
+    for p in candidates:
+        if not taken.intersection(views_of[p]):
+            chosen.append(p)
+            taken.update(views_of[p])
+    return sorted(chosen)
 
 class EliminatedViewStack:
     """Views (all :func:`eliminable`: their per-image factors, or a ``view_table.ViewTable``) in factors with

@@ -354,7 +354,7 @@ def _products(group: _Group, e: np.ndarray, dz: np.ndarray, dzB: np.ndarray, sca
     whitened residuals ``e`` (b, 2, N) and the model's ``dz`` (b, 2, P, N), ``dzB`` (b, 2, 3, N)."""
     w = 1.0 / group.sigmas if scale is None else scale[:, None] / group.sigmas  # (b, 2, N)
     A = dz * w[:, :, None, :]
-    At = A.transpose(0, 2, 1, 3).reshape(len(A), A.shape[2], -1)  # (b, P, 2N)
+    At = A.transpose(0, 2, 1, 3).reshape(len(A), A.shape[2], A.shape[1] * A.shape[3])  # (b, P, 2N); P may be 0
     AA = At @ At.transpose(0, 2, 1)  # (batched matmul: twice einsum's speed here)
     Ae = np.einsum("bkpn,bkn->bp", A, e)
     ee = np.einsum("bkn,bkn->b", e, e)
