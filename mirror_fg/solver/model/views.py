@@ -26,6 +26,7 @@ from mirror_fg.core.camera import Camera
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_prior_factor, predict_pixels
 from mirror_fg.factors.view_eliminated import EliminatedViewStack
+from mirror_fg.factors.view_points_eliminated import EliminatedViewPointStack
 from mirror_fg.factors.view_stack import stacked_view_factors
 from mirror_fg.factors.view_table import ViewBlock, ViewTable, placement_indices, unique_rows
 from mirror_fg.factors.view_table import view_factor_like  # noqa: F401 (its home was here: importers keep working)
@@ -259,6 +260,8 @@ class ViewProblem:
         inside it (``factors/view_eliminated.py``; ``eliminated`` that evaluator, its placements not in
         ``values``), else :meth:`graph` and :meth:`values` (``eliminated`` None)."""
         if eliminate and self.dataset.scale is None and not self.intrinsics and self.robust is None:
+            if self.table.blocks and all(block.template.unique_landmarks for block in self.table.blocks):
+                return self._points_solve_graph(estimate)
             views = self.table.subset(lambda block: block.eliminable)
             others = [block for block in self.table.blocks if not block.eliminable]
             keep = {self.placements[u] for block in others for u in np.unique(block.placements).tolist()}
@@ -275,6 +278,19 @@ class ViewProblem:
                 values = self.values(estimate, skip=set(evaluator.eliminated))
                 return graph, values, evaluator
         return self.graph(), self.values(estimate), None
+
+    def _points_solve_graph(self, estimate: ViewEstimate):
+        """:meth:`solve_graph` where every view sees reconstruction points: each photograph's own placement
+        eliminated inside the points' stacked factors (``factors/view_points_eliminated.py``), else (none to
+        eliminate) :meth:`graph` and :meth:`values`."""
+        evaluator = EliminatedViewPointStack(self.factors, estimate.mirror_vectors)
+        if not evaluator.eliminated:
+            return self.graph(), self.values(estimate), None
+        graph = gtsam.NonlinearFactorGraph()
+        for factor in evaluator.factors:
+            graph.add(factor)
+        self._priors(graph)
+        return graph, self.values(estimate, skip=set(evaluator.eliminated)), evaluator
 
     def _priors(self, graph: gtsam.NonlinearFactorGraph) -> None:
         """The intrinsics priors and the scale prior, added to ``graph``."""
