@@ -43,8 +43,6 @@ from collections.abc import Sequence
 
 import gtsam
 import numpy as np
-from scipy.linalg import solve_triangular
-from scipy.linalg.lapack import dpstrf
 
 from mirror_fg.factors.robust import robust_row_scales
 from mirror_fg.factors.schur import one_blas_thread, row_products
@@ -374,6 +372,8 @@ def _pivoted(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """LAPACK's Cholesky factorisation with complete pivoting of a positive semidefinite ``normal``:
     ``(U, piv, rank)`` with ``normal[piv][:, piv] = U[:rank]^T U[:rank]`` to rounding (the pivots below
     ``n eps max(diag)`` are the rounding of a singular matrix's zeros, left out)."""
+    from scipy.linalg.lapack import dpstrf  # here: importing calibrate loads no scipy (start-up time)
+
     U, piv, rank, info = dpstrf(normal, lower=0)
     if info < 0:
         raise ValueError(f"dpstrf: argument {-info} invalid")
@@ -438,6 +438,8 @@ def _own_rows(N_own: np.ndarray, N_cross: np.ndarray) -> np.ndarray:
     if not (np.all(np.isfinite(N_own)) and np.all(np.isfinite(N_cross))):
         rows[:] = np.nan
         return rows
+    from scipy.linalg import solve_triangular  # here: importing calibrate loads no scipy (start-up time)
+
     U, piv, rank = _pivoted(N_own)
     rows[:rank, piv] = U
     rows[:rank, o:] = solve_triangular(U[:, :rank], N_cross[piv[:rank]], trans="T")

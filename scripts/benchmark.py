@@ -776,10 +776,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.worker:
         task, case, repeats = args.worker
-        if os.environ.get("MIRROR_FG_BENCH_VIEW_MODEL") == "1":  # the tree solved on the general view model
+        if os.environ.get("MIRROR_FG_BENCH_TREE_FACTORS") == "1":  # the tree solved on its own factors (not the default)
             import mirror_fg.solver.model.lm as lm
 
-            lm.VIEW_MODEL = True
+            lm.VIEW_MODEL = False
         print("RESULT " + json.dumps(TASKS[task](case, int(repeats))))
         return 0
     if args.scaling:

@@ -41,8 +41,13 @@ def test_options_give_exactly_what_the_separate_arguments_give(scene, settings, 
         np.testing.assert_array_equal(together.covariance, separate.covariance)
 
 
-def _graphs_built(monkeypatch, scene, options, eliminate=True):
-    """Which graphs ``calibrate`` builds for its LM runs: "eliminated", "stacked" or "reference" per build."""
+def _graphs_built(monkeypatch, scene, options, eliminate=True, view_model=True):
+    """Which graphs ``calibrate`` builds for its LM runs: "eliminated", "stacked" or "reference" per build, on
+    the view model (``view_model``, the default: ``ViewProblem.solve_graph`` and ``graph``) or on the tree's
+    own factors (``lm.build_eliminated_graph`` and ``build_graph``)."""
+    monkeypatch.setattr(lm_module, "VIEW_MODEL", view_model)
+    if view_model:
+        return _view_graphs_built(monkeypatch, scene, options, eliminate)
     built: list[str] = []
     eliminated_graph, graph = lm_module.build_eliminated_graph, lm_module.build_graph
 
@@ -61,6 +66,30 @@ def _graphs_built(monkeypatch, scene, options, eliminate=True):
     return set(built)
 
 
+def _view_graphs_built(monkeypatch, scene, options, eliminate):
+    from mirror_fg.solver.model.views import ViewProblem
+
+    built: list[str] = []
+    solve_graph, graph = ViewProblem.solve_graph, ViewProblem.graph
+
+    def solve_graph_spy(self, estimate, eliminate=True):
+        answer = solve_graph(self, estimate, eliminate)
+        if answer[2] is not None:  # else it built graph() (the spy below)
+            built.append("eliminated")
+        return answer
+
+    def graph_spy(self, stacked=True):
+        built.append("stacked" if stacked else "reference")
+        return graph(self, stacked)
+
+    monkeypatch.setattr(ViewProblem, "solve_graph", solve_graph_spy)
+    monkeypatch.setattr(ViewProblem, "graph", graph_spy)
+    monkeypatch.setattr(lm_module, "ELIMINATE", eliminate)
+    calibrate(scene, options=dataclasses.replace(options, compute_covariance=False, diagnose=False))
+    return set(built)
+
+
+@pytest.mark.parametrize("view_model", [True, False], ids=["view-model", "tree-factors"])
 @pytest.mark.parametrize("options, eliminate, expected", [
     (SolveOptions(), True, {"eliminated"}),
     (SolveOptions(), False, {"stacked"}),  # the switch the tests turn off
@@ -69,8 +98,8 @@ def _graphs_built(monkeypatch, scene, options, eliminate=True):
     (SolveOptions(linearization="reference"), True, {"reference"}),
     (SolveOptions(linearization="reference", robust="huber"), True, {"reference"}),
 ], ids=["eliminated", "ELIMINATE-off", "robust", "stacked", "reference", "reference-huber"])
-def test_linearization_picks_the_factors_it_names(monkeypatch, scene, options, eliminate, expected):
-    assert _graphs_built(monkeypatch, scene, options, eliminate) == expected
+def test_linearization_picks_the_factors_it_names(monkeypatch, scene, options, eliminate, expected, view_model):
+    assert _graphs_built(monkeypatch, scene, options, eliminate, view_model) == expected
 
 
 def test_stacked_reaches_the_reference_estimate(scene):

@@ -15,6 +15,7 @@ from mirror_fg.solver.model import lm as lm_module, view_lm
 @pytest.mark.parametrize("num_mirrors,points,robust", [(1, 0, None), (2, 3, None), (3, 0, None), (2, 0, "huber")])
 def test_view_model_run_equals_the_tree_factors(monkeypatch, num_mirrors, points, robust):
     dataset, _ = simulate_tree(num_mirrors, num_fiducials=4, num_points=points, pixel_sigma=0.5, seed=3)
+    monkeypatch.setattr(lm_module, "VIEW_MODEL", False)  # the tree's own factors
     tree = mirror_fg.calibrate(dataset, robust=robust)
     monkeypatch.setattr(lm_module, "VIEW_MODEL", True)
     runs = []

@@ -289,6 +289,7 @@ class ViewProblem:
         graph = gtsam.NonlinearFactorGraph()
         for factor in evaluator.factors:
             graph.add(factor)
+        evaluator.factors = []  # the factors hold the evaluator: no cycle through C++ (freed with the graph)
         self._priors(graph)
         return graph, self.values(estimate, skip=set(evaluator.eliminated)), evaluator
 
