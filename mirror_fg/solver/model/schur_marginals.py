@@ -89,9 +89,11 @@ class SchurMarginals:
         self.covariance = _inverse(information) if size else np.zeros((0, 0))
         self._own: dict[int, tuple[int, int]] = {}  # key -> (block, first column in the block)
         self._blocks = []
+        self._D_inv: list[np.ndarray] = []
         for b, (own_keys, own_dims, D_inv, B, rows) in enumerate(blocks):
             K = D_inv @ B  # D^-1 B
             self._blocks.append((D_inv + K @ self.covariance[np.ix_(rows, rows)] @ K.T, K, rows))
+            self._D_inv.append(D_inv)
             at = 0
             for key, dim in zip(own_keys, own_dims):
                 self._own[key] = (b, at)
@@ -107,12 +109,27 @@ class SchurMarginals:
         return self._blocks[b][0][at:at + dim, at:at + dim].copy()
 
     def jointMarginalCovariance(self, keys) -> "_Block":
+        """The joint covariance of ``keys``, all at once: each key's unknowns as a map of the shared ones
+        (a shared key picks its columns, an own key ``p = -K s`` plus its block's ``D^-1`` part, module
+        docstring), ``M Sigma_ss M^T`` plus ``D^-1`` between the own keys of one block."""
         keys = list(keys)
-        out = np.zeros((sum(self._dims[k] for k in keys),) * 2)
-        starts = np.concatenate([[0], np.cumsum([self._dims[k] for k in keys])])
-        for i, a in enumerate(keys):
-            for j, b in enumerate(keys):
-                out[starts[i]:starts[i + 1], starts[j]:starts[j + 1]] = self._pair(a, b)
+        dims = [self._dims[k] for k in keys]
+        starts = np.concatenate([[0], np.cumsum(dims)]).astype(int)
+        M = np.zeros((int(starts[-1]), len(self.covariance)))
+        own: dict[int, list[tuple[int, int]]] = {}  # block -> (output row, column in the block) of its own keys' unknowns
+        for key, first, dim in zip(keys, starts[:-1].tolist(), dims):
+            if key in self._shared:
+                c = self._shared[key]
+                M[first + np.arange(dim), np.arange(c.start, c.stop)] = 1.0
+                continue
+            block, at = self._own[key]
+            _, K, rows = self._blocks[block]
+            M[first:first + dim, rows] = -K[at:at + dim]
+            own.setdefault(block, []).extend((first + d, at + d) for d in range(dim))
+        out = M @ self.covariance @ M.T
+        for block, pairs in own.items():
+            where, local = np.array(pairs).T
+            out[np.ix_(where, where)] += self._D_inv[block][np.ix_(local, local)]
         return _Block(out)
 
     def _pair(self, a: int, b: int) -> np.ndarray:
