@@ -9,7 +9,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from mirror_fg.factors.view_points import ViewPointStack, _diagonal_own_rows, _own_rows, _rows_of
+from mirror_fg.factors.view_points import ViewPointStack, _diagonal_own_rows, _own_rows, SMALL_EIGEN, _rows_of
 from mirror_fg.simulate.tree import simulate_base_case
 from mirror_fg.solver.batch.views_solve import _start
 from mirror_fg.solver.model.views import ViewProblem, tangent_dimension
@@ -123,3 +123,13 @@ def test_diagonal_own_rows_as_the_general_ones():
     assert np.abs(schur - schur_general).max() <= 1e-12 * np.abs(schur_general).max()
     N_own[3:6, 3:6] = 0.0  # the second placement left free
     assert _diagonal_own_rows(N_own, N_cross) is None
+
+
+@pytest.mark.parametrize("size", [SMALL_EIGEN - 1, SMALL_EIGEN + 40])
+def test_rows_of_both_routes_are_exact_and_keep_the_rank(size):
+    """Small factors by numpy's eigendecomposition, larger ones by LAPACK's pivoted Cholesky: both exact on
+    a singular matrix given by its upper triangle, both of its rank."""
+    normal = _singular(size - 7, size, seed=5)
+    R = _rows_of(np.triu(normal))
+    assert np.abs(R.T @ R - normal).max() <= 1e-13 * np.abs(normal).max()
+    assert np.linalg.matrix_rank(R) == np.linalg.matrix_rank(normal) == size - 7
