@@ -32,7 +32,7 @@ reduced system and whole calibrations against the per-view factors.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import gtsam
 import numpy as np
@@ -102,6 +102,45 @@ def private_placements(view_factors: Sequence[ViewFactor], stacks: list[list[int
             chosen.append(p)
             taken.update(views_of[p])
     return sorted(chosen)
+
+def restart_collapsed(vectors: np.ndarray, start: np.ndarray) -> None:
+    """Placements (E, 3) whose warm start ran into the camera centre (a tenth of their start's distance)
+    start again from ``start``, in place."""
+    collapsed = np.linalg.norm(vectors, axis=1) < 0.1 * np.linalg.norm(start, axis=1)
+    vectors[collapsed] = start[collapsed]
+
+
+def solve_placements(vectors: np.ndarray, D: np.ndarray, g: np.ndarray, own: np.ndarray,
+                     moments: Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
+    """The eliminated placements ``vectors`` (E, 3, updated in place) at their optimum given the kept
+    unknowns: Gauss-Newton per placement from its information ``D`` (E, 3, 3), gradient ``g`` and own cost
+    ``own`` (E,), a step that raises its views' cost refused and the placement damped (Levenberg-Marquardt
+    on each placement alone: their costs are separate); ``moments()`` gives ``(D, g, own)`` again at the
+    moved ``vectors``. Returns each placement's cost there."""
+    E = len(vectors)
+    damping = np.zeros(E)
+    for _ in range(INNER_MAX_ITERATIONS if E else 0):
+        damped = D + damping[:, None, None] * (D * np.eye(3))
+        step = -np.einsum("eij,ej->ei", inverses(damped[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]].T), g)
+        if not np.all(np.isfinite(step)):
+            raise RuntimeError("an eliminated mirror placement has no finite optimum at these values")
+        length = np.linalg.norm(step, axis=1)
+        if float(length.max(initial=0.0)) < INNER_STEP_TOLERANCE:
+            break  # (the step would change the cost by O(step^2): nothing)
+        if float(length.max(initial=0.0)) < FINAL_STEP:  # taken without evaluating again (module docstring)
+            vectors += step
+            break
+        limit = 0.5 * np.linalg.norm(vectors, axis=1)  # stay on its side of the camera centre
+        before = vectors.copy()
+        vectors += step * np.minimum(1.0, limit / np.maximum(length, 1e-300))[:, None]
+        D_new, g_new, own_new = moments()
+        better = own_new <= own * (1.0 + 1e-12) + 1e-300
+        vectors[~better] = before[~better]
+        D[better], g[better], own[better] = D_new[better], g_new[better], own_new[better]
+        damping = np.where(better, damping * 0.1, np.maximum(damping * 10.0, 1e-3))
+        damping[damping < 1e-8] = 0.0
+    return own
+
 
 class EliminatedViewStack:
     """Views (all :func:`eliminable`: their per-image factors, or a ``view_table.ViewTable``) in factors with
@@ -348,31 +387,9 @@ class EliminatedViewStack:
         """The eliminated placements at their optimum given the rest (module docstring): Gauss-Newton per
         placement, a step that raises its views' cost refused and the placement damped (Levenberg-Marquardt
         on each placement alone: their costs are separate); each stack's cost there."""
-        collapsed = np.linalg.norm(self._vectors, axis=1) < 0.1 * np.linalg.norm(self._start, axis=1)
-        self._vectors[collapsed] = self._start[collapsed]  # a warm start run into the camera centre
+        restart_collapsed(self._vectors, self._start)
         D, g, own, rest = self._moments(poses, vectors, jacobians, prefixes, True)
-        E = len(self.eliminated)
-        damping = np.zeros(E)
-        for _ in range(INNER_MAX_ITERATIONS if E else 0):
-            damped = D + damping[:, None, None] * (D * np.eye(3))
-            step = -np.einsum("eij,ej->ei", inverses(damped[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]].T), g)
-            if not np.all(np.isfinite(step)):
-                raise RuntimeError("an eliminated mirror placement has no finite optimum at these values")
-            length = np.linalg.norm(step, axis=1)
-            if float(length.max(initial=0.0)) < INNER_STEP_TOLERANCE:
-                break  # (the step would change the cost by O(step^2): nothing)
-            if float(length.max(initial=0.0)) < FINAL_STEP:  # taken without evaluating again (module docstring)
-                self._vectors += step
-                break
-            limit = 0.5 * np.linalg.norm(self._vectors, axis=1)  # stay on its side of the camera centre
-            before = self._vectors.copy()
-            self._vectors += step * np.minimum(1.0, limit / np.maximum(length, 1e-300))[:, None]
-            D_new, g_new, own_new, _ = self._moments(poses, vectors, jacobians, prefixes, False)
-            better = own_new <= own * (1.0 + 1e-12) + 1e-300
-            self._vectors[~better] = before[~better]
-            D[better], g[better], own[better] = D_new[better], g_new[better], own_new[better]
-            damping = np.where(better, damping * 0.1, np.maximum(damping * 10.0, 1e-3))
-            damping[damping < 1e-8] = 0.0
+        own = solve_placements(self._vectors, D, g, own, lambda: self._moments(poses, vectors, jacobians, prefixes, False)[:3])
         return rest + np.bincount(self._stack_of_placement, own, minlength=len(rest))
 
     def _evaluate(self, values: gtsam.Values, jacobians: bool) -> None:

@@ -31,8 +31,7 @@ import numpy as np
 
 import mirror_fg.factors.view_last_reflection as last
 from mirror_fg.factors.schur import inverses
-from mirror_fg.factors.view_eliminated import (FINAL_STEP, INNER_MAX_ITERATIONS, INNER_STEP_TOLERANCE,
-                                               private_placements)
+from mirror_fg.factors.view_eliminated import private_placements, restart_collapsed, solve_placements
 from mirror_fg.factors.view_points import PLACEMENTS_PER_FACTOR, ViewPointStack
 from mirror_fg.factors.view_stack import _Group, read_poses_and_planes, stacks_by_placements
 from mirror_fg.factors.views import ViewFactor
@@ -154,36 +153,14 @@ class EliminatedViewPointStack(ViewPointStack):
     def _solve(self, poses, vectors, jacobians, points: np.ndarray) -> None:
         """The eliminated placements at their optimum given the kept unknowns (module docstring; as
         ``view_eliminated.EliminatedViewStack._solve``)."""
-        collapsed = np.linalg.norm(self._vectors, axis=1) < 0.1 * np.linalg.norm(self._start, axis=1)
-        self._vectors[collapsed] = self._start[collapsed]  # a warm start run into the camera centre
+        restart_collapsed(self._vectors, self._start)
         vectors, jacobians = dict(vectors), dict(jacobians)
         bases = self._bases(points)
         for p, v in zip(self.eliminated, self._vectors):
             vectors[p], jacobians[p] = v, np.eye(3)
         prefixes = self._prefixes(poses, vectors, jacobians, bases)
         D, g, own = self._moments(poses, vectors, jacobians, bases, prefixes)
-        E = len(self.eliminated)
-        damping = np.zeros(E)
-        for _ in range(INNER_MAX_ITERATIONS if E else 0):
-            damped = D + damping[:, None, None] * (D * np.eye(3))
-            step = -np.einsum("eij,ej->ei", inverses(damped[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]].T), g)
-            if not np.all(np.isfinite(step)):
-                raise RuntimeError("an eliminated mirror placement has no finite optimum at these values")
-            length = np.linalg.norm(step, axis=1)
-            if float(length.max(initial=0.0)) < INNER_STEP_TOLERANCE:
-                break
-            if float(length.max(initial=0.0)) < FINAL_STEP:  # (view_eliminated.FINAL_STEP's reasoning)
-                self._vectors += step
-                break
-            limit = 0.5 * np.linalg.norm(self._vectors, axis=1)  # stay on its side of the camera centre
-            before = self._vectors.copy()
-            self._vectors += step * np.minimum(1.0, limit / np.maximum(length, 1e-300))[:, None]
-            D_new, g_new, own_new = self._moments(poses, vectors, jacobians, bases, prefixes)
-            better = own_new <= own * (1.0 + 1e-12) + 1e-300
-            self._vectors[~better] = before[~better]
-            D[better], g[better], own[better] = D_new[better], g_new[better], own_new[better]
-            damping = np.where(better, damping * 0.1, np.maximum(damping * 10.0, 1e-3))
-            damping[damping < 1e-8] = 0.0
+        solve_placements(self._vectors, D, g, own, lambda: self._moments(poses, vectors, jacobians, bases, prefixes))
 
     # --- after the optimisation -------------------------------------------------------------------
 
