@@ -30,7 +30,6 @@ import gtsam
 import numpy as np
 
 import mirror_fg.factors.view_last_reflection as last
-from mirror_fg.factors.schur import inverses
 from mirror_fg.factors.view_eliminated import private_placements, restart_collapsed, solve_placements
 from mirror_fg.factors.view_points import PLACEMENTS_PER_FACTOR, ViewPointStack
 from mirror_fg.factors.view_stack import _Group, read_poses_and_planes, stacks_by_placements
