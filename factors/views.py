@@ -59,6 +59,8 @@ def vectors_of_planes(coefficients: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     (``OrientedPlane3.planeCoefficients``): vectors (P, 3) and Jacobians (P, 3, 3), the tangent basis
     chosen as GTSAM's ``Unit3::basis`` does (``n x e`` normalised, ``e`` the axis of ``n``'s smallest
     component, ties to the earlier axis; then ``n x b1``)."""
+    if not len(coefficients):  # (none kept: every placement eliminated)
+        return np.zeros((0, 3)), np.zeros((0, 3, 3))
     n, d = coefficients[:, :3], coefficients[:, 3]
     m = np.abs(n)
     axis = np.where((m[:, 0] <= m[:, 1]) & (m[:, 0] <= m[:, 2]), 0,
