@@ -1,6 +1,6 @@
 """The incremental graph with the last mirror's placements eliminated (mirror_fg/solver/incremental/graph.py)
-against the per-measurement reference graph (factors/reflection.py), as tests/test_elimination.py does
-for the batch graph.
+against the per-measurement reference graph (the one model's view factor of each measurement alone,
+factors/views.py, keyed as the graph is), as tests/test_elimination.py does for the batch graph.
 
 After a stream, the factors iSAM2 holds (placement blocks, merged and re-made along the way, and the
 stacked factors of the placements kept as unknowns) must have the reference's cost and, at iSAM2's
@@ -13,12 +13,12 @@ import gtsam
 import numpy as np
 import pytest
 
-from mirror_fg.factors.reflection import noise_model
 from mirror_fg.data import Dataset, Image
+from mirror_fg.factors.views import plane_of
 from mirror_fg.solver.calibrate import calibrate
-from mirror_fg.solver.model.graph import measurement_factor, measurement_sigmas
 from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator
 from mirror_fg.solver.incremental.graph import MERGE_FANOUT
+from mirror_fg.solver.incremental.view_factors import view_factors_of
 from mirror_fg.simulate.tree import measure, simulate_base_case
 from test_fast_path import _assert_close
 
@@ -35,16 +35,17 @@ def _stream(ds: Dataset) -> IncrementalCalibrator:
 
 def _reference(calibrator: IncrementalCalibrator, values: gtsam.Values):
     """The per-measurement graph of every measurement in the calibrator's graph (its own keys) and its
-    values: ``values`` plus every eliminated placement at its block's optimum there."""
+    values: ``values`` plus every eliminated placement's plane at its block's optimum there."""
     g = calibrator.backend.state
     ds = calibrator.dataset
     full = gtsam.Values(values)
     for block in g.blocks:
         for config, v in block.evaluator.mirror_vectors(values).items():
-            full.insert(g.layout.mirror_keys[config], v)
+            full.insert(g.layout.mirror_keys[config], plane_of(v))
     graph = gtsam.NonlinearFactorGraph()
-    for meas, sigma in zip(g.measurements, measurement_sigmas(ds, g.measurements)):
-        graph.add(measurement_factor(ds, g.layout, meas, noise_model(sigma, None)))
+    for meas in g.measurements:
+        (view,) = view_factors_of(ds, g.layout, [meas])
+        graph.add(view.factor())
     return graph, full
 
 
@@ -62,7 +63,7 @@ def _check_against_reference(calibrator: IncrementalCalibrator) -> None:
     kept = [g.layout.pose_key, *g.kept.values(), *g.layout.point_keys.values()]
     assert values.size() == len(kept)  # no eliminated placement among iSAM2's unknowns
     held = isam.getFactorsUnsafe()  # removed (merged, re-made) blocks are gone from it
-    assert held.nrFactors() == g.factors.size() + len(g.blocks)
+    assert held.nrFactors() == g.factors.size() + sum(len(block.factors) for block in g.blocks)
     reference, full = _reference(calibrator, values)
     assert np.isclose(held.error(values), reference.error(full), rtol=RTOL)
 
@@ -117,7 +118,7 @@ def test_full_calibration_recovers_the_batch_placements_and_covariances():
 
 def test_placement_under_a_second_parent_becomes_an_unknown():
     """A mirror-2 placement seen again with mirror 1 elsewhere cannot be eliminated inside one factor: its
-    block is dissolved and it joins iSAM2 as a Point3, with the stacked factors; the estimate stays the
+    block is dissolved and it joins iSAM2 as a plane, with the stacked factors; the estimate stays the
     batch MLE (whose graph then keeps every placement, ``build_eliminated_graph`` returning None)."""
     ds, truth = simulate_base_case(num_images=60, num_points=0, pixel_sigma=1.0, seed=3)
     rng = np.random.default_rng(0)

@@ -5,41 +5,47 @@ Frames, keys and units as ``incremental.py``. :class:`GraphState` is everything 
 back; :class:`IncrementalGraph` holds one and grows it (the calibrator holds one ``IncrementalGraph``);
 the values of new placements come from ``incremental_placements.py``.
 
+The factors are the one measurement model's (``model/views.py``, built by ``view_factors.py``): each
+image a view of the graph's camera, a placement that is an iSAM2 unknown an ``OrientedPlane3`` (its
+mirror vector ``v = d n``), a point a ``Point3`` in the base frame.
+
 Eliminated placements (without a robust kernel). The last mirror moves in (nearly) every image,
-so one ``Point3`` per placement in iSAM2 makes each update cost O(images): every Python factor call gets
+so one unknown per placement in iSAM2 makes each update cost O(images): every Python factor call gets
 a copy of iSAM2's whole ``Values``, and reading the estimate back touches every unknown. Instead each
-last-mirror placement is eliminated inside its factor (``factors/eliminated.py``: a Schur complement, as
-GTSAM's ``SmartProjectionFactor`` eliminates its landmark; the factor's cost is the minimum over the
-placement, eq. 23, and its linearisation has the same normal equations as the placement's measurements
-with the placement eliminated first). iSAM2 then holds only ``T_cam_base``, the placements of mirrors
-1..Nv-1 and the points. The placements are grouped in :class:`PlacementBlock` s, one factor each, all
-under one parent placement: a new image's placement starts a block of its own, and ``MERGE_FANOUT``
-blocks of one level are merged into one (the old factors removed from iSAM2 in the same update): O(log n)
-factors for n images, so neither the root clique's re-elimination nor a relinearisation of the pose
-grows with the number of Python factors. A merged factor, linearised at iSAM2's linearisation point,
-is the sum of the factors it replaces: the same linear system. The placements' values come from their
-block (at the estimate when it was made, and for every placement in ``calibration(full=True)``); a
-placement seen under two parents (or with a robust kernel, every placement) stays a ``Point3`` in iSAM2
-with the batch's stacked factors (``factors/batched.py``).
+last-mirror placement is eliminated inside its views' factors (``factors/view_eliminated.py``,
+``factors/view_points_eliminated.py``: a Schur complement, as GTSAM's ``SmartProjectionFactor``
+eliminates its landmark; the factor's cost is the minimum over the placement, eq. 23, and its
+linearisation has the same normal equations as the placement's measurements with the placement
+eliminated first). iSAM2 then holds only ``T_cam_base``, the placements of mirrors 1..Nv-1 and the
+points. The placements are grouped in :class:`PlacementBlock` s, one stack each (one factor, or a few
+with reconstruction points), all under one parent placement: a new image's placement starts a block of
+its own, and ``MERGE_FANOUT`` blocks of one level are merged into one (the old factors removed from
+iSAM2 in the same update): O(log n) factors for n images, so neither the root clique's re-elimination
+nor a relinearisation of the pose grows with the number of Python factors. A merged block, linearised
+at iSAM2's linearisation point, is the sum of the blocks it replaces: the same linear system. The
+placements' values come from their block (at the estimate when it was made, and for every placement in
+``calibration(full=True)``); a placement seen under two parents (or with a robust kernel, every
+placement) stays a plane in iSAM2 with the model's stacked factors.
 """
 from __future__ import annotations
 
 import math
 from collections import defaultdict
 from collections.abc import Iterable
+from dataclasses import replace
 
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import V
 
 from mirror_fg.core.transform import covariance_from_pose3
-from mirror_fg.factors.batched import batched_factors
-from mirror_fg.factors.eliminated import collapsed, eliminated_evaluator
 from mirror_fg.data import Dataset, Image
+from mirror_fg.factors.eliminated import collapsed
 from mirror_fg.solver.start.analytic import AnalyticSolution
 from mirror_fg.solver.result.calibration import Calibration, Exclusion
-from mirror_fg.solver.model.graph import GraphLayout, Measurement, measurement_sigmas
+from mirror_fg.solver.model.graph import GraphLayout, Measurement
 from mirror_fg.solver.incremental.state import GraphState, PlacementBlock, RelinearizeThresholds, new_isam2
+from mirror_fg.solver.incremental.view_factors import eliminated_block, plane_of, stacked_factors, vector_at
 from mirror_fg.solver.incremental.values import (
     MIN_PNP_FIDUCIALS,
     REFINE_ITERATIONS,
@@ -47,8 +53,9 @@ from mirror_fg.solver.incremental.values import (
     initialise_points,
     refine_alone,
 )
-from mirror_fg.solver.model.marginals import marginal_covariances, unconstrained_as_solve_error, unconstrained_message
+from mirror_fg.solver.model.marginals import unconstrained_as_solve_error, unconstrained_message
 from mirror_fg.solver.model.residuals import predicted_normalized, residual_statistics
+from mirror_fg.solver.model.views import SINGLE_CAMERA, ViewEstimate, ViewProblem
 from mirror_fg.solver.result.builder import build_calibration
 from mirror_fg.solver.timing import timed
 
@@ -163,9 +170,9 @@ class IncrementalGraph:
         """The factors of ``measurements`` into ``factors`` (the next update's), and into the graph state.
 
         Without a robust kernel, measurements whose last placement is eliminated go to placement blocks
-        (module docstring, :meth:`_place_in_blocks`); the others get the batch pipeline's stacked factors
-        (``factors.batched``: one vectorised factor per image or group of images instead of one Python
-        factor per measurement; the layout handed over holds only the keys these measurements use).
+        (module docstring, :meth:`_place_in_blocks`); the others get the view model's stacked factors
+        (``view_factors.stacked_factors``: a few vectorised factors instead of one Python factor per
+        measurement; the layout handed over holds only the keys these measurements use).
         """
         if not measurements:
             return
@@ -181,8 +188,7 @@ class IncrementalGraph:
             mirror_keys={config: self._state.layout.mirror_keys[config] for config in configs},
             point_keys={name: self._state.layout.point_keys[name] for name in names},
         )
-        sigmas = measurement_sigmas(self._ds, measurements)  # point_sigma where given
-        for factor in batched_factors(self._ds, layout, measurements, sigmas, self._robust):
+        for factor in stacked_factors(self._ds, layout, measurements, self._robust):  # point_sigma where given
             factors.add(factor)
             self._state.factors.add(factor)
 
@@ -193,7 +199,7 @@ class IncrementalGraph:
 
         A block holding a placement that gets new measurements (a point's value came, the placement is
         seen again) is dissolved and re-made with them. A placement seen under a second parent becomes an
-        iSAM2 unknown (inserted into ``values``; its measurements are returned). Then ``MERGE_FANOUT``
+        iSAM2 unknown (its plane inserted into ``values``; its measurements are returned). Then ``MERGE_FANOUT``
         blocks of one level and parent are merged, until none are. Removed blocks' iSAM2 indices go to
         ``removals``, new blocks' factors into ``factors`` (``pending`` until the update numbers them).
         """
@@ -216,7 +222,7 @@ class IncrementalGraph:
         for config, seen in parents.items():
             if len(seen) > 1:  # one placement under two parents: an iSAM2 unknown of its own
                 g.kept[config] = g.layout.mirror_keys[config]
-                values.insert(g.layout.mirror_keys[config], g.mirrors[config])
+                values.insert(g.layout.mirror_keys[config], plane_of(g.mirrors[config]))
         explicit += [m for m in pool if (Nv, m.mirror_configs[-1]) in g.kept]
         pool = [m for m in pool if (Nv, m.mirror_configs[-1]) not in g.kept]
         by_parent: dict[tuple[int, ...], list[Measurement]] = defaultdict(list)
@@ -243,7 +249,8 @@ class IncrementalGraph:
         self, parent: tuple[int, ...], level: int, measurements: list[Measurement], placements: list[tuple[int, int]],
         factors: gtsam.NonlinearFactorGraph,
     ) -> None:
-        """One factor with ``placements`` (all under ``parent``) eliminated, into the state and ``factors``."""
+        """The factors of ``measurements`` with ``placements`` (all under ``parent``) eliminated, into the state
+        and ``factors``."""
         g = self._state
         configs = {(l + 1, m) for meas in measurements for l, m in enumerate(meas.mirror_configs)}
         names = {meas.point for meas in measurements if meas.point not in self._ds.fiducials}
@@ -252,16 +259,19 @@ class IncrementalGraph:
             mirror_keys={config: g.layout.mirror_keys[config] for config in configs},
             point_keys={name: g.layout.point_keys[name] for name in names},
         )
-        sigmas = measurement_sigmas(self._ds, measurements)
-        evaluator = eliminated_evaluator(self._ds, layout, measurements, sigmas, {c: g.mirrors[c] for c in placements})
-        (factor,) = evaluator.factors  # one parent: one factor
-        evaluator.factors = []  # the block holds the factor, the factor the evaluator: no cycle
-        block = PlacementBlock(parent, level, measurements, placements, evaluator, factor)
+        evaluator = eliminated_block(self._ds, layout, measurements, {c: g.mirrors[c] for c in placements})
+        block_factors, evaluator.factors = evaluator.factors, []  # the block holds the factors, they the evaluator: no cycle
+        block = PlacementBlock(parent, level, measurements, placements, evaluator, block_factors)
         g.blocks.append(block)
         for config in placements:
             g.block_of[config] = block
-        g.pending.append((block, factors.size()))
-        factors.add(factor)
+        self._add_block_factors(block, factors)
+
+    def _add_block_factors(self, block: PlacementBlock, factors: gtsam.NonlinearFactorGraph) -> None:
+        """A block's factors into ``factors``, pending (their iSAM2 indices come with the update)."""
+        self._state.pending.append((block, list(range(factors.size(), factors.size() + len(block.factors)))))
+        for factor in block.factors:
+            factors.add(factor)
 
     def _drop_block(self, block: PlacementBlock) -> None:
         """Take a block out of the state; its factor leaves iSAM2 with the next update."""
@@ -270,8 +280,8 @@ class IncrementalGraph:
         for config in block.placements:
             if g.block_of.get(config) is block:
                 del g.block_of[config]
-        if block.index is not None:
-            g.removals.append(block.index)
+        if block.indices is not None:
+            g.removals.extend(block.indices)
         else:  # made earlier in this same update: not in iSAM2 yet
             g.pending = [(b, position) for b, position in g.pending if b is not block]
 
@@ -282,7 +292,7 @@ class IncrementalGraph:
         self._state.mirrors[config] = np.asarray(v, dtype=float)
         if self._robust is not None or config[0] < self._ds.num_mirrors:
             self._state.kept[config] = key
-            values.insert(key, self._state.mirrors[config])
+            values.insert(key, plane_of(self._state.mirrors[config]))
 
     def refine_new(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
         """Each new unknown of ``values`` moved to its optimum on ``factors`` with the rest held at the
@@ -302,8 +312,8 @@ class IncrementalGraph:
                 result = isam.update(factors, values, removals)
                 pose_cov = isam.marginalCovariance(g.layout.pose_key)
             indices = result.getNewFactorsIndices()
-            for block, position in pending:
-                block.index = int(indices[position])
+            for block, positions in pending:
+                block.indices = [int(indices[position]) for position in positions]
             self.updates += 1
         with timed(self.timings, "estimate"):
             before = (g.R, g.t, g.pose_cov)
@@ -330,8 +340,7 @@ class IncrementalGraph:
         factors.push_back(g.factors)
         g.pending = []
         for block in g.blocks:
-            g.pending.append((block, factors.size()))
-            factors.add(block.factor)
+            self._add_block_factors(block, factors)
         return factors
 
     def polish(self) -> None:
@@ -356,7 +365,7 @@ class IncrementalGraph:
         pose = values.atPose3(g.layout.pose_key)
         g.R, g.t = pose.rotation().matrix(), np.array(pose.translation())
         for config, key in g.kept.items():
-            g.mirrors[config] = np.array(values.atPoint3(key))
+            g.mirrors[config] = vector_at(values, key)
         for name, key in g.layout.point_keys.items():
             g.points[name] = np.array(values.atPoint3(key))
         for block in blocks:
@@ -372,43 +381,55 @@ class IncrementalGraph:
             values.insert(g.layout.pose_key, gtsam.Pose3(gtsam.Rot3(g.R), g.t))
         for config, key in g.kept.items():
             if wanted is None or key in wanted:
-                values.insert(key, g.mirrors[config])
+                values.insert(key, plane_of(g.mirrors[config]))
         for name, key in g.layout.point_keys.items():
             if wanted is None or key in wanted:
                 values.insert(key, g.points[name])
         return values
 
-    def explicit_graph(self, refresh: bool = True) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
-        """The graph with every placement an unknown (the batch's stacked factors) and its values at the
-        estimate, every eliminated placement at its optimum there (``refresh``; else at the value it has):
-        what ``calibration(full=True)`` takes covariances and residuals of (O(images), once)."""
+    def explicit_problem(self, refresh: bool = True) -> tuple[ViewProblem, ViewEstimate]:
+        """The graph's measurements as a problem of the one model (``model/views.py``: each image restricted
+        to its measurements in the graph) and the estimate, every eliminated placement at its optimum there
+        (``refresh``; else at the value it has): what ``calibration(full=True)`` takes covariances and
+        residuals of, and what a start-up whose placements collapsed solves with every placement an unknown
+        (O(images), once)."""
         g = self._state
         values = self.estimate_values()
         for block in g.blocks if refresh else []:
             g.mirrors.update(block.evaluator.mirror_vectors(values))
-        if not g.blocks:
-            return g.factors, values
-        for config, key in g.layout.mirror_keys.items():
-            if config not in g.kept:
-                values.insert(key, g.mirrors[config])
-        factors = gtsam.NonlinearFactorGraph()
-        sigmas = measurement_sigmas(self._ds, g.measurements)
-        for factor in batched_factors(self._ds, g.layout, g.measurements, sigmas, self._robust):
-            factors.add(factor)
-        return factors, values
+        names: dict[str, set[str]] = defaultdict(set)
+        for meas in g.measurements:
+            names[meas.image_id].add(meas.point)
+        images = [replace(image, observations={n: z for n, z in image.observations.items() if n in names[image.id]})
+                  for image in g.images if image.id in names]
+        problem = ViewProblem(replace(self._ds, images=images), self._robust)
+        estimate = ViewEstimate({SINGLE_CAMERA: (g.R.copy(), g.t.copy())},
+                                {p: g.mirrors[p].copy() for p in problem.placements},
+                                {n: g.points[n].copy() for n in problem.point_names})
+        return problem, estimate
+
+    def explicit_covariances(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, tuple]:
+        """The graph of :meth:`explicit_problem` at the estimate (its own placements eliminated where the
+        model allows it), its values and ``ViewProblem.covariances`` there: pose (docs/formats.md
+        convention), mirror vectors and points."""
+        problem, estimate = self.explicit_problem()
+        graph, values, evaluator = problem.solve_graph(estimate)
+        with unconstrained_as_solve_error(self._ds.source, lambda error: unconstrained_message(error, problem)):
+            poses, _, mirrors, points, _ = problem.covariances(graph, values, estimate, evaluator)
+        return graph, values, (poses[SINGLE_CAMERA], mirrors, points)
 
     def placements_collapsed(self, values: gtsam.Values) -> bool:
         """Whether an eliminated placement at ``values`` has run into the camera centre
         (``factors.eliminated.collapsed``)."""
         return collapsed([v for block in self._state.blocks for v in block.evaluator.mirror_vectors(values).values()])
 
-    def remake_blocks(self, solution: gtsam.Values) -> gtsam.NonlinearFactorGraph:
-        """Take the estimate from ``solution``, a solve of :meth:`explicit_graph` (every placement an
+    def remake_blocks(self, solution: ViewEstimate) -> gtsam.NonlinearFactorGraph:
+        """Take the estimate from ``solution``, a solve of :meth:`explicit_problem` (every placement an
         unknown), and make every block anew from it. Returns every factor, for a fresh iSAM2."""
         g = self._state
-        self.set_estimate(solution)
-        for config, key in g.layout.mirror_keys.items():
-            g.mirrors[config] = np.array(solution.atPoint3(key))
+        g.R, g.t = (np.asarray(x, float).copy() for x in solution.poses[SINGLE_CAMERA])
+        g.mirrors.update({p: np.asarray(v, float).copy() for p, v in solution.mirror_vectors.items()})
+        g.points.update({n: np.asarray(x, float).copy() for n, x in solution.points.items()})
         old, g.blocks, g.block_of, g.pending = g.blocks, [], {}, []
         factors = gtsam.NonlinearFactorGraph()
         factors.push_back(g.factors)
@@ -423,7 +444,7 @@ class IncrementalGraph:
     ) -> Calibration:
         """The estimate as a ``Calibration`` (``IncrementalCalibrator.calibration`` says what each holds):
         ``full=False`` the pose and its covariance from iSAM2, no residuals; ``full=True`` covariances of
-        every unknown and residuals of every measurement, on :meth:`explicit_graph` at the estimate.
+        every unknown and residuals of every measurement, on :meth:`explicit_covariances` at the estimate.
         ``analytic``: the latest start-up's; ``settled``: ``converged`` (with ``full``, also the last
         relinearisation's pose step below ``POLISH_SIGMAS``); ``excluded``: what the calibrator left out."""
         g = self._state
@@ -433,8 +454,7 @@ class IncrementalGraph:
                 point_covs={}, residuals=np.zeros((0, 2)), whitened=np.zeros(0), labels=[], final_error=math.nan,
                 unknowns=None,
             )
-        factors, estimate = self.explicit_graph()  # every placement an unknown, at the estimate
-        covariance, mirror_covs, point_covs = marginal_covariances(factors, estimate, g.layout, self._ds.source)
+        factors, estimate, (covariance, mirror_covs, point_covs) = self.explicit_covariances()
         predicted = predicted_normalized(self._ds, g.measurements, g.R, g.t, g.mirrors, g.points)
         residuals, whitened = residual_statistics(self._ds, g.measurements, predicted)
         # Its cost judged as the batch's (lm.LMRun.expected_final_error): two per measurement less

@@ -26,7 +26,7 @@ from mirror_fg.core.transform import covariance_to_pose3
 from mirror_fg.solver.start.analytic import AnalyticSolution
 from mirror_fg.solver.incremental.graph import IncrementalGraph
 from mirror_fg.solver.model.lm import cost_scale, lm_params, run_optimizer
-from mirror_fg.solver.model.marginals import marginal_covariances
+from mirror_fg.solver.model.marginals import unconstrained_message
 from mirror_fg.solver.timing import timed
 
 __all__ = [
@@ -74,9 +74,10 @@ def start_graph(graph: IncrementalGraph, analytic: AnalyticSolution, lm_iteratio
         if graph.placements_collapsed(optimized):  # a placement run into the camera centre
             # (factors.eliminated.COLLAPSED_FRACTION): LM again from the start-up's values with every
             # placement an unknown, as the batch does without elimination; then the blocks made anew there.
-            explicit, start = graph.explicit_graph(refresh=False)
-            optimizer, solution, _ = run_optimizer(explicit, start, params, source, graph.unconstrained)
-            factors = graph.remake_blocks(solution)
+            problem, start = graph.explicit_problem(refresh=False)
+            optimizer, solution, _ = run_optimizer(problem.graph(), problem.values(start), params, source,
+                                                   lambda error: unconstrained_message(error, problem))
+            factors = graph.remake_blocks(problem.read(solution))
             optimized = graph.estimate_values()
     g.isam = graph.new_isam2()
     graph.set_estimate(optimized)  # the pose the update's step is measured from; placements below
@@ -90,8 +91,8 @@ def start_graph(graph: IncrementalGraph, analytic: AnalyticSolution, lm_iteratio
         settled = g.step_sigmas < SETTLED_SIGMAS and optimizer.iterations() < lm_iterations
     except SolveError:  # iSAM2's Cholesky gave up near the LM solution (nearly indeterminant)
         settled = False
-        graph.set_estimate(optimized)  # and every eliminated placement there, by explicit_graph
-        covariance, _, _ = marginal_covariances(*graph.explicit_graph(), g.layout, source)
+        graph.set_estimate(optimized)  # and every eliminated placement there, by explicit_covariances
+        _, _, (covariance, _, _) = graph.explicit_covariances()
         g.pose_cov = covariance_to_pose3(g.R, covariance)  # GTSAM's [w, nu]
     else:
         if not settled:

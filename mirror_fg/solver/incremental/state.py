@@ -15,8 +15,9 @@ import numpy as np
 from gtsam.symbol_shorthand import X
 
 from mirror_fg.core.errors import SolveError
-from mirror_fg.factors.eliminated import EliminatedEvaluator
 from mirror_fg.data import Image
+from mirror_fg.factors.view_eliminated import EliminatedViewStack
+from mirror_fg.factors.view_points_eliminated import EliminatedViewPointStack
 from mirror_fg.solver.model.graph import GraphLayout, Measurement
 
 __all__ = ["GraphState", "PlacementBlock", "RelinearizeThresholds"]
@@ -63,24 +64,26 @@ def new_isam2(thresholds: RelinearizeThresholds | None = None) -> gtsam.ISAM2:
 
 @dataclass
 class PlacementBlock:
-    """Last-mirror placements eliminated inside one factor (``factors/eliminated.py``), all under ``parent``
-    (the placements of mirrors 1..Nv-1). ``index``: the factor's index in iSAM2 (``None`` until an update
-    gave it one); ``level``: merges so far in the sense of ``MERGE_FANOUT``."""
+    """Last-mirror placements eliminated inside the factors of their views (``view_factors.eliminated_block``:
+    one stack, one factor of fiducials or a few with reconstruction points), all under ``parent`` (the
+    placements of mirrors 1..Nv-1). ``indices``: the factors' indices in iSAM2 (``None`` until an update
+    gave them); ``level``: merges so far in the sense of ``MERGE_FANOUT``."""
 
     parent: tuple[int, ...]
     level: int
     measurements: list[Measurement]
     placements: list[tuple[int, int]]
-    evaluator: EliminatedEvaluator
-    factor: gtsam.CustomFactor
-    index: int | None = None
+    evaluator: EliminatedViewStack | EliminatedViewPointStack
+    factors: list[gtsam.CustomFactor]
+    indices: list[int] | None = None
 
 
 @dataclass
 class GraphState:
     """What a failed start-up rolls back: the graph, the estimate, and the images in and waiting for it.
 
-    ``R``, ``t``: ``T_cam_base`` (metres); ``mirrors`` (camera frame) and ``points`` (base frame), metres;
+    ``R``, ``t``: ``T_cam_base`` (metres); ``mirrors`` (camera frame; in iSAM2 a kept one is the plane
+    ``OrientedPlane3`` of its vector, ``views.plane_of``) and ``points`` (base frame), metres;
     ``pose_cov``: 6x6 in GTSAM's Pose3 tangent ``[w, nu]``; ``step_sigmas``: Mahalanobis size of the
     last pose step; ``initial_error``: the latest start-up graph's cost at its analytical solution.
     ``factors`` holds the stacked factors of the placements iSAM2 has as unknowns; ``blocks`` the factors
@@ -107,7 +110,7 @@ class GraphState:
     blocks: list[PlacementBlock] = field(default_factory=list)
     block_of: dict[tuple[int, int], PlacementBlock] = field(default_factory=dict)
     removals: list[int] = field(default_factory=list)  # iSAM2 factors the next update removes
-    pending: list[tuple[PlacementBlock, int]] = field(default_factory=list)  # new blocks, position in the update
+    pending: list[tuple[PlacementBlock, list[int]]] = field(default_factory=list)  # new blocks, positions in the update
 
     @classmethod
     def empty(cls, waiting: Iterable[Image], seed: int) -> GraphState:

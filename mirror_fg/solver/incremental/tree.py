@@ -68,7 +68,7 @@ from mirror_fg.solver.incremental.startup import DIVERGENCE_SIGMAS, FINAL_LM_ITE
 from mirror_fg.solver.incremental.state import GraphState, RelinearizeThresholds
 from mirror_fg.solver.incremental.values import MIN_PNP_FIDUCIALS
 from mirror_fg.solver.start.initial import initial_estimate
-from mirror_fg.solver.model.marginals import marginal_covariances
+from mirror_fg.solver.incremental.view_factors import vector_covariance, vector_jacobian
 from mirror_fg.solver.start.placement_tree import complete_tree, tree_shortfall
 from mirror_fg.solver.timing import timed
 
@@ -272,12 +272,14 @@ class TreeIncrementalCalibrator:
             key = self._g.layout.mirror_keys.get(config) if len(config) == 2 else None
         if key is None:
             raise KeyError(f"{unknown!r} has no value in the graph yet")
-        if self._settled and (isinstance(unknown, str) or config in self._g.kept):
+        if self._settled and isinstance(unknown, str):
             return self._g.require_isam().marginalCovariance(key)
+        if self._settled and config in self._g.kept:  # the plane's covariance as its mirror vector's
+            isam = self._g.require_isam()
+            return vector_covariance(isam.calculateEstimate(), key, isam.marginalCovariance(key))
         # Unsettled, iSAM2 may not hold the reported (LM) estimate; an eliminated placement is not in
         # iSAM2: marginals of the whole graph at the estimate.
-        factors, values = self._graph.explicit_graph()
-        _, mirrors, points = marginal_covariances(factors, values, self._g.layout, self._ds.source)
+        _, _, (_, mirrors, points) = self._graph.explicit_covariances()
         return points[unknown] if isinstance(unknown, str) else mirrors[config]
 
     def calibration(self, full: bool = False) -> Calibration:
@@ -444,9 +446,17 @@ class TreeIncrementalCalibrator:
         layout = self._g.layout
         keys = [layout.pose_key, *(layout.mirror_keys[(level + 1, m)] for level, m in enumerate(configs[:-1]))]
         try:
-            covariance = self._g.require_isam().jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
+            isam = self._g.require_isam()
+            covariance = isam.jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
         except RuntimeError:  # an indeterminant system: judged at the estimate's value alone
             covariance = np.zeros((6 + 3 * len(parents), 6 + 3 * len(parents)))
+        else:  # the parents' planes as their mirror vectors (v = d n)
+            if len(keys) > 1:
+                estimate = isam.calculateEstimate()
+                J = np.eye(len(covariance))
+                for k, key in enumerate(keys[1:]):
+                    J[6 + 3 * k:9 + 3 * k, 6 + 3 * k:9 + 3 * k] = vector_jacobian(estimate, key)
+                covariance = J @ covariance @ J.T
         pose = gtsam.Pose3(gtsam.Rot3(self._g.R), np.asarray(self._g.t, float))
         return misfit_sigmas_with_uncertainty(self._ds, image, candidates, pose, parents, last, covariance)
 

@@ -206,6 +206,7 @@ def refine_alone(
     current = estimate(involved - new_keys)
     current.insert(values)
     for key, key_factors in touching.items():
+        plane = gtsam.Symbol(key).chr() == ord("v")  # a placement's plane (the graph's V keys), else a point
         for _ in range(REFINE_ITERATIONS):
             normal, rhs = np.zeros((3, 3)), np.zeros(3)
             for factor in key_factors:
@@ -217,7 +218,10 @@ def refine_alone(
                 normal += A_key.T @ A_key
                 rhs += A_key.T @ b
             step = np.linalg.lstsq(normal, rhs, rcond=None)[0]
-            current.update(key, current.atPoint3(key) + step)
+            if plane:  # a placement: its plane moved in its local coordinates
+                current.update(key, current.atOrientedPlane3(key).retract(step))
+            else:
+                current.update(key, current.atPoint3(key) + step)
             if np.max(np.abs(step)) < 1e-9:
                 break
-        values.update(key, current.atPoint3(key))
+        values.update(key, current.atOrientedPlane3(key) if plane else current.atPoint3(key))
