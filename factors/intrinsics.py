@@ -1,5 +1,10 @@
 """Pixel-predicting reflection factors: the camera intrinsics as one shared unknown.
 
+The one measurement model (``views.py``) predicts pixels through :class:`IntrinsicsModel` and
+:func:`pixel_jacobians` of this module, and takes the prior :func:`intrinsics_prior_factor`; the tree's own
+stacked pixel factors (:func:`intrinsics_factors`, mirror vectors as ``Point3`` s) are kept as the reference
+the model is checked against, like ``batched.py``.
+
 Where ``camera.estimate`` names intrinsics, a measurement is no longer undistorted once with fixed
 intrinsics: the factor predicts the *pixel* (Hesch et al. eqs. 2, 3, 5-9 to the normalized point
 ``h = (x, y)``, then OpenCV's pinhole distortion applied forward and ``K``):

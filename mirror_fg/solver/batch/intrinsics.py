@@ -3,9 +3,10 @@
 Its pieces, which ``calibrate.calibrate_with_intrinsics`` (the pipeline) puts together: the dataset's
 camera holds the start intrinsics (the given values; where fx, fy, cx or cy was absent,
 :func:`mirror_fg.core.camera.initial_intrinsics` computed them from the photographs when the dataset was
-loaded, :func:`photograph_start` again when the given ones give no usable start); the joint graph of pixel
-factors (``factors/intrinsics.py``) with the optional Gaussian prior ``camera.prior_sigma``
-(:func:`joint_problem`, :func:`joint_values`); joint Levenberg-Marquardt with Marquardt's diagonal damping
+loaded, :func:`photograph_start` again when the given ones give no usable start); the joint graph of the
+one measurement model's view factors in pixels (``model/views.py`` with the camera's ``IntrinsicsModel``:
+``factors/views.py`` through ``factors/intrinsics.py``) with the optional Gaussian prior
+``camera.prior_sigma`` (:func:`joint_problem`, :func:`joint_values`); joint Levenberg-Marquardt with Marquardt's diagonal damping
 (:func:`run_joint_lm`); ``gtsam.Marginals`` (:func:`joint_covariances`: the pose's covariance *including*
 the intrinsics' uncertainty, their own covariance and their cross-covariance with the pose).
 This module imports nothing of the pipeline (``calibrate.py``), which imports it.
@@ -33,17 +34,16 @@ import numpy as np
 from mirror_fg.core.camera import Camera, initial_intrinsics
 from mirror_fg.core.errors import DatasetError, SolveError
 from mirror_fg.core.transform import covariance_from_pose3
-from mirror_fg.factors.intrinsics import (
-    IntrinsicsModel, intrinsics_factors, intrinsics_key, intrinsics_prior_factor,
-)
+from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_key
 from mirror_fg.data import Dataset
 from mirror_fg.solver.batch.intrinsics_observability import (  # noqa: F401 (public here too)
     ADVICE, UNOBSERVABLE_FRACTION, UNOBSERVABLE_RCOND, WEAK_CORNER_PX, IntrinsicsObservability, WeakIntrinsicsWarning,
     corner_sensitivity, intrinsics_observability, unobservable_refusal, warn_weak,
 )
-from mirror_fg.solver.model.graph import GraphLayout, InitialEstimate, Measurement, initial_values, measurements_of
+from mirror_fg.solver.model.graph import InitialEstimate, Measurement, measurements_of
 from mirror_fg.solver.model.lm import cost_scale, lm_params, run_optimizer
 from mirror_fg.solver.model.marginals import unconstrained_as_solve_error, unconstrained_message
+from mirror_fg.solver.model.views import SINGLE_CAMERA, ViewEstimate, ViewProblem
 
 __all__ = [
     "WeakIntrinsicsWarning", "IntrinsicsObservability", "intrinsics_observability",
@@ -118,7 +118,7 @@ class JointRun:
 
     dataset: Dataset
     graph: gtsam.NonlinearFactorGraph
-    layout: GraphLayout
+    layout: ViewProblem  # its keys, and the names of an unconstrained unknown
     measurements: list[Measurement]
     pixels: np.ndarray  # (M, 2) observed
     result: gtsam.Values
@@ -134,25 +134,19 @@ def pixel_sigmas(dataset: Dataset, measurements: list[Measurement]) -> np.ndarra
 
 
 def joint_problem(dataset: Dataset, fixed: Dataset, model: IntrinsicsModel, robust: str | None,
-                   ) -> tuple[gtsam.NonlinearFactorGraph, GraphLayout, list[Measurement], np.ndarray]:
-    """The graph of pixel factors (and the prior) of ``dataset``; ``fixed`` the same images with the
-    start camera (its measurements give the structure)."""
+                   ) -> tuple[gtsam.NonlinearFactorGraph, ViewProblem, list[Measurement], np.ndarray]:
+    """The graph of ``dataset``'s views in pixels through ``model`` (every placement a plane, the intrinsics
+    vector ``K(0)``) and the prior, its problem (keys, estimate, names), and the measurements and pixels of
+    ``fixed``, the same images with the start camera (in file order: the residuals' order)."""
     assert dataset.camera is not None
-    layout = GraphLayout.for_dataset(dataset)
+    problem = ViewProblem(dataset, robust, intrinsics={SINGLE_CAMERA: model})
     measurements = measurements_of(fixed)
     by_id = {image.id: image for image in dataset.images}
     pixels = np.array([by_id[m.image_id].observations[m.point] for m in measurements]).reshape(-1, 2)
-    graph = gtsam.NonlinearFactorGraph()
-    for factor in intrinsics_factors(dataset, layout, measurements, pixels, model, pixel_sigmas(dataset, measurements),
-                                     robust):
-        graph.add(factor)
-    prior = intrinsics_prior_factor(model, dict(dataset.camera.prior_sigma))
-    if prior is not None:
-        graph.add(prior)
-    return graph, layout, measurements, pixels
+    return problem.graph(), problem, measurements, pixels
 
 
-def run_joint_lm(dataset: Dataset, fixed: Dataset, graph: gtsam.NonlinearFactorGraph, layout: GraphLayout,
+def run_joint_lm(dataset: Dataset, fixed: Dataset, graph: gtsam.NonlinearFactorGraph, layout: ViewProblem,
             measurements: list[Measurement], pixels: np.ndarray, values: gtsam.Values, max_iterations: int,
             on_iteration: Callable[[int, float, float], None] | None) -> JointRun:
     """Levenberg-Marquardt (eq. 23) from ``values`` with the project's settings (``lm.lm_params``)."""
@@ -170,11 +164,16 @@ def run_joint_lm(dataset: Dataset, fixed: Dataset, graph: gtsam.NonlinearFactorG
                      iterations, converged)
 
 
-def joint_values(layout: GraphLayout, intrinsics: np.ndarray, estimate: InitialEstimate) -> gtsam.Values:
-    """Start values of ``layout``'s unknowns from an estimate, and of the ``K(0)`` vector."""
-    values = initial_values(layout, estimate)
-    values.insert(intrinsics_key(), np.array(intrinsics, dtype=float))
-    return values
+def joint_values(problem: ViewProblem, model: IntrinsicsModel, intrinsics: np.ndarray,
+                 estimate: InitialEstimate) -> gtsam.Values:
+    """Start values of ``problem``'s unknowns from an estimate, and of the ``K(0)`` vector (``intrinsics``:
+    the estimated ones, in ``model.estimated`` order)."""
+    theta = model.theta(np.asarray(intrinsics, dtype=float))
+    return problem.values(ViewEstimate({SINGLE_CAMERA: (np.asarray(estimate.R_cam_base, float),
+                                                        np.asarray(estimate.t_cam_base, float))},
+                                       {p: np.asarray(v, float) for p, v in estimate.mirror_vectors.items()},
+                                       {n: np.asarray(x, float) for n, x in estimate.points.items()},
+                                       {SINGLE_CAMERA: theta}))
 
 
 def photograph_start(dataset: Dataset, camera: Camera) -> Camera | None:
@@ -195,25 +194,18 @@ def photograph_start(dataset: Dataset, camera: Camera) -> Camera | None:
     return replace(camera, fx=start["fx"], fy=start["fy"], cx=start["cx"], cy=start["cy"])
 
 
-def joint_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, layout: GraphLayout, R: np.ndarray,
-                 source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, dict]:
+def joint_covariances(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, problem: ViewProblem,
+                      source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict, dict]:
     """Pose (docs/formats.md convention, intrinsics marginalised), intrinsics (k, k), their cross-covariance with
-    the pose (k, 6, docs/formats.md convention), mirror and point covariances, from ``gtsam.Marginals``."""
-    with unconstrained_as_solve_error(source, lambda error: _unconstrained(error, layout)):
-        marginals = gtsam.Marginals(graph, values)
-        joint = marginals.jointMarginalCovariance([layout.pose_key, intrinsics_key()]).fullMatrix()
-    to_spec = np.zeros((6, 6))
-    to_spec[:3, :3] = R  # dtheta = R w, dt = R nu (docs/formats.md's uncertainty convention)
-    to_spec[3:, 3:] = R
-    pose = covariance_from_pose3(R, joint[:6, :6])
-    intrinsics = joint[6:, 6:]
-    cross = joint[6:, :6] @ to_spec.T
-    mirrors = {config: marginals.marginalCovariance(key) for config, key in layout.mirror_keys.items()}
-    points = {name: marginals.marginalCovariance(key) for name, key in layout.point_keys.items()}
-    return pose, intrinsics, cross, mirrors, points
+    the pose (k, 6, docs/formats.md convention), mirror and point covariances (``ViewProblem.covariances``)."""
+    with unconstrained_as_solve_error(source, lambda error: _unconstrained(error, problem)):
+        poses, _, mirrors, points, intrinsics = problem.covariances(graph, values, problem.read(values))
+    covariance, cross = intrinsics[SINGLE_CAMERA]
+    assert cross is not None  # (the camera's pose is an unknown: a known target)
+    return poses[SINGLE_CAMERA], covariance, cross, mirrors, points
 
 
-def _unconstrained(error: Exception, layout: GraphLayout) -> str:
+def _unconstrained(error: Exception, layout: ViewProblem) -> str:
     """:func:`unconstrained_message`, naming the intrinsics vector too."""
     if gtsam.DefaultKeyFormatter(intrinsics_key()) in str(error):
         return "the data do not constrain the estimated intrinsics (indeterminant system near them)"

@@ -26,7 +26,8 @@ import numpy as np
 
 from mirror_fg.core.camera import Camera
 from mirror_fg.factors.intrinsics import intrinsics_key
-from mirror_fg.solver.model.graph import GraphLayout
+from mirror_fg.factors.views import vector_of_plane
+from mirror_fg.solver.model.views import ViewProblem, tangent_dimension
 
 __all__ = ["WeakIntrinsicsWarning", "IntrinsicsObservability", "intrinsics_observability", "corner_sensitivity",
            "unobservable_refusal", "warn_weak", "ADVICE", "WEAK_CORNER_PX", "UNOBSERVABLE_RCOND", "UNOBSERVABLE_FRACTION"]
@@ -93,16 +94,17 @@ class IntrinsicsObservability:
         return ", ".join(f"{n} (3-sigma {by_name[n]:.3g} px at the image corner)" for n in names)
 
 
-def intrinsics_observability(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, layout: GraphLayout,
+def intrinsics_observability(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, layout: ViewProblem,
                              camera: Camera, names: tuple[str, ...]) -> IntrinsicsObservability:
     """Fisher information of ``graph`` at ``values``, the intrinsics' Schur complement and their bound."""
     key = intrinsics_key()
-    others = [layout.pose_key, *layout.mirror_keys.values(), *layout.point_keys.values()]
+    others = [k for k in layout.keys if k != key]  # the pose, the placements' planes, the points
     ordering = gtsam.Ordering()
     for k in [key, *others]:
         ordering.push_back(k)
     information, _ = graph.linearize(values).hessian(ordering)
     k = len(names)
+    information = _in_mirror_vectors(information, [key, *others], values, set(layout.mirror_keys.values()))
     scale = corner_sensitivity(camera, names)
     diagonal = float(np.hypot(camera.width, camera.height))
     A, B, D = information[:k, :k], information[:k, k:], information[k:, k:]
@@ -124,7 +126,24 @@ def intrinsics_observability(graph: gtsam.NonlinearFactorGraph, values: gtsam.Va
     return IntrinsicsObservability(names, covariance, 3.0 * np.sqrt(np.diag(covariance)) * scale, False, diagonal)
 
 
-def unobservable_refusal(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, layout: GraphLayout,
+def _in_mirror_vectors(information: np.ndarray, keys: list[int], values: gtsam.Values, planes: set[int]) -> np.ndarray:
+    """``information`` (in ``keys``' order and GTSAM's local coordinates) with each placement's columns in its
+    mirror vector ``v = d n`` instead of its plane's coordinates (``views.vector_of_plane``: ``dv = J dxi``,
+    so ``H_v = J^-T H J^-1``): the intrinsics' Schur complement does not depend on it, but the check of the
+    rest's conditioning does, and it is stated for the mirror vectors (where one nears the camera centre,
+    the rest is singular)."""
+    T = np.eye(len(information))
+    at = 0
+    for key in keys:
+        dim = tangent_dimension(key, values)
+        if key in planes:
+            J = vector_of_plane(values.atOrientedPlane3(key))[1]
+            T[at:at + 3, at:at + 3] = np.linalg.pinv(J)
+        at += dim
+    return T.T @ information @ T
+
+
+def unobservable_refusal(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, layout: ViewProblem,
                   camera: Camera, names: tuple[str, ...], source: str) -> str | None:
     """The one-line refusal when the Fisher information at ``values`` leaves an intrinsic unobservable."""
     observability = intrinsics_observability(graph, values, layout, camera, names)

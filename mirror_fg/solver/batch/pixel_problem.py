@@ -27,7 +27,8 @@ from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_key, predic
 from mirror_fg.data import Dataset
 from mirror_fg.solver.result.calibration import Calibration, EstimatedCamera, Exclusion
 from mirror_fg.solver.screen.consensus import without
-from mirror_fg.solver.model.graph import Estimate, GraphLayout, InitialEstimate, Measurement, extract_values
+from mirror_fg.solver.model.graph import Estimate, InitialEstimate, Measurement
+from mirror_fg.solver.model.views import SINGLE_CAMERA, ViewProblem
 from mirror_fg.solver.batch.intrinsics import (
     JointRun,
     camera_intrinsics,
@@ -61,7 +62,7 @@ class _Start:
     start: Calibration
     solved: Dataset  # the dataset without what the start left out
     graph: gtsam.NonlinearFactorGraph
-    layout: GraphLayout
+    layout: ViewProblem
     measurements: list[Measurement]
     pixels: np.ndarray
     values: gtsam.Values
@@ -85,7 +86,7 @@ def _fixed_start(dataset: Dataset, camera: Camera, model: IntrinsicsModel, optio
                             options=start_options)
     solved = without(dataset, start.excluded) if start.excluded else dataset
     graph, layout, measurements, pixels = joint_problem(solved, replace(solved, camera=camera), model, options.robust)
-    values = joint_values(layout, camera_intrinsics(camera)[model.index], start)
+    values = joint_values(layout, model, camera_intrinsics(camera)[model.index], start)
     refusal = unobservable_refusal(graph, values, layout, camera, model.estimated, dataset.source)
     return _Start(camera, start, solved, graph, layout, measurements, pixels, values, refusal)
 
@@ -166,11 +167,12 @@ class PixelProblem:
             estimate = Estimate(last.R, last.t, last.mirror_vectors, last.points)
             graph, layout, measurements, pixels = joint_problem(solved, replace(solved, camera=chosen.camera), model,
                                                                 options.robust)
-            values = joint_values(layout, last.run.result.atVector(intrinsics_key()), estimate)
+            values = joint_values(layout, model, last.run.result.atVector(intrinsics_key()), estimate)
         with timed(self.timings, "optimize"):
             run = run_joint_lm(solved, replace(solved, camera=chosen.camera), graph, layout, measurements, pixels,
                                values, options.max_iterations, options.on_iteration)
-        R, t, mirror_vectors, points = extract_values(run.result, layout)
+        read = layout.read(run.result)
+        (R, t), mirror_vectors, points = read.poses[SINGLE_CAMERA], read.mirror_vectors, read.points
         theta = model.theta(np.asarray(run.result.atVector(intrinsics_key()), dtype=float))
         predicted = predicted_normalized(solved, measurements, R, t, mirror_vectors, points)
         residuals = predict_pixels(theta, predicted) - pixels
@@ -225,7 +227,7 @@ class PixelProblem:
             if options.compute_covariance:
                 report(STAGES[2], 0, 1)
                 covariance, intrinsics_cov, cross, mirror_covs, point_covs = joint_covariances(
-                    run.graph, run.result, run.layout, joint.R, dataset.source)
+                    run.graph, run.result, run.layout, dataset.source)
                 report(STAGES[2], 1, 1)
                 warn_weak(intrinsics_cov, estimated_camera, self.model.estimated, dataset.source)
         return build_calibration(

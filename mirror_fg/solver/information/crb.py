@@ -430,41 +430,44 @@ def intrinsics_cramer_rao_bound(
 ) -> IntrinsicsBound:
     """Cramér-Rao bound of ``T_cam_base`` and of the intrinsics ``estimate`` of ``dataset.camera``.
 
-    The Fisher information of the pixel model (``factors/intrinsics.py``: eqs. 2-9, then OpenCV's lens
-    and ``K``) at ``truth`` and the camera's values, iid noise ``sigma_px`` pixels (default the dataset's
+    The Fisher information of the one model's views in pixels (``model/views.py`` through
+    ``factors/intrinsics.py``: eqs. 2-9, then OpenCV's lens and ``K``) at ``truth`` and the camera's values
+    (the pose's and the intrinsics' bounds do not depend on the planes' coordinates), iid noise ``sigma_px`` pixels (default the dataset's
     ``pixel_sigma``). Raises ``SolveError`` naming an unknown the measurements leave unconstrained.
     """
-    from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_factors, intrinsics_key
-    from mirror_fg.solver.model.graph import GraphLayout, initial_values, measurements_of
+    from dataclasses import replace
+
+    from mirror_fg.factors.intrinsics import IntrinsicsModel
     from mirror_fg.solver.batch.intrinsics import camera_intrinsics
+    from mirror_fg.solver.model.views import SINGLE_CAMERA, ViewEstimate, ViewProblem, tangent_dimension
 
     camera = dataset.camera
     if camera is None:
         raise SolveError(f"{dataset.source}: intrinsics need pixel data (a camera)")
     sigma = dataset.pixel_sigma if sigma_px is None else float(sigma_px)
     model = IntrinsicsModel(camera_intrinsics(camera), estimate)
-    layout = GraphLayout.for_dataset(dataset)
-    measurements = measurements_of(dataset)
-    by_id = {image.id: image for image in dataset.images}
-    pixels = np.array([by_id[m.image_id].observations[m.point] for m in measurements]).reshape(-1, 2)
-    graph = gtsam.NonlinearFactorGraph()
-    for factor in intrinsics_factors(dataset, layout, measurements, pixels, model, sigma):
-        graph.add(factor)
-    values = initial_values(layout, truth)
-    values.insert(intrinsics_key(), model.fixed[model.index].copy())
+    # the one model's views in pixels, every measurement at ``sigma``, no prior: the images' information alone
+    problem = ViewProblem(replace(dataset, camera=replace(camera, prior_sigma=()), pixel_sigma=sigma, point_sigma={}),
+                          intrinsics={SINGLE_CAMERA: model})
+    graph = problem.graph()
+    values = problem.values(ViewEstimate(
+        {SINGLE_CAMERA: (np.asarray(truth.R_cam_base, float), np.asarray(truth.t_cam_base, float))},
+        {p: np.asarray(truth.mirror_vectors[p], float) for p in problem.placements},
+        {n: np.asarray(truth.points[n], float) for n in problem.point_names}, {SINGLE_CAMERA: model.fixed.copy()}))
+    keys = [problem.pose_keys[SINGLE_CAMERA], problem.intrinsics_keys[SINGLE_CAMERA],
+            *problem.mirror_keys.values(), *problem.point_keys.values()]
     ordering = gtsam.Ordering()
-    for key in [layout.pose_key, intrinsics_key(), *layout.mirror_keys.values(), *layout.point_keys.values()]:
+    for key in keys:
         ordering.push_back(key)
     information, _ = graph.linearize(values).hessian(ordering)
     k = len(model.estimated)
-    index = UnknownIndex.for_dataset(dataset)
-    # Name columns as UnknownIndex does, the intrinsics sitting after the pose.
     scale = 1.0 / np.sqrt(np.maximum(np.diag(information), np.finfo(float).tiny))
     eigenvalues, vectors = np.linalg.eigh(information * scale[:, None] * scale[None, :])
     if not eigenvalues[0] > 1e-13 * eigenvalues[-1]:
         column = int(np.argmax(np.abs(vectors[:, 0])))
+        key_of_column = [key for key in keys for _ in range(tangent_dimension(key, values))]
         name = (model.estimated[column - POSE_DIM] if POSE_DIM <= column < POSE_DIM + k
-                else index.name_of(column if column < POSE_DIM else column - k))
+                else problem.name_of(key_of_column[column]))
         raise SolveError(f"{dataset.source}: the measurements do not constrain {name} "
                          f"(Fisher information singular, smallest scaled eigenvalue {eigenvalues[0]:.1e})")
     covariance = (vectors / eigenvalues) @ vectors.T * scale[:, None] * scale[None, :]
