@@ -111,17 +111,13 @@ def restart_collapsed(vectors: np.ndarray, start: np.ndarray) -> None:
 
 
 def solve_placements(vectors: np.ndarray, D: np.ndarray, g: np.ndarray, own: np.ndarray,
-                     moments: Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]],
-                     tolerance: float = INNER_STEP_TOLERANCE) -> np.ndarray:
+                     moments: Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
     """The eliminated placements ``vectors`` (E, 3, updated in place) at their optimum given the kept
     unknowns: Gauss-Newton per placement from its information ``D`` (E, 3, 3), gradient ``g`` and own cost
     ``own`` (E,), a step that raises its views' cost refused and the placement damped (Levenberg-Marquardt
     on each placement alone: their costs are separate); ``moments()`` gives ``(D, g, own)`` again at the
-    moved ``vectors``. ``tolerance``: the step (metres) below which a placement is at its optimum (a step
-    below ``FINAL_STEP / INNER_STEP_TOLERANCE`` times it is taken without evaluating again). Returns each
-    placement's cost there."""
+    moved ``vectors``. Returns each placement's cost there."""
     E = len(vectors)
-    final_step = FINAL_STEP / INNER_STEP_TOLERANCE * tolerance
     damping = np.zeros(E)
     for _ in range(INNER_MAX_ITERATIONS if E else 0):
         damped = D + damping[:, None, None] * (D * np.eye(3))
@@ -129,9 +125,9 @@ def solve_placements(vectors: np.ndarray, D: np.ndarray, g: np.ndarray, own: np.
         if not np.all(np.isfinite(step)):
             raise RuntimeError("an eliminated mirror placement has no finite optimum at these values")
         length = np.linalg.norm(step, axis=1)
-        if float(length.max(initial=0.0)) < tolerance:
+        if float(length.max(initial=0.0)) < INNER_STEP_TOLERANCE:
             break  # (the step would change the cost by O(step^2): nothing)
-        if float(length.max(initial=0.0)) < final_step:  # taken without evaluating again (module docstring)
+        if float(length.max(initial=0.0)) < FINAL_STEP:  # taken without evaluating again (module docstring)
             vectors += step
             break
         limit = 0.5 * np.linalg.norm(vectors, axis=1)  # stay on its side of the camera centre
@@ -252,17 +248,6 @@ class EliminatedViewStack:
         self._D_inv = np.zeros((len(self.eliminated), 3, 3))
         self._C: list[tuple[np.ndarray, np.ndarray]] = []  # per stack: its placements, their C
         self.batches = 0
-        #: The inner solve's step tolerance (metres): :data:`INNER_STEP_TOLERANCE`, or looser where only a
-        #: ranking needs the cost (``start/initial.py``).
-        self.step_tolerance = INNER_STEP_TOLERANCE
-
-    def restart(self, start: dict[Placement, np.ndarray]) -> None:
-        """The state of a new stack of the same views whose eliminated placements start at ``start``: one
-        subtree refined from several hypotheses builds its arrays and factors once (``start/initial.py``)."""
-        self._start = np.array([start[p] for p in self.eliminated], dtype=float).reshape(-1, 3)
-        self._vectors = self._start.copy()
-        self._state, self._valid, self._linearized = {}, False, False
-        self._cost = np.zeros_like(self._cost)
 
     # --- layout -----------------------------------------------------------------------------------
 
@@ -404,8 +389,7 @@ class EliminatedViewStack:
         on each placement alone: their costs are separate); each stack's cost there."""
         restart_collapsed(self._vectors, self._start)
         D, g, own, rest = self._moments(poses, vectors, jacobians, prefixes, True)
-        own = solve_placements(self._vectors, D, g, own, lambda: self._moments(poses, vectors, jacobians, prefixes, False)[:3],
-                               self.step_tolerance)
+        own = solve_placements(self._vectors, D, g, own, lambda: self._moments(poses, vectors, jacobians, prefixes, False)[:3])
         return rest + np.bincount(self._stack_of_placement, own, minlength=len(rest))
 
     def _evaluate(self, values: gtsam.Values, jacobians: bool) -> None:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import replace
 
 import gtsam
 import numpy as np
@@ -24,7 +25,9 @@ import numpy as np
 from mirror_fg.core.errors import SolveError
 from mirror_fg.data import Dataset, Image
 from mirror_fg.solver.start.analytic import AnalyticSolution, TreeNode, TreeWalk, Hypothesis, complete_last_mirror
-from mirror_fg.solver.model.views import ViewEstimate, ViewProblem
+from mirror_fg.solver.model.graph import (
+    Measurement, build_eliminated_graph, build_graph, extract_values, initial_values, measurement_sigmas, measurements_of,
+)
 from mirror_fg.solver.model.lm import cost_scale, lm_params
 from mirror_fg.solver.start.peeling import spread_subset
 
@@ -38,10 +41,6 @@ logger = logging.getLogger("mirror_fg")
 SUBTREE_MAX_ITERATIONS = 50
 #: Relative decrease of the cost below which a subtree refinement stops.
 SUBTREE_RELATIVE_TOLERANCE = 1e-4
-#: The step (metres) below which an eliminated placement is at its optimum inside a subtree's factors
-#: (``EliminatedViewStack.step_tolerance``): what is left changes the cost by O(step^2), far below what the
-#: relative tolerance above can see; the MLE solves to ``view_eliminated.INNER_STEP_TOLERANCE``.
-SUBTREE_STEP_TOLERANCE = 1e-9
 
 
 #: A node of the last mirror ranks its hypotheses by LM on the images of at most this many of its
@@ -94,51 +93,43 @@ def _optimize(
 
 def _refine_subtree(
     subtree: Dataset, closed_form: AnalyticSolution, optima: Sequence[tuple[float, AnalyticSolution]] = (),
+    measurements: list[Measurement] | None = None, sigmas: np.ndarray | None = None,
     built: dict | None = None,
 ) -> tuple[float, AnalyticSolution] | None:
     """The MLE (eq. 23) of one subtree's own images from its closed-form hypothesis: its cost and values.
 
-    Solved on the one measurement model (``model/views.py``: the subtree's images as views, each placement
-    of its last mirror eliminated inside the stacked factors, ``factors/view_eliminated.py``).
     ``optima``: ``(cost, solution)`` of this subtree already refined from other hypotheses; when the
     refinement comes near one of them (:data:`SAME_OPTIMUM_TOLERANCE`) it stops and returns that one.
-    ``built``: an empty dict the first time a subtree is refined, then the same dict for its other
-    hypotheses: its problem and graph are built once and restarted from each hypothesis
-    (``EliminatedViewStack.restart``: the state of a new one).
+    ``measurements``, ``sigmas``: ``graph.measurements_of(subtree)`` and their ``measurement_sigmas``,
+    when already computed. ``built``: an empty dict the first time a subtree is refined, then the same
+    dict for its other hypotheses: its eliminated graph is built once and restarted from each hypothesis
+    (``EliminatedEvaluator.restart``: the state of a new one).
     """
     try:
         if built is not None and "graph" in built:
-            problem, graph, evaluator = built["graph"]
-            start = _view_start(problem, closed_form)
-            if evaluator is not None:
-                evaluator.restart(start.mirror_vectors)
-            values = problem.values(start, skip=set(evaluator.eliminated) if evaluator is not None else frozenset())
+            eliminated = built["graph"]
+            if eliminated is not None:
+                eliminated.evaluator.restart(closed_form.mirror_vectors)
+                eliminated = replace(eliminated, values=initial_values(eliminated.layout, closed_form,
+                                                                       frozenset(eliminated.evaluator.eliminated)))
         else:
-            problem = ViewProblem(subtree)
-            start = _view_start(problem, closed_form)
-            graph, values, evaluator = problem.solve_graph(start)  # its own placements solved inside
-            if evaluator is not None:
-                evaluator.step_tolerance = SUBTREE_STEP_TOLERANCE
+            eliminated = build_eliminated_graph(subtree, closed_form, measurements, sigmas)  # its placements solved inside
             if built is not None:
-                built["graph"] = (problem, graph, evaluator)
+                built["graph"] = eliminated
+        if eliminated is not None:
+            graph, values, layout, evaluator = eliminated.graph, eliminated.values, eliminated.layout, eliminated.evaluator
+        else:
+            (graph, values, layout, _), evaluator = build_graph(subtree, closed_form, None), None
         params = lm_params(SUBTREE_MAX_ITERATIONS, cost_scale(subtree))
         params.setRelativeErrorTol(SUBTREE_RELATIVE_TOLERANCE)  # a start and a ranking: no need for the last digits
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-        result = _optimize(optimizer, params, problem.pose_keys[problem.cameras[0]], optima)
+        result = _optimize(optimizer, params, layout.pose_key, optima)
     except (RuntimeError, SolveError):  # an under-determined subtree: no refinement, no score
         return None
     if isinstance(result, tuple):
         return result
-    estimate = problem.read(result, evaluator)
-    R, t = estimate.poses[problem.cameras[0]]
-    return float(optimizer.error()), AnalyticSolution(R, t, estimate.mirror_vectors)
-
-
-def _view_start(problem: ViewProblem, closed_form: AnalyticSolution) -> ViewEstimate:
-    """A subtree's closed-form hypothesis as the start of its view problem (one camera, no points)."""
-    return ViewEstimate({problem.cameras[0]: (np.asarray(closed_form.R_cam_base, float),
-                                              np.asarray(closed_form.t_cam_base, float))},
-                        {p: np.asarray(closed_form.mirror_vectors[p], float) for p in problem.placements}, {})
+    R, t, mirror_vectors, _ = extract_values(result, layout, evaluator)
+    return float(optimizer.error()), AnalyticSolution(R, t, mirror_vectors)
 
 
 #: Public name (the consensus of ``consensus.py`` refines a node's majority with it); the private name
@@ -163,12 +154,15 @@ def _refined_scores(node: TreeNode, ranking: list[Image]) -> list[tuple[float, H
     LM cost and refined hypothesis, with every placement's mirror vector (those not in ``ranking`` by
     eqs. 6-7 from the refined ``(A, b)``: a start for the MLE)."""
     subtree = node.subtree(ranking)
+    measurements = measurements_of(subtree)  # the same for every proposal
+    sigmas = measurement_sigmas(subtree, measurements)
     scores = []
     optima: list[tuple[float, AnalyticSolution]] = []  # reached by earlier proposals (not degenerate ones)
     completed: dict[int, Hypothesis] = {}  # each optimum's hypothesis with every placement, made once
-    built: dict = {}  # the subtree's problem and graph, built once for every proposal
+    built: dict = {}  # the subtree's eliminated graph, built once for every proposal
     for proposal, degenerate in zip(node.proposals, node.degenerate):
-        refined = _refine_subtree(subtree, node.subtree_solution(proposal), () if degenerate else optima, built)
+        refined = _refine_subtree(subtree, node.subtree_solution(proposal), () if degenerate else optima,
+                                  measurements, sigmas, built)
         if refined is None or not np.isfinite(refined[0]):
             scores.append((np.inf, proposal))
         else:
