@@ -18,8 +18,8 @@ image's PnP map ``x_cam = A p + b`` through the plane's reflection ``x -> M x + 
 ``C = FK_cam(q) T_link_cam`` and ``D = FK_target(q) T_link_target`` gives ``M = R_C A R_D^T`` and
 ``2 v = R_C b + t_C - M t_D``; the normal is ``M``'s -1 eigenvector.
 
-For mount ``m``: ``cost_free`` with every mount free (verify's weak prior: :data:`~verify.FREE_WEIGHT`
-of the stored information where the new data see, :data:`~verify.UNSEEN_WEIGHT` where they do not),
+For mount ``m``: ``cost_free`` with every mount free (verify's weak prior: :data:`~verdicts.FREE_WEIGHT`
+of the stored information where the new data see, :data:`~verdicts.UNSEEN_WEIGHT` where they do not),
 ``cost_held`` with ``m`` under its stored prior (its stored marginal: result@1 holds no cross-covariance
 with the joint offsets) and the other mounts free; ``d2 = 2 (cost_held - cost_free)`` against chi-square
 (or verify's F-test where the result holds ``dispersion``) with ``k`` the directions of ``m`` the new data
@@ -47,10 +47,10 @@ from mirror_fg.factors.robot import compose
 from mirror_fg.data import Dataset
 from mirror_fg.io.result import estimated_camera, pose
 from mirror_fg.io.robot_fields import Mount
-from mirror_fg.solver.model.lm import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params
+from mirror_fg.solver.model.optimizer import GENERAL_LAMBDA_UPPER_BOUND, cost_scale, lm_params
 from mirror_fg.solver.model.robot_views import RobotEstimate, RobotProblem
 from mirror_fg.solver.start.pnp import lowest_reprojection, pnp_candidates
-from mirror_fg.analysis import verify as base
+from mirror_fg.analysis import verdicts as base
 
 __all__ = ["verify_arm", "stored_mounts"]
 
@@ -220,8 +220,8 @@ def verify_arm(result: Mapping[str, Any], dataset: Dataset, alpha: float, tolera
     tested = list(stored)
     start = fits.start()
     held_all, _ = fits.fit([fits.prior(r) for r in tested], [start])
-    seen = {r: base._seen(fits.stored_tangent[r], fits.pose_information(r, held_all)) for r in tested}
-    free_priors = {r: fits.prior(r, base._free_information(*seen[r])) for r in tested}
+    seen = {r: base.seen_directions(fits.stored_tangent[r], fits.pose_information(r, held_all)) for r in tested}
+    free_priors = {r: fits.prior(r, base.free_information(*seen[r])) for r in tested}
     free, cost_free = fits.fit(list(free_priors.values()), [held_all, start])
     data_cost = float(fits.data.error(free))
     expected = expected_cost(fits.problem.size, 3 * len(fits.problem.mirror_keys), min_dof=1)
@@ -245,7 +245,7 @@ def verify_arm(result: Mapping[str, Any], dataset: Dataset, alpha: float, tolera
             p = float(stats.f.sf(d2 / (dof * scale), dof, nu))
         else:
             p = float(stats.chi2.sf(d2, dof))
-        answer = base._verdict(role, d2, dof, p, free, fits, ncp.get(dof, math.inf), alpha, tolerance_mm,
+        answer = base.verdict_of(role, d2, dof, p, free, fits, ncp.get(dof, math.inf), alpha, tolerance_mm,
                                tolerance_deg, scale)
         if dispersion is not None:
             answer = replace(answer, dispersion=dispersion[0], dispersion_dof=dispersion[1])

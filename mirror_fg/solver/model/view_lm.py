@@ -71,7 +71,7 @@ def view_model_run(dataset: Dataset, initial: InitialEstimate, options: SolveOpt
                    params: gtsam.LevenbergMarquardtParams, finish: Callable) -> ViewLMRun:
     """LM from ``initial`` on ``dataset``'s view model; ``finish(graph, optimizer, result, params)`` gives
     ``(result, final error, converged)`` as the tree's run decides them (``lm._levenberg_marquardt``)."""
-    from mirror_fg.solver.model.lm import run_optimizer
+    from mirror_fg.solver.model.optimizer import run_optimizer
     from mirror_fg.solver.model.marginals import unconstrained_message
     from mirror_fg.solver.model.views import ViewEstimate, ViewProblem
     from mirror_fg.solver.timing import timed
