@@ -4,16 +4,16 @@
 so far and a backend, ``backend``, that keeps the graph and iSAM2:
 
 - the paper's tree (``Dataset.is_tree``): :class:`~mirror_fg.solver.incremental.tree.TreeIncrementalCalibrator`
-  (its last mirror's placements eliminated inside their factors, consensus screening of each image,
-  start-up and settling: ``incremental_tree.py``);
+  (the analytic start, consensus screening of each image, start-up and settling: ``tree.py``; its graph
+  of the one model's view factors with the last mirror's placements eliminated: ``graph.py``);
 - anything else (any reflection order, rigs, no known target):
   :class:`~mirror_fg.solver.incremental.views.ViewsIncrementalCalibrator` (the propagation start, one
-  view factor per image: ``incremental_views.py``).
+  view factor per image: ``views.py``).
 
 A calibrator made for the tree that is given an image off the tree (a direct view, a single reflection,
 ``reflections``) takes the general backend from then on, fed every image given so far in order: the
 answer is what the general backend would have given from the first image. Both backends use the same
-iSAM2 settings (``incremental_state.new_isam2``). ``calibrate_incremental`` streams a whole dataset.
+iSAM2 settings (``state.new_isam2``). ``calibrate_incremental`` streams a whole dataset.
 """
 from __future__ import annotations
 

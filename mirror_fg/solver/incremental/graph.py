@@ -1,9 +1,9 @@
 """The iSAM2 side of :class:`~mirror_fg.solver.incremental.calibrator.IncrementalCalibrator`: its graph state, and
 how waiting images join the graph (values of new placements and points, their factors, one update).
 
-Frames, keys and units as ``incremental.py``. :class:`GraphState` is everything a failed start-up rolls
+Frames, keys and units as ``calibrator.py``. :class:`GraphState` is everything a failed start-up rolls
 back; :class:`IncrementalGraph` holds one and grows it (the calibrator holds one ``IncrementalGraph``);
-the values of new placements come from ``incremental_placements.py``.
+the values of new placements come from ``values.py``.
 
 The factors are the one measurement model's (``model/views.py``, built by ``view_factors.py``): each
 image a view of the graph's camera, a placement that is an iSAM2 unknown an ``OrientedPlane3`` (its

@@ -1,7 +1,7 @@
 """What an :class:`~mirror_fg.solver.incremental.graph.IncrementalGraph` holds: its state
 (:class:`GraphState`, what a failed start-up rolls back), its blocks of eliminated placements
 (:class:`PlacementBlock`) and iSAM2's relinearisation thresholds. Frames, keys and units as
-``incremental.py``.
+``calibrator.py``.
 """
 from __future__ import annotations
 
@@ -29,7 +29,8 @@ class RelinearizeThresholds:
 
     A variable is relinearised (each of its factors re-evaluated in Python: the expensive part) when a
     component of its iSAM2 delta exceeds the threshold. ``pose``: ``[w (rad) x3, nu (m) x3]``, GTSAM's
-    Pose3 tangent of ``T_cam_base``; ``mirror`` and ``point``: metres. Every factor touches the pose, so
+    Pose3 tangent of ``T_cam_base``; ``mirror``: a plane's local coordinates (``OrientedPlane3``: two
+    angles in radians and the distance in metres); ``point``: metres. Every factor touches the pose, so
     its threshold sets how often an update costs a pass over the whole graph; what a linearisation
     point that far from the estimate costs in accuracy is second order (one Gauss-Newton step).
 

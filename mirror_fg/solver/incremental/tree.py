@@ -6,7 +6,7 @@ Same unknowns, measurement model and noise as the batch pipeline (``calibrate.py
 numbered in the order the unknowns get a value. As in the batch, the last mirror's placements (one per
 image, typically) are eliminated inside their factors (``factors.eliminated``, a Schur complement) and
 are not iSAM2 unknowns: iSAM2 holds ``X(0)``, the placements of mirrors 1..Nv-1 and the points, so an
-update costs about the same at the 10,000th image as at the 1,000th (``incremental_graph.py`` explains the
+update costs about the same at the 10,000th image as at the 1,000th (``graph.py`` explains the
 blocks of placements and their merging). With a robust kernel (or for a placement seen under two
 parents) the placements stay iSAM2 unknowns with the batch's stacked factors (``factors.batched``).
 Each update is built from its new measurements only.
@@ -30,17 +30,17 @@ Life of an image (``TreeIncrementalCalibrator.add_image``):
    with the new factors and values, nothing re-added): its last-mirror placement goes into a new block
    of its own, and every ``MERGE_FANOUT`` blocks of one size under one parent are merged into one (their
    factors replaced in the same update). New placements and points get values from the image's PnP and
-   the current estimate, each then moved to its optimum alone (``incremental_values.py``); a point's
+   the current estimate, each then moved to its optimum alone (``values.py``); a point's
    observations wait until two images in the graph see it.
 
 Settling: a start-up counts as settled only when iSAM2's own step at the LM solution is small; until
-then the LM estimate is reported and the start-up re-run with later images (``incremental_startup.py``).
+then the LM estimate is reported and the start-up re-run with later images (``startup.py``).
 
 This module holds the screening of images and when to restart; the calibrator holds an
-:class:`~mirror_fg.solver.incremental.graph.IncrementalGraph` (``incremental_graph.py``: graph, iSAM2
-updates; state in ``incremental_state.py``, new values in ``incremental_values.py``), started by
-``incremental_startup.py``. An image off the tree raises :class:`LeavesTheTree` before anything changes:
-the public calibrator (``incremental.py``) then hands every image to ``incremental_views.py``.
+:class:`~mirror_fg.solver.incremental.graph.IncrementalGraph` (``graph.py``: graph, iSAM2
+updates; state in ``state.py``, new values in ``values.py``), started by
+``startup.py``. An image off the tree raises :class:`LeavesTheTree` before anything changes:
+the public calibrator (``calibrator.py``) then hands every image to ``views.py``.
 """
 from __future__ import annotations
 

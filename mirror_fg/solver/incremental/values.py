@@ -1,6 +1,6 @@
 """Initial values of the unknowns new images bring into an
 :class:`~mirror_fg.solver.incremental.graph.IncrementalGraph`, from its current estimate. Frames, keys and
-units as ``incremental.py``.
+units as ``calibrator.py``.
 
 A new placement gets its value from the image's PnP ``(A, b)`` (eqs. 10-12) and the current estimate:
 the known mirrors after it are peeled off ``(A, b)`` and those before it applied to ``T_cam_base``, which

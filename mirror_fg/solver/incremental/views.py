@@ -1,6 +1,6 @@
 """Incremental calibration of the general view model (docs/formats.md, "Views of any reflection order,
 and several cameras") on iSAM2: direct views, fixed mirrors, any order of reflections, several cameras,
-no known target. ``IncrementalCalibrator`` and ``calibrate_incremental`` (``incremental.py``) send every
+no known target. ``IncrementalCalibrator`` and ``calibrate_incremental`` (``calibrator.py``) send every
 dataset that is not the paper's tree (``Dataset.is_tree``) here.
 
 Same unknowns, keys, factors and noise as the batch (``views.py``'s :class:`ViewProblem`: its key layout
@@ -19,7 +19,7 @@ parallel placements of one mirror, a minimal and ill-conditioned case of Sect. 4
 images wait for more.
 
 Between updates iSAM2 relinearises a variable only when its step exceeds the relinearisation thresholds
-(``incremental_state.RelinearizeThresholds``, the same as the tree's): every factor touches a camera
+(``state.RelinearizeThresholds``, the same as the tree's): every factor touches a camera
 pose, so a tighter threshold makes every update a pass over every image (measured on a 480-image
 three-camera rig: median update 45 ms and growing 7x over the stream at 1e-6, 6 ms and flat with these).
 ``calibration(full=True)``: Levenberg-Marquardt on every factor from iSAM2's estimate (the batch's
@@ -87,7 +87,7 @@ class ViewsIncrementalCalibrator:
     ``incremental.IncrementalCalibrator`` off the tree: ``add_image``, ``calibration``, ``marginal_covariance``,
     ``status``, ``started``, ``settled``, ``num_images``, ``waiting_images``, ``excluded`` (no
     ``suggest_next``). ``points``, ``robust`` and ``thresholds`` (iSAM2's relinearisation,
-    ``incremental_state.new_isam2``) as there; ``seed`` is taken for the same signature and not used (the
+    ``state.new_isam2``) as there; ``seed`` is taken for the same signature and not used (the
     propagation is deterministic)."""
 
     def __init__(self, dataset: Dataset, *, points: Iterable[str] | None = None, robust: str | None = None,

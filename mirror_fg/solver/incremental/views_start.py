@@ -1,5 +1,5 @@
 """Which waiting images of the general view model can join the incremental graph, and the values of the
-unknowns they bring (``incremental_views.py``; the rules of ``propagation.py``).
+unknowns they bring (``views.py``; the rules of ``propagation.py``).
 
 The propagation's known state is seeded from the current estimate (camera poses, base-frame planes of
 the placements, ``propagation.plane_from_camera``, points; fiducials), then run over the waiting images
