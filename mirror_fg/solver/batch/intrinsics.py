@@ -33,7 +33,6 @@ import numpy as np
 
 from mirror_fg.core.camera import Camera, initial_intrinsics
 from mirror_fg.core.errors import DatasetError, SolveError
-from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.factors.intrinsics import IntrinsicsModel, intrinsics_key
 from mirror_fg.data import Dataset
 from mirror_fg.solver.batch.intrinsics_observability import (  # noqa: F401 (public here too)

@@ -64,7 +64,6 @@ def start_estimate(problem: RobotProblem, max_starts: int = 1, minima: dict | No
     gives the target mount and the planes, the other cameras placed in them (:func:`_joined`; a camera
     without a start of its own too: neither it nor the target on the base link, or too few arm poses), and
     the joined starts are tried best-fitting first."""
-    dataset = problem.dataset
     starts: dict[str, list] = {}
     failures: dict[str, SolveError] = {}
     for role in problem.camera_roles.values():
