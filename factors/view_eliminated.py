@@ -142,6 +142,35 @@ def solve_placements(vectors: np.ndarray, D: np.ndarray, g: np.ndarray, own: np.
     return own
 
 
+def halved_placements(vectors: np.ndarray, D: np.ndarray, g: np.ndarray, own: np.ndarray,
+                      moments: Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
+    """:func:`solve_placements` as the tree's eliminated factors solve (``eliminated.py``): Gauss-Newton per
+    placement, each step at most half the placement's distance, halved up to four times where it raises the
+    placement's cost and else not taken. Returns each placement's cost at ``vectors`` (updated in place)."""
+    E = len(vectors)
+    for _ in range(INNER_MAX_ITERATIONS if E else 0):
+        step = -np.einsum("eij,ej->ei", inverses(D[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]].T), g)
+        step[~np.isfinite(step)] = 0.0
+        active = np.max(np.abs(step), axis=1) > INNER_STEP_TOLERANCE
+        if not active.any():
+            break
+        step[~active] = 0.0
+        length = np.linalg.norm(step, axis=1)
+        step *= np.minimum(1.0, 0.5 * np.linalg.norm(vectors, axis=1) / np.maximum(length, 1e-300))[:, None]
+        base, cost = vectors.copy(), own.copy()
+        for _halving in range(4):
+            vectors[:] = base + step
+            D, g, own = moments()
+            worse = own > cost * (1.0 + 1e-12)
+            if not worse.any():
+                break
+            step[worse] *= 0.5
+        else:
+            vectors[worse] = base[worse]
+            D, g, own = moments()
+    return own
+
+
 class EliminatedViewStack:
     """Views (all :func:`eliminable`: their per-image factors, or a ``view_table.ViewTable``) in factors with
     their own placements eliminated (module docstring).
@@ -248,6 +277,20 @@ class EliminatedViewStack:
         self._D_inv = np.zeros((len(self.eliminated), 3, 3))
         self._C: list[tuple[np.ndarray, np.ndarray]] = []  # per stack: its placements, their C
         self.batches = 0
+        #: Solve the placements as the tree's eliminated factors do (:func:`halved_placements`, each solve
+        #: from the optimum of the last linearisation): the analytic start's ranking (``start/initial.py``),
+        #: whose choice among wrong hypotheses must not depend on the model's inner solve.
+        self.tree_like = False
+        self._anchor = self._start.copy()
+
+    def restart(self, start: dict[Placement, np.ndarray]) -> None:
+        """The state of a new stack of the same views whose eliminated placements start at ``start``: one
+        subtree refined from several hypotheses builds its arrays and factors once (``start/initial.py``)."""
+        self._start = np.array([start[p] for p in self.eliminated], dtype=float).reshape(-1, 3)
+        self._vectors = self._start.copy()
+        self._anchor = self._start.copy()
+        self._state, self._valid, self._linearized = {}, False, False
+        self._cost = np.zeros_like(self._cost)
 
     # --- layout -----------------------------------------------------------------------------------
 
@@ -387,9 +430,15 @@ class EliminatedViewStack:
         """The eliminated placements at their optimum given the rest (module docstring): Gauss-Newton per
         placement, a step that raises its views' cost refused and the placement damped (Levenberg-Marquardt
         on each placement alone: their costs are separate); each stack's cost there."""
-        restart_collapsed(self._vectors, self._start)
+        if self.tree_like:  # from the last linearisation's optimum; a collapsed one from its start (eliminated.py)
+            distance = np.linalg.norm(self._anchor, axis=1)
+            low = distance < 0.1 * np.median(distance) if len(distance) else np.zeros(0, dtype=bool)
+            self._vectors[:] = np.where(low[:, None], self._start, self._anchor)
+        else:
+            restart_collapsed(self._vectors, self._start)
         D, g, own, rest = self._moments(poses, vectors, jacobians, prefixes, True)
-        own = solve_placements(self._vectors, D, g, own, lambda: self._moments(poses, vectors, jacobians, prefixes, False)[:3])
+        again = lambda: self._moments(poses, vectors, jacobians, prefixes, False)[:3]  # noqa: E731
+        own = (halved_placements if self.tree_like else solve_placements)(self._vectors, D, g, own, again)
         return rest + np.bincount(self._stack_of_placement, own, minlength=len(rest))
 
     def _evaluate(self, values: gtsam.Values, jacobians: bool) -> None:
@@ -429,6 +478,7 @@ class EliminatedViewStack:
         self._C = C_all
         self._systems = systems
         self._linearized = True
+        self._anchor = self._vectors.copy()
 
     def _bytes(self, key: int, values: gtsam.Values) -> bytes:
         if key in self._pose_set:

@@ -54,7 +54,7 @@ def view_factors_of(dataset: Dataset, layout: GraphLayout, measurements: Sequenc
 
 
 def stacked_factors(dataset: Dataset, layout: GraphLayout, measurements: Sequence[Measurement],
-                    robust: str | None = None) -> list[gtsam.NonlinearFactor]:
+                    robust: str | None = None) -> list[gtsam.CustomFactor]:
     """The factors of ``measurements`` with every placement an unknown (``view_stack.stacked_view_factors``:
     fiducials stacked, views with points in compressed stacks)."""
     return stacked_view_factors(view_factors_of(dataset, layout, measurements, robust))

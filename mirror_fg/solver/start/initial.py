@@ -17,7 +17,6 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import replace
 
 import gtsam
 import numpy as np
@@ -25,9 +24,8 @@ import numpy as np
 from mirror_fg.core.errors import SolveError
 from mirror_fg.data import Dataset, Image
 from mirror_fg.solver.start.analytic import AnalyticSolution, TreeNode, TreeWalk, Hypothesis, complete_last_mirror
-from mirror_fg.solver.model.graph import (
-    Measurement, build_eliminated_graph, build_graph, extract_values, initial_values, measurement_sigmas, measurements_of,
-)
+from mirror_fg.factors.view_eliminated import EliminatedViewStack
+from mirror_fg.solver.model.views import ViewEstimate, ViewProblem
 from mirror_fg.solver.model.lm import cost_scale, lm_params
 from mirror_fg.solver.start.peeling import spread_subset
 
@@ -93,43 +91,66 @@ def _optimize(
 
 def _refine_subtree(
     subtree: Dataset, closed_form: AnalyticSolution, optima: Sequence[tuple[float, AnalyticSolution]] = (),
-    measurements: list[Measurement] | None = None, sigmas: np.ndarray | None = None,
     built: dict | None = None,
 ) -> tuple[float, AnalyticSolution] | None:
     """The MLE (eq. 23) of one subtree's own images from its closed-form hypothesis: its cost and values.
 
+    Solved on the one measurement model (``model/views.py``: the subtree's images as views, each placement
+    of its last mirror eliminated inside the stacked factors, ``factors/view_eliminated.py``).
     ``optima``: ``(cost, solution)`` of this subtree already refined from other hypotheses; when the
     refinement comes near one of them (:data:`SAME_OPTIMUM_TOLERANCE`) it stops and returns that one.
-    ``measurements``, ``sigmas``: ``graph.measurements_of(subtree)`` and their ``measurement_sigmas``,
-    when already computed. ``built``: an empty dict the first time a subtree is refined, then the same
-    dict for its other hypotheses: its eliminated graph is built once and restarted from each hypothesis
-    (``EliminatedEvaluator.restart``: the state of a new one).
+    ``built``: an empty dict the first time a subtree is refined, then the same dict for its other
+    hypotheses: its problem and graph are built once and restarted from each hypothesis
+    (``EliminatedViewStack.restart``: the state of a new one).
     """
     try:
         if built is not None and "graph" in built:
-            eliminated = built["graph"]
-            if eliminated is not None:
-                eliminated.evaluator.restart(closed_form.mirror_vectors)
-                eliminated = replace(eliminated, values=initial_values(eliminated.layout, closed_form,
-                                                                       frozenset(eliminated.evaluator.eliminated)))
+            problem, graph, evaluator = built["graph"]
+            start = _view_start(problem, closed_form)
+            if evaluator is not None:
+                evaluator.restart(start.mirror_vectors)
+            values = problem.values(start, skip=set(evaluator.eliminated) if evaluator is not None else frozenset())
         else:
-            eliminated = build_eliminated_graph(subtree, closed_form, measurements, sigmas)  # its placements solved inside
+            problem = ViewProblem(subtree)
+            start = _view_start(problem, closed_form)
+            graph, values, evaluator = _subtree_graph(problem, start)
             if built is not None:
-                built["graph"] = eliminated
-        if eliminated is not None:
-            graph, values, layout, evaluator = eliminated.graph, eliminated.values, eliminated.layout, eliminated.evaluator
-        else:
-            (graph, values, layout, _), evaluator = build_graph(subtree, closed_form, None), None
+                built["graph"] = (problem, graph, evaluator)
         params = lm_params(SUBTREE_MAX_ITERATIONS, cost_scale(subtree))
         params.setRelativeErrorTol(SUBTREE_RELATIVE_TOLERANCE)  # a start and a ranking: no need for the last digits
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-        result = _optimize(optimizer, params, layout.pose_key, optima)
+        result = _optimize(optimizer, params, problem.pose_keys[problem.cameras[0]], optima)
     except (RuntimeError, SolveError):  # an under-determined subtree: no refinement, no score
         return None
     if isinstance(result, tuple):
         return result
-    R, t, mirror_vectors, _ = extract_values(result, layout, evaluator)
-    return float(optimizer.error()), AnalyticSolution(R, t, mirror_vectors)
+    estimate = problem.read(result, evaluator)
+    R, t = estimate.poses[problem.cameras[0]]
+    return float(optimizer.error()), AnalyticSolution(R, t, estimate.mirror_vectors)
+
+
+def _subtree_graph(problem: ViewProblem, start: ViewEstimate
+                   ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, EliminatedViewStack | None]:
+    """A subtree's graph, values and eliminated stack: its views (fiducials only, no scale, intrinsics
+    known) with the placements of its last mirror eliminated, solved as the tree's factors solve them
+    (``EliminatedViewStack.tree_like``: the ranking of wrong hypotheses depends on it); the graph with
+    every placement an unknown where none is. The start's own: the options' linearisation is the MLE's."""
+    evaluator = EliminatedViewStack(problem.table, start.mirror_vectors)
+    if not evaluator.eliminated:
+        return problem.graph(), problem.values(start), None
+    evaluator.tree_like = True
+    graph = gtsam.NonlinearFactorGraph()
+    for factor in evaluator.factors:
+        graph.add(factor)
+    evaluator.factors = []  # the factors hold the evaluator: no cycle through C++ (freed with the graph)
+    return graph, problem.values(start, skip=set(evaluator.eliminated)), evaluator
+
+
+def _view_start(problem: ViewProblem, closed_form: AnalyticSolution) -> ViewEstimate:
+    """A subtree's closed-form hypothesis as the start of its view problem (one camera, no points)."""
+    return ViewEstimate({problem.cameras[0]: (np.asarray(closed_form.R_cam_base, float),
+                                              np.asarray(closed_form.t_cam_base, float))},
+                        {p: np.asarray(closed_form.mirror_vectors[p], float) for p in problem.placements}, {})
 
 
 #: Public name (the consensus of ``consensus.py`` refines a node's majority with it); the private name
@@ -154,15 +175,12 @@ def _refined_scores(node: TreeNode, ranking: list[Image]) -> list[tuple[float, H
     LM cost and refined hypothesis, with every placement's mirror vector (those not in ``ranking`` by
     eqs. 6-7 from the refined ``(A, b)``: a start for the MLE)."""
     subtree = node.subtree(ranking)
-    measurements = measurements_of(subtree)  # the same for every proposal
-    sigmas = measurement_sigmas(subtree, measurements)
     scores = []
     optima: list[tuple[float, AnalyticSolution]] = []  # reached by earlier proposals (not degenerate ones)
     completed: dict[int, Hypothesis] = {}  # each optimum's hypothesis with every placement, made once
-    built: dict = {}  # the subtree's eliminated graph, built once for every proposal
+    built: dict = {}  # the subtree's problem and graph, built once for every proposal
     for proposal, degenerate in zip(node.proposals, node.degenerate):
-        refined = _refine_subtree(subtree, node.subtree_solution(proposal), () if degenerate else optima,
-                                  measurements, sigmas, built)
+        refined = _refine_subtree(subtree, node.subtree_solution(proposal), () if degenerate else optima, built)
         if refined is None or not np.isfinite(refined[0]):
             scores.append((np.inf, proposal))
         else:
