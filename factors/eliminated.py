@@ -31,6 +31,7 @@ from collections.abc import Mapping, Sequence
 import gtsam
 import numpy as np
 
+from mirror_fg.factors.view_eliminated import COLLAPSED_FRACTION, collapsed  # noqa: F401 (public here too)
 from mirror_fg.factors.model import last_mirror_moments, measurement_arrays, mirror_input, reflection_model
 from mirror_fg.factors.schur import (
     compressed_normal, gauss_newton_steps, inverses, one_blas_thread, row_products, segment_sums,
@@ -49,22 +50,6 @@ INNER_MAX_ITERATIONS = 20
 INNER_STEP_TOLERANCE = 1e-12
 
 
-#: An eliminated placement nearer the camera centre than this fraction of the median placement's distance
-#: has collapsed (:func:`collapsed`). Each placement's solve keeps it on its side of the camera centre (a
-#: step moves it by at most half its distance), so from poor values of the rest it can run towards the
-#: centre (a mirror seen edge-on); if its later solves started there they would crawl back at most 1.5x
-#: per step and Levenberg-Marquardt would settle around it. Measured on test_point_sigma's 27-image scene
-#: cut to 21 images: six placements at |v| ~ 1e-8 m, cost 130 against 77 with every placement an
-#: unknown. So a collapsed warm start starts again from the placement's initial vector, and callers that
-#: still find a collapsed solution solve again with every placement an unknown (``factors/batched.py``).
-COLLAPSED_FRACTION = 0.1
-
-
-def collapsed(mirror_vectors: Sequence[np.ndarray]) -> bool:
-    """Whether some of ``mirror_vectors`` (the eliminated placements at a solution) has collapsed into the
-    camera centre (:data:`COLLAPSED_FRACTION` of the median distance)."""
-    distances = np.linalg.norm(np.asarray(mirror_vectors, dtype=float).reshape(-1, 3), axis=1)
-    return bool(len(distances)) and float(distances.min()) < COLLAPSED_FRACTION * float(np.median(distances))
 
 
 class NotEliminable(ValueError):

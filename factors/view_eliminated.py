@@ -44,7 +44,8 @@ from mirror_fg.factors.view_stack import _Group, read_poses_and_planes
 from mirror_fg.factors.view_table import ViewTable
 from mirror_fg.factors.views import ViewFactor
 
-__all__ = ["EliminatedViewStack", "eliminable", "private_placements", "PLACEMENTS_PER_FACTOR"]
+__all__ = ["EliminatedViewStack", "eliminable", "private_placements", "PLACEMENTS_PER_FACTOR", "collapsed", "COLLAPSED_FRACTION",
+           "halved_placements"]
 
 Placement = tuple[int, int]
 #: Placements of one factor at most: its width is its poses and kept placements only, so a factor can hold
@@ -58,6 +59,24 @@ INNER_STEP_TOLERANCE = 1e-12
 #: Gauss-Newton converges linearly here (rate ~0.02-0.05, ``lm.polished``), so the next would be below
 #: :data:`INNER_STEP_TOLERANCE`, and the cost it leaves changes by O(step^2).
 FINAL_STEP = 1e-10
+
+
+#: An eliminated placement nearer the camera centre than this fraction of the median placement's distance
+#: has collapsed (:func:`collapsed`). Each placement's solve keeps it on its side of the camera centre (a
+#: step moves it by at most half its distance), so from poor values of the rest it can run towards the
+#: centre (a mirror seen edge-on); if its later solves started there they would crawl back at most 1.5x
+#: per step and Levenberg-Marquardt would settle around it. Measured on test_point_sigma's 27-image scene
+#: cut to 21 images: six placements at |v| ~ 1e-8 m, cost 130 against 77 with every placement an
+#: unknown. So a collapsed warm start starts again from the placement's initial vector, and callers that
+#: still find a collapsed solution solve again with every placement an unknown (``view_stack.py``).
+COLLAPSED_FRACTION = 0.1
+
+
+def collapsed(mirror_vectors: Sequence[np.ndarray]) -> bool:
+    """Whether some of ``mirror_vectors`` (the eliminated placements at a solution) has collapsed into the
+    camera centre (:data:`COLLAPSED_FRACTION` of the median distance)."""
+    distances = np.linalg.norm(np.asarray(mirror_vectors, dtype=float).reshape(-1, 3), axis=1)
+    return bool(len(distances)) and float(distances.min()) < COLLAPSED_FRACTION * float(np.median(distances))
 
 
 def eliminable(factor: ViewFactor) -> bool:
@@ -432,7 +451,7 @@ class EliminatedViewStack:
         on each placement alone: their costs are separate); each stack's cost there."""
         if self.tree_like:  # from the last linearisation's optimum; a collapsed one from its start (eliminated.py)
             distance = np.linalg.norm(self._anchor, axis=1)
-            low = distance < 0.1 * np.median(distance) if len(distance) else np.zeros(0, dtype=bool)
+            low = distance < COLLAPSED_FRACTION * np.median(distance) if len(distance) else np.zeros(0, dtype=bool)
             self._vectors[:] = np.where(low[:, None], self._start, self._anchor)
         else:
             restart_collapsed(self._vectors, self._start)

@@ -40,7 +40,7 @@ from gtsam.symbol_shorthand import V
 
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.data import Dataset, Image
-from mirror_fg.factors.eliminated import collapsed
+from mirror_fg.factors.view_eliminated import collapsed
 from mirror_fg.solver.start.analytic import AnalyticSolution
 from mirror_fg.solver.result.calibration import Calibration, Exclusion
 from mirror_fg.solver.model.graph import GraphLayout, Measurement
@@ -420,7 +420,7 @@ class IncrementalGraph:
 
     def placements_collapsed(self, values: gtsam.Values) -> bool:
         """Whether an eliminated placement at ``values`` has run into the camera centre
-        (``factors.eliminated.collapsed``)."""
+        (``factors.view_eliminated.collapsed``)."""
         return collapsed([v for block in self._state.blocks for v in block.evaluator.mirror_vectors(values).values()])
 
     def remake_blocks(self, solution: ViewEstimate) -> gtsam.NonlinearFactorGraph:

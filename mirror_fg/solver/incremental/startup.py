@@ -72,7 +72,7 @@ def start_graph(graph: IncrementalGraph, analytic: AnalyticSolution, lm_iteratio
         params = lm_params(lm_iterations, cost_scale(graph.dataset))
         optimizer, optimized, initial_error = run_optimizer(factors, values, params, source, graph.unconstrained)
         if graph.placements_collapsed(optimized):  # a placement run into the camera centre
-            # (factors.eliminated.COLLAPSED_FRACTION): LM again from the start-up's values with every
+            # (factors.view_eliminated.COLLAPSED_FRACTION): LM again from the start-up's values with every
             # placement an unknown, as the batch does without elimination; then the blocks made anew there.
             problem, start = graph.explicit_problem(refresh=False)
             optimizer, solution, _ = run_optimizer(problem.graph(), problem.values(start), params, source,

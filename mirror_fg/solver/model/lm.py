@@ -14,7 +14,8 @@ import numpy as np
 
 from mirror_fg.core.errors import SolveError
 from mirror_fg.core.fit import expected_cost, plausible
-from mirror_fg.factors.eliminated import EliminatedEvaluator, collapsed
+from mirror_fg.factors.eliminated import EliminatedEvaluator
+from mirror_fg.factors.view_eliminated import collapsed
 from mirror_fg.data import Dataset
 from mirror_fg.solver.start.analytic import AnalyticSolution, reconstruct_points
 from mirror_fg.solver.model.graph import (
@@ -113,7 +114,7 @@ def levenberg_marquardt(
     ``options.max_iterations``; ``on_iteration`` its iteration hook, times added to ``timings``."""
     run = _levenberg_marquardt(dataset, initial, options, options.eliminates(ELIMINATE), on_iteration, timings)
     if run.evaluator is not None and collapsed(list(run.evaluator.mirror_vectors(run.result).values())):
-        # a placement ran into the camera centre inside its factor (factors.eliminated.COLLAPSED_FRACTION)
+        # a placement ran into the camera centre inside its factor (factors.view_eliminated.COLLAPSED_FRACTION)
         logger.info("%s: an eliminated mirror placement collapsed into the camera centre: solving again with every "
                     "placement an unknown", dataset.source)
         run = _levenberg_marquardt(dataset, initial, options, False, on_iteration, timings)
