@@ -64,6 +64,8 @@ MOVED = {
     "solver.views": "solver.model.views",
     "solver.views_solve": "solver.batch.views_solve",
     "tools.crb": "solver.information.crb",
+    "tools.many": "analysis.many",
+    "tools.pattern": "vision.pattern",
     "tools.live": "live.session",
     "tools.live_joints": "live.joints",
     "tools.live_save": "live.save",

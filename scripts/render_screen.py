@@ -181,7 +181,7 @@ def main() -> None:
     args = parser.parse_args()
     import yaml
 
-    from mirror_fg.tools.pattern import design_pattern, draw_pattern, screen_mm_from_diagonal
+    from mirror_fg.vision.pattern import design_pattern, draw_pattern, screen_mm_from_diagonal
 
     width_mm, height_mm = screen_mm_from_diagonal(1920, 1080, 24.0)
     screen = design_pattern(1920, 1080, width_mm, height_mm)

@@ -38,7 +38,7 @@ def _exp(w: np.ndarray) -> np.ndarray:
 @pytest.fixture(scope="module")
 def setup():
     render = load_script("render_screen")
-    from mirror_fg.tools.pattern import design_pattern, screen_mm_from_diagonal
+    from mirror_fg.vision.pattern import design_pattern, screen_mm_from_diagonal
 
     mm = screen_mm_from_diagonal(*SCREEN_PX, 24.0)
     target = screen_target_from_dict(design_pattern(*SCREEN_PX, *mm).to_dict(), "test")

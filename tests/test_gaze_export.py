@@ -45,7 +45,7 @@ def screen_result(tmp_path_factory):
     """A calibrated screen (the simulated 24-inch monitor of scripts/render_screen.py, its pattern's corners
     through six mirrors with 0.3 px noise) written as result.json, and the Screen it holds."""
     render = load_script("render_screen")
-    from mirror_fg.tools.pattern import design_pattern, screen_mm_from_diagonal
+    from mirror_fg.vision.pattern import design_pattern, screen_mm_from_diagonal
 
     mm = screen_mm_from_diagonal(*SCREEN_PX, 24.0)
     target = screen_target_from_dict(design_pattern(*SCREEN_PX, *mm).to_dict(), "test")

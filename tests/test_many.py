@@ -1,10 +1,10 @@
-"""calibrate_many (tools/many.py) and the Dask engine of analysis/montecarlo.py on a local cluster of 2 workers."""
+"""calibrate_many (analysis/many.py) and the Dask engine of analysis/montecarlo.py on a local cluster of 2 workers."""
 from __future__ import annotations
 
 import json
 
 from mirror_fg.io.dataset import dataset_text
-from mirror_fg.tools.many import calibrate_many
+from mirror_fg.analysis.many import calibrate_many
 from mirror_fg.analysis.montecarlo import run_trials
 from mirror_fg.simulate.tree import simulate_base_case
 

@@ -1,4 +1,4 @@
-"""calibrate-many under faults (tools/many.py, analysis/montecarlo.py): schedulers that are not there or are not
+"""calibrate-many under faults (analysis/many.py, analysis/montecarlo.py): schedulers that are not there or are not
 Dask, a worker killed while the local cluster starts, an input whose worker keeps dying; and small jobs run in
 this process, with the same rows as on Dask.
 
@@ -24,12 +24,12 @@ from conftest import REPO
 
 from mirror_fg import cli
 from mirror_fg.io.dataset import dataset_text
-from mirror_fg.tools.many import calibrate_many, runs_in_process
+from mirror_fg.analysis.many import calibrate_many, runs_in_process
 from mirror_fg.simulate.tree import simulate_base_case
 
 CRASH_ON_INPUT = '''
 import os
-import mirror_fg.tools.many as many
+import mirror_fg.analysis.many as many
 
 _calibrate_one = getattr(many, "_unpatched_calibrate_one", many.calibrate_one)  # preloads may run twice
 many._unpatched_calibrate_one = _calibrate_one
@@ -41,7 +41,7 @@ def calibrate_one(path, out_dir, **kwargs):
     return _calibrate_one(path, out_dir, **kwargs)
 
 
-many.calibrate_one = calibrate_one  # what a task naming mirror_fg.tools.many.calibrate_one runs here
+many.calibrate_one = calibrate_one  # what a task naming mirror_fg.analysis.many.calibrate_one runs here
 '''
 
 DIE_AT_START = '''

@@ -68,7 +68,7 @@ def test_accept_poor_fit_writes_the_result_with_its_inconsistency(mislabelled, t
 
 
 def test_calibrate_many_marks_the_mislabelled_row_failed(mislabelled, takahashi_dir, tmp_path):
-    from mirror_fg.tools.many import calibrate_one
+    from mirror_fg.analysis.many import calibrate_one
 
     bad = calibrate_one(str(mislabelled), str(tmp_path / "out"), ros=False)
     assert bad["status"] == "failed" and "input2 and input3 are labelled placement 1" in bad["reason"]

@@ -48,7 +48,7 @@ def run_cli(*args: str, cwd: Path) -> int:
 
 
 def diagonal_mm(diagonal_in: float, w: int, h: int) -> tuple[float, float]:
-    """Independent of tools.pattern: a w:h rectangle whose diagonal is diagonal_in inches."""
+    """Independent of vision.pattern: a w:h rectangle whose diagonal is diagonal_in inches."""
     d = diagonal_in * 25.4
     height = d / math.sqrt(1 + (w / h) ** 2)
     return height * w / h, height
@@ -368,7 +368,7 @@ def test_a_screen_capture_on_standard_input_is_read_once_and_keeps_its_screen(sc
 
 
 def test_calibrate_many_writes_the_screen_too(scene, tmp_path):
-    from mirror_fg.tools.many import calibrate_one
+    from mirror_fg.analysis.many import calibrate_one
 
     row = calibrate_one(str(scene["folder"] / "capture.yaml"), str(tmp_path), ros=False)
     assert row["status"] == "ok", row["reason"]
@@ -412,7 +412,7 @@ def test_other_pattern_kinds_calibrate_through_the_mirror_too(tmp_path, kind):
     """The chessboard must be seen whole: a photograph in which the mirror cuts it is left out, named."""
     from mirror_fg import calibrate
     from mirror_fg.io.capture import capture_from_dict
-    from mirror_fg.tools.pattern import design_pattern, draw_pattern, screen_mm_from_diagonal
+    from mirror_fg.vision.pattern import design_pattern, draw_pattern, screen_mm_from_diagonal
     from mirror_fg.vision.detect import detect_capture
 
     render = load_script("render_screen")

@@ -3,7 +3,7 @@ resumable, time-boxed.
 
 The engine is ``dask.distributed``: a local cluster of ``jobs`` worker processes by default, or the
 scheduler at ``scheduler`` (``tcp://host:8786``) to use a real one. Used by ``scripts/reproduce_fig4.py``,
-``scripts/convergence.py`` and ``tools/many.py``; the log is ``tools/trial_log.TrialLog``.
+``scripts/convergence.py`` and ``many.py``; the log is ``trial_log.TrialLog``.
 
 What a fault gives: a scheduler address that is malformed, refuses, is silent or is not a Dask scheduler is a
 ``DatasetError`` naming it, within ``connect_timeout`` seconds; a local cluster that fails to start (a worker

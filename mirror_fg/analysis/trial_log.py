@@ -1,7 +1,7 @@
 """The log of a resumable study: one JSON record a line, appended as each trial finishes.
 
 The one reader and writer of ``runs.jsonl`` (``scripts/reproduce_fig4.py``, ``scripts/convergence.py``, through
-``tools/montecarlo.run_trials``). What holds:
+``montecarlo.run_trials``). What holds:
 
 - A record counts once its line is whole: the newline that ends it is written with it, in one ``write``. A last
   line without its newline (a killed writer, a full disk) is a torn record: it is reported, cut off the file, and

@@ -172,7 +172,7 @@ def cmd_live(args, out: _Printer) -> int:
 
 
 def cmd_pattern(args, out: _Printer) -> int:
-    from mirror_fg.tools.pattern import pattern_summary, write_pattern
+    from mirror_fg.vision.pattern import pattern_summary, write_pattern
 
     screen, files = write_pattern(args.output, args.screen, args.screen_mm, args.diagonal, args.kind, args.square_mm)
     for line in pattern_summary(screen, files):

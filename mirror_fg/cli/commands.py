@@ -226,7 +226,7 @@ class _StageBars:
 
 def cmd_calibrate_many(args, out: _Printer) -> int:
     from mirror_fg.registry.cli import registry_target
-    from mirror_fg.tools.many import calibrate_many
+    from mirror_fg.analysis.many import calibrate_many
 
     registry = registry_target(args, per_input=True)
     rows = calibrate_many(args.inputs, args.output, scheduler=args.scheduler, workers=args.workers,

@@ -4,7 +4,7 @@ Kalibr camchain and its standard deviations), planned and written together.
 :func:`plan_calibration_outputs` checks every path before any work (io.output.OutputPlan: never over
 an input, side files only over files mirror-fg wrote, no side files beside a device);
 :func:`write_calibration_outputs` writes them all-or-nothing. Used by ``mirror-fg calibrate`` and by
-``tools.many`` (one calibration per input).
+``analysis.many`` (one calibration per input).
 """
 from __future__ import annotations
 

@@ -1,1 +1,2 @@
-"""Commands' engines that are neither solver nor analysis: ``mirror-fg pattern`` and ``calibrate-many``."""
+"""Empty: its modules moved (``pattern.py`` to ``vision/``, ``many.py`` to ``analysis/``); their old import
+paths still import for one release (``mirror_fg/_moved.py``)."""
