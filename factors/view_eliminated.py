@@ -45,7 +45,7 @@ from mirror_fg.factors.view_table import ViewTable
 from mirror_fg.factors.views import ViewFactor
 
 __all__ = ["EliminatedViewStack", "eliminable", "private_placements", "PLACEMENTS_PER_FACTOR", "collapsed", "COLLAPSED_FRACTION",
-           "halved_placements"]
+           "collapsed_placements", "halved_placements", "newton_steps", "solve_placements"]
 
 Placement = tuple[int, int]
 #: Placements of one factor at most: its width is its poses and kept placements only, so a factor can hold
@@ -72,11 +72,17 @@ FINAL_STEP = 1e-10
 COLLAPSED_FRACTION = 0.1
 
 
+def collapsed_placements(mirror_vectors: Sequence[np.ndarray] | np.ndarray) -> np.ndarray:
+    """Which of ``mirror_vectors`` (eliminated placements) have collapsed into the camera centre: nearer it
+    than :data:`COLLAPSED_FRACTION` of their median distance (a mask)."""
+    distances = np.linalg.norm(np.asarray(mirror_vectors, dtype=float).reshape(-1, 3), axis=1)
+    return distances < COLLAPSED_FRACTION * np.median(distances) if len(distances) else np.zeros(0, dtype=bool)
+
+
 def collapsed(mirror_vectors: Sequence[np.ndarray]) -> bool:
     """Whether some of ``mirror_vectors`` (the eliminated placements at a solution) has collapsed into the
-    camera centre (:data:`COLLAPSED_FRACTION` of the median distance)."""
-    distances = np.linalg.norm(np.asarray(mirror_vectors, dtype=float).reshape(-1, 3), axis=1)
-    return bool(len(distances)) and float(distances.min()) < COLLAPSED_FRACTION * float(np.median(distances))
+    camera centre (:func:`collapsed_placements`)."""
+    return bool(collapsed_placements(mirror_vectors).any())
 
 
 def eliminable(factor: ViewFactor) -> bool:
@@ -129,6 +135,12 @@ def restart_collapsed(vectors: np.ndarray, start: np.ndarray) -> None:
     vectors[collapsed] = start[collapsed]
 
 
+def newton_steps(D: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """Each placement's Gauss-Newton step ``-D^-1 g`` (E, 3) from its symmetric information ``D`` (E, 3, 3)
+    and gradient ``g`` (E, 3) (``schur.inverses`` of the upper triangles)."""
+    return -np.einsum("eij,ej->ei", inverses(D[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]].T), g)
+
+
 def solve_placements(vectors: np.ndarray, D: np.ndarray, g: np.ndarray, own: np.ndarray,
                      moments: Callable[[], tuple[np.ndarray, np.ndarray, np.ndarray]]) -> np.ndarray:
     """The eliminated placements ``vectors`` (E, 3, updated in place) at their optimum given the kept
@@ -139,8 +151,7 @@ def solve_placements(vectors: np.ndarray, D: np.ndarray, g: np.ndarray, own: np.
     E = len(vectors)
     damping = np.zeros(E)
     for _ in range(INNER_MAX_ITERATIONS if E else 0):
-        damped = D + damping[:, None, None] * (D * np.eye(3))
-        step = -np.einsum("eij,ej->ei", inverses(damped[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]].T), g)
+        step = newton_steps(D + damping[:, None, None] * (D * np.eye(3)), g)
         if not np.all(np.isfinite(step)):
             raise RuntimeError("an eliminated mirror placement has no finite optimum at these values")
         length = np.linalg.norm(step, axis=1)
@@ -168,7 +179,7 @@ def halved_placements(vectors: np.ndarray, D: np.ndarray, g: np.ndarray, own: np
     placement's cost and else not taken. Returns each placement's cost at ``vectors`` (updated in place)."""
     E = len(vectors)
     for _ in range(INNER_MAX_ITERATIONS if E else 0):
-        step = -np.einsum("eij,ej->ei", inverses(D[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]].T), g)
+        step = newton_steps(D, g)
         step[~np.isfinite(step)] = 0.0
         active = np.max(np.abs(step), axis=1) > INNER_STEP_TOLERANCE
         if not active.any():
@@ -195,7 +206,8 @@ class EliminatedViewStack:
     their own placements eliminated (module docstring).
 
     ``start``: every eliminated placement's mirror vector to start from (owner frame, metres); ``keep``:
-    placements that stay variables whatever sees them (e.g. the scale's); ``closed_form``: the last reflection
+    placements that stay variables whatever sees them (e.g. the scale's); ``tree_like``: the placements solved
+    as the tree's factors solve them (:attr:`tree_like`); ``closed_form``: the last reflection
     in closed form where it is the eliminated placement's (``view_last_reflection.py``; else the general
     model everywhere, as a reference). ``eliminated``: the placements
     solved inside; ``kept_mirror_keys``: the plane keys the factors see; ``factors``: the
@@ -203,7 +215,7 @@ class EliminatedViewStack:
 
     def __init__(self, view_factors: Sequence[ViewFactor] | ViewTable, start: dict[Placement, np.ndarray],
                  keep: frozenset | set = frozenset(),
-                 placements_per_factor: int = PLACEMENTS_PER_FACTOR, closed_form: bool = True):
+                 placements_per_factor: int = PLACEMENTS_PER_FACTOR, closed_form: bool = True, tree_like: bool = False):
         table = view_factors if isinstance(view_factors, ViewTable) else ViewTable.of_factors(view_factors)
         stacks = table.stacks(placements_per_factor)
         self.eliminated = table.private_placements(stacks, set(keep))
@@ -299,7 +311,7 @@ class EliminatedViewStack:
         #: Solve the placements as the tree's eliminated factors do (:func:`halved_placements`, each solve
         #: from the optimum of the last linearisation): the analytic start's ranking (``start/initial.py``),
         #: whose choice among wrong hypotheses must not depend on the model's inner solve.
-        self.tree_like = False
+        self.tree_like = tree_like
         self._anchor = self._start.copy()
 
     def restart(self, start: dict[Placement, np.ndarray]) -> None:
@@ -450,9 +462,7 @@ class EliminatedViewStack:
         placement, a step that raises its views' cost refused and the placement damped (Levenberg-Marquardt
         on each placement alone: their costs are separate); each stack's cost there."""
         if self.tree_like:  # from the last linearisation's optimum; a collapsed one from its start (eliminated.py)
-            distance = np.linalg.norm(self._anchor, axis=1)
-            low = distance < COLLAPSED_FRACTION * np.median(distance) if len(distance) else np.zeros(0, dtype=bool)
-            self._vectors[:] = np.where(low[:, None], self._start, self._anchor)
+            self._vectors[:] = np.where(collapsed_placements(self._anchor)[:, None], self._start, self._anchor)
         else:
             restart_collapsed(self._vectors, self._start)
         D, g, own, rest = self._moments(poses, vectors, jacobians, prefixes, True)

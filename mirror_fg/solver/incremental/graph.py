@@ -43,7 +43,7 @@ from mirror_fg.data import Dataset, Image
 from mirror_fg.factors.view_eliminated import collapsed
 from mirror_fg.solver.start.analytic import AnalyticSolution
 from mirror_fg.solver.result.calibration import Calibration, Exclusion
-from mirror_fg.solver.model.graph import GraphLayout, Measurement
+from mirror_fg.solver.model.graph import Measurement
 from mirror_fg.solver.incremental.state import GraphState, PlacementBlock, RelinearizeThresholds, new_isam2
 from mirror_fg.solver.incremental.view_factors import eliminated_block, plane_of, stacked_factors, vector_at
 from mirror_fg.solver.incremental.values import (
@@ -172,7 +172,7 @@ class IncrementalGraph:
         Without a robust kernel, measurements whose last placement is eliminated go to placement blocks
         (module docstring, :meth:`_place_in_blocks`); the others get the view model's stacked factors
         (``view_factors.stacked_factors``: a few vectorised factors instead of one Python factor per
-        measurement; the layout handed over holds only the keys these measurements use).
+        measurement; each view takes only the keys its measurements use).
         """
         if not measurements:
             return
@@ -181,14 +181,7 @@ class IncrementalGraph:
             measurements = self._place_in_blocks(measurements, factors, values)
             if not measurements:
                 return
-        configs = {(l + 1, m) for meas in measurements for l, m in enumerate(meas.mirror_configs)}
-        names = {meas.point for meas in measurements if meas.point not in self._ds.fiducials}
-        layout = GraphLayout(
-            pose_key=self._state.layout.pose_key,
-            mirror_keys={config: self._state.layout.mirror_keys[config] for config in configs},
-            point_keys={name: self._state.layout.point_keys[name] for name in names},
-        )
-        for factor in stacked_factors(self._ds, layout, measurements, self._robust):  # point_sigma where given
+        for factor in stacked_factors(self._ds, self._state.layout, measurements, self._robust):  # point_sigma where given
             factors.add(factor)
             self._state.factors.add(factor)
 
@@ -252,14 +245,7 @@ class IncrementalGraph:
         """The factors of ``measurements`` with ``placements`` (all under ``parent``) eliminated, into the state
         and ``factors``."""
         g = self._state
-        configs = {(l + 1, m) for meas in measurements for l, m in enumerate(meas.mirror_configs)}
-        names = {meas.point for meas in measurements if meas.point not in self._ds.fiducials}
-        layout = GraphLayout(
-            pose_key=g.layout.pose_key,
-            mirror_keys={config: g.layout.mirror_keys[config] for config in configs},
-            point_keys={name: g.layout.point_keys[name] for name in names},
-        )
-        evaluator = eliminated_block(self._ds, layout, measurements, {c: g.mirrors[c] for c in placements})
+        evaluator = eliminated_block(self._ds, g.layout, measurements, {c: g.mirrors[c] for c in placements})
         block_factors, evaluator.factors = evaluator.factors, []  # the block holds the factors, they the evaluator: no cycle
         block = PlacementBlock(parent, level, measurements, placements, evaluator, block_factors)
         g.blocks.append(block)

@@ -1,14 +1,15 @@
 """The paper's tree on iSAM2: the backend of ``incremental.IncrementalCalibrator`` for tree data.
 
 Same unknowns, measurement model and noise as the batch pipeline (``calibrate.py``): ``X(0)`` is
-``T_cam_base`` (camera <- base, ``Cp = R Bp + t``, metres), ``V(i)`` one mirror vector per configuration
-``(l, m)`` (camera frame, metres), ``L(j)`` one reconstruction point (base frame, metres); keys are
-numbered in the order the unknowns get a value. As in the batch, the last mirror's placements (one per
-image, typically) are eliminated inside their factors (``factors.eliminated``, a Schur complement) and
+``T_cam_base`` (camera <- base, ``Cp = R Bp + t``, metres), ``V(i)`` one placement per configuration
+``(l, m)`` (the plane of its mirror vector, camera frame, metres), ``L(j)`` one reconstruction point (base
+frame, metres); keys are numbered in the order the unknowns get a value. As in the batch, the last mirror's
+placements (one per image, typically) are eliminated inside their views' factors (the one model's
+eliminated stacks, ``factors/view_eliminated.py``: a Schur complement) and
 are not iSAM2 unknowns: iSAM2 holds ``X(0)``, the placements of mirrors 1..Nv-1 and the points, so an
 update costs about the same at the 10,000th image as at the 1,000th (``graph.py`` explains the
 blocks of placements and their merging). With a robust kernel (or for a placement seen under two
-parents) the placements stay iSAM2 unknowns with the batch's stacked factors (``factors.batched``).
+parents) the placements stay iSAM2 unknowns with the model's stacked factors (``view_factors.py``).
 Each update is built from its new measurements only.
 
 Life of an image (``TreeIncrementalCalibrator.add_image``):
@@ -275,8 +276,7 @@ class TreeIncrementalCalibrator:
         if self._settled and isinstance(unknown, str):
             return self._g.require_isam().marginalCovariance(key)
         if self._settled and config in self._g.kept:  # the plane's covariance as its mirror vector's
-            isam = self._g.require_isam()
-            return vector_covariance(isam.calculateEstimate(), key, isam.marginalCovariance(key))
+            return vector_covariance(self._g.mirrors[config], self._g.require_isam().marginalCovariance(key))
         # Unsettled, iSAM2 may not hold the reported (LM) estimate; an eliminated placement is not in
         # iSAM2: marginals of the whole graph at the estimate.
         _, _, (_, mirrors, points) = self._graph.explicit_covariances()
@@ -446,17 +446,14 @@ class TreeIncrementalCalibrator:
         layout = self._g.layout
         keys = [layout.pose_key, *(layout.mirror_keys[(level + 1, m)] for level, m in enumerate(configs[:-1]))]
         try:
-            isam = self._g.require_isam()
-            covariance = isam.jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
+            covariance = self._g.require_isam().jointMarginalCovariance(gtsam.KeyVector(keys)).fullMatrix()
         except RuntimeError:  # an indeterminant system: judged at the estimate's value alone
             covariance = np.zeros((6 + 3 * len(parents), 6 + 3 * len(parents)))
-        else:  # the parents' planes as their mirror vectors (v = d n)
-            if len(keys) > 1:
-                estimate = isam.calculateEstimate()
-                J = np.eye(len(covariance))
-                for k, key in enumerate(keys[1:]):
-                    J[6 + 3 * k:9 + 3 * k, 6 + 3 * k:9 + 3 * k] = vector_jacobian(estimate, key)
-                covariance = J @ covariance @ J.T
+        else:  # the parents' planes as their mirror vectors (v = d n), at the estimate
+            J = np.eye(len(covariance))
+            for k, v in enumerate(parents):
+                J[6 + 3 * k:9 + 3 * k, 6 + 3 * k:9 + 3 * k] = vector_jacobian(v)
+            covariance = J @ covariance @ J.T
         pose = gtsam.Pose3(gtsam.Rot3(self._g.R), np.asarray(self._g.t, float))
         return misfit_sigmas_with_uncertainty(self._ds, image, candidates, pose, parents, last, covariance)
 

@@ -37,19 +37,19 @@ ONE_STACK = 1 << 40
 def view_factors_of(dataset: Dataset, layout: GraphLayout, measurements: Sequence[Measurement],
                     robust: str | None = None) -> list[ViewFactor]:
     """One ``ViewFactor`` per image of ``measurements`` (in order of first measurement; its points in the
-    order given), keyed by ``layout``: the view of those measurements (module docstring)."""
+    order given), keyed by ``layout`` (each view takes the keys of its own placements and points): the view
+    of those measurements (module docstring)."""
     by_image: dict[str, list[Measurement]] = {}
     for meas in measurements:
         by_image.setdefault(meas.image_id, []).append(meas)
     pose_keys = {SINGLE_CAMERA: layout.pose_key}
-    owners = dict.fromkeys(layout.mirror_keys, SINGLE_CAMERA)
     views = []
     for ms in by_image.values():
         sigmas, base, landmarks = points_of(dataset, dataset.camera, [m.point for m in ms], layout.point_keys)
         observed = np.array([m.normalized for m in ms], dtype=float).reshape(-1, 2).T
         reflections = tuple((l + 1, int(m)) for l, m in enumerate(ms[0].mirror_configs))
-        views.append(ViewFactor(SINGLE_CAMERA, reflections, pose_keys, {}, layout.mirror_keys, owners, base,
-                                landmarks, observed, sigmas, robust))
+        views.append(ViewFactor(SINGLE_CAMERA, reflections, pose_keys, {}, layout.mirror_keys,
+                                dict.fromkeys(reflections, SINGLE_CAMERA), base, landmarks, observed, sigmas, robust))
     return views
 
 
@@ -82,12 +82,13 @@ def vector_at(values: gtsam.Values, key: int) -> np.ndarray:
     return vector_of_plane(values.atOrientedPlane3(key))[0]
 
 
-def vector_jacobian(values: gtsam.Values, key: int) -> np.ndarray:
-    """``dv/dxi`` (3x3) of the plane at ``key``: its mirror vector over its local coordinates."""
-    return vector_of_plane(values.atOrientedPlane3(key))[1]
+def vector_jacobian(v: np.ndarray) -> np.ndarray:
+    """``dv/dxi`` (3x3) of the plane of mirror vector ``v``: the vector over the plane's local coordinates."""
+    return vector_of_plane(plane_of(v))[1]
 
 
-def vector_covariance(values: gtsam.Values, key: int, covariance: np.ndarray) -> np.ndarray:
-    """A plane's covariance in its local coordinates (iSAM2's, 3x3) as its mirror vector's (m^2)."""
-    J = vector_jacobian(values, key)
+def vector_covariance(v: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """The covariance of the plane of mirror vector ``v`` in its local coordinates (iSAM2's, 3x3) as the
+    vector's (m^2)."""
+    J = vector_jacobian(v)
     return J @ covariance @ J.T

@@ -16,6 +16,7 @@ of a vanishing prior sigma; dense, the data without a target are small).
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import gtsam
@@ -267,17 +268,21 @@ class ViewProblem:
             keep = {self.placements[u] for block in others for u in np.unique(block.placements).tolist()}
             evaluator = EliminatedViewStack(views, estimate.mirror_vectors, keep) if views.count else None
             if evaluator is not None and evaluator.eliminated:
-                graph = gtsam.NonlinearFactorGraph()
-                for factor in evaluator.factors:
-                    graph.add(factor)
-                evaluator.factors = []  # the factors hold the evaluator: no cycle through C++ (freed with the graph)
-                if others:
-                    for factor in stacked_view_factors(self.table.subset(lambda block: not block.eliminable)):
-                        graph.add(factor)
-                self._priors(graph)
-                values = self.values(estimate, skip=set(evaluator.eliminated))
-                return graph, values, evaluator
+                rest = stacked_view_factors(self.table.subset(lambda block: not block.eliminable)) if others else []
+                return self.eliminated_graph(evaluator, estimate, rest)
         return self.graph(), self.values(estimate), None
+
+    def eliminated_graph(self, evaluator: EliminatedViewStack | EliminatedViewPointStack, estimate: ViewEstimate,
+                         others: Sequence[gtsam.NonlinearFactor] = ()):
+        """``(graph, values, evaluator)`` of a stack with its placements eliminated (:meth:`solve_graph`): its
+        factors, ``others`` (the views it does not hold), the priors, and the values of the rest at
+        ``estimate``."""
+        graph = gtsam.NonlinearFactorGraph()
+        for factor in [*evaluator.factors, *others]:
+            graph.add(factor)
+        evaluator.factors = []  # the factors hold the evaluator: no cycle through C++ (freed with the graph)
+        self._priors(graph)
+        return graph, self.values(estimate, skip=set(evaluator.eliminated)), evaluator
 
     def _points_solve_graph(self, estimate: ViewEstimate):
         """:meth:`solve_graph` where every view sees reconstruction points: each photograph's own placement
@@ -286,12 +291,7 @@ class ViewProblem:
         evaluator = EliminatedViewPointStack(self.factors, estimate.mirror_vectors)
         if not evaluator.eliminated:
             return self.graph(), self.values(estimate), None
-        graph = gtsam.NonlinearFactorGraph()
-        for factor in evaluator.factors:
-            graph.add(factor)
-        evaluator.factors = []  # the factors hold the evaluator: no cycle through C++ (freed with the graph)
-        self._priors(graph)
-        return graph, self.values(estimate, skip=set(evaluator.eliminated)), evaluator
+        return self.eliminated_graph(evaluator, estimate)
 
     def _priors(self, graph: gtsam.NonlinearFactorGraph) -> None:
         """The intrinsics priors and the scale prior, added to ``graph``."""

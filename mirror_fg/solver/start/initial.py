@@ -135,15 +135,10 @@ def _subtree_graph(problem: ViewProblem, start: ViewEstimate
     known) with the placements of its last mirror eliminated, solved as the tree's factors solve them
     (``EliminatedViewStack.tree_like``: the ranking of wrong hypotheses depends on it); the graph with
     every placement an unknown where none is. The start's own: the options' linearisation is the MLE's."""
-    evaluator = EliminatedViewStack(problem.table, start.mirror_vectors)
+    evaluator = EliminatedViewStack(problem.table, start.mirror_vectors, tree_like=True)
     if not evaluator.eliminated:
         return problem.graph(), problem.values(start), None
-    evaluator.tree_like = True
-    graph = gtsam.NonlinearFactorGraph()
-    for factor in evaluator.factors:
-        graph.add(factor)
-    evaluator.factors = []  # the factors hold the evaluator: no cycle through C++ (freed with the graph)
-    return graph, problem.values(start, skip=set(evaluator.eliminated)), evaluator
+    return problem.eliminated_graph(evaluator, start)
 
 
 def _view_start(problem: ViewProblem, closed_form: AnalyticSolution) -> ViewEstimate:
