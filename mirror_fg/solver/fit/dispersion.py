@@ -25,9 +25,10 @@ inverting the rest densely, cubic in the shared unknowns. With more than :data:`
 more than :data:`MAX_DENSE_COLUMNS` shared columns, ``B`` and ``nu`` are summed over
 :data:`MAX_IMAGES` images evenly spread through the capture instead, ``Sigma``'s blocks from GTSAM's
 marginals (its Bayes tree): the factor is then estimated from those images' redundancy, and ``dof``
-and ``images`` say so (an F-test takes that ``dof``). The paper's tree (intrinsics known, no single
-measurement left out) is linearised in one vectorised pass of its own model and its shared columns
-inverted densely (``tree_dispersion.py``), over the same images.
+and ``images`` say so (an F-test takes that ``dof``). Where every view is a plain Gaussian factor
+(intrinsics known, no robust kernel, no scale prior, no single measurement left out), every view is
+linearised in one vectorised pass of the view model and the shared columns inverted densely or cluster by
+cluster (``view_dispersion.py``), over the same images: the same ``B`` and ``nu`` to rounding.
 """
 from __future__ import annotations
 
@@ -40,9 +41,9 @@ import numpy as np
 
 from mirror_fg.factors.schur import one_blas_thread
 from mirror_fg.data import Dataset
-from mirror_fg.solver.fit.tree_dispersion import tree_dispersion, tree_dispersion_applies  # noqa: F401 (tests patch them here)
-from mirror_fg.solver.fit.validation import _problem, estimate_of_calibration
-from mirror_fg.solver.model.views import SINGLE_CAMERA, ViewEstimate, scale_prior, tangent_dimension
+from mirror_fg.solver.fit.validation import _problem, estimate_of_calibration, used_images
+from mirror_fg.solver.fit.view_dispersion import view_dispersion, view_dispersion_applies
+from mirror_fg.solver.model.views import ViewEstimate, ViewProblem, scale_prior, tangent_dimension
 
 __all__ = ["Dispersion", "image_dispersion", "dispersion_of_calibration", "dispersion_of_solve", "MAX_IMAGES", "MAX_DENSE_COLUMNS"]
 
@@ -50,6 +51,9 @@ __all__ = ["Dispersion", "image_dispersion", "dispersion_of_calibration", "dispe
 MAX_IMAGES = 400
 #: Above this many columns shared by several images, likewise (a dense inverse of them is cubic).
 MAX_DENSE_COLUMNS = 1500
+#: Whether the views are linearised in one vectorised pass where they can be (``view_dispersion.py``); the
+#: tests turn it off to compare with GTSAM's factors linearised one by one.
+VECTORISED = True
 
 
 @dataclass(frozen=True)
@@ -82,8 +86,8 @@ def dispersion_of_calibration(dataset: Dataset, calibration: Any) -> Dispersion:
 def image_dispersion(dataset: Dataset, estimate: ViewEstimate, excluded: Sequence[tuple[str, str | None]],
                      estimated_cameras: Mapping[str, Any] | None = None) -> Dispersion:
     """``B`` and ``nu`` (module docstring) of ``dataset``'s images at ``estimate``; arguments as
-    :func:`~mirror_fg.solver.fit.validation.validate`. The paper's tree is linearised in one pass of its
-    own model (``tree_dispersion.py``: the same ``B`` and ``nu`` to rounding). BLAS on one thread: the
+    :func:`~mirror_fg.solver.fit.validation.validate`. Where it can, in one vectorised pass of the view
+    model (``view_dispersion.py``: the same ``B`` and ``nu`` to rounding). BLAS on one thread: the
     matrices are small and many (``factors/schur.one_blas_thread``)."""
     with one_blas_thread():
         return _image_dispersion(dataset, estimate, excluded, estimated_cameras)
@@ -91,13 +95,10 @@ def image_dispersion(dataset: Dataset, estimate: ViewEstimate, excluded: Sequenc
 
 def _image_dispersion(dataset: Dataset, estimate: ViewEstimate, excluded: Sequence[tuple[str, str | None]],
                       estimated_cameras: Mapping[str, Any] | None) -> Dispersion:
-    if (tree_dispersion_applies(dataset, excluded, estimated_cameras) and SINGLE_CAMERA in estimate.poses
-            and not _has_priors(dataset)):
-        R, t = estimate.poses[SINGLE_CAMERA]
-        fast = tree_dispersion(dataset, R, t, estimate.mirror_vectors, estimate.points,
-                               {image for image, _ in excluded}, MAX_IMAGES, MAX_DENSE_COLUMNS)
+    if not estimated_cameras and all(point is None for _, point in excluded):  # every measurement of a view used
+        fast = _vectorised(ViewProblem(used_images(dataset, estimate, excluded)), estimate)
         if fast is not None:
-            return Dispersion(*fast)
+            return fast
     used, problem, values, masks = _problem(dataset, estimate, excluded, estimated_cameras)
     if len(problem.factors) > MAX_IMAGES or _shared_columns(problem, values) > MAX_DENSE_COLUMNS:
         if all(mask.all() for mask in masks):  # no measurement left out: this very problem
@@ -114,10 +115,22 @@ def dispersion_of_solve(problem: Any, estimate: ViewEstimate) -> Dispersion | No
     if problem.robust is not None:
         return None
     with one_blas_thread():
+        fast = _vectorised(problem, estimate)
+        if fast is not None:
+            return fast
         values = problem.values(estimate)
         if len(problem.factors) > MAX_IMAGES or _shared_columns(problem, values) > MAX_DENSE_COLUMNS:
             return _sampled_from(problem, values)
         return _dense(problem, values, [np.ones(2 * len(view.names), dtype=bool) for view in problem.views])
+
+
+def _vectorised(problem: ViewProblem, estimate: ViewEstimate) -> Dispersion | None:
+    """The dispersion in one vectorised pass of the view model (``view_dispersion.py``), where it applies:
+    None elsewhere (GTSAM's factors linearised one by one then)."""
+    if not VECTORISED or not view_dispersion_applies(problem):
+        return None
+    fast = view_dispersion(problem, estimate, MAX_IMAGES, MAX_DENSE_COLUMNS)
+    return Dispersion(*fast) if fast is not None else None
 
 
 def _dense(problem: Any, values: gtsam.Values, masks: Sequence[np.ndarray]) -> Dispersion:
@@ -158,12 +171,6 @@ def _dense(problem: Any, values: gtsam.Values, masks: Sequence[np.ndarray]) -> D
         columns = [i for key in gaussian.keys() for i in range(offset[key], offset[key] + tangent_dimension(key, values))]
         blocks.append((np.array(columns, dtype=int), A.T @ A))
     return Dispersion(cost, max(rank_sum - _explained(blocks, parts, size), 0.0), len(parts))
-
-
-def _has_priors(dataset: Dataset) -> bool:
-    """Whether a prior (the scale's) adds information beyond the images' (``tree_dispersion.py`` has none)."""
-    placements = {p: k for k, p in enumerate(dataset.configurations)}
-    return scale_prior(dataset, placements, {n: k for k, n in enumerate(dataset.reconstruction_point_names)}).size() > 0
 
 
 def _explained(blocks: list[tuple[np.ndarray, np.ndarray]], parts: list[tuple[int, np.ndarray]], size: int) -> float:

@@ -146,18 +146,10 @@ def validate(dataset: Dataset, estimate: ViewEstimate, excluded: Sequence[tuple[
     return Validation(tuple(ids), ratios, costs, expected, tuple(skipped))
 
 
-def _problem(dataset: Dataset, estimate: ViewEstimate, excluded: Sequence[tuple[str, str | None]],
-             estimated_cameras: Mapping[str, Any] | None):
-    """The view model of the images the solve used, with every measurement of theses images; its values at
-    ``estimate``, and each image's mask of the rows the solve used."""
-    from mirror_fg.factors.intrinsics import IntrinsicsModel
-    from mirror_fg.solver.batch.intrinsics import camera_intrinsics
-
+def used_images(dataset: Dataset, estimate: ViewEstimate, excluded: Sequence[tuple[str, str | None]]) -> Dataset:
+    """``dataset`` with the images the solve used: not left out whole, every placement estimated, each with
+    its measurements of known points (fiducials and estimated points) that it has (any)."""
     images_out = {image_id for image_id, point in excluded if point is None}
-    points_out: dict[str, set[str]] = {}
-    for image_id, point in excluded:
-        if point is not None:
-            points_out.setdefault(image_id, set()).add(point)
     known = set(dataset.fiducials) | set(estimate.points)
     images: list[Image] = []
     for image in dataset.images:
@@ -167,7 +159,21 @@ def _problem(dataset: Dataset, estimate: ViewEstimate, excluded: Sequence[tuple[
         if observations:
             images.append(replace(image, observations=observations) if len(observations) < len(image.observations)
                           else image)
-    used = replace(dataset, images=images)
+    return replace(dataset, images=images)
+
+
+def _problem(dataset: Dataset, estimate: ViewEstimate, excluded: Sequence[tuple[str, str | None]],
+             estimated_cameras: Mapping[str, Any] | None):
+    """The view model of the images the solve used, with every measurement of theses images; its values at
+    ``estimate``, and each image's mask of the rows the solve used."""
+    from mirror_fg.factors.intrinsics import IntrinsicsModel
+    from mirror_fg.solver.batch.intrinsics import camera_intrinsics
+
+    used = used_images(dataset, estimate, excluded)
+    points_out: dict[str, set[str]] = {}
+    for image_id, point in excluded:
+        if point is not None:
+            points_out.setdefault(image_id, set()).add(point)
     models: dict[str, IntrinsicsModel] = {}
     theta: dict[str, np.ndarray] = {}
     given = dataset.cameras if dataset.cameras is not None else {SINGLE_CAMERA: dataset.camera}
