@@ -6,6 +6,7 @@ rows (Hesch et al., eq. 23 linearised), each run with one BLAS thread (:func:`on
 from __future__ import annotations
 
 import contextlib
+import threading
 from collections.abc import Iterator
 
 import numpy as np
@@ -14,6 +15,7 @@ __all__ = ["segment_sums", "row_products", "compressed_normal", "gauss_newton_st
            "one_blas_thread"]
 
 _controller = None
+_limited = threading.local()  # how deep this thread is inside one_blas_thread blocks
 
 
 @contextlib.contextmanager
@@ -21,14 +23,27 @@ def one_blas_thread() -> Iterator[None]:
     """BLAS/LAPACK limited to one thread inside the block (threadpoolctl). The factors' matrices are a
     few hundred wide at most: a second BLAS thread gains nothing there, and on a loaded machine its
     spinning workers took the cores from the solve (benchmark.py's points case: 8.5 s instead of 1.4 s
-    at load average 4 on 2 cores)."""
+    at load average 4 on 2 cores). A block inside another only counts (the limit costs ~0.1 ms: an
+    incremental update's factors each enter one)."""
     global _controller
+    depth = getattr(_limited, "depth", 0)
+    if depth:
+        _limited.depth = depth + 1
+        try:
+            yield
+        finally:
+            _limited.depth = depth
+        return
     if _controller is None:
         from threadpoolctl import ThreadpoolController
 
         _controller = ThreadpoolController()
     with _controller.limit(limits=1, user_api="blas"):
-        yield
+        _limited.depth = 1
+        try:
+            yield
+        finally:
+            _limited.depth = 0
 
 
 def segment_sums(values: np.ndarray, starts: np.ndarray) -> np.ndarray:

@@ -48,6 +48,8 @@ __all__ = ["EliminatedViewStack", "eliminable", "private_placements", "PLACEMENT
            "collapsed_placements", "halved_placements", "newton_steps", "solve_placements"]
 
 Placement = tuple[int, int]
+_IDENTITY = np.eye(3)  # read only
+_IDENTITY.flags.writeable = False
 #: Placements of one factor at most: its width is its poses and kept placements only, so a factor can hold
 #: many photographs (few Python calls per iteration).
 PLACEMENTS_PER_FACTOR = 256
@@ -151,7 +153,7 @@ def solve_placements(vectors: np.ndarray, D: np.ndarray, g: np.ndarray, own: np.
     E = len(vectors)
     damping = np.zeros(E)
     for _ in range(INNER_MAX_ITERATIONS if E else 0):
-        step = newton_steps(D + damping[:, None, None] * (D * np.eye(3)), g)
+        step = newton_steps(D + damping[:, None, None] * (D * _IDENTITY), g)
         if not np.all(np.isfinite(step)):
             raise RuntimeError("an eliminated mirror placement has no finite optimum at these values")
         length = np.linalg.norm(step, axis=1)

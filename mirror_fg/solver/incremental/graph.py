@@ -40,6 +40,7 @@ from gtsam.symbol_shorthand import V
 
 from mirror_fg.core.transform import covariance_from_pose3
 from mirror_fg.data import Dataset, Image
+from mirror_fg.factors.schur import one_blas_thread
 from mirror_fg.factors.view_eliminated import collapsed
 from mirror_fg.solver.start.analytic import AnalyticSolution
 from mirror_fg.solver.result.calibration import Calibration, Exclusion
@@ -290,6 +291,10 @@ class IncrementalGraph:
     def update(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
         """One ``ISAM2.update`` with only the new factors and values (and the removal of the blocks merged
         or re-made); refresh the estimate."""
+        with one_blas_thread():  # (the factors' small matrices: one limit for the whole update)
+            self._update(factors, values)
+
+    def _update(self, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
         g = self._state
         isam = g.require_isam()
         with timed(self.timings, "isam2"):
