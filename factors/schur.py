@@ -110,20 +110,25 @@ def gauss_newton_steps(moments: np.ndarray) -> np.ndarray:
 
 def inverses(d: np.ndarray) -> np.ndarray:
     """Inverses (S, 3, 3) of the symmetric 3x3 matrices stored as rows (00, 01, 02, 11, 12, 22) of ``d``
-    (6, S), by their adjugates; when some is singular or not positive, ``np.linalg.inv`` (``pinv`` when
-    that fails) of them all."""
+    (6, S), by their adjugates; those singular or not positive by ``np.linalg.inv`` (``pinv`` when that
+    fails), alone (a wrong start's degenerate placement must not send every other through LAPACK)."""
     cofactors = np.take(d, _COFACTOR_A, axis=0)
     cofactors *= np.take(d, _COFACTOR_B, axis=0)
     cofactors -= np.take(d, _COFACTOR_C, axis=0) * np.take(d, _COFACTOR_D, axis=0)
     det = np.einsum("is,is->s", d[:3], cofactors[:3])
-    if np.all(det > 0.0) and np.all(np.isfinite(det)):
+    good = (det > 0.0) & np.isfinite(det)
+    if good.all():
         cofactors /= det
         return np.ascontiguousarray(np.take(cofactors, _SYMMETRIC, axis=0).T).reshape(-1, 3, 3)
-    D = np.ascontiguousarray(np.take(d, _SYMMETRIC, axis=0).T).reshape(-1, 3, 3)
+    with np.errstate(all="ignore"):
+        cofactors /= det
+    out = np.ascontiguousarray(np.take(cofactors, _SYMMETRIC, axis=0).T).reshape(-1, 3, 3)
+    D = np.ascontiguousarray(np.take(d[:, ~good], _SYMMETRIC, axis=0).T).reshape(-1, 3, 3)
     try:
-        return np.linalg.inv(D)
+        out[~good] = np.linalg.inv(D)
     except np.linalg.LinAlgError:  # a placement its measurements do not constrain (degenerate values)
-        return np.linalg.pinv(D)
+        out[~good] = np.linalg.pinv(D)
+    return out
 
 
 #: Cofactors of a symmetric 3x3 stored as (00, 01, 02, 11, 12, 22): ``C_k = d[A] d[B] - d[C] d[D]``,

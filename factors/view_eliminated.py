@@ -50,6 +50,7 @@ __all__ = ["EliminatedViewStack", "eliminable", "private_placements", "PLACEMENT
 Placement = tuple[int, int]
 _IDENTITY = np.eye(3)  # read only
 _IDENTITY.flags.writeable = False
+_THIRTEEN = np.arange(13)
 #: Placements of one factor at most: its width is its poses and kept placements only, so a factor can hold
 #: many photographs (few Python calls per iteration).
 PLACEMENTS_PER_FACTOR = 256
@@ -289,8 +290,21 @@ class EliminatedViewStack:
         seen = np.bincount(np.concatenate([np.zeros(0, dtype=np.intp)] + [
             placement_of for placement_of, u in zip(self._placement_of_view, self._elim_local) if u is not None]),
             minlength=len(self.eliminated))  # each eliminated placement's views
-        self._one_view = [fast and bool(np.all(seen[placement_of] == 1)) for fast, placement_of
-                          in zip(self._fast, self._placement_of_view)]
+        # the closed-form groups of as many points, evaluated as one (the inner solve calls their moments a
+        # few dozen times per linearisation; a call per group was most of its cost): each merge's groups,
+        # observations and sigmas (2, N, b) and eliminated placement of each view (b,)
+        by_count: dict[int, list[int]] = {}
+        for i, (group, fast) in enumerate(zip(self.groups, self._fast)):
+            if fast:
+                by_count.setdefault(group.base.shape[2], []).append(i)
+        self._merged = [(members, np.concatenate([self._observed_soa[i] for i in members], axis=2),
+                         np.concatenate([self._sigmas_soa[i] for i in members], axis=2),
+                         np.concatenate([self._placement_of_view[i] for i in members]))
+                        for members in by_count.values()]
+        self._merged_one_view = [bool(np.all(seen[placement_of] == 1)) for _, _, _, placement_of in self._merged]
+        if (len(self._merged) == 1 and all(self._fast) and self._merged_one_view[0]
+                and np.array_equal(self._merged[0][3], np.arange(len(self.eliminated)))):
+            self._merged[0] = (*self._merged[0][:3], None)  # (no gather, no scatter: _moments)
         self._mine = [np.flatnonzero(stack_of_placement == s) for s in range(len(stacks))]
         self._c_index = [self._c_offsets[m][:, None] + np.arange(3 * (w + 1))[None] for m, w in zip(self._mine, self._widths)]
         self._all_targets = (self._targets[0].ravel() if len(self._targets) == 1
@@ -416,29 +430,35 @@ class EliminatedViewStack:
         return np.bincount(self._all_targets, weights[0] if len(weights) == 1 else np.concatenate(weights),
                            minlength=self._total + 1)
 
-    def _moments(self, poses, vectors, jacobians, prefixes: list,
+    def _moments(self, poses, vectors, jacobians, prefixes: list, merged: list,
                  rest_too: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``D = J_v^T J_v`` (E, 3, 3), ``J_v^T e`` (E, 3) and the cost ``||e||^2`` (E,) of every eliminated
-        placement's views, the rest held; and (``rest_too``) each stack's cost of its views without one."""
+        placement's views, the rest held; and (``rest_too``) each stack's cost of its views without one.
+        ``merged``: the closed-form groups' points before their last mirror, merged as ``self._merged``."""
         V, J = self._arrays(vectors, jacobians) if not all(self._fast) else (None, None)
         E = len(self.eliminated)
         D, g, own = np.zeros((E, 3, 3)), np.zeros((E, 3)), np.zeros(E)
         rest = np.zeros(len(self._keys))
+        for (_, observed, sigmas, placement_of), y, one_view in zip(self._merged, merged, self._merged_one_view):
+            if placement_of is None:  # the only views: placement k seen by view k alone (the tree's last mirror)
+                D, g, own = last.moments(y, self._vectors, observed, sigmas)
+                continue
+            D_views, g_views, cost = last.moments(y, self._vectors[placement_of], observed, sigmas)
+            if one_view:  # each placement seen by one of these views alone
+                D[placement_of] += D_views
+                g[placement_of] += g_views
+                own[placement_of] += cost
+                continue
+            # each placement's sums over its views, in one pass: D's 9 entries, g's 3, the cost
+            rows = np.concatenate([D_views.reshape(-1, 9), g_views, cost[:, None]], axis=1)
+            sums = np.bincount((placement_of[:, None] * 13 + _THIRTEEN).ravel(), rows.ravel(),
+                               minlength=13 * E).reshape(E, 13)
+            D += sums[:, :9].reshape(E, 3, 3)
+            g += sums[:, 9:12]
+            own += sums[:, 12]
         for i, (group, placement_of, wrt, at, members) in enumerate(zip(
                 self.groups, self._placement_of_view, self._elim_local, self._rows, self._stack_rows)):
-            if prefixes[i] is not None:
-                D_views, g_views, cost = last.moments(prefixes[i][0], self._vectors[placement_of],
-                                                      self._observed_soa[i], self._sigmas_soa[i])
-                if self._one_view[i]:  # each of the group's placements seen by this view alone
-                    D[placement_of] += D_views
-                    g[placement_of] += g_views
-                    own[placement_of] += cost
-                    continue
-                for j in range(3):
-                    g[:, j] += np.bincount(placement_of, g_views[:, j], minlength=E)
-                    for k in range(3):
-                        D[:, j, k] += np.bincount(placement_of, D_views[:, j, k], minlength=E)
-                own += np.bincount(placement_of, cost, minlength=E)
+            if prefixes[i] is not None:  # (in a merge above)
                 continue
             if wrt is None and not rest_too:
                 continue
@@ -467,8 +487,10 @@ class EliminatedViewStack:
             self._vectors[:] = np.where(collapsed_placements(self._anchor)[:, None], self._start, self._anchor)
         else:
             restart_collapsed(self._vectors, self._start)
-        D, g, own, rest = self._moments(poses, vectors, jacobians, prefixes, True)
-        again = lambda: self._moments(poses, vectors, jacobians, prefixes, False)[:3]  # noqa: E731
+        merged = [prefixes[members[0]][0] if len(members) == 1
+                  else np.concatenate([prefixes[i][0] for i in members], axis=2) for members, *_ in self._merged]
+        D, g, own, rest = self._moments(poses, vectors, jacobians, prefixes, merged, True)
+        again = lambda: self._moments(poses, vectors, jacobians, prefixes, merged, False)[:3]  # noqa: E731
         own = (halved_placements if self.tree_like else solve_placements)(self._vectors, D, g, own, again)
         return rest + np.bincount(self._stack_of_placement, own, minlength=len(rest))
 
