@@ -1,4 +1,4 @@
-"""Small dense linear algebra of the eliminated factors (``eliminated.py``): segment sums, the per-measurement
+"""Small dense linear algebra of the eliminated factors (``view_eliminated.py``, ``view_points_eliminated.py``): segment sums, the per-measurement
 products of their 2-row blocks, closed-form inverses of 3x3 normal matrices (the placements' ``D``), the
 Gauss-Newton steps of the placements, and the compression of a factor's normal equations to ``d + 1``
 rows (Hesch et al., eq. 23 linearised), each run with one BLAS thread (:func:`one_blas_thread`).

@@ -297,14 +297,16 @@ class EliminatedViewStack:
         for i, (group, fast) in enumerate(zip(self.groups, self._fast)):
             if fast:
                 by_count.setdefault(group.base.shape[2], []).append(i)
-        self._merged = [(members, np.concatenate([self._observed_soa[i] for i in members], axis=2),
-                         np.concatenate([self._sigmas_soa[i] for i in members], axis=2),
-                         np.concatenate([self._placement_of_view[i] for i in members]))
-                        for members in by_count.values()]
-        self._merged_one_view = [bool(np.all(seen[placement_of] == 1)) for _, _, _, placement_of in self._merged]
-        if (len(self._merged) == 1 and all(self._fast) and self._merged_one_view[0]
-                and np.array_equal(self._merged[0][3], np.arange(len(self.eliminated)))):
-            self._merged[0] = (*self._merged[0][:3], None)  # (no gather, no scatter: _moments)
+        merged = [(members, np.concatenate([self._observed_soa[i] for i in members], axis=2),
+                   np.concatenate([self._sigmas_soa[i] for i in members], axis=2),
+                   np.concatenate([self._placement_of_view[i] for i in members])) for members in by_count.values()]
+        self._merged_one_view = [bool(np.all(seen[placement_of] == 1)) for _, _, _, placement_of in merged]
+        # None: the only views, placement k seen by view k alone (no gather, no scatter: _moments)
+        self._merged: list[tuple[list[int], np.ndarray, np.ndarray, np.ndarray | None]] = [
+            (members, observed, sigmas,
+             None if (len(merged) == 1 and all(self._fast) and self._merged_one_view[0]
+                      and np.array_equal(placement_of, np.arange(len(self.eliminated)))) else placement_of)
+            for members, observed, sigmas, placement_of in merged]
         self._mine = [np.flatnonzero(stack_of_placement == s) for s in range(len(stacks))]
         self._c_index = [self._c_offsets[m][:, None] + np.arange(3 * (w + 1))[None] for m, w in zip(self._mine, self._widths)]
         self._all_targets = (self._targets[0].ravel() if len(self._targets) == 1

@@ -8,7 +8,7 @@ Why: the inner Gauss-Newton of the eliminated placements (``view_eliminated._sol
 a few times per evaluation with everything but ``v`` held. The points before the last mirror do not
 change meanwhile, so they are computed once per evaluation and each inner iteration is this reflection,
 its derivative in ``v`` and the projection, elementwise over the views in a structure-of-arrays layout
-((3, b, N) for b views of N points) as the tree's eliminated factor does (``eliminated.py``). The same
+((3, b, N) for b views of N points) as the tree's eliminated factor does (``tests/reference/eliminated.py``). The same
 closed form linearises the kept unknowns (through ``dy``, the reflection's linear part
 ``M = I - 2 v v^T / v.v``).
 """

@@ -6,7 +6,7 @@ Why: a view that sees reconstruction points has a Jacobian block per point, and 
 same points: one ``ViewFactor`` per image (a Python call per image, each copying the whole ``Values``)
 hands GTSAM an image's rows over the camera pose, its placements and every point, and the points' dense
 separator then takes every image's rows (24,600 rows x 195 columns for 200 images of 63 points).
-Here, as the paper's tree factors do (``eliminated.py``, ``schur.py``):
+Here, as the paper's tree factors do (``tests/reference/eliminated.py``, ``schur.py``):
 
 * views are grouped by shape and stacked by the set of placements they see (``view_stack.py``), a few
   consecutive sets into one stack (at most :data:`PLACEMENTS_PER_FACTOR` placements) over the camera
@@ -23,7 +23,7 @@ Here, as the paper's tree factors do (``eliminated.py``, ``schur.py``):
   views' rows, hence the same Levenberg-Marquardt steps, marginals and cost as one ``ViewFactor`` per
   image. GTSAM then eliminates each stack's own placements from a few rows, and the shared unknowns
   (the poses, the placements several stacks see, the points) from one dense factor, as from the tree's
-  factors (``eliminated.py``; one 283 x 282 factor per stack before: 60-80 ms per damped solve of 200
+  factors (``tests/reference/eliminated.py``; one 283 x 282 factor per stack before: 60-80 ms per damped solve of 200
   images and 60 points, 30-40 ms now, the tree's 10 ms: its own placements are not GTSAM's unknowns;
   ``view_points_eliminated.py`` eliminates them inside the factors, as the tree does). Every factor is exact: LAPACK's Cholesky factorisation with complete
   pivoting (``dpstrf``), where a stack alone leaves some unknowns free (a point seen along one ray) too,

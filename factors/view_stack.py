@@ -2,7 +2,7 @@
 same shape, and one factor per set of placements (Hesch et al., eqs. 2, 3, 9; the model of ``views.py``).
 
 Why: a Python factor costs a call per image per LM iteration, and inside GTSAM's optimizers every Python
-factor call first copies the whole ``Values`` (``batched.py``'s docstring), so per-image ``ViewFactor``
+factor call first copies the whole ``Values`` (``tests/reference/batched.py``'s docstring), so per-image ``ViewFactor``
 calls cost O(images x unknowns) per iteration. Here
 
 * views are **grouped by shape**: the same camera, the same owner camera at each reflection, the same
@@ -20,7 +20,7 @@ calls cost O(images x unknowns) per iteration. Here
   factors one at a time).
 
 Each view's rows, whitening and robust kernel are those of its ``ViewFactor`` (per measurement, as
-``batched.py`` does): a stack's error is its views' errors one after the other. Views with reconstruction
+the tree's reference factors do, ``tests/reference/batched.py``): a stack's error is its views' errors one after the other. Views with reconstruction
 points are stacked by ``view_points.py`` (these groups, compressed normal equations); views that estimate
 intrinsics stay ``ViewFactor`` s. ``tests/test_view_stack.py`` checks errors,
 Jacobians and whole calibrations against the per-view factors.

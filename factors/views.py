@@ -21,7 +21,7 @@ Jacobians are carried forward with the point (forward mode): ``dx`` (3, P, N) ov
 coordinates of the factor's pose and mirror keys (GTSAM's Pose3 tangent ``[w, nu]``, ``R Exp(w)``,
 ``t + R nu``; a Point3's own coordinates), and ``dx/dBp`` (3, 3, N) for the landmarks. One factor per
 image (its N points share the view), error ``[h_1 - z_1; ...]`` unwhitened, normalized coordinates;
-robust kernels per measurement as in ``batched.py``. The per-measurement reference for tests is this
+robust kernels per measurement as in the tree's reference factors (``tests/reference/batched.py``). The per-measurement reference for tests is this
 model at N = 1 checked against numerical differences (``tests/test_view_factor.py``).
 """
 from __future__ import annotations

@@ -36,6 +36,8 @@ import time
 
 import numpy as np
 
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tests"))  # the tree's own factors (tests/reference/)
+
 CASES = {
     "900img": {
         "title": "900 images, 3 fiducials (mirror 1: 3 x 300 images, mirror 2 moving)",
@@ -89,7 +91,7 @@ def task_calibrate(case: str, repeats: int, fast: bool) -> dict:
 
     dataset, _ = _dataset(case)
     runs = []
-    mode = "calibrate(fast=True): the last mirror eliminated (factors/eliminated.py)" if fast else "calibrate(fast=False): one ReflectionFactor per measurement"
+    mode = "calibrate(fast=True): the last mirror eliminated (factors/view_eliminated.py)" if fast else "calibrate(fast=False): one ViewFactor per image"
     for _ in range(repeats):
         start_wall, start_cpu = time.perf_counter(), time.process_time()
         cal = calibrate(dataset, fast=fast)
@@ -132,9 +134,9 @@ def _nudged(values, scale: float = 1e-7):
 def task_linearize(case: str, repeats: int) -> dict:
     """us per measurement of linearize() and error() at new values, and of one LM iteration."""
     import gtsam
-    from mirror_fg.factors.batched import batched_factors
+    from reference.batched import batched_factors
 
-    from mirror_fg.solver.model.graph import build_graph
+    from reference.graph import build_graph
 
     dataset, truth = _dataset(case)
     reference, values, layout, measurements = build_graph(dataset, truth, fast=False)
@@ -777,9 +779,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.worker:
         task, case, repeats = args.worker
         if os.environ.get("MIRROR_FG_BENCH_TREE_FACTORS") == "1":  # the tree solved on its own factors (not the default)
-            import mirror_fg.solver.model.lm as lm
+            import reference.lm as reference_lm
 
-            lm.VIEW_MODEL = False
+            reference_lm.select(tree_factors=True)
         print("RESULT " + json.dumps(TASKS[task](case, int(repeats))))
         return 0
     if args.scaling:
@@ -838,7 +840,7 @@ def main(argv: list[str] | None = None) -> int:
         lin = linearize["results"]
         print(f"2. per measurement, {linearize['measurements']} measurements (medians, CPU time)")
         print(f"   {'':34s} {'factors':>8s} {'linearize':>10s} {'error()':>9s} {'LM iter':>9s}  us/meas")
-        labels = {"native": "GTSAM GenericProjectionFactorCal3_S2", "fast": "batched (factors/batched.py)",
+        labels = {"native": "GTSAM GenericProjectionFactorCal3_S2", "fast": "batched (tests/reference/batched.py)",
                   "reference": "reference ReflectionFactor"}
         for name in ("native", "fast", "reference"):
             r = lin[name]

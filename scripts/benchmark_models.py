@@ -1,5 +1,5 @@
 """The paper's tree solved on the one measurement model (the general view model, the default) beside the
-tree's own factors (``lm.VIEW_MODEL = False``, the reference it is checked against): ``calibrate()``'s wall
+tree's own factors (``tests/reference/``, the reference it is checked against): ``calibrate()``'s wall
 time and its stages, alternating in one process, medians of ``--repeats`` runs each.
 
     python scripts/benchmark_models.py [--repeats 5] [--cases 900 200+60 4800]
@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tests"))  # the tree's own factors (tests/reference/)
 
 CASES = {"900": (900, 0), "200+60": (200, 60), "4800": (4800, 0)}
 STAGES = ("pnp", "consensus", "analytic", "build", "optimize", "marginals")
@@ -30,7 +31,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from benchmark import COMMON
 
-    import mirror_fg.solver.model.lm as lm
+    import reference.lm as reference_lm
     from mirror_fg import calibrate
     from mirror_fg.simulate.tree import simulate_base_case
 
@@ -42,12 +43,12 @@ def main(argv: list[str] | None = None) -> int:
         answers = {}
         for _ in range(args.repeats + 1):  # the first of each: warm-up
             for view_model in (True, False):
-                lm.VIEW_MODEL = view_model
+                reference_lm.select(tree_factors=not view_model)
                 start = time.perf_counter()
                 calibration = calibrate(dataset)
                 runs[view_model].append((time.perf_counter() - start, calibration.timings))
                 answers[view_model] = calibration
-        lm.VIEW_MODEL = True
+        reference_lm.select(tree_factors=False)
         walls = {}
         for view_model, label in ((True, "view model"), (False, "tree factors")):
             kept = runs[view_model][1:]

@@ -1,6 +1,6 @@
 #!/usr/bin/env python
 """The build stage of a calibration (``cal.timings['build']``) on the paper's tree, solved on its own
-factors (``factors/eliminated.py``) and on the general view model (``lm.VIEW_MODEL``: ``ViewProblem`` and
+factors (``tests/reference/eliminated.py``) and on the general view model (``ViewProblem`` and
 its eliminated graph), alternating in one process; and the construction of a rig's ``ViewProblem``.
 
     python scripts/benchmark_view_build.py [--repeats 5] [--sizes 900 4800]
@@ -23,6 +23,7 @@ import time
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tests"))  # the tree's own factors (tests/reference/)
 from benchmark import COMMON
 
 
@@ -33,7 +34,8 @@ def _figures(times: list[float]) -> str:
 def _start_of(dataset):
     """The analytical start calibrate() hands to LM (captured from one calibration on the view model)."""
     from mirror_fg import calibrate
-    from mirror_fg.solver.model import lm, view_lm
+    import reference.lm as reference_lm
+    from mirror_fg.solver.model import view_lm
 
     captured: dict = {}
     run = view_lm.view_model_run
@@ -43,30 +45,31 @@ def _start_of(dataset):
         captured.setdefault("initial", initial)
         return run(data, initial, *args, **kwargs)
 
-    lm.VIEW_MODEL, view_lm.view_model_run = True, capture
+    reference_lm.select(tree_factors=False)
+    view_lm.view_model_run = capture
     try:
         calibrate(dataset)
     finally:
-        lm.VIEW_MODEL, view_lm.view_model_run = False, run
+        view_lm.view_model_run = run
     return captured["dataset"], captured["initial"]
 
 
 def tree(size: int, repeats: int) -> None:
     from mirror_fg import calibrate
     from mirror_fg.simulate.tree import simulate_base_case
-    from mirror_fg.solver.model import lm
-    from mirror_fg.solver.model.graph import build_eliminated_graph
+    import reference.lm as reference_lm
+    from reference.graph import build_eliminated_graph
     from mirror_fg.solver.model.views import ViewEstimate, ViewProblem
 
     dataset, _ = simulate_base_case(num_images=size, num_points=0, mirror1_placements=3, **COMMON)
     calibrated: dict[bool, list[float]] = {False: [], True: []}
     for _ in range(repeats):
         for view_model in (False, True):
-            lm.VIEW_MODEL = view_model
+            reference_lm.select(tree_factors=not view_model)
             try:
                 calibrated[view_model].append(calibrate(dataset).timings["build"])
             finally:
-                lm.VIEW_MODEL = False
+                reference_lm.select(tree_factors=False)
     used, initial = _start_of(dataset)
     start = ViewEstimate({"camera": (np.asarray(initial.R_cam_base, float), np.asarray(initial.t_cam_base, float))},
                          {p: np.asarray(v, float) for p, v in initial.mirror_vectors.items()}, {})

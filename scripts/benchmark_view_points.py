@@ -1,6 +1,6 @@
 #!/usr/bin/env python
 """The LM stage of ``calibrate()`` on the paper's tree with reconstruction points, on the tree's factors
-(``factors/eliminated.py``) and on the general view model (``lm.VIEW_MODEL``: ``factors/view_points.py``),
+(``tests/reference/eliminated.py``) and on the general view model (``factors/view_points.py``),
 alternating in one process (the same contention for both), and the two results compared.
 
     python scripts/benchmark_view_points.py [--repeats 7] [--images 200] [--points 60] [--eliminated]
@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tests"))  # the tree's own factors (tests/reference/)
 
 COMMON: dict[str, Any] = {"pixel_sigma": 1.0, "mirror_distance": 0.5, "tilt_deg": 30.0, "seed": 0, "num_mirrors": 2, "num_fiducials": 3}
 
@@ -76,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--eliminated", action="store_true", help="also the view model with own placements eliminated")
     args = parser.parse_args(argv)
 
-    import mirror_fg.solver.model.lm as lm
+    import reference.lm as reference_lm
     from mirror_fg import calibrate, initial_estimate
     from mirror_fg.simulate.tree import simulate_base_case
     from mirror_fg.solver.model.views import ViewProblem
@@ -89,13 +90,13 @@ def main(argv: list[str] | None = None) -> int:
     results = {}
     for _ in range(args.repeats + 1):  # the first round warms up (imports, caches), not counted
         for name in models:
-            lm.VIEW_MODEL = name != "tree"
+            reference_lm.select(tree_factors=name == "tree")
             if name == "eliminated":
                 ViewProblem.solve_graph = eliminated_solve_graph(original)  # type: ignore[method-assign]
             try:
                 cal = calibrate(dataset, initial=initial)
             finally:
-                lm.VIEW_MODEL = False
+                reference_lm.select(tree_factors=False)
                 ViewProblem.solve_graph = original  # type: ignore[method-assign]
             times[name].append(cal.timings["optimize"])
             results[name] = cal

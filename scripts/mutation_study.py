@@ -130,9 +130,9 @@ register("factors", [
     Mutant("factors/views.py", "dx[:, c:c + 3, :] = -np.einsum(\"ij,jkn->ikn\", R_c, _skew_many(B))",
            "dx[:, c:c + 3, :] = np.einsum(\"ij,jkn->ikn\", R_c, _skew_many(B))", VIEW_FACTOR,
            "the rotation Jacobian's sign"),
-    Mutant("factors/reflection.py", "return z - measurement", "return measurement - z", ("tests/test_factors.py",),
+    Mutant("tests/reference/reflection.py", "return z - measurement", "return measurement - z", ("tests/test_factors.py",),
            "the custom factor's error with the sign of GTSAM's opposite"),
-    Mutant("factors/reflection.py", "jacobians[1 + k] = H_mirrors[k]", "jacobians[1 + k] = -H_mirrors[k]",
+    Mutant("tests/reference/reflection.py", "jacobians[1 + k] = H_mirrors[k]", "jacobians[1 + k] = -H_mirrors[k]",
            ("tests/test_factors.py",), "the mirror Jacobian's sign"),
 ])
 

@@ -162,8 +162,8 @@ def test_covariance_convention_matches_perturbation_of_rotation_about_camera_axe
 
 
 def test_schur_marginals_equal_gtsam_marginals():
-    from mirror_fg.solver.model.graph import build_graph
-    from mirror_fg.solver.model.marginals import _marginals_from_gtsam, marginal_covariances
+    from reference.graph import build_graph
+    from reference.marginals import _marginals_from_gtsam, marginal_covariances
 
     dataset, truth = simulate_base_case(num_images=40, num_points=4, pixel_sigma=1.0, seed=8)
     for fast in (True, False):

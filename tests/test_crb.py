@@ -13,7 +13,7 @@ from mirror_fg.solver.information.crb import (
 from mirror_fg.data import Dataset, Image
 from mirror_fg.core.geometry import measurement, so3_exp
 from mirror_fg import calibrate
-from mirror_fg.solver.model.graph import build_graph
+from reference.graph import build_graph
 from mirror_fg.simulate.tree import GroundTruth, simulate_base_case
 from mirror_fg.core.transform import covariance_from_pose3 as spec_covariance_from_pose3
 

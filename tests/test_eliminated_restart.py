@@ -5,7 +5,7 @@ import gtsam
 import numpy as np
 
 from mirror_fg.simulate.tree import simulate_base_case
-from mirror_fg.solver.model.graph import build_eliminated_graph, extract_values, initial_values
+from reference.graph import build_eliminated_graph, extract_values, initial_values
 from mirror_fg.solver.model.lm import lm_params
 from test_fast_path import _perturbed
 

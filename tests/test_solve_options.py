@@ -44,12 +44,14 @@ def test_options_give_exactly_what_the_separate_arguments_give(scene, settings, 
 def _graphs_built(monkeypatch, scene, options, eliminate=True, view_model=True):
     """Which graphs ``calibrate`` builds for its LM runs: "eliminated", "stacked" or "reference" per build, on
     the view model (``view_model``, the default: ``ViewProblem.solve_graph`` and ``graph``) or on the tree's
-    own factors (``lm.build_eliminated_graph`` and ``build_graph``)."""
-    monkeypatch.setattr(lm_module, "VIEW_MODEL", view_model)
+    own factors (``tests/reference/lm.py``: ``build_eliminated_graph`` and ``build_graph``)."""
     if view_model:
         return _view_graphs_built(monkeypatch, scene, options, eliminate)
+    import reference.lm as reference_lm
+
+    reference_lm.use_tree_factors(monkeypatch)
     built: list[str] = []
-    eliminated_graph, graph = lm_module.build_eliminated_graph, lm_module.build_graph
+    eliminated_graph, graph = reference_lm.build_eliminated_graph, reference_lm.build_graph
 
     def eliminated_spy(*args, **kwargs):
         built.append("eliminated")
@@ -59,8 +61,8 @@ def _graphs_built(monkeypatch, scene, options, eliminate=True, view_model=True):
         built.append("stacked" if fast else "reference")
         return graph(dataset, initial, robust, fast=fast)
 
-    monkeypatch.setattr(lm_module, "build_eliminated_graph", eliminated_spy)
-    monkeypatch.setattr(lm_module, "build_graph", graph_spy)
+    monkeypatch.setattr(reference_lm, "build_eliminated_graph", eliminated_spy)
+    monkeypatch.setattr(reference_lm, "build_graph", graph_spy)
     monkeypatch.setattr(lm_module, "ELIMINATE", eliminate)
     calibrate(scene, options=dataclasses.replace(options, compute_covariance=False, diagnose=False))
     return set(built)

@@ -1,7 +1,7 @@
-"""The paper's tree solved by calibrate() on the general view model (lm.VIEW_MODEL: solver/model/view_lm.py,
-the tree's analytical start, the view factors with each photograph's own placement eliminated) against the
-tree's own factors (factors/eliminated.py, factors/batched.py): the same estimates, covariances, cost and
-result fields."""
+"""The paper's tree solved by calibrate() on the general view model (solver/model/view_lm.py, the tree's
+analytical start, the view factors with each photograph's own placement eliminated) against the tree's own
+factors (tests/reference/: eliminated.py, batched.py): the same estimates, covariances, cost and result
+fields."""
 from __future__ import annotations
 
 import numpy as np
@@ -10,14 +10,16 @@ import pytest
 import mirror_fg
 from mirror_fg.simulate.tree import simulate_tree
 from mirror_fg.solver.model import lm as lm_module, view_lm
+from reference.lm import use_tree_factors
 
 
 @pytest.mark.parametrize("num_mirrors,points,robust", [(1, 0, None), (2, 3, None), (3, 0, None), (2, 0, "huber")])
 def test_view_model_run_equals_the_tree_factors(monkeypatch, num_mirrors, points, robust):
     dataset, _ = simulate_tree(num_mirrors, num_fiducials=4, num_points=points, pixel_sigma=0.5, seed=3)
-    monkeypatch.setattr(lm_module, "VIEW_MODEL", False)  # the tree's own factors
+    one_model = lm_module._levenberg_marquardt
+    use_tree_factors(monkeypatch)  # the tree's own factors
     tree = mirror_fg.calibrate(dataset, robust=robust)
-    monkeypatch.setattr(lm_module, "VIEW_MODEL", True)
+    monkeypatch.setattr(lm_module, "_levenberg_marquardt", one_model)
     runs = []
     real = view_lm.view_model_run
     monkeypatch.setattr(view_lm, "view_model_run", lambda *args: runs.append(1) or real(*args))

@@ -1,9 +1,9 @@
 """``SolveOptions``: how ``calibrate`` solves, in one frozen value (as GTSAM's ``SmartProjectionParams``).
 
-The factor kind is a :class:`Linearization`: the per-measurement ``reference`` factors
-(``factors/reflection.py``), the ``stacked`` vectorised ones (``factors/batched.py``, same model and
-Jacobians) or ``eliminated``: the stacked factors with the last mirror's placements eliminated inside
-them (``factors/eliminated.py``) where the data allow it, else stacked (see :meth:`SolveOptions.eliminates`).
+The factor kind is a :class:`Linearization` of the one measurement model: one ``reference`` view factor per
+image (``factors/views.py``), the ``stacked`` vectorised ones (``factors/view_stack.py``, same model and
+Jacobians) or ``eliminated``: the stacked factors with each photograph's own placement eliminated inside
+them (``factors/view_eliminated.py``) where the data allow it, else stacked (see :meth:`SolveOptions.eliminates`).
 """
 from __future__ import annotations
 
@@ -26,9 +26,9 @@ STAGES = ("initial estimate", "Levenberg-Marquardt", "marginals")
 class Linearization(str, Enum):
     """The factors the MLE (eq. 23) is linearised with; every kind gives the same estimates."""
 
-    REFERENCE = "reference"  # one factor per measurement (factors/reflection.py)
-    STACKED = "stacked"  # the measurements stacked into vectorised factors (factors/batched.py)
-    ELIMINATED = "eliminated"  # stacked, the last mirror's placements eliminated inside (factors/eliminated.py)
+    REFERENCE = "reference"  # one view factor per image (factors/views.py)
+    STACKED = "stacked"  # the views stacked into vectorised factors (factors/view_stack.py)
+    ELIMINATED = "eliminated"  # stacked, each photograph's own placement eliminated inside (factors/view_eliminated.py)
 
 
 @dataclass(frozen=True)

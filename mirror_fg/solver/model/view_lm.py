@@ -2,9 +2,8 @@
 (``solver/model/views.py``): the tree's analytical solution (Sects. 4-5) as the start, the view factors as
 the linearisation (a photograph's own placement eliminated inside its stacked factor,
 ``factors/view_eliminated.py``, where the options allow it; else stacked, or one ``ViewFactor`` per image
-for ``Linearization.REFERENCE``), read back as the tree's :class:`~mirror_fg.solver.model.lm.LMRun`, so
-that the tree's pipeline (restarts, checks, result) runs unchanged on the one model. ``lm.VIEW_MODEL``
-switches it on.
+for ``Linearization.REFERENCE``), read back as the run the tree's pipeline (restarts, checks, result) reads:
+its estimate, covariances and costs.
 """
 from __future__ import annotations
 
@@ -24,7 +23,8 @@ __all__ = ["ViewLMRun", "view_model_run"]
 
 @dataclass
 class ViewLMRun:
-    """An :class:`~mirror_fg.solver.model.lm.LMRun` of the view model: the same fields and methods."""
+    """One LM run of the view model: its graph, start and result values, costs, convergence and the
+    eliminated placements' stack (if any); its estimate and covariances read back in the tree's terms."""
 
     graph: gtsam.NonlinearFactorGraph
     values: gtsam.Values

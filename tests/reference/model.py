@@ -10,7 +10,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from mirror_fg.factors.stacking import Fiducials, KeyLayout, Observation
+from reference.stacking import Fiducials, KeyLayout, Observation
 
 __all__ = ["reflection_model", "measurement_arrays", "mirror_input", "last_mirror_moments"]
 

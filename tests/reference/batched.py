@@ -46,8 +46,8 @@ import gtsam
 import numpy as np
 
 from mirror_fg.core.geometry import nested_transforms, predict_camera_points, project
-from mirror_fg.factors.model import measurement_arrays, reflection_model
-from mirror_fg.factors.stacking import (
+from reference.model import measurement_arrays, reflection_model
+from reference.stacking import (
     MAX_POINTS_PER_FACTOR,
     Fiducials,
     KeyLayout,

@@ -32,11 +32,11 @@ import gtsam
 import numpy as np
 
 from mirror_fg.factors.view_eliminated import COLLAPSED_FRACTION, collapsed  # noqa: F401 (public here too)
-from mirror_fg.factors.model import last_mirror_moments, measurement_arrays, mirror_input, reflection_model
+from reference.model import last_mirror_moments, measurement_arrays, mirror_input, reflection_model
 from mirror_fg.factors.schur import (
     compressed_normal, gauss_newton_steps, inverses, one_blas_thread, row_products, segment_sums,
 )
-from mirror_fg.factors.stacking import Fiducials, KeyLayout, Observation, sigma_rows
+from reference.stacking import Fiducials, KeyLayout, Observation, sigma_rows
 
 __all__ = [
     "EliminatedEvaluator", "NotEliminable", "eliminated_evaluator", "collapsed", "COLLAPSED_FRACTION", "INNER_MAX_ITERATIONS",
