@@ -320,30 +320,33 @@ class ViewProblem:
     # ------------------------------------------------------------------ residuals
     def residuals(self, estimate: ViewEstimate) -> tuple[np.ndarray, np.ndarray, list[tuple[str, str]]]:
         """Per measurement (file order): residuals (N, 2) in pixels with a camera (else normalized), their
-        whitened norms (sigmas) and ``(image, point)`` labels."""
-        residuals: list[np.ndarray] = []
-        whitened: list[np.ndarray] = []
-        labels: list[tuple[str, str]] = []
+        whitened norms (sigmas) and ``(image, point)`` labels. The views of one block (one camera, the same
+        points seen) at once."""
+        images = self.dataset.images
         predicted = self._predictions(estimate)
-        views: list[tuple[ViewFactor, np.ndarray]] = [None] * len(self.views)  # type: ignore[list-item]
-        for block in self.table.blocks:  # each view's shape and observations
-            for row, i in enumerate(block.members.tolist()):
-                views[i] = (block.template, block.observed[row])
-        for image, view, (factor, observed), z in zip(self.dataset.images, self.views, views, predicted):
-            camera: Camera | None = self.dataset.camera_of(image)
+        residuals: list[np.ndarray] = [np.zeros((0, 2))] * self.table.count
+        whitened: list[np.ndarray] = [np.zeros(0)] * self.table.count
+        for block in self.table.blocks:
+            members = block.members.tolist()
+            factor = block.template
+            z = np.array([predicted[i] for i in members], dtype=float).reshape(len(members), -1, 2)  # (b, N, 2)
+            observed = block.observed.transpose(0, 2, 1)  # normalized; pixels where the intrinsics are estimated
+            sigmas = factor.sigmas.T  # (N, 2), in the observations' units
             if factor.intrinsics is not None:  # pixels through the estimated intrinsics
                 assert estimate.theta is not None
-                residual = predict_pixels(estimate.theta[view.camera], z) - observed.T
-                whitened.append(np.linalg.norm(residual / factor.sigmas.T, axis=1))
+                residual = predict_pixels(estimate.theta[factor.camera], z.reshape(-1, 2)).reshape(z.shape) - observed
+                norms = np.linalg.norm(residual / sigmas, axis=2)
             else:
-                whitened.append(np.linalg.norm((z - view.normalized) / factor.sigmas.T, axis=1))
+                norms = np.linalg.norm((z - observed) / sigmas, axis=2)
+                camera: Camera | None = self.dataset.camera_of(images[members[0]])
                 if camera is not None:
-                    observed = np.array([image.observations[n] for n in view.names], dtype=float).reshape(-1, 2)
-                    residual = camera.distort(z) - observed
+                    pixels = np.array([list(images[i].observations.values()) for i in members], dtype=float)
+                    residual = camera.distort(z.reshape(-1, 2)).reshape(z.shape) - pixels.reshape(z.shape)
                 else:
-                    residual = z - view.normalized
-            residuals.append(residual)
-            labels.extend((image.id, n) for n in view.names)
+                    residual = z - observed
+            for row, i in enumerate(members):
+                residuals[i], whitened[i] = residual[row], norms[row]
+        labels = [(image.id, name) for image in images for name in image.observations]
         return np.vstack(residuals), np.concatenate(whitened), labels
 
     def _predictions(self, estimate: ViewEstimate) -> list[np.ndarray]:
