@@ -1,4 +1,4 @@
-"""An eliminated evaluator restarted from other placements (factors/eliminated.py, ``restart``) behaves bit for
+"""An eliminated evaluator restarted from other placements (tests/reference/eliminated.py, ``restart``) behaves bit for
 bit as a new one built from them: the same LM iterates, cost and recovered placements (initial.py refines
 each hypothesis of a subtree on one graph)."""
 import gtsam

@@ -1,4 +1,4 @@
-"""The eliminated factors (factors/eliminated.py) against the per-measurement reference (factors/reflection.py).
+"""The tree's eliminated factors (tests/reference/eliminated.py) against its per-measurement reference (tests/reference/reflection.py).
 
 The reduced system of the eliminated graph must be the Schur complement of the reference graph's
 system with the last mirror's placements eliminated (same cost, information and gradient), and whole

@@ -1,4 +1,4 @@
-"""The batched fast path (factors/batched.py) against the per-measurement reference (factors/reflection.py).
+"""The tree's batched factors (tests/reference/batched.py) against its per-measurement reference (tests/reference/reflection.py).
 
 Errors and every Jacobian block to 1e-9, robust linear systems and losses, the evaluation cache, and
 whole calibrations (LM + Marginals) that must give the same estimates either way.
@@ -222,7 +222,7 @@ def _assert_same_calibration(fast, ref):
     [(None, {}), (None, {"images_per_factor": 1, "max_points_per_factor": 2}), ("huber", {"images_per_factor": 4})],
 )
 def test_calibrate_fast_and_reference_paths_agree(monkeypatch, robust, options):
-    use_tree_factors(monkeypatch)  # the tree's own factors (factors/batched.py) and their options
+    use_tree_factors(monkeypatch)  # the tree's own factors (tests/reference/batched.py) and their options
     dataset, truth = simulate_base_case(num_images=36, num_points=4, seed=5)
     initial = _perturbed(truth, 7, scale=2.0)
     reference = calibrate(dataset, initial=initial, robust=robust, fast=False)
@@ -270,7 +270,7 @@ def test_factor_of_a_subgraph_with_only_its_own_values():
 
 def test_stacked_calibrate_uses_the_fast_path_and_matches_reference(monkeypatch):
     monkeypatch.setattr(lm_module, "ELIMINATE", False)  # the default eliminates: tests/test_elimination.py
-    use_tree_factors(monkeypatch)  # the tree's own stacked factors (factors/batched.py)
+    use_tree_factors(monkeypatch)  # the tree's own stacked factors (tests/reference/batched.py)
     dataset, truth = simulate_base_case(num_images=60, num_points=3, seed=9)
     graph, *_ = build_graph(dataset, truth)
     assert graph.size() < sum(len(im.observations) for im in dataset.images)  # stacked factors

@@ -84,7 +84,7 @@ def test_eliminated_tree_as_per_view():
 @pytest.mark.parametrize("num_mirrors,points", [(1, 0), (2, 0), (3, 0), (2, 3)])
 def test_calibration_eliminated_as_the_tree(num_mirrors, points):
     """calibrate_views with the placements eliminated (the default) against the tree's own factors
-    (factors/eliminated.py, factors/batched.py through the tree pipeline), and with every placement an
+    (tests/reference/eliminated.py, batched.py through the tree pipeline), and with every placement an
     unknown (linearization="stacked", LM's tolerance: 1e-6): the same estimates and covariances."""
     dataset, _ = simulate_tree(num_mirrors, num_fiducials=4, num_points=points, pixel_sigma=0.5, seed=3)
     eliminated = calibrate_views(dataset)
