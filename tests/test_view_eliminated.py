@@ -55,8 +55,8 @@ def _reference(problem: ViewProblem, values: gtsam.Values, kept: gtsam.Values, e
         values = values.retract(delta)
         if np.abs(step).max() < 1e-13:
             break
-    A, b = graph.linearize(values).jacobian(ordering)
-    H, g = A.T @ A, A.T @ b
+    A, _ = graph.linearize(values).jacobian(ordering)
+    H = A.T @ A
     rest = np.concatenate([columns[k] for k in keys if k not in inside])
     own = np.concatenate([columns[k] for k in keys if k in inside])
     D_inv = np.linalg.inv(H[np.ix_(own, own)])
