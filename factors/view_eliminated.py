@@ -44,12 +44,12 @@ from mirror_fg.factors.view_stack import _Group, read_poses_and_planes
 from mirror_fg.factors.view_table import ViewTable
 from mirror_fg.factors.views import ViewFactor
 
-__all__ = ["EliminatedViewStack", "eliminable", "private_placements", "PLACEMENTS_PER_FACTOR", "collapsed", "COLLAPSED_FRACTION",
+__all__ = ["EliminatedViewStack", "IDENTITY", "eliminable", "private_placements", "PLACEMENTS_PER_FACTOR", "collapsed", "COLLAPSED_FRACTION",
            "collapsed_placements", "halved_placements", "newton_steps", "solve_placements"]
 
 Placement = tuple[int, int]
-_IDENTITY = np.eye(3)  # read only
-_IDENTITY.flags.writeable = False
+IDENTITY = np.eye(3)  # an eliminated placement's Jacobian (its variable is its vector): read only
+IDENTITY.flags.writeable = False
 _THIRTEEN = np.arange(13)
 #: Placements of one factor at most: its width is its poses and kept placements only, so a factor can hold
 #: many photographs (few Python calls per iteration).
@@ -154,7 +154,7 @@ def solve_placements(vectors: np.ndarray, D: np.ndarray, g: np.ndarray, own: np.
     E = len(vectors)
     damping = np.zeros(E)
     for _ in range(INNER_MAX_ITERATIONS if E else 0):
-        step = newton_steps(D + damping[:, None, None] * (D * _IDENTITY), g)
+        step = newton_steps(D + damping[:, None, None] * (D * IDENTITY), g)
         if not np.all(np.isfinite(step)):
             raise RuntimeError("an eliminated mirror placement has no finite optimum at these values")
         length = np.linalg.norm(step, axis=1)
@@ -297,16 +297,17 @@ class EliminatedViewStack:
         for i, (group, fast) in enumerate(zip(self.groups, self._fast)):
             if fast:
                 by_count.setdefault(group.base.shape[2], []).append(i)
-        merged = [(members, np.concatenate([self._observed_soa[i] for i in members], axis=2),
-                   np.concatenate([self._sigmas_soa[i] for i in members], axis=2),
-                   np.concatenate([self._placement_of_view[i] for i in members])) for members in by_count.values()]
-        self._merged_one_view = [bool(np.all(seen[placement_of] == 1)) for _, _, _, placement_of in merged]
-        # None: the only views, placement k seen by view k alone (no gather, no scatter: _moments)
-        self._merged: list[tuple[list[int], np.ndarray, np.ndarray, np.ndarray | None]] = [
-            (members, observed, sigmas,
-             None if (len(merged) == 1 and all(self._fast) and self._merged_one_view[0]
-                      and np.array_equal(placement_of, np.arange(len(self.eliminated)))) else placement_of)
-            for members, observed, sigmas, placement_of in merged]
+        # each merge's placements seen by its views alone, one each (``one_view``); None for the placements:
+        # the only views, placement k seen by view k alone (no gather, no scatter: _moments)
+        self._merged: list[tuple[list[int], np.ndarray, np.ndarray, np.ndarray | None, bool]] = []
+        for members in by_count.values():
+            placement_of = np.concatenate([self._placement_of_view[i] for i in members])
+            one_view = bool(np.all(seen[placement_of] == 1))
+            only = (len(by_count) == 1 and all(self._fast) and one_view
+                    and np.array_equal(placement_of, np.arange(len(self.eliminated))))
+            self._merged.append((members, np.concatenate([self._observed_soa[i] for i in members], axis=2),
+                                 np.concatenate([self._sigmas_soa[i] for i in members], axis=2),
+                                 None if only else placement_of, one_view))
         self._mine = [np.flatnonzero(stack_of_placement == s) for s in range(len(stacks))]
         self._c_index = [self._c_offsets[m][:, None] + np.arange(3 * (w + 1))[None] for m, w in zip(self._mine, self._widths)]
         self._all_targets = (self._targets[0].ravel() if len(self._targets) == 1
@@ -402,7 +403,7 @@ class EliminatedViewStack:
         kept = list(self.kept_mirror_keys)
         V = np.concatenate([np.array([vectors[p] for p in kept]).reshape(-1, 3), self._vectors])
         J = np.concatenate([np.array([jacobians[p] for p in kept]).reshape(-1, 3, 3),
-                            np.broadcast_to(np.eye(3), (len(self.eliminated), 3, 3))])
+                            np.broadcast_to(IDENTITY, (len(self.eliminated), 3, 3))])
         return V, J
 
     def _prefixes(self, poses, vectors, jacobians, derivatives: bool) -> list:
@@ -441,7 +442,7 @@ class EliminatedViewStack:
         E = len(self.eliminated)
         D, g, own = np.zeros((E, 3, 3)), np.zeros((E, 3)), np.zeros(E)
         rest = np.zeros(len(self._keys))
-        for (_, observed, sigmas, placement_of), y, one_view in zip(self._merged, merged, self._merged_one_view):
+        for (_, observed, sigmas, placement_of, one_view), y in zip(self._merged, merged):
             if placement_of is None:  # the only views: placement k seen by view k alone (the tree's last mirror)
                 D, g, own = last.moments(y, self._vectors, observed, sigmas)
                 continue

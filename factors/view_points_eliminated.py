@@ -30,7 +30,7 @@ import gtsam
 import numpy as np
 
 import mirror_fg.factors.view_last_reflection as last
-from mirror_fg.factors.view_eliminated import private_placements, restart_collapsed, solve_placements
+from mirror_fg.factors.view_eliminated import IDENTITY, private_placements, restart_collapsed, solve_placements
 from mirror_fg.factors.view_points import PLACEMENTS_PER_FACTOR, ViewPointStack
 from mirror_fg.factors.view_stack import _Group, read_poses_and_planes, stacks_by_placements
 from mirror_fg.factors.views import ViewFactor
@@ -38,8 +38,6 @@ from mirror_fg.factors.views import ViewFactor
 __all__ = ["EliminatedViewPointStack"]
 
 Placement = tuple[int, int]
-_IDENTITY = np.eye(3)  # an eliminated placement's Jacobian (its variable is its vector): read only
-_IDENTITY.flags.writeable = False
 
 
 class EliminatedViewPointStack(ViewPointStack):
@@ -106,7 +104,7 @@ class EliminatedViewPointStack(ViewPointStack):
             self._solve(poses, vectors, jacobians, points)
             self._solved_state = solved
         for p, v in zip(self.eliminated, self._vectors):
-            vectors[p], jacobians[p] = v, _IDENTITY
+            vectors[p], jacobians[p] = v, IDENTITY
         return poses, vectors, jacobians, state
 
     def _bases(self, points: np.ndarray) -> list[np.ndarray]:
@@ -128,7 +126,7 @@ class EliminatedViewPointStack(ViewPointStack):
         """``D = J_v^T J_v`` (E, 3, 3), ``J_v^T e`` (E, 3) and the cost (E,) of each eliminated placement's
         views at the current vectors, the rest held."""
         for p, v in zip(self.eliminated, self._vectors):
-            vectors[p], jacobians[p] = v, _IDENTITY
+            vectors[p], jacobians[p] = v, IDENTITY
         E = len(self.eliminated)
         D, g, cost = np.zeros((E, 3, 3)), np.zeros((E, 3)), np.zeros(E)
         for (group, u, placement_of, _, _, unique), base, y, (observed, sigmas) in zip(
@@ -158,7 +156,7 @@ class EliminatedViewPointStack(ViewPointStack):
         vectors, jacobians = dict(vectors), dict(jacobians)
         bases = self._bases(points)
         for p, v in zip(self.eliminated, self._vectors):
-            vectors[p], jacobians[p] = v, _IDENTITY
+            vectors[p], jacobians[p] = v, IDENTITY
         prefixes = self._prefixes(poses, vectors, jacobians, bases)
         D, g, own = self._moments(poses, vectors, jacobians, bases, prefixes)
         solve_placements(self._vectors, D, g, own, lambda: self._moments(poses, vectors, jacobians, bases, prefixes))
