@@ -300,13 +300,13 @@ class EliminatedViewStack:
         # each merge's placements seen by its views alone, one each (``one_view``); None for the placements:
         # the only views, placement k seen by view k alone (no gather, no scatter: _moments)
         self._merged: list[tuple[list[int], np.ndarray, np.ndarray, np.ndarray | None, bool]] = []
-        for members in by_count.values():
-            placement_of = np.concatenate([self._placement_of_view[i] for i in members])
+        for merge in by_count.values():
+            placement_of = np.concatenate([self._placement_of_view[i] for i in merge])
             one_view = bool(np.all(seen[placement_of] == 1))
             only = (len(by_count) == 1 and all(self._fast) and one_view
                     and np.array_equal(placement_of, np.arange(len(self.eliminated))))
-            self._merged.append((members, np.concatenate([self._observed_soa[i] for i in members], axis=2),
-                                 np.concatenate([self._sigmas_soa[i] for i in members], axis=2),
+            self._merged.append((merge, np.concatenate([self._observed_soa[i] for i in merge], axis=2),
+                                 np.concatenate([self._sigmas_soa[i] for i in merge], axis=2),
                                  None if only else placement_of, one_view))
         self._mine = [np.flatnonzero(stack_of_placement == s) for s in range(len(stacks))]
         self._c_index = [self._c_offsets[m][:, None] + np.arange(3 * (w + 1))[None] for m, w in zip(self._mine, self._widths)]
